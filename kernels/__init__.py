@@ -1,0 +1,1 @@
+"""Hand-written NVIDIA Warp kernels of gnwarp (installed as ``gnwarp.kernels``)."""
