@@ -11,6 +11,7 @@ from gnwarp import data, systems
 from gnwarp.controls import control_range, random_spline_controls
 from gnwarp.convert import (DYN_NODE_SIZE, FeatureLayout, body_states, edge_controls, static_graph,
                             topology)
+from gnwarp._warp import cuda_available
 from gnwarp.simulate import simulate
 
 
@@ -83,14 +84,18 @@ def test_mujoco_c_backend_matches_reference_stepping(name):
 
 # MuJoCo-Warp (Warp's CPU device) against MuJoCo C from the same initial states and controls.
 # Float32 (MJWarp) vs float64 (C) over 20 data steps: relative tolerance on the state scale.
+WARP_BACKENDS = ["mujoco_warp_cpu"] + (["mujoco_warp"] if cuda_available() else [])
+
+
+@pytest.mark.parametrize("backend", WARP_BACKENDS)
 @pytest.mark.parametrize("name", ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"])
-def test_mujoco_warp_matches_mujoco_c(name):
+def test_mujoco_warp_matches_mujoco_c(name, backend):
     s = systems.make(name)
     rng = np.random.default_rng(1)
     q0, v0 = data.initial_states(s, 4, rng)
     u = random_spline_controls(4, 20, control_range(s.model), rng)
     c = simulate(s, q0, v0, u, backend="mujoco")
-    w = simulate(s, q0, v0, u, backend="mujoco_warp_cpu")
+    w = simulate(s, q0, v0, u, backend=backend)
     scale = np.abs(c.body).reshape(-1, DYN_NODE_SIZE).max(0) + 1.0
     err = (np.abs(c.body - w.body) / scale).max()
     # contacts (cheetah, walker) amplify float32 rounding; chaotic systems diverge slowly
