@@ -1,5 +1,31 @@
 """gnwarp: graph networks as learnable physics engines, on NVIDIA Warp and MuJoCo-Warp."""
-from gnwarp.graphs import GraphsTuple
 
-__all__ = ["GraphsTuple"]
+
+def _find_kernels():
+    """``gnwarp.kernels`` is the top-level ``kernels/`` folder, mapped by the install (package-dir).
+    Run from a source checkout without installing (PYTHONPATH=.), map it here the same way."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+    try:
+        import gnwarp.kernels  # noqa: F401
+        return
+    except ModuleNotFoundError:
+        pass
+    src = Path(__file__).resolve().parent.parent / "kernels"
+    spec = importlib.util.spec_from_file_location("gnwarp.kernels", src / "__init__.py",
+                                                  submodule_search_locations=[str(src)])
+    if spec is None:
+        raise ModuleNotFoundError("gnwarp.kernels: install gnwarp (pip install .) or run from its source checkout")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["gnwarp.kernels"] = mod
+    spec.loader.exec_module(mod)
+
+
+_find_kernels()
+from gnwarp.graphs import GraphsTuple
+from gnwarp.gn import GNBlockConfig, GraphNetwork
+from gnwarp.train import load_model
+
+__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig"]
 __version__ = "0.1.0"

@@ -61,6 +61,117 @@ def _cmd_generate(args) -> int:
     return 0
 
 
+def _parse_value(text: str):
+    """A --set value: JSON when it parses (numbers, true/false/null, lists), else the string."""
+    import json
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _read_config(path: str | None) -> dict:
+    import json
+    from pathlib import Path
+    if path is None:
+        return {}
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"no config file at {p}")
+    if p.suffix == ".toml":
+        try:
+            import tomllib
+        except ImportError:  # Python 3.10
+            import tomli as tomllib
+        return tomllib.loads(p.read_text())
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{p} is not valid JSON ({e}); TOML files need the .toml suffix") from None
+
+
+def _apply_overrides(cfg: dict, items: list[str]) -> dict:
+    """``key=value`` overrides into a nested dict; dotted keys reach nested configs (model.gn.latent=64)."""
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        d = cfg
+        *parents, leaf = key.strip().split(".")
+        for k in parents:
+            d = d.setdefault(k, {})
+            if not isinstance(d, dict):
+                raise ValueError(f"--set {key}: {k} is not a nested config")
+        d[leaf] = _parse_value(value)
+    return cfg
+
+
+def _cmd_train(args) -> int:
+    from gnwarp.train import TrainConfig, train
+    raw = _apply_overrides(_read_config(args.config), args.set)
+    if args.data:
+        raw["data"] = args.data
+    if args.out:
+        raw["out"] = args.out
+    if args.no_resume:
+        raw["resume"] = False
+    if args.quiet:
+        raw["progress"] = False
+    cfg = TrainConfig.from_dict(raw)
+    r = train(cfg)
+    print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, stop: {r['stop']}); "
+          f"best 20-step validation error {r['best_error']:.4g} at step {r['best_step']}; checkpoints in {r['out']}")
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    import json
+    from pathlib import Path
+
+    from gnwarp import data
+    from gnwarp import evaluate as ev
+    from gnwarp.train import load_model
+    ds = data.load(args.data)
+    results = {}
+    for k, path in enumerate(args.checkpoints):
+        name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
+        m = load_model(path, device=args.device, backend=args.backend)
+        results[name] = ev.evaluate(m, ds, args.split, args.sequences, tuple(args.horizons),
+                                    keep_predictions=bool(args.out))
+    preds = {n: r.pop("predictions", None) for n, r in results.items()}
+    table = ev.markdown_table(results, ds.system)
+    print(table)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "errors.md").write_text(table)
+        ev.plot_errors(results, out / "errors.png", f"{ds.system}: normalized errors")
+        first = next(iter(preds.values()))
+        if first is not None:
+            true, inst = first["true"], first["instance"]
+            body = 1 if true.shape[2] > 1 else 0
+            ev.plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
+                                 out / "states.png", f"{ds.system}, body {body}")
+            k = min(3, true.shape[0])
+            ev.animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
+                       title=f"{ds.system}: true vs predicted")
+        from gnwarp.demo import _jsonable
+        (out / "results.json").write_text(json.dumps(_jsonable(results), indent=1))
+        print(f"wrote {out}/errors.md, errors.png, states.png, rollouts.gif, results.json")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from gnwarp.demo import DemoConfig, run_demo
+    over = {k: v for k, v in (("out", args.out), ("train_steps", args.steps), ("train_seconds", args.seconds),
+                              ("backend", args.backend), ("device", args.device), ("system", args.system))
+            if v is not None}
+    if args.quiet:
+        over["progress"] = False
+    run_demo(DemoConfig(**over))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -86,6 +197,41 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--overwrite", action="store_true")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=_cmd_generate)
+
+    t = sub.add_parser("train", help="train a forward model (config file plus --set overrides)",
+                       description="Train a forward model. Keys are those of gnwarp.train.TrainConfig; nested "
+                                   "model keys are dotted, e.g. --set model.core=mlp --set model.gn.latent=64. "
+                                   "Resumes from <out>/last when it exists.")
+    t.add_argument("config", nargs="?", help="JSON or TOML training config (TrainConfig fields)")
+    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key (repeatable; values parsed as JSON when they parse)")
+    t.add_argument("--data", nargs="+", help="dataset file(s); overrides the config's `data`")
+    t.add_argument("-o", "--out", help="run folder (checkpoints and log); overrides the config's `out`")
+    t.add_argument("--no-resume", action="store_true", help="start afresh even if <out>/last exists")
+    t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=_cmd_train)
+
+    e = sub.add_parser("evaluate", help="one-step and rollout errors of checkpoints on a dataset")
+    e.add_argument("checkpoints", nargs="+", help="checkpoint folders (e.g. runs/gn/best runs/mlp/best)")
+    e.add_argument("--data", required=True, help="dataset file")
+    e.add_argument("--names", nargs="+", help="model names for the table (default: the run folder names)")
+    e.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    e.add_argument("-n", "--sequences", type=int, default=None, help="first N sequences of the split (default all)")
+    e.add_argument("--horizons", type=int, nargs="+", default=[20, 100])
+    e.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
+    e.add_argument("--backend", choices=["warp", "torch"], default=None, help="override the GN backend")
+    e.add_argument("-o", "--out", help="also write the table, bar chart, state plot and GIF here")
+    e.set_defaults(func=_cmd_evaluate)
+
+    d = sub.add_parser("demo", help="simulate Pendulum, train a GN and an MLP, evaluate, write a report")
+    d.add_argument("-o", "--out", help="output folder (default: ./gnwarp-demo)")
+    d.add_argument("--steps", type=int, help="training steps per model")
+    d.add_argument("--seconds", type=float, help="training time cap for the GN (the MLP gets its step count)")
+    d.add_argument("--system", help="system to model (default: pendulum)")
+    d.add_argument("--backend", choices=["warp", "torch"], help="GN backend (default: warp)")
+    d.add_argument("--device", help="cpu, cuda, ... (default: CUDA when present)")
+    d.add_argument("-q", "--quiet", action="store_true")
+    d.set_defaults(func=_cmd_demo)
     return p
 
 
@@ -93,7 +239,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, FileExistsError, PermissionError, RuntimeError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, PermissionError, RuntimeError, TypeError) as e:
         print(f"gnwarp {args.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -1,0 +1,444 @@
+"""The Warp GN block against the pure-torch reference (CPU).
+
+Sizes are small and few distinct ones are used, so the number of kernels Warp compiles stays
+modest (each configuration compiles once; ~0.1 s per SIMT kernel, ~5 s per fused tile kernel).
+"""
+import itertools
+
+import pytest
+import torch
+import warp as wp
+
+wp.config.quiet = True
+
+from torch.func import functional_call  # noqa: E402
+
+from gnwarp import GNBlockConfig, GraphNetwork, GraphsTuple  # noqa: E402
+from gnwarp import gn_warp  # noqa: E402
+from gnwarp.gn import EdgeBlockConfig, GlobalBlockConfig, NodeBlockConfig, TorchGraphNetwork  # noqa: E402
+from gnwarp.graphs import batch  # noqa: E402
+
+FV, FE, FU = 3, 2, 4
+SMALL = dict(node_size=FV, edge_size=FE, global_size=FU, node_out=5, edge_out=6, global_out=7,
+             edge_hidden=(16, 16), node_hidden=(16,), global_hidden=(16,))
+# the tiny block of the gradcheck and tile-path tests
+TINY = dict(node_size=2, edge_size=2, global_size=2, node_out=3, edge_out=3, global_out=2,
+            edge_hidden=(4,), node_hidden=(4,), global_hidden=(4,))
+
+
+# -- graphs -------------------------------------------------------------------------------------
+def one_graph(gen, n_node, n_edge, fv=FV, fe=FE, fu=FU, dtype=torch.float64, active=None, scale=1.0):
+    """A random graph; edges only touch the first ``active`` nodes (the rest are isolated)."""
+    active = n_node if active is None else active
+    s = torch.randint(0, max(active, 1), (n_edge,), generator=gen)
+    r = torch.randint(0, max(active, 1), (n_edge,), generator=gen)
+
+    def feats(rows, f):
+        return None if f == 0 else scale * torch.randn(rows, f, generator=gen, dtype=dtype)
+    return GraphsTuple(feats(n_node, fv), feats(n_edge, fe), feats(1, fu), s, r,
+                       torch.tensor([n_node]), torch.tensor([n_edge]))
+
+
+def make_batch(kind, dtype=torch.float64, seed=0, scale=1.0, fv=FV, fe=FE, fu=FU):
+    gen = torch.Generator().manual_seed(seed)
+    specs = {
+        # several graphs of different sizes, one without edges, one with isolated nodes
+        "mixed": [(4, 7, None), (3, 0, None), (6, 11, 3), (1, 1, None), (5, 9, None)],
+        "one_graph": [(7, 12, None)],
+        "no_edges": [(3, 0, None), (2, 0, None)],
+        "chain": [(5, 8, None), (8, 16, 6), (3, 4, None)],
+        "gradcheck": [(3, 4, None), (2, 0, None), (3, 3, 2)],
+    }[kind]
+    return batch([one_graph(gen, n, e, fv, fe, fu, dtype, a, scale) for n, e, a in specs])
+
+
+def with_grad(g):
+    f = (lambda x: None if x is None else x.detach().clone().requires_grad_())
+    return g._replace(nodes=f(g.nodes), edges=f(g.edges), globals=f(g.globals))
+
+
+def cast(g, dtype):
+    f = (lambda x: None if x is None else x.to(dtype))
+    return g._replace(nodes=f(g.nodes), edges=f(g.edges), globals=f(g.globals))
+
+
+def rel_err(a, b):
+    """max |a - b| / max |b| (error relative to the tensor's scale)."""
+    b = b.double()
+    return ((a.double() - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()
+
+
+def loss_of(out):
+    # weights that differ per output so every gradient entry is exercised
+    terms = []
+    for k, x in enumerate((out.nodes, out.edges, out.globals)):
+        if x is not None and x.numel():
+            w = torch.linspace(-1.0, 1.5, x.numel(), dtype=x.dtype).reshape(x.shape)
+            terms.append((torch.sin(x + k) * w).sum())
+    return sum(terms)
+
+
+def pair(cfg_kwargs, dtype=torch.float32, seed=0, **gn_kwargs):
+    """A Warp GraphNetwork and a float64 torch reference with the same weights."""
+    torch.manual_seed(seed)
+    gn = GraphNetwork(**cfg_kwargs, **gn_kwargs).to(dtype)
+    ref = TorchGraphNetwork(**cfg_kwargs).double()
+    ref.load_state_dict({k: v.double() for k, v in gn.state_dict().items()})
+    return gn, ref
+
+
+def compare(gn, ref, g, fwd_tol, grad_tol):
+    """Forward outputs and gradients of every input and parameter, Warp vs float64 reference."""
+    gw = with_grad(cast(g, gn.edge_mlp.layers[0].weight.dtype))
+    gr = with_grad(cast(g, torch.float64))
+    out, expect = gn(gw), ref(gr)
+    for name in ("nodes", "edges", "globals"):
+        a, b = getattr(out, name), getattr(expect, name)
+        if a is None and b is None:
+            continue
+        assert a.shape == b.shape, name
+        if b.numel():
+            assert torch.isfinite(a).all(), name
+            assert rel_err(a, b) <= fwd_tol, (name, rel_err(a, b))
+    loss_of(out).backward()
+    loss_of(expect).backward()
+    for name in ("nodes", "edges", "globals"):
+        a, b = getattr(gw, name), getattr(gr, name)
+        if a is None or a.numel() == 0:
+            continue
+        if b.grad is None:  # input not read by this block
+            assert a.grad is None or not a.grad.abs().any(), name
+            continue
+        assert a.grad is not None, f"no gradient for input {name}"
+        assert rel_err(a.grad, b.grad) <= grad_tol, (name, rel_err(a.grad, b.grad))
+    for (name, p), (_, q) in zip(gn.named_parameters(), ref.named_parameters()):
+        assert p.grad is not None, f"no gradient for {name}"
+        assert rel_err(p.grad, q.grad) <= grad_tol, (name, rel_err(p.grad, q.grad))
+
+
+# -- forward and gradients vs the reference -----------------------------------------------------
+@pytest.mark.parametrize("kind", ["mixed", "one_graph", "no_edges"])
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_float32_matches_float64_reference(kind, deterministic):
+    gn, ref = pair(SMALL, deterministic=deterministic)
+    compare(gn, ref, make_batch(kind), fwd_tol=1e-5, grad_tol=1e-5)
+
+
+def test_float64_matches_reference_to_rounding():
+    gn, ref = pair(SMALL, dtype=torch.float64)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-12, grad_tol=1e-12)
+
+
+def _switch_cases():
+    cases = []
+    names = ("use_edges", "use_sender_nodes", "use_receiver_nodes", "use_globals")
+    for bits in itertools.product([True, False], repeat=4):
+        if any(bits):
+            cases.append(("edge", dict(edge_block=EdgeBlockConfig(**dict(zip(names, bits))))))
+    names = ("use_received_edges", "use_nodes", "use_globals")
+    for bits in itertools.product([True, False], repeat=3):
+        if any(bits):
+            cases.append(("node", dict(node_block=NodeBlockConfig(**dict(zip(names, bits))))))
+    names = ("use_edges", "use_nodes", "use_globals")
+    for bits in itertools.product([True, False], repeat=3):
+        if any(bits):
+            cases.append(("global", dict(global_block=GlobalBlockConfig(**dict(zip(names, bits))))))
+    cases.append(("no_global_update", dict(update_globals=False)))
+    return cases
+
+
+@pytest.mark.parametrize("case", _switch_cases(), ids=lambda c: f"{c[0]}-" + "-".join(
+    f"{k}:{''.join('1' if getattr(v, f) else '0' for f in v.__dataclass_fields__)}" if hasattr(v, "__dataclass_fields__")
+    else f"{k}:{v}" for k, v in c[1].items()))
+def test_block_switches(case):
+    """Every combination of the use_* switches of each update (float64: exact to rounding)."""
+    _, switches = case
+    gn, ref = pair({**SMALL, **switches}, dtype=torch.float64)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-12, grad_tol=1e-12)
+    c = gn.config
+    assert gn.edge_mlp.layers[0].in_features == sum(w for _, w in c.edge_layout)
+    if not c.update_globals:
+        g = make_batch("mixed", dtype=torch.float32)
+        out = GraphNetwork(**{**SMALL, **switches})(g)
+        assert out.globals is g.globals  # passed through, no global MLP ran
+        assert gn.global_mlp is None
+
+
+def test_graph_without_globals():
+    """A block that reads no globals runs on a GraphsTuple with globals=None."""
+    kw = dict(SMALL, global_size=0, update_globals=False, edge_block=EdgeBlockConfig(use_globals=False),
+              node_block=NodeBlockConfig(use_globals=False))
+    gn, ref = pair(kw, dtype=torch.float64)
+    g = make_batch("mixed", fu=0)
+    assert g.globals is None
+    compare(gn, ref, g, fwd_tol=1e-12, grad_tol=1e-12)
+
+
+def test_single_layer_mlps():
+    kw = dict(SMALL, edge_hidden=(), node_hidden=(), global_hidden=())
+    gn, ref = pair(kw, dtype=torch.float64)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-12, grad_tol=1e-12)
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_gradcheck_float64(deterministic):
+    g = make_batch("gradcheck", fv=2, fe=2, fu=2)
+    torch.manual_seed(1)
+    gn = GraphNetwork(**TINY, deterministic=deterministic, check_inputs=False).double()
+    _gradcheck(gn, g)
+
+
+def _gradcheck(gn, g):
+    names = [n for n, _ in gn.named_parameters()]
+
+    def f(v, e, u, *ps):
+        out = functional_call(gn, dict(zip(names, ps)), (g._replace(nodes=v, edges=e, globals=u),))
+        return out.nodes, out.edges, out.globals
+
+    inputs = (g.nodes, g.edges, g.globals, *[p.detach() for p in gn.parameters()])
+    inputs = tuple(x.clone().requires_grad_() for x in inputs)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-7, rtol=1e-6)
+
+
+def test_state_dict_interchangeable():
+    g = make_batch("mixed", dtype=torch.float32)
+    torch.manual_seed(3)
+    warp_gn = GraphNetwork(**SMALL)
+    torch_gn = TorchGraphNetwork(**SMALL)
+    torch_gn.load_state_dict(warp_gn.state_dict())
+    a, b = warp_gn(g), torch_gn(g)
+    assert rel_err(a.nodes, b.nodes) < 1e-5 and rel_err(a.globals, b.globals) < 1e-5
+    warp_gn.backend = "torch"
+    assert torch.equal(warp_gn(g).nodes, b.nodes)
+
+
+def test_inference_keeps_no_activations_and_matches():
+    g = make_batch("mixed", dtype=torch.float32)
+    gn = GraphNetwork(**SMALL)
+    with torch.no_grad():
+        a = gn(g)
+    assert not a.nodes.requires_grad
+    b = gn(g)
+    assert b.nodes.requires_grad
+    assert torch.equal(a.nodes, b.nodes) and torch.equal(a.edges, b.edges) and torch.equal(a.globals, b.globals)
+
+
+def test_second_backward_with_retain_graph():
+    g = with_grad(make_batch("mixed", dtype=torch.float32))
+    gn = GraphNetwork(**SMALL)
+    loss = loss_of(gn(g))
+    loss.backward(retain_graph=True)
+    first = [p.grad.clone() for p in gn.parameters()]
+    loss.backward()
+    for p, f in zip(gn.parameters(), first):
+        assert torch.allclose(p.grad, 2 * f, rtol=1e-6, atol=1e-7)
+
+
+def test_shared_index_and_unchecked_inputs():
+    """A GraphIndex built once serves several blocks; check_inputs=False skips validation."""
+    g = make_batch("mixed", dtype=torch.float32)
+    gn1 = GraphNetwork(**SMALL, check_inputs=False)
+    gn2 = GraphNetwork(**dict(SMALL, node_size=5, edge_size=6, global_size=7), check_inputs=False)
+    idx = gn1.graph_index(g)
+    out = gn2(gn1(g, idx), idx)
+    gn1.backend = gn2.backend = "torch"
+    expect = gn2(gn1(g))
+    assert rel_err(out.nodes, expect.nodes) < 1e-5
+    assert rel_err(out.edges, expect.edges) < 1e-5
+
+
+# -- aggregation order and determinism ----------------------------------------------------------
+def test_csr_index_groups_edges_by_receiver():
+    g = make_batch("mixed")
+    gi = gn_warp.graph_index(g, deterministic=True)
+    rcv, snd = g.receivers, g.senders
+    for perm, offs, idx in ((gi.recv_perm, gi.recv_offsets, rcv), (gi.send_perm, gi.send_offsets, snd)):
+        assert offs[0] == 0 and offs[-1] == g.total_edges
+        for i in range(g.total_nodes):
+            seg = perm[offs[i]:offs[i + 1]].long()
+            assert (idx[seg] == i).all()
+            assert (seg[1:] > seg[:-1]).all()  # stable: edge order kept within a segment
+    assert sorted(gi.recv_perm.tolist()) == list(range(g.total_edges))
+
+
+def test_segment_sum_is_sequential_in_edge_order():
+    """Deterministic aggregation sums each segment left to right in float32, starting from 0."""
+    gen = torch.Generator().manual_seed(5)
+    g = make_batch("mixed")
+    gi = gn_warp.graph_index(g, deterministic=True)
+    # magnitudes spread over many binades make any other summation order round differently
+    src = (torch.randn(g.total_edges, 6, generator=gen) * 10.0 ** torch.randint(-4, 5, (g.total_edges, 6),
+                                                                             generator=gen)).float()
+    out = torch.zeros(g.total_nodes, 6)
+    plan = gn_warp._Plan(GNBlockConfig(**SMALL), torch.float32, torch.float32, "fp32", True, 0, 0)
+    gn_warp._segment(gn_warp._Launcher(src), plan, src, gi.recv_perm, gi.recv_offsets, out)
+    expect = torch.zeros(g.total_nodes, 6)
+    for k in range(g.total_edges):  # edges in id order: the order of the stable sort
+        i = int(g.receivers[k])
+        expect[i] = (expect[i] + src[k]).float()
+    assert torch.equal(out, expect)
+
+
+def test_deterministic_mode_is_bitwise_reproducible():
+    g = make_batch("chain", dtype=torch.float32)
+    gn = GraphNetwork(**SMALL, deterministic=True)
+    results = []
+    for _ in range(3):
+        gn.zero_grad()
+        gw = with_grad(g)
+        out = gn(gw)
+        loss_of(out).backward()
+        results.append([out.nodes, out.edges, out.globals, gw.nodes.grad, gw.edges.grad, gw.globals.grad]
+                       + [p.grad.clone() for p in gn.parameters()])
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert torch.equal(a, b)
+
+
+# -- precisions ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("precision,tol", [("tf32", 1e-5), ("fp16", 5e-3), ("bf16", 4e-2)])
+def test_reduced_precision_close_to_reference(precision, tol):
+    """tf32 is plain fp32 on the CPU; fp16/bf16 round GEMM inputs and activations."""
+    gn, ref = pair(SMALL, precision=precision)
+    g = make_batch("mixed")
+    out = gn(cast(g, torch.float32))
+    expect = ref(g)
+    for name in ("nodes", "edges", "globals"):
+        a = getattr(out, name)
+        assert a.dtype == torch.float32
+        assert rel_err(a, getattr(expect, name)) < tol, (name, rel_err(a, getattr(expect, name)))
+    gw = with_grad(cast(g, torch.float32))
+    loss_of(gn(gw)).backward()
+    assert all(torch.isfinite(p.grad).all() for p in gn.parameters())
+    assert torch.isfinite(gw.nodes.grad).all()
+
+
+# -- bad inputs: clear errors before any launch -------------------------------------------------
+def _bad_cases():
+    g = make_batch("mixed", dtype=torch.float32)
+    nan_edges = g.edges.clone()
+    nan_edges[3, 1] = float("nan")
+    inf_globals = g.globals.clone()
+    inf_globals[0, 0] = float("inf")
+    snd = g.senders.clone()
+    snd[2] = g.total_nodes + 3
+    return [
+        ("node feature size", g._replace(nodes=torch.randn(g.total_nodes, FV + 1)), ValueError, "nodes has shape"),
+        ("edge feature size", g._replace(edges=torch.randn(g.total_edges, 1)), ValueError, "edges has shape"),
+        ("sender out of range", g._replace(senders=snd), ValueError, "senders index out of range"),
+        ("negative receiver", g._replace(receivers=g.receivers - 100), ValueError, "receivers index out of range"),
+        ("n_node sum", g._replace(n_node=g.n_node + 1), ValueError, "n_node sums to"),
+        ("n_edge sum", g._replace(n_edge=g.n_edge * 2), ValueError, "n_edge sums to"),
+        ("dtype", g._replace(nodes=g.nodes.double()), TypeError, "dtype torch.float64"),
+        ("index dtype", g._replace(senders=g.senders.float()), TypeError, "senders must be int32 or int64"),
+        ("device", g._replace(globals=g.globals.to("meta")), ValueError, "globals is on meta"),
+        ("nan", g._replace(edges=nan_edges), ValueError, "edges contains NaN or Inf"),
+        ("inf", g._replace(globals=inf_globals), ValueError, "globals contains NaN or Inf"),
+        ("missing globals", g._replace(globals=None), ValueError, "globals is None"),
+        ("numpy", g.to_numpy(), TypeError, "must be a torch.Tensor"),
+        ("cross-graph edge", g._replace(senders=torch.where(torch.arange(g.total_edges) == 0,
+                                                            torch.tensor(g.total_nodes - 1), g.senders)),
+         ValueError, "different graph"),
+    ]
+
+
+@pytest.mark.parametrize("case", _bad_cases(), ids=lambda c: c[0])
+def test_bad_input_raises_before_launch(case, monkeypatch):
+    _, g, exc, msg = case
+    gn = GraphNetwork(**SMALL)
+
+    def no_launch(*a, **k):
+        raise AssertionError("a kernel was launched before the input was checked")
+    monkeypatch.setattr(wp, "launch", no_launch)
+    monkeypatch.setattr(wp, "launch_tiled", no_launch)
+    with pytest.raises(exc, match=msg):
+        gn(g)
+
+
+def test_bad_config_raises():
+    with pytest.raises(ValueError, match="global_size=0"):
+        GNBlockConfig(**dict(SMALL, global_size=0))
+    with pytest.raises(ValueError, match="uses no input"):
+        GNBlockConfig(**SMALL, edge_block=EdgeBlockConfig(False, False, False, False))
+    with pytest.raises(ValueError, match="precision"):
+        GraphNetwork(**SMALL, precision="fp8")
+    with pytest.raises(ValueError, match="deterministic"):
+        GraphNetwork(**SMALL, path="tile", deterministic=True)(make_batch("mixed", dtype=torch.float32))
+
+
+# -- numerical stability ------------------------------------------------------------------------
+CHAIN = dict(node_size=4, edge_size=4, global_size=4, node_out=4, edge_out=4, global_out=4,
+             edge_hidden=(16, 16), node_hidden=(16,), global_hidden=(16,))
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_large_inputs_and_long_chain_stay_accurate(deterministic):
+    """Inputs of magnitude 1e4 through a residual chain of 6 blocks (x <- x + GN(x), float32):
+    finite, and within 1e-4 of the float64 reference relative to each output's scale (float32
+    eps is 6e-8; sums and GEMMs amplify it by the condition number, not by the magnitude)."""
+    g = make_batch("chain", scale=1e4, fv=4, fe=4, fu=4)
+    blocks, refs = [], []
+    for k in range(6):
+        gn, ref = pair(CHAIN, seed=10 + k, deterministic=deterministic)
+        blocks.append(gn)
+        refs.append(ref)
+    gw = with_grad(cast(g, torch.float32))
+    x, y = gw, with_grad(g)
+    def residual(g, out):
+        return g._replace(nodes=g.nodes + out.nodes, edges=g.edges + out.edges, globals=g.globals + out.globals)
+    for gn, ref in zip(blocks, refs):
+        x, y = residual(x, gn(x)), residual(y, ref(y))
+    for name in ("nodes", "edges", "globals"):
+        a, b = getattr(x, name), getattr(y, name)
+        assert torch.isfinite(a).all(), name
+        assert b.abs().max() > 1e3  # the large scale survived the chain
+        assert rel_err(a, b) < 1e-4, (name, rel_err(a, b))
+    (x.nodes.sum() + x.globals.sum()).backward()
+    assert torch.isfinite(gw.nodes.grad).all() and torch.isfinite(gw.edges.grad).all()
+    assert all(torch.isfinite(p.grad).all() for gn in blocks for p in gn.parameters())
+
+
+# -- the fused tile path ------------------------------------------------------------------------
+def test_tile_path_matches_reference_and_gradcheck():
+    gn, ref = pair(TINY, dtype=torch.float64, path="tile")
+    compare(gn, ref, make_batch("mixed", fv=2, fe=2, fu=2), fwd_tol=1e-12, grad_tol=1e-12)
+    gn.check_inputs = False
+    _gradcheck(gn, make_batch("gradcheck", fv=2, fe=2, fu=2))
+
+
+def test_tile_path_float32():
+    gn, ref = pair(TINY, path="tile")
+    compare(gn, ref, make_batch("mixed", fv=2, fe=2, fu=2), fwd_tol=1e-5, grad_tol=1e-5)
+
+
+def test_tile_kernel_too_large_is_refused_before_launch(monkeypatch):
+    """A fused kernel over the CPU tile arena (256 KiB; Warp would abort the process) raises;
+    path="auto" falls back to the split path."""
+    from gnwarp import gn_tile
+    kw = dict(node_size=2, edge_size=2, global_size=2, node_out=2, edge_out=2, global_out=2,
+              edge_hidden=(2, 128 * 1024 // 4 // 2), node_hidden=(2,), global_hidden=(2,))  # two 128 KiB layers
+    g = make_batch("mixed", dtype=torch.float32, fv=2, fe=2, fu=2)
+    gn = GraphNetwork(**kw, path="tile")
+    launches = []
+    real = wp.launch_tiled
+    monkeypatch.setattr(wp, "launch_tiled", lambda *a, **k: launches.append(a) or real(*a, **k))
+    with pytest.raises(gn_tile.TileSharedMemoryError, match="shared memory"):
+        gn(with_grad(g))
+    assert not launches
+    monkeypatch.setattr(gn_warp, "choose_path", lambda *a, **k: "tile")
+    gn.path = "auto"
+    out = gn(with_grad(g))
+    gn.path = "split"
+    assert torch.equal(out.nodes, gn(g).nodes)
+
+
+def test_auto_path_rule():
+    cfg = GNBlockConfig(**TINY)
+    cuda = torch.device("cuda")
+    assert gn_warp.choose_path(cfg, "fp32", False, torch.device("cpu"), 1000) == "split"
+    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 1000) == "tile"
+    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 18) == "split"       # batch 1: split measured faster
+    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 10 ** 6) == "split"  # beyond the measured range
+    assert gn_warp.choose_path(cfg, "fp32", True, cuda, 1000) == "split"      # deterministic
+    assert gn_warp.choose_path(GNBlockConfig(**SMALL), "fp16", False, torch.device("cuda"), 10) == "split"
+    assert "shared-memory" in gn_warp.tile_feasible(GNBlockConfig(10, 10, 10), "fp32", False, torch.device("cuda"))

@@ -1,0 +1,355 @@
+"""The forward model (issue 4): quaternions, normalizers, state update, loss, rollouts (CPU)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gnwarp import data
+from gnwarp._warp import warp
+from gnwarp.convert import DYN_NODE_SIZE
+from gnwarp.models import (ForwardModel, GNCoreConfig, GraphTemplate, LayoutMismatchError, MLPForwardModel,
+                           ModelConfig, Normalizer, apply_delta, quat_mul, quat_normalize, rotation_loss,
+                           state_delta)
+
+warp()  # initialize Warp quietly
+
+TINY = GNCoreConfig(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    # tiny GEMMs: one thread is as fast, and does not thrash when the machine is shared
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return data.generate("pendulum", (6, 2, 2), num_steps=12, seed=0, backend="mujoco", progress=False)
+
+
+@pytest.fixture(scope="module")
+def swimmer():
+    return data.generate("swimmer3", (4, 1, 1), num_steps=8, seed=1, backend="mujoco", progress=False)
+
+
+def tiny_model(ds, backend="torch", dtype=torch.float64, recenter=False, seed=0, warm=True):
+    torch.manual_seed(seed)
+    m = ForwardModel(ModelConfig(gn=GNCoreConfig(**{**TINY.__dict__, "backend": backend}), recenter=recenter),
+                     ds.layout).to(dtype)
+    m.bind(ds)
+    if warm:  # normalizer statistics from the data, so inputs are O(1)
+        sp = ds["train"]
+        S, T = sp.ctrl.shape[:2]
+        body = torch.as_tensor(sp.body[:, :T]).reshape(S * T, *sp.body.shape[2:])
+        nxt = torch.as_tensor(sp.body[:, 1:]).reshape(S * T, *sp.body.shape[2:])
+        ctrl = torch.as_tensor(sp.ctrl).reshape(S * T, -1)
+        inst = torch.as_tensor(np.repeat(sp.instance, T))
+        g = m.builder(inst, body, ctrl)
+        b = m.builder
+        target = nxt.reshape(-1, DYN_NODE_SIZE) if b.uniform else nxt[b.node_mask[inst]]
+        with torch.no_grad():  # with training noise, as in train(): no feature has a vanishing std
+            m.loss(g, target.to(dtype), noise_std=0.01, accumulate=True, generator=torch.Generator().manual_seed(0))
+    return m
+
+
+# -- quaternions ----------------------------------------------------------------------------------
+
+def _axis_angle(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return torch.tensor(np.r_[math.cos(angle / 2), math.sin(angle / 2) * axis], dtype=torch.float64)
+
+
+def test_hamilton_product_hand_cases():
+    one, i, j, k = torch.eye(4, dtype=torch.float64)
+    assert torch.equal(quat_mul(i, j), k)          # ij = k
+    assert torch.equal(quat_mul(j, i), -k)         # ji = -k
+    assert torch.equal(quat_mul(i, i), -one)       # i^2 = -1
+    assert torch.equal(quat_mul(one, j), j)
+    q = torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=torch.float64)
+    p = torch.tensor([5.0, 6.0, 7.0, 8.0], dtype=torch.float64)
+    # (1 + 2i + 3j + 4k)(5 + 6i + 7j + 8k), worked out by hand
+    assert torch.equal(quat_mul(q, p), torch.tensor([-60.0, 12.0, 30.0, 24.0], dtype=torch.float64))
+    # two quarter turns about z make a half turn
+    qz = _axis_angle([0, 0, 1], math.pi / 2)
+    torch.testing.assert_close(quat_mul(qz, qz), _axis_angle([0, 0, 1], math.pi))
+
+
+def _state(q, pos=(0.0, 0.0, 0.0), lin=(0.0, 0.0, 0.0), ang=(0.0, 0.0, 0.0)):
+    return torch.cat([torch.tensor(pos, dtype=torch.float64), q, torch.tensor(lin, dtype=torch.float64),
+                      torch.tensor(ang, dtype=torch.float64)])
+
+
+def test_state_delta_and_update_hand_case():
+    q0 = _axis_angle([0, 0, 1], math.pi / 2)        # 90 degrees about z
+    q1 = _axis_angle([0, 0, 1], math.pi)            # 180 degrees about z
+    x0 = _state(q0, (1.0, 2.0, 3.0), (0.5, 0, 0), (0, 0, 1.0))
+    x1 = _state(q1, (1.5, 2.0, 2.0), (0.0, 1.0, 0), (0, 0, 3.0))
+    d = state_delta(x0, x1)
+    torch.testing.assert_close(d[0:3], torch.tensor([0.5, 0.0, -1.0], dtype=torch.float64))
+    torch.testing.assert_close(d[3:7], _axis_angle([0, 0, 1], math.pi / 2))  # the rotation in between
+    torch.testing.assert_close(d[7:10], torch.tensor([-0.5, 1.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(d[10:13], torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))
+    # the update inverts the change; the rotation is forced to unit norm (scaling it changes nothing)
+    torch.testing.assert_close(apply_delta(x0, d), x1)
+    d2 = d.clone()
+    d2[3:7] *= 3.7
+    torch.testing.assert_close(apply_delta(x0, d2), x1)
+    # a delta written with -dq is the same rotation
+    d3 = d.clone()
+    d3[3:7] *= -1
+    x1b = apply_delta(x0, d3)
+    torch.testing.assert_close(torch.abs(x1b[3:7]), torch.abs(x1[3:7]))
+    # the rotation is applied in the world frame: dq (x) q
+    qa, qb = _axis_angle([1, 0, 0], 0.3), _axis_angle([0, 1, 0], 0.4)
+    x = _state(qa)
+    dd = torch.cat([torch.zeros(3, dtype=torch.float64), qb, torch.zeros(6, dtype=torch.float64)])
+    torch.testing.assert_close(apply_delta(x, dd)[3:7], quat_mul(qb, qa))
+
+
+def test_state_delta_round_trip_random():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(50, 13, generator=g, dtype=torch.float64)
+    y = torch.randn(50, 13, generator=g, dtype=torch.float64)
+    x[:, 3:7] = quat_normalize(x[:, 3:7])
+    y[:, 3:7] = quat_normalize(y[:, 3:7])
+    d = state_delta(x, y)
+    assert (d[:, 3] >= 0).all()  # canonical sign
+    z = apply_delta(x, d)
+    torch.testing.assert_close(z[:, [0, 1, 2, 7, 8, 9, 10, 11, 12]], y[:, [0, 1, 2, 7, 8, 9, 10, 11, 12]])
+    s = torch.sign((z[:, 3:7] * y[:, 3:7]).sum(-1, keepdim=True))
+    torch.testing.assert_close(z[:, 3:7] * s, y[:, 3:7])
+
+
+def test_rotation_loss_hand_cases():
+    q = _axis_angle([0.3, -1.0, 0.2], 0.7)
+    assert float(rotation_loss(q, q)) == pytest.approx(0.0, abs=1e-15)
+    assert float(rotation_loss(q, -q)) == pytest.approx(0.0, abs=1e-15)   # q and -q: same rotation
+    # rotations 90 degrees apart: q_e . q_p = cos(45 deg), loss = 1 - 1/2
+    a, b = _axis_angle([0, 0, 1], 0.0), _axis_angle([0, 0, 1], math.pi / 2)
+    assert float(rotation_loss(a, b)) == pytest.approx(0.5, abs=1e-12)
+    # 180 degrees apart: orthogonal quaternions, the largest loss
+    assert float(rotation_loss(a, _axis_angle([1, 0, 0], math.pi))) == pytest.approx(1.0, abs=1e-12)
+    # small angles: sin^2(theta / 2)
+    th = 1e-2
+    assert float(rotation_loss(a, _axis_angle([0, 1, 0], th))) == pytest.approx(math.sin(th / 2) ** 2, rel=1e-6)
+
+
+# -- normalizer --------------------------------------------------------------------------------------
+
+def test_normalizer_statistics_match_numpy():
+    rng = np.random.default_rng(0)
+    chunks = [rng.normal([1.0, -2.0, 5.0, 3.0], [0.5, 2.0, 1e-7, 1.0], (n, 4)) for n in (7, 30, 1)]
+    for c in chunks:
+        c[:, 3] = 3.0                          # a constant column
+    weights = [None, (rng.random(30) > 0.5).astype(float), None]
+    n = Normalizer(4, std_floor=1e-3)
+    m0, s0 = n.mean_std(torch.float64)         # identity before any data
+    assert torch.equal(m0, torch.zeros(4, dtype=torch.float64)) and torch.equal(s0, torch.ones(4, dtype=torch.float64))
+    for c, w in zip(chunks, weights):
+        n.accumulate(torch.as_tensor(c, dtype=torch.float32 if w is None else torch.float64),
+                     None if w is None else torch.as_tensor(w))
+    rows = np.concatenate([chunks[0].astype(np.float32).astype(np.float64), chunks[1][weights[1] > 0],
+                           chunks[2].astype(np.float32).astype(np.float64)])
+    m, s = n.mean_std(torch.float64)
+    assert float(n.count) == rows.shape[0]
+    np.testing.assert_allclose(m.numpy(), rows.mean(0), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(s.numpy()[:2], rows.std(0)[:2], rtol=1e-8)
+    assert s[2] == pytest.approx(1e-3) and s[3] == pytest.approx(1e-3)   # floored
+    # accumulators stay float64 when the module is cast, and travel in the state dict
+    n.to(torch.float32)
+    assert n.sum.dtype == torch.float64 and n.count.dtype == torch.float64
+    n2 = Normalizer(4, std_floor=1e-3)
+    n2.load_state_dict(n.state_dict())
+    torch.testing.assert_close(n2.mean_std(torch.float64)[0], m)
+    assert set(n.state_dict()) == {"count", "sum", "sumsq"}
+
+
+# -- the model ----------------------------------------------------------------------------------------
+
+def test_loss_hand_case(pendulum):
+    m = tiny_model(pendulum)
+    sp = pendulum["train"]
+    body = torch.as_tensor(sp.body[:3, 4], dtype=torch.float64)
+    nxt = torch.as_tensor(sp.body[:3, 5], dtype=torch.float64)
+    g = m.builder(torch.zeros(3, dtype=torch.long), body, torch.as_tensor(sp.ctrl[:3, 4]))
+    target = nxt.reshape(-1, 13)
+    delta = state_delta(body.reshape(-1, 13), target)
+    mean, std = m.norm_delta.mean_std(torch.float64)
+
+    class Oracle(torch.nn.Module):  # a core predicting exactly the normalized true change
+        def __init__(self, out):
+            super().__init__()
+            self.out = out
+            self.w = torch.nn.Parameter(torch.zeros((), dtype=torch.float64))
+
+        def graph_index(self, graph):
+            return None
+
+        def forward(self, graph, index=None):
+            return self.out + self.w
+
+    m.core = Oracle((delta - mean) / std)
+    terms = m.loss(g, target)
+    for k in ("pos", "quat", "linvel", "angvel", "loss"):
+        assert float(terms[k].detach()) == pytest.approx(0.0, abs=1e-12), k
+    # the oracle's one-step prediction is the true next state, world body included
+    torch.testing.assert_close(m.next_nodes(g), target)
+    # off by 1 in the normalized x-velocity of each pendulum body (not the world): L2 term = 1
+    out = (delta - mean) / std
+    out[1::2, 7] += 1.0
+    m.core = Oracle(out)
+    terms = m.loss(g, target)
+    assert float(terms["linvel"]) == pytest.approx(1.0, rel=1e-9)
+    assert float(terms["pos"]) == pytest.approx(0.0, abs=1e-12)
+    # rotation term: the paper's 1 - (q_e . q_p)^2, optionally over the rotation's variance
+    q = out.clone()
+    q[1::2, 3:7] = (torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64) - mean[3:7]) / std[3:7]
+    m.core = Oracle(q)
+    expect = rotation_loss(delta[1::2, 3:7], torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)).mean()
+    assert float(m.loss(g, target, rotation_scale="paper")["quat"]) == pytest.approx(float(expect), rel=1e-9)
+    norm = float(expect / (std[4:7] ** 2).sum())
+    assert float(m.loss(g, target)["quat"]) == pytest.approx(norm, rel=1e-9)
+
+
+def test_noise_makes_target_from_noisy_input(pendulum):
+    m = tiny_model(pendulum)
+    sp = pendulum["train"]
+    body = torch.as_tensor(sp.body[:4, 2], dtype=torch.float64)
+    g = m.builder(torch.zeros(4, dtype=torch.long), body, torch.as_tensor(sp.ctrl[:4, 2]))
+    target = torch.as_tensor(sp.body[:4, 3], dtype=torch.float64).reshape(-1, 13)
+    seen = {}
+    orig = m.norm_delta.accumulate
+
+    def spy(x, w=None):
+        seen["delta"], seen["w"] = x.clone(), w.clone()
+        orig(x, w)
+    m.norm_delta.accumulate = spy
+    gen = torch.Generator().manual_seed(3)
+    m.loss(g, target, noise_std=0.1, accumulate=True, generator=gen)
+    clean = state_delta(body.reshape(-1, 13), target)
+    d = seen["delta"]
+    assert torch.equal(d[0::2], clean[0::2])                       # world: no noise, no change
+    assert (d[1::2, 0:3] - clean[1::2, 0:3]).abs().max() > 0.01    # bodies: the target absorbs the noise
+    assert torch.equal(seen["w"], torch.tensor([0.0, 1.0] * 4, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_rollout_keeps_world_fixed_and_matches_steps(pendulum, backend):
+    m = tiny_model(pendulum, backend=backend, dtype=torch.float32)
+    sp = pendulum["test"]
+    x0 = torch.as_tensor(sp.body[:, 0])
+    u = torch.as_tensor(sp.ctrl[:, :5])
+    r = m.rollout(x0, u)
+    assert r.shape == (2, 6, 2, 13) and torch.isfinite(r).all()
+    assert torch.equal(r[:, :, 0], x0[:, None, 0].expand(-1, 6, -1))   # world body unchanged
+    torch.testing.assert_close(r[:, 0], x0)
+    # a rollout is the composition of one-step predictions
+    x = x0
+    for t in range(5):
+        x = m.predict(x, u[:, t])
+    torch.testing.assert_close(r[:, -1], x, rtol=1e-5, atol=1e-5)
+    norms = r[:, :, 1, 3:7].norm(dim=-1)
+    torch.testing.assert_close(norms, torch.ones_like(norms))
+
+
+def test_warp_and_torch_backends_agree(pendulum):
+    a = tiny_model(pendulum, backend="torch", dtype=torch.float32)
+    b = tiny_model(pendulum, backend="warp", dtype=torch.float32)
+    b.load_state_dict(a.state_dict())
+    sp = pendulum["test"]
+    x0, u = torch.as_tensor(sp.body[:, 0]), torch.as_tensor(sp.ctrl[:, :8])
+    torch.testing.assert_close(a.rollout(x0, u), b.rollout(x0, u), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_rollout_gradients_match_finite_differences(pendulum, backend):
+    m = tiny_model(pendulum, backend=backend, dtype=torch.float64)
+    sp = pendulum["test"]
+    x0 = torch.as_tensor(sp.body[:2, 0], dtype=torch.float64)
+    u = torch.as_tensor(sp.ctrl[:2, :3], dtype=torch.float64)
+
+    def f(x1, ctrl):  # the moving body's initial state and the actions
+        x = torch.cat([x0[:, :1], x1[:, None]], 1)
+        return m.rollout(x, ctrl)[:, 1:, 1].sum(-1)
+
+    assert torch.autograd.gradcheck(f, (x0[:, 1].clone().requires_grad_(), u.clone().requires_grad_()),
+                                    eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_recentering_makes_rollouts_translation_equivariant(swimmer):
+    m = tiny_model(swimmer, recenter=True)
+    sp = swimmer["test"]
+    x0 = torch.as_tensor(sp.body[:, 0], dtype=torch.float64)
+    u = torch.as_tensor(sp.ctrl[:, :4], dtype=torch.float64)
+    shift = torch.zeros(13, dtype=torch.float64)
+    shift[:2] = torch.tensor([3.0, -1.5])
+    xs = x0.clone()
+    xs[:, 1:] += shift                         # move every body but the world
+    a, b = m.rollout(x0, u), m.rollout(xs, u)
+    b[:, :, 1:] -= shift
+    torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    # without re-centring the prediction depends on where the swimmer is
+    m.config.recenter = False
+    a, b = m.rollout(x0, u), m.rollout(xs, u)
+    b[:, :, 1:] -= shift
+    assert (a - b).abs().max() > 1e-6
+
+
+def test_mixed_graph_sizes_roll_out_like_single_graphs():
+    ds = data.generate("swimmer", (3, 1, 1), num_steps=4, seed=2, parameterized=True, backend="mujoco",
+                       progress=False)
+    n_node = ds.static["n_node"][ds["train"].instance]
+    assert len(set(n_node.tolist())) > 1, "want swimmers of different lengths"
+    m = tiny_model(ds)
+    sp = ds["train"]
+    x0 = torch.as_tensor(sp.body[:, 0], dtype=torch.float64)
+    x0[:, n_node.max():] = 0
+    pad = torch.full_like(x0, 7.0)
+    for s in range(3):   # padding rows come back untouched
+        pad[s, :n_node[s]] = x0[s, :n_node[s]]
+    u = torch.as_tensor(sp.ctrl[:, :3], dtype=torch.float64)
+    inst = torch.as_tensor(sp.instance)
+    r = m.rollout(pad, u, inst)
+    for s in range(3):
+        one = m.rollout(pad[s:s + 1], u[s:s + 1], inst[s:s + 1])
+        torch.testing.assert_close(r[s:s + 1], one)
+        assert (r[s, :, n_node[s]:] == 7.0).all()
+    tmpl = GraphTemplate(m.builder, inst)
+    assert tmpl.rows is not None and tmpl.n_nodes == int(n_node.sum())
+
+
+def test_mlp_baseline(pendulum):
+    torch.manual_seed(0)
+    m = MLPForwardModel(pendulum.layout, n_node=2, n_edge=2, size="3x128").bind(pendulum)
+    assert [l.out_features for l in m.core.mlp.layers] == [128, 128, 128, 26]
+    sp = pendulum["test"]
+    r = m.rollout(torch.as_tensor(sp.body[:, 0]), torch.as_tensor(sp.ctrl[:, :3]))
+    assert r.shape == (2, 4, 2, 13) and torch.equal(r[:, :, 0], r[:, :1, 0].expand(-1, 4, -1))
+    with pytest.raises(ValueError, match="unknown MLP size"):
+        MLPForwardModel(pendulum.layout, 2, 2, size="4x100")
+
+
+def test_data_with_another_layout_is_refused(pendulum):
+    m = tiny_model(pendulum, warm=False)
+    cart = data.generate("cartpole", (2, 1, 1), num_steps=3, seed=0, backend="mujoco", progress=False)
+    with pytest.raises(LayoutMismatchError, match="timestep"):
+        m.bind(cart)   # a pendulum model has never seen a 10 ms timestep
+    # a column the model reads that the data does not have at all
+    lay = pendulum.layout
+    bad = data.Dataset(dict(pendulum.meta), pendulum.static, pendulum.splits)
+    d = lay.to_dict()
+    d["node_names"] = [n for n in d["node_names"] if n != "body_mass"]
+    d["dropped"] = {k: {n: v for n, v in c.items() if n != "body_mass"} for k, c in d["dropped"].items()}
+    bad.meta["layout"] = d
+    bad.static = {**pendulum.static, "nodes": np.asarray(pendulum.static["nodes"])[..., 1:]}
+    with pytest.raises(LayoutMismatchError, match="body_mass"):
+        m.bind(bad)
+    # a system object binds directly (planning without a dataset)
+    from gnwarp import systems
+    m.bind(systems.make("pendulum"))
+    assert m.rollout(torch.as_tensor(pendulum["test"].body[:1, 0], dtype=torch.float64),
+                     torch.zeros(1, 2, 1, dtype=torch.float64)).shape == (1, 3, 2, 13)

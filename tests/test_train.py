@@ -1,0 +1,240 @@
+"""Training, checkpoints, evaluation, the CLI and the demo (issue 4), at tiny sizes on the CPU."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import gnwarp
+from gnwarp import data
+from gnwarp import evaluate as ev
+from gnwarp._warp import warp
+from gnwarp.models import GNCoreConfig, LayoutMismatchError, ModelConfig
+from gnwarp.train import CheckpointError, TrainConfig, load_model, merge_layouts, train
+
+warp()
+
+TINY = dict(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return data.generate("pendulum", (20, 3, 4), num_steps=20, seed=0, backend="mujoco", progress=False)
+
+
+def config(tmp_path, name="run", backend="torch", **kw):
+    base = dict(out=str(tmp_path / name), model=ModelConfig(gn=GNCoreConfig(**TINY, backend=backend)),
+                steps=60, batch_size=32, lr=3e-3, lr_decay_steps=1000, valid_every=30, valid_sequences=3,
+                log_every=10, checkpoint_every=30, normalizer_warmup=2, progress=False, device="cpu")
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def read_log(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_training_reduces_the_loss(tmp_path, pendulum):
+    r = train(config(tmp_path, backend="warp", steps=150, valid_every=50), [pendulum])
+    rows = [x for x in read_log(tmp_path / "run" / "log.csv") if x["loss"]]
+    first, last = float(rows[0]["loss"]), np.mean([float(x["loss"]) for x in rows[-3:]])
+    assert last < 0.5 * first, (first, last)
+    assert r["steps"] == 150 and r["stop"] == "steps" and math.isfinite(r["best_error"])
+    valid = [float(x["valid_error"]) for x in read_log(tmp_path / "run" / "log.csv") if x["valid_error"]]
+    assert len(valid) == 3 and r["best_error"] == min(valid)
+    assert (tmp_path / "run" / "best" / "model.pt").is_file()
+    m = load_model(r["best"])
+    assert m.config.gn.backend == "warp" and m.config.recenter is False  # pendulum: no re-centring (D.4)
+
+
+def test_checkpoint_round_trip_gives_identical_predictions(tmp_path, pendulum):
+    r = train(config(tmp_path, steps=30), [pendulum])
+    a = load_model(r["last"], device="cpu")
+    b = load_model(r["last"], device="cpu")
+    for k, v in a.state_dict().items():
+        assert torch.equal(v, b.state_dict()[k]), k
+    assert a.norm_nodes.count.dtype == torch.float64 and float(a.norm_nodes.count) > 0
+    sp = pendulum["test"]
+    x0, u = torch.as_tensor(sp.body[:, 0]), torch.as_tensor(sp.ctrl)
+    pa = a.bind(pendulum).rollout(x0, u)
+    pb = b.bind(pendulum).rollout(x0, u)
+    assert torch.equal(pa, pb)
+    # saving a loaded model again and reloading changes nothing
+    gnwarp.train.save_checkpoint(tmp_path / "again", a)
+    c = load_model(tmp_path / "again", device="cpu").bind(pendulum)
+    assert torch.equal(c.rollout(x0, u), pa)
+    cfg = json.loads((tmp_path / "run" / "last" / "config.json").read_text())
+    assert cfg["format"] == "gnwarp-model" and cfg["layout"] == pendulum.layout.to_dict()
+    assert cfg["train"]["steps"] == 30 and cfg["data"][0]["system"] == "pendulum"
+
+
+def test_resume_continues_exactly(tmp_path, pendulum):
+    full = train(config(tmp_path, "full", steps=40, valid_every=20, checkpoint_every=20), [pendulum])
+    train(config(tmp_path, "half", steps=20, valid_every=20, checkpoint_every=20), [pendulum])
+    resumed = train(config(tmp_path, "half", steps=40, valid_every=20, checkpoint_every=20), [pendulum])
+    assert resumed["steps"] == 40
+    a, b = load_model(full["last"], device="cpu"), load_model(resumed["last"], device="cpu")
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    steps = [int(x["step"]) for x in read_log(tmp_path / "half" / "log.csv")]
+    assert steps == sorted(steps) and steps[-1] == 40
+
+
+def test_corrupt_checkpoints_give_clear_errors(tmp_path, pendulum):
+    r = train(config(tmp_path, steps=10, valid_every=10), [pendulum])
+    import shutil
+    good = tmp_path / "run" / "last"
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        load_model(tmp_path / "nowhere")
+    bad = tmp_path / "flipped"
+    shutil.copytree(good, bad)
+    raw = bytearray((bad / "model.pt").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (bad / "model.pt").write_bytes(bytes(raw))
+    with pytest.raises(CheckpointError, match="model.pt is corrupt"):
+        load_model(bad)
+    bad = tmp_path / "truncated"
+    shutil.copytree(good, bad)
+    (bad / "model.pt").unlink()
+    with pytest.raises(CheckpointError, match="model.pt is missing"):
+        load_model(bad)
+    bad = tmp_path / "json"
+    shutil.copytree(good, bad)
+    (bad / "manifest.json").write_text("{not json")
+    with pytest.raises(CheckpointError, match="JSON"):
+        load_model(bad)
+    # weights of another architecture under a consistent manifest
+    bad = tmp_path / "other"
+    shutil.copytree(good, bad)
+    cfg = json.loads((bad / "config.json").read_text())
+    cfg["model"]["gn"]["latent"] = 9
+    (bad / "config.json").write_text(json.dumps(cfg))
+    man = json.loads((bad / "manifest.json").read_text())
+    man["config.json"] = gnwarp.train._sha256(bad / "config.json")
+    (bad / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(CheckpointError, match="cannot load the weights"):
+        load_model(bad)
+    assert not any(p.name.startswith(".") for p in (tmp_path / "run").iterdir())  # no temporary folders left
+
+
+def test_mismatched_dataset_gives_a_clear_error(tmp_path, pendulum):
+    r = train(config(tmp_path, steps=5, valid_every=5), [pendulum])
+    m = load_model(r["best"], device="cpu")
+    cart = data.generate("cartpole", (2, 1, 2), num_steps=5, seed=0, backend="mujoco", progress=False)
+    with pytest.raises(LayoutMismatchError, match="do not match the model's feature layout"):
+        ev.evaluate(m, cart)
+    with pytest.raises(LayoutMismatchError), pytest.warns(UserWarning, match="layout differs"):
+        train(config(tmp_path, steps=10, valid_every=5), [cart])   # resuming a pendulum run on cartpole data
+
+
+def test_several_systems_in_one_model(tmp_path, pendulum):
+    cart = data.generate("cartpole", (10, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)
+    lay = merge_layouts([pendulum.layout, cart.layout])
+    assert "timestep" in lay.global_names                  # constant in each, different between them
+    assert set(pendulum.layout.node_names) <= set(lay.node_names)
+    r = train(config(tmp_path, "multi", steps=20, valid_every=20, batch_size=30), [pendulum, cart])
+    m = load_model(r["best"], device="cpu")
+    assert m.config.recenter is False
+    for d in (pendulum, cart):
+        res = ev.evaluate(m, d, sequences=2, horizons=(5,))
+        assert math.isfinite(res["rollout_5"]["mean"])
+
+
+def test_mlp_baseline_trains(tmp_path, pendulum):
+    r = train(config(tmp_path, "mlp", steps=20, valid_every=20,
+                     model=ModelConfig(core="mlp", mlp={"layers": 3, "width": 128})), [pendulum])
+    m = load_model(r["best"], device="cpu")
+    assert m.config.mlp.n_node == 2 and m.config.mlp.n_edge == 2
+
+
+def test_evaluation_metrics(pendulum):
+    class Truth:  # an oracle "model": evaluation gives zero error; the constant baseline gives 1
+        training = False
+
+        def __init__(self, ds):
+            self.ds = ds
+
+        def eval(self):
+            return self
+
+        def train(self, mode=True):
+            return self
+
+        def graph_builder(self, ds):
+            return None
+
+        def rollout(self, x0, ctrl, inst, builder=None):
+            sp = self.ds["test"]
+            body = torch.as_tensor(sp.body[...])
+            T = ctrl.shape[1]
+            idx = [int(np.flatnonzero((body[:, 0] == x).all(-1).all(-1))[0]) if T > 1 else None for x in x0]
+            if T > 1:
+                return body[idx, :T + 1]
+            # one step from a true state: find (sequence, t)
+            out = []
+            for x in x0:
+                s, t = np.argwhere((body == x).all(-1).all(-1).numpy())[0]
+                out.append(body[s, t:t + 2])
+            return torch.stack(out)
+
+    res = ev.evaluate(Truth(pendulum), pendulum, horizons=(5, 20))
+    for k in ("one_step", "rollout_5", "rollout_20"):
+        assert res[k]["mean"] == 0.0
+        assert math.isnan(res[k]["pos"])     # the pendulum's frame sits on its hinge: nothing to compare
+    # the constant prediction scores 1 by construction, sign flips of quaternions cost nothing
+    true = np.asarray(pendulum["test"].body[...])
+    const = np.broadcast_to(true[:, :1], true.shape)
+    mask = ev.movable_mask(pendulum, pendulum["test"].instance[...])
+    r = ev.normalized_errors(const[:, 1:], true[:, 1:], const[:, 1:], mask)
+    assert r["mean"] == 1.0
+    flipped = true.copy()
+    flipped[..., 3:7] *= -1
+    r = ev.normalized_errors(flipped[:, 1:], true[:, 1:], const[:, 1:], mask)
+    assert r["quat"] == 0.0
+
+
+def test_cli_train_and_evaluate(tmp_path, pendulum, capsys):
+    from gnwarp.cli import main
+    path = tmp_path / "pend.h5"
+    pendulum.save(path)
+    (tmp_path / "cfg.toml").write_text(
+        'steps = 10\nbatch_size = 16\nvalid_every = 10\nvalid_sequences = 2\nprogress = false\n'
+        'device = "cpu"\nnormalizer_warmup = 1\n[model.gn]\nlatent = 8\nedge_hidden = [16]\n'
+        'node_hidden = [16]\nglobal_hidden = [16]\n')
+    out = tmp_path / "cli"
+    assert main(["train", str(tmp_path / "cfg.toml"), "--data", str(path), "--out", str(out),
+                 "--set", "model.gn.backend=torch", "--set", "lr=0.002"]) == 0
+    saved = json.loads((out / "best" / "config.json").read_text())
+    assert saved["train"]["lr"] == 0.002 and saved["model"]["gn"]["backend"] == "torch"
+    assert main(["evaluate", str(out / "best"), "--data", str(path), "--horizons", "5", "10",
+                 "--out", str(tmp_path / "ev")]) == 0
+    assert "| cli |" in capsys.readouterr().out
+    for f in ("errors.md", "errors.png", "states.png", "rollouts.gif", "results.json"):
+        assert (tmp_path / "ev" / f).is_file(), f
+    assert main(["train", "--set", "nosuchkey=1", "--data", str(path)]) == 2   # a clear error, not a traceback
+
+
+def test_demo_end_to_end_tiny(tmp_path):
+    from gnwarp.demo import DemoConfig, run_demo
+    s = run_demo(DemoConfig(out=str(tmp_path / "demo"), train_sequences=8, valid_sequences=2, test_sequences=2,
+                            num_steps=12, gn=GNCoreConfig(**TINY), mlp_size="3x128", train_steps=20,
+                            train_seconds=None, batch_size=16, valid_every=10, animate_rollouts=2, progress=False))
+    for f in ("report.md", "errors.png", "states.png", "rollouts.gif", "training.png", "results.json",
+              "pendulum.h5", "gn/best/model.pt", "mlp/best/model.pt", "gn/log.csv"):
+        assert (tmp_path / "demo" / f).is_file(), f
+    assert s["gn"]["steps"] == 20 and s["mlp"]["steps"] == 20
+    for name in ("GN", "MLP 3x128"):
+        assert s["results"][name]["rollout_100"]["steps"] == 12   # cut to the sequences' length
+        assert s["results"][name]["one_step"]["mean"] is not None
+    assert "| GN |" in (tmp_path / "demo" / "report.md").read_text()
