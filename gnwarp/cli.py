@@ -119,7 +119,8 @@ def _cmd_train(args) -> int:
         raw["progress"] = False
     cfg = TrainConfig.from_dict(raw)
     r = train(cfg)
-    print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, stop: {r['stop']}); "
+    print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
+          f"stop: {r['stop']}); "
           f"best 20-step validation error {r['best_error']:.4g} at step {r['best_step']}; checkpoints in {r['out']}")
     return 0
 

@@ -338,7 +338,8 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
         except Exception:  # noqa: BLE001 - a user MJCF we cannot rebuild: draw the graph instead
             segs, radius = [], None
             ne = int(np.asarray(dataset.static["n_edge"])[inst])
-            edges = (np.asarray(dataset.static["senders"])[inst, :ne], np.asarray(dataset.static["receivers"])[inst, :ne])
+            st = dataset.static
+            edges = (np.asarray(st["senders"])[inst, :ne], np.asarray(st["receivers"])[inst, :ne])
         tw = _world_segments(true[k, :, :n_node], segs, edges)
         pw = {n: _world_segments(p[k, :, :n_node], segs, edges) for n, p in preds.items()}
         panels.append((tw, pw, radius))
@@ -357,7 +358,7 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
         spans.append(((lo + hi) / 2, (hi - lo).max() / 2))
     half = max(max(h for _, h in spans) * 1.15, 0.3)
 
-    fig, axs = plt.subplots(1, K, figsize=(3.2 * K, 3.4), squeeze=False)
+    fig, axs = plt.subplots(1, K, figsize=(3.2 * K, 3.7), squeeze=False)
     colors = ["tab:red", "tab:blue", "tab:green"]
     dashes = ["-", "--", ":"]
     artists = []
@@ -383,7 +384,7 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
                 for j, n in enumerate(preds)]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.06, 1, 0.95))
+    fig.tight_layout(rect=(0, 0.09, 1, 0.95))
 
     stride = max(1, int(round(1.0 / (fps_max * dt))))
     frames = []

@@ -396,8 +396,8 @@ def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None)
         model.train()
         return float(np.mean(errs)) if errs else math.nan
 
-    # normalizer warm-up: statistics from clean batches before the first gradient step (D.7.1
-    # noise is relative to nothing without them, and the first steps would see identity transforms)
+    # normalizer warm-up: statistics from a few batches before the first gradient step, so the
+    # first steps do not train against identity transforms
     if state["step"] == 0 and model.norm_nodes.count.item() == 0:
         with torch.no_grad():
             for _ in range(config.normalizer_warmup):

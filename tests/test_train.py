@@ -92,7 +92,7 @@ def test_resume_continues_exactly(tmp_path, pendulum):
 
 
 def test_corrupt_checkpoints_give_clear_errors(tmp_path, pendulum):
-    r = train(config(tmp_path, steps=10, valid_every=10), [pendulum])
+    train(config(tmp_path, steps=10, valid_every=10), [pendulum])
     import shutil
     good = tmp_path / "run" / "last"
     with pytest.raises(CheckpointError, match="no checkpoint"):
