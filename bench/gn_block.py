@@ -10,12 +10,14 @@ Sections (``--sections``, all by default):
   peak       torch.matmul at the edge-MLP hidden shape (73728x512 @ 512x512) per precision
   main       cheetah: fwd, fwd+bwd, train step (fwd, MSE loss, bwd, clip, Adam) at batch 200 and
              4096, fwd at 65536; peers: torch eager, torch.compile default and reduce-overhead
-             (fp32, tf32), our split path (fp32, tf32, fp16, bf16), our tile path (fp32)
+             (fp32, tf32; fp16 / bf16 under torch.autocast), our split path (fp32, tf32, fp16,
+             bf16), our tile path (fp32)
   shapes     swimmer6 and pendulum: the same modes for torch eager / compile-ro and our split path
   capture    our split path with the whole training step (and the forward) in one CUDA graph
   errors     max error of every peer/precision against the float64 torch reference (batch 200)
   crossover  small MLPs (widths 16-64) at small batches: split vs tile, to set the "auto" rule
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
+             and of one train step at batch 200 (kernel count: the nodes of a captured step)
 
 Each measurement is wrapped: a failing peer (torch.compile included) is reported, not fatal.
 Rows are appended to ``<out>/gn_block_<device>.jsonl`` as they come (a timeout keeps what ran);
@@ -292,8 +294,8 @@ class Runner:
         params = list(model.parameters())
         captured = peer.endswith("-graph")
         if peer.startswith("torch"):
-            if precision not in ("fp32", "tf32"):
-                raise ValueError("torch peers run fp32 / tf32 only")
+            if precision not in ("fp32", "tf32", "fp16", "bf16"):
+                raise ValueError(f"unknown precision {precision!r}")
             tc = TorchCore(model)
             x = torch_inputs(g)
             if peer == "torch-eager":
@@ -305,8 +307,11 @@ class Runner:
                 fwd = torch.compile(tc, dynamic=False,
                                     mode="reduce-overhead" if peer == "torch-compile-ro" else None)
 
+            amp = _autocast(precision, dev)
+
             def run():
-                return fwd(*x)
+                with amp():
+                    return fwd(*x)
         else:
             path = "tile" if peer.startswith("warp-tile") else "split"
             model.set(backend="warp", path=path, precision=precision, check_inputs=False)
@@ -392,7 +397,7 @@ class Runner:
         for peer in peers or a.peers:
             if peer in ("torch-compile", "torch-compile-ro") and mode not in a.compile_modes:
                 continue
-            precs = [p for p in a.precisions if not peer.startswith("torch") or p in ("fp32", "tf32")]
+            precs = list(a.precisions)
             if peer == "warp-tile":
                 precs = [p for p in precs if p == "fp32"]
             for prec in precs:
@@ -424,8 +429,6 @@ class Runner:
             expect = TorchCore(ref_model)(*torch_inputs(g64))
         for peer in self.args.peers:
             for prec in self.args.precisions:
-                if peer.startswith("torch") and prec not in ("fp32", "tf32"):
-                    continue
                 if peer == "warp-tile" and prec != "fp32":
                     continue
                 row = dict(peer=peer, precision=prec, mode="error", shape="cheetah", batch=g.n_node.shape[0])
@@ -438,7 +441,7 @@ class Runner:
                                 torch._dynamo.reset()
                                 tc = torch.compile(tc, dynamic=False,
                                                    mode="reduce-overhead" if peer == "torch-compile-ro" else None)
-                            with matmul_precision(prec):
+                            with matmul_precision(prec), _autocast(prec, dev)():
                                 out = tc(*torch_inputs(g))
                         else:
                             model.set(backend="warp", path="tile" if peer == "warp-tile" else "split",
@@ -466,19 +469,20 @@ class Runner:
 
     def section_profile(self):
         """torch.profiler kernel tables of one step (where does the time go), written to
-        ``<out>/gn_block_<device>_profile.txt``. Not timed rows; cheap."""
+        ``<out>/gn_block_<device>_profile.txt``; one summary line per step printed (device
+        kernels and memsets launched, their total device time). Not timed rows; cheap."""
+        from torch.autograd import DeviceType  # noqa: PLC0415
         from torch.profiler import ProfilerActivity, profile  # noqa: PLC0415
         dev = self.device
         cuda = dev.type == "cuda"
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
-        B = 4096 if not self.args.quick else 16
+        big, small = (4096, 200) if not self.args.quick else (16, 4)
         path = self.jsonl.with_name(self.jsonl.stem + "_profile.txt")
+        peers = [p for p in self.args.peers if p in ("warp-split", "torch-eager")] or ["warp-split"]
         with open(path, "w") as f:
-            for peer in ("warp-split", "torch-eager"):
-                for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "fp16")][:3]:
-                    if peer.startswith("torch") and prec == "fp16":
-                        continue
-                    for mode in ("fwd", "train"):
+            for peer in peers:
+                for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "fp16", "bf16")]:
+                    for B, mode in ((big, "fwd"), (big, "train"), (small, "train")):
                         try:
                             fn, _ = self.make_step(peer, prec, "cheetah", B, mode, self.sizes)
                             with matmul_precision(prec if peer.startswith("torch") else "fp32"):
@@ -490,14 +494,17 @@ class Runner:
                                     sync(dev)
                             key = "self_device_time_total" if cuda else "self_cpu_time_total"
                             try:
-                                table = prof.key_averages().table(sort_by=key, row_limit=25)
+                                table = prof.key_averages().table(sort_by=key, row_limit=30)
                             except Exception:  # noqa: BLE001 - older torch: the cuda_ name
-                                table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=25)
-                            head = f"== {peer} {prec} {mode} cheetah B={B}"
-                            print(head + "\n" + table, flush=True)
+                                table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=30)
+                            kern = [e for e in prof.events() if e.device_type == DeviceType.CUDA]
+                            dev_us = sum(getattr(e, "device_time", 0.0) or 0.0 for e in kern)
+                            head = (f"== {peer} {prec} {mode} cheetah B={B}: {len(kern)} device kernels/memsets, "
+                                    f"{dev_us / 1e3:.3f} ms device time")
+                            print(head, flush=True)
                             f.write(head + "\n" + table + "\n")
                         except Exception as exc:  # noqa: BLE001
-                            print(f"== {peer} {prec} {mode}: profile failed: {exc}", flush=True)
+                            print(f"== {peer} {prec} {mode} B={B}: profile failed: {exc}", flush=True)
         print(f"wrote {path}")
 
     # -- report ---------------------------------------------------------------------------------
@@ -557,7 +564,7 @@ class Runner:
         r = best(lambda r: r["mode"] == "train" and r["batch"] == 200 and r["peer"].startswith("warp"))
         got = "n/a" if r is None else f"{r['ms']:.3f} ms ({r['peer']}, {r['precision']})"
         out.append(f"- training step at batch 200 <= 0.5 ms: best of ours {got}")
-        for prec in ("fp32", "tf32"):
+        for prec in ("fp32", "tf32", "fp16", "bf16"):
             ours = best(lambda r: r["mode"] == "fwd" and r["batch"] == 4096 and r["peer"].startswith("warp")
                         and r["precision"] == prec)
             peer = best(lambda r: r["mode"] == "fwd" and r["batch"] == 4096 and r["peer"].startswith("torch")
@@ -581,6 +588,16 @@ class Runner:
                         out.append(f"| {w} | {B} | {mode}{' (captured)' if graph else ''} | {d['split']:.3f} | "
                                    f"{d['tile']:.3f} | {win} |")
         return out + [""]
+
+
+def _autocast(precision: str, device):
+    """The torch peers' reduced precision: ``torch.autocast`` in fp16 / bf16 (GEMMs in that dtype,
+    reductions and index_add_ as autocast leaves them), as a PyTorch user would write it."""
+    import contextlib  # noqa: PLC0415
+    if precision not in ("fp16", "bf16"):
+        return contextlib.nullcontext
+    dt = torch.float16 if precision == "fp16" else torch.bfloat16
+    return lambda: torch.autocast(device.type, dtype=dt)
 
 
 def _md(s: str) -> str:

@@ -19,6 +19,8 @@ before capturing a CUDA graph.
 from __future__ import annotations
 
 import contextlib
+import functools
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -171,6 +173,12 @@ class _Launcher:
             return
         wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device, stream=self.stream)
 
+    def n(self, kernel, dim: int, *args):
+        """Launch ``kernel`` over ``dim`` threads."""
+        if dim == 0:
+            return
+        wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device, stream=self.stream)
+
 
 # -- the split path -----------------------------------------------------------------------------
 @dataclass(frozen=True)
@@ -198,51 +206,265 @@ def _split_mlp_params(plan: _Plan, params):
     return params[:a], params[a:b], params[b:]
 
 
-def _mlp_tail_forward(launch, plan, h, ws, bs, keep: bool):
-    """Hidden layers 1.. and output GEMM of an MLP whose first layer output is ``h``.
+_ALIGN = 64  # elements: views carved from one buffer start 256-byte aligned (fp32), for cuBLAS
 
-    Returns (hs, z): the hidden activations [h1, ..., hL] (inputs of layers 1..L; saved for
-    backward) and the output layer's GEMM result without bias (or ``None`` when the MLP has a
-    single layer: then ``h`` is the output, its bias already added, and ``hs`` is empty). Without
-    ``keep`` (no gradient wanted) only the last activation is held, so memory stays flat."""
-    T = plan.wp_dtype
-    n_layers = len(ws)
-    if n_layers == 1:
-        return [], None
+
+def _carve(shapes, dtype, device, zero: bool):
+    """Views of one allocation with the given shapes (None -> None): one memset when ``zero``,
+    instead of one per tensor. Returns (views, buffer, offsets)."""
+    offsets, total = [], 0
+    for s in shapes:
+        offsets.append(total)
+        if s is not None:
+            total += -(-math.prod(s) // _ALIGN) * _ALIGN
+    buf = (torch.zeros if zero else torch.empty)(max(total, 1), dtype=dtype, device=device)
+    return _views(buf, shapes, offsets), buf, offsets
+
+
+def _views(buf, shapes, offsets):
+    return [None if s is None else buf[o:o + math.prod(s)].view(s) for s, o in zip(shapes, offsets)]
+
+
+_PADS: dict[tuple, torch.Tensor] = {}
+
+
+def _cast_params(params, dtype):
+    """The parameters in the compute dtype: themselves when they already are, else views of one
+    flat copy (one cat and one cast launch, not one cast per tensor), each starting aligned."""
+    if all(p.dtype == dtype for p in params):
+        return list(params)
+    pieces, offsets, o = [], [], 0
+    for p in params:
+        pad = -o % _ALIGN
+        if pad:
+            key = (p.device, p.dtype, pad)
+            if key not in _PADS:
+                _PADS[key] = torch.zeros(pad, dtype=p.dtype, device=p.device)
+            pieces.append(_PADS[key])
+            o += pad
+        pieces.append(p.reshape(-1))
+        offsets.append(o)
+        o += p.numel()
+    flat = torch.cat(pieces).to(dtype)
+    return [flat[o:o + p.numel()].view(p.shape) for p, o in zip(params, offsets)]
+
+
+def _pad(cols: int, dtype: torch.dtype) -> int:
+    """Row stride (elements) >= ``cols`` whose size in bytes is a multiple of 16."""
+    m = max(1, 16 // dtype.itemsize)
+    return -(-cols // m) * m
+
+
+def _empty_aligned(rows: int, cols: int, dtype, device):
+    """[rows, cols] view of a buffer whose rows start 16-byte aligned (cuBLAS's fast kernels
+    need aligned leading dimensions: widths such as 31 or 159 get padded rows)."""
+    return torch.empty(rows, _pad(cols, dtype), dtype=dtype, device=device)[:, :cols]
+
+
+def _aligned(x, dtype):
+    """``x`` in ``dtype`` with 16-byte-aligned rows: itself if it has them, else a padded copy."""
+    if x is None:
+        return None
+    if (x.dtype == dtype and x.stride(-1) == 1 and (x.stride(0) * dtype.itemsize) % 16 == 0
+            and x.data_ptr() % 16 == 0):
+        return x
+    out = _empty_aligned(x.shape[0], x.shape[1], dtype, x.device)
+    out.copy_(x)
+    return out
+
+
+def _mm(a, b):
+    """a @ b into an output with aligned rows."""
+    return torch.mm(a, b, out=_empty_aligned(a.shape[0], b.shape[1], a.dtype, a.device))
+
+
+@functools.cache
+def _first_layer_layout(layout: tuple, split: bool, H: int, dtype: torch.dtype):
+    """Aligned block layout of a first-layer weight [H, sum of widths]: (segments of
+    ``pack_kernel``, {block: (offset, rows, width, stride)}, total elements). ``split`` (the
+    edge update): blocks "edges", "nodes" (sender rows stacked over receiver rows) and
+    "globals"; else one block "all"."""
+    cols = column_slices(layout)
+    segs, blocks, total = [], {}, 0
+
+    def block(name, rows, width):
+        nonlocal total
+        stride = _pad(width, dtype)
+        blocks[name] = (total, rows, width, stride)
+        total += -(-rows * stride // _ALIGN) * _ALIGN
+        return blocks[name][0], stride
+
+    if split:
+        if "edges" in cols:
+            sl = cols["edges"]
+            off, st = block("edges", H, sl.stop - sl.start)
+            segs.append((sl.start, sl.stop - sl.start, off, st, 0))
+        node_pieces = [n for n in ("sender_nodes", "receiver_nodes") if n in cols]
+        if node_pieces:
+            w = cols[node_pieces[0]].stop - cols[node_pieces[0]].start
+            off, st = block("nodes", H * len(node_pieces), w)
+            for k, n in enumerate(node_pieces):
+                segs.append((cols[n].start, w, off, st, k * H))
+        if "globals" in cols:
+            sl = cols["globals"]
+            off, st = block("globals", H, sl.stop - sl.start)
+            segs.append((sl.start, sl.stop - sl.start, off, st, 0))
+    else:
+        w = sum(wd for _, wd in layout)
+        off, st = block("all", H, w)
+        segs.append((0, w, off, st, 0))
+    return tuple(segs), blocks, total
+
+
+class _FirstLayer:
+    """A first-layer weight [H, K] as GEMM-ready blocks (``w``: {block: [rows, width] view}) with
+    16-byte-aligned rows, packed by one kernel (for the edge update it also stacks the sender and
+    receiver blocks); a single block whose rows are already aligned is used as is."""
+
+    def __init__(self, launch, plan, w0, layout, split: bool):
+        cd = plan.compute_dtype
+        self.segs, self.blocks, self.total = _first_layer_layout(tuple(layout), split, w0.shape[0], cd)
+        self.shape = tuple(w0.shape)
+        self.as_is = (not split and w0.dtype == cd and w0.is_contiguous()
+                      and (w0.shape[1] * cd.itemsize) % 16 == 0 and w0.data_ptr() % 16 == 0)
+        if self.as_is:
+            self.w = {"all": w0}
+        else:
+            buf = torch.empty(max(self.total, 1), dtype=cd, device=w0.device)
+            launch.n(K.pack_kernel(self.segs, w0.shape[1], _WP_DTYPE[w0.dtype], plan.wp_dtype, False), w0.numel(),
+                     w0, buf)
+            self.w = self._views(buf)
+
+    def _views(self, buf):
+        return {name: buf[o:o + rows * st].view(rows, st)[:, :width] for name, (o, rows, width, st) in self.blocks.items()}
+
+    def grad_blocks(self, gw0):
+        """(block views to write the weight gradient into, buffer to unpack into ``gw0`` or None)."""
+        if self.as_is:
+            return {"all": gw0}, None
+        buf = torch.empty(max(self.total, 1), dtype=gw0.dtype, device=gw0.device)
+        return self._views(buf), buf
+
+    def unpack(self, launch, plan, buf, gw0):
+        if buf is not None:
+            T = _WP_DTYPE[gw0.dtype]
+            launch.n(K.pack_kernel(self.segs, self.shape[1], T, T, True), gw0.numel(), gw0, buf)
+
+
+def _linear(x, w, b, relu: bool):
+    """x @ w.T + b, then ReLU if ``relu``: bias and ReLU run in the GEMM's epilogue (cuBLASLt on
+    CUDA: no extra pass over the activations)."""
+    if relu:
+        return torch._addmm_activation(b, x, w.t())
+    return torch.addmm(b, x, w.t())
+
+
+def _mlp_forward(h, ws, bs, keep: bool):
+    """Layers 1..L of an MLP whose first layer's output (after its ReLU) is ``h``.
+
+    Returns (hs, out): the hidden activations [h0, h1, ...] (inputs of layers 1..L, saved for
+    backward; without ``keep`` only the last one is held, so memory stays flat) and the MLP's
+    output (bias included). A single-layer MLP returns ([], h)."""
+    if len(ws) == 1:
+        return [], h
     hs = [h]
-    for l in range(1, n_layers - 1):
-        z = torch.mm(hs[-1], ws[l].t())
-        launch(K.bias_act_kernel(z.shape[1], True, T), z.shape, z, bs[l], z)
-        hs = hs + [z] if keep else [z]
-    return hs, torch.mm(hs[-1], ws[-1].t())
+    for l in range(1, len(ws) - 1):
+        h = _linear(h, ws[l], bs[l], relu=True)
+        hs = hs + [h] if keep else [h]
+    return hs, _linear(hs[-1], ws[-1], bs[-1], relu=False)
 
 
-def _mlp_tail_backward(launch, plan, g, hs, ws, need_w: bool):
-    """Backward through layers L..1 of an MLP. ``g``: gradient of the output.
+def _relu_grad(launch, plan, act, g, gb):
+    """In place: g = g where act > 0 else 0; ``gb`` (if given) = column sums of the result (the
+    bias gradient), as atomics fused into the same pass, or a torch sum in deterministic mode."""
+    rows, W = g.shape
+    fused = gb is not None and not plan.deterministic
+    chunk = K.chunk_rows(rows, W)
+    launch.n(K.relu_grad_sum_kernel(W, fused, plan.wp_dtype), K.chunk_dim(rows, W, chunk),
+             act, g, rows, chunk, g, gb if fused else launch.placeholder(plan.acc_dtype, 1))
+    if gb is not None and not fused:
+        torch.sum(g, 0, dtype=plan.acc_dtype, out=gb)
 
-    Returns (g0, gws, gbs): gradient at the first layer's pre-activation, and the gradients of
-    the weights / biases of layers 1..L (lists, None if not ``need_w``)."""
-    T = plan.wp_dtype
-    gws, gbs = [], []
+
+def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool):
+    """Backward through layers L..1 of an MLP from ``g``, the gradient of its output.
+
+    Writes the weight gradients of layers 1..L into ``gws`` and the bias gradients of layers
+    0..L into ``gbs`` (``summed``: the kernel that made ``g`` already added the output bias's
+    gradient into gbs[-1]). Returns the gradient at the first layer's pre-activation."""
+    if need_w and not summed:
+        torch.sum(g, 0, dtype=plan.acc_dtype, out=gbs[-1])
     for l in range(len(ws) - 1, 0, -1):
         x = hs[l - 1]
         if need_w:
-            gws.append(torch.mm(g.t(), x))
-            gbs.append(g.sum(0, dtype=plan.acc_dtype))
+            torch.mm(g.t(), x, out=gws[l])
         gh = torch.mm(g, ws[l])
-        launch(K.relu_grad_kernel(gh.shape[1], T), gh.shape, x, gh, gh)
+        _relu_grad(launch, plan, x, gh, gbs[l - 1] if need_w else None)
         g = gh
-    return g, gws[::-1], gbs[::-1]
+    return g
 
 
-def _zeros(rows, cols, dtype, like):
-    return torch.zeros(rows, cols, dtype=dtype, device=like.device)
+def _concat(launch, plan, rows, layout, pieces, index):
+    """Input rows of an MLP whose first layer is one GEMM: the pieces of ``layout`` side by side
+    in the compute dtype, in one kernel, rows aligned. ``pieces``: {name: (tensor, gathered)}; a
+    gathered piece is read at row ``index[r]``. A lone piece with aligned rows is used as is."""
+    cd = plan.compute_dtype
+    items = [(pieces[name][0], pieces[name][1], w) for name, w in layout]
+    if len(items) == 1 and not items[0][1]:
+        return _aligned(items[0][0], cd)
+    width = sum(w for _, _, w in items)
+    out = _empty_aligned(rows, width, cd, items[0][0].device)
+    ph = launch.placeholder(cd, 2)
+    items += [(ph, False, 0)] * (3 - len(items))
+    gathered = tuple(bool(g) for _, g, _ in items)
+    kernel = K.concat_kernel(tuple(w for _, _, w in items), gathered, tuple(_WP_DTYPE[t.dtype] for t, _, _ in items),
+                             plan.wp_dtype)
+    launch.n(kernel, rows * width, *(t for t, _, _ in items),
+             index if any(gathered) else launch.placeholder(torch.int32, 1), out)
+    return out
+
+
+def _scatter_out(launch, plan, x, out_dtype, target_a, target_b):
+    """The block's output ``x`` in ``out_dtype`` and its scatter-sums in one pass: atomic adds
+    (with the dtype cast in the same kernel), or (deterministic) ordered segment sums after it.
+
+    ``target_*``: (sum array or None, row -> destination index, CSR perm or None, segment offsets)."""
+    det = plan.deterministic
+    sum_a, idx_a, perm_a, offs_a = target_a
+    sum_b, idx_b, _, offs_b = target_b
+    scatter_a = sum_a is not None and not det
+    scatter_b = sum_b is not None and not det
+    copy = x.dtype != out_dtype
+    if scatter_a or scatter_b:
+        ph = launch.placeholder
+        out = torch.empty(x.shape, dtype=out_dtype, device=x.device) if copy else x
+        launch(K.scatter_out_kernel(x.shape[1], scatter_a, scatter_b, copy, plan.wp_dtype, _WP_DTYPE[out_dtype]),
+               x.shape, x, idx_a if scatter_a else ph(torch.int32, 1), idx_b if scatter_b else ph(torch.int32, 1),
+               out if copy else ph(out_dtype, 2), sum_a if scatter_a else ph(plan.acc_dtype, 2),
+               sum_b if scatter_b else ph(plan.acc_dtype, 2))
+    else:
+        out = x.to(out_dtype)
+    if det:
+        if sum_a is not None:
+            _segment(launch, plan, x, perm_a, offs_a, sum_a)
+        if sum_b is not None:
+            _segment(launch, plan, x, None, offs_b, sum_b)
+    return out
 
 
 class _SplitBlock(torch.autograd.Function):
     """One GN block on the split path. Inputs: (plan, keep, GraphIndex, nodes, edges, globals, *params)
     with params = edge MLP [W0, b0, ...] + node MLP + global MLP. Outputs: (nodes', edges'[,
-    globals']) in the parameters' dtype."""
+    globals']) in the parameters' dtype.
+
+    Forward: edge update with the split first layer (node / global projections once per node /
+    graph, gathered per edge by ``first_layer``), the other layers as GEMMs with bias and ReLU
+    in cuBLASLt's epilogue; the output cast and scatter-sums in one pass (``scatter_out``); node
+    and global updates on their concatenated input rows (``concat``: one kernel, one first-layer
+    GEMM). Backward: GEMMs for weight and input gradients (weights written straight into one
+    flat buffer), ReLU masks and bias gradients (column sums) fused in one pass per layer, the
+    gathers of the scatter-sums fused with the output bias gradient, and one scatter of the
+    first-layer gradient to senders, receivers and graphs."""
 
     @staticmethod
     def forward(ctx, plan: _Plan, keep: bool, gi: GraphIndex, v, e, u, *params):
@@ -251,95 +473,72 @@ class _SplitBlock(torch.autograd.Function):
         T = plan.wp_dtype
         out_dtype = params[0].dtype
         like = params[0]
+        dev = like.device
         launch = _Launcher(like)
         ph = launch.placeholder
         det = plan.deterministic
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
-        cast = (lambda x: None if x is None else x.to(cd).contiguous())
-        pc = [p.to(cd) for p in params]
+        pc = _cast_params(params, cd)
         pe, pn, pg = _split_mlp_params(plan, pc)
-        v_c, e_c, u_c = cast(v), cast(e), cast(u)
+        v_c, e_c, u_c = _aligned(v, cd), _aligned(e, cd), _aligned(u, cd)
+        # scatter-sum destinations (accumulation dtype), one allocation: one memset
+        (agg, sum_e, sum_v), _, _ = _carve(
+            [(N, c.edge_out) if c.aggregates_to_nodes else None, (B, c.edge_out) if c.edges_to_globals else None,
+             (B, c.node_out) if c.nodes_to_globals else None], ad, dev, zero=not det)
 
         with matmul_precision(plan.precision):
             # ---- edge update -----------------------------------------------------------------
             we, be = pe[0::2], pe[1::2]
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
-            direct = torch.mm(e_c, we[0][:, cols["edges"]].t()) if "edges" in cols else None
-            node_blocks = [we[0][:, cols[n]] for n in ("sender_nodes", "receiver_nodes") if n in cols]
-            w_nodes = torch.cat(node_blocks, 0) if node_blocks else None
-            node_proj = torch.mm(v_c, w_nodes.t()) if node_blocks else None
-            glob_proj = torch.mm(u_c, we[0][:, cols["globals"]].t()) if "globals" in cols else None
-            h = torch.empty(E, H, dtype=cd, device=like.device)
+            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=True)
+            direct = torch.mm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
+            node_proj = torch.mm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
+            glob_proj = torch.mm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
+            h = torch.empty(E, H, dtype=cd, device=dev)
             launch(K.first_layer_kernel(H, direct is not None, "sender_nodes" in cols, "receiver_nodes" in cols,
                                         glob_proj is not None, len(we) > 1, T), (E, H),
                    direct if direct is not None else ph(cd, 2), node_proj if node_proj is not None else ph(cd, 2),
                    glob_proj if glob_proj is not None else ph(cd, 2), gi.senders, gi.receivers, gi.edge_graph,
                    be[0], h)
             del direct, node_proj, glob_proj
-            hs_e, z = _mlp_tail_forward(launch, plan, h, we, be, keep)
-            e_out = z if z is not None else h
-            agg = _zeros(N, c.edge_out, ad, like) if c.aggregates_to_nodes else None
-            sum_e = _zeros(B, c.edge_out, ad, like) if c.edges_to_globals else None
-            _output_epilogue(launch, plan, gi, z, be[-1], e_out, det,
-                             (agg, gi.receivers, gi.recv_perm, gi.recv_offsets),
-                             (sum_e, gi.edge_graph, None, gi.edge_offsets))
+            hs_e, e_out = _mlp_forward(h, we, be, keep)
+            e_ret = _scatter_out(launch, plan, e_out, out_dtype, (agg, gi.receivers, gi.recv_perm, gi.recv_offsets),
+                                 (sum_e, gi.edge_graph, None, gi.edge_offsets))
+            del e_out
 
             # ---- node update -----------------------------------------------------------------
             wn, bn = pn[0::2], pn[1::2]
-            cols = column_slices(c.node_layout)
-            H = wn[0].shape[0]
-            agg_c = cast(agg)
-            direct = None
-            for name, x in (("nodes", v_c), ("received_edges", agg_c)):
-                if name in cols:
-                    w = wn[0][:, cols[name]].t()
-                    direct = torch.mm(x, w) if direct is None else direct.addmm_(x, w)
-            glob_proj = torch.mm(u_c, wn[0][:, cols["globals"]].t()) if "globals" in cols else None
-            h = torch.empty(N, H, dtype=cd, device=like.device)
-            launch(K.first_layer_kernel(H, direct is not None, False, False, glob_proj is not None, len(wn) > 1, T),
-                   (N, H), direct if direct is not None else ph(cd, 2), ph(cd, 2),
-                   glob_proj if glob_proj is not None else ph(cd, 2), gi.senders, gi.receivers, gi.node_graph,
-                   bn[0], h)
-            del direct, glob_proj
-            hs_n, z = _mlp_tail_forward(launch, plan, h, wn, bn, keep)
-            v_out = z if z is not None else h
-            sum_v = _zeros(B, c.node_out, ad, like) if c.nodes_to_globals else None
-            _output_epilogue(launch, plan, gi, z, bn[-1], v_out, det,
-                             (sum_v, gi.node_graph, None, gi.node_offsets), (None, None, None, None))
+            x_n = _concat(launch, plan, N, c.node_layout,
+                          {"nodes": (v_c, False), "received_edges": (agg, False), "globals": (u_c, True)},
+                          gi.node_graph)
+            fl_n = _FirstLayer(launch, plan, wn[0], c.node_layout, split=False)
+            hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
+            v_ret = _scatter_out(launch, plan, v_out, out_dtype, (sum_v, gi.node_graph, None, gi.node_offsets),
+                                 (None, None, None, None))
+            del v_out
 
             # ---- global update ---------------------------------------------------------------
-            hs_g, sum_v_c, sum_e_c = None, None, None
-            u_out = None
+            hs_g = x_g = u_ret = fl_g = None
             if c.update_globals:
                 wg, bg = pg[0::2], pg[1::2]
-                cols = column_slices(c.global_layout)
-                H = wg[0].shape[0]
-                sum_v_c, sum_e_c = cast(sum_v), cast(sum_e)
-                direct = None
-                for name, x in (("globals", u_c), ("nodes", sum_v_c), ("edges", sum_e_c)):
-                    if name in cols:
-                        w = wg[0][:, cols[name]].t()
-                        direct = torch.mm(x, w) if direct is None else direct.addmm_(x, w)
-                h = torch.empty(B, H, dtype=cd, device=like.device)
-                launch(K.first_layer_kernel(H, True, False, False, False, len(wg) > 1, T), (B, H),
-                       direct, ph(cd, 2), ph(cd, 2), gi.senders, gi.receivers, gi.node_graph, bg[0], h)
-                del direct
-                hs_g, z = _mlp_tail_forward(launch, plan, h, wg, bg, keep)
-                u_out = z if z is not None else h
-                _output_epilogue(launch, plan, gi, z, bg[-1], u_out, det, (None,) * 4, (None,) * 4)
+                x_g = _concat(launch, plan, B, c.global_layout,
+                              {"globals": (u_c, False), "nodes": (sum_v, False), "edges": (sum_e, False)}, None)
+                fl_g = _FirstLayer(launch, plan, wg[0], c.global_layout, split=False)
+                hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep)
+                u_ret = u_out.to(out_dtype)
 
         ctx.plan, ctx.gi = plan, gi
         # intermediates (not outputs: no reference cycle) for the hand-written backward
-        ctx.saved = None if not keep else dict(v=v_c, e=e_c, u=u_c, agg=agg_c, sum_v=sum_v_c, sum_e=sum_e_c,
-                                               hs_e=hs_e, hs_n=hs_n, hs_g=hs_g, pc=pc)
+        ctx.saved = None if not keep else dict(v=v_c, e=e_c, u=u_c, fl_e=fl_e, fl_n=fl_n, fl_g=fl_g, x_n=x_n,
+                                               x_g=x_g, hs_e=hs_e, hs_n=hs_n, hs_g=hs_g, pc=pc)
         ctx.in_dtypes = (None if v is None else v.dtype, None if e is None else e.dtype,
                          None if u is None else u.dtype)
         ctx.param_dtypes = [p.dtype for p in params]
         ctx.set_materialize_grads(False)
-        outs = (v_out.to(out_dtype), e_out.to(out_dtype))
+        outs = (v_ret, e_ret)
         if c.update_globals:
-            outs = outs + (u_out.to(out_dtype),)
+            outs = outs + (u_ret,)
         return outs
 
     @staticmethod
@@ -350,141 +549,159 @@ class _SplitBlock(torch.autograd.Function):
         det = plan.deterministic
         pc = s["pc"]
         like = pc[0]
+        dev = like.device
         launch = _Launcher(like)
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
         need = ctx.needs_input_grad[1:]  # drop ``keep``: indices as in (plan, gi, v, e, u, *params)
         need_v, need_e, need_u = need[2], need[3], need[4]
         need_w = any(need[5:])
         pe, pn, pg = _split_mlp_params(plan, pc)
-        # our own contiguous copies in the compute dtype: never hand torch's grad buffers to Warp
-        grad_in = (lambda g: None if g is None else g.to(cd, copy=True).contiguous())
+        # only read (these kernels never write their inputs), so torch's buffers need no copy
+        grad_in = (lambda g: None if g is None else g.to(cd).contiguous())
         gv_out, ge_out, gu_out = grad_in(gv_out), grad_in(ge_out), grad_in(gu_out)
         gv = gu = ge = None                      # input gradients (compute dtype)
-        g_params = [None] * len(pc)
 
         def add(acc, x):
-            return x if acc is None else acc.add_(x)
+            return x if acc is None else acc + x
 
-        def first_layer_weight_grad(w0, layout, g0, inputs):
-            """Gradient of W0 (all column blocks) and of each input piece."""
-            cols = column_slices(layout)
-            gw0 = torch.zeros_like(w0, dtype=ad) if need_w else None
-            g_inputs = {}
-            for name, x in inputs.items():
-                if name not in cols or x is None:
-                    continue
-                if need_w:
-                    gw0[:, cols[name]] = torch.mm(g0.t(), x)
-                g_inputs[name] = torch.mm(g0, w0[:, cols[name]])
-            return gw0, g_inputs
+        ecols, ncols = column_slices(c.edge_layout), column_slices(c.node_layout)
+        H = pe[0].shape[0]
+        node_pieces = [n for n in ("sender_nodes", "receiver_nodes") if n in ecols]
+        edge_glob = "globals" in ecols
+        # Parameter gradients: weights written by the GEMMs into one compute-dtype buffer; biases
+        # (column sums) and the scatter destinations of the backward in one accumulation-dtype
+        # buffer, zeroed once (atomics add into it).
+        w_shapes = [tuple(p.shape) if (need_w and k % 2 == 0) else None for k, p in enumerate(pc)]
+        b_shapes = [tuple(p.shape) if (need_w and k % 2 == 1) else None for k, p in enumerate(pc)]
+        scat_shapes = [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None,
+                       (B, ncols["globals"].stop - ncols["globals"].start) if (need_u and "globals" in ncols) else None]
+        gws_all, gw_buf, w_offs = _carve(w_shapes, cd, dev, zero=False)
+        views, _, _ = _carve(b_shapes + scat_shapes, ad, dev, zero=not det)
+        gbs_all, (p_nodes, p_glob, gu_nodes) = views[:len(pc)], views[len(pc):]
+        offsets = (0, plan.n_edge_params, plan.n_edge_params + plan.n_node_params, len(pc))
 
-        offsets = (0, plan.n_edge_params, plan.n_edge_params + plan.n_node_params)
+        def mlp_grads(k):
+            """(weight-gradient views, bias-gradient views) of MLP k (0 edge, 1 node, 2 global)."""
+            a, b = offsets[k], offsets[k + 1]
+            return gws_all[a:b:2], gbs_all[a + 1:b:2]
 
-        def store_mlp_grads(k, gw0, gb0, gws, gbs):
-            if not need_w:
-                return
-            o = offsets[k]
-            g_params[o], g_params[o + 1] = gw0, gb0
-            for l, (gw, gb) in enumerate(zip(gws, gbs), start=1):
-                g_params[o + 2 * l], g_params[o + 2 * l + 1] = gw, gb
+        done = [False, False, False]  # MLPs whose gradients were computed (the others get None)
 
         with matmul_precision(plan.precision):
             # ---- global update -----------------------------------------------------------------
             g_sum_v = g_sum_e = None
             if c.update_globals and gu_out is not None:
                 wg = pg[0::2]
-                g0, gws, gbs = _mlp_tail_backward(launch, plan, gu_out, s["hs_g"], wg, need_w)
-                gw0, gin = first_layer_weight_grad(
-                    wg[0], c.global_layout, g0, {"globals": s["u"], "nodes": s["sum_v"], "edges": s["sum_e"]})
-                store_mlp_grads(2, gw0, g0.sum(0, dtype=ad) if need_w else None, gws, gbs)
-                g_sum_v, g_sum_e = gin.get("nodes"), gin.get("edges")
-                if need_u and "globals" in gin:
-                    gu = add(gu, gin["globals"])
+                gws, gbs = mlp_grads(2)
+                g0 = _mlp_backward(launch, plan, gu_out, s["hs_g"], wg, gws, gbs, need_w, False)
+                fl = s["fl_g"]
+                if need_w:
+                    blocks, buf = fl.grad_blocks(gws[0])
+                    torch.mm(g0.t(), s["x_g"], out=blocks["all"])
+                    fl.unpack(launch, plan, buf, gws[0])
+                g_x = _mm(g0, fl.w["all"])
+                gcols = column_slices(c.global_layout)
+                g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
+                g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
+                if need_u and "globals" in gcols:
+                    gu = g_x[:, gcols["globals"]]
+                done[2] = True
 
             # ---- node update -------------------------------------------------------------------
             g_agg = None
-            gv_tot = _gather_add(launch, plan, N, c.node_out, gv_out, (g_sum_v, gi.node_graph), (None, None))
+            gws, gbs = mlp_grads(1)
+            gv_tot, summed = _gather_add(launch, plan, N, c.node_out, gv_out, (g_sum_v, gi.node_graph), (None, None),
+                                         gbs[-1] if need_w else None)
             if gv_tot is not None:
                 wn = pn[0::2]
-                g0, gws, gbs = _mlp_tail_backward(launch, plan, gv_tot, s["hs_n"], wn, need_w)
-                gw0, gin = first_layer_weight_grad(wn[0], c.node_layout, g0, {"nodes": s["v"],
-                                                                              "received_edges": s["agg"]})
-                if "globals" in column_slices(c.node_layout):
-                    g_proj = _segment_or_scatter(launch, plan, g0, B, (gi.node_graph, None, gi.node_offsets))
-                    gs = column_slices(c.node_layout)["globals"]
-                    if need_w:
-                        gw0[:, gs] = torch.mm(g_proj.t(), s["u"])
-                    if need_u:
-                        gu = add(gu, torch.mm(g_proj, wn[0][:, gs]))
-                store_mlp_grads(1, gw0, g0.sum(0, dtype=ad) if need_w else None, gws, gbs)
-                g_agg = gin.get("received_edges")
-                if need_v and "nodes" in gin:
-                    gv = add(gv, gin["nodes"])
+                g0 = _mlp_backward(launch, plan, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed)
+                fl = s["fl_n"]
+                if need_w:
+                    blocks, buf = fl.grad_blocks(gws[0])
+                    torch.mm(g0.t(), s["x_n"], out=blocks["all"])
+                    fl.unpack(launch, plan, buf, gws[0])
+                g_x = _mm(g0, fl.w["all"])
+                g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
+                if need_v and "nodes" in ncols:
+                    gv = g_x[:, ncols["nodes"]]
+                if need_u and "globals" in ncols:
+                    gu = add(gu, _segment_or_scatter(launch, plan, g_x[:, ncols["globals"]], B,
+                                                     (gi.node_graph, None, gi.node_offsets), out=gu_nodes))
+                done[1] = True
 
             # ---- edge update -------------------------------------------------------------------
-            ge_tot = _gather_add(launch, plan, E, c.edge_out, ge_out, (g_agg, gi.receivers),
-                                 (g_sum_e, gi.edge_graph))
+            gws, gbs = mlp_grads(0)
+            ge_tot, summed = _gather_add(launch, plan, E, c.edge_out, ge_out, (g_agg, gi.receivers),
+                                         (g_sum_e, gi.edge_graph), gbs[-1] if need_w else None)
             if ge_tot is not None:
                 we = pe[0::2]
-                g0, gws, gbs = _mlp_tail_backward(launch, plan, ge_tot, s["hs_e"], we, need_w)
-                cols = column_slices(c.edge_layout)
-                gw0, gin = first_layer_weight_grad(we[0], c.edge_layout, g0, {"edges": s["e"]})
-                H = we[0].shape[0]
-                node_pieces = [n for n in ("sender_nodes", "receiver_nodes") if n in cols]
-                if node_pieces:
-                    # gradient of the node projections: scatter of g0 by sender / receiver
-                    g_proj = _zeros(N, H * len(node_pieces), cd if det else ad, like)
-                    for k, name in enumerate(node_pieces):
-                        idx = gi.senders if name == "sender_nodes" else gi.receivers
-                        perm = gi.send_perm if name == "sender_nodes" else gi.recv_perm
-                        offs = gi.send_offsets if name == "sender_nodes" else gi.recv_offsets
-                        _segment_or_scatter(launch, plan, g0, N, (idx, perm, offs), out=g_proj, dst_col=k * H)
-                    g_proj = g_proj.to(cd)
-                    w_nodes = torch.cat([we[0][:, cols[n]] for n in node_pieces], 0)
+                g0 = _mlp_backward(launch, plan, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed)
+                fl = s["fl_e"]
+                blocks, buf = fl.grad_blocks(gws[0]) if need_w else (None, None)
+                if "edges" in ecols:
                     if need_w:
-                        gwn = torch.mm(g_proj.t(), s["v"])
-                        for k, name in enumerate(node_pieces):
-                            gw0[:, cols[name]] = gwn[k * H:(k + 1) * H]
+                        torch.mm(g0.t(), s["e"], out=blocks["edges"])
+                    if need_e:
+                        ge = _mm(g0, fl.w["edges"])
+                want_nodes = node_pieces and (need_w or need_v)
+                want_glob = edge_glob and (need_w or need_u)
+                if want_nodes or want_glob:
+                    # gradient of the node / global projections: g0 summed by sender, receiver, graph
+                    _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes if want_nodes else None,
+                                         p_glob if want_glob else None)
+                if want_nodes:
+                    pn_c = p_nodes.to(cd)
+                    if need_w:
+                        for k in range(len(node_pieces)):
+                            torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
                     if need_v:
-                        gv = add(gv, torch.mm(g_proj, w_nodes))
-                if "globals" in cols:
-                    g_proj = _segment_or_scatter(launch, plan, g0, B, (gi.edge_graph, None, gi.edge_offsets))
+                        gv = add(gv, _mm(pn_c, fl.w["nodes"]))
+                if want_glob:
+                    pg_c = p_glob.to(cd)
                     if need_w:
-                        gw0[:, cols["globals"]] = torch.mm(g_proj.t(), s["u"])
+                        torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
                     if need_u:
-                        gu = add(gu, torch.mm(g_proj, we[0][:, cols["globals"]]))
-                store_mlp_grads(0, gw0, g0.sum(0, dtype=ad) if need_w else None, gws, gbs)
-                if need_e and "edges" in gin:
-                    ge = gin["edges"]
+                        gu = add(gu, _mm(pg_c, fl.w["globals"]))
+                if need_w:
+                    fl.unpack(launch, plan, buf, gws[0])
+                done[0] = True
 
         in_dt = ctx.in_dtypes
         out = [None if g is None else g.to(dt) for g, dt in ((gv, in_dt[0]), (ge, in_dt[1]), (gu, in_dt[2]))]
-        params_out = [None if (g is None or not need[5 + k]) else g.to(ctx.param_dtypes[k])
-                      for k, g in enumerate(g_params)]
+        params_out = [None] * len(pc)
+        if need_w:
+            pdt = ctx.param_dtypes[0]
+            if gw_buf.dtype != pdt:  # reduced precision: one cast of all weight gradients
+                gws_all = _views(gw_buf.to(pdt), w_shapes, w_offs)
+            for k in range(len(pc)):
+                mlp = 0 if k < offsets[1] else 1 if k < offsets[2] else 2
+                if need[5 + k] and done[mlp]:
+                    g = gws_all[k] if k % 2 == 0 else gbs_all[k]
+                    params_out[k] = g.to(ctx.param_dtypes[k])
         return (None, None, None, *out, *params_out)
 
 
-def _output_epilogue(launch, plan, gi, z, bias, out, det, target_a, target_b):
-    """Bias of the output GEMM (when ``z`` is given) fused with the scatter-sums of the result:
-    atomic adds, or (deterministic) ordered segment sums after it.
-
-    ``target_*``: (sum array or None, row -> destination index, perm or None, segment offsets)."""
-    T = plan.wp_dtype
+def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
+    """Backward of the split first layer of the edge update: sums of the rows of ``g0`` by sender
+    (columns [0, H) of ``p_nodes``), by receiver (the next H columns) and by graph (``p_glob``),
+    in one atomic pass, or (deterministic) ordered segment sums."""
+    H = g0.shape[1]
+    if plan.deterministic:
+        if p_nodes is not None:
+            for k, name in enumerate(node_pieces):
+                perm = gi.send_perm if name == "sender_nodes" else gi.recv_perm
+                offs = gi.send_offsets if name == "sender_nodes" else gi.recv_offsets
+                _segment(launch, plan, g0, perm, offs, p_nodes, 0, k * H, H)
+        if p_glob is not None:
+            _segment(launch, plan, g0, None, gi.edge_offsets, p_glob)
+        return
     ph = launch.placeholder
-    sum_a, idx_a, perm_a, offs_a = target_a
-    sum_b, idx_b, _, offs_b = target_b
-    scatter_a = sum_a is not None and not det
-    scatter_b = sum_b is not None and not det
-    if z is not None or scatter_a or scatter_b:
-        H = out.shape[1]
-        launch(K.output_epilogue_kernel(H, z is not None, scatter_a, scatter_b, T), out.shape,
-               out, idx_a if scatter_a else ph(torch.int32, 1), idx_b if scatter_b else ph(torch.int32, 1),
-               bias, out, sum_a if scatter_a else ph(plan.acc_dtype, 2), sum_b if scatter_b else ph(plan.acc_dtype, 2))
-    if det:
-        if sum_a is not None:
-            _segment(launch, plan, out, perm_a, offs_a, sum_a)
-        if sum_b is not None:
-            _segment(launch, plan, out, None, offs_b, sum_b)
+    has_s = p_nodes is not None and "sender_nodes" in node_pieces
+    has_r = p_nodes is not None and "receiver_nodes" in node_pieces
+    has_g = p_glob is not None
+    launch(K.scatter_edges_kernel(H, has_s, has_r, has_g, plan.wp_dtype, plan.wp_acc), g0.shape, g0,
+           gi.senders, gi.receivers, gi.edge_graph,
+           p_nodes if p_nodes is not None else ph(plan.acc_dtype, 2), p_glob if has_g else ph(plan.acc_dtype, 2))
 
 
 def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=None):
@@ -496,7 +713,8 @@ def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=
 
 def _segment_or_scatter(launch, plan, src, n_rows, index, out=None, dst_col=0):
     """Sum rows of ``src`` into ``n_rows`` destinations given by ``index`` = (row -> destination,
-    CSR perm or None, CSR offsets): ordered segment sums in deterministic mode, else atomics."""
+    CSR perm or None, CSR offsets): ordered segment sums in deterministic mode, else atomics
+    (``out``, if given, must then be zero-filled)."""
     idx, perm, offs = index
     W = src.shape[1]
     if out is None:
@@ -509,23 +727,29 @@ def _segment_or_scatter(launch, plan, src, n_rows, index, out=None, dst_col=0):
     return out.to(plan.compute_dtype)
 
 
-def _gather_add(launch, plan, rows, width, base, a, b):
-    """base + src_a[index_a] + src_b[index_b] over ``rows`` rows; None if all terms are None."""
+def _zeros(rows, cols, dtype, like):
+    return torch.zeros(rows, cols, dtype=dtype, device=like.device)
+
+
+def _gather_add(launch, plan, rows, width, base, a, b, gb):
+    """(base + src_a[index_a] + src_b[index_b] over ``rows`` rows, whether ``gb`` got its column
+    sums): the gather kernel adds the column sums of its result into ``gb`` (atomics) when given
+    and not deterministic. Returns (base, False) when nothing is gathered (None if all are None)."""
     (src_a, idx_a), (src_b, idx_b) = a, b
-    if base is None and src_a is None and src_b is None:
-        return None
     if src_a is None and src_b is None:
-        return base
+        return base, False
     ph = launch.placeholder
     cd = plan.compute_dtype
-    out = torch.empty(rows, width, dtype=cd, device=(base if base is not None else (src_a if src_a is not None
-                                                                                       else src_b)).device)
-    launch(K.gather_add_kernel(width, base is not None, src_a is not None, src_b is not None, plan.wp_dtype),
-           (rows, width), base if base is not None else ph(cd, 2),
-           src_a.contiguous() if src_a is not None else ph(cd, 2), idx_a if src_a is not None else ph(torch.int32, 1),
-           src_b.contiguous() if src_b is not None else ph(cd, 2), idx_b if src_b is not None else ph(torch.int32, 1),
-           out)
-    return out
+    fused = gb is not None and not plan.deterministic
+    out = torch.empty(rows, width, dtype=cd, device=(src_a if src_a is not None else src_b).device)
+    chunk = K.chunk_rows(rows, width)
+    launch.n(K.gather_add_sum_kernel(width, base is not None, src_a is not None, src_b is not None, fused,
+                                     plan.wp_dtype), K.chunk_dim(rows, width, chunk),
+             base if base is not None else ph(cd, 2), src_a if src_a is not None else ph(cd, 2),
+             idx_a if src_a is not None else ph(torch.int32, 1), src_b if src_b is not None else ph(cd, 2),
+             idx_b if src_b is not None else ph(torch.int32, 1), rows, chunk, out,
+             gb if fused else ph(plan.acc_dtype, 1))
+    return out, fused
 
 
 # -- path choice --------------------------------------------------------------------------------

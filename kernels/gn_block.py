@@ -1,20 +1,29 @@
 """Warp kernels for the graph-structured work of a GN block (the "split" path).
 
-The dense hidden layers of the edge, node and global MLPs run as BLAS GEMMs (torch.mm); these
-kernels do everything around them that depends on the graph:
+The dense layers of the edge, node and global MLPs run as BLAS GEMMs (cuBLAS / CPU BLAS through
+torch, bias and ReLU in the GEMM's epilogue); these kernels do everything around them that
+depends on the graph:
 
-- ``first_layer``: the split first layer. ``W.[e; v_s; v_r; u] = W_e e + W_s v_s + W_r v_r + W_u u``:
-  the node projections ``v @ [W_s; W_r]^T`` and global projections ``u @ W_u^T`` are GEMMs over
-  nodes / graphs (done once per node / graph, not once per edge); this kernel gathers them per
-  row, adds the row's own projection and the bias, and applies ReLU, in one pass.
-- ``bias_act``: bias + ReLU epilogue of a hidden GEMM.
-- ``output_epilogue``: bias of the output GEMM, fused with atomic scatter-sums of the result
-  (edges -> receivers, edges -> graphs, nodes -> graphs).
+- ``first_layer``: the split first layer of the edge update. ``W.[e; v_s; v_r; u] = W_e e + W_s v_s
+  + W_r v_r + W_u u``: the node projections ``v @ [W_s; W_r]^T`` and global projections
+  ``u @ W_u^T`` are GEMMs over nodes / graphs (done once per node / graph, not once per edge);
+  this kernel gathers them per edge, adds the edge's own projection and the bias, and applies
+  ReLU, in one pass.
+- ``concat``: the input rows of the node and global updates ([v, sum of received edges,
+  u[graph]] and [u, sum v', sum e']) side by side in the compute dtype: their first layer is
+  then one GEMM.
+- ``scatter_out``: the output epilogue of the edge and node updates: the returned copy in the
+  output dtype and the atomic scatter-sums (edges -> receivers, edges -> graphs, nodes -> graphs)
+  in one pass.
 - ``segment_sum``: the deterministic aggregation: each destination row sums its segment of a
   CSR layout (rows sorted by destination) in a fixed order.
-- ``scatter_add``: atomic scatter-sum of rows (backward of the gathers, default mode).
-- ``gather_add``: backward of the scatters (sum of gathered rows).
-- ``relu_grad``: backward of ReLU, from the saved activation.
+- ``scatter_add`` / ``scatter_edges``: atomic scatter-sums of gradient rows (backward of the
+  gathers; ``scatter_edges`` sends each row of the edge first-layer gradient to its sender,
+  receiver and graph in one pass).
+- ``gather_add_sum``: backward of the scatter-sums (sum of gathered rows), fused with the column
+  sums of the result (the output layer's bias gradient).
+- ``relu_grad_sum``: backward of ReLU from the saved activation, fused with the column sums of
+  the result (the bias gradient of the layer below).
 
 Each factory is specialized on the feature width (a compile-time constant), on which inputs exist
 (a block built without an input has no code for it: ``wp.static`` removes the branch; the array
@@ -22,12 +31,13 @@ argument of a disabled input is a zero-size placeholder that is never read) and 
 dtype. Arithmetic accumulates in float32 (float64 for float64 storage). Factories are cached, so
 a kernel is built once per configuration.
 
-Launches are 1-D, ``dim = launch_dim(rows, width)``: each thread owns ``vec(width)`` consecutive
-features of one row (up to 4: more bytes in flight per thread), neighbouring threads the next
-ones, so accesses coalesce; with the width a compile-time constant, the row / column split of the
-thread index is a multiply-shift, not the 64-bit division of a 2-D launch. Kernels that update
-in place take the same tensor as ``*_in`` and ``*_out``; each thread reads its elements before
-writing them.
+Launches are 1-D. Row kernels use ``dim = launch_dim(rows, width)``: each thread owns
+``vec(width)`` consecutive features of one row (up to 4: more bytes in flight per thread),
+neighbouring threads the next ones, so accesses coalesce; with the width a compile-time
+constant, the row / column split of the thread index is a multiply-shift, not the 64-bit
+division of a 2-D launch. Chunked kernels (the column sums) use ``chunk_dim``: one thread per
+(chunk of rows, column). Kernels that update in place take the same tensor as ``*_in`` and
+``*_out``; each thread reads its elements before writing them.
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
@@ -38,13 +48,16 @@ __all__ = [
     "acc_dtype",
     "vec",
     "launch_dim",
+    "chunk_rows",
+    "chunk_dim",
     "first_layer_kernel",
-    "bias_act_kernel",
-    "output_epilogue_kernel",
+    "concat_kernel",
+    "scatter_out_kernel",
     "segment_sum_kernel",
     "scatter_add_kernel",
-    "gather_add_kernel",
-    "relu_grad_kernel",
+    "scatter_edges_kernel",
+    "gather_add_sum_kernel",
+    "relu_grad_sum_kernel",
 ]
 
 
@@ -127,83 +140,6 @@ def first_layer_kernel(width: int, has_direct: bool, has_sender: bool, has_recei
 
 
 @functools.cache
-def bias_act_kernel(width: int, relu: bool, dtype):
-    """act_out[r, j] = act(pre_in[r, j] + bias[j]); may run in place."""
-    V = vec(width)
-    WV = width // V
-    T = dtype
-    A = acc_dtype(dtype)
-
-    @wp.kernel(module="unique", module_options=_options())
-    def bias_act(
-        # Data in:
-        pre_in: wp.array2d(dtype=T),
-        # Parameters:
-        bias: wp.array(dtype=T),
-        # Data out:
-        act_out: wp.array2d(dtype=T),
-    ):
-        i = wp.tid()
-        r = i // WV
-        j0 = (i - r * WV) * V
-        for k in range(V):
-            j = j0 + k
-            x = A(pre_in[r, j]) + A(bias[j])
-            if wp.static(relu):
-                x = wp.max(x, A(0.0))
-            act_out[r, j] = T(x)
-
-    return bias_act
-
-
-@functools.cache
-def output_epilogue_kernel(width: int, add_bias: bool, scatter_a: bool, scatter_b: bool, dtype):
-    """out[r] = pre_in[r] + bias; sum_a_out[index_a[r]] += out[r]; sum_b_out[index_b[r]] += out[r].
-
-    The scatter-sums are atomic adds in the accumulation dtype.
-    """
-    V = vec(width)
-    WV = width // V
-    T = dtype
-    A = acc_dtype(dtype)
-
-    @wp.kernel(module="unique", module_options=_options())
-    def output_epilogue(
-        # Data in:
-        pre_in: wp.array2d(dtype=T),
-        index_a: wp.array(dtype=wp.int32),
-        index_b: wp.array(dtype=wp.int32),
-        # Parameters:
-        bias: wp.array(dtype=T),
-        # Data out:
-        out: wp.array2d(dtype=T),
-        sum_a_out: wp.array2d(dtype=A),
-        sum_b_out: wp.array2d(dtype=A),
-    ):
-        i = wp.tid()
-        r = i // WV
-        j0 = (i - r * WV) * V
-        if wp.static(scatter_a):
-            a = index_a[r]
-        if wp.static(scatter_b):
-            b = index_b[r]
-        for k in range(V):
-            j = j0 + k
-            x = A(pre_in[r, j])
-            if wp.static(add_bias):
-                x += A(bias[j])
-                out[r, j] = T(x)
-            # the sums add the rounded stored value, so they equal the sum of what is returned
-            y = A(T(x))
-            if wp.static(scatter_a):
-                wp.atomic_add(sum_a_out, a, j, y)
-            if wp.static(scatter_b):
-                wp.atomic_add(sum_b_out, b, j, y)
-
-    return output_epilogue
-
-
-@functools.cache
 def segment_sum_kernel(width: int, has_perm: bool, src_dtype, dst_dtype):
     """sum_out[s, dst_col + j] = sum over p in [offsets[s], offsets[s+1]) of src_in[perm[p], src_col + j].
 
@@ -272,71 +208,286 @@ def scatter_add_kernel(width: int, src_dtype, dst_dtype):
     return scatter_add
 
 
+# -- column sums ----------------------------------------------------------------------------------
+# Chunked kernels: one thread per (chunk of ``chunk`` consecutive rows, column); a warp reads 32
+# consecutive columns of one row (coalesced), and each thread adds its chunk's column sum into
+# ``sum_out`` with one atomic (bias gradients without a separate pass over the rows).
+def chunk_rows(rows: int, width: int) -> int:
+    """Rows per thread of the chunked kernels: enough threads to fill the GPU (~256K), at least
+    8 rows per atomic, at most 64."""
+    return max(8, min(64, (rows * width) // (1 << 18)))
+
+
+def chunk_dim(rows: int, width: int, chunk: int) -> int:
+    return ((rows + chunk - 1) // chunk) * width if rows > 0 else 0
+
+
 @functools.cache
-def gather_add_kernel(width: int, has_base: bool, has_a: bool, has_b: bool, dtype):
-    """out[r] = base_in[r] + src_a_in[index_a[r]] + src_b_in[index_b[r]] (backward of the
-    scatter-sums: each row receives the gradient of the sums it was added into)."""
+def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype):
+    """out[r] = [a_in[ra], b_in[rb], c_in[rc]] (columns side by side, cast to ``dtype``); a piece
+    of width 0 is absent; a gathered piece reads row ``index[r]``, the others row ``r``.
+
+    Builds the input rows of an MLP whose first layer is one GEMM: the node update's
+    [v, sum of received edges, u[graph of node]] and the global update's [u, sum v', sum e'].
+    One thread per element (widths such as 31 have no vector split)."""
+    WA, WB, WC = widths
+    GA, GB, GC = gathered
+    TA, TB, TC = in_dtypes
+    K = WA + WB + WC
+    EA = WA
+    EB = WA + WB
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def concat(
+        # Data in:
+        a_in: wp.array2d(dtype=TA),
+        b_in: wp.array2d(dtype=TB),
+        c_in: wp.array2d(dtype=TC),
+        index: wp.array(dtype=wp.int32),
+        # Data out:
+        out: wp.array2d(dtype=T),
+    ):
+        i = wp.tid()
+        r = i // K
+        c = i - r * K
+        if wp.static(WA > 0):
+            if c < EA:
+                if wp.static(GA):
+                    out[r, c] = T(a_in[index[r], c])
+                else:
+                    out[r, c] = T(a_in[r, c])
+        if wp.static(WB > 0):
+            if c >= EA and c < EB:
+                if wp.static(GB):
+                    out[r, c] = T(b_in[index[r], c - EA])
+                else:
+                    out[r, c] = T(b_in[r, c - EA])
+        if wp.static(WC > 0):
+            if c >= EB:
+                if wp.static(GC):
+                    out[r, c] = T(c_in[index[r], c - EB])
+                else:
+                    out[r, c] = T(c_in[r, c - EB])
+
+    return concat
+
+
+@functools.cache
+def scatter_out_kernel(width: int, scatter_a: bool, scatter_b: bool, copy: bool, dtype, out_dtype):
+    """copy_out[r] = x_in[r] (in the output dtype); sum_a_out[index_a[r]] += x_in[r];
+    sum_b_out[index_b[r]] += x_in[r] (atomic adds in the accumulation dtype).
+
+    The output epilogue of the edge and node updates (the output bias is already in ``x_in``,
+    added by the GEMM's epilogue): the sums add the stored values, so they equal the sum of what
+    is returned."""
     V = vec(width)
     WV = width // V
+    T = dtype
+    O = out_dtype
+    A = acc_dtype(dtype)
+
+    @wp.kernel(module="unique", module_options=_options())
+    def scatter_out(
+        # Data in:
+        x_in: wp.array2d(dtype=T),
+        index_a: wp.array(dtype=wp.int32),
+        index_b: wp.array(dtype=wp.int32),
+        # Data out:
+        copy_out: wp.array2d(dtype=O),
+        sum_a_out: wp.array2d(dtype=A),
+        sum_b_out: wp.array2d(dtype=A),
+    ):
+        i = wp.tid()
+        r = i // WV
+        j0 = (i - r * WV) * V
+        if wp.static(scatter_a):
+            a = index_a[r]
+        if wp.static(scatter_b):
+            b = index_b[r]
+        for k in range(V):
+            j = j0 + k
+            x = x_in[r, j]
+            if wp.static(copy):
+                copy_out[r, j] = O(x)
+            y = A(x)
+            if wp.static(scatter_a):
+                wp.atomic_add(sum_a_out, a, j, y)
+            if wp.static(scatter_b):
+                wp.atomic_add(sum_b_out, b, j, y)
+
+    return scatter_out
+
+
+@functools.cache
+def relu_grad_sum_kernel(width: int, has_sum: bool, dtype):
+    """grad_out[r, j] = grad_in[r, j] where act_in[r, j] > 0, else 0 (ReLU backward from the
+    saved activation; may run in place), and sum_out[j] += that gradient summed over the rows
+    (the bias gradient of the layer). Chunked: launch ``chunk_dim(rows, width, chunk)`` threads."""
+    W = width
     T = dtype
     A = acc_dtype(dtype)
 
     @wp.kernel(module="unique", module_options=_options())
-    def gather_add(
+    def relu_grad_sum(
+        # Data in:
+        act_in: wp.array2d(dtype=T),
+        grad_in: wp.array2d(dtype=T),
+        rows: int,
+        chunk: int,
+        # Data out:
+        grad_out: wp.array2d(dtype=T),
+        sum_out: wp.array(dtype=A),
+    ):
+        i = wp.tid()
+        ci = i // W
+        j = i - ci * W
+        r0 = ci * chunk
+        r1 = wp.min(r0 + chunk, rows)
+        acc = A(0.0)
+        for r in range(r0, r1):
+            g = T(0.0)
+            if act_in[r, j] > T(0.0):
+                g = grad_in[r, j]
+            grad_out[r, j] = g
+            acc += A(g)
+        if wp.static(has_sum):
+            wp.atomic_add(sum_out, j, acc)
+
+    return relu_grad_sum
+
+
+@functools.cache
+def gather_add_sum_kernel(width: int, has_base: bool, has_a: bool, has_b: bool, has_sum: bool, dtype):
+    """out[r] = base_in[r] + src_a_in[index_a[r]] + src_b_in[index_b[r]] (backward of the
+    scatter-sums: each row receives the gradient of the sums it was added into), and
+    sum_out[j] += out[:, j] summed over the rows (the output layer's bias gradient). Chunked."""
+    W = width
+    T = dtype
+    A = acc_dtype(dtype)
+
+    @wp.kernel(module="unique", module_options=_options())
+    def gather_add_sum(
         # Data in:
         base_in: wp.array2d(dtype=T),
         src_a_in: wp.array2d(dtype=T),
         index_a: wp.array(dtype=wp.int32),
         src_b_in: wp.array2d(dtype=T),
         index_b: wp.array(dtype=wp.int32),
+        rows: int,
+        chunk: int,
         # Data out:
         out: wp.array2d(dtype=T),
+        sum_out: wp.array(dtype=A),
     ):
         i = wp.tid()
-        r = i // WV
-        j0 = (i - r * WV) * V
-        if wp.static(has_a):
-            a = index_a[r]
-        if wp.static(has_b):
-            b = index_b[r]
-        for k in range(V):
-            j = j0 + k
+        ci = i // W
+        j = i - ci * W
+        r0 = ci * chunk
+        r1 = wp.min(r0 + chunk, rows)
+        acc = A(0.0)
+        for r in range(r0, r1):
             x = A(0.0)
             if wp.static(has_base):
                 x += A(base_in[r, j])
             if wp.static(has_a):
-                x += A(src_a_in[a, j])
+                x += A(src_a_in[index_a[r], j])
             if wp.static(has_b):
-                x += A(src_b_in[b, j])
-            out[r, j] = T(x)
+                x += A(src_b_in[index_b[r], j])
+            y = T(x)
+            out[r, j] = y
+            acc += A(y)
+        if wp.static(has_sum):
+            wp.atomic_add(sum_out, j, acc)
 
-    return gather_add
+    return gather_add_sum
 
 
 @functools.cache
-def relu_grad_kernel(width: int, dtype):
-    """grad_out[r, j] = grad_in[r, j] where act_in[r, j] > 0, else 0 (ReLU backward from the
-    saved activation, as torch does); may run in place."""
+def scatter_edges_kernel(width: int, has_sender: bool, has_receiver: bool, has_global: bool, src_dtype,
+                         dst_dtype):
+    """Backward of the split first layer of the edge update, one read of each gradient row:
+    nodes_out[senders[r], :W] += g_in[r]; nodes_out[receivers[r], RCV:RCV+W] += g_in[r];
+    globals_out[edge_graph[r]] += g_in[r] (atomic). RCV = W when both node pieces exist, else 0."""
     V = vec(width)
     WV = width // V
-    T = dtype
+    RCV_COL = width if has_sender else 0
+    S = src_dtype
+    D = dst_dtype
 
     @wp.kernel(module="unique", module_options=_options())
-    def relu_grad(
+    def scatter_edges(
         # Data in:
-        act_in: wp.array2d(dtype=T),
-        grad_in: wp.array2d(dtype=T),
+        g_in: wp.array2d(dtype=S),
+        senders: wp.array(dtype=wp.int32),
+        receivers: wp.array(dtype=wp.int32),
+        edge_graph: wp.array(dtype=wp.int32),
         # Data out:
-        grad_out: wp.array2d(dtype=T),
+        nodes_out: wp.array2d(dtype=D),
+        globals_out: wp.array2d(dtype=D),
     ):
         i = wp.tid()
         r = i // WV
         j0 = (i - r * WV) * V
+        if wp.static(has_sender):
+            s = senders[r]
+        if wp.static(has_receiver):
+            q = receivers[r]
+        if wp.static(has_global):
+            g = edge_graph[r]
         for k in range(V):
             j = j0 + k
-            g = T(0.0)
-            if act_in[r, j] > T(0.0):
-                g = grad_in[r, j]
-            grad_out[r, j] = g
+            x = D(g_in[r, j])
+            if wp.static(has_sender):
+                wp.atomic_add(nodes_out, s, j, x)
+            if wp.static(has_receiver):
+                wp.atomic_add(nodes_out, q, RCV_COL + j, x)
+            if wp.static(has_global):
+                wp.atomic_add(globals_out, g, j, x)
 
-    return relu_grad
+    return scatter_edges
+
+
+# -- aligned weight blocks ----------------------------------------------------------------------
+@functools.cache
+def pack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, unpack: bool):
+    """Copy column blocks of a row-major [rows, cols] matrix to (``unpack``: from) a flat buffer:
+    ``flat[off + (row0 + i) * stride + (c - col0)] <-> mat[i, c]`` for the columns c in
+    [col0, col0 + width) of each segment (col0, width, off, stride, row0); four at most.
+
+    Packs the column blocks of a first-layer weight (edges, sender / receiver nodes stacked,
+    globals) into blocks whose rows start 16-byte aligned, so that cuBLAS runs them on its fast
+    (TMA) kernels; and unpacks their gradients. One thread per matrix element."""
+    segs = list(segments) + [(0, 0, 0, 1, 0)] * (4 - len(segments))
+    (C0, W0, O0, S0, R0), (C1, W1, O1, S1, R1), (C2, W2, O2, S2, R2), (C3, W3, O3, S3, R3) = segs
+    M = mat_dtype
+    F = flat_dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def pack(
+        mat: wp.array2d(dtype=M),
+        flat: wp.array(dtype=F),
+    ):
+        t = wp.tid()
+        i = t // cols
+        c = t - i * cols
+        d = int(-1)
+        if wp.static(W0 > 0):
+            if c >= C0 and c < C0 + W0:
+                d = O0 + (R0 + i) * S0 + (c - C0)
+        if wp.static(W1 > 0):
+            if c >= C1 and c < C1 + W1:
+                d = O1 + (R1 + i) * S1 + (c - C1)
+        if wp.static(W2 > 0):
+            if c >= C2 and c < C2 + W2:
+                d = O2 + (R2 + i) * S2 + (c - C2)
+        if wp.static(W3 > 0):
+            if c >= C3 and c < C3 + W3:
+                d = O3 + (R3 + i) * S3 + (c - C3)
+        if d >= 0:
+            if wp.static(unpack):
+                mat[i, c] = M(flat[d])
+            else:
+                flat[d] = F(mat[i, c])
+
+    return pack
