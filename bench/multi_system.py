@@ -1,0 +1,146 @@
+"""Experiments 2 and 3 of issue 4: one model for several systems, and SwimmerN zero-shot.
+
+- ``multi4``: one GN on Pendulum, Cartpole, Acrobot and Swimmer6 (batches mixed in equal
+  proportion); ``multi5``: the same plus Cheetah. Each evaluated on every system's test split.
+- ``swimmerN``: one GN on SwimmerN for N in {3, 4, 5, 6, 8, 9}, tested on N = 3..15 (7 and
+  10-15 never seen in training).
+
+Datasets are simulated with MuJoCo C on all cores; the three trainings run side by side on the one
+device, each capped at ``--seconds`` of wall clock.
+
+    python bench/multi_system.py --seconds 300 --out bench/results/multi_system
+    python bench/multi_system.py --quick
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+RUNS = {
+    "multi4": (["pendulum", "cartpole", "acrobot", "swimmer6"], ["pendulum", "cartpole", "acrobot", "swimmer6"]),
+    "multi5": (["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah"],
+               ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah"]),
+    "swimmerN": ([f"swimmer{n}" for n in (3, 4, 5, 6, 8, 9)], [f"swimmer{n}" for n in range(3, 16)]),
+}
+
+
+def child(args):
+    from gnwarp import data
+    from gnwarp import evaluate as ev
+    from gnwarp.models import GNCoreConfig, ModelConfig
+    from gnwarp.train import TrainConfig, load_model, train
+
+    train_sys, test_sys = RUNS[args.run]
+    out = Path(args.out) / args.run
+    files = [str(Path(args.out) / "data" / f"{s}.h5") for s in train_sys]
+    gn = GNCoreConfig(latent=args.latent, edge_hidden=(args.edge_width,) * 2, node_hidden=(args.node_width,) * 2,
+                      global_hidden=(args.node_width,) * 2)
+    run = train(TrainConfig(data=files, out=str(out), model=ModelConfig(core="gn", gn=gn), steps=args.max_steps,
+                            max_seconds=args.seconds, lr=args.lr, lr_decay=0.6,
+                            lr_decay_steps=max(1, args.max_steps // 4), valid_every=args.valid_every,
+                            valid_sequences=args.valid, patience=None, checkpoint_every=args.max_steps,
+                            resume=False, progress=False))
+    model = load_model(Path(run["best"]))
+    results = {}
+    for s in test_sys:
+        ds = data.load(Path(args.out) / "data" / f"{s}.h5", lazy=False)
+        r = ev.evaluate(model.bind(ds), ds, "test")
+        results[s] = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
+        results[s]["seen_in_training"] = s in train_sys
+    summary = {"run": args.run, "train_systems": train_sys, "steps": run["steps"], "seconds": run["seconds"],
+               "results": results}
+    (out / "results.json").write_text(json.dumps(summary, indent=1, default=float))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", default=",".join(RUNS))
+    ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200), metavar=("TRAIN", "VALID", "TEST"))
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--seconds", type=float, default=300.0)
+    ap.add_argument("--max-steps", type=int, default=60000)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--valid-every", type=int, default=2000)
+    ap.add_argument("--latent", type=int, default=128)
+    ap.add_argument("--edge-width", type=int, default=256)
+    ap.add_argument("--node-width", type=int, default=128)
+    ap.add_argument("--out", default="bench/results/multi_system")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--run", help=argparse.SUPPRESS)
+    ap.add_argument("--valid", type=int, default=50, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child(args)
+    if args.quick:
+        args.sequences, args.steps, args.seconds, args.max_steps = (30, 4, 6), 12, 15.0, 40
+        args.valid_every, args.latent, args.edge_width, args.node_width = 20, 16, 32, 16
+    from gnwarp import data
+    runs = args.runs.split(",")
+    out = Path(args.out)
+    (out / "data").mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    needed = sorted({s for r in runs for s in RUNS[r][0] + RUNS[r][1]})
+    for s in needed:
+        p = out / "data" / f"{s}.h5"
+        if p.exists():
+            continue
+        trained = any(s in RUNS[r][0] for r in runs)
+        sizes = tuple(args.sequences) if trained else (1, 1, args.sequences[2])  # test-only systems
+        data.generate(s, sizes, num_steps=args.steps, seed=2, backend="mujoco", progress=False).save(p)
+    t_data = time.perf_counter() - t0
+    procs = []
+    for r in runs:
+        cmd = [sys.executable, __file__, "--child", "--run", r, "--out", str(out), "--seconds", str(args.seconds),
+               "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every),
+               "--latent", str(args.latent), "--edge-width", str(args.edge_width), "--node-width", str(args.node_width),
+               "--valid", str(args.sequences[1])]
+        log = open(out / f"{r}.log", "w")
+        procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                       env={**os.environ, "OMP_NUM_THREADS": "2"}), log))
+    for p, log in procs:
+        p.wait()
+        log.close()
+    lines = [f"# One model for several systems, and SwimmerN zero-shot ({_device()})", "",
+             f"Data: {args.sequences[0]}/{args.sequences[1]}/{args.sequences[2]} sequences x {args.steps} steps per "
+             f"trained system (MuJoCo C, {t_data:.0f} s); GN latent {args.latent}, edge MLP 2x{args.edge_width}, node/"
+             f"global 2x{args.node_width}; each run capped at {args.seconds:g} s of training, the runs side by side on "
+             "one device. Errors: model / constant baseline, averaged over state groups.", "",
+             "| run | steps | test system | seen in training | one-step | 20-step | 100-step |", "|---|---|---|---|---|---|---|"]
+    for r in runs:
+        f = out / r / "results.json"
+        if not f.exists():
+            lines.append(f"| {r} | failed (see {r}.log) | | | | | |")
+            continue
+        s = json.loads(f.read_text())
+        for name, v in s["results"].items():
+            lines.append(f"| {r} | {s['steps']} | {name} | {'yes' if v['seen_in_training'] else 'no'} | "
+                         f"{_f(v.get('one_step'))} | {_f(v.get('rollout_20'))} | {_f(v.get('rollout_100'))} |")
+    table = "\n".join(lines)
+    (out / "summary.md").write_text(table + "\n")
+    print(table)
+
+
+def _f(x) -> str:
+    return "n/a" if x is None else f"{x:.3g}"
+
+
+def _device() -> str:
+    try:
+        import torch
+        if torch.cuda.is_available():
+            return torch.cuda.get_device_name(0)
+    except Exception:  # noqa: BLE001
+        pass
+    return f"CPU, {os.cpu_count()} cores"
+
+
+if __name__ == "__main__":
+    main()
