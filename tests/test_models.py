@@ -17,15 +17,6 @@ warp()  # initialize Warp quietly
 TINY = GNCoreConfig(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    # tiny GEMMs: one thread is as fast, and does not thrash when the machine is shared
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def pendulum():
     return data.generate("pendulum", (6, 2, 2), num_steps=12, seed=0, backend="mujoco", progress=False)

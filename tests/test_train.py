@@ -19,14 +19,6 @@ warp()
 TINY = dict(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def pendulum():
     return data.generate("pendulum", (20, 3, 4), num_steps=20, seed=0, backend="mujoco", progress=False)
