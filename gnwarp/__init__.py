@@ -1,5 +1,7 @@
 """gnwarp: graph networks as learnable physics engines, on NVIDIA Warp and MuJoCo-Warp."""
 
+__version__ = "0.1.0"
+
 
 def _find_kernels():
     """``gnwarp.kernels`` is the top-level ``kernels/`` folder, mapped by the install (package-dir).
@@ -23,9 +25,11 @@ def _find_kernels():
 
 
 _find_kernels()
-from gnwarp.graphs import GraphsTuple
-from gnwarp.gn import GNBlockConfig, GraphNetwork
-from gnwarp.train import load_model
 
-__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig"]
-__version__ = "0.1.0"
+from gnwarp import data, systems  # noqa: E402  (systems -> data: the stages users call by name)
+from gnwarp.gn import GNBlockConfig, GraphNetwork  # noqa: E402
+from gnwarp.graphs import GraphsTuple  # noqa: E402
+from gnwarp.train import load_model  # noqa: E402
+
+__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "load_model", "systems", "data"]
+

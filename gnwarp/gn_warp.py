@@ -249,47 +249,67 @@ def _cast_params(params, dtype):
     return [flat[o:o + p.numel()].view(p.shape) for p, o in zip(params, offsets)]
 
 
-def _pad(cols: int, dtype: torch.dtype) -> int:
-    """Row stride (elements) >= ``cols`` whose size in bytes is a multiple of 16."""
-    m = max(1, 16 // dtype.itemsize)
-    return -(-cols // m) * m
+def _pad(cols: int) -> int:
+    """Padded width of a first-layer GEMM operand: a multiple of 8 elements (16 bytes in fp16 /
+    bf16, 32 in fp32), which cuBLAS's fast (Hopper) kernels need for their K and leading
+    dimensions; widths such as 31 or 159 otherwise fall back to Ampere / Turing kernels."""
+    return -(-cols // 8) * 8
 
 
-def _empty_aligned(rows: int, cols: int, dtype, device):
-    """[rows, cols] view of a buffer whose rows start 16-byte aligned (cuBLAS's fast kernels
-    need aligned leading dimensions: widths such as 31 or 159 get padded rows)."""
-    return torch.empty(rows, _pad(cols, dtype), dtype=dtype, device=device)[:, :cols]
+_ZERO_BIAS: dict[tuple, torch.Tensor] = {}
 
 
-def _aligned(x, dtype):
-    """``x`` in ``dtype`` with 16-byte-aligned rows: itself if it has them, else a padded copy."""
+def _zero_bias(n: int, like: torch.Tensor) -> torch.Tensor:
+    key = (n, like.dtype, like.device)
+    if key not in _ZERO_BIAS:
+        _ZERO_BIAS[key] = torch.zeros(n, dtype=like.dtype, device=like.device)
+    return _ZERO_BIAS[key]
+
+
+def _gemm(a, b, out=None):
+    """a @ b as cuBLASLt's matmul with a (zero) bias epilogue: torch.mm's plain cuBLAS path picks
+    slow Ampere / Turing kernels for the narrow-K first-layer shapes, the Lt path its Hopper
+    ones. Plain torch.mm off CUDA."""
+    if a.device.type != "cuda":
+        return torch.mm(a, b, out=out)
+    return torch.addmm(_zero_bias(b.shape[1], a), a, b, out=out)
+
+
+# Backward GEMMs through cuBLASLt too (``_gemm``) instead of torch.mm's cuBLAS path.
+_LT_BACKWARD = False
+
+
+def _bgemm(a, b, out=None):
+    return _gemm(a, b, out) if _LT_BACKWARD else torch.mm(a, b, out=out)
+
+
+def _padded(x, dtype):
+    """``x`` in ``dtype``, rows zero-padded to ``_pad`` columns (itself when already so)."""
     if x is None:
         return None
-    if (x.dtype == dtype and x.stride(-1) == 1 and (x.stride(0) * dtype.itemsize) % 16 == 0
-            and x.data_ptr() % 16 == 0):
+    cols = _pad(x.shape[1])
+    if x.dtype == dtype and x.is_contiguous() and cols == x.shape[1] and x.data_ptr() % 16 == 0:
         return x
-    out = _empty_aligned(x.shape[0], x.shape[1], dtype, x.device)
-    out.copy_(x)
+    out = torch.empty(x.shape[0], cols, dtype=dtype, device=x.device)
+    if cols > x.shape[1]:
+        out[:, x.shape[1]:].zero_()
+    out[:, :x.shape[1]].copy_(x)
     return out
-
-
-def _mm(a, b):
-    """a @ b into an output with aligned rows."""
-    return torch.mm(a, b, out=_empty_aligned(a.shape[0], b.shape[1], a.dtype, a.device))
 
 
 @functools.cache
 def _first_layer_layout(layout: tuple, split: bool, H: int, dtype: torch.dtype):
-    """Aligned block layout of a first-layer weight [H, sum of widths]: (segments of
-    ``pack_kernel``, {block: (offset, rows, width, stride)}, total elements). ``split`` (the
-    edge update): blocks "edges", "nodes" (sender rows stacked over receiver rows) and
-    "globals"; else one block "all"."""
+    """Padded block layout of a first-layer weight [H, sum of widths]: (segments of
+    ``pack_kernel``, {block: (offset, rows, width, stride)}, total elements); each block's rows
+    are ``stride = _pad(width)`` long, zeros after ``width``. ``split`` (the edge update):
+    blocks "edges", "nodes" (sender rows stacked over receiver rows) and "globals"; else one
+    block "all"."""
     cols = column_slices(layout)
     segs, blocks, total = [], {}, 0
 
     def block(name, rows, width):
         nonlocal total
-        stride = _pad(width, dtype)
+        stride = _pad(width)
         blocks[name] = (total, rows, width, stride)
         total += -(-rows * stride // _ALIGN) * _ALIGN
         return blocks[name][0], stride
@@ -317,26 +337,28 @@ def _first_layer_layout(layout: tuple, split: bool, H: int, dtype: torch.dtype):
 
 
 class _FirstLayer:
-    """A first-layer weight [H, K] as GEMM-ready blocks (``w``: {block: [rows, width] view}) with
-    16-byte-aligned rows, packed by one kernel (for the edge update it also stacks the sender and
-    receiver blocks); a single block whose rows are already aligned is used as is."""
+    """A first-layer weight [H, K] as GEMM-ready blocks (``w``: {block: [rows, _pad(width)]}, zero
+    columns after the block's width, 16-byte-aligned rows), packed by one kernel (for the edge
+    update it also stacks the sender and receiver blocks); a single block of a padded width is
+    used as is. Their GEMM partners are padded the same way (``_padded``, ``_concat``)."""
 
     def __init__(self, launch, plan, w0, layout, split: bool):
         cd = plan.compute_dtype
         self.segs, self.blocks, self.total = _first_layer_layout(tuple(layout), split, w0.shape[0], cd)
         self.shape = tuple(w0.shape)
-        self.as_is = (not split and w0.dtype == cd and w0.is_contiguous()
-                      and (w0.shape[1] * cd.itemsize) % 16 == 0 and w0.data_ptr() % 16 == 0)
+        self.as_is = (not split and w0.dtype == cd and w0.is_contiguous() and _pad(w0.shape[1]) == w0.shape[1]
+                      and w0.data_ptr() % 16 == 0)
         if self.as_is:
             self.w = {"all": w0}
         else:
-            buf = torch.empty(max(self.total, 1), dtype=cd, device=w0.device)
+            padded = any(st > width for _, _, width, st in self.blocks.values())
+            buf = (torch.zeros if padded else torch.empty)(max(self.total, 1), dtype=cd, device=w0.device)
             launch.n(K.pack_kernel(self.segs, w0.shape[1], _WP_DTYPE[w0.dtype], plan.wp_dtype, False), w0.numel(),
                      w0, buf)
             self.w = self._views(buf)
 
     def _views(self, buf):
-        return {name: buf[o:o + rows * st].view(rows, st)[:, :width] for name, (o, rows, width, st) in self.blocks.items()}
+        return {name: buf[o:o + rows * st].view(rows, st) for name, (o, rows, _, st) in self.blocks.items()}
 
     def grad_blocks(self, gw0):
         """(block views to write the weight gradient into, buffer to unpack into ``gw0`` or None)."""
@@ -346,6 +368,7 @@ class _FirstLayer:
         return self._views(buf), buf
 
     def unpack(self, launch, plan, buf, gw0):
+        """gw0 = the weight-gradient blocks written into ``buf`` (padding columns dropped)."""
         if buf is not None:
             T = _WP_DTYPE[gw0.dtype]
             launch.n(K.pack_kernel(self.segs, self.shape[1], T, T, True), gw0.numel(), gw0, buf)
@@ -397,8 +420,8 @@ def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool)
     for l in range(len(ws) - 1, 0, -1):
         x = hs[l - 1]
         if need_w:
-            torch.mm(g.t(), x, out=gws[l])
-        gh = torch.mm(g, ws[l])
+            _bgemm(g.t(), x, out=gws[l])
+        gh = _bgemm(g, ws[l])
         _relu_grad(launch, plan, x, gh, gbs[l - 1] if need_w else None)
         g = gh
     return g
@@ -406,49 +429,43 @@ def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool)
 
 def _concat(launch, plan, rows, layout, pieces, index):
     """Input rows of an MLP whose first layer is one GEMM: the pieces of ``layout`` side by side
-    in the compute dtype, in one kernel, rows aligned. ``pieces``: {name: (tensor, gathered)}; a
-    gathered piece is read at row ``index[r]``. A lone piece with aligned rows is used as is."""
+    in the compute dtype, zero-padded to ``_pad`` columns, in one kernel. ``pieces``: {name:
+    (tensor, gathered)}; a gathered piece is read at row ``index[r]``. A lone piece is only
+    padded (``_padded``)."""
     cd = plan.compute_dtype
     items = [(pieces[name][0], pieces[name][1], w) for name, w in layout]
     if len(items) == 1 and not items[0][1]:
-        return _aligned(items[0][0], cd)
-    width = sum(w for _, _, w in items)
-    out = _empty_aligned(rows, width, cd, items[0][0].device)
+        return _padded(items[0][0], cd)
+    width = _pad(sum(w for _, _, w in items))
+    out = torch.empty(rows, width, dtype=cd, device=items[0][0].device)
     ph = launch.placeholder(cd, 2)
     items += [(ph, False, 0)] * (3 - len(items))
     gathered = tuple(bool(g) for _, g, _ in items)
     kernel = K.concat_kernel(tuple(w for _, _, w in items), gathered, tuple(_WP_DTYPE[t.dtype] for t, _, _ in items),
-                             plan.wp_dtype)
+                             plan.wp_dtype, width)
     launch.n(kernel, rows * width, *(t for t, _, _ in items),
              index if any(gathered) else launch.placeholder(torch.int32, 1), out)
     return out
 
 
-def _scatter_out(launch, plan, x, out_dtype, target_a, target_b):
-    """The block's output ``x`` in ``out_dtype`` and its scatter-sums in one pass: atomic adds
+def _scatter_out(launch, plan, x, out_dtype, target):
+    """The block's output ``x`` in ``out_dtype`` and its sum by receiver in one pass: atomic adds
     (with the dtype cast in the same kernel), or (deterministic) ordered segment sums after it.
 
-    ``target_*``: (sum array or None, row -> destination index, CSR perm or None, segment offsets)."""
+    ``target``: (sum array or None, row -> destination index, CSR perm or None, CSR offsets)."""
     det = plan.deterministic
-    sum_a, idx_a, perm_a, offs_a = target_a
-    sum_b, idx_b, _, offs_b = target_b
-    scatter_a = sum_a is not None and not det
-    scatter_b = sum_b is not None and not det
+    sums, idx, perm, offs = target
+    scatter = sums is not None and not det
     copy = x.dtype != out_dtype
-    if scatter_a or scatter_b:
+    if scatter:
         ph = launch.placeholder
         out = torch.empty(x.shape, dtype=out_dtype, device=x.device) if copy else x
-        launch(K.scatter_out_kernel(x.shape[1], scatter_a, scatter_b, copy, plan.wp_dtype, _WP_DTYPE[out_dtype]),
-               x.shape, x, idx_a if scatter_a else ph(torch.int32, 1), idx_b if scatter_b else ph(torch.int32, 1),
-               out if copy else ph(out_dtype, 2), sum_a if scatter_a else ph(plan.acc_dtype, 2),
-               sum_b if scatter_b else ph(plan.acc_dtype, 2))
+        launch(K.scatter_out_kernel(x.shape[1], True, False, copy, plan.wp_dtype, _WP_DTYPE[out_dtype]),
+               x.shape, x, idx, ph(torch.int32, 1), out if copy else ph(out_dtype, 2), sums, ph(plan.acc_dtype, 2))
     else:
         out = x.to(out_dtype)
-    if det:
-        if sum_a is not None:
-            _segment(launch, plan, x, perm_a, offs_a, sum_a)
-        if sum_b is not None:
-            _segment(launch, plan, x, None, offs_b, sum_b)
+    if det and sums is not None:
+        _segment(launch, plan, x, perm, offs, sums)
     return out
 
 
@@ -480,7 +497,7 @@ class _SplitBlock(torch.autograd.Function):
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
         pc = _cast_params(params, cd)
         pe, pn, pg = _split_mlp_params(plan, pc)
-        v_c, e_c, u_c = _aligned(v, cd), _aligned(e, cd), _aligned(u, cd)
+        v_c, e_c, u_c = _padded(v, cd), _padded(e, cd), _padded(u, cd)
         # scatter-sum destinations (accumulation dtype), one allocation: one memset
         (agg, sum_e, sum_v), _, _ = _carve(
             [(N, c.edge_out) if c.aggregates_to_nodes else None, (B, c.edge_out) if c.edges_to_globals else None,
@@ -492,9 +509,9 @@ class _SplitBlock(torch.autograd.Function):
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
             fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=True)
-            direct = torch.mm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
-            node_proj = torch.mm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
-            glob_proj = torch.mm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
+            direct = _gemm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
+            node_proj = _gemm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
+            glob_proj = _gemm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
             h = torch.empty(E, H, dtype=cd, device=dev)
             launch(K.first_layer_kernel(H, direct is not None, "sender_nodes" in cols, "receiver_nodes" in cols,
                                         glob_proj is not None, len(we) > 1, T), (E, H),
@@ -503,8 +520,14 @@ class _SplitBlock(torch.autograd.Function):
                    be[0], h)
             del direct, node_proj, glob_proj
             hs_e, e_out = _mlp_forward(h, we, be, keep)
-            e_ret = _scatter_out(launch, plan, e_out, out_dtype, (agg, gi.receivers, gi.recv_perm, gi.recv_offsets),
-                                 (sum_e, gi.edge_graph, None, gi.edge_offsets))
+            e_ret = _scatter_out(launch, plan, e_out, out_dtype, (agg, gi.receivers, gi.recv_perm, gi.recv_offsets))
+            if sum_e is not None:
+                # per-graph sums: ordered sums over each graph's contiguous rows (no atomics); the
+                # receivers' sums when they exist (each edge's receiver is in the edge's graph)
+                if agg is not None:
+                    _segment(launch, plan, agg, None, gi.node_offsets, sum_e)
+                else:
+                    _segment(launch, plan, e_out, None, gi.edge_offsets, sum_e)
             del e_out
 
             # ---- node update -----------------------------------------------------------------
@@ -514,8 +537,9 @@ class _SplitBlock(torch.autograd.Function):
                           gi.node_graph)
             fl_n = _FirstLayer(launch, plan, wn[0], c.node_layout, split=False)
             hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
-            v_ret = _scatter_out(launch, plan, v_out, out_dtype, (sum_v, gi.node_graph, None, gi.node_offsets),
-                                 (None, None, None, None))
+            if sum_v is not None:
+                _segment(launch, plan, v_out, None, gi.node_offsets, sum_v)
+            v_ret = v_out.to(out_dtype)
             del v_out
 
             # ---- global update ---------------------------------------------------------------
@@ -597,9 +621,9 @@ class _SplitBlock(torch.autograd.Function):
                 fl = s["fl_g"]
                 if need_w:
                     blocks, buf = fl.grad_blocks(gws[0])
-                    torch.mm(g0.t(), s["x_g"], out=blocks["all"])
+                    _bgemm(g0.t(), s["x_g"], out=blocks["all"])
                     fl.unpack(launch, plan, buf, gws[0])
-                g_x = _mm(g0, fl.w["all"])
+                g_x = _bgemm(g0, fl.w["all"])
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
@@ -618,15 +642,15 @@ class _SplitBlock(torch.autograd.Function):
                 fl = s["fl_n"]
                 if need_w:
                     blocks, buf = fl.grad_blocks(gws[0])
-                    torch.mm(g0.t(), s["x_n"], out=blocks["all"])
+                    _bgemm(g0.t(), s["x_n"], out=blocks["all"])
                     fl.unpack(launch, plan, buf, gws[0])
-                g_x = _mm(g0, fl.w["all"])
+                g_x = _bgemm(g0, fl.w["all"])
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
                 if need_v and "nodes" in ncols:
                     gv = g_x[:, ncols["nodes"]]
                 if need_u and "globals" in ncols:
-                    gu = add(gu, _segment_or_scatter(launch, plan, g_x[:, ncols["globals"]], B,
-                                                     (gi.node_graph, None, gi.node_offsets), out=gu_nodes))
+                    _segment(launch, plan, g_x[:, ncols["globals"]], None, gi.node_offsets, gu_nodes)
+                    gu = add(gu, gu_nodes.to(cd))
                 done[1] = True
 
             # ---- edge update -------------------------------------------------------------------
@@ -640,9 +664,9 @@ class _SplitBlock(torch.autograd.Function):
                 blocks, buf = fl.grad_blocks(gws[0]) if need_w else (None, None)
                 if "edges" in ecols:
                     if need_w:
-                        torch.mm(g0.t(), s["e"], out=blocks["edges"])
+                        _bgemm(g0.t(), s["e"], out=blocks["edges"])
                     if need_e:
-                        ge = _mm(g0, fl.w["edges"])
+                        ge = _bgemm(g0, fl.w["edges"])[:, :_width(ecols, "edges")]
                 want_nodes = node_pieces and (need_w or need_v)
                 want_glob = edge_glob and (need_w or need_u)
                 if want_nodes or want_glob:
@@ -653,15 +677,15 @@ class _SplitBlock(torch.autograd.Function):
                     pn_c = p_nodes.to(cd)
                     if need_w:
                         for k in range(len(node_pieces)):
-                            torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
+                            _bgemm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
                     if need_v:
-                        gv = add(gv, _mm(pn_c, fl.w["nodes"]))
+                        gv = add(gv, _bgemm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
                 if want_glob:
                     pg_c = p_glob.to(cd)
                     if need_w:
-                        torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
+                        _bgemm(pg_c.t(), s["u"], out=blocks["globals"])
                     if need_u:
-                        gu = add(gu, _mm(pg_c, fl.w["globals"]))
+                        gu = add(gu, _bgemm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
                 if need_w:
                     fl.unpack(launch, plan, buf, gws[0])
                 done[0] = True
@@ -683,25 +707,26 @@ class _SplitBlock(torch.autograd.Function):
 
 def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
     """Backward of the split first layer of the edge update: sums of the rows of ``g0`` by sender
-    (columns [0, H) of ``p_nodes``), by receiver (the next H columns) and by graph (``p_glob``),
-    in one atomic pass, or (deterministic) ordered segment sums."""
+    (columns [0, H) of ``p_nodes``) and by receiver (the next H columns), in one atomic pass or
+    (deterministic) ordered segment sums; and by graph (``p_glob``): ordered sums over each
+    graph's rows, from the receivers' sums when they exist (N rows instead of E; each edge's
+    receiver is in the edge's graph)."""
     H = g0.shape[1]
-    if plan.deterministic:
-        if p_nodes is not None:
+    if p_nodes is not None:
+        if plan.deterministic:
             for k, name in enumerate(node_pieces):
                 perm = gi.send_perm if name == "sender_nodes" else gi.recv_perm
                 offs = gi.send_offsets if name == "sender_nodes" else gi.recv_offsets
                 _segment(launch, plan, g0, perm, offs, p_nodes, 0, k * H, H)
-        if p_glob is not None:
+        else:
+            launch(K.scatter_edges_kernel(H, "sender_nodes" in node_pieces, "receiver_nodes" in node_pieces, False,
+                                          plan.wp_dtype, plan.wp_acc), g0.shape, g0,
+                   gi.senders, gi.receivers, gi.edge_graph, p_nodes, launch.placeholder(plan.acc_dtype, 2))
+    if p_glob is not None:
+        if p_nodes is not None and "receiver_nodes" in node_pieces:
+            _segment(launch, plan, p_nodes, None, gi.node_offsets, p_glob, node_pieces.index("receiver_nodes") * H, 0, H)
+        else:
             _segment(launch, plan, g0, None, gi.edge_offsets, p_glob)
-        return
-    ph = launch.placeholder
-    has_s = p_nodes is not None and "sender_nodes" in node_pieces
-    has_r = p_nodes is not None and "receiver_nodes" in node_pieces
-    has_g = p_glob is not None
-    launch(K.scatter_edges_kernel(H, has_s, has_r, has_g, plan.wp_dtype, plan.wp_acc), g0.shape, g0,
-           gi.senders, gi.receivers, gi.edge_graph,
-           p_nodes if p_nodes is not None else ph(plan.acc_dtype, 2), p_glob if has_g else ph(plan.acc_dtype, 2))
 
 
 def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=None):
@@ -711,24 +736,8 @@ def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=
            offsets, src_col, dst_col, out)
 
 
-def _segment_or_scatter(launch, plan, src, n_rows, index, out=None, dst_col=0):
-    """Sum rows of ``src`` into ``n_rows`` destinations given by ``index`` = (row -> destination,
-    CSR perm or None, CSR offsets): ordered segment sums in deterministic mode, else atomics
-    (``out``, if given, must then be zero-filled)."""
-    idx, perm, offs = index
-    W = src.shape[1]
-    if out is None:
-        out = _zeros(n_rows, W, plan.compute_dtype if plan.deterministic else plan.acc_dtype, src)
-    if plan.deterministic:
-        _segment(launch, plan, src, perm, offs, out, 0, dst_col, W)
-    else:
-        launch(K.scatter_add_kernel(W, _WP_DTYPE[src.dtype], _WP_DTYPE[out.dtype]), src.shape,
-               src, idx, 0, dst_col, out)
-    return out.to(plan.compute_dtype)
-
-
-def _zeros(rows, cols, dtype, like):
-    return torch.zeros(rows, cols, dtype=dtype, device=like.device)
+def _width(cols, name):
+    return cols[name].stop - cols[name].start
 
 
 def _gather_add(launch, plan, rows, width, base, a, b, gb):

@@ -32,9 +32,11 @@ dtype. Arithmetic accumulates in float32 (float64 for float64 storage). Factorie
 a kernel is built once per configuration.
 
 Launches are 1-D. Row kernels use ``dim = launch_dim(rows, width)``: each thread owns
-``vec(width)`` consecutive features of one row (up to 4: more bytes in flight per thread),
-neighbouring threads the next ones, so accesses coalesce; with the width a compile-time
-constant, the row / column split of the thread index is a multiply-shift, not the 64-bit
+``vec(width)`` features of one row (up to 4: more bytes in flight per thread), strided by
+``width // vec(width)`` so that each load and store instruction of a warp touches 32
+consecutive elements (fully coalesced; a thread owning 4 adjacent features would make every
+instruction touch 4x the sectors, and every store a partial-sector write); with the width a
+compile-time constant, the row / column split of the thread index is a multiply-shift, not the 64-bit
 division of a 2-D launch. Chunked kernels (the column sums) use ``chunk_dim``: one thread per
 (chunk of rows, column). Kernels that update in place take the same tensor as ``*_in`` and
 ``*_out``; each thread reads its elements before writing them.
@@ -114,7 +116,7 @@ def first_layer_kernel(width: int, has_direct: bool, has_sender: bool, has_recei
     ):
         i = wp.tid()
         r = i // WV
-        j0 = (i - r * WV) * V
+        j0 = i - r * WV
         if wp.static(has_sender):
             s = senders[r]
         if wp.static(has_receiver):
@@ -122,7 +124,7 @@ def first_layer_kernel(width: int, has_direct: bool, has_sender: bool, has_recei
         if wp.static(has_global):
             g = row_graph[r]
         for k in range(V):
-            j = j0 + k
+            j = j0 + k * WV
             x = A(bias[j])
             if wp.static(has_direct):
                 x += A(direct_in[r, j])
@@ -165,9 +167,9 @@ def segment_sum_kernel(width: int, has_perm: bool, src_dtype, dst_dtype):
     ):
         i = wp.tid()
         s = i // WV
-        j0 = (i - s * WV) * V
+        j0 = i - s * WV
         for k in range(V):
-            j = j0 + k
+            j = j0 + k * WV
             acc = A(0.0)
             for p in range(offsets[s], offsets[s + 1]):
                 if wp.static(has_perm):
@@ -199,10 +201,10 @@ def scatter_add_kernel(width: int, src_dtype, dst_dtype):
     ):
         i = wp.tid()
         r = i // WV
-        j0 = (i - r * WV) * V
+        j0 = i - r * WV
         d = index[r]
         for k in range(V):
-            j = j0 + k
+            j = j0 + k * WV
             wp.atomic_add(sum_out, d, dst_col + j, D(src_in[r, src_col + j]))
 
     return scatter_add
@@ -223,19 +225,22 @@ def chunk_dim(rows: int, width: int, chunk: int) -> int:
 
 
 @functools.cache
-def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype):
-    """out[r] = [a_in[ra], b_in[rb], c_in[rc]] (columns side by side, cast to ``dtype``); a piece
-    of width 0 is absent; a gathered piece reads row ``index[r]``, the others row ``r``.
+def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int):
+    """out[r] = [a_in[ra], b_in[rb], c_in[rc], 0...] (columns side by side, cast to ``dtype``,
+    zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece reads row
+    ``index[r]``, the others row ``r``.
 
     Builds the input rows of an MLP whose first layer is one GEMM: the node update's
-    [v, sum of received edges, u[graph of node]] and the global update's [u, sum v', sum e'].
-    One thread per element (widths such as 31 have no vector split)."""
+    [v, sum of received edges, u[graph of node]] and the global update's [u, sum v', sum e'],
+    zero-padded to a width cuBLAS's fast kernels take. One thread per element (widths such as
+    31 have no vector split)."""
     WA, WB, WC = widths
     GA, GB, GC = gathered
     TA, TB, TC = in_dtypes
-    K = WA + WB + WC
+    K = out_width
     EA = WA
     EB = WA + WB
+    EC = WA + WB + WC
     T = dtype
 
     @wp.kernel(module="unique", module_options=_options())
@@ -264,11 +269,14 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype):
                 else:
                     out[r, c] = T(b_in[r, c - EA])
         if wp.static(WC > 0):
-            if c >= EB:
+            if c >= EB and c < EC:
                 if wp.static(GC):
                     out[r, c] = T(c_in[index[r], c - EB])
                 else:
                     out[r, c] = T(c_in[r, c - EB])
+        if wp.static(K > EC):
+            if c >= EC:
+                out[r, c] = T(0.0)
 
     return concat
 
@@ -300,13 +308,13 @@ def scatter_out_kernel(width: int, scatter_a: bool, scatter_b: bool, copy: bool,
     ):
         i = wp.tid()
         r = i // WV
-        j0 = (i - r * WV) * V
+        j0 = i - r * WV
         if wp.static(scatter_a):
             a = index_a[r]
         if wp.static(scatter_b):
             b = index_b[r]
         for k in range(V):
-            j = j0 + k
+            j = j0 + k * WV
             x = x_in[r, j]
             if wp.static(copy):
                 copy_out[r, j] = O(x)
@@ -428,7 +436,7 @@ def scatter_edges_kernel(width: int, has_sender: bool, has_receiver: bool, has_g
     ):
         i = wp.tid()
         r = i // WV
-        j0 = (i - r * WV) * V
+        j0 = i - r * WV
         if wp.static(has_sender):
             s = senders[r]
         if wp.static(has_receiver):
@@ -436,7 +444,7 @@ def scatter_edges_kernel(width: int, has_sender: bool, has_receiver: bool, has_g
         if wp.static(has_global):
             g = edge_graph[r]
         for k in range(V):
-            j = j0 + k
+            j = j0 + k * WV
             x = D(g_in[r, j])
             if wp.static(has_sender):
                 wp.atomic_add(nodes_out, s, j, x)
