@@ -275,14 +275,6 @@ def _gemm(a, b, out=None):
     return torch.addmm(_zero_bias(b.shape[1], a), a, b, out=out)
 
 
-# Backward GEMMs through cuBLASLt too (``_gemm``) instead of torch.mm's cuBLAS path.
-_LT_BACKWARD = False
-
-
-def _bgemm(a, b, out=None):
-    return _gemm(a, b, out) if _LT_BACKWARD else torch.mm(a, b, out=out)
-
-
 def _padded(x, dtype):
     """``x`` in ``dtype``, rows zero-padded to ``_pad`` columns (itself when already so)."""
     if x is None:
@@ -420,32 +412,49 @@ def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool)
     for l in range(len(ws) - 1, 0, -1):
         x = hs[l - 1]
         if need_w:
-            _bgemm(g.t(), x, out=gws[l])
-        gh = _bgemm(g, ws[l])
+            torch.mm(g.t(), x, out=gws[l])
+        gh = torch.mm(g, ws[l])
         _relu_grad(launch, plan, x, gh, gbs[l - 1] if need_w else None)
         g = gh
     return g
 
 
-def _concat(launch, plan, rows, layout, pieces, index):
+def _concat(launch, plan, rows, layout, pieces):
     """Input rows of an MLP whose first layer is one GEMM: the pieces of ``layout`` side by side
     in the compute dtype, zero-padded to ``_pad`` columns, in one kernel. ``pieces``: {name:
-    (tensor, gathered)}; a gathered piece is read at row ``index[r]``. A lone piece is only
-    padded (``_padded``)."""
+    (tensor, index or None)}; a piece with an index is read at row ``index[r]``. A lone piece
+    read in place is only padded (``_padded``)."""
     cd = plan.compute_dtype
     items = [(pieces[name][0], pieces[name][1], w) for name, w in layout]
-    if len(items) == 1 and not items[0][1]:
+    if len(items) == 1 and items[0][1] is None:
         return _padded(items[0][0], cd)
     width = _pad(sum(w for _, _, w in items))
     out = torch.empty(rows, width, dtype=cd, device=items[0][0].device)
-    ph = launch.placeholder(cd, 2)
-    items += [(ph, False, 0)] * (3 - len(items))
-    gathered = tuple(bool(g) for _, g, _ in items)
-    kernel = K.concat_kernel(tuple(w for _, _, w in items), gathered, tuple(_WP_DTYPE[t.dtype] for t, _, _ in items),
-                             plan.wp_dtype, width)
+    items += [(launch.placeholder(cd, 2), None, 0)] * (4 - len(items))
+    kernel = K.concat_kernel(tuple(w for _, _, w in items), tuple(i is not None for _, i, _ in items),
+                             tuple(_WP_DTYPE[t.dtype] for t, _, _ in items), plan.wp_dtype, width)
     launch.n(kernel, rows * width, *(t for t, _, _ in items),
-             index if any(gathered) else launch.placeholder(torch.int32, 1), out)
+             *(i if i is not None else launch.placeholder(torch.int32, 1) for _, i, _ in items), out)
     return out
+
+
+# The edge update's first layer runs on concatenated input rows [e, v_s, v_r, u] (one GEMM with
+# bias and ReLU in its epilogue, like the node update) when its gathered pieces are narrow: the
+# extra GEMM work (K grows by the node and global widths) then costs less than the split
+# layer's extra pass over [edges, hidden] (the direct projection written and read back by
+# ``first_layer``). Cost per edge and hidden unit (H200, bench/results): split ~2 extra
+# accesses of the hidden row at the ``first_layer`` kernel's ~1.3 TB/s, concat 2*extra_K
+# FLOPs at the GEMM rate plus the concatenated row written and read; they cross near
+# extra_K = 2 * padded node width + padded global width ~ 400 in fp16 and tf32. The paper
+# core's first block (node 31, global 32: extra K 96) concatenates, its second (node 159,
+# global 160: 480) splits.
+_EDGE_CONCAT_MAX_K = 256
+
+
+def _edge_concat(config: GNBlockConfig) -> bool:
+    cols = column_slices(config.edge_layout)
+    extra = sum(_pad(_width(cols, n)) for n in ("sender_nodes", "receiver_nodes", "globals") if n in cols)
+    return extra <= _EDGE_CONCAT_MAX_K
 
 
 def _scatter_out(launch, plan, x, out_dtype, target):
@@ -474,14 +483,18 @@ class _SplitBlock(torch.autograd.Function):
     with params = edge MLP [W0, b0, ...] + node MLP + global MLP. Outputs: (nodes', edges'[,
     globals']) in the parameters' dtype.
 
-    Forward: edge update with the split first layer (node / global projections once per node /
-    graph, gathered per edge by ``first_layer``), the other layers as GEMMs with bias and ReLU
-    in cuBLASLt's epilogue; the output cast and scatter-sums in one pass (``scatter_out``); node
-    and global updates on their concatenated input rows (``concat``: one kernel, one first-layer
-    GEMM). Backward: GEMMs for weight and input gradients (weights written straight into one
-    flat buffer), ReLU masks and bias gradients (column sums) fused in one pass per layer, the
-    gathers of the scatter-sums fused with the output bias gradient, and one scatter of the
-    first-layer gradient to senders, receivers and graphs."""
+    Forward: edge update with its first layer on the concatenated, gathered input rows
+    (``concat``: one kernel, then one GEMM) when the gathered pieces are narrow, else split
+    (node / global projections once per node / graph, gathered per edge by ``first_layer``);
+    the other layers as GEMMs with bias and ReLU in cuBLASLt's epilogue; the output cast and
+    the sum by receiver in one pass (``scatter_out``), per-graph sums as ordered segment sums;
+    node and global updates on their concatenated input rows. First-layer GEMMs run on operands
+    zero-padded to 8-column multiples (cuBLAS's Hopper kernels). Backward: GEMMs for weight and
+    input gradients (weights written straight into one flat buffer), ReLU masks and bias
+    gradients (column sums) fused in one pass per layer, the gathers of the scatter-sums fused
+    with the output bias gradient, and one atomic scatter of the first-layer gradient (split
+    mode) or of the input gradient's node columns (concat mode) to senders and receivers;
+    per-graph sums as ordered segment sums."""
 
     @staticmethod
     def forward(ctx, plan: _Plan, keep: bool, gi: GraphIndex, v, e, u, *params):
@@ -508,17 +521,25 @@ class _SplitBlock(torch.autograd.Function):
             we, be = pe[0::2], pe[1::2]
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
-            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=True)
-            direct = _gemm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
-            node_proj = _gemm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
-            glob_proj = _gemm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
-            h = torch.empty(E, H, dtype=cd, device=dev)
-            launch(K.first_layer_kernel(H, direct is not None, "sender_nodes" in cols, "receiver_nodes" in cols,
-                                        glob_proj is not None, len(we) > 1, T), (E, H),
-                   direct if direct is not None else ph(cd, 2), node_proj if node_proj is not None else ph(cd, 2),
-                   glob_proj if glob_proj is not None else ph(cd, 2), gi.senders, gi.receivers, gi.edge_graph,
-                   be[0], h)
-            del direct, node_proj, glob_proj
+            edge_concat = _edge_concat(c)
+            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=not edge_concat)
+            x_e = None
+            if edge_concat:
+                x_e = _concat(launch, plan, E, c.edge_layout,
+                              {"edges": (e_c, None), "sender_nodes": (v_c, gi.senders),
+                               "receiver_nodes": (v_c, gi.receivers), "globals": (u_c, gi.edge_graph)})
+                h = _linear(x_e, fl_e.w["all"], be[0], relu=len(we) > 1)
+            else:
+                direct = _gemm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
+                node_proj = _gemm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
+                glob_proj = _gemm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
+                h = torch.empty(E, H, dtype=cd, device=dev)
+                launch(K.first_layer_kernel(H, direct is not None, "sender_nodes" in cols, "receiver_nodes" in cols,
+                                            glob_proj is not None, len(we) > 1, T), (E, H),
+                       direct if direct is not None else ph(cd, 2), node_proj if node_proj is not None else ph(cd, 2),
+                       glob_proj if glob_proj is not None else ph(cd, 2), gi.senders, gi.receivers, gi.edge_graph,
+                       be[0], h)
+                del direct, node_proj, glob_proj
             hs_e, e_out = _mlp_forward(h, we, be, keep)
             e_ret = _scatter_out(launch, plan, e_out, out_dtype, (agg, gi.receivers, gi.recv_perm, gi.recv_offsets))
             if sum_e is not None:
@@ -533,8 +554,7 @@ class _SplitBlock(torch.autograd.Function):
             # ---- node update -----------------------------------------------------------------
             wn, bn = pn[0::2], pn[1::2]
             x_n = _concat(launch, plan, N, c.node_layout,
-                          {"nodes": (v_c, False), "received_edges": (agg, False), "globals": (u_c, True)},
-                          gi.node_graph)
+                          {"nodes": (v_c, None), "received_edges": (agg, None), "globals": (u_c, gi.node_graph)})
             fl_n = _FirstLayer(launch, plan, wn[0], c.node_layout, split=False)
             hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
             if sum_v is not None:
@@ -547,15 +567,15 @@ class _SplitBlock(torch.autograd.Function):
             if c.update_globals:
                 wg, bg = pg[0::2], pg[1::2]
                 x_g = _concat(launch, plan, B, c.global_layout,
-                              {"globals": (u_c, False), "nodes": (sum_v, False), "edges": (sum_e, False)}, None)
+                              {"globals": (u_c, None), "nodes": (sum_v, None), "edges": (sum_e, None)})
                 fl_g = _FirstLayer(launch, plan, wg[0], c.global_layout, split=False)
                 hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep)
                 u_ret = u_out.to(out_dtype)
 
         ctx.plan, ctx.gi = plan, gi
         # intermediates (not outputs: no reference cycle) for the hand-written backward
-        ctx.saved = None if not keep else dict(v=v_c, e=e_c, u=u_c, fl_e=fl_e, fl_n=fl_n, fl_g=fl_g, x_n=x_n,
-                                               x_g=x_g, hs_e=hs_e, hs_n=hs_n, hs_g=hs_g, pc=pc)
+        ctx.saved = None if not keep else dict(v=v_c, e=e_c, u=u_c, fl_e=fl_e, fl_n=fl_n, fl_g=fl_g, x_e=x_e,
+                                               x_n=x_n, x_g=x_g, hs_e=hs_e, hs_n=hs_n, hs_g=hs_g, pc=pc)
         ctx.in_dtypes = (None if v is None else v.dtype, None if e is None else e.dtype,
                          None if u is None else u.dtype)
         ctx.param_dtypes = [p.dtype for p in params]
@@ -597,8 +617,14 @@ class _SplitBlock(torch.autograd.Function):
         # buffer, zeroed once (atomics add into it).
         w_shapes = [tuple(p.shape) if (need_w and k % 2 == 0) else None for k, p in enumerate(pc)]
         b_shapes = [tuple(p.shape) if (need_w and k % 2 == 1) else None for k, p in enumerate(pc)]
-        scat_shapes = [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None,
-                       (B, ncols["globals"].stop - ncols["globals"].start) if (need_u and "globals" in ncols) else None]
+        edge_concat = s["x_e"] is not None
+        if edge_concat:  # sums of the input gradient's node / global columns (only for input gradients)
+            kv = _width(ecols, node_pieces[0]) if node_pieces else 0
+            scat_shapes = [(N, kv * (len(node_pieces) if det else 1)) if (node_pieces and need_v) else None,
+                           (B, _width(ecols, "globals")) if (edge_glob and need_u) else None]
+        else:  # sums of the first-layer gradient by sender, receiver and graph
+            scat_shapes = [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None]
+        scat_shapes.append((B, _width(ncols, "globals")) if (need_u and "globals" in ncols) else None)
         gws_all, gw_buf, w_offs = _carve(w_shapes, cd, dev, zero=False)
         views, _, _ = _carve(b_shapes + scat_shapes, ad, dev, zero=not det)
         gbs_all, (p_nodes, p_glob, gu_nodes) = views[:len(pc)], views[len(pc):]
@@ -621,9 +647,9 @@ class _SplitBlock(torch.autograd.Function):
                 fl = s["fl_g"]
                 if need_w:
                     blocks, buf = fl.grad_blocks(gws[0])
-                    _bgemm(g0.t(), s["x_g"], out=blocks["all"])
+                    torch.mm(g0.t(), s["x_g"], out=blocks["all"])
                     fl.unpack(launch, plan, buf, gws[0])
-                g_x = _bgemm(g0, fl.w["all"])
+                g_x = torch.mm(g0, fl.w["all"])
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
@@ -642,9 +668,9 @@ class _SplitBlock(torch.autograd.Function):
                 fl = s["fl_n"]
                 if need_w:
                     blocks, buf = fl.grad_blocks(gws[0])
-                    _bgemm(g0.t(), s["x_n"], out=blocks["all"])
+                    torch.mm(g0.t(), s["x_n"], out=blocks["all"])
                     fl.unpack(launch, plan, buf, gws[0])
-                g_x = _bgemm(g0, fl.w["all"])
+                g_x = torch.mm(g0, fl.w["all"])
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
                 if need_v and "nodes" in ncols:
                     gv = g_x[:, ncols["nodes"]]
@@ -662,31 +688,45 @@ class _SplitBlock(torch.autograd.Function):
                 g0 = _mlp_backward(launch, plan, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed)
                 fl = s["fl_e"]
                 blocks, buf = fl.grad_blocks(gws[0]) if need_w else (None, None)
-                if "edges" in ecols:
+                if edge_concat:
                     if need_w:
-                        _bgemm(g0.t(), s["e"], out=blocks["edges"])
+                        torch.mm(g0.t(), s["x_e"], out=blocks["all"])
+                        fl.unpack(launch, plan, buf, gws[0])
+                    if need_e or need_v or need_u:
+                        g_x = torch.mm(g0, fl.w["all"])
+                        if need_e and "edges" in ecols:
+                            ge = g_x[:, ecols["edges"]]
+                        if need_v and node_pieces:
+                            gv = add(gv, _scatter_node_columns(launch, plan, gi, g_x, ecols, node_pieces, p_nodes))
+                        if need_u and edge_glob:
+                            _segment(launch, plan, g_x[:, ecols["globals"]], None, gi.edge_offsets, p_glob)
+                            gu = add(gu, p_glob.to(cd))
+                    done[0] = True
+                elif "edges" in ecols:
+                    if need_w:
+                        torch.mm(g0.t(), s["e"], out=blocks["edges"])
                     if need_e:
-                        ge = _bgemm(g0, fl.w["edges"])[:, :_width(ecols, "edges")]
+                        ge = torch.mm(g0, fl.w["edges"])[:, :_width(ecols, "edges")]
                 want_nodes = node_pieces and (need_w or need_v)
                 want_glob = edge_glob and (need_w or need_u)
-                if want_nodes or want_glob:
+                if not edge_concat and (want_nodes or want_glob):
                     # gradient of the node / global projections: g0 summed by sender, receiver, graph
                     _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes if want_nodes else None,
                                          p_glob if want_glob else None)
-                if want_nodes:
+                if not edge_concat and want_nodes:
                     pn_c = p_nodes.to(cd)
                     if need_w:
                         for k in range(len(node_pieces)):
-                            _bgemm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
+                            torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
                     if need_v:
-                        gv = add(gv, _bgemm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
-                if want_glob:
+                        gv = add(gv, torch.mm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
+                if not edge_concat and want_glob:
                     pg_c = p_glob.to(cd)
                     if need_w:
-                        _bgemm(pg_c.t(), s["u"], out=blocks["globals"])
+                        torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
                     if need_u:
-                        gu = add(gu, _bgemm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
-                if need_w:
+                        gu = add(gu, torch.mm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
+                if not edge_concat and need_w:
                     fl.unpack(launch, plan, buf, gws[0])
                 done[0] = True
 
@@ -703,6 +743,25 @@ class _SplitBlock(torch.autograd.Function):
                     g = gws_all[k] if k % 2 == 0 else gbs_all[k]
                     params_out[k] = g.to(ctx.param_dtypes[k])
         return (None, None, None, *out, *params_out)
+
+
+def _scatter_node_columns(launch, plan, gi, g_x, cols, node_pieces, out):
+    """Input gradient of the nodes from the concatenated edge first layer: the sender and
+    receiver column blocks of ``g_x`` (gradient of the input rows [e, v_s, v_r, u]) summed by
+    sender and by receiver into ``out`` (atomics into one zero-filled [N, width] buffer, or
+    ordered segment sums into [N, 2 * width] whose halves are added)."""
+    width = _width(cols, node_pieces[0])
+    for k, name in enumerate(node_pieces):
+        sender = name == "sender_nodes"
+        if plan.deterministic:
+            _segment(launch, plan, g_x, gi.send_perm if sender else gi.recv_perm,
+                     gi.send_offsets if sender else gi.recv_offsets, out, cols[name].start, k * width, width)
+        else:
+            launch(K.scatter_add_kernel(width, plan.wp_dtype, plan.wp_acc), (g_x.shape[0], width), g_x,
+                   gi.senders if sender else gi.receivers, cols[name].start, 0, out)
+    if plan.deterministic and len(node_pieces) == 2:
+        return (out[:, :width] + out[:, width:]).to(plan.compute_dtype)
+    return out.to(plan.compute_dtype)
 
 
 def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
@@ -724,7 +783,8 @@ def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
                    gi.senders, gi.receivers, gi.edge_graph, p_nodes, launch.placeholder(plan.acc_dtype, 2))
     if p_glob is not None:
         if p_nodes is not None and "receiver_nodes" in node_pieces:
-            _segment(launch, plan, p_nodes, None, gi.node_offsets, p_glob, node_pieces.index("receiver_nodes") * H, 0, H)
+            rcv_col = node_pieces.index("receiver_nodes") * H
+            _segment(launch, plan, p_nodes, None, gi.node_offsets, p_glob, rcv_col, 0, H)
         else:
             _segment(launch, plan, g0, None, gi.edge_offsets, p_glob)
 

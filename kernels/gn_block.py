@@ -210,10 +210,10 @@ def scatter_add_kernel(width: int, src_dtype, dst_dtype):
     return scatter_add
 
 
-# -- column sums ----------------------------------------------------------------------------------
-# Chunked kernels: one thread per (chunk of ``chunk`` consecutive rows, column); a warp reads 32
-# consecutive columns of one row (coalesced), and each thread adds its chunk's column sum into
-# ``sum_out`` with one atomic (bias gradients without a separate pass over the rows).
+# -- fused split path: input rows, output epilogue, column sums -----------------------------------
+# Chunked kernels (the column sums): one thread per (chunk of ``chunk`` consecutive rows, column);
+# a warp reads 32 consecutive columns of one row (coalesced), and each thread adds its chunk's
+# column sum into ``sum_out`` with one atomic (bias gradients without a separate pass over the rows).
 def chunk_rows(rows: int, width: int) -> int:
     """Rows per thread of the chunked kernels: enough threads to fill the GPU (~256K), at least
     8 rows per atomic, at most 64."""
@@ -226,56 +226,68 @@ def chunk_dim(rows: int, width: int, chunk: int) -> int:
 
 @functools.cache
 def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int):
-    """out[r] = [a_in[ra], b_in[rb], c_in[rc], 0...] (columns side by side, cast to ``dtype``,
-    zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece reads row
-    ``index[r]``, the others row ``r``.
+    """out[r] = [p0_in[r0], p1_in[r1], p2_in[r2], p3_in[r3], 0...] (columns side by side, cast to
+    ``dtype``, zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece k
+    reads row ``index_k[r]``, the others row ``r``.
 
     Builds the input rows of an MLP whose first layer is one GEMM: the node update's
-    [v, sum of received edges, u[graph of node]] and the global update's [u, sum v', sum e'],
-    zero-padded to a width cuBLAS's fast kernels take. One thread per element (widths such as
-    31 have no vector split)."""
-    WA, WB, WC = widths
-    GA, GB, GC = gathered
-    TA, TB, TC = in_dtypes
+    [v, sum of received edges, u[graph of node]], the global update's [u, sum v', sum e'] and,
+    when its gathered pieces are narrow, the edge update's [e, v[sender], v[receiver],
+    u[graph of edge]]; zero-padded to a width cuBLAS's fast kernels take. One thread per
+    element (widths such as 31 have no vector split)."""
+    W0, W1, W2, W3 = widths
+    G0, G1, G2, G3 = gathered
+    T0, T1, T2, T3 = in_dtypes
     K = out_width
-    EA = WA
-    EB = WA + WB
-    EC = WA + WB + WC
+    E0 = W0
+    E1 = E0 + W1
+    E2 = E1 + W2
+    E3 = E2 + W3
     T = dtype
 
     @wp.kernel(module="unique", module_options=_options())
     def concat(
         # Data in:
-        a_in: wp.array2d(dtype=TA),
-        b_in: wp.array2d(dtype=TB),
-        c_in: wp.array2d(dtype=TC),
-        index: wp.array(dtype=wp.int32),
+        p0_in: wp.array2d(dtype=T0),
+        p1_in: wp.array2d(dtype=T1),
+        p2_in: wp.array2d(dtype=T2),
+        p3_in: wp.array2d(dtype=T3),
+        index_0: wp.array(dtype=wp.int32),
+        index_1: wp.array(dtype=wp.int32),
+        index_2: wp.array(dtype=wp.int32),
+        index_3: wp.array(dtype=wp.int32),
         # Data out:
         out: wp.array2d(dtype=T),
     ):
         i = wp.tid()
         r = i // K
         c = i - r * K
-        if wp.static(WA > 0):
-            if c < EA:
-                if wp.static(GA):
-                    out[r, c] = T(a_in[index[r], c])
+        if wp.static(W0 > 0):
+            if c < E0:
+                if wp.static(G0):
+                    out[r, c] = T(p0_in[index_0[r], c])
                 else:
-                    out[r, c] = T(a_in[r, c])
-        if wp.static(WB > 0):
-            if c >= EA and c < EB:
-                if wp.static(GB):
-                    out[r, c] = T(b_in[index[r], c - EA])
+                    out[r, c] = T(p0_in[r, c])
+        if wp.static(W1 > 0):
+            if c >= E0 and c < E1:
+                if wp.static(G1):
+                    out[r, c] = T(p1_in[index_1[r], c - E0])
                 else:
-                    out[r, c] = T(b_in[r, c - EA])
-        if wp.static(WC > 0):
-            if c >= EB and c < EC:
-                if wp.static(GC):
-                    out[r, c] = T(c_in[index[r], c - EB])
+                    out[r, c] = T(p1_in[r, c - E0])
+        if wp.static(W2 > 0):
+            if c >= E1 and c < E2:
+                if wp.static(G2):
+                    out[r, c] = T(p2_in[index_2[r], c - E1])
                 else:
-                    out[r, c] = T(c_in[r, c - EB])
-        if wp.static(K > EC):
-            if c >= EC:
+                    out[r, c] = T(p2_in[r, c - E1])
+        if wp.static(W3 > 0):
+            if c >= E2 and c < E3:
+                if wp.static(G3):
+                    out[r, c] = T(p3_in[index_3[r], c - E2])
+                else:
+                    out[r, c] = T(p3_in[r, c - E2])
+        if wp.static(K > E3):
+            if c >= E3:
                 out[r, c] = T(0.0)
 
     return concat

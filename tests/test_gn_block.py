@@ -164,6 +164,37 @@ def test_block_switches(case):
         assert gn.global_mlp is None
 
 
+_EDGE_CASES = [c for c in _switch_cases() if c[0] == "edge"]
+
+
+@pytest.mark.parametrize("case", _EDGE_CASES, ids=lambda c: "edge:" + "".join(
+    "1" if getattr(c[1]["edge_block"], f) else "0" for f in c[1]["edge_block"].__dataclass_fields__))
+def test_split_edge_first_layer_switches(case, monkeypatch):
+    """Edge blocks with wide gathered inputs split their first layer (node / global projections
+    gathered per edge, ``first_layer`` kernel) instead of concatenating the inputs: every edge
+    switch combination in that mode (float64: exact to rounding)."""
+    monkeypatch.setattr(gn_warp, "_EDGE_CONCAT_MAX_K", -1)
+    gn, ref = pair({**SMALL, **case[1]}, dtype=torch.float64)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-12, grad_tol=1e-12)
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_split_edge_first_layer(deterministic, monkeypatch):
+    """The split edge first layer in float32 (both aggregation modes) and under gradcheck."""
+    monkeypatch.setattr(gn_warp, "_EDGE_CONCAT_MAX_K", -1)
+    gn, ref = pair(SMALL, deterministic=deterministic)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-5, grad_tol=1e-5)
+    g = make_batch("gradcheck", fv=2, fe=2, fu=2)
+    torch.manual_seed(1)
+    _gradcheck(GraphNetwork(**TINY, deterministic=deterministic, check_inputs=False).double(), g)
+
+
+def test_edge_first_layer_mode_rule():
+    """Narrow gathered edge inputs concatenate, wide ones split (the paper core's two blocks)."""
+    assert gn_warp._edge_concat(GNBlockConfig(31, 64, 32))
+    assert not gn_warp._edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128))
+
+
 def test_graph_without_globals():
     """A block that reads no globals runs on a GraphsTuple with globals=None."""
     kw = dict(SMALL, global_size=0, update_globals=False, edge_block=EdgeBlockConfig(use_globals=False),
