@@ -1,0 +1,237 @@
+"""Experiment 4 of issue 4: run time against error.
+
+For each system: GN forward models of three sizes are trained side by side (a fixed wall-clock
+budget each), then every model is evaluated in fp32, tf32 and fp16 (and bf16): its 20-step
+rollout error on the test split (normalized by the constant baseline) against its time per rollout
+step at a large batch, beside MuJoCo-Warp's own time per data step on the same system and batch.
+
+    python bench/speed_accuracy.py --systems pendulum,cheetah,swimmer6 --seconds 150 --out bench/results/speed_accuracy
+    python bench/speed_accuracy.py --quick
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SIZES = {  # name: (latent, edge hidden, node/global hidden)
+    "small": (64, (128,), (64,)),
+    "medium": (128, (256, 256), (128, 128)),
+    "paper": (128, (512, 512, 512), (256, 256)),
+}
+PRECISIONS = ("fp32", "tf32", "fp16", "bf16")
+
+
+def train_child(args):
+    from gnwarp.models import GNCoreConfig, ModelConfig
+    from gnwarp.train import TrainConfig, train
+    lat, eh, nh = SIZES[args.size]
+    gn = GNCoreConfig(latent=lat, edge_hidden=eh, node_hidden=nh, global_hidden=nh)
+    train(TrainConfig(data=[args.dataset], out=args.child_out, model=ModelConfig(core="gn", gn=gn),
+                      steps=args.max_steps, max_seconds=args.seconds, lr=args.lr, lr_decay=0.6,
+                      lr_decay_steps=max(1, args.max_steps // 4), valid_every=args.valid_every,
+                      valid_sequences=50, patience=None, checkpoint_every=args.max_steps, resume=False,
+                      progress=False))
+
+
+def _set_precision(model, precision: str):
+    from gnwarp.gn import GraphNetwork
+    for m in model.modules():
+        if isinstance(m, GraphNetwork):
+            m.precision = precision
+            m.check_inputs = False  # no host syncs inside the timed (and captured) loop
+
+
+def time_rollout(model, ds, batch: int, horizon: int, reps: int) -> tuple[float, str]:
+    """Seconds per rollout step at ``batch`` graphs: a captured CUDA graph when capture works,
+    else the plain loop (timed with CUDA events, median of ``reps``)."""
+    import numpy as np
+    import torch
+    dev = next(model.parameters()).device
+    te = ds["test"]
+    idx = np.arange(batch) % len(te)
+    x0 = torch.as_tensor(te.body[idx, 0], device=dev)
+    u = torch.as_tensor(te.ctrl[idx, :horizon], device=dev)
+    inst = torch.as_tensor(te.instance[idx], device=dev)
+    tmpl = model.template(inst)
+
+    def step():
+        with torch.no_grad():
+            return model.rollout(x0, u, inst, template=tmpl)
+
+    step()
+    mode = "eager"
+    fn = step
+    if dev.type == "cuda":
+        try:
+            from gnwarp.gn_warp import cuda_graph
+            s = torch.cuda.Stream()
+            s.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(s):
+                step()
+            torch.cuda.current_stream().wait_stream(s)
+            g = torch.cuda.CUDAGraph()
+            with cuda_graph(g, s):
+                step()
+            fn, mode = g.replay, "captured"
+        except Exception as e:  # noqa: BLE001 - report the mode that ran
+            mode = f"eager (capture failed: {type(e).__name__})"
+            torch.cuda.synchronize()
+    times = []
+    for _ in range(reps):
+        if dev.type == "cuda":
+            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            a.record()
+            fn()
+            b.record()
+            torch.cuda.synchronize()
+            times.append(a.elapsed_time(b) / 1e3)
+        else:
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+    return float(np.median(times)) / horizon, mode
+
+
+def mjwarp_step_time(system: str, batch: int, steps: int = 50) -> float:
+    """Seconds per data step of MuJoCo-Warp at ``batch`` worlds (graph-captured, body states recorded)."""
+    import numpy as np
+
+    from gnwarp import data, systems
+    from gnwarp.controls import control_range, random_spline_controls
+    from gnwarp.simulate import simulate_mujoco_warp
+    s = systems.make(system)
+    rng = np.random.default_rng(0)
+    q0, v0 = data.initial_states(s, batch, rng)
+    u = random_spline_controls(batch, steps, control_range(s.model), rng)
+    simulate_mujoco_warp([s.model], s.substeps, q0[:8], v0[:8], u[:8, :2])  # compile
+    t = time.perf_counter()
+    simulate_mujoco_warp([s.model], s.substeps, q0, v0, u)
+    return (time.perf_counter() - t) / steps
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--systems", default="pendulum,cheetah,swimmer6")
+    ap.add_argument("--sizes", default=",".join(SIZES))
+    ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200))
+    ap.add_argument("--seconds", type=float, default=150.0)
+    ap.add_argument("--max-steps", type=int, default=40000)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--valid-every", type=int, default=2000)
+    ap.add_argument("--batch", type=int, default=4096)
+    ap.add_argument("--horizon", type=int, default=20)
+    ap.add_argument("--reps", type=int, default=10)
+    ap.add_argument("--out", default="bench/results/speed_accuracy")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--size", help=argparse.SUPPRESS)
+    ap.add_argument("--dataset", help=argparse.SUPPRESS)
+    ap.add_argument("--child-out", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return train_child(args)
+    if args.quick:
+        args.sequences, args.seconds, args.max_steps, args.valid_every = (30, 4, 8), 10.0, 30, 15
+        args.batch, args.horizon, args.reps, args.sizes = 16, 5, 2, "small"
+    import torch
+
+    from gnwarp import data
+    from gnwarp import evaluate as ev
+    from gnwarp._warp import cuda_available
+    from gnwarp.train import load_model
+    out = Path(args.out)
+    (out / "data").mkdir(parents=True, exist_ok=True)
+    names, sizes = args.systems.split(","), args.sizes.split(",")
+    for s in names:
+        p = out / "data" / f"{s}.h5"
+        if not p.exists():
+            data.generate(s, tuple(args.sequences), num_steps=max(100, args.horizon), seed=3, backend="mujoco",
+                          progress=False).save(p)
+    procs = []
+    for s in names:
+        for z in sizes:
+            cmd = [sys.executable, __file__, "--child", "--size", z, "--dataset", str(out / "data" / f"{s}.h5"),
+                   "--child-out", str(out / f"{s}-{z}"), "--seconds", str(args.seconds),
+                   "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every)]
+            log = open(out / f"{s}-{z}.log", "w")
+            procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                           env={**os.environ, "OMP_NUM_THREADS": "1"}), log))
+    for p, log in procs:
+        p.wait()
+        log.close()
+    rows = []
+    cuda = torch.cuda.is_available()
+    precisions = PRECISIONS if cuda else ("fp32",)
+    for s in names:
+        ds = data.load(out / "data" / f"{s}.h5", lazy=False)
+        sim_dt = mjwarp_step_time(s, args.batch) if cuda_available() else None
+        for z in sizes:
+            ck = out / f"{s}-{z}" / "best"
+            if not ck.exists():
+                rows.append(dict(system=s, size=z, error="training failed"))
+                continue
+            model = load_model(ck).bind(ds)
+            for prec in precisions:
+                _set_precision(model, prec)
+                err = ev.evaluate(model, ds, "test", horizons=(args.horizon,))[f"rollout_{args.horizon}"]["mean"]
+                dt, mode = time_rollout(model, ds, args.batch, args.horizon, args.reps)
+                rows.append(dict(system=s, size=z, precision=prec, rollout_error=err, step_seconds=dt, mode=mode,
+                                 mjwarp_step_seconds=sim_dt, batch=args.batch))
+                print(json.dumps(rows[-1]), flush=True)
+    dev = torch.cuda.get_device_name(0) if cuda else f"CPU, {os.cpu_count()} cores"
+    lines = [f"# Run time against error ({dev})", "",
+             f"GN sizes {', '.join(f'{k}: latent {v[0]}, edge {list(v[1])}, node/global {list(v[2])}' for k, v in SIZES.items() if k in sizes)}; "
+             f"each trained {args.seconds:g} s (all side by side on one device). Error: {args.horizon}-step rollout, model / "
+             f"constant baseline. Time: one rollout step of {args.batch} graphs; MuJoCo-Warp: one data step of "
+             f"{args.batch} worlds (sub-steps included).", "",
+             f"| system | size | precision | {args.horizon}-step error | ms per step | graph-steps/s | mode | MuJoCo-Warp ms per step |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['system']} | {r['size']} | failed: {r['error']} | | | | | |")
+            continue
+        sim = "n/a" if r["mjwarp_step_seconds"] is None else f"{1e3 * r['mjwarp_step_seconds']:.3f}"
+        lines.append(f"| {r['system']} | {r['size']} | {r['precision']} | {r['rollout_error']:.3g} | "
+                     f"{1e3 * r['step_seconds']:.3f} | {args.batch / r['step_seconds']:.3g} | {r['mode']} | {sim} |")
+    table = "\n".join(lines)
+    (out / "summary.md").write_text(table + "\n")
+    (out / "rows.json").write_text(json.dumps(rows, indent=1))
+    _plot(rows, out / "speed_accuracy.png")
+    print(table)
+
+
+def _plot(rows, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    ok = [r for r in rows if "error" not in r]
+    systems = sorted({r["system"] for r in ok})
+    if not systems:
+        return
+    fig, axes = plt.subplots(1, len(systems), figsize=(4.2 * len(systems), 3.6), squeeze=False)
+    marks = {"fp32": "o", "tf32": "s", "fp16": "^", "bf16": "v"}
+    for ax, s in zip(axes[0], systems):
+        for z in sorted({r["size"] for r in ok if r["system"] == s}):
+            for r in (r for r in ok if r["system"] == s and r["size"] == z):
+                ax.scatter(1e3 * r["step_seconds"], r["rollout_error"], marker=marks[r["precision"]],
+                           label=f"{z} {r['precision']}")
+        sim = next((r["mjwarp_step_seconds"] for r in ok if r["system"] == s), None)
+        if sim:
+            ax.axvline(1e3 * sim, color="k", ls="--", lw=1, label="MuJoCo-Warp step")
+        ax.set(xscale="log", yscale="log", xlabel="ms per rollout step (batch)", ylabel="20-step error / constant",
+               title=s)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
