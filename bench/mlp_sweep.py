@@ -1,0 +1,108 @@
+"""The MLP baseline sweep of section E: the five MLP sizes per system, each trained for the same
+number of steps as the GN of ``bench/forward_models.py`` on the same data (regenerated from the
+same seed), evaluated the same way; the best MLP per system is the paper's baseline.
+
+    python bench/mlp_sweep.py --gn-results bench/results/forward_models --out bench/results/mlp_sweep
+    python bench/mlp_sweep.py --quick
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
+
+
+def child(args):
+    from gnwarp import data
+    from gnwarp import evaluate as ev
+    from gnwarp.models import MLP_SIZES, MLPCoreConfig, ModelConfig
+    from gnwarp.train import TrainConfig, load_model, train
+    ds_path = str(Path(args.out) / "data" / f"{args.system}.h5")
+    ds = data.load(ds_path, lazy=False)
+    res = {}
+    for size in MLP_SIZES:
+        layers, width = (int(x) for x in size.split("x"))
+        out = Path(args.out) / args.system / size
+        run = train(TrainConfig(data=[ds_path], out=str(out), model=ModelConfig(core="mlp", mlp=MLPCoreConfig(layers, width)),
+                                steps=args.train_steps, lr=args.lr, lr_decay=0.6, lr_decay_steps=args.decay_every,
+                                valid_every=args.valid_every, valid_sequences=args.valid, patience=None,
+                                checkpoint_every=args.train_steps, resume=False, progress=False))
+        r = ev.evaluate(load_model(run["best"]).bind(ds), ds, "test")
+        res[size] = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
+        res[size]["steps"] = run["steps"]
+    (Path(args.out) / args.system / "results.json").write_text(json.dumps(res, indent=1, default=float))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--systems", default=",".join(SYSTEMS))
+    ap.add_argument("--gn-results", default="bench/results/forward_models")
+    ap.add_argument("--out", default="bench/results/mlp_sweep")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--system", help=argparse.SUPPRESS)
+    ap.add_argument("--train-steps", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--lr", type=float, default=1e-3, help=argparse.SUPPRESS)
+    ap.add_argument("--decay-every", type=int, default=10000, help=argparse.SUPPRESS)
+    ap.add_argument("--valid-every", type=int, default=2000, help=argparse.SUPPRESS)
+    ap.add_argument("--valid", type=int, default=50, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child(args)
+    from gnwarp import data
+    names = args.systems.split(",")
+    out = Path(args.out)
+    (out / "data").mkdir(parents=True, exist_ok=True)
+    gn = {}
+    procs = []
+    for s in names:
+        g = json.loads((Path(args.gn_results) / s / "results.json").read_text())
+        gn[s] = g
+        cfg = g["config"]
+        sizes = (cfg["train_sequences"], cfg["valid_sequences"], cfg["test_sequences"]) if not cfg.get("dataset") \
+            else tuple(g["dataset"][k] for k in ("train", "valid", "test"))
+        steps, valid_every, decay = g["gn"]["steps"], cfg["valid_every"], cfg["lr_decay_every"]
+        if args.quick:
+            sizes, steps, valid_every, decay = (30, 4, 8), 40, 20, 20
+        p = out / "data" / f"{s}.h5"
+        if not p.exists():  # the same data as bench/forward_models.py (seed 1, MuJoCo C)
+            data.generate(s, sizes, num_steps=g["num_steps"] if not args.quick else 20, seed=1, backend="mujoco",
+                          progress=False).save(p)
+        cmd = [sys.executable, __file__, "--child", "--system", s, "--out", str(out), "--train-steps", str(steps),
+               "--lr", str(cfg["lr"]), "--decay-every", str(decay), "--valid-every", str(valid_every),
+               "--valid", str(sizes[1])]
+        log = open(out / f"{s}.log", "w")
+        procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                       env={**os.environ, "OMP_NUM_THREADS": "2"}), log))
+    for p, log in procs:
+        p.wait()
+        log.close()
+    lines = ["# MLP baseline sweep (section E) beside the GN of bench/forward_models.py", "",
+             "Each MLP trained for the GN's number of steps on the same data; 20-step rollout error / constant.", "",
+             "| system | GN | 3x128 | 3x512 | 9x128 | 9x512 | 5x256 | best MLP | GN better than best MLP |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for s in names:
+        f = out / s / "results.json"
+        if not f.exists():
+            lines.append(f"| {s} | failed (see {s}.log) | | | | | | | |")
+            continue
+        r = json.loads(f.read_text())
+        g20 = gn[s]["results"]["GN"]["rollout_20"]["mean"]
+        best = min(r, key=lambda k: r[k]["rollout_20"])
+        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" for k in ("3x128", "3x512", "9x128", "9x512", "5x256"))
+        lines.append(f"| {s} | {g20:.3g} | {cells} | {best} ({r[best]['rollout_20']:.3g}) | "
+                     f"{'yes' if g20 < r[best]['rollout_20'] else 'no'} |")
+    table = "\n".join(lines)
+    (out / "summary.md").write_text(table + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
