@@ -15,28 +15,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gnwarp import data, systems  # noqa: E402
 from gnwarp._warp import cuda_available  # noqa: E402
-
-
-def device_name() -> str:
-    try:
-        import torch
-        if torch.cuda.is_available():
-            return torch.cuda.get_device_name(0)
-    except Exception:  # noqa: BLE001
-        pass
-    return f"CPU ({os.cpu_count()} cores, {platform.processor() or platform.machine()})"
+from bench._common import device_name  # noqa: E402
 
 
 def run_one(name, backend, sizes, steps, parameterized, tmpdir):

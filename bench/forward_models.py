@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import device_name, run_side_by_side  # noqa: E402
 
 SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
 
@@ -103,19 +103,15 @@ def main():
                                progress=False)
             ds.save(p)
     t_data = time.perf_counter() - t0
-    procs = {}
+    commands = {}
     for name in names:
         cmd = [sys.executable, __file__, "--child", "--system", name, "--dataset", str(out / "data" / f"{name}.h5"),
                "--child-out", str(out / name), "--seconds", str(args.seconds), "--max-steps", str(args.max_steps),
                "--lr", str(args.lr), "--valid-every", str(args.valid_every), "--latent", str(args.latent),
                "--edge-width", str(args.edge_width), "--node-width", str(args.node_width), "--mlp", args.mlp,
                "--valid-eval", str(args.sequences[1])]
-        log = open(out / f"{name}.log", "w")
-        procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                        env={**os.environ, "OMP_NUM_THREADS": "2"}), log)
-    for name, (p, log) in procs.items():
-        p.wait()
-        log.close()
+        commands[name] = cmd
+    run_side_by_side(commands, out)
     rows = []
     for name in names:
         f = out / name / "results.json"
@@ -126,7 +122,7 @@ def main():
         r = s["results"]
         mlp_key = [k for k in r if k.startswith("MLP")][0]
         rows.append((name, s, r["GN"], r[mlp_key]))
-    lines = [f"# Forward models per system ({_device()}); GN vs MLP {args.mlp} at the same number of steps", "",
+    lines = [f"# Forward models per system ({device_name()}); GN vs MLP {args.mlp} at the same number of steps", "",
              f"Budget per system: GN training capped at {args.seconds:g} s wall clock (all systems side by side on the one "
              f"device), MLP trained for the GN's step count. Data: {args.sequences[0]}/{args.sequences[1]}/"
              f"{args.sequences[2]} sequences x {args.steps} steps (MuJoCo C, {t_data:.0f} s for all). Errors: squared "
@@ -152,15 +148,6 @@ def _e(r: dict, key: str) -> str:
     v = r.get(key, {}).get("mean")
     return "n/a" if v is None else f"{v:.3g}"
 
-
-def _device() -> str:
-    try:
-        import torch
-        if torch.cuda.is_available():
-            return torch.cuda.get_device_name(0)
-    except Exception:  # noqa: BLE001
-        pass
-    return f"CPU, {os.cpu_count()} cores"
 
 
 if __name__ == "__main__":

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import run_side_by_side  # noqa: E402
 
 SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
 
@@ -61,7 +61,7 @@ def main():
     out = Path(args.out)
     (out / "data").mkdir(parents=True, exist_ok=True)
     gn = {}
-    procs = []
+    commands = {}
     for s in names:
         g = json.loads((Path(args.gn_results) / s / "results.json").read_text())
         gn[s] = g
@@ -78,12 +78,8 @@ def main():
         cmd = [sys.executable, __file__, "--child", "--system", s, "--out", str(out), "--train-steps", str(steps),
                "--lr", str(cfg["lr"]), "--decay-every", str(decay), "--valid-every", str(valid_every),
                "--valid", str(sizes[1])]
-        log = open(out / f"{s}.log", "w")
-        procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                       env={**os.environ, "OMP_NUM_THREADS": "2"}), log))
-    for p, log in procs:
-        p.wait()
-        log.close()
+        commands[s] = cmd
+    run_side_by_side(commands, out)
     lines = ["# MLP baseline sweep (section E) beside the GN of bench/forward_models.py", "",
              "Each MLP trained for the GN's number of steps on the same data; 20-step rollout error / constant.", "",
              "| system | GN | 3x128 | 3x512 | 9x128 | 9x512 | 5x256 | best MLP | GN better than best MLP |",

@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import device_name, run_side_by_side  # noqa: E402
 
 RUNS = {
     "multi4": (["pendulum", "cartpole", "acrobot", "swimmer6"], ["pendulum", "cartpole", "acrobot", "swimmer6"]),
@@ -96,19 +96,15 @@ def main():
         sizes = tuple(args.sequences) if trained else (1, 1, args.sequences[2])  # test-only systems
         data.generate(s, sizes, num_steps=args.steps, seed=2, backend="mujoco", progress=False).save(p)
     t_data = time.perf_counter() - t0
-    procs = []
+    commands = {}
     for r in runs:
         cmd = [sys.executable, __file__, "--child", "--run", r, "--out", str(out), "--seconds", str(args.seconds),
                "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every),
                "--latent", str(args.latent), "--edge-width", str(args.edge_width), "--node-width", str(args.node_width),
                "--valid", str(args.sequences[1])]
-        log = open(out / f"{r}.log", "w")
-        procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                       env={**os.environ, "OMP_NUM_THREADS": "2"}), log))
-    for p, log in procs:
-        p.wait()
-        log.close()
-    lines = [f"# One model for several systems, and SwimmerN zero-shot ({_device()})", "",
+        commands[r] = cmd
+    run_side_by_side(commands, out)
+    lines = [f"# One model for several systems, and SwimmerN zero-shot ({device_name()})", "",
              f"Data: {args.sequences[0]}/{args.sequences[1]}/{args.sequences[2]} sequences x {args.steps} steps per "
              f"trained system (MuJoCo C, {t_data:.0f} s); GN latent {args.latent}, edge MLP 2x{args.edge_width}, node/"
              f"global 2x{args.node_width}; each run capped at {args.seconds:g} s of training, the runs side by side on "
@@ -131,15 +127,6 @@ def main():
 def _f(x) -> str:
     return "n/a" if x is None else f"{x:.3g}"
 
-
-def _device() -> str:
-    try:
-        import torch
-        if torch.cuda.is_available():
-            return torch.cuda.get_device_name(0)
-    except Exception:  # noqa: BLE001
-        pass
-    return f"CPU, {os.cpu_count()} cores"
 
 
 if __name__ == "__main__":

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import device_name, run_side_by_side  # noqa: E402
 
 SIZES = {  # name: (latent, edge hidden, node/global hidden)
     "small": (64, (128,), (64,)),
@@ -154,18 +154,14 @@ def main():
         if not p.exists():
             data.generate(s, tuple(args.sequences), num_steps=max(100, args.horizon), seed=3, backend="mujoco",
                           progress=False).save(p)
-    procs = []
+    commands = {}
     for s in names:
         for z in sizes:
             cmd = [sys.executable, __file__, "--child", "--size", z, "--dataset", str(out / "data" / f"{s}.h5"),
                    "--child-out", str(out / f"{s}-{z}"), "--seconds", str(args.seconds),
                    "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every)]
-            log = open(out / f"{s}-{z}.log", "w")
-            procs.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                           env={**os.environ, "OMP_NUM_THREADS": "1"}), log))
-    for p, log in procs:
-        p.wait()
-        log.close()
+            commands[f"{s}-{z}"] = cmd
+    run_side_by_side(commands, out, threads=1)
     rows = []
     cuda = torch.cuda.is_available()
     precisions = PRECISIONS if cuda else ("fp32",)
@@ -185,7 +181,7 @@ def main():
                 rows.append(dict(system=s, size=z, precision=prec, rollout_error=err, step_seconds=dt, mode=mode,
                                  mjwarp_step_seconds=sim_dt, batch=args.batch))
                 print(json.dumps(rows[-1]), flush=True)
-    dev = torch.cuda.get_device_name(0) if cuda else f"CPU, {os.cpu_count()} cores"
+    dev = device_name()
     lines = [f"# Run time against error ({dev})", "",
              f"GN sizes {', '.join(f'{k}: latent {v[0]}, edge {list(v[1])}, node/global {list(v[2])}' for k, v in SIZES.items() if k in sizes)}; "
              f"each trained {args.seconds:g} s (all side by side on one device). Error: {args.horizon}-step rollout, model / "

@@ -1,0 +1,33 @@
+"""Helpers shared by the benchmark scripts."""
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+
+def device_name() -> str:
+    """The GPU's name, or the CPU's core count where there is no GPU."""
+    try:
+        import torch
+        if torch.cuda.is_available():
+            return torch.cuda.get_device_name(0)
+    except Exception:  # noqa: BLE001 - no usable torch CUDA means a CPU run
+        pass
+    return f"CPU ({os.cpu_count()} cores, {platform.processor() or platform.machine()})"
+
+
+def run_side_by_side(commands: dict[str, list[str]], log_dir: Path, threads: int = 2) -> dict[str, int]:
+    """Start every command at once (one process each, sharing the device), wait for all; each
+    one's output goes to ``log_dir/<name>.log``. Returns the exit codes."""
+    procs = {}
+    for name, cmd in commands.items():
+        log = open(Path(log_dir) / f"{name}.log", "w")
+        procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                        env={**os.environ, "OMP_NUM_THREADS": str(threads)}), log)
+    codes = {}
+    for name, (p, log) in procs.items():
+        codes[name] = p.wait()
+        log.close()
+    return codes
