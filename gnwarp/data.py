@@ -166,6 +166,9 @@ class Dataset:
                         chunks = (1,) + a.shape[1:] if a.ndim > 1 and a.shape[0] > 0 else None
                         g.create_dataset(k, data=a, chunks=chunks, compression=compression)
                 f.attrs["complete"] = True
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp made it private; give it a normal file's mode
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):

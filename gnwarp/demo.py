@@ -54,6 +54,7 @@ class DemoConfig:
     noise_std: float = 0.003
     valid_every: int = 500
     animate_rollouts: int = 3
+    renderer: str = "auto"                # rollout video: "mujoco" (EGL/OSMesa), "matplotlib", or "auto"
     backend: str = "warp"                 # GN backend: "warp" (Warp kernels) or "torch" (reference)
     device: str = "auto"
     seed: int = 0
@@ -161,7 +162,7 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
                          out / "states.png", f"{cfg.system}, body {body}: {true.shape[1] - 1}-step rollout")
     k = min(cfg.animate_rollouts, true.shape[0])
     ev.animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
-               title=f"{cfg.system}: true (grey) vs predicted rollouts")
+               title=f"{cfg.system}: true (grey) vs predicted rollouts", renderer=cfg.renderer)
     _plot_training({"GN": out / "gn" / "log.csv", f"MLP {cfg.mlp_size}": out / "mlp" / "log.csv"},
                    out / "training.png")
     timings["plots"] = time.perf_counter() - t
@@ -230,6 +231,9 @@ exactly right (the pendulum's body frame sits on its hinge, so its position neve
 ![states](states.png)
 
 ![rollouts](rollouts.gif)
+
+(One row per test rollout; columns: true, GN, MLP when rendered with MuJoCo; grey true
+under the coloured predictions when drawn with matplotlib.)
 
 ## Training
 

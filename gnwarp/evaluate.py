@@ -286,15 +286,19 @@ def _geom_segments(system) -> list[tuple[int, np.ndarray, np.ndarray, float]]:
     return segs
 
 
-def _system_of(dataset, instance: int):
-    from gnwarp import systems
-    name = dataset.meta["system"]
+def _system_spec(dataset, instance: int) -> dict:
+    """{"name", "params"} of a dataset's system instance (rebuilt with ``systems.make``)."""
     params = None
     if dataset.meta.get("parameterized"):
         names = dataset.meta.get("param_names", [])
         vals = np.asarray(dataset.static["params"])[instance]
         params = {n: float(v) for n, v in zip(names, vals) if np.isfinite(v)}
-    return systems.make(name, params=params)
+    return {"name": dataset.meta["system"], "params": params}
+
+
+def _system_of(dataset, instance: int):
+    from gnwarp import systems
+    return systems.make(**_system_spec(dataset, instance))
 
 
 def _world_segments(body: np.ndarray, segs, edges) -> np.ndarray:
@@ -311,14 +315,29 @@ def _world_segments(body: np.ndarray, segs, edges) -> np.ndarray:
 
 
 def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, path, dt: float | None = None,
-            fps_max: float = 25.0, title: str = "") -> Path:
-    """GIF of true (grey) vs predicted motion for a few rollouts, side by side.
+            fps_max: float = 25.0, title: str = "", renderer: str = "matplotlib") -> Path:
+    """GIF of true vs predicted motion for a few rollouts.
 
     ``true`` [K, H+1, B, 13], ``preds`` {name: [K, H+1, B, 13]}, ``instances`` [K] system instance
-    of each rollout. Bodies are drawn from their poses with the system's capsules, boxes and
-    spheres (a stick figure along the graph's edges when the system cannot be rebuilt),
-    projected on the two world axes along which the motion spreads most.
+    of each rollout. ``renderer``:
+
+    - "mujoco": MuJoCo's offscreen renderer (EGL/OSMesa, see ``gnwarp.render``): one row per
+      rollout, columns true, then each prediction in order; raises ``RenderUnavailable`` without GL.
+    - "matplotlib": bodies drawn from their poses with the system's capsules, boxes and spheres
+      (a stick figure along the graph's edges when the system cannot be rebuilt), true in grey
+      under the predictions, projected on the two world axes along which the motion spreads most.
+    - "auto": "mujoco" where it works, else "matplotlib".
     """
+    if renderer not in ("auto", "mujoco", "matplotlib"):
+        raise ValueError(f"renderer must be 'auto', 'mujoco' or 'matplotlib', got {renderer!r}")
+    if renderer in ("auto", "mujoco"):
+        from gnwarp.render import RenderUnavailable, render_rollouts
+        try:
+            specs = [_system_spec(dataset, int(i)) for i in instances]
+            return render_rollouts(true, preds, specs, path, dt or float(dataset.meta.get("dt", 0.02)), fps_max)
+        except (RenderUnavailable, ValueError):
+            if renderer == "mujoco":
+                raise
     import imageio.v3 as iio
     import matplotlib
     matplotlib.use("Agg")
