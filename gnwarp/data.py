@@ -114,6 +114,7 @@ class Dataset:
     static: dict[str, Any]
     splits: dict[str, Split]
     _file: Any = field(default=None, repr=False)
+    _builders: dict = field(default_factory=dict, repr=False)
 
     @property
     def layout(self) -> FeatureLayout:
@@ -190,13 +191,16 @@ class Dataset:
         inv[order] = np.arange(order.size)
         s_sorted, t_sorted = seq[order], np.asarray(t)[order]
         uniq, first = np.unique(s_sorted, return_inverse=True)
-        body = np.asarray(sp.body[uniq] if not isinstance(sp.body, np.ndarray) else sp.body[uniq])
-        ctrl = np.asarray(sp.ctrl[uniq] if not isinstance(sp.ctrl, np.ndarray) else sp.ctrl[uniq])
+        body = np.asarray(sp.body[uniq])  # numpy or h5py: one read of the rows asked for
+        ctrl = np.asarray(sp.ctrl[uniq])
         inst = np.asarray(sp.instance[...])[uniq]
         b = body[first, t_sorted][inv]
         c = ctrl[first, np.minimum(t_sorted, ctrl.shape[1] - 1)][inv]
-        builder = GraphBuilder(self, device=device, dtype=dtype)
         import torch
+        key = (str(device), dtype)
+        if key not in self._builders:  # static tensors built once per device and dtype
+            self._builders[key] = GraphBuilder(self, device=device, dtype=dtype)
+        builder = self._builders[key]
         return builder(torch.as_tensor(inst[first][inv]), torch.as_tensor(b), torch.as_tensor(c))
 
 

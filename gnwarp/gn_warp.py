@@ -359,6 +359,15 @@ class _FirstLayer:
         buf = torch.empty(max(self.total, 1), dtype=gw0.dtype, device=gw0.device)
         return self._views(buf), buf
 
+    def backward_concat(self, launch, plan, g0, x, gw0):
+        """Backward of the concatenated first layer y = x @ W.T: writes dL/dW into ``gw0`` (when
+        given) and returns dL/dx."""
+        if gw0 is not None:
+            blocks, buf = self.grad_blocks(gw0)
+            torch.mm(g0.t(), x, out=blocks["all"])
+            self.unpack(launch, plan, buf, gw0)
+        return torch.mm(g0, self.w["all"])
+
     def unpack(self, launch, plan, buf, gw0):
         """gw0 = the weight-gradient blocks written into ``buf`` (padding columns dropped)."""
         if buf is not None:
@@ -645,11 +654,7 @@ class _SplitBlock(torch.autograd.Function):
                 gws, gbs = mlp_grads(2)
                 g0 = _mlp_backward(launch, plan, gu_out, s["hs_g"], wg, gws, gbs, need_w, False)
                 fl = s["fl_g"]
-                if need_w:
-                    blocks, buf = fl.grad_blocks(gws[0])
-                    torch.mm(g0.t(), s["x_g"], out=blocks["all"])
-                    fl.unpack(launch, plan, buf, gws[0])
-                g_x = torch.mm(g0, fl.w["all"])
+                g_x = fl.backward_concat(launch, plan, g0, s["x_g"], gws[0] if need_w else None)
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
@@ -666,11 +671,7 @@ class _SplitBlock(torch.autograd.Function):
                 wn = pn[0::2]
                 g0 = _mlp_backward(launch, plan, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed)
                 fl = s["fl_n"]
-                if need_w:
-                    blocks, buf = fl.grad_blocks(gws[0])
-                    torch.mm(g0.t(), s["x_n"], out=blocks["all"])
-                    fl.unpack(launch, plan, buf, gws[0])
-                g_x = torch.mm(g0, fl.w["all"])
+                g_x = fl.backward_concat(launch, plan, g0, s["x_n"], gws[0] if need_w else None)
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
                 if need_v and "nodes" in ncols:
                     gv = g_x[:, ncols["nodes"]]
