@@ -18,9 +18,13 @@ def device_name() -> str:
     return f"CPU ({os.cpu_count()} cores, {platform.processor() or platform.machine()})"
 
 
-def run_side_by_side(commands: dict[str, list[str]], log_dir: Path, threads: int = 2) -> dict[str, int]:
+def run_side_by_side(commands: dict[str, list[str]], log_dir: Path, threads: int = 2,
+                     deadline: float | None = None) -> dict[str, int]:
     """Start every command at once (one process each, sharing the device), wait for all; each
-    one's output goes to ``log_dir/<name>.log``. Returns the exit codes."""
+    one's output goes to ``log_dir/<name>.log``. Commands still running ``deadline`` seconds after
+    the start are killed (exit code -9 in the result). Returns the exit codes."""
+    import time
+    end = None if deadline is None else time.monotonic() + deadline
     procs = {}
     for name, cmd in commands.items():
         log = open(Path(log_dir) / f"{name}.log", "w")
@@ -28,6 +32,10 @@ def run_side_by_side(commands: dict[str, list[str]], log_dir: Path, threads: int
                                         env={**os.environ, "OMP_NUM_THREADS": str(threads)}), log)
     codes = {}
     for name, (p, log) in procs.items():
-        codes[name] = p.wait()
+        try:
+            codes[name] = p.wait(None if end is None else max(0.0, end - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            codes[name] = p.wait()
         log.close()
     return codes

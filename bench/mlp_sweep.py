@@ -26,8 +26,7 @@ def child(args):
     from gnwarp.train import TrainConfig, load_model, train
     ds_path = str(Path(args.out) / "data" / f"{args.system}.h5")
     ds = data.load(ds_path, lazy=False)
-    res = {}
-    for size in MLP_SIZES:
+    for size in [args.size] if args.size else MLP_SIZES:
         layers, width = (int(x) for x in size.split("x"))
         out = Path(args.out) / args.system / size
         run = train(TrainConfig(data=[ds_path], out=str(out), model=ModelConfig(core="mlp", mlp=MLPCoreConfig(layers, width)),
@@ -35,9 +34,20 @@ def child(args):
                                 valid_every=args.valid_every, valid_sequences=args.valid, patience=None,
                                 checkpoint_every=args.train_steps, resume=False, progress=False))
         r = ev.evaluate(load_model(run["best"]).bind(ds), ds, "test")
-        res[size] = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
-        res[size]["steps"] = run["steps"]
-    (Path(args.out) / args.system / "results.json").write_text(json.dumps(res, indent=1, default=float))
+        res = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
+        res["steps"] = run["steps"]
+        (out / "results.json").write_text(json.dumps(res, indent=1, default=float))
+
+
+def collect(out: Path, system: str) -> dict:
+    """The finished sizes of one system: per-size files, or the older one-file-per-system form."""
+    f = out / system / "results.json"
+    res = json.loads(f.read_text()) if f.exists() else {}
+    for size in ("3x128", "3x512", "9x128", "9x512", "5x256"):
+        g = out / system / size / "results.json"
+        if g.exists():
+            res[size] = json.loads(g.read_text())
+    return res
 
 
 def main():
@@ -48,6 +58,9 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--system", help=argparse.SUPPRESS)
+    ap.add_argument("--size", help=argparse.SUPPRESS)
+    ap.add_argument("--deadline", type=float, default=None,
+                    help="seconds after which unfinished trainings are stopped and the table written")
     ap.add_argument("--train-steps", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--lr", type=float, default=1e-3, help=argparse.SUPPRESS)
     ap.add_argument("--decay-every", type=int, default=10000, help=argparse.SUPPRESS)
@@ -75,26 +88,32 @@ def main():
         if not p.exists():  # the same data as bench/forward_models.py (seed 1, MuJoCo C)
             data.generate(s, sizes, num_steps=g["num_steps"] if not args.quick else 20, seed=1, backend="mujoco",
                           progress=False).save(p)
-        cmd = [sys.executable, __file__, "--child", "--system", s, "--out", str(out), "--train-steps", str(steps),
-               "--lr", str(cfg["lr"]), "--decay-every", str(decay), "--valid-every", str(valid_every),
-               "--valid", str(sizes[1])]
-        commands[s] = cmd
-    run_side_by_side(commands, out)
+        for size in ("3x128", "3x512", "9x128", "9x512", "5x256"):  # one process per (system, size)
+            commands[f"{s}_{size}"] = [sys.executable, __file__, "--child", "--system", s, "--size", size,
+                                       "--out", str(out), "--train-steps", str(steps), "--lr", str(cfg["lr"]),
+                                       "--decay-every", str(decay), "--valid-every", str(valid_every),
+                                       "--valid", str(sizes[1])]
+    run_side_by_side(commands, out, threads=1, deadline=args.deadline)
+    for s in SYSTEMS:  # systems measured in earlier runs stay in the table
+        if s not in gn and (Path(args.gn_results) / s / "results.json").exists() and collect(out, s):
+            gn[s] = json.loads((Path(args.gn_results) / s / "results.json").read_text())
+            names.append(s)
     lines = ["# MLP baseline sweep (section E) beside the GN of bench/forward_models.py", "",
              "Each MLP trained for the GN's number of steps on the same data; 20-step rollout error / constant.", "",
              "| system | GN | 3x128 | 3x512 | 9x128 | 9x512 | 5x256 | best MLP | GN better than best MLP |",
              "|---|---|---|---|---|---|---|---|---|"]
     for s in names:
-        f = out / s / "results.json"
-        if not f.exists():
-            lines.append(f"| {s} | failed (see {s}.log) | | | | | | | |")
-            continue
-        r = json.loads(f.read_text())
+        r = collect(out, s)
         g20 = gn[s]["results"]["GN"]["rollout_20"]["mean"]
+        if not r:
+            lines.append(f"| {s} | {g20:.3g} | failed (see {s}_*.log) | | | | | | |")
+            continue
         best = min(r, key=lambda k: r[k]["rollout_20"])
-        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" for k in ("3x128", "3x512", "9x128", "9x512", "5x256"))
-        lines.append(f"| {s} | {g20:.3g} | {cells} | {best} ({r[best]['rollout_20']:.3g}) | "
-                     f"{'yes' if g20 < r[best]['rollout_20'] else 'no'} |")
+        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" if k in r else "not finished"
+                           for k in ("3x128", "3x512", "9x128", "9x512", "5x256"))
+        verdict = "yes" if g20 < r[best]["rollout_20"] else "no"
+        lines.append(f"| {s} ({gn[s]['gn']['steps']} steps) | {g20:.3g} | {cells} | {best} ({r[best]['rollout_20']:.3g})"
+                     f"{'' if len(r) == 5 else f' of {len(r)}'} | {verdict} |")
     table = "\n".join(lines)
     (out / "summary.md").write_text(table + "\n")
     print(table)
