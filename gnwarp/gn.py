@@ -356,6 +356,10 @@ class GraphNetwork(TorchGraphNetwork):
             dtype, sums accumulated in float32; outputs returned in the parameters' dtype).
         deterministic: aggregate with ordered segment sums (edges sorted by receiver) instead of
             atomics: bitwise identical results run to run, forward and backward.
+        edge_first_layer: how the split path computes the edge MLP's first layer: "concat" (the
+            gathered rows [e, v_s, v_r, u] side by side, then one GEMM), "split" (node and global
+            projections once per node / graph, gathered and added per edge by a Warp kernel) or
+            "auto" (the measured rule in ``gn_warp.edge_concat``). Same numbers up to rounding.
         check_inputs: validate the graph before any launch (shapes, dtypes, devices, index
             ranges, finiteness). Costs a few host syncs; set False inside captured loops.
 
@@ -365,10 +369,12 @@ class GraphNetwork(TorchGraphNetwork):
     """
 
     def __init__(self, config: GNBlockConfig | None = None, *, backend: str = "warp", path: str = "auto",
-                 precision: str = "fp32", deterministic: bool = False, check_inputs: bool = True, **kwargs):
+                 precision: str = "fp32", deterministic: bool = False, edge_first_layer: str = "auto",
+                 check_inputs: bool = True, **kwargs):
         super().__init__(config, **kwargs)
         self.backend = backend
         self.path = path
+        self.edge_first_layer = edge_first_layer
         self.precision = precision
         self.deterministic = deterministic
         self.check_inputs = check_inputs
@@ -379,6 +385,8 @@ class GraphNetwork(TorchGraphNetwork):
             raise ValueError(f"backend must be 'warp' or 'torch', got {self.backend!r}")
         if self.path not in ("auto", "split", "tile"):
             raise ValueError(f"path must be 'auto', 'split' or 'tile', got {self.path!r}")
+        if self.edge_first_layer not in ("auto", "concat", "split"):
+            raise ValueError(f"edge_first_layer must be 'auto', 'concat' or 'split', got {self.edge_first_layer!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
 

@@ -191,6 +191,7 @@ class _Plan:
     deterministic: bool
     n_edge_params: int
     n_node_params: int
+    edge_concat: bool = True     # edge first layer on concatenated gathered rows (else split)
 
     @property
     def wp_dtype(self):
@@ -442,25 +443,36 @@ def _concat(launch, plan, rows, layout, pieces):
     items += [(launch.placeholder(cd, 2), None, 0)] * (4 - len(items))
     kernel = K.concat_kernel(tuple(w for _, _, w in items), tuple(i is not None for _, i, _ in items),
                              tuple(_WP_DTYPE[t.dtype] for t, _, _ in items), plan.wp_dtype, width)
-    launch.n(kernel, rows * width, *(t for t, _, _ in items),
+    launch(kernel, (rows, width), *(t for t, _, _ in items),
              *(i if i is not None else launch.placeholder(torch.int32, 1) for _, i, _ in items), out)
     return out
 
 
-# The edge update's first layer runs on concatenated input rows [e, v_s, v_r, u] (one GEMM with
-# bias and ReLU in its epilogue, like the node update) when its gathered pieces are narrow: the
-# extra GEMM work (K grows by the node and global widths) then costs less than the split
-# layer's extra pass over [edges, hidden] (the direct projection written and read back by
-# ``first_layer``). Cost per edge and hidden unit (H200, bench/results): split ~2 extra
-# accesses of the hidden row at the ``first_layer`` kernel's ~1.3 TB/s, concat 2*extra_K
-# FLOPs at the GEMM rate plus the concatenated row written and read; they cross near
-# extra_K = 2 * padded node width + padded global width ~ 400 in fp16 and tf32. The paper
-# core's first block (node 31, global 32: extra K 96) concatenates, its second (node 159,
-# global 160: 480) splits.
+# The edge update's first layer runs on concatenated input rows [e, v_s, v_r, u] (one kernel
+# writes them, then one GEMM with bias and ReLU in its epilogue, like the node update) or split
+# (node / global projections as GEMMs over nodes / graphs, the edge rows' own projection as a
+# GEMM, and ``first_layer`` adding the gathered projections per edge). Concat costs 2 * extra_K
+# FLOPs per edge and hidden unit (extra_K = padded sender + receiver + global widths) plus the
+# concatenated row written and read; split costs the direct projection written and read back
+# plus two gathered hidden rows, in ``first_layer`` at ~1.3 TB/s, and four more launches
+# (forward) / ~6 (backward). Measured (H200, paper core on cheetah graphs, captured; the
+# second block has extra_K = 480; bench/results/gn_block_nvidia-h200_notes.md, "v6"): with
+# tensor cores (tf32, fp16, bf16) concat wins everywhere: forward at batch 4096 tf32 1.40 vs
+# 1.59 ms, fp16 1.06 vs 1.25; training step at 200 tf32 0.90 vs 0.97, at 4096 fp16 3.99 vs
+# 4.55. In plain fp32 the extra FLOPs run at the SIMT rate (48 TFLOP/s): split wins at 4096
+# (forward 5.89 vs 6.12 ms, training step 18.1 vs 18.8) and loses at 200 (1.71 vs 1.67), so
+# fp32 / fp64 keep the extra_K rule (concat up to 256, as for the paper's first block).
 _EDGE_CONCAT_MAX_K = 256
+_TENSOR_CORE_PRECISIONS = ("tf32", "fp16", "bf16")
 
 
-def _edge_concat(config: GNBlockConfig) -> bool:
+def edge_concat(config: GNBlockConfig, mode: str = "auto", precision: str = "fp32") -> bool:
+    """Whether the edge update's first layer runs on concatenated rows: ``mode`` "concat" /
+    "split" force it; "auto" applies the measured rule above for ``precision``."""
+    if mode != "auto":
+        return mode == "concat"
+    if precision in _TENSOR_CORE_PRECISIONS:
+        return True
     cols = column_slices(config.edge_layout)
     extra = sum(_pad(_width(cols, n)) for n in ("sender_nodes", "receiver_nodes", "globals") if n in cols)
     return extra <= _EDGE_CONCAT_MAX_K
@@ -519,7 +531,9 @@ class _SplitBlock(torch.autograd.Function):
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
         pc = _cast_params(params, cd)
         pe, pn, pg = _split_mlp_params(plan, pc)
-        v_c, e_c, u_c = _padded(v, cd), _padded(e, cd), _padded(u, cd)
+        # inputs in the compute dtype, zero-padded, only for the split edge first layer's GEMMs:
+        # the concat kernels read the inputs as they are (any float dtype, any width)
+        v_c = e_c = u_c = None
         # scatter-sum destinations (accumulation dtype), one allocation: one memset
         (agg, sum_e, sum_v), _, _ = _carve(
             [(N, c.edge_out) if c.aggregates_to_nodes else None, (B, c.edge_out) if c.edges_to_globals else None,
@@ -530,15 +544,15 @@ class _SplitBlock(torch.autograd.Function):
             we, be = pe[0::2], pe[1::2]
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
-            edge_concat = _edge_concat(c)
-            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=not edge_concat)
+            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=not plan.edge_concat)
             x_e = None
-            if edge_concat:
+            if plan.edge_concat:
                 x_e = _concat(launch, plan, E, c.edge_layout,
-                              {"edges": (e_c, None), "sender_nodes": (v_c, gi.senders),
-                               "receiver_nodes": (v_c, gi.receivers), "globals": (u_c, gi.edge_graph)})
+                              {"edges": (e, None), "sender_nodes": (v, gi.senders),
+                               "receiver_nodes": (v, gi.receivers), "globals": (u, gi.edge_graph)})
                 h = _linear(x_e, fl_e.w["all"], be[0], relu=len(we) > 1)
             else:
+                v_c, e_c, u_c = _padded(v, cd), _padded(e, cd), _padded(u, cd)
                 direct = _gemm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
                 node_proj = _gemm(v_c, fl_e.w["nodes"].t()) if "nodes" in fl_e.w else None
                 glob_proj = _gemm(u_c, fl_e.w["globals"].t()) if "globals" in cols else None
@@ -563,7 +577,7 @@ class _SplitBlock(torch.autograd.Function):
             # ---- node update -----------------------------------------------------------------
             wn, bn = pn[0::2], pn[1::2]
             x_n = _concat(launch, plan, N, c.node_layout,
-                          {"nodes": (v_c, None), "received_edges": (agg, None), "globals": (u_c, gi.node_graph)})
+                          {"nodes": (v, None), "received_edges": (agg, None), "globals": (u, gi.node_graph)})
             fl_n = _FirstLayer(launch, plan, wn[0], c.node_layout, split=False)
             hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
             if sum_v is not None:
@@ -576,7 +590,7 @@ class _SplitBlock(torch.autograd.Function):
             if c.update_globals:
                 wg, bg = pg[0::2], pg[1::2]
                 x_g = _concat(launch, plan, B, c.global_layout,
-                              {"globals": (u_c, None), "nodes": (sum_v, None), "edges": (sum_e, None)})
+                              {"globals": (u, None), "nodes": (sum_v, None), "edges": (sum_e, None)})
                 fl_g = _FirstLayer(launch, plan, wg[0], c.global_layout, split=False)
                 hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep)
                 u_ret = u_out.to(out_dtype)
@@ -941,7 +955,8 @@ def gn_block_forward(module, graph: GraphsTuple, index: GraphIndex | None = None
         cd = _compute_dtype(module.precision, p0.dtype)
         ad = torch.float64 if cd == torch.float64 else torch.float32
         plan = _Plan(c, cd, ad, module.precision, module.deterministic,
-                     2 * len(module.edge_mlp.layers), 2 * len(module.node_mlp.layers))
+                     2 * len(module.edge_mlp.layers), 2 * len(module.node_mlp.layers),
+                     edge_concat(c, getattr(module, "edge_first_layer", "auto"), module.precision))
         # under no_grad (inference, rollouts) keep no activations for a backward that cannot come
         keep = torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (v, e, u, *params))
         outs = _SplitBlock.apply(plan, keep, index, v, e, u, *params)

@@ -73,7 +73,7 @@ def loss_of(out):
     terms = []
     for k, x in enumerate((out.nodes, out.edges, out.globals)):
         if x is not None and x.numel():
-            w = torch.linspace(-1.0, 1.5, x.numel(), dtype=x.dtype).reshape(x.shape)
+            w = torch.linspace(-1.0, 1.5, x.numel(), dtype=x.dtype, device=x.device).reshape(x.shape)
             terms.append((torch.sin(x + k) * w).sum())
     return sum(terms)
 
@@ -189,10 +189,25 @@ def test_split_edge_first_layer(deterministic, monkeypatch):
     _gradcheck(GraphNetwork(**TINY, deterministic=deterministic, check_inputs=False).double(), g)
 
 
+@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_edge_first_layer_forced(mode, deterministic):
+    """``edge_first_layer`` forces either first-layer mode; both match the float64 reference,
+    forward and every gradient."""
+    gn, ref = pair(SMALL, deterministic=deterministic, edge_first_layer=mode)
+    compare(gn, ref, make_batch("mixed"), fwd_tol=1e-5, grad_tol=1e-5)
+    with pytest.raises(ValueError, match="edge_first_layer"):
+        GraphNetwork(**SMALL, edge_first_layer="fused")
+
+
 def test_edge_first_layer_mode_rule():
     """Narrow gathered edge inputs concatenate, wide ones split (the paper core's two blocks)."""
-    assert gn_warp._edge_concat(GNBlockConfig(31, 64, 32))
-    assert not gn_warp._edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128))
+    assert gn_warp.edge_concat(GNBlockConfig(31, 64, 32))
+    assert not gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128))
+    for precision in ("tf32", "fp16", "bf16"):  # tensor cores: concat measured faster everywhere
+        assert gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128), "auto", precision)
+    assert gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128), "concat")
+    assert not gn_warp.edge_concat(GNBlockConfig(31, 64, 32), "split")
 
 
 def test_graph_without_globals():
@@ -327,10 +342,12 @@ def test_deterministic_mode_is_bitwise_reproducible():
 
 
 # -- precisions ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("mode", ["concat", "split"])
 @pytest.mark.parametrize("precision,tol", [("tf32", 1e-5), ("fp16", 5e-3), ("bf16", 4e-2)])
-def test_reduced_precision_close_to_reference(precision, tol):
-    """tf32 is plain fp32 on the CPU; fp16/bf16 round GEMM inputs and activations."""
-    gn, ref = pair(SMALL, precision=precision)
+def test_reduced_precision_close_to_reference(precision, tol, mode):
+    """tf32 is plain fp32 on the CPU; fp16/bf16 round GEMM inputs and activations (float32
+    inputs: the concat kernels cast them to the compute dtype as they read them)."""
+    gn, ref = pair(SMALL, precision=precision, edge_first_layer=mode)
     g = make_batch("mixed")
     out = gn(cast(g, torch.float32))
     expect = ref(g)
@@ -473,3 +490,30 @@ def test_auto_path_rule():
     assert gn_warp.choose_path(cfg, "fp32", True, cuda, 1000) == "split"      # deterministic
     assert gn_warp.choose_path(GNBlockConfig(**SMALL), "fp16", False, torch.device("cuda"), 10) == "split"
     assert "shared-memory" in gn_warp.tile_feasible(GNBlockConfig(10, 10, 10), "fp32", False, torch.device("cuda"))
+
+
+# -- CUDA (runs where a GPU is present: the device machine; skipped in CI) -----------------------
+def _on(g, device):
+    return g._replace(**{k: getattr(g, k).to(device) for k in g._fields if isinstance(getattr(g, k), torch.Tensor)})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_cuda_matches_float64_reference(mode, deterministic):
+    """The CUDA kernels (both edge first-layer modes, both aggregations) against the float64
+    reference: forward and every gradient."""
+    gn, ref = pair(SMALL, deterministic=deterministic, edge_first_layer=mode)
+    compare(gn.cuda(), ref.cuda(), _on(make_batch("mixed"), "cuda"), fwd_tol=1e-5, grad_tol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("precision,tol", [("tf32", 5e-3), ("fp16", 5e-3), ("bf16", 4e-2)])
+def test_cuda_reduced_precision(precision, tol, mode):
+    gn, ref = pair(SMALL, precision=precision, edge_first_layer=mode)
+    gn, ref = gn.cuda(), ref.cuda()
+    g = _on(make_batch("mixed"), "cuda")
+    out, expect = gn(cast(g, torch.float32)), ref(g)
+    for name in ("nodes", "edges", "globals"):
+        assert rel_err(getattr(out, name), getattr(expect, name)) < tol, name
