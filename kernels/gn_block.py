@@ -61,6 +61,7 @@ __all__ = [
     "chunk_rows",
     "chunk_dim",
     "first_layer_kernel",
+    "concat_vec",
     "concat_kernel",
     "scatter_out_kernel",
     "segment_sum_kernel",
@@ -241,6 +242,11 @@ def chunk_dim(rows: int, width: int, chunk: int) -> int:
     return ((rows + chunk - 1) // chunk) * width if rows > 0 else 0
 
 
+def concat_vec(out_width: int) -> int:
+    """Output columns per thread of ``concat_kernel``: 8 (the padded widths are multiples of 8)."""
+    return 8 if out_width % 8 == 0 else vec(out_width)
+
+
 @functools.cache
 def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int):
     """out[r] = [p0_in[r0], p1_in[r1], p2_in[r2], p3_in[r3], 0...] (columns side by side, cast to
@@ -248,18 +254,23 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     reads row ``index_k[r]``, the others row ``r``.
 
     Builds the input rows of an MLP whose first layer is one GEMM: the node update's
-    [v, sum of received edges, u[graph of node]], the global update's [u, sum v', sum e'] and,
-    when its gathered pieces are narrow, the edge update's [e, v[sender], v[receiver],
-    u[graph of edge]]; zero-padded to a width cuBLAS's fast kernels take. Launch over
-    ``launch_dim(rows, out_width)``: each thread owns ``vec(out_width)`` columns of one row,
-    strided like the row kernels (coalesced), so the row split and the gather indices are
-    computed once per ``vec`` elements; the piece of a column is a compile-time branch on its
-    offsets (widths such as 31 have no aligned vector split)."""
+    [v, sum of received edges, u[graph of node]], the global update's [u, sum v', sum e'] and
+    the edge update's [e, v[sender], v[receiver], u[graph of edge]]; zero-padded to a width
+    cuBLAS's fast kernels take.
+
+    The arrays are flat (1-D views of contiguous row-major tensors, ``rows * width`` < 2**31):
+    with the widths compile-time constants, an element's offset is one int32 multiply-add per
+    row, not the 64-bit stride arithmetic of a 2-D Warp array. Launch over ``rows * (out_width
+    // concat_vec(out_width))`` threads: each thread owns ``concat_vec`` columns of one row,
+    strided by ``out_width // concat_vec`` (coalesced), loads them all, then stores them.
+    Measured on an H200 at the paper core's second-block edge shape (73728 x 672, fp32 -> fp16;
+    bench/results/gn_block_nvidia-h200_notes.md): 146 us against 191 us for 2-D arrays with 4
+    columns per thread."""
     W0, W1, W2, W3 = widths
     G0, G1, G2, G3 = gathered
     T0, T1, T2, T3 = in_dtypes
     K = out_width
-    V = vec(K)
+    V = concat_vec(K)
     KV = K // V
     E0 = W0
     E1 = E0 + W1
@@ -269,50 +280,52 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
 
     @wp.kernel(module="unique", module_options=_options())
     def concat(
-        # Data in:
-        p0_in: wp.array2d(dtype=T0),
-        p1_in: wp.array2d(dtype=T1),
-        p2_in: wp.array2d(dtype=T2),
-        p3_in: wp.array2d(dtype=T3),
+        # Data in (flat row-major):
+        p0_in: wp.array(dtype=T0),
+        p1_in: wp.array(dtype=T1),
+        p2_in: wp.array(dtype=T2),
+        p3_in: wp.array(dtype=T3),
         index_0: wp.array(dtype=wp.int32),
         index_1: wp.array(dtype=wp.int32),
         index_2: wp.array(dtype=wp.int32),
         index_3: wp.array(dtype=wp.int32),
-        # Data out:
-        out: wp.array2d(dtype=T),
+        # Data out (flat row-major):
+        out: wp.array(dtype=T),
     ):
         i = wp.tid()
         r = i // KV
         c0 = i - r * KV
-        r0 = r
-        r1 = r
-        r2 = r
-        r3 = r
+        # first element of each piece's source row
+        b0 = r * W0
+        b1 = r * W1
+        b2 = r * W2
+        b3 = r * W3
         if wp.static(W0 > 0 and G0):
-            r0 = index_0[r]
+            b0 = index_0[r] * W0
         if wp.static(W1 > 0 and G1):
-            r1 = index_1[r]
+            b1 = index_1[r] * W1
         if wp.static(W2 > 0 and G2):
-            r2 = index_2[r]
+            b2 = index_2[r] * W2
         if wp.static(W3 > 0 and G3):
-            r3 = index_3[r]
+            b3 = index_3[r] * W3
         xs = wp.vector(length=V, dtype=T)  # zero: the padding columns
         for k in range(V):
             c = c0 + k * KV
             if wp.static(W0 > 0):
                 if c < E0:
-                    xs[k] = T(p0_in[r0, c])
+                    xs[k] = T(p0_in[b0 + c])
             if wp.static(W1 > 0):
                 if c >= E0 and c < E1:
-                    xs[k] = T(p1_in[r1, c - E0])
+                    xs[k] = T(p1_in[b1 + c - E0])
             if wp.static(W2 > 0):
                 if c >= E1 and c < E2:
-                    xs[k] = T(p2_in[r2, c - E1])
+                    xs[k] = T(p2_in[b2 + c - E1])
             if wp.static(W3 > 0):
                 if c >= E2 and c < E3:
-                    xs[k] = T(p3_in[r3, c - E2])
+                    xs[k] = T(p3_in[b3 + c - E2])
+        o = r * K + c0
         for k in range(V):
-            out[r, c0 + k * KV] = xs[k]
+            out[o + k * KV] = xs[k]
 
     return concat
 
