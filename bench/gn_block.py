@@ -328,7 +328,8 @@ class Runner:
                     tile_feasible(model.gn2.config, precision, False, dev)
                 if why:
                     raise ValueError(f"tile path not feasible: {why}")
-            idx = graph_index(g, deterministic=self.det)  # static topology: built once, as the torch peer's index inputs
+            # static topology: built once, as the torch peer's index inputs
+            idx = graph_index(g, deterministic=self.det)
 
             def run():
                 return model(g, idx)

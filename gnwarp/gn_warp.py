@@ -442,10 +442,10 @@ def _concat(launch, plan, rows, layout, pieces):
     if rows * width >= 2 ** 31:
         raise ValueError(f"batch too large for one GN block launch: {rows} rows x {width} input columns "
                          "exceeds 2**31 elements; split the batch")
-    out = torch.empty(rows, width, dtype=cd, device=items[0][0].device)
     for (name, w), (t, _, _) in zip(layout, items):
         if t.dim() != 2 or t.shape[1] != w:  # the kernel reads rows of exactly ``w`` elements
             raise ValueError(f"GN block input {name!r}: expected {w} columns, got shape {tuple(t.shape)}")
+    out = torch.empty(rows, width, dtype=cd, device=items[0][0].device)
     flat = [t.contiguous().view(-1) for t, _, _ in items]
     items += [(launch.placeholder(cd, 1), None, 0)] * (4 - len(items))
     flat += [t for t, _, _ in items[len(flat):]]
@@ -464,12 +464,12 @@ def _concat(launch, plan, rows, layout, pieces):
 # concatenated row written and read; split costs the direct projection written and read back
 # plus two gathered hidden rows, in ``first_layer`` at ~1.3 TB/s, and four more launches
 # (forward) / ~6 (backward). Measured (H200, paper core on cheetah graphs, captured; the
-# second block has extra_K = 480; bench/results/gn_block_nvidia-h200_notes.md, "v6"): with
-# tensor cores (tf32, fp16, bf16) concat wins everywhere: forward at batch 4096 tf32 1.40 vs
-# 1.59 ms, fp16 1.06 vs 1.25; training step at 200 tf32 0.90 vs 0.97, at 4096 fp16 3.99 vs
-# 4.55. In plain fp32 the extra FLOPs run at the SIMT rate (48 TFLOP/s): split wins at 4096
-# (forward 5.89 vs 6.12 ms, training step 18.1 vs 18.8) and loses at 200 (1.71 vs 1.67), so
-# fp32 / fp64 keep the extra_K rule (concat up to 256, as for the paper's first block).
+# second block has extra_K = 480; the v7 ablation in bench/results/gn_block_nvidia-h200_notes.md,
+# concat vs split): with tensor cores (tf32, fp16, bf16) concat wins everywhere: forward at batch
+# 4096 tf32 1.40 vs 1.52 ms, fp16 1.05 vs 1.21; training step at 200 tf32 0.89 vs 0.96, at 4096
+# fp16 3.71 vs 4.25. In plain fp32 the extra FLOPs run at the SIMT rate (48 TFLOP/s): split wins
+# at 4096 (forward 5.82 vs 6.16 ms, training step 17.8 vs 18.6) and loses narrowly at 200 (1.69
+# vs 1.66), so fp32 / fp64 keep the extra_K rule (concat up to 256, as for the paper's first block).
 _EDGE_CONCAT_MAX_K = 256
 _TENSOR_CORE_PRECISIONS = ("tf32", "fp16", "bf16")
 

@@ -44,10 +44,11 @@ division of a 2-D launch. Chunked kernels (the column sums) use ``chunk_dim``: o
 Loads before stores: each thread first loads all its elements (``vec(width)`` features, or
 ``ROW_BATCH`` rows in the chunked kernels) into a local vector and only then stores or scatters
 them. The CUDA compiler cannot move a load above a store to another array that might alias it,
-so a load-store-load-store sequence keeps one 2-4 byte load in flight per thread: with ~270K
-resident threads on an H200 and ~0.8 us latency that is ~1.3 TB/s (4 bytes) or ~0.7 TB/s (2
-bytes), the rates the earlier versions of these kernels measured. Loading first keeps
-``vec(width)`` loads in flight per thread.
+so a load-store-load-store sequence keeps one 2-4 byte load in flight per thread. Loading
+first keeps ``vec(width)`` loads in flight. Measured on an H200 (bench/results/
+gn_block_nvidia-h200_notes.md): a plain fp32 -> fp16 copy goes from 176 us with one element per
+thread to 93 us with four loaded first (49.5M elements); the GN forward and training step gained
+1-7%, less than that, since the concat kernels stay at ~1.7-2 TB/s for reasons not yet found.
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
@@ -263,9 +264,10 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     row, not the 64-bit stride arithmetic of a 2-D Warp array. Launch over ``rows * (out_width
     // concat_vec(out_width))`` threads: each thread owns ``concat_vec`` columns of one row,
     strided by ``out_width // concat_vec`` (coalesced), loads them all, then stores them.
-    Measured on an H200 at the paper core's second-block edge shape (73728 x 672, fp32 -> fp16;
-    bench/results/gn_block_nvidia-h200_notes.md): 146 us against 191 us for 2-D arrays with 4
-    columns per thread."""
+    Measured on an H200 at the paper core's second-block edge shape (73728 x 672, fp32 -> fp16,
+    random sorted gathers; bench/results/gn_block_nvidia-h200_notes.md): 146 us against 191 us
+    for 2-D arrays with 4 columns per thread; on the benchmark's cheetah graphs this kernel
+    gained nothing (~165 us either way) and the smaller concat kernels ~10%."""
     W0, W1, W2, W3 = widths
     G0, G1, G2, G3 = gathered
     T0, T1, T2, T3 = in_dtypes
