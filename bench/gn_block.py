@@ -17,6 +17,9 @@ Sections (``--sections``, all by default):
   errors     max error of every peer/precision against the float64 torch reference (batch 200)
   crossover  small MLPs (widths 16-64) at small batches: split vs tile, to set the "auto" rule
   efl        (only when asked) the captured split path with each edge first-layer mode forced
+  flat       (only when asked) the captured split path with and without ``--flat-params``
+  optim      (only when asked) the captured split path's training step with torch's Adam and with
+             gnwarp.optim.FlatAdam (``--optimizer`` picks the one of the other sections)
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
              and of one train step at batch 200 (kernel count: the nodes of a captured step)
 
@@ -53,6 +56,7 @@ except ImportError:  # pragma: no cover
 from gnwarp import GraphsTuple
 from gnwarp.gn import GNBlockConfig, GraphNetwork, matmul_precision
 from gnwarp.gn_warp import cuda_graph, graph_index, tile_feasible
+from gnwarp.optim import FlatAdam, flatten_parameters
 
 # -- graph shapes -------------------------------------------------------------------------------
 def _tree_edges(parent, joint_body):
@@ -234,6 +238,8 @@ class Runner:
         self.base = Core(self.sizes).to(self.device)   # one set of weights for every peer
         self.efl = args.edge_first_layer                # our peers' edge first-layer mode
         self.det = args.deterministic                   # our peers' aggregation: segment sums
+        self.opt = args.optimizer                       # our peers' optimizer: torch Adam or FlatAdam
+        self.flatp = args.flat_params                   # our peers' parameters in one flat buffer
 
     def model(self, **kw):
         m = copy.deepcopy(self.base)
@@ -244,6 +250,10 @@ class Runner:
             row["efl"] = self.efl
         if row.get("peer", "").startswith("warp") and self.det:
             row["det"] = True
+        if row.get("peer", "").startswith("warp") and row.get("mode") == "train" and self.opt == "flat":
+            row["opt"] = "flat"
+        if row.get("peer", "").startswith("warp") and self.flatp:
+            row["flatp"] = True
         row = dict(device=self.device_name, quick=self.args.quick, torch=torch.__version__,
                    warp=getattr(wp, "__version__", None), time=time.strftime("%Y-%m-%d %H:%M:%S"), **row)
         self.rows.append(row)
@@ -330,6 +340,8 @@ class Runner:
                     raise ValueError(f"tile path not feasible: {why}")
             # static topology: built once, as the torch peer's index inputs
             idx = graph_index(g, deterministic=self.det)
+            if self.flatp:  # parameters as views of one buffer: one cast launch per block in fp16 / bf16
+                flatten_parameters(params)
 
             def run():
                 return model(g, idx)
@@ -340,7 +352,10 @@ class Runner:
                     run()
         else:
             opt = None
-            if mode == "train":
+            flat = mode == "train" and self.opt == "flat" and peer.startswith("warp")
+            if flat:  # gnwarp.optim.FlatAdam: clipping and Adam over one flat buffer
+                opt = FlatAdam(params, 1e-4, max_grad_norm=1.0)
+            elif mode == "train":
                 opt = torch.optim.Adam(params, 1e-4, fused=dev.type == "cuda", capturable=captured)
 
             def step():
@@ -349,7 +364,8 @@ class Runner:
                 loss = ((run().float() - target) ** 2).mean()
                 loss.backward()
                 if opt is not None:
-                    torch.nn.utils.clip_grad_norm_(params, 1.0)
+                    if not flat:
+                        torch.nn.utils.clip_grad_norm_(params, 1.0)
                     opt.step()
                 elif not captured:
                     for p in params:
@@ -445,6 +461,38 @@ class Runner:
         finally:
             self.efl = old
 
+    def section_optim(self):
+        """Our captured training step with each optimizer: torch's fused Adam + clip_grad_norm_
+        against gnwarp.optim.FlatAdam (same clipping, same update), batch 200 and 4096."""
+        if self.device.type != "cuda":
+            self.record(peer="warp-split-graph", mode="train", error="CUDA graph capture needs a CUDA device")
+            return
+        old = self.opt
+        try:
+            for opt in ("torch", "flat"):
+                self.opt = opt
+                for B in self.args.batches:
+                    for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
+                        self.measure("warp-split-graph", prec, "cheetah", B, "train")
+        finally:
+            self.opt = old
+
+    def section_flat(self):
+        """Our captured split path with the parameters as they are and moved into one flat buffer
+        (``gnwarp.flatten_parameters``): forward at 4096, training step (torch Adam) at 200."""
+        if self.device.type != "cuda":
+            self.record(peer="warp-split-graph", mode="fwd", error="CUDA graph capture needs a CUDA device")
+            return
+        old = self.flatp
+        try:
+            for flatp in (False, True):
+                self.flatp = flatp
+                for B, mode in ((4096, "fwd"), (200, "train")):
+                    for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
+                        self.measure("warp-split-graph", prec, "cheetah", B, mode)
+        finally:
+            self.flatp = old
+
     def section_errors(self):
         dev = self.device
         g, _ = make_batch("cheetah", 200 if not self.args.quick else 16, dev, seed=1)
@@ -536,7 +584,7 @@ class Runner:
     def write_markdown(self):
         rows = [json.loads(line) for line in open(self.jsonl)] if self.jsonl.exists() else []
         # a re-run replaces earlier rows of the same measurement
-        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det")
+        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp")
         rows = list({tuple(r.get(k) for k in key): r for r in rows}.values())
         lines = [f"# GN block benchmark on {self.device_name}", "",
                  f"torch {torch.__version__}, warp {getattr(wp, '__version__', '?')}; paper two-block core "
@@ -559,7 +607,8 @@ class Runner:
                     continue
                 label = r["peer"] + (f" (w={r['width']})" if "width" in r else "") + \
                     (f" [edge first layer: {r['efl']}]" if r.get("efl") else "") + \
-                    (" [deterministic]" if r.get("det") else "")
+                    (" [deterministic]" if r.get("det") else "") + (" [FlatAdam]" if r.get("opt") == "flat" else "") + \
+                    (" [flat params]" if r.get("flatp") else "")
                 if r.get("error"):
                     lines.append(f"| {r.get('batch', '')} | {r['mode']} | {label} | {r.get('precision', '')} | failed: "
                                  f"{_md(r['error'][:120])} | | | |")
@@ -661,6 +710,10 @@ def main(argv=None):
                    help="our peers' GraphNetwork(edge_first_layer=...)")
     p.add_argument("--deterministic", action="store_true",
                    help="our peers aggregate with ordered segment sums (GraphNetwork(deterministic=True))")
+    p.add_argument("--optimizer", default="torch", choices=("torch", "flat"),
+                   help="our peers' training step: torch's fused Adam + clip_grad_norm_, or gnwarp.optim.FlatAdam")
+    p.add_argument("--flat-params", action="store_true",
+                   help="our peers' parameters moved into one buffer first (gnwarp.flatten_parameters)")
     p.add_argument("--verbose", action="store_true")
     a = p.parse_args(argv)
     if a.device is None:
@@ -688,7 +741,7 @@ def main(argv=None):
     for section in a.sections.split(","):
         print(f"\n== {section}", flush=True)
         t0 = time.time()
-        if section != "peak" and not r.peaks and section in ("main", "shapes", "capture", "efl"):
+        if section != "peak" and not r.peaks and section in ("main", "shapes", "capture", "efl", "optim", "flat"):
             r.section_peak()  # the % of peak column needs it
         getattr(r, f"section_{section}")()
         print(f"   ({time.time() - t0:.1f} s)", flush=True)

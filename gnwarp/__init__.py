@@ -29,7 +29,9 @@ _find_kernels()
 from gnwarp import data, systems  # noqa: E402  (systems -> data: the stages users call by name)
 from gnwarp.gn import GNBlockConfig, GraphNetwork  # noqa: E402
 from gnwarp.graphs import GraphsTuple  # noqa: E402
+from gnwarp.optim import FlatAdam, flatten_parameters  # noqa: E402
 from gnwarp.train import load_model  # noqa: E402
 
-__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "load_model", "systems", "data"]
+__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "FlatAdam", "flatten_parameters", "load_model", "systems",
+           "data"]
 

@@ -30,6 +30,7 @@ import warp as wp
 from gnwarp.gn import GNBlockConfig, column_slices, matmul_precision
 from gnwarp.graphs import GraphsTuple
 from gnwarp.kernels import gn_block as K
+from gnwarp.optim import accumulate_main_grads, has_main_grad
 
 __all__ = ["GraphIndex", "graph_index", "gn_block_forward", "choose_path", "tile_feasible", "warp_stream",
            "cuda_graph"]
@@ -229,11 +230,33 @@ def _views(buf, shapes, offsets):
 _PADS: dict[tuple, torch.Tensor] = {}
 
 
+def _flat_span(params):
+    """(first, end) storage offsets when the parameters are contiguous, non-overlapping views of
+    one storage in order, each starting ``_ALIGN``-aligned (``gnwarp.optim.FlatAdam``'s flat
+    buffer), else None."""
+    p0 = params[0]
+    ptr = p0.untyped_storage().data_ptr()
+    end = -1
+    for p in params:
+        o = p.storage_offset()
+        if (p.untyped_storage().data_ptr() != ptr or p.dtype != p0.dtype or not p.is_contiguous()
+                or o < end or o % _ALIGN):
+            return None
+        end = o + p.numel()
+    return params[0].storage_offset(), end
+
+
 def _cast_params(params, dtype):
     """The parameters in the compute dtype: themselves when they already are, else views of one
-    flat copy (one cat and one cast launch, not one cast per tensor), each starting aligned."""
+    flat copy, each starting aligned: one cast launch of their span when they are views of one
+    flat buffer in order (FlatAdam), else one cat and one cast (not one cast per tensor)."""
     if all(p.dtype == dtype for p in params):
         return list(params)
+    span = _flat_span(params)
+    if span is not None:
+        a, b = span
+        flat = torch.as_strided(params[0].detach(), (b - a,), (1,), a).to(dtype)
+        return [flat[p.storage_offset() - a:p.storage_offset() - a + p.numel()].view(p.shape) for p in params]
     pieces, offsets, o = [], [], 0
     for p in params:
         pad = -o % _ALIGN
@@ -404,8 +427,8 @@ def _relu_grad(launch, plan, act, g, gb):
     bias gradient), as atomics fused into the same pass, or a torch sum in deterministic mode."""
     rows, W = g.shape
     fused = gb is not None and not plan.deterministic
-    chunk = K.chunk_rows(rows, W)
-    launch.n(K.relu_grad_sum_kernel(W, fused, plan.wp_dtype), K.chunk_dim(rows, W, chunk),
+    chunk = K.relu_chunk_rows(rows, W)
+    launch.n(K.relu_grad_sum_kernel(W, fused, plan.wp_dtype), K.relu_grad_dim(rows, W, chunk),
              act, g, rows, chunk, g, gb if fused else launch.placeholder(plan.acc_dtype, 1))
     if gb is not None and not fused:
         torch.sum(g, 0, dtype=plan.acc_dtype, out=gb)
@@ -610,6 +633,9 @@ class _SplitBlock(torch.autograd.Function):
         ctx.in_dtypes = (None if v is None else v.dtype, None if e is None else e.dtype,
                          None if u is None else u.dtype)
         ctx.param_dtypes = [p.dtype for p in params]
+        # FlatAdam's parameters: the backward adds their gradients into ``main_grad`` (one launch
+        # for the weights, one for the biases) and returns None for them
+        ctx.main_params = params if has_main_grad(params) else None
         ctx.set_materialize_grads(False)
         outs = (v_ret, e_ret)
         if c.update_globals:
@@ -657,7 +683,7 @@ class _SplitBlock(torch.autograd.Function):
             scat_shapes = [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None]
         scat_shapes.append((B, _width(ncols, "globals")) if (need_u and "globals" in ncols) else None)
         gws_all, gw_buf, w_offs = _carve(w_shapes, cd, dev, zero=False)
-        views, _, _ = _carve(b_shapes + scat_shapes, ad, dev, zero=not det)
+        views, b_buf, b_offs = _carve(b_shapes + scat_shapes, ad, dev, zero=not det)
         gbs_all, (p_nodes, p_glob, gu_nodes) = views[:len(pc)], views[len(pc):]
         offsets = (0, plan.n_edge_params, plan.n_edge_params + plan.n_node_params, len(pc))
 
@@ -756,7 +782,12 @@ class _SplitBlock(torch.autograd.Function):
         in_dt = ctx.in_dtypes
         out = [None if g is None else g.to(dt) for g, dt in ((gv, in_dt[0]), (ge, in_dt[1]), (gu, in_dt[2]))]
         params_out = [None] * len(pc)
-        if need_w:
+        if need_w and ctx.main_params is not None:
+            mains = [p.main_grad for p in ctx.main_params]
+            got = [need[5 + k] and done[0 if k < offsets[1] else 1 if k < offsets[2] else 2] for k in range(len(pc))]
+            accumulate_main_grads(launch, gw_buf, [(w_offs[k], k) for k in range(0, len(pc), 2) if got[k]], mains)
+            accumulate_main_grads(launch, b_buf, [(b_offs[k], k) for k in range(1, len(pc), 2) if got[k]], mains)
+        elif need_w:
             pdt = ctx.param_dtypes[0]
             if gw_buf.dtype != pdt:  # reduced precision: one cast of all weight gradients
                 gws_all = _views(gw_buf.to(pdt), w_shapes, w_offs)

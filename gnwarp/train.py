@@ -41,6 +41,7 @@ import torch
 
 from gnwarp.convert import DYN_NODE_SIZE, FeatureLayout
 from gnwarp.models import ForwardModel, LayoutMismatchError, ModelConfig
+from gnwarp.optim import FlatAdam
 
 __all__ = ["TrainConfig", "train", "save_checkpoint", "load_model", "load_checkpoint", "CheckpointError",
            "merge_layouts", "SCHEDULES", "resolve_device"]
@@ -64,6 +65,9 @@ class TrainConfig:
     ``max_seconds``: stop after this much training time (None: ``steps`` only).
     ``patience``: stop after this many validations without improvement (None: never).
     ``device``: "auto" (CUDA when present), "cpu", "cuda", "cuda:1", ...
+    ``optimizer``: "adam" (torch.optim.Adam + clip_grad_norm_) or "flat_adam"
+    (``gnwarp.optim.FlatAdam``: the same update and clipping over one flat buffer in Warp
+    kernels; faster on the GPU, see README). A run resumes with the optimizer it was started with.
     """
     data: list[str] = field(default_factory=list)
     out: str = "runs/model"
@@ -89,6 +93,7 @@ class TrainConfig:
     dtype: str = "float32"
     resume: bool = True
     progress: bool = True
+    optimizer: str = "adam"
 
     def __post_init__(self):
         if isinstance(self.model, dict):
@@ -102,6 +107,8 @@ class TrainConfig:
                                  f"got {self.lr_decay_steps!r}")
         if self.batch_size < 1 or self.steps < 0:
             raise ValueError("batch_size must be >= 1 and steps >= 0")
+        if self.optimizer not in ("adam", "flat_adam"):
+            raise ValueError(f"optimizer must be 'adam' or 'flat_adam', got {self.optimizer!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
 
@@ -371,12 +378,21 @@ def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None)
     parts = [_TrainData(d, model, device, dtype) for d in datasets]
     valid = [d for d in datasets if len(d["valid"]) > 0]
 
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    flat = config.optimizer == "flat_adam"
+    if flat:  # clipping inside the step, gradients in p.main_grad
+        opt = FlatAdam(model.parameters(), lr=config.lr, max_grad_norm=config.grad_clip)
+    else:
+        opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     gen = torch.Generator(device=device)
     gen.manual_seed(config.seed)
     state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
     if training is not None:
-        opt.load_state_dict(training["optimizer"])
+        try:
+            opt.load_state_dict(training["optimizer"])
+        except (ValueError, KeyError) as exc:
+            raise CheckpointError(f"{out / 'last'}: its optimizer state does not fit optimizer="
+                                  f"{config.optimizer!r} ({exc}); resume with the optimizer the run started with, "
+                                  "or set resume=False") from exc
         state.update(training["state"])
         try:
             gen.set_state(training["generator"])
@@ -433,7 +449,8 @@ def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None)
                            rotation_scale=config.rotation_loss, generator=gen)
         opt.zero_grad(set_to_none=True)
         terms["loss"].backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        if not flat:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
         opt.step()
         for k, v in terms.items():  # summed on the device; read once per log line
             running[k] = running.get(k, 0.0) + v.detach()

@@ -1,0 +1,273 @@
+"""``FlatAdam``: Adam / AdamW with gradient-norm clipping over one flat parameter buffer, in
+Warp kernels (``kernels/optim.py``): 2-3 launches per step whatever the number of tensors.
+
+At construction the parameters are moved into one flat buffer (each ``p.data`` becomes a view
+of it, so modules keep working unchanged) and every parameter gets ``p.main_grad``, a view of
+one flat gradient buffer. The Warp backend of ``GraphNetwork`` adds its parameter gradients
+straight into ``main_grad`` (one launch per block instead of one tensor per parameter) and
+leaves ``p.grad`` as None; gradients that other code leaves in ``p.grad`` are added into
+``main_grad`` at ``step()``. Gradients accumulate until ``zero_grad()`` (one memset).
+
+    opt = FlatAdam(model.parameters(), lr=1e-4, max_grad_norm=1.0)
+    for batch in data:
+        opt.zero_grad()
+        loss(model, batch).backward()
+        opt.step()                       # clip by the global norm, then Adam
+        print(float(opt.grad_norm))      # the norm before clipping (a device scalar)
+
+Create the optimizer after the model is on its device and in its dtype (``model.to(...)`` would
+replace the views). ``torch.nn.utils.clip_grad_norm_`` does not see ``main_grad``: clip with
+``max_grad_norm``. The step count and learning rate live on the device, so a captured CUDA
+graph of a training step replays correct bias corrections; after changing ``lr`` (by hand or
+by an LR scheduler) outside ``step()``'s own check, i.e. with a captured graph, call
+``sync_lr()`` before the next replay.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import warp as wp
+
+from gnwarp.kernels import optim as K
+
+__all__ = ["FlatAdam", "flatten_parameters", "has_main_grad", "accumulate_main_grads"]
+
+_WP = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
+       torch.bfloat16: wp.bfloat16}
+_ALIGN = 64  # elements: each parameter's view starts 256-byte aligned (fp32), as cuBLAS likes
+
+
+def flatten_parameters(params) -> tuple[torch.Tensor, list[int]]:
+    """Move ``params`` (one dtype, one device) into one flat buffer: each ``p.data`` becomes a
+    view of it, starting 64-element aligned, zeros in the gaps. Returns (buffer, offsets).
+
+    Modules keep working unchanged. The Warp GN backend then casts a block's parameters for
+    fp16 / bf16 in one launch over their span instead of a cat and a cast (FlatAdam does this
+    itself; call it on a model used for inference or with another optimizer). Call it after
+    ``model.to(...)``, which would replace the views."""
+    ps = list(params)
+    if not ps:
+        raise ValueError("flatten_parameters got no parameters")
+    dt, dev = ps[0].dtype, ps[0].device
+    for k, p in enumerate(ps):
+        if p.dtype != dt or p.device != dev:
+            raise ValueError(f"parameter {k} is {p.dtype} on {p.device}, parameter 0 {dt} on {dev}: "
+                             "flatten_parameters needs one dtype and one device")
+    if len({id(p) for p in ps}) != len(ps):
+        raise ValueError("flatten_parameters got a parameter twice")
+    offsets, total = [], 0
+    for p in ps:
+        offsets.append(total)
+        total += -(-p.numel() // _ALIGN) * _ALIGN
+    with torch.no_grad():
+        flat = torch.zeros(total, dtype=dt, device=dev)
+        for p, o in zip(ps, offsets):
+            view = flat[o:o + p.numel()].view_as(p)
+            view.copy_(p)
+            p.data = view
+    return flat, offsets
+
+
+def _launcher(like: torch.Tensor):
+    from gnwarp.gn_warp import _Launcher  # noqa: PLC0415 (gn_warp imports this module lazily too)
+    return _Launcher(like)
+
+
+class FlatAdam(torch.optim.Optimizer):
+    """Adam (``decoupled_weight_decay=True``: AdamW) over one flat buffer, torch's update rule.
+
+    Args:
+        params: the parameters (one group; all of one float dtype, float32 or float64, on one
+            device; each ``requires_grad``).
+        lr, betas, eps, weight_decay: as ``torch.optim.Adam``.
+        max_grad_norm: clip the gradients by their global 2-norm first (as
+            ``torch.nn.utils.clip_grad_norm_(params, max_grad_norm)``); None: no clipping.
+        check_finite: after computing the norm, raise ``FloatingPointError`` (with the
+            parameters untouched) if any gradient is NaN or Inf. Costs one host sync per step,
+            so it cannot run inside a captured CUDA graph.
+    """
+
+    def __init__(self, params, lr: float = 1e-3, betas=(0.9, 0.999), eps: float = 1e-8, weight_decay: float = 0.0,
+                 decoupled_weight_decay: bool = False, max_grad_norm: float | None = None, check_finite: bool = False):
+        if not (isinstance(lr, float | int) and lr >= 0 and math.isfinite(lr)):
+            raise ValueError(f"lr must be a finite number >= 0, got {lr!r}")
+        if len(betas) != 2 or not all(0.0 <= b < 1.0 for b in betas):
+            raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
+        if not eps > 0:
+            raise ValueError(f"eps must be > 0, got {eps!r}")
+        if not weight_decay >= 0:
+            raise ValueError(f"weight_decay must be >= 0, got {weight_decay!r}")
+        if max_grad_norm is not None and not max_grad_norm > 0:
+            raise ValueError(f"max_grad_norm must be > 0 or None, got {max_grad_norm!r}")
+        super().__init__(params, dict(lr=float(lr), betas=tuple(float(b) for b in betas), eps=float(eps),
+                                      weight_decay=float(weight_decay)))
+        if len(self.param_groups) != 1:
+            raise ValueError("FlatAdam takes one parameter group")
+        self.decoupled = bool(decoupled_weight_decay)
+        self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
+        self.check_finite = bool(check_finite)
+        ps = self.param_groups[0]["params"]
+        dt, dev = ps[0].dtype, ps[0].device
+        for k, p in enumerate(ps):
+            if p.dtype not in (torch.float32, torch.float64):
+                raise TypeError(f"parameter {k} has dtype {p.dtype}; FlatAdam takes float32 or float64")
+            if p.dtype != dt or p.device != dev:
+                raise ValueError(f"parameter {k} is {p.dtype} on {p.device}, parameter 0 {dt} on {dev}: "
+                                 "FlatAdam needs one dtype and one device")
+            if not p.requires_grad:
+                raise ValueError(f"parameter {k} does not require grad")
+            if p.is_sparse:
+                raise TypeError(f"parameter {k} is sparse")
+        self.flat, self.offsets = flatten_parameters(ps)
+        total = self.numel = self.flat.numel()
+        with torch.no_grad():
+            self.grad_flat = torch.zeros(total, dtype=dt, device=dev)
+            self.exp_avg = torch.zeros(total, dtype=dt, device=dev)
+            self.exp_avg_sq = torch.zeros(total, dtype=dt, device=dev)
+            self.scalars = torch.zeros(K.SCALARS, dtype=dt, device=dev)
+            self.scalars[K.LR] = float(lr)
+            for p, o in zip(ps, self.offsets):
+                p.main_grad = self.grad_flat[o:o + p.numel()].view_as(p)
+        self._lr_on_device = float(lr)
+        self._wp_dtype = _WP[dt]
+
+    # -- gradients -----------------------------------------------------------------------------
+    @property
+    def grad_norm(self) -> torch.Tensor:
+        """The global gradient norm of the last step, before clipping (0-d device tensor; valid
+        when ``max_grad_norm`` or ``check_finite`` is set)."""
+        return self.scalars[K.NORM]
+
+    @property
+    def step_count(self) -> int:
+        return int(self.scalars[K.STEP].item())
+
+    def zero_grad(self, set_to_none: bool = True):
+        """Zero the flat gradient (one memset) and drop any ``p.grad``."""
+        self.grad_flat.zero_()
+        for p in self.param_groups[0]["params"]:
+            p.grad = None
+
+    def sync_lr(self):
+        """Copy the group's ``lr`` to the device scalar the update reads (``step()`` does this
+        itself when not capturing; call it before replaying a captured step after a change)."""
+        lr = float(self.param_groups[0]["lr"])
+        if lr != self._lr_on_device:
+            self.scalars[K.LR].fill_(lr)
+            self._lr_on_device = lr
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        loss = None
+        if closure is not None:
+            with torch.enable_grad():
+                loss = closure()
+        group = self.param_groups[0]
+        for p in group["params"]:  # gradients left by code other than the Warp GN backend
+            if p.grad is not None:
+                p.main_grad.add_(p.grad)
+                p.grad = None
+        capturing = self.flat.is_cuda and torch.cuda.is_current_stream_capturing()
+        if not capturing:
+            self.sync_lr()
+        launch = _launcher(self.flat)
+        T = self._wp_dtype
+        b1, b2 = group["betas"]
+        arr = launch.array
+        norm = self.max_grad_norm is not None or self.check_finite
+        if norm:
+            bd = K.BLOCK if self.flat.is_cuda else 1
+            blocks = max(1, min(1024, -(-self.numel // (bd * 8))))
+            wp.launch_tiled(K.sumsq_kernel(T), dim=[blocks],
+                            inputs=[arr(self.grad_flat), self.numel, bd, blocks * bd, arr(self.scalars)],
+                            block_dim=bd, device=launch.device, stream=launch.stream)
+        clip = self.max_grad_norm is not None
+        launch.n(K.finalize_kernel(T, clip), 1, self.scalars, b1, b2, self.max_grad_norm if clip else 0.0)
+        if self.check_finite and not capturing:
+            n = float(self.scalars[K.NORM].item())
+            if not math.isfinite(n):
+                self.scalars[K.STEP] -= 1  # the step did not happen
+                raise FloatingPointError(f"FlatAdam: gradient norm is {n}: a gradient holds NaN or Inf "
+                                         "(parameters left unchanged)")
+        wd = group["weight_decay"]
+        launch.n(K.adam_kernel(T, wd > 0, self.decoupled), self.numel, self.flat, self.grad_flat, self.exp_avg,
+                 self.exp_avg_sq, self.scalars, b1, b2, group["eps"], wd)
+        return loss
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def state_dict(self):
+        g = self.param_groups[0]
+        return {"format": "gnwarp.FlatAdam/1",
+                "sizes": [p.numel() for p in g["params"]],
+                "step": self.step_count,
+                "exp_avg": self.exp_avg.detach().cpu().clone(),
+                "exp_avg_sq": self.exp_avg_sq.detach().cpu().clone(),
+                "param_groups": [{k: v for k, v in g.items() if k != "params"}],
+                "decoupled_weight_decay": self.decoupled, "max_grad_norm": self.max_grad_norm}
+
+    def load_state_dict(self, state):
+        if not isinstance(state, dict) or state.get("format") != "gnwarp.FlatAdam/1":
+            raise ValueError("not a FlatAdam state dict (expected format 'gnwarp.FlatAdam/1'; a torch.optim.Adam "
+                             "state cannot be loaded into FlatAdam)")
+        sizes = [p.numel() for p in self.param_groups[0]["params"]]
+        if list(state["sizes"]) != sizes:
+            raise ValueError(f"FlatAdam state is for {len(state['sizes'])} parameters of sizes "
+                             f"{list(state['sizes'])[:6]}..., this optimizer has {len(sizes)} of sizes {sizes[:6]}...")
+        for name in ("exp_avg", "exp_avg_sq"):
+            t = state[name]
+            if not isinstance(t, torch.Tensor) or t.shape != (self.numel,):
+                raise ValueError(f"FlatAdam state {name!r}: expected a tensor of shape ({self.numel},)")
+            if not torch.isfinite(t).all():
+                raise ValueError(f"FlatAdam state {name!r} contains NaN or Inf")
+        with torch.no_grad():
+            self.exp_avg.copy_(state["exp_avg"])
+            self.exp_avg_sq.copy_(state["exp_avg_sq"])
+            self.scalars[K.STEP] = float(state["step"])
+        g = self.param_groups[0]
+        g.update({k: v for k, v in state["param_groups"][0].items() if k in ("lr", "betas", "eps", "weight_decay")})
+        self.decoupled = bool(state.get("decoupled_weight_decay", self.decoupled))
+        self.max_grad_norm = state.get("max_grad_norm", self.max_grad_norm)
+        self.sync_lr()
+
+
+# -- used by the Warp GN backend ------------------------------------------------------------------
+def has_main_grad(params) -> bool:
+    """Whether every parameter carries a ``main_grad`` of its own shape and dtype, all views of
+    one contiguous buffer (FlatAdam's), so a block's gradients can be added in one launch."""
+    base = None
+    for p in params:
+        mg = getattr(p, "main_grad", None)
+        if mg is None or mg.shape != p.shape or mg.dtype != p.dtype or not mg.is_contiguous() or mg._base is None:
+            return False
+        if base is None:
+            base = mg._base
+        elif mg._base is not base:
+            return False
+    return base is not None and base.is_contiguous()
+
+
+_TABLES: dict[tuple, tuple] = {}
+
+
+def accumulate_main_grads(launch, src: torch.Tensor, segments, mains):
+    """mains[k] += src[off_k : off_k + numel_k] (dtype cast) for (off_k, k) in ``segments``, in
+    one launch: ``src`` a flat gradient buffer, ``mains`` views of one flat buffer
+    (``has_main_grad``). The segment table is made once per layout and kept on the device (so
+    run a step before capturing a CUDA graph)."""
+    if not segments:
+        return
+    base = mains[segments[0][1]]._base
+    item = base.element_size()
+    rows, starts, t = [], [0], 0
+    for off, k in segments:
+        mg = mains[k]
+        rows.append((off, (mg.data_ptr() - base.data_ptr()) // item))
+        t += mg.numel()
+        starts.append(t)
+    key = (tuple(rows), tuple(starts), base.device)
+    tabs = _TABLES.get(key)
+    if tabs is None:
+        tabs = _TABLES[key] = (torch.tensor(rows, dtype=torch.int32, device=base.device),
+                               torch.tensor(starts, dtype=torch.int32, device=base.device))
+    launch.n(K.accumulate_kernel(_WP[src.dtype], _WP[base.dtype]), t, src, tabs[0], tabs[1], len(rows), base)

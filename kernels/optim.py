@@ -1,0 +1,131 @@
+"""Warp kernels of ``gnwarp.optim``: Adam over one flat parameter buffer, its gradient norm, and
+the accumulation of a GN block's parameter gradients into that buffer.
+
+Why flat: a training step of the paper's GN core at batch 200 has ~40 parameter tensors. Torch's
+fused Adam (``multi_tensor_apply``) splits them into chunks of 65536 elements, one thread block
+per chunk, so ~2M parameters occupy only a few dozen of the GPU's SMs; gradient clipping adds a
+``_foreach_norm`` and a ``_foreach_mul_``. Over one flat buffer the whole update is one
+element-wise kernel that fills the GPU, and the norm one tile reduction.
+
+Scalars live on the device (``SCALARS`` slots of one small array), so a captured CUDA graph of a
+training step replays correct bias corrections: ``finalize`` (one thread) advances the step count
+and computes the clipping coefficient between the norm and the update.
+"""
+# no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
+import functools
+
+import warp as wp
+
+__all__ = ["SUMSQ", "STEP", "LR", "COEF", "BC1", "BC2", "NORM", "SCALARS", "BLOCK", "sumsq_kernel",
+           "finalize_kernel", "adam_kernel", "accumulate_kernel"]
+
+# slots of the device scalars array (the norm's tile reduction adds into slot 0: keep SUMSQ first)
+SUMSQ, STEP, LR, COEF, BC1, BC2, NORM = range(7)
+SCALARS = 8
+BLOCK = 256  # threads per block of the tiled norm reduction (CUDA; Warp's CPU device runs 1)
+
+
+def _options():
+    return {"enable_backward": False}
+
+
+@functools.cache
+def sumsq_kernel(dtype):
+    """scalars[SUMSQ] += sum of g[i]**2 over i < n: each thread sums a grid-strided range, each
+    block reduces its threads' sums as a tile and adds the result with one atomic. Launch with
+    ``wp.launch_tiled(dim=[blocks], block_dim=bd)`` and ``stride = blocks * bd`` (``bd`` = 1 on
+    the CPU, where a tile block is one thread)."""
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def sumsq(g: wp.array(dtype=T), n: int, bd: int, stride: int, scalars: wp.array(dtype=T)):
+        b, lane = wp.tid()
+        i = b * bd + lane
+        acc = T(0.0)
+        while i < n:
+            x = g[i]
+            acc += x * x
+            i += stride
+        wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(acc)))  # into slot SUMSQ = 0
+
+    return sumsq
+
+
+@functools.cache
+def finalize_kernel(dtype, clip: bool):
+    """One thread, between the norm and the update: step += 1; the bias corrections of that step;
+    the clipping coefficient min(1, max_norm / (norm + 1e-6)) (as torch's ``clip_grad_norm_``);
+    the norm kept in scalars[NORM] and the accumulator zeroed for the next step."""
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def finalize(scalars: wp.array(dtype=T), beta1: T, beta2: T, max_norm: T):
+        step = scalars[STEP] + T(1.0)
+        scalars[STEP] = step
+        scalars[BC1] = T(1.0) - wp.pow(beta1, step)
+        scalars[BC2] = T(1.0) - wp.pow(beta2, step)
+        norm = wp.sqrt(scalars[SUMSQ])
+        scalars[NORM] = norm
+        scalars[SUMSQ] = T(0.0)
+        coef = T(1.0)
+        if wp.static(clip):
+            coef = wp.min(T(1.0), max_norm / (norm + T(1.0e-6)))
+        scalars[COEF] = coef
+
+    return finalize
+
+
+@functools.cache
+def adam_kernel(dtype, weight_decay: bool, decoupled: bool):
+    """One Adam (``decoupled``: AdamW) step of element i, in torch's formulation:
+    g = coef * grad (+ wd * p for Adam's L2 decay); m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2;
+    p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps) (AdamW first scales p by 1 - lr * wd).
+    Every load is issued before the first store."""
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def adam(p: wp.array(dtype=T), g: wp.array(dtype=T), m: wp.array(dtype=T), v: wp.array(dtype=T),
+             scalars: wp.array(dtype=T), beta1: T, beta2: T, eps: T, wd: T):
+        i = wp.tid()
+        pi = p[i]
+        gi = g[i]
+        mi = m[i]
+        vi = v[i]
+        lr = scalars[LR]
+        gi = gi * scalars[COEF]
+        if wp.static(weight_decay and not decoupled):
+            gi = gi + wd * pi
+        if wp.static(weight_decay and decoupled):
+            pi = pi * (T(1.0) - lr * wd)
+        mi = beta1 * mi + (T(1.0) - beta1) * gi
+        vi = beta2 * vi + (T(1.0) - beta2) * gi * gi
+        denom = wp.sqrt(vi) / wp.sqrt(scalars[BC2]) + eps
+        p[i] = pi - (lr / scalars[BC1]) * mi / denom
+        m[i] = mi
+        v[i] = vi
+
+    return adam
+
+
+@functools.cache
+def accumulate_kernel(src_dtype, dst_dtype):
+    """dst[dst_off_k + j] += src[src_off_k + j] for j < n_k of each segment k of ``table`` [S, 2]
+    (src_off, dst_off), segment k covering threads [starts[k], starts[k + 1]): a GN block's weight
+    (or bias) gradients, packed in its own buffer, added into the optimizer's flat gradient with
+    the dtype cast, in one launch. One thread per element; segments found by a linear scan."""
+    S = src_dtype
+    D = dst_dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def accumulate(src: wp.array(dtype=S), table: wp.array2d(dtype=wp.int32), starts: wp.array(dtype=wp.int32),
+                   n_seg: int, dst: wp.array(dtype=D)):
+        t = wp.tid()
+        k = int(0)
+        while k + 1 < n_seg and t >= starts[k + 1]:
+            k += 1
+        j = t - starts[k]
+        x = D(src[table[k, 0] + j])
+        d = table[k, 1] + j
+        dst[d] = dst[d] + x
+
+    return accumulate
