@@ -445,53 +445,36 @@ class Runner:
                 for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
                     self.measure("warp-split-graph", prec, "cheetah", B, mode)
 
-    def section_efl(self):
-        """Our captured split path with the edge first layer forced to each mode (the
-        ``edge_first_layer`` rule): forward at batch 4096, training steps at 200 and 4096."""
+    def _ablation(self, attr, values, cases):
+        """Our captured split path at each (batch, mode) of ``cases`` and each precision, with the
+        Runner setting ``attr`` (one of our peers' options) set to each of ``values`` in turn."""
         if self.device.type != "cuda":
-            self.record(peer="warp-split-graph", mode="train", error="CUDA graph capture needs a CUDA device")
+            self.record(peer="warp-split-graph", mode=cases[0][1], error="CUDA graph capture needs a CUDA device")
             return
-        old = self.efl
+        old = getattr(self, attr)
         try:
-            for efl in ("split", "concat"):
-                self.efl = efl
-                for B, mode in ((4096, "fwd"), (200, "train"), (4096, "train")):
+            for value in values:
+                setattr(self, attr, value)
+                for B, mode in cases:
                     for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
                         self.measure("warp-split-graph", prec, "cheetah", B, mode)
         finally:
-            self.efl = old
+            setattr(self, attr, old)
+
+    def section_efl(self):
+        """The edge first layer forced to each mode (the ``edge_first_layer`` rule): forward at
+        batch 4096, training steps at 200 and 4096."""
+        self._ablation("efl", ("split", "concat"), ((4096, "fwd"), (200, "train"), (4096, "train")))
 
     def section_optim(self):
-        """Our captured training step with each optimizer: torch's fused Adam + clip_grad_norm_
-        against gnwarp.optim.FlatAdam (same clipping, same update), batch 200 and 4096."""
-        if self.device.type != "cuda":
-            self.record(peer="warp-split-graph", mode="train", error="CUDA graph capture needs a CUDA device")
-            return
-        old = self.opt
-        try:
-            for opt in ("torch", "flat"):
-                self.opt = opt
-                for B in self.args.batches:
-                    for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
-                        self.measure("warp-split-graph", prec, "cheetah", B, "train")
-        finally:
-            self.opt = old
+        """The training step with torch's fused Adam + clip_grad_norm_ and with
+        gnwarp.optim.FlatAdam (same clipping, same update), at each of ``--batches``."""
+        self._ablation("opt", ("torch", "flat"), tuple((B, "train") for B in self.args.batches))
 
     def section_flat(self):
-        """Our captured split path with the parameters as they are and moved into one flat buffer
+        """The parameters as they are and moved into one flat buffer
         (``gnwarp.flatten_parameters``): forward at 4096, training step (torch Adam) at 200."""
-        if self.device.type != "cuda":
-            self.record(peer="warp-split-graph", mode="fwd", error="CUDA graph capture needs a CUDA device")
-            return
-        old = self.flatp
-        try:
-            for flatp in (False, True):
-                self.flatp = flatp
-                for B, mode in ((4096, "fwd"), (200, "train")):
-                    for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
-                        self.measure("warp-split-graph", prec, "cheetah", B, mode)
-        finally:
-            self.flatp = old
+        self._ablation("flatp", (False, True), ((4096, "fwd"), (200, "train")))
 
     def section_errors(self):
         dev = self.device

@@ -25,9 +25,9 @@ import warp as wp
 
 from gnwarp.gn_warp import _Launcher
 from gnwarp.kernels import gn_block as K
+from gnwarp.optim import WP_DTYPE
 
 wp.config.quiet = True
-_WP = {torch.float16: wp.float16, torch.bfloat16: wp.bfloat16, torch.float32: wp.float32}
 
 
 def v8_kernel(width: int, dtype, conditional: bool):
@@ -102,7 +102,7 @@ def main():
             g0 = torch.randn(rows, W, device=dev).to(dt)
             g = g0.clone()
             gb = torch.zeros(W, device=dev)
-            T = _WP[dt]
+            T = WP_DTYPE[dt]
             res = {}
 
             def ours(chunk=None, kern=None):

@@ -30,13 +30,13 @@ import warp as wp
 from gnwarp.gn import GNBlockConfig, column_slices, matmul_precision
 from gnwarp.graphs import GraphsTuple
 from gnwarp.kernels import gn_block as K
+from gnwarp.optim import ALIGN as _ALIGN
+from gnwarp.optim import WP_DTYPE as _WP_DTYPE
 from gnwarp.optim import accumulate_main_grads, has_main_grad
 
 __all__ = ["GraphIndex", "graph_index", "gn_block_forward", "choose_path", "tile_feasible", "warp_stream",
            "cuda_graph"]
 
-_WP_DTYPE = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
-             torch.bfloat16: wp.bfloat16}
 
 
 # -- graph index arrays -------------------------------------------------------------------------
@@ -208,7 +208,6 @@ def _split_mlp_params(plan: _Plan, params):
     return params[:a], params[a:b], params[b:]
 
 
-_ALIGN = 64  # elements: views carved from one buffer start 256-byte aligned (fp32), for cuBLAS
 
 
 def _carve(shapes, dtype, device, zero: bool):

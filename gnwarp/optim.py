@@ -33,9 +33,11 @@ from gnwarp.kernels import optim as K
 
 __all__ = ["FlatAdam", "flatten_parameters", "has_main_grad", "accumulate_main_grads"]
 
-_WP = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
-       torch.bfloat16: wp.bfloat16}
-_ALIGN = 64  # elements: each parameter's view starts 256-byte aligned (fp32), as cuBLAS likes
+# Shared with the Warp GN backend (gnwarp.gn_warp imports them from here: this module imports it
+# only lazily, so there is no import cycle).
+WP_DTYPE = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
+            torch.bfloat16: wp.bfloat16}
+ALIGN = 64  # elements: views carved from one buffer start 256-byte aligned (fp32), as cuBLAS likes
 
 
 def flatten_parameters(params) -> tuple[torch.Tensor, list[int]]:
@@ -59,7 +61,7 @@ def flatten_parameters(params) -> tuple[torch.Tensor, list[int]]:
     offsets, total = [], 0
     for p in ps:
         offsets.append(total)
-        total += -(-p.numel() // _ALIGN) * _ALIGN
+        total += -(-p.numel() // ALIGN) * ALIGN
     with torch.no_grad():
         flat = torch.zeros(total, dtype=dt, device=dev)
         for p, o in zip(ps, offsets):
@@ -130,7 +132,7 @@ class FlatAdam(torch.optim.Optimizer):
             for p, o in zip(ps, self.offsets):
                 p.main_grad = self.grad_flat[o:o + p.numel()].view_as(p)
         self._lr_on_device = float(lr)
-        self._wp_dtype = _WP[dt]
+        self._wp_dtype = WP_DTYPE[dt]
 
     # -- gradients -----------------------------------------------------------------------------
     @property
@@ -270,4 +272,4 @@ def accumulate_main_grads(launch, src: torch.Tensor, segments, mains):
     if tabs is None:
         tabs = _TABLES[key] = (torch.tensor(rows, dtype=torch.int32, device=base.device),
                                torch.tensor(starts, dtype=torch.int32, device=base.device))
-    launch.n(K.accumulate_kernel(_WP[src.dtype], _WP[base.dtype]), t, src, tabs[0], tabs[1], len(rows), base)
+    launch.n(K.accumulate_kernel(WP_DTYPE[src.dtype], WP_DTYPE[base.dtype]), t, src, tabs[0], tabs[1], len(rows), base)
