@@ -20,6 +20,8 @@ Sections (``--sections``, all by default):
   flat       (only when asked) the captured split path with and without ``--flat-params``
   optim      (only when asked) the captured split path's training step with torch's Adam and with
              gnwarp.optim.FlatAdam (``--optimizer`` picks the one of the other sections)
+  side       (only when asked) the captured split path's training step with the backward's
+             weight-gradient GEMMs on the current stream and on a side stream
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
              and of one train step at batch 200 (kernel count: the nodes of a captured step)
 
@@ -53,7 +55,7 @@ try:
 except ImportError:  # pragma: no cover
     wp = None
 
-from gnwarp import GraphsTuple
+from gnwarp import GraphsTuple, gn_warp
 from gnwarp.gn import GNBlockConfig, GraphNetwork, matmul_precision
 from gnwarp.gn_warp import cuda_graph, graph_index, tile_feasible
 from gnwarp.optim import FlatAdam, flatten_parameters
@@ -240,6 +242,15 @@ class Runner:
         self.det = args.deterministic                   # our peers' aggregation: segment sums
         self.opt = args.optimizer                       # our peers' optimizer: torch Adam or FlatAdam
         self.flatp = args.flat_params                   # our peers' parameters in one flat buffer
+        self.side = not args.no_side_stream             # our backward's weight-gradient GEMMs on a side stream
+
+    @property
+    def side(self) -> bool:
+        return gn_warp.SIDE_STREAM
+
+    @side.setter
+    def side(self, on: bool):
+        gn_warp.SIDE_STREAM = on
 
     def model(self, **kw):
         m = copy.deepcopy(self.base)
@@ -254,6 +265,8 @@ class Runner:
             row["opt"] = "flat"
         if row.get("peer", "").startswith("warp") and self.flatp:
             row["flatp"] = True
+        if row.get("peer", "").startswith("warp") and row.get("mode") in ("train", "fwdbwd") and not self.side:
+            row["side"] = False
         row = dict(device=self.device_name, quick=self.args.quick, torch=torch.__version__,
                    warp=getattr(wp, "__version__", None), time=time.strftime("%Y-%m-%d %H:%M:%S"), **row)
         self.rows.append(row)
@@ -476,6 +489,11 @@ class Runner:
         (``gnwarp.flatten_parameters``): forward at 4096, training step (torch Adam) at 200."""
         self._ablation("flatp", (False, True), ((4096, "fwd"), (200, "train")))
 
+    def section_side(self):
+        """The backward's weight-gradient GEMMs on the current stream and on a side stream
+        (``gnwarp.gn_warp.SIDE_STREAM``): training steps at each of ``--batches``."""
+        self._ablation("side", (False, True), tuple((B, "train") for B in self.args.batches))
+
     def section_errors(self):
         dev = self.device
         g, _ = make_batch("cheetah", 200 if not self.args.quick else 16, dev, seed=1)
@@ -567,10 +585,13 @@ class Runner:
     def write_markdown(self):
         rows = [json.loads(line) for line in open(self.jsonl)] if self.jsonl.exists() else []
         # a re-run replaces earlier rows of the same measurement
-        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp")
+        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp", "side")
         rows = list({tuple(r.get(k) for k in key): r for r in rows}.values())
+        # the versions the rows were measured with (a rewrite elsewhere must not name its own)
+        versions = ", ".join(f"{k} {'/'.join(sorted({str(r.get(k)) for r in rows if r.get(k)}))}"
+                             for k in ("torch", "warp")) if rows else f"torch {torch.__version__}"
         lines = [f"# GN block benchmark on {self.device_name}", "",
-                 f"torch {torch.__version__}, warp {getattr(wp, '__version__', '?')}; paper two-block core "
+                 f"{versions}; paper two-block core "
                  f"({'QUICK tiny sizes' if self.args.quick else 'edge MLP 3x512, node/global 2x256, latent 128'}). "
                  "TFLOP/s from the reference FLOP count (concatenated first layers; training step = 3x forward; "
                  "our split path executes ~12% fewer FLOPs); % peak against the measured torch.mm peak of the "
@@ -591,7 +612,8 @@ class Runner:
                 label = r["peer"] + (f" (w={r['width']})" if "width" in r else "") + \
                     (f" [edge first layer: {r['efl']}]" if r.get("efl") else "") + \
                     (" [deterministic]" if r.get("det") else "") + (" [FlatAdam]" if r.get("opt") == "flat" else "") + \
-                    (" [flat params]" if r.get("flatp") else "")
+                    (" [flat params]" if r.get("flatp") else "") + \
+                    (" [no side stream]" if r.get("side") is False else "")
                 if r.get("error"):
                     lines.append(f"| {r.get('batch', '')} | {r['mode']} | {label} | {r.get('precision', '')} | failed: "
                                  f"{_md(r['error'][:120])} | | | |")
@@ -697,6 +719,8 @@ def main(argv=None):
                    help="our peers' training step: torch's fused Adam + clip_grad_norm_, or gnwarp.optim.FlatAdam")
     p.add_argument("--flat-params", action="store_true",
                    help="our peers' parameters moved into one buffer first (gnwarp.flatten_parameters)")
+    p.add_argument("--no-side-stream", action="store_true",
+                   help="our backward runs its weight-gradient GEMMs on the current stream (gnwarp.gn_warp.SIDE_STREAM)")
     p.add_argument("--verbose", action="store_true")
     a = p.parse_args(argv)
     if a.device is None:
@@ -724,7 +748,8 @@ def main(argv=None):
     for section in a.sections.split(","):
         print(f"\n== {section}", flush=True)
         t0 = time.time()
-        if section != "peak" and not r.peaks and section in ("main", "shapes", "capture", "efl", "optim", "flat"):
+        if section != "peak" and not r.peaks and section in ("main", "shapes", "capture", "efl", "optim", "flat",
+                                                               "side"):
             r.section_peak()  # the % of peak column needs it
         getattr(r, f"section_{section}")()
         print(f"   ({time.time() - t0:.1f} s)", flush=True)

@@ -48,8 +48,8 @@ def main():
         out = torch.empty(E, KO, device=dev, dtype=out_dtype)
         vv = v if gathered else torch.randn(E, 159, device=dev)
         uu = u if gathered else torch.randn(E, 160, device=dev)
-        args = [arr(e), arr(vv), arr(vv), arr(uu), arr(s), arr(s), arr(r), arr(g), arr(out)]
-        return lambda: wp.launch(kern, dim=K.launch_dim(E, KO), inputs=args, device=wd, stream=stream,
+        args = [arr(e), arr(vv), arr(vv), arr(uu), arr(s), arr(s), arr(r), arr(g), E, arr(out)]
+        return lambda: wp.launch(kern, dim=K.concat_threads(E, (192, 159, 159, 160), KO), inputs=args, device=wd, stream=stream,
                                  block_dim=block_dim)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})

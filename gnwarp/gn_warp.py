@@ -181,6 +181,59 @@ class _Launcher:
         wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device, stream=self.stream)
 
 
+# Whether the backward runs its weight-gradient GEMMs on a side stream (``_Side``); read when a
+# backward runs (a captured graph keeps the choice it was captured with). Measured on an H200
+# (bench/gn_block.py --sections side; bench/results/gn_block_nvidia-h200_notes.md).
+SIDE_STREAM = True
+_SIDE_STREAMS: dict[int, torch.cuda.Stream] = {}
+
+
+class _Side:
+    """The backward's weight-gradient GEMMs on a second CUDA stream, off the critical path (the
+    chain of input-gradient GEMMs, ReLU masks and scatters that each layer waits on): at batch
+    200 each GEMM fills a fraction of the GPU, so the two chains overlap. ``with side(*reads):``
+    enqueues the body on the side stream after everything the current stream has enqueued;
+    ``reads`` (the tensors the body reads) stay referenced until ``join``, so the caching
+    allocator cannot hand their memory to later current-stream work while the side stream may
+    still read it. ``after(fn)`` runs ``fn`` on the current stream at ``join``, which makes the
+    current stream wait for the side stream (also inside a CUDA graph capture: a fork and a join).
+    Off CUDA (or with ``SIDE_STREAM`` off) the bodies run in place."""
+
+    def __init__(self, like: torch.Tensor):
+        self.cuda = like.device.type == "cuda" and SIDE_STREAM
+        self.forked = False
+        self.keep, self.pending = [], []
+        if self.cuda:
+            self.main = torch.cuda.current_stream(like.device)
+            key = self.main.cuda_stream
+            if key not in _SIDE_STREAMS:
+                _SIDE_STREAMS[key] = torch.cuda.Stream(like.device)
+            self.stream = _SIDE_STREAMS[key]
+
+    @contextlib.contextmanager
+    def __call__(self, *reads):
+        if not self.cuda:
+            yield
+            return
+        self.stream.wait_stream(self.main)
+        self.keep.extend(reads)
+        self.forked = True
+        with torch.cuda.stream(self.stream):
+            yield
+
+    def after(self, fn):
+        self.pending.append(fn)
+
+    def join(self):
+        if self.forked:
+            self.main.wait_stream(self.stream)
+            self.forked = False
+        self.keep.clear()
+        for fn in self.pending:
+            fn()
+        self.pending.clear()
+
+
 # -- the split path -----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class _Plan:
@@ -382,13 +435,14 @@ class _FirstLayer:
         buf = torch.empty(max(self.total, 1), dtype=gw0.dtype, device=gw0.device)
         return self._views(buf), buf
 
-    def backward_concat(self, launch, plan, g0, x, gw0):
+    def backward_concat(self, launch, plan, side, g0, x, gw0):
         """Backward of the concatenated first layer y = x @ W.T: writes dL/dW into ``gw0`` (when
-        given) and returns dL/dx."""
+        given; its GEMM on ``side``, the unpack at the join) and returns dL/dx."""
         if gw0 is not None:
             blocks, buf = self.grad_blocks(gw0)
-            torch.mm(g0.t(), x, out=blocks["all"])
-            self.unpack(launch, plan, buf, gw0)
+            with side(g0, x):
+                torch.mm(g0.t(), x, out=blocks["all"])
+            side.after(lambda: self.unpack(launch, plan, buf, gw0))
         return torch.mm(g0, self.w["all"])
 
     def unpack(self, launch, plan, buf, gw0):
@@ -433,10 +487,11 @@ def _relu_grad(launch, plan, act, g, gb):
         torch.sum(g, 0, dtype=plan.acc_dtype, out=gb)
 
 
-def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool):
+def _mlp_backward(launch, plan, side, g, hs, ws, gws, gbs, need_w: bool, summed: bool):
     """Backward through layers L..1 of an MLP from ``g``, the gradient of its output.
 
-    Writes the weight gradients of layers 1..L into ``gws`` and the bias gradients of layers
+    Writes the weight gradients of layers 1..L into ``gws`` (GEMMs on ``side``, off the critical
+    path) and the bias gradients of layers
     0..L into ``gbs`` (``summed``: the kernel that made ``g`` already added the output bias's
     gradient into gbs[-1]). Returns the gradient at the first layer's pre-activation."""
     if need_w and not summed:
@@ -444,7 +499,8 @@ def _mlp_backward(launch, plan, g, hs, ws, gws, gbs, need_w: bool, summed: bool)
     for l in range(len(ws) - 1, 0, -1):
         x = hs[l - 1]
         if need_w:
-            torch.mm(g.t(), x, out=gws[l])
+            with side(g, x):
+                torch.mm(g.t(), x, out=gws[l])
         gh = torch.mm(g, ws[l])
         _relu_grad(launch, plan, x, gh, gbs[l - 1] if need_w else None)
         g = gh
@@ -471,10 +527,11 @@ def _concat(launch, plan, rows, layout, pieces):
     flat = [t.contiguous().view(-1) for t, _, _ in items]
     items += [(launch.placeholder(cd, 1), None, 0)] * (4 - len(items))
     flat += [t for t, _, _ in items[len(flat):]]
-    kernel = K.concat_kernel(tuple(w for _, _, w in items), tuple(i is not None for _, i, _ in items),
+    widths = tuple(w for _, _, w in items)
+    kernel = K.concat_kernel(widths, tuple(i is not None for _, i, _ in items),
                              tuple(_WP_DTYPE[t.dtype] for t, _, _ in items), plan.wp_dtype, width)
-    launch.n(kernel, rows * (width // K.concat_vec(width)), *flat,
-             *(i if i is not None else launch.placeholder(torch.int32, 1) for _, i, _ in items), out.view(-1))
+    launch.n(kernel, K.concat_threads(rows, widths, width), *flat,
+             *(i if i is not None else launch.placeholder(torch.int32, 1) for _, i, _ in items), rows, out.view(-1))
     return out
 
 
@@ -651,6 +708,7 @@ class _SplitBlock(torch.autograd.Function):
         like = pc[0]
         dev = like.device
         launch = _Launcher(like)
+        side = _Side(like)
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
         need = ctx.needs_input_grad[1:]  # drop ``keep``: indices as in (plan, gi, v, e, u, *params)
         need_v, need_e, need_u = need[2], need[3], need[4]
@@ -699,9 +757,9 @@ class _SplitBlock(torch.autograd.Function):
             if c.update_globals and gu_out is not None:
                 wg = pg[0::2]
                 gws, gbs = mlp_grads(2)
-                g0 = _mlp_backward(launch, plan, gu_out, s["hs_g"], wg, gws, gbs, need_w, False)
+                g0 = _mlp_backward(launch, plan, side, gu_out, s["hs_g"], wg, gws, gbs, need_w, False)
                 fl = s["fl_g"]
-                g_x = fl.backward_concat(launch, plan, g0, s["x_g"], gws[0] if need_w else None)
+                g_x = fl.backward_concat(launch, plan, side, g0, s["x_g"], gws[0] if need_w else None)
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
@@ -716,9 +774,9 @@ class _SplitBlock(torch.autograd.Function):
                                          gbs[-1] if need_w else None)
             if gv_tot is not None:
                 wn = pn[0::2]
-                g0 = _mlp_backward(launch, plan, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed)
+                g0 = _mlp_backward(launch, plan, side, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed)
                 fl = s["fl_n"]
-                g_x = fl.backward_concat(launch, plan, g0, s["x_n"], gws[0] if need_w else None)
+                g_x = fl.backward_concat(launch, plan, side, g0, s["x_n"], gws[0] if need_w else None)
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
                 if need_v and "nodes" in ncols:
                     gv = g_x[:, ncols["nodes"]]
@@ -733,13 +791,13 @@ class _SplitBlock(torch.autograd.Function):
                                          (g_sum_e, gi.edge_graph), gbs[-1] if need_w else None)
             if ge_tot is not None:
                 we = pe[0::2]
-                g0 = _mlp_backward(launch, plan, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed)
+                g0 = _mlp_backward(launch, plan, side, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed)
                 fl = s["fl_e"]
                 blocks, buf = fl.grad_blocks(gws[0]) if need_w else (None, None)
                 if edge_concat:
                     if need_w:
-                        torch.mm(g0.t(), s["x_e"], out=blocks["all"])
-                        fl.unpack(launch, plan, buf, gws[0])
+                        with side(g0, s["x_e"]):
+                            torch.mm(g0.t(), s["x_e"], out=blocks["all"])
                     if need_e or need_v or need_u:
                         g_x = torch.mm(g0, fl.w["all"])
                         if need_e and "edges" in ecols:
@@ -752,7 +810,8 @@ class _SplitBlock(torch.autograd.Function):
                     done[0] = True
                 elif "edges" in ecols:
                     if need_w:
-                        torch.mm(g0.t(), s["e"], out=blocks["edges"])
+                        with side(g0, s["e"]):
+                            torch.mm(g0.t(), s["e"], out=blocks["edges"])
                     if need_e:
                         ge = torch.mm(g0, fl.w["edges"])[:, :_width(ecols, "edges")]
                 want_nodes = node_pieces and (need_w or need_v)
@@ -764,20 +823,23 @@ class _SplitBlock(torch.autograd.Function):
                 if not edge_concat and want_nodes:
                     pn_c = p_nodes.to(cd)
                     if need_w:
-                        for k in range(len(node_pieces)):
-                            torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
+                        with side(pn_c, s["v"]):
+                            for k in range(len(node_pieces)):
+                                torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
                     if need_v:
                         gv = add(gv, torch.mm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
                 if not edge_concat and want_glob:
                     pg_c = p_glob.to(cd)
                     if need_w:
-                        torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
+                        with side(pg_c, s["u"]):
+                            torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
                     if need_u:
                         gu = add(gu, torch.mm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
-                if not edge_concat and need_w:
-                    fl.unpack(launch, plan, buf, gws[0])
+                if need_w:
+                    side.after(lambda fl=fl, buf=buf, gw0=gws[0]: fl.unpack(launch, plan, buf, gw0))
                 done[0] = True
 
+        side.join()  # the weight gradients are complete from here on
         in_dt = ctx.in_dtypes
         out = [None if g is None else g.to(dt) for g, dt in ((gv, in_dt[0]), (ge, in_dt[1]), (gu, in_dt[2]))]
         params_out = [None] * len(pc)

@@ -9,9 +9,11 @@ depends on the graph:
   ``u @ W_u^T`` are GEMMs over nodes / graphs (done once per node / graph, not once per edge);
   this kernel gathers them per edge, adds the edge's own projection and the bias, and applies
   ReLU, in one pass.
-- ``concat``: the input rows of the node and global updates ([v, sum of received edges,
-  u[graph]] and [u, sum v', sum e']) side by side in the compute dtype: their first layer is
-  then one GEMM.
+- ``concat``: the input rows of an update's first layer side by side in the compute dtype,
+  gathered where a piece is read by index (the edge update's [e, v[sender], v[receiver],
+  u[graph]], the node update's [v, sum of received edges, u[graph]], the global update's
+  [u, sum v', sum e']): the first layer is then one GEMM. Its launch is laid out by piece
+  (``concat_threads``), not by ``launch_dim``.
 - ``scatter_out``: the output epilogue of the edge and node updates: the returned copy in the
   output dtype and the atomic scatter-sums (edges -> receivers, edges -> graphs, nodes -> graphs)
   in one pass.
@@ -49,7 +51,8 @@ so a load-store-load-store sequence keeps one 2-4 byte load in flight per thread
 first keeps ``vec(width)`` loads in flight. Measured on an H200 (bench/results/
 gn_block_nvidia-h200_notes.md): a plain fp32 -> fp16 copy goes from 176 us with one element per
 thread to 93 us with four loaded first (49.5M elements); the GN forward and training step gained
-1-7%, less than that, since the concat kernels stay at ~1.7-2 TB/s for reasons not yet found.
+1-7%. (The concat kernel's own bottleneck turned out to be branching, not memory: see
+``concat_kernel``.)
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
@@ -63,7 +66,11 @@ __all__ = [
     "chunk_rows",
     "chunk_dim",
     "first_layer_kernel",
-    "concat_vec",
+    "CONCAT_VEC",
+    "concat_spans",
+    "concat_piece_threads",
+    "concat_rows_per_block",
+    "concat_threads",
     "concat_kernel",
     "scatter_out_kernel",
     "segment_sum_kernel",
@@ -246,13 +253,77 @@ def chunk_dim(rows: int, width: int, chunk: int) -> int:
     return ((rows + chunk - 1) // chunk) * width if rows > 0 else 0
 
 
-def concat_vec(out_width: int) -> int:
-    """Output columns per thread of ``concat_kernel``: 8 (the padded widths are multiples of 8)."""
-    return 8 if out_width % 8 == 0 else vec(out_width)
+CONCAT_VEC = 8
+
+
+def concat_spans(widths: tuple, out_width: int) -> tuple:
+    """Output columns each piece of ``concat_kernel`` writes: its width, the last present piece's
+    also the zero padding up to ``out_width``."""
+    last = max(k for k, w in enumerate(widths) if w > 0)
+    return tuple(w + (out_width - sum(widths) if k == last else 0) for k, w in enumerate(widths))
+
+
+def concat_piece_threads(span: int, max_vec: int = CONCAT_VEC) -> tuple:
+    """(threads per row, columns per thread) of one piece of ``concat_kernel``: as few threads
+    as cover ``span`` columns at ``max_vec`` each, but at least 8 (so a row's threads read at
+    least 32 bytes of fp32 per load: a whole memory sector), rounded up to a power of two below
+    a warp (several rows then share a warp) and to whole warps above; each thread as few
+    columns as cover the span."""
+    if span == 0:
+        return 0, 0
+    n = max(-(-span // max_vec), min(8, span))
+    n = 32 * -(-n // 32) if n > 16 else 1 << (n - 1).bit_length()
+    return n, -(-span // n)
+
+
+def concat_rows_per_block(widths: tuple, out_width: int, max_vec: int = CONCAT_VEC) -> int:
+    """Rows that ``concat_kernel``'s threads take together: enough that every piece's threads
+    fill whole warps (32 / the fewest threads per row of any piece)."""
+    return 32 // min(min(concat_piece_threads(s, max_vec)[0], 32)
+                     for s in concat_spans(widths, out_width) if s > 0)
+
+
+def concat_threads(rows: int, widths: tuple, out_width: int, max_vec: int = CONCAT_VEC) -> int:
+    """Launch size of ``concat_kernel`` for ``rows`` rows."""
+    R = concat_rows_per_block(widths, out_width, max_vec)
+    return -(-rows // R) * R * sum(concat_piece_threads(s, max_vec)[0] for s in concat_spans(widths, out_width))
+
+
+def _concat_piece(width: int, span: int, gathered: bool, in_dtype, dtype, out_width: int, offset: int,
+                  max_vec: int):
+    """One piece of ``concat_kernel``'s rows, as a function of the row and the thread's first
+    column: out[r, offset + c] = p_in[row, c] for c < width, 0 for width <= c < span."""
+    W, S, G, Ti, T, K, E = width, span, gathered, in_dtype, dtype, out_width, offset
+    N, V = concat_piece_threads(span, max_vec)
+    V = max(V, 1)  # (an absent piece is never called)
+
+    @wp.func
+    def copy_piece(p_in: wp.array(dtype=Ti), index: wp.array(dtype=wp.int32), r: int, c0: int,
+                   out: wp.array(dtype=T)):
+        b = r * W
+        if wp.static(G):
+            b = index[r] * W
+        xs = wp.vector(length=V, dtype=T)  # zero: the padding columns
+        for k in range(V):
+            if wp.static((k + 1) * N <= W):  # every thread's column k is inside the row
+                xs[k] = T(p_in[b + c0 + k * N])
+            elif wp.static(k * N < W):
+                if c0 + k * N < W:
+                    xs[k] = T(p_in[b + c0 + k * N])
+        o = r * K + E + c0
+        for k in range(V):
+            if wp.static((k + 1) * N <= S):
+                out[o + k * N] = xs[k]
+            elif wp.static(k * N < S):
+                if c0 + k * N < S:
+                    out[o + k * N] = xs[k]
+
+    return copy_piece
 
 
 @functools.cache
-def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int):
+def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int,
+                  max_vec: int = CONCAT_VEC):
     """out[r] = [p0_in[r0], p1_in[r1], p2_in[r2], p3_in[r3], 0...] (columns side by side, cast to
     ``dtype``, zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece k
     reads row ``index_k[r]``, the others row ``r``.
@@ -264,23 +335,28 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
 
     The arrays are flat (1-D views of contiguous row-major tensors, ``rows * width`` < 2**31):
     with the widths compile-time constants, an element's offset is one int32 multiply-add per
-    row, not the 64-bit stride arithmetic of a 2-D Warp array. Launch over ``rows * (out_width
-    // concat_vec(out_width))`` threads: each thread owns ``concat_vec`` columns of one row,
-    strided by ``out_width // concat_vec`` (coalesced), loads them all, then stores them.
-    Measured on an H200 at the paper core's second-block edge shape (73728 x 672, fp32 -> fp16,
-    random sorted gathers; bench/results/gn_block_nvidia-h200_notes.md): 146 us against 191 us
-    for 2-D arrays with 4 columns per thread; on the benchmark's cheetah graphs this kernel
-    gained nothing (~165 us either way) and the smaller concat kernels ~10%."""
+    row. Launch over ``concat_threads(rows, ...)`` threads. Each piece gets its own threads
+    (``concat_piece_threads``: up to ``max_vec`` columns each, strided by the piece's thread
+    count so each load of a warp is coalesced, all loads before the stores), and rows are taken
+    ``concat_rows_per_block`` at a time so that every warp works on one piece: no warp
+    branches. Measured on an H200 (bench/concat_probe.py, bench/results/concat_probe_nvidia-h200.md,
+    the paper core's edge rows at batch 4096, fp32 -> fp16): v9's kernel, where every thread
+    tested all four pieces for each of its 8 columns, issued a predicated load per piece and
+    column and was bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off):
+    162 us for the second block's 73728 x 672 rows, where this kernel takes 78 us."""
+    S = concat_spans(widths, out_width)
+    R = concat_rows_per_block(widths, out_width, max_vec)
+    N0, N1, N2, N3 = (concat_piece_threads(s, max_vec)[0] for s in S)
+    # each block of R rows: piece k's threads are [A_k, A_k + R * N_k), row-major (j, c0)
+    A1 = R * N0
+    A2 = A1 + R * N1
+    A3 = A2 + R * N2
+    NT = A3 + R * N3
     W0, W1, W2, W3 = widths
-    G0, G1, G2, G3 = gathered
+    offsets = (0, W0, W0 + W1, W0 + W1 + W2)
+    f0, f1, f2, f3 = (_concat_piece(widths[k], S[k], gathered[k], in_dtypes[k], dtype, out_width, offsets[k], max_vec)
+                      for k in range(4))
     T0, T1, T2, T3 = in_dtypes
-    K = out_width
-    V = concat_vec(K)
-    KV = K // V
-    E0 = W0
-    E1 = E0 + W1
-    E2 = E1 + W2
-    E3 = E2 + W3
     T = dtype
 
     @wp.kernel(module="unique", module_options=_options())
@@ -294,43 +370,37 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
         index_1: wp.array(dtype=wp.int32),
         index_2: wp.array(dtype=wp.int32),
         index_3: wp.array(dtype=wp.int32),
+        rows: int,
         # Data out (flat row-major):
         out: wp.array(dtype=T),
     ):
         i = wp.tid()
-        r = i // KV
-        c0 = i - r * KV
-        # first element of each piece's source row
-        b0 = r * W0
-        b1 = r * W1
-        b2 = r * W2
-        b3 = r * W3
-        if wp.static(W0 > 0 and G0):
-            b0 = index_0[r] * W0
-        if wp.static(W1 > 0 and G1):
-            b1 = index_1[r] * W1
-        if wp.static(W2 > 0 and G2):
-            b2 = index_2[r] * W2
-        if wp.static(W3 > 0 and G3):
-            b3 = index_3[r] * W3
-        xs = wp.vector(length=V, dtype=T)  # zero: the padding columns
-        for k in range(V):
-            c = c0 + k * KV
-            if wp.static(W0 > 0):
-                if c < E0:
-                    xs[k] = T(p0_in[b0 + c])
-            if wp.static(W1 > 0):
-                if c >= E0 and c < E1:
-                    xs[k] = T(p1_in[b1 + c - E0])
-            if wp.static(W2 > 0):
-                if c >= E1 and c < E2:
-                    xs[k] = T(p2_in[b2 + c - E1])
-            if wp.static(W3 > 0):
-                if c >= E2 and c < E3:
-                    xs[k] = T(p3_in[b3 + c - E2])
-        o = r * K + c0
-        for k in range(V):
-            out[o + k * KV] = xs[k]
+        rb = i // NT
+        t = i - rb * NT
+        if wp.static(W0 > 0):
+            if t < A1:
+                j = t // N0
+                r = rb * R + j
+                if r < rows:
+                    f0(p0_in, index_0, r, t - j * N0, out)
+        if wp.static(W1 > 0):
+            if t >= A1 and t < A2:
+                j = (t - A1) // N1
+                r = rb * R + j
+                if r < rows:
+                    f1(p1_in, index_1, r, t - A1 - j * N1, out)
+        if wp.static(W2 > 0):
+            if t >= A2 and t < A3:
+                j = (t - A2) // N2
+                r = rb * R + j
+                if r < rows:
+                    f2(p2_in, index_2, r, t - A2 - j * N2, out)
+        if wp.static(W3 > 0):
+            if t >= A3:
+                j = (t - A3) // N3
+                r = rb * R + j
+                if r < rows:
+                    f3(p3_in, index_3, r, t - A3 - j * N3, out)
 
     return concat
 

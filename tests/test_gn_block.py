@@ -210,6 +210,35 @@ def test_edge_first_layer_mode_rule():
     assert not gn_warp.edge_concat(GNBlockConfig(31, 64, 32), "split")
 
 
+@pytest.mark.parametrize("widths,gathered,vec_", [
+    ((5, 3, 3, 4), (False, True, True, True), 4),   # the edge rows: three gathered pieces
+    ((5, 0, 7, 0), (False, False, True, False), 4),  # absent pieces in the middle and at the end
+    ((0, 9, 0, 1), (False, True, False, False), 2),
+    ((13, 17, 2, 6), (True, False, True, False), 8),  # vec_ wider than some pieces
+    ((300, 7, 0, 40), (True, False, False, True), 4),  # a piece over several warps, one row per warp
+])
+def test_concat_kernel(widths, gathered, vec_):
+    """``concat_kernel`` writes each piece's (gathered) rows side by side, cast to the output
+    dtype, and zeros in the padding columns; nothing outside its rows (11 rows: the last block
+    of rows sharing warps is partial)."""
+    from gnwarp.kernels import gn_block as K
+    gen = torch.Generator().manual_seed(sum(widths))
+    rows, src_rows, K_ = 11, 4, gn_warp._pad(sum(widths)) + 8
+    dtypes = (torch.float32, torch.float64, torch.float32, torch.float16)
+    srcs = [torch.randn(src_rows if g else rows, max(w, 1), generator=gen).to(dt)[:, :w].contiguous()
+            for w, g, dt in zip(widths, gathered, dtypes)]
+    idx = [torch.randint(0, src_rows, (rows,), generator=gen, dtype=torch.int32) for _ in widths]
+    out = torch.full((rows + 1, K_), float("nan"), dtype=torch.float32)  # one row past the end
+    kern = K.concat_kernel(widths, gathered, tuple(gn_warp._WP_DTYPE[t.dtype] for t in srcs), wp.float32, K_, vec_)
+    wp.launch(kern, dim=K.concat_threads(rows, widths, K_, vec_), device="cpu",
+              inputs=[wp.from_torch(t.view(-1)) for t in srcs] + [wp.from_torch(i) for i in idx]
+              + [rows, wp.from_torch(out.view(-1))])
+    expect = torch.cat([(t[i.long()] if g else t).float() for t, i, g in zip(srcs, idx, gathered)]
+                       + [torch.zeros(rows, K_ - sum(widths))], 1)
+    assert torch.equal(out[:rows], expect)
+    assert out[rows].isnan().all()
+
+
 def test_graph_without_globals():
     """A block that reads no globals runs on a GraphsTuple with globals=None."""
     kw = dict(SMALL, global_size=0, update_globals=False, edge_block=EdgeBlockConfig(use_globals=False),
@@ -517,3 +546,31 @@ def test_cuda_reduced_precision(precision, tol, mode):
     out, expect = gn(cast(g, torch.float32)), ref(g)
     for name in ("nodes", "edges", "globals"):
         assert rel_err(getattr(out, name), getattr(expect, name)) < tol, name
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("mode", ["concat", "split"])
+def test_cuda_side_stream_gradients_identical(mode):
+    """The weight-gradient GEMMs on a side stream (``gn_warp.SIDE_STREAM``) give the same
+    gradients, bit for bit, as on the current stream (deterministic aggregation), also when two
+    backward passes run back to back."""
+    gn, _ = pair(SMALL, deterministic=True, edge_first_layer=mode)
+    gn = gn.cuda()
+    g = with_grad(cast(_on(make_batch("mixed"), "cuda"), torch.float32))
+    grads = {}
+    old = gn_warp.SIDE_STREAM
+    try:
+        for side in (False, True):
+            gn_warp.SIDE_STREAM = side
+            gn.zero_grad(set_to_none=True)
+            for x in (g.nodes, g.edges, g.globals):
+                x.grad = None
+            for _ in range(2):
+                loss_of(gn(g)).backward()
+            torch.cuda.synchronize()
+            grads[side] = [p.grad.clone() for p in gn.parameters()] + [x.grad.clone() for x in (g.nodes, g.edges, g.globals)]
+    finally:
+        gn_warp.SIDE_STREAM = old
+    assert len(grads[True]) == len(grads[False])
+    for a, b in zip(grads[False], grads[True]):
+        assert torch.equal(a, b)
