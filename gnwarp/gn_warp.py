@@ -517,9 +517,11 @@ def _concat(launch, plan, rows, layout, pieces):
     if len(items) == 1 and items[0][1] is None:
         return _padded(items[0][0], cd)
     width = _pad(sum(w for _, _, w in items))
-    if rows * width >= 2 ** 31:
+    widths = tuple(w for _, _, w in items) + (0,) * (4 - len(items))
+    threads = K.concat_threads(rows, widths, width)
+    if max(rows * width, threads) >= 2 ** 31:  # element offsets and thread ids are int32
         raise ValueError(f"batch too large for one GN block launch: {rows} rows x {width} input columns "
-                         "exceeds 2**31 elements; split the batch")
+                         f"({threads} threads) exceeds 2**31; split the batch")
     for (name, w), (t, _, _) in zip(layout, items):
         if t.dim() != 2 or t.shape[1] != w:  # the kernel reads rows of exactly ``w`` elements
             raise ValueError(f"GN block input {name!r}: expected {w} columns, got shape {tuple(t.shape)}")
@@ -527,10 +529,9 @@ def _concat(launch, plan, rows, layout, pieces):
     flat = [t.contiguous().view(-1) for t, _, _ in items]
     items += [(launch.placeholder(cd, 1), None, 0)] * (4 - len(items))
     flat += [t for t, _, _ in items[len(flat):]]
-    widths = tuple(w for _, _, w in items)
     kernel = K.concat_kernel(widths, tuple(i is not None for _, i, _ in items),
                              tuple(_WP_DTYPE[t.dtype] for t, _, _ in items), plan.wp_dtype, width)
-    launch.n(kernel, K.concat_threads(rows, widths, width), *flat,
+    launch.n(kernel, threads, *flat,
              *(i if i is not None else launch.placeholder(torch.int32, 1) for _, i, _ in items), rows, out.view(-1))
     return out
 
