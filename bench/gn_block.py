@@ -21,7 +21,7 @@ Sections (``--sections``, all by default):
   optim      (only when asked) the captured split path's training step with torch's Adam and with
              gnwarp.optim.FlatAdam (``--optimizer`` picks the one of the other sections)
   side       (only when asked) the captured split path's training step with the backward's
-             weight-gradient GEMMs on the current stream and on a side stream
+             weight-gradient GEMMs on the current stream and on 1, 2 and 3 side streams
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
              and of one train step at batch 200 (kernel count: the nodes of a captured step)
 
@@ -242,15 +242,17 @@ class Runner:
         self.det = args.deterministic                   # our peers' aggregation: segment sums
         self.opt = args.optimizer                       # our peers' optimizer: torch Adam or FlatAdam
         self.flatp = args.flat_params                   # our peers' parameters in one flat buffer
-        self.side = not args.no_side_stream             # our backward's weight-gradient GEMMs on a side stream
+        self.side_default = gn_warp.SIDE_STREAMS
+        if args.side_streams is not None:               # our backward's side streams (weight-gradient GEMMs)
+            self.side = args.side_streams
 
     @property
-    def side(self) -> bool:
-        return gn_warp.SIDE_STREAM
+    def side(self) -> int:
+        return gn_warp.SIDE_STREAMS
 
     @side.setter
-    def side(self, on: bool):
-        gn_warp.SIDE_STREAM = on
+    def side(self, n: int):
+        gn_warp.SIDE_STREAMS = n
 
     def model(self, **kw):
         m = copy.deepcopy(self.base)
@@ -265,8 +267,9 @@ class Runner:
             row["opt"] = "flat"
         if row.get("peer", "").startswith("warp") and self.flatp:
             row["flatp"] = True
-        if row.get("peer", "").startswith("warp") and row.get("mode") in ("train", "fwdbwd") and not self.side:
-            row["side"] = False
+        if row.get("peer", "").startswith("warp") and row.get("mode") in ("train", "fwdbwd") and \
+                self.side != self.side_default:
+            row["side"] = self.side
         row = dict(device=self.device_name, quick=self.args.quick, torch=torch.__version__,
                    warp=getattr(wp, "__version__", None), time=time.strftime("%Y-%m-%d %H:%M:%S"), **row)
         self.rows.append(row)
@@ -490,9 +493,9 @@ class Runner:
         self._ablation("flatp", (False, True), ((4096, "fwd"), (200, "train")))
 
     def section_side(self):
-        """The backward's weight-gradient GEMMs on the current stream and on a side stream
-        (``gnwarp.gn_warp.SIDE_STREAM``): training steps at each of ``--batches``."""
-        self._ablation("side", (False, True), tuple((B, "train") for B in self.args.batches))
+        """The backward's weight-gradient GEMMs on the current stream and on 1, 2 and 3 side
+        streams (``gnwarp.gn_warp.SIDE_STREAMS``): training steps at each of ``--batches``."""
+        self._ablation("side", (0, 1, 2, 3), tuple((B, "train") for B in self.args.batches))
 
     def section_errors(self):
         dev = self.device
@@ -613,7 +616,8 @@ class Runner:
                     (f" [edge first layer: {r['efl']}]" if r.get("efl") else "") + \
                     (" [deterministic]" if r.get("det") else "") + (" [FlatAdam]" if r.get("opt") == "flat" else "") + \
                     (" [flat params]" if r.get("flatp") else "") + \
-                    (" [no side stream]" if r.get("side") is False else "")
+                    (" [no side stream]" if r.get("side") in (False, 0) else
+                     f" [side streams: {r['side']}]" if r.get("side") is not None else "")
                 if r.get("error"):
                     lines.append(f"| {r.get('batch', '')} | {r['mode']} | {label} | {r.get('precision', '')} | failed: "
                                  f"{_md(r['error'][:120])} | | | |")
@@ -719,8 +723,9 @@ def main(argv=None):
                    help="our peers' training step: torch's fused Adam + clip_grad_norm_, or gnwarp.optim.FlatAdam")
     p.add_argument("--flat-params", action="store_true",
                    help="our peers' parameters moved into one buffer first (gnwarp.flatten_parameters)")
-    p.add_argument("--no-side-stream", action="store_true",
-                   help="our backward runs its weight-gradient GEMMs on the current stream (gnwarp.gn_warp.SIDE_STREAM)")
+    p.add_argument("--side-streams", type=int, default=None,
+                   help="side streams of our backward's weight-gradient GEMMs, 0: none (gnwarp.gn_warp.SIDE_STREAMS; "
+                        "default: the library's)")
     p.add_argument("--verbose", action="store_true")
     a = p.parse_args(argv)
     if a.device is None:

@@ -181,53 +181,58 @@ class _Launcher:
         wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device, stream=self.stream)
 
 
-# Whether the backward runs its weight-gradient GEMMs on a side stream (``_Side``); read when a
-# backward runs (a captured graph keeps the choice it was captured with). Measured on an H200
-# (bench/gn_block.py --sections side; bench/results/gn_block_nvidia-h200_notes.md).
-SIDE_STREAM = True
-_SIDE_STREAMS: dict[int, torch.cuda.Stream] = {}
+# How many side streams the backward spreads its weight-gradient GEMMs over (``_Side``; 0: all on
+# the current stream); read when a backward runs (a captured graph keeps the choice it was
+# captured with). Measured on an H200 (bench/gn_block.py --sections side;
+# bench/results/gn_block_nvidia-h200_notes.md).
+SIDE_STREAMS = 1
+_SIDE_POOL: dict[int, list] = {}
 
 
 class _Side:
-    """The backward's weight-gradient GEMMs on a second CUDA stream, off the critical path (the
+    """The backward's weight-gradient GEMMs on side CUDA streams, off the critical path (the
     chain of input-gradient GEMMs, ReLU masks and scatters that each layer waits on): at batch
-    200 each GEMM fills a fraction of the GPU, so the two chains overlap. ``with side(*reads):``
-    enqueues the body on the side stream after everything the current stream has enqueued;
-    ``reads`` (the tensors the body reads) stay referenced until ``join``, so the caching
-    allocator cannot hand their memory to later current-stream work while the side stream may
-    still read it. ``after(fn)`` runs ``fn`` on the current stream at ``join``, which makes the
-    current stream wait for the side stream (also inside a CUDA graph capture: a fork and a join).
-    Off CUDA (or with ``SIDE_STREAM`` off) the bodies run in place."""
+    200 each GEMM fills a fraction of the GPU, so the chains overlap. ``with side(*reads):``
+    enqueues the body on the next side stream (round robin over ``SIDE_STREAMS``) after
+    everything the current stream has enqueued; ``reads`` (the tensors the body reads) stay
+    referenced until ``join``, so the caching allocator cannot hand their memory to later
+    current-stream work while a side stream may still read it. ``after(fn)`` runs ``fn`` on the
+    current stream at ``join``, which makes the current stream wait for the side streams (also
+    inside a CUDA graph capture: forks and joins). Off CUDA (or with ``SIDE_STREAMS`` = 0) the
+    bodies run in place."""
 
     def __init__(self, like: torch.Tensor):
-        self.cuda = like.device.type == "cuda" and SIDE_STREAM
-        self.forked = False
+        n = SIDE_STREAMS if like.device.type == "cuda" else 0
+        self.streams, self.used, self.k = [], [], 0
         self.keep, self.pending = [], []
-        if self.cuda:
+        if n > 0:
             self.main = torch.cuda.current_stream(like.device)
-            key = self.main.cuda_stream
-            if key not in _SIDE_STREAMS:
-                _SIDE_STREAMS[key] = torch.cuda.Stream(like.device)
-            self.stream = _SIDE_STREAMS[key]
+            pool = _SIDE_POOL.setdefault(self.main.cuda_stream, [])
+            while len(pool) < n:
+                pool.append(torch.cuda.Stream(like.device))
+            self.streams = pool[:n]
 
     @contextlib.contextmanager
     def __call__(self, *reads):
-        if not self.cuda:
+        if not self.streams:
             yield
             return
-        self.stream.wait_stream(self.main)
+        stream = self.streams[self.k % len(self.streams)]
+        self.k += 1
+        stream.wait_stream(self.main)
         self.keep.extend(reads)
-        self.forked = True
-        with torch.cuda.stream(self.stream):
+        if stream not in self.used:
+            self.used.append(stream)
+        with torch.cuda.stream(stream):
             yield
 
     def after(self, fn):
         self.pending.append(fn)
 
     def join(self):
-        if self.forked:
-            self.main.wait_stream(self.stream)
-            self.forked = False
+        for stream in self.used:
+            self.main.wait_stream(stream)
+        self.used.clear()
         self.keep.clear()
         for fn in self.pending:
             fn()

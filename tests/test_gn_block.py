@@ -551,17 +551,17 @@ def test_cuda_reduced_precision(precision, tol, mode):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("mode", ["concat", "split"])
 def test_cuda_side_stream_gradients_identical(mode):
-    """The weight-gradient GEMMs on a side stream (``gn_warp.SIDE_STREAM``) give the same
+    """The weight-gradient GEMMs on side streams (``gn_warp.SIDE_STREAMS``) give the same
     gradients, bit for bit, as on the current stream (deterministic aggregation), also when two
     backward passes run back to back."""
     gn, _ = pair(SMALL, deterministic=True, edge_first_layer=mode)
     gn = gn.cuda()
     g = with_grad(cast(_on(make_batch("mixed"), "cuda"), torch.float32))
     grads = {}
-    old = gn_warp.SIDE_STREAM
+    old = gn_warp.SIDE_STREAMS
     try:
-        for side in (False, True):
-            gn_warp.SIDE_STREAM = side
+        for side in (0, 1, 3):
+            gn_warp.SIDE_STREAMS = side
             gn.zero_grad(set_to_none=True)
             for x in (g.nodes, g.edges, g.globals):
                 x.grad = None
@@ -570,7 +570,8 @@ def test_cuda_side_stream_gradients_identical(mode):
             torch.cuda.synchronize()
             grads[side] = [p.grad.clone() for p in gn.parameters()] + [x.grad.clone() for x in (g.nodes, g.edges, g.globals)]
     finally:
-        gn_warp.SIDE_STREAM = old
-    assert len(grads[True]) == len(grads[False])
-    for a, b in zip(grads[False], grads[True]):
-        assert torch.equal(a, b)
+        gn_warp.SIDE_STREAMS = old
+    for side in (1, 3):
+        assert len(grads[side]) == len(grads[0])
+        for a, b in zip(grads[0], grads[side]):
+            assert torch.equal(a, b)
