@@ -148,7 +148,7 @@ def concat_piece_kernel(width: int, span: int, gathered: bool, in_dtype, dtype, 
 
 
 
-def case(name, B, dev, out_dtype):
+def case(name, B, dev):
     """(pieces [(tensor, index or None)], padded width) of a block's edge concat."""
     g, _ = make_batch("cheetah", B, dev)
     gi = graph_index(g)
@@ -222,7 +222,7 @@ def main():
     dev = torch.device("cuda")
     lines = []
     for name in ("gn2", "gn1"):
-        pieces, K_ = case(name, 4096, dev, torch.float16)
+        pieces, K_ = case(name, 4096, dev)
         res, expect = variants(pieces, K_, torch.float16)
         rows = expect.shape[0]
         # DRAM bytes at best: the rows written once, every source row read once

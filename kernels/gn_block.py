@@ -343,7 +343,7 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     the paper core's edge rows at batch 4096, fp32 -> fp16): v9's kernel, where every thread
     tested all four pieces for each of its 8 columns, issued a predicated load per piece and
     column and was bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off):
-    162 us for the second block's 73728 x 672 rows, where this kernel takes 78 us."""
+    162 us for the second block's 73728 x 672 rows, where this kernel takes 81 us."""
     S = concat_spans(widths, out_width)
     R = concat_rows_per_block(widths, out_width, max_vec)
     N0, N1, N2, N3 = (concat_piece_threads(s, max_vec)[0] for s in S)
