@@ -24,6 +24,9 @@ Sections (``--sections``, all by default):
              weight-gradient GEMMs on the current stream and on 1, 2 and 3 side streams
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
              and of one train step at batch 200 (kernel count: the nodes of a captured step)
+  timeline   (only when asked) every kernel of one replay of the captured training step at the
+             first of ``--batches``, in start order with its stream, start, duration and the idle
+             gap before it on its stream (where a captured step waits on launches, not work)
 
 Each measurement is wrapped: a failing peer (torch.compile included) is reported, not fatal.
 Rows are appended to ``<out>/gn_block_<device>.jsonl`` as they come (a timeout keeps what ran);
@@ -584,6 +587,41 @@ class Runner:
                             print(f"== {peer} {prec} {mode} B={B}: profile failed: {exc}", flush=True)
         print(f"wrote {path}")
 
+    def section_timeline(self):
+        """Kernel timeline of one replay of our captured training step (torch.profiler's trace of
+        the graph's kernels), per precision, at the first of ``--batches``: written to
+        ``<out>/gn_block_<device>_timeline.txt``; one summary line per precision printed (span,
+        kernels per stream, busy and idle time of the main stream). Not timed rows."""
+        from torch.profiler import ProfilerActivity, profile  # noqa: PLC0415
+        if self.device.type != "cuda":
+            print("timeline: needs a CUDA device (a captured step)", flush=True)
+            return
+        B = self.args.batches[0]
+        path = self.jsonl.with_name(self.jsonl.stem + "_timeline.txt")
+        with open(path, "w") as f:
+            for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "fp16", "bf16")]:
+                try:
+                    fn, _ = self.make_step("warp-split-graph", prec, "cheetah", B, "train", self.sizes)
+                    for _ in range(5):
+                        fn()
+                    sync(self.device)
+                    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                        fn()
+                        sync(self.device)
+                    trace = self.jsonl.with_name(f"_trace_{prec}.json")
+                    prof.export_chrome_trace(str(trace))
+                    events = json.load(open(trace))["traceEvents"]
+                    trace.unlink()
+                    lines, head = timeline_table(events)
+                    head = f"== warp-split-graph {prec} train cheetah B={B} (side streams {self.side}): {head}"
+                    print(head, flush=True)
+                    f.write(head + "\n" + "\n".join(lines) + "\n\n")
+                except Exception as exc:  # noqa: BLE001
+                    print(f"== timeline {prec}: failed: {type(exc).__name__}: {exc}", flush=True)
+                    if self.args.verbose:
+                        traceback.print_exc()
+        print(f"wrote {path}")
+
     # -- report ---------------------------------------------------------------------------------
     def write_markdown(self):
         rows = [json.loads(line) for line in open(self.jsonl)] if self.jsonl.exists() else []
@@ -682,6 +720,36 @@ class Runner:
                         out.append(f"| {w} | {B} | {mode}{' (captured)' if graph else ''} | {d['split']:.3f} | "
                                    f"{d['tile']:.3f} | {win} |")
         return out + [""]
+
+
+def timeline_table(events):
+    """(lines, summary) of the device kernels / memsets / copies of a chrome trace (torch.profiler's
+    ``export_chrome_trace``), in start order: index, stream, start (us from the first), duration,
+    the idle gap before it on its stream, name. Summary: span, kernels per stream, and the main
+    stream's (the one with the most kernels) busy and idle time."""
+    ks = [e for e in events if e.get("ph") == "X" and e.get("cat") in ("kernel", "gpu_memset", "gpu_memcpy")]
+    if not ks:
+        return [], "no device events in the trace"
+    ks.sort(key=lambda e: e["ts"])
+    t0 = ks[0]["ts"]
+    end: dict = {}
+    count: dict = {}
+    busy: dict = {}
+    idle: dict = {}
+    lines = [f"{'#':>4} {'stream':>6} {'start':>9} {'dur':>8} {'gap':>7}  name (us)"]
+    for k, e in enumerate(ks):
+        st = e.get("args", {}).get("stream", -1)
+        gap = e["ts"] - end[st] if st in end else 0.0
+        end[st] = max(end.get(st, 0.0), e["ts"] + e["dur"])
+        count[st] = count.get(st, 0) + 1
+        busy[st] = busy.get(st, 0.0) + e["dur"]
+        idle[st] = idle.get(st, 0.0) + max(gap, 0.0)
+        lines.append(f"{k:4d} {st:6d} {e['ts'] - t0:9.1f} {e['dur']:8.2f} {gap:7.2f}  {e['name'][:110]}")
+    span = max(end.values()) - t0
+    main = max(count, key=count.get)
+    per = ", ".join(f"stream {s}: {n}" for s, n in sorted(count.items()))
+    return lines, (f"{len(ks)} device events over {span:.1f} us ({per}); main stream {main}: busy "
+                   f"{busy[main]:.1f} us, idle {idle[main]:.1f} us between its events")
 
 
 def _autocast(precision: str, device):

@@ -220,7 +220,7 @@ class _Side:
         stream = self.streams[self.k % len(self.streams)]
         self.k += 1
         stream.wait_stream(self.main)
-        self.keep.extend(reads)
+        self.keep.extend(r for r in reads if r is not None)
         if stream not in self.used:
             self.used.append(stream)
         with torch.cuda.stream(stream):
@@ -330,6 +330,58 @@ def _cast_params(params, dtype):
     return [flat[o:o + p.numel()].view(p.shape) for p, o in zip(params, offsets)]
 
 
+def _prepare(launch, plan, params, first):
+    """The block's parameters for its GEMMs, in one ``prep_kernel`` launch: (pc, {k: _FirstLayer}).
+
+    ``pc``: the parameters in the compute dtype (themselves when already so; else views of one
+    cast copy of their flat span when they are views of one buffer in order, FlatAdam's; else
+    ``_cast_params``'s copy, made before). ``first``: [(k, layout, split)] of the first-layer
+    weights params[k] (edge, node, global update), each as the aligned, zero-padded blocks of
+    ``_FirstLayer``, read from the parameter itself (cast in the kernel)."""
+    cd = plan.compute_dtype
+    p0 = params[0]
+    n_cast, span = 0, None
+    if p0.dtype == cd:
+        pc = list(params)
+    else:
+        span = _flat_span(params)
+        if span is None:
+            pc = _cast_params(params, cd)
+        else:
+            n_cast = span[1] - span[0]
+    fls, slots, mats = {}, [], []
+    base = -(-n_cast // _ALIGN) * _ALIGN
+    total = base
+    for k, layout, split in first:
+        fl = fls[k] = _FirstLayer(plan, pc[k] if span is None else params[k], layout, split, span is not None)
+        if fl.as_is:
+            continue
+        fl.base = total - base
+        for col0, width, off, stride, row0 in fl.segs:
+            slots.append((fl.base + off + row0 * stride, fl.shape[0], width, stride, col0))
+            mats.append(params[k])
+        total += fl.total
+    if len(slots) > K.PREP_SLOTS:
+        raise ValueError(f"{len(slots)} first-layer weight blocks, over the {K.PREP_SLOTS} of one prep launch")
+    if total == 0:
+        return pc, fls
+    dst = torch.empty(total, dtype=cd, device=p0.device)
+    n_cast_threads, threads = K.prep_threads(n_cast, tuple(slots))
+    if total >= 2 ** 31:
+        raise ValueError(f"GN block parameters too large for one launch ({total} elements)")
+    ph = launch.placeholder
+    src = torch.as_strided(p0.detach(), (n_cast,), (1,), span[0]) if span is not None else ph(p0.dtype, 1)
+    mats = [m.detach() for m in mats] + [ph(p0.dtype, 2)] * (K.PREP_SLOTS - len(mats))
+    launch.n(K.prep_kernel(tuple(slots), _WP_DTYPE[p0.dtype], plan.wp_dtype), threads, src, n_cast, n_cast_threads,
+             base, *mats, dst)
+    if span is not None:
+        a = span[0]
+        pc = [dst[p.storage_offset() - a:p.storage_offset() - a + p.numel()].view(p.shape) for p in params]
+    for k, fl in fls.items():
+        fl.w = {"all": pc[k]} if fl.as_is else fl._views(dst[base + fl.base:base + fl.base + fl.total])
+    return pc, fls
+
+
 def _pad(cols: int) -> int:
     """Padded width of a first-layer GEMM operand: a multiple of 8 elements (16 bytes in fp16 /
     bf16, 32 in fp32), which cuBLAS's fast (Hopper) kernels need for their K and leading
@@ -373,7 +425,7 @@ def _padded(x, dtype):
 @functools.cache
 def _first_layer_layout(layout: tuple, split: bool, H: int, dtype: torch.dtype):
     """Padded block layout of a first-layer weight [H, sum of widths]: (segments of
-    ``pack_kernel``, {block: (offset, rows, width, stride)}, total elements); each block's rows
+    ``unpack_kernel``, {block: (offset, rows, width, stride)}, total elements); each block's rows
     are ``stride = _pad(width)`` long, zeros after ``width``. ``split`` (the edge update):
     blocks "edges", "nodes" (sender rows stacked over receiver rows) and "globals"; else one
     block "all"."""
@@ -411,24 +463,21 @@ def _first_layer_layout(layout: tuple, split: bool, H: int, dtype: torch.dtype):
 
 class _FirstLayer:
     """A first-layer weight [H, K] as GEMM-ready blocks (``w``: {block: [rows, _pad(width)]}, zero
-    columns after the block's width, 16-byte-aligned rows), packed by one kernel (for the edge
-    update it also stacks the sender and receiver blocks); a single block of a padded width is
-    used as is. Their GEMM partners are padded the same way (``_padded``, ``_concat``)."""
+    columns after the block's width, 16-byte-aligned rows), written by ``_prepare``'s one kernel
+    (for the edge update it also stacks the sender and receiver blocks); a single block of a
+    padded width in the compute dtype is used as is. Their GEMM partners are padded the same
+    way (``_padded``, ``_concat``)."""
 
-    def __init__(self, launch, plan, w0, layout, split: bool):
-        cd = plan.compute_dtype
+    def __init__(self, plan, w0, layout, split: bool, cast_copy: bool = False):
+        """``cast_copy``: ``w0`` is the parameter, of which an aligned compute-dtype copy is made
+        (``_prepare``'s flat cast); else ``w0`` is the weight in the dtype the GEMMs will read."""
+        cd = self.dtype = plan.compute_dtype
         self.segs, self.blocks, self.total = _first_layer_layout(tuple(layout), split, w0.shape[0], cd)
         self.shape = tuple(w0.shape)
-        self.as_is = (not split and w0.dtype == cd and w0.is_contiguous() and _pad(w0.shape[1]) == w0.shape[1]
-                      and w0.data_ptr() % 16 == 0)
-        if self.as_is:
-            self.w = {"all": w0}
-        else:
-            padded = any(st > width for _, _, width, st in self.blocks.values())
-            buf = (torch.zeros if padded else torch.empty)(max(self.total, 1), dtype=cd, device=w0.device)
-            launch.n(K.pack_kernel(self.segs, w0.shape[1], _WP_DTYPE[w0.dtype], plan.wp_dtype, False), w0.numel(),
-                     w0, buf)
-            self.w = self._views(buf)
+        self.as_is = (not split and (cast_copy or (w0.dtype == cd and w0.data_ptr() % 16 == 0))
+                      and w0.is_contiguous() and _pad(w0.shape[1]) == w0.shape[1])
+        self.w = {"all": w0} if self.as_is and not cast_copy else None
+        self.base = 0  # offset of its blocks in ``_prepare``'s buffer
 
     def _views(self, buf):
         return {name: buf[o:o + rows * st].view(rows, st) for name, (o, rows, _, st) in self.blocks.items()}
@@ -437,24 +486,30 @@ class _FirstLayer:
         """(block views to write the weight gradient into, buffer to unpack into ``gw0`` or None)."""
         if self.as_is:
             return {"all": gw0}, None
-        buf = torch.empty(max(self.total, 1), dtype=gw0.dtype, device=gw0.device)
+        buf = torch.empty(max(self.total, 1), dtype=self.dtype, device=gw0.device)  # GEMM output: compute dtype
         return self._views(buf), buf
 
-    def backward_concat(self, launch, plan, side, g0, x, gw0):
-        """Backward of the concatenated first layer y = x @ W.T: writes dL/dW into ``gw0`` (when
-        given; its GEMM on ``side``, the unpack at the join) and returns dL/dx."""
+    def backward_concat(self, launch, plan, side, g0, x, gw0, accumulate: bool):
+        """Backward of the concatenated first layer y = x @ W.T: writes (``accumulate``: adds)
+        dL/dW into ``gw0`` (when given; its GEMM and unpack on ``side``) and returns dL/dx."""
         if gw0 is not None:
-            blocks, buf = self.grad_blocks(gw0)
-            with side(g0, x):
-                torch.mm(g0.t(), x, out=blocks["all"])
-            side.after(lambda: self.unpack(launch, plan, buf, gw0))
+            self.weight_grad(plan, side, g0, x, gw0, accumulate)
         return torch.mm(g0, self.w["all"])
 
-    def unpack(self, launch, plan, buf, gw0):
-        """gw0 = the weight-gradient blocks written into ``buf`` (padding columns dropped)."""
+    def weight_grad(self, plan, side, g0, x, gw0, accumulate: bool):
+        """dL/dW = g0^T x written (``accumulate``: added) into ``gw0``: the GEMM, and the unpack of
+        its padded blocks after it, on the same side stream (off the critical path)."""
+        blocks, buf = self.grad_blocks(gw0)
+        with side(g0, x, buf):
+            _wgrad(g0.t(), x, blocks["all"], accumulate and buf is None)
+            self.unpack(_Launcher(g0), plan, buf, gw0, accumulate)  # on the side stream
+
+    def unpack(self, launch, plan, buf, gw0, accumulate: bool):
+        """gw0 = (``accumulate``: +=) the weight-gradient blocks written into ``buf`` (padding
+        columns dropped)."""
         if buf is not None:
-            T = _WP_DTYPE[gw0.dtype]
-            launch.n(K.pack_kernel(self.segs, self.shape[1], T, T, True), gw0.numel(), gw0, buf)
+            launch.n(K.unpack_kernel(self.segs, self.shape[1], _WP_DTYPE[gw0.dtype], _WP_DTYPE[buf.dtype],
+                                     accumulate), gw0.numel(), gw0, buf)
 
 
 def _linear(x, w, b, relu: bool):
@@ -492,11 +547,31 @@ def _relu_grad(launch, plan, act, g, gb):
         torch.sum(g, 0, dtype=plan.acc_dtype, out=gb)
 
 
-def _mlp_backward(launch, plan, side, g, hs, ws, gws, gbs, need_w: bool, summed: bool):
+def _gemm_accumulates(compute_dtype: torch.dtype, grad_dtype: torch.dtype, device: torch.device) -> bool:
+    """Whether a weight-gradient GEMM of ``compute_dtype`` operands can add straight into a
+    ``grad_dtype`` buffer (``_wgrad``): same dtype anywhere; fp16 / bf16 operands into float32 on
+    CUDA through torch's ``addmm(..., out_dtype=)`` (not on the CPU)."""
+    if compute_dtype == grad_dtype:
+        return True
+    return (device.type == "cuda" and grad_dtype == torch.float32 and compute_dtype in (torch.float16, torch.bfloat16)
+            and hasattr(torch.ops.aten.addmm, "dtype_out"))
+
+
+def _wgrad(a, b, out, accumulate: bool):
+    """out = a @ b, or (``accumulate``) out += a @ b: the GEMM adds in its epilogue (beta = 1),
+    in ``out``'s dtype (float32 accumulation of fp16 / bf16 operands, ``_gemm_accumulates``)."""
+    if not accumulate:
+        return torch.mm(a, b, out=out)
+    if a.dtype == out.dtype:
+        return torch.addmm(out, a, b, out=out)
+    return torch.addmm(out, a, b, out_dtype=out.dtype, out=out)
+
+
+def _mlp_backward(launch, plan, side, g, hs, ws, gws, gbs, need_w: bool, summed: bool, accumulate: bool = False):
     """Backward through layers L..1 of an MLP from ``g``, the gradient of its output.
 
-    Writes the weight gradients of layers 1..L into ``gws`` (GEMMs on ``side``, off the critical
-    path) and the bias gradients of layers
+    Writes (``accumulate``: adds) the weight gradients of layers 1..L into ``gws`` (GEMMs on
+    ``side``, off the critical path) and the bias gradients of layers
     0..L into ``gbs`` (``summed``: the kernel that made ``g`` already added the output bias's
     gradient into gbs[-1]). Returns the gradient at the first layer's pre-activation."""
     if need_w and not summed:
@@ -505,7 +580,7 @@ def _mlp_backward(launch, plan, side, g, hs, ws, gws, gbs, need_w: bool, summed:
         x = hs[l - 1]
         if need_w:
             with side(g, x):
-                torch.mm(g.t(), x, out=gws[l])
+                _wgrad(g.t(), x, gws[l], accumulate)
         gh = torch.mm(g, ws[l])
         _relu_grad(launch, plan, x, gh, gbs[l - 1] if need_w else None)
         g = gh
@@ -597,18 +672,22 @@ class _SplitBlock(torch.autograd.Function):
     with params = edge MLP [W0, b0, ...] + node MLP + global MLP. Outputs: (nodes', edges'[,
     globals']) in the parameters' dtype.
 
-    Forward: edge update with its first layer on the concatenated, gathered input rows
-    (``concat``: one kernel, then one GEMM) when the gathered pieces are narrow, else split
-    (node / global projections once per node / graph, gathered per edge by ``first_layer``);
-    the other layers as GEMMs with bias and ReLU in cuBLASLt's epilogue; the output cast and
-    the sum by receiver in one pass (``scatter_out``), per-graph sums as ordered segment sums;
-    node and global updates on their concatenated input rows. First-layer GEMMs run on operands
-    zero-padded to 8-column multiples (cuBLAS's Hopper kernels). Backward: GEMMs for weight and
-    input gradients (weights written straight into one flat buffer), ReLU masks and bias
-    gradients (column sums) fused in one pass per layer, the gathers of the scatter-sums fused
-    with the output bias gradient, and one atomic scatter of the first-layer gradient (split
-    mode) or of the input gradient's node columns (concat mode) to senders and receivers;
-    per-graph sums as ordered segment sums."""
+    Forward: the parameters in the compute dtype and the first-layer weights as aligned, padded
+    blocks in one launch (``_prepare``); edge update with its first layer on the concatenated,
+    gathered input rows (``concat``: one kernel, then one GEMM) when the gathered pieces are
+    narrow, else split (node / global projections once per node / graph, gathered per edge by
+    ``first_layer``); the other layers as GEMMs with bias and ReLU in cuBLASLt's epilogue; the
+    output cast and the sum by receiver in one pass (``scatter_out``), per-graph sums as ordered
+    segment sums; node and global updates on their concatenated input rows. First-layer GEMMs
+    run on operands zero-padded to 8-column multiples (cuBLAS's Hopper kernels). Backward: each
+    update starts with one gather kernel that reads the incoming gradient as autograd hands it
+    over (any dtype and strides), adds the gradients of the sums it fed, and sums the output
+    bias gradient; GEMMs for weight gradients (on a side stream; with FlatAdam added straight
+    into ``main_grad``) and input gradients; ReLU masks and bias gradients (column sums) fused in
+    one pass per layer; the gradient of each update's concatenated input rows handed back to
+    its inputs in one ``split`` pass (stored, or added by sender / receiver / graph into input
+    gradients summed in float32), or, for the split first layer, one atomic scatter to senders,
+    receivers and graphs; ordered segment sums in deterministic mode."""
 
     @staticmethod
     def forward(ctx, plan: _Plan, keep: bool, gi: GraphIndex, v, e, u, *params):
@@ -622,7 +701,11 @@ class _SplitBlock(torch.autograd.Function):
         ph = launch.placeholder
         det = plan.deterministic
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
-        pc = _cast_params(params, cd)
+        n_e, n_n = plan.n_edge_params, plan.n_edge_params + plan.n_node_params
+        first = [(0, c.edge_layout, not plan.edge_concat), (n_e, c.node_layout, False)]
+        if c.update_globals:
+            first.append((n_n, c.global_layout, False))
+        pc, fls = _prepare(launch, plan, params, first)
         pe, pn, pg = _split_mlp_params(plan, pc)
         # inputs in the compute dtype, zero-padded, only for the split edge first layer's GEMMs:
         # the concat kernels read the inputs as they are (any float dtype, any width)
@@ -637,7 +720,7 @@ class _SplitBlock(torch.autograd.Function):
             we, be = pe[0::2], pe[1::2]
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
-            fl_e = _FirstLayer(launch, plan, we[0], c.edge_layout, split=not plan.edge_concat)
+            fl_e = fls[0]
             x_e = None
             if plan.edge_concat:
                 x_e = _concat(launch, plan, E, c.edge_layout,
@@ -671,7 +754,7 @@ class _SplitBlock(torch.autograd.Function):
             wn, bn = pn[0::2], pn[1::2]
             x_n = _concat(launch, plan, N, c.node_layout,
                           {"nodes": (v, None), "received_edges": (agg, None), "globals": (u, gi.node_graph)})
-            fl_n = _FirstLayer(launch, plan, wn[0], c.node_layout, split=False)
+            fl_n = fls[n_e]
             hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
             if sum_v is not None:
                 _segment(launch, plan, v_out, None, gi.node_offsets, sum_v)
@@ -684,7 +767,7 @@ class _SplitBlock(torch.autograd.Function):
                 wg, bg = pg[0::2], pg[1::2]
                 x_g = _concat(launch, plan, B, c.global_layout,
                               {"globals": (u, None), "nodes": (sum_v, None), "edges": (sum_e, None)})
-                fl_g = _FirstLayer(launch, plan, wg[0], c.global_layout, split=False)
+                fl_g = fls[n_n]
                 hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep)
                 u_ret = u_out.to(out_dtype)
 
@@ -692,8 +775,8 @@ class _SplitBlock(torch.autograd.Function):
         # intermediates (not outputs: no reference cycle) for the hand-written backward
         ctx.saved = None if not keep else dict(v=v_c, e=e_c, u=u_c, fl_e=fl_e, fl_n=fl_n, fl_g=fl_g, x_e=x_e,
                                                x_n=x_n, x_g=x_g, hs_e=hs_e, hs_n=hs_n, hs_g=hs_g, pc=pc)
-        ctx.in_dtypes = (None if v is None else v.dtype, None if e is None else e.dtype,
-                         None if u is None else u.dtype)
+        ctx.in_dtypes = tuple(None if x is None else x.dtype for x in (v, e, u))
+        ctx.in_widths = tuple(None if x is None else x.shape[1] for x in (v, e, u))
         ctx.param_dtypes = [p.dtype for p in params]
         # FlatAdam's parameters: the backward adds their gradients into ``main_grad`` (one launch
         # for the weights, one for the biases) and returns None for them
@@ -720,34 +803,41 @@ class _SplitBlock(torch.autograd.Function):
         need_v, need_e, need_u = need[2], need[3], need[4]
         need_w = any(need[5:])
         pe, pn, pg = _split_mlp_params(plan, pc)
-        # only read (these kernels never write their inputs), so torch's buffers need no copy
-        grad_in = (lambda g: None if g is None else g.to(cd).contiguous())
-        gv_out, ge_out, gu_out = grad_in(gv_out), grad_in(ge_out), grad_in(gu_out)
-        gv = gu = ge = None                      # input gradients (compute dtype)
-
-        def add(acc, x):
-            return x if acc is None else acc + x
+        in_dt, in_w = ctx.in_dtypes, ctx.in_widths
+        # The incoming gradients (gv_out, ge_out, gu_out) are read as autograd hands them over (any
+        # float dtype, any strides) by the gather kernels that start each update's backward.
+        ge = None
 
         ecols, ncols = column_slices(c.edge_layout), column_slices(c.node_layout)
         H = pe[0].shape[0]
         node_pieces = [n for n in ("sender_nodes", "receiver_nodes") if n in ecols]
         edge_glob = "globals" in ecols
-        # Parameter gradients: weights written by the GEMMs into one compute-dtype buffer; biases
-        # (column sums) and the scatter destinations of the backward in one accumulation-dtype
-        # buffer, zeroed once (atomics add into it).
-        w_shapes = [tuple(p.shape) if (need_w and k % 2 == 0) else None for k, p in enumerate(pc)]
-        b_shapes = [tuple(p.shape) if (need_w and k % 2 == 1) else None for k, p in enumerate(pc)]
         edge_concat = s["x_e"] is not None
-        if edge_concat:  # sums of the input gradient's node / global columns (only for input gradients)
-            kv = _width(ecols, node_pieces[0]) if node_pieces else 0
-            scat_shapes = [(N, kv * (len(node_pieces) if det else 1)) if (node_pieces and need_v) else None,
-                           (B, _width(ecols, "globals")) if (edge_glob and need_u) else None]
-        else:  # sums of the first-layer gradient by sender, receiver and graph
-            scat_shapes = [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None]
-        scat_shapes.append((B, _width(ncols, "globals")) if (need_u and "globals" in ncols) else None)
+        # Parameter gradients. With FlatAdam's ``main_grad`` (and every parameter wanted), the
+        # weight-gradient GEMMs add straight into it (cuBLAS's epilogue, float32 for fp16 / bf16
+        # operands where torch offers it) and the bias sums' atomics target it: no gradient
+        # buffer and no accumulate launch. Otherwise weights go to one compute-dtype buffer and
+        # biases to one accumulation-dtype buffer, added into ``main_grad`` (or returned) at the end.
+        mains = [p.main_grad for p in ctx.main_params] if (need_w and ctx.main_params is not None) else None
+        every = all(need[5:])
+        w_main = mains is not None and every and _gemm_accumulates(cd, mains[0].dtype, dev)
+        b_main = mains is not None and every and not det and mains[0].dtype == ad
+        w_shapes = [tuple(p.shape) if (need_w and k % 2 == 0 and not w_main) else None for k, p in enumerate(pc)]
+        b_shapes = [tuple(p.shape) if (need_w and k % 2 == 1 and not b_main) else None for k, p in enumerate(pc)]
+        # input gradients, summed in the accumulation dtype (the updates' pieces add into them);
+        # the split edge first layer's gradient summed by sender / receiver and by graph
+        acc_shapes = [(N, in_w[0]) if need_v else None, (B, in_w[2]) if need_u else None]
+        if not edge_concat:
+            acc_shapes += [(N, H * len(node_pieces)) if node_pieces else None, (B, H) if edge_glob else None]
         gws_all, gw_buf, w_offs = _carve(w_shapes, cd, dev, zero=False)
-        views, b_buf, b_offs = _carve(b_shapes + scat_shapes, ad, dev, zero=not det)
-        gbs_all, (p_nodes, p_glob, gu_nodes) = views[:len(pc)], views[len(pc):]
+        views, b_buf, b_offs = _carve(b_shapes + acc_shapes, ad, dev, zero=True)
+        gbs_all = views[:len(pc)]
+        gv_acc, gu_acc = views[len(pc)], views[len(pc) + 1]
+        p_nodes, p_glob = views[len(pc) + 2:] if not edge_concat else (None, None)
+        if w_main:
+            gws_all = [mains[k] if k % 2 == 0 else None for k in range(len(pc))]
+        if b_main:
+            gbs_all = [mains[k] if k % 2 == 1 else None for k in range(len(pc))]
         offsets = (0, plan.n_edge_params, plan.n_edge_params + plan.n_node_params, len(pc))
 
         def mlp_grads(k):
@@ -763,14 +853,16 @@ class _SplitBlock(torch.autograd.Function):
             if c.update_globals and gu_out is not None:
                 wg = pg[0::2]
                 gws, gbs = mlp_grads(2)
-                g0 = _mlp_backward(launch, plan, side, gu_out, s["hs_g"], wg, gws, gbs, need_w, False)
+                gu_tot, summed = _gather_add(launch, plan, B, c.global_out, gu_out, (None, None), (None, None),
+                                             gbs[-1] if need_w else None)
+                g0 = _mlp_backward(launch, plan, side, gu_tot, s["hs_g"], wg, gws, gbs, need_w, summed, w_main)
                 fl = s["fl_g"]
-                g_x = fl.backward_concat(launch, plan, side, g0, s["x_g"], gws[0] if need_w else None)
+                g_x = fl.backward_concat(launch, plan, side, g0, s["x_g"], gws[0] if need_w else None, w_main)
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
                 if need_u and "globals" in gcols:
-                    gu = g_x[:, gcols["globals"]]
+                    _route(launch, plan, g_x, c.global_layout, {"globals": (gu_acc, None, None)})
                 done[2] = True
 
             # ---- node update -------------------------------------------------------------------
@@ -780,15 +872,16 @@ class _SplitBlock(torch.autograd.Function):
                                          gbs[-1] if need_w else None)
             if gv_tot is not None:
                 wn = pn[0::2]
-                g0 = _mlp_backward(launch, plan, side, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed)
+                g0 = _mlp_backward(launch, plan, side, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed, w_main)
                 fl = s["fl_n"]
-                g_x = fl.backward_concat(launch, plan, side, g0, s["x_n"], gws[0] if need_w else None)
+                g_x = fl.backward_concat(launch, plan, side, g0, s["x_n"], gws[0] if need_w else None, w_main)
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
+                routes = {}
                 if need_v and "nodes" in ncols:
-                    gv = g_x[:, ncols["nodes"]]
+                    routes["nodes"] = (gv_acc, None, None)
                 if need_u and "globals" in ncols:
-                    _segment(launch, plan, g_x[:, ncols["globals"]], None, gi.node_offsets, gu_nodes)
-                    gu = add(gu, gu_nodes.to(cd))
+                    routes["globals"] = (gu_acc, gi.node_graph, (None, gi.node_offsets))
+                _route(launch, plan, g_x, c.node_layout, routes)
                 done[1] = True
 
             # ---- edge update -------------------------------------------------------------------
@@ -797,22 +890,26 @@ class _SplitBlock(torch.autograd.Function):
                                          (g_sum_e, gi.edge_graph), gbs[-1] if need_w else None)
             if ge_tot is not None:
                 we = pe[0::2]
-                g0 = _mlp_backward(launch, plan, side, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed)
+                g0 = _mlp_backward(launch, plan, side, ge_tot, s["hs_e"], we, gws, gbs, need_w, summed, w_main)
                 fl = s["fl_e"]
-                blocks, buf = fl.grad_blocks(gws[0]) if need_w else (None, None)
+                blocks, buf = fl.grad_blocks(gws[0]) if (need_w and not edge_concat) else (None, None)
                 if edge_concat:
                     if need_w:
-                        with side(g0, s["x_e"]):
-                            torch.mm(g0.t(), s["x_e"], out=blocks["all"])
+                        fl.weight_grad(plan, side, g0, s["x_e"], gws[0], w_main)
                     if need_e or need_v or need_u:
                         g_x = torch.mm(g0, fl.w["all"])
+                        routes = {}
                         if need_e and "edges" in ecols:
-                            ge = g_x[:, ecols["edges"]]
-                        if need_v and node_pieces:
-                            gv = add(gv, _scatter_node_columns(launch, plan, gi, g_x, ecols, node_pieces, p_nodes))
+                            ge = torch.empty(E, in_w[1], dtype=in_dt[1], device=dev)
+                            routes["edges"] = (ge, None, None)
+                        if need_v:
+                            for name in node_pieces:
+                                snd = name == "sender_nodes"
+                                routes[name] = (gv_acc, gi.senders if snd else gi.receivers,
+                                                (gi.send_perm, gi.send_offsets) if snd else (gi.recv_perm, gi.recv_offsets))
                         if need_u and edge_glob:
-                            _segment(launch, plan, g_x[:, ecols["globals"]], None, gi.edge_offsets, p_glob)
-                            gu = add(gu, p_glob.to(cd))
+                            routes["globals"] = (gu_acc, gi.edge_graph, (None, gi.edge_offsets))
+                        _route(launch, plan, g_x, c.edge_layout, routes, store=("edges",))
                     done[0] = True
                 elif "edges" in ecols:
                     if need_w:
@@ -833,27 +930,28 @@ class _SplitBlock(torch.autograd.Function):
                             for k in range(len(node_pieces)):
                                 torch.mm(pn_c[:, k * H:(k + 1) * H].t(), s["v"], out=blocks["nodes"][k * H:(k + 1) * H])
                     if need_v:
-                        gv = add(gv, torch.mm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
+                        gv_acc.add_(torch.mm(pn_c, fl.w["nodes"])[:, :_width(ecols, node_pieces[0])])
                 if not edge_concat and want_glob:
                     pg_c = p_glob.to(cd)
                     if need_w:
                         with side(pg_c, s["u"]):
                             torch.mm(pg_c.t(), s["u"], out=blocks["globals"])
                     if need_u:
-                        gu = add(gu, torch.mm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
-                if need_w:
-                    side.after(lambda fl=fl, buf=buf, gw0=gws[0]: fl.unpack(launch, plan, buf, gw0))
+                        gu_acc.add_(torch.mm(pg_c, fl.w["globals"])[:, :_width(ecols, "globals")])
+                if need_w and not edge_concat:  # the blocks' GEMMs may run on several side streams
+                    side.after(lambda fl=fl, buf=buf, gw0=gws[0]: fl.unpack(launch, plan, buf, gw0, w_main))
                 done[0] = True
 
         side.join()  # the weight gradients are complete from here on
-        in_dt = ctx.in_dtypes
-        out = [None if g is None else g.to(dt) for g, dt in ((gv, in_dt[0]), (ge, in_dt[1]), (gu, in_dt[2]))]
+        out = [None if (g is None or not want) else g if g.dtype == dt else g.to(dt)
+               for g, dt, want in ((gv_acc, in_dt[0], need_v), (ge, in_dt[1], need_e), (gu_acc, in_dt[2], need_u))]
         params_out = [None] * len(pc)
-        if need_w and ctx.main_params is not None:
-            mains = [p.main_grad for p in ctx.main_params]
+        if mains is not None:
             got = [need[5 + k] and done[0 if k < offsets[1] else 1 if k < offsets[2] else 2] for k in range(len(pc))]
-            accumulate_main_grads(launch, gw_buf, [(w_offs[k], k) for k in range(0, len(pc), 2) if got[k]], mains)
-            accumulate_main_grads(launch, b_buf, [(b_offs[k], k) for k in range(1, len(pc), 2) if got[k]], mains)
+            if not w_main:
+                accumulate_main_grads(launch, gw_buf, [(w_offs[k], k) for k in range(0, len(pc), 2) if got[k]], mains)
+            if not b_main:
+                accumulate_main_grads(launch, b_buf, [(b_offs[k], k) for k in range(1, len(pc), 2) if got[k]], mains)
         elif need_w:
             pdt = ctx.param_dtypes[0]
             if gw_buf.dtype != pdt:  # reduced precision: one cast of all weight gradients
@@ -866,23 +964,38 @@ class _SplitBlock(torch.autograd.Function):
         return (None, None, None, *out, *params_out)
 
 
-def _scatter_node_columns(launch, plan, gi, g_x, cols, node_pieces, out):
-    """Input gradient of the nodes from the concatenated edge first layer: the sender and
-    receiver column blocks of ``g_x`` (gradient of the input rows [e, v_s, v_r, u]) summed by
-    sender and by receiver into ``out`` (atomics into one zero-filled [N, width] buffer, or
-    ordered segment sums into [N, 2 * width] whose halves are added)."""
-    width = _width(cols, node_pieces[0])
-    for k, name in enumerate(node_pieces):
-        sender = name == "sender_nodes"
-        if plan.deterministic:
-            _segment(launch, plan, g_x, gi.send_perm if sender else gi.recv_perm,
-                     gi.send_offsets if sender else gi.recv_offsets, out, cols[name].start, k * width, width)
-        else:
-            launch(K.scatter_add_kernel(width, plan.wp_dtype, plan.wp_acc), (g_x.shape[0], width), g_x,
-                   gi.senders if sender else gi.receivers, cols[name].start, 0, out)
-    if plan.deterministic and len(node_pieces) == 2:
-        return (out[:, :width] + out[:, width:]).to(plan.compute_dtype)
-    return out.to(plan.compute_dtype)
+def _route(launch, plan, g_x, layout, routes, store=()):
+    """Backward of ``_concat``: the gradient ``g_x`` of an update's input rows handed back to its
+    inputs, in one ``split_kernel`` pass. ``routes``: {piece: (out, index, segments)}: the
+    piece's columns of row r are added into ``out`` at row ``index[r]`` (atomic), or at row r
+    when ``index`` is None; pieces named in ``store`` are stored at row r instead (no other
+    piece writes there). Pieces not in ``routes`` are left alone (read in place by their
+    consumers). Deterministic mode adds the indexed pieces by ordered segment sums
+    (``segments`` = (CSR perm or None, offsets)) after the pass, one launch each."""
+    if not routes:
+        return
+    cols = column_slices(layout)
+    ph = launch.placeholder
+    pieces, later = [], []
+    for name, (out, index, segments) in routes.items():
+        sl = cols[name]
+        if plan.deterministic and index is not None:
+            later.append((sl, out, segments))
+            continue
+        mode = K.SPLIT_STORE if name in store else K.SPLIT_ADD
+        pieces.append(((sl.start, sl.stop - sl.start, mode, index is not None, _WP_DTYPE[out.dtype]), index, out))
+    if pieces:
+        rows, cols_total = g_x.shape[0], sum(p[0][1] for p in pieces)
+        if rows * cols_total >= 2 ** 31:  # thread ids are int32
+            raise ValueError(f"batch too large for one GN block launch: {rows} rows x {cols_total} gradient "
+                             "columns exceeds 2**31; split the batch")
+        kernel = K.split_kernel(tuple(p[0] for p in pieces), plan.wp_dtype)
+        pad = 4 - len(pieces)
+        launch.n(kernel, rows * cols_total, g_x,
+                 *[p[1] if p[1] is not None else ph(torch.int32, 1) for p in pieces], *[ph(torch.int32, 1)] * pad,
+                 *[p[2] for p in pieces], *[ph(plan.compute_dtype, 2)] * pad)
+    for sl, out, (perm, offsets) in later:
+        _segment(launch, plan, g_x, perm, offsets, out, sl.start, 0, sl.stop - sl.start, accumulate=True)
 
 
 def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
@@ -910,9 +1023,9 @@ def _scatter_first_layer(launch, plan, gi, g0, node_pieces, p_nodes, p_glob):
             _segment(launch, plan, g0, None, gi.edge_offsets, p_glob)
 
 
-def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=None):
+def _segment(launch, plan, src, perm, offsets, out, src_col=0, dst_col=0, width=None, accumulate=False):
     W = src.shape[1] if width is None else width
-    k = K.segment_sum_kernel(W, perm is not None, _WP_DTYPE[src.dtype], _WP_DTYPE[out.dtype])
+    k = K.segment_sum_kernel(W, perm is not None, _WP_DTYPE[src.dtype], _WP_DTYPE[out.dtype], accumulate)
     launch(k, (out.shape[0], W), src, perm if perm is not None else launch.placeholder(torch.int32, 1),
            offsets, src_col, dst_col, out)
 
@@ -922,19 +1035,31 @@ def _width(cols, name):
 
 
 def _gather_add(launch, plan, rows, width, base, a, b, gb):
-    """(base + src_a[index_a] + src_b[index_b] over ``rows`` rows, whether ``gb`` got its column
-    sums): the gather kernel adds the column sums of its result into ``gb`` (atomics) when given
-    and not deterministic. Returns (base, False) when nothing is gathered (None if all are None)."""
+    """(base + src_a[index_a] + src_b[index_b] over ``rows`` rows in the compute dtype, contiguous;
+    whether ``gb`` got its column sums): one kernel, which reads ``base`` (an incoming gradient)
+    in its own dtype and strides and adds the column sums of its result into ``gb`` (atomics)
+    when given and not deterministic. Returns (base, False) when there is nothing to gather,
+    cast or sum, (None, False) when all are None."""
     (src_a, idx_a), (src_b, idx_b) = a, b
-    if src_a is None and src_b is None:
-        return base, False
     ph = launch.placeholder
     cd = plan.compute_dtype
     fused = gb is not None and not plan.deterministic
-    out = torch.empty(rows, width, dtype=cd, device=(src_a if src_a is not None else src_b).device)
+    if src_a is None and src_b is None:
+        if base is None:
+            return None, False
+        if not fused and base.dtype == cd and base.is_contiguous():
+            return base, False
+    if base is not None and (base.dim() != 2 or base.shape != (rows, width)):
+        raise ValueError(f"gradient of a GN block output: expected shape {(rows, width)}, got {tuple(base.shape)}")
+    if base is not None and min(base.stride()) <= 0:  # broadcast (expanded) gradients: one real row
+        base = base.contiguous()
+    out = torch.empty(rows, width, dtype=cd, device=(src_a if src_a is not None else src_b if src_b is not None
+                                                     else base).device)
     chunk = K.chunk_rows(rows, width)
     launch.n(K.gather_add_sum_kernel(width, base is not None, src_a is not None, src_b is not None, fused,
-                                     plan.wp_dtype), K.chunk_dim(rows, width, chunk),
+                                     plan.wp_dtype, _WP_DTYPE[base.dtype] if base is not None and base.dtype != cd
+                                     else None),
+             K.chunk_dim(rows, width, chunk),
              base if base is not None else ph(cd, 2), src_a if src_a is not None else ph(cd, 2),
              idx_a if src_a is not None else ph(torch.int32, 1), src_b if src_b is not None else ph(cd, 2),
              idx_b if src_b is not None else ph(torch.int32, 1), rows, chunk, out,

@@ -193,8 +193,9 @@ class FlatAdam(torch.optim.Optimizer):
                 raise FloatingPointError(f"FlatAdam: gradient norm is {n}: a gradient holds NaN or Inf "
                                          "(parameters left unchanged)")
         wd = group["weight_decay"]
-        launch.n(K.adam_kernel(T, wd > 0, self.decoupled), self.numel, self.flat, self.grad_flat, self.exp_avg,
-                 self.exp_avg_sq, self.scalars, b1, b2, group["eps"], wd)
+        nt = K.adam_threads(self.numel)
+        launch.n(K.adam_kernel(T, wd > 0, self.decoupled), nt, self.flat, self.grad_flat, self.exp_avg,
+                 self.exp_avg_sq, self.scalars, self.numel, nt, b1, b2, group["eps"], wd)
         return loss
 
     # -- checkpoints ---------------------------------------------------------------------------

@@ -19,9 +19,12 @@ depends on the graph:
   in one pass.
 - ``segment_sum``: the deterministic aggregation: each destination row sums its segment of a
   CSR layout (rows sorted by destination) in a fixed order.
-- ``scatter_add`` / ``scatter_edges``: atomic scatter-sums of gradient rows (backward of the
-  gathers; ``scatter_edges`` sends each row of the edge first-layer gradient to its sender,
-  receiver and graph in one pass).
+- ``scatter_edges``: backward of the split edge first layer: each row of its gradient added to
+  its sender's, receiver's and graph's rows (atomic) in one pass.
+- ``split``: the adjoint of ``concat``: the gradient of an update's input rows routed back to
+  its inputs (stored, or added by sender / receiver / graph) in one pass.
+- ``prep``: a block's parameters in the compute dtype and its first-layer weights as aligned,
+  zero-padded blocks, in one launch per forward.
 - ``gather_add_sum``: backward of the scatter-sums (sum of gathered rows), fused with the column
   sums of the result (the output layer's bias gradient).
 - ``relu_grad_sum``: backward of ReLU from the saved activation, fused with the column sums of
@@ -73,13 +76,20 @@ __all__ = [
     "concat_threads",
     "concat_kernel",
     "scatter_out_kernel",
+    "SPLIT_STORE",
+    "SPLIT_ADD",
+    "split_kernel",
     "segment_sum_kernel",
-    "scatter_add_kernel",
     "scatter_edges_kernel",
     "gather_add_sum_kernel",
+    "PREP_SLOTS",
+    "PREP_VEC",
+    "prep_threads",
+    "prep_kernel",
     "relu_chunk_rows",
     "relu_grad_dim",
     "relu_grad_sum_kernel",
+    "unpack_kernel",
 ]
 
 
@@ -165,8 +175,9 @@ def first_layer_kernel(width: int, has_direct: bool, has_sender: bool, has_recei
 
 
 @functools.cache
-def segment_sum_kernel(width: int, has_perm: bool, src_dtype, dst_dtype):
-    """sum_out[s, dst_col + j] = sum over p in [offsets[s], offsets[s+1]) of src_in[perm[p], src_col + j].
+def segment_sum_kernel(width: int, has_perm: bool, src_dtype, dst_dtype, accumulate: bool = False):
+    """sum_out[s, dst_col + j] = sum over p in [offsets[s], offsets[s+1]) of src_in[perm[p], src_col + j]
+    (``accumulate``: added to what sum_out holds).
 
     Sums in a fixed order (deterministic, bitwise reproducible). Without ``perm`` the segments
     are contiguous row ranges of ``src_in`` (nodes or edges of one graph). Rows: segments.
@@ -199,40 +210,12 @@ def segment_sum_kernel(width: int, has_perm: bool, src_dtype, dst_dtype):
                     acc += A(src_in[perm[p], src_col + j])
                 else:
                     acc += A(src_in[p, src_col + j])
-            sum_out[s, dst_col + j] = D(acc)
+            if wp.static(accumulate):
+                sum_out[s, dst_col + j] = sum_out[s, dst_col + j] + D(acc)
+            else:
+                sum_out[s, dst_col + j] = D(acc)
 
     return segment_sum
-
-
-@functools.cache
-def scatter_add_kernel(width: int, src_dtype, dst_dtype):
-    """sum_out[index[r], dst_col + j] += src_in[r, src_col + j] (atomic)."""
-    V = vec(width)
-    WV = width // V
-    S = src_dtype
-    D = dst_dtype
-
-    @wp.kernel(module="unique", module_options=_options())
-    def scatter_add(
-        # Data in:
-        src_in: wp.array2d(dtype=S),
-        index: wp.array(dtype=wp.int32),
-        src_col: int,
-        dst_col: int,
-        # Data out:
-        sum_out: wp.array2d(dtype=D),
-    ):
-        i = wp.tid()
-        r = i // WV
-        j0 = i - r * WV
-        d = index[r]
-        xs = wp.vector(length=V, dtype=D)
-        for k in range(V):
-            xs[k] = D(src_in[r, src_col + j0 + k * WV])
-        for k in range(V):
-            wp.atomic_add(sum_out, d, dst_col + j0 + k * WV, xs[k])
-
-    return scatter_add
 
 
 # -- fused split path: input rows, output epilogue, column sums -----------------------------------
@@ -453,6 +436,83 @@ def scatter_out_kernel(width: int, scatter_a: bool, scatter_b: bool, copy: bool,
     return scatter_out
 
 
+SPLIT_STORE, SPLIT_ADD = "store", "add"
+
+
+def _split_piece(col: int, mode: str, indexed: bool, in_dtype, out_dtype):
+    """One piece of ``split_kernel``: column ``col + j`` of row r of the gradient stored at
+    out[r, j] or added (atomic) at out[index[r] if ``indexed`` else r, j]."""
+    C, Ti, O = col, in_dtype, out_dtype
+
+    @wp.func
+    def route(g_in: wp.array2d(dtype=Ti), index: wp.array(dtype=wp.int32), r: int, j: int,
+              out: wp.array2d(dtype=O)):
+        x = O(g_in[r, C + j])
+        if wp.static(mode == SPLIT_STORE):
+            out[r, j] = x
+        else:
+            d = r
+            if wp.static(indexed):
+                d = index[r]
+            wp.atomic_add(out, d, j, x)
+
+    return route
+
+
+@functools.cache
+def split_kernel(pieces: tuple, in_dtype):
+    """Adjoint of ``concat_kernel``: the gradient of concatenated input rows ``g_in`` handed back
+    to the inputs it was built from, piece by piece, in one pass. ``pieces``: up to four
+    (col, width, mode, indexed, out_dtype): columns [col, col + width) of each row r are stored
+    at ``out_k[r]`` (mode ``SPLIT_STORE``: the edge update's own input) or added, atomically, at
+    ``out_k[index_k[r]]`` (``SPLIT_ADD`` with ``indexed``: the sender / receiver node columns,
+    the graph's global columns) or at ``out_k[r]`` (``SPLIT_ADD``: a row-aligned input whose
+    gradient also receives other pieces' sums). Columns of no piece (padding, or an input whose
+    gradient is read in place) get no thread: launch ``rows * sum of widths`` threads, one per
+    element, consecutive threads on consecutive columns of a row (coalesced loads and atomics).
+    Replaces, per update, one scatter launch per indexed piece, a per-graph segment sum, and the
+    casts and adds that merged them (measured on an H200: bench/results/gn_block_nvidia-h200_notes.md)."""
+    ps = list(pieces) + [(0, 0, SPLIT_STORE, False, in_dtype)] * (4 - len(pieces))
+    W0, W1, W2, W3 = (p[1] for p in ps)
+    A1, A2, A3 = W0, W0 + W1, W0 + W1 + W2
+    WA = A3 + W3
+    f0, f1, f2, f3 = (_split_piece(p[0], p[2], p[3], in_dtype, p[4]) for p in ps)
+    O0, O1, O2, O3 = (p[4] for p in ps)
+    Ti = in_dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def split(
+        # Data in:
+        g_in: wp.array2d(dtype=Ti),
+        index_0: wp.array(dtype=wp.int32),
+        index_1: wp.array(dtype=wp.int32),
+        index_2: wp.array(dtype=wp.int32),
+        index_3: wp.array(dtype=wp.int32),
+        # Data out:
+        out_0: wp.array2d(dtype=O0),
+        out_1: wp.array2d(dtype=O1),
+        out_2: wp.array2d(dtype=O2),
+        out_3: wp.array2d(dtype=O3),
+    ):
+        t = wp.tid()
+        r = t // WA
+        c = t - r * WA
+        if wp.static(W0 > 0):
+            if c < A1:
+                f0(g_in, index_0, r, c, out_0)
+        if wp.static(W1 > 0):
+            if c >= A1 and c < A2:
+                f1(g_in, index_1, r, c - A1, out_1)
+        if wp.static(W2 > 0):
+            if c >= A2 and c < A3:
+                f2(g_in, index_2, r, c - A2, out_2)
+        if wp.static(W3 > 0):
+            if c >= A3:
+                f3(g_in, index_3, r, c - A3, out_3)
+
+    return split
+
+
 def relu_chunk_rows(rows: int, width: int) -> int:
     """Rows per thread of ``relu_grad_sum``: 8 for small layers, 16 from 1M elements (measured on
     an H200 with ``bench/relu_grad_probe.py``: 16 rows won at 3600 x 512 and 73728 x 512, 8 at
@@ -523,19 +583,24 @@ def relu_grad_sum_kernel(width: int, has_sum: bool, dtype):
 
 
 @functools.cache
-def gather_add_sum_kernel(width: int, has_base: bool, has_a: bool, has_b: bool, has_sum: bool, dtype):
+def gather_add_sum_kernel(width: int, has_base: bool, has_a: bool, has_b: bool, has_sum: bool, dtype,
+                          base_dtype=None):
     """out[r] = base_in[r] + src_a_in[index_a[r]] + src_b_in[index_b[r]] (backward of the
     scatter-sums: each row receives the gradient of the sums it was added into), and
-    sum_out[j] += out[:, j] summed over the rows (the output layer's bias gradient). Chunked."""
+    sum_out[j] += out[:, j] summed over the rows (the output layer's bias gradient). Chunked.
+
+    ``base_in`` (the gradient of the block's output, as autograd hands it over) is read in its
+    own dtype (``base_dtype``, default ``dtype``) and strides: no cast or copy before."""
     W = width
     RB = ROW_BATCH
     T = dtype
+    Tb = dtype if base_dtype is None else base_dtype
     A = acc_dtype(dtype)
 
     @wp.kernel(module="unique", module_options=_options())
     def gather_add_sum(
         # Data in:
-        base_in: wp.array2d(dtype=T),
+        base_in: wp.array2d(dtype=Tb),
         src_a_in: wp.array2d(dtype=T),
         index_a: wp.array(dtype=wp.int32),
         src_b_in: wp.array2d(dtype=T),
@@ -626,21 +691,19 @@ def scatter_edges_kernel(width: int, has_sender: bool, has_receiver: bool, has_g
 
 # -- aligned weight blocks ----------------------------------------------------------------------
 @functools.cache
-def pack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, unpack: bool):
-    """Copy column blocks of a row-major [rows, cols] matrix to (``unpack``: from) a flat buffer:
-    ``flat[off + (row0 + i) * stride + (c - col0)] <-> mat[i, c]`` for the columns c in
-    [col0, col0 + width) of each segment (col0, width, off, stride, row0); four at most.
-
-    Packs the column blocks of a first-layer weight (edges, sender / receiver nodes stacked,
-    globals) into blocks whose rows start 16-byte aligned, so that cuBLAS runs them on its fast
-    (TMA) kernels; and unpacks their gradients. One thread per matrix element."""
+def unpack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, accumulate: bool):
+    """The gradient of a first-layer weight from the aligned blocks its GEMM wrote (``prep_kernel``'s
+    layout): ``mat[i, c] = flat[off + (row0 + i) * stride + (c - col0)]`` (``accumulate``: +=, into
+    a gradient accumulator) for the columns c in [col0, col0 + width) of each segment (col0,
+    width, off, stride, row0) of a row-major [rows, cols] matrix; four segments at most (edges,
+    sender / receiver nodes stacked, globals). One thread per matrix element."""
     segs = list(segments) + [(0, 0, 0, 1, 0)] * (4 - len(segments))
     (C0, W0, O0, S0, R0), (C1, W1, O1, S1, R1), (C2, W2, O2, S2, R2), (C3, W3, O3, S3, R3) = segs
     M = mat_dtype
     F = flat_dtype
 
     @wp.kernel(module="unique", module_options=_options())
-    def pack(
+    def unpack(
         mat: wp.array2d(dtype=M),
         flat: wp.array(dtype=F),
     ):
@@ -661,9 +724,108 @@ def pack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, unpack: bool)
             if c >= C3 and c < C3 + W3:
                 d = O3 + (R3 + i) * S3 + (c - C3)
         if d >= 0:
-            if wp.static(unpack):
-                mat[i, c] = M(flat[d])
+            if wp.static(accumulate):
+                mat[i, c] = mat[i, c] + M(flat[d])
             else:
-                flat[d] = F(mat[i, c])
+                mat[i, c] = M(flat[d])
 
-    return pack
+    return unpack
+
+
+PREP_SLOTS = 6  # block segments of ``prep_kernel``: edge first layer 4 (edges, senders, receivers, globals) + node + global
+PREP_VEC = 8    # elements per thread of ``prep_kernel``
+
+
+def prep_threads(n_cast: int, blocks: tuple, max_vec: int = PREP_VEC) -> tuple:
+    """(threads of the cast region, total launch size) of ``prep_kernel``."""
+    nc = -(-n_cast // max_vec)
+    return nc, nc + sum(-(-rows * stride // max_vec) for _, rows, _, stride, _ in blocks)
+
+
+def _prep_block(dst_off: int, n: int, stride: int, width: int, col0: int, mat_dtype, dtype, max_vec: int):
+    """One block segment of ``prep_kernel``: dst[d0 + dst_off + i * stride + c] = mat[i, col0 + c]
+    for c < width, 0 for width <= c < stride (the padding), for the ``max_vec`` elements
+    j = j0 + k * NT (k < max_vec, j < n = rows * stride) of the thread j0 of NT."""
+    O, S, W, C, M, T, V = dst_off, stride, width, col0, mat_dtype, dtype, max_vec
+    NT = -(-n // V)
+
+    @wp.func
+    def block(mat: wp.array2d(dtype=M), j0: int, d0: int, dst: wp.array(dtype=T)):
+        xs = wp.vector(length=V, dtype=T)  # zero: the padding
+        for k in range(V):  # every load first, then the stores
+            j = j0 + k * NT
+            if j < n:
+                i = j // S
+                c = j - i * S
+                if c < W:
+                    xs[k] = T(mat[i, C + c])
+        for k in range(V):
+            j = j0 + k * NT
+            if j < n:
+                dst[d0 + O + j] = xs[k]
+
+    return block
+
+
+@functools.cache
+def prep_kernel(blocks: tuple, mat_dtype, dtype, max_vec: int = PREP_VEC):
+    """A GN block's parameters made ready for its GEMMs, in one launch (every forward, since the
+    optimizer changes them): the first ``n_cast_threads`` threads cast ``src`` (the block's
+    parameters as one flat span, FlatAdam's buffer) to the compute dtype, ``dst[i] = src[i]``
+    for i < n_cast; the rest write the first-layer weights as aligned, zero-padded blocks from
+    up to ``PREP_SLOTS`` block segments ``blocks`` = ((dst_off, rows, width, stride, col0), ...):
+    rows x stride elements each at ``dst[d0 + dst_off ...]``, read from columns
+    [col0, col0 + width) of the segment's matrix ``mat_k``. Each thread owns ``max_vec``
+    elements strided by its region's thread count (coalesced; loads before stores). Launch
+    ``prep_threads(n_cast, blocks)[1]`` threads. Replaces a cast launch and, per first layer, a
+    zero fill and a pack launch."""
+    V = max_vec
+    bs = list(blocks) + [(0, 0, 0, 1, 0)] * (PREP_SLOTS - len(blocks))
+    counts = [-(-rows * stride // V) for _, rows, _, stride, _ in bs]
+    starts = [0]
+    for n in counts:
+        starts.append(starts[-1] + n)
+    S0, S1, S2, S3, S4, S5, S6 = starts
+    N0, N1, N2, N3, N4, N5 = counts
+    f0, f1, f2, f3, f4, f5 = (_prep_block(b[0], b[1] * b[3], b[3], b[2], b[4], mat_dtype, dtype, V) for b in bs)
+    M = mat_dtype
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=_options())
+    def prep(src: wp.array(dtype=M), n_cast: int, n_cast_threads: int, d0: int,
+             mat_0: wp.array2d(dtype=M), mat_1: wp.array2d(dtype=M), mat_2: wp.array2d(dtype=M),
+             mat_3: wp.array2d(dtype=M), mat_4: wp.array2d(dtype=M), mat_5: wp.array2d(dtype=M),
+             dst: wp.array(dtype=T)):
+        t = wp.tid()
+        if t < n_cast_threads:
+            xs = wp.vector(length=V, dtype=T)
+            for k in range(V):
+                i = t + k * n_cast_threads
+                if i < n_cast:
+                    xs[k] = T(src[i])
+            for k in range(V):
+                i = t + k * n_cast_threads
+                if i < n_cast:
+                    dst[i] = xs[k]
+        else:
+            b = t - n_cast_threads
+            if wp.static(N0 > 0):
+                if b < S1:
+                    f0(mat_0, b, d0, dst)
+            if wp.static(N1 > 0):
+                if b >= S1 and b < S2:
+                    f1(mat_1, b - S1, d0, dst)
+            if wp.static(N2 > 0):
+                if b >= S2 and b < S3:
+                    f2(mat_2, b - S2, d0, dst)
+            if wp.static(N3 > 0):
+                if b >= S3 and b < S4:
+                    f3(mat_3, b - S3, d0, dst)
+            if wp.static(N4 > 0):
+                if b >= S4 and b < S5:
+                    f4(mat_4, b - S4, d0, dst)
+            if wp.static(N5 > 0):
+                if b >= S5 and b < S6:
+                    f5(mat_5, b - S5, d0, dst)
+
+    return prep

@@ -16,7 +16,8 @@ import functools
 
 import warp as wp
 
-__all__ = ["SUMSQ", "STEP", "LR", "COEF", "BC1", "BC2", "NORM", "SCALARS", "BLOCK", "sumsq_kernel",
+__all__ = ["SUMSQ", "STEP", "LR", "COEF", "BC1", "BC2", "NORM", "SCALARS", "BLOCK", "SUMSQ_UNROLL", "sumsq_kernel",
+           "ADAM_VEC", "adam_threads",
            "finalize_kernel", "adam_kernel", "accumulate_kernel"]
 
 # slots of the device scalars array (the norm's tile reduction adds into slot 0: keep SUMSQ first)
@@ -29,24 +30,39 @@ def _options():
     return {"enable_backward": False}
 
 
+SUMSQ_UNROLL = 4  # independent partial sums per thread of ``sumsq`` (loads in flight)
+
+
 @functools.cache
 def sumsq_kernel(dtype):
-    """scalars[SUMSQ] += sum of g[i]**2 over i < n: each thread sums a grid-strided range, each
-    block reduces its threads' sums as a tile and adds the result with one atomic. Launch with
-    ``wp.launch_tiled(dim=[blocks], block_dim=bd)`` and ``stride = blocks * bd`` (``bd`` = 1 on
-    the CPU, where a tile block is one thread)."""
+    """scalars[SUMSQ] += sum of g[i]**2 over i < n: each thread sums a grid-strided range,
+    ``SUMSQ_UNROLL`` elements per iteration into as many partial sums (their loads independent,
+    in flight together), each block reduces its threads' sums as a tile and adds the result with
+    one atomic. Launch with ``wp.launch_tiled(dim=[blocks], block_dim=bd)`` and
+    ``stride = blocks * bd`` (``bd`` = 1 on the CPU, where a tile block is one thread)."""
     T = dtype
+    U = SUMSQ_UNROLL
 
     @wp.kernel(module="unique", module_options=_options())
     def sumsq(g: wp.array(dtype=T), n: int, bd: int, stride: int, scalars: wp.array(dtype=T)):
         b, lane = wp.tid()
         i = b * bd + lane
-        acc = T(0.0)
+        acc = wp.vector(length=U, dtype=T)
+        while i + (U - 1) * stride < n:
+            xs = wp.vector(length=U, dtype=T)
+            for k in range(U):
+                xs[k] = g[i + k * stride]
+            for k in range(U):
+                acc[k] += xs[k] * xs[k]
+            i += U * stride
         while i < n:
             x = g[i]
-            acc += x * x
+            acc[0] += x * x
             i += stride
-        wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(acc)))  # into slot SUMSQ = 0
+        total = T(0.0)
+        for k in range(U):
+            total += acc[k]
+        wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(total)))  # into slot SUMSQ = 0
 
     return sumsq
 
@@ -75,34 +91,57 @@ def finalize_kernel(dtype, clip: bool):
     return finalize
 
 
+ADAM_VEC = 4  # elements per thread of ``adam`` (strided by the thread count: coalesced, loads in flight)
+
+
+def adam_threads(n: int) -> int:
+    return -(-n // ADAM_VEC)
+
+
 @functools.cache
 def adam_kernel(dtype, weight_decay: bool, decoupled: bool):
-    """One Adam (``decoupled``: AdamW) step of element i, in torch's formulation:
+    """One Adam (``decoupled``: AdamW) step of elements i = t + k * nt (k < ``ADAM_VEC``, i < n)
+    of thread t of nt = ``adam_threads(n)``, in torch's formulation:
     g = coef * grad (+ wd * p for Adam's L2 decay); m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2;
     p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps) (AdamW first scales p by 1 - lr * wd).
     Every load is issued before the first store."""
     T = dtype
+    V = ADAM_VEC
 
     @wp.kernel(module="unique", module_options=_options())
     def adam(p: wp.array(dtype=T), g: wp.array(dtype=T), m: wp.array(dtype=T), v: wp.array(dtype=T),
-             scalars: wp.array(dtype=T), beta1: T, beta2: T, eps: T, wd: T):
-        i = wp.tid()
-        pi = p[i]
-        gi = g[i]
-        mi = m[i]
-        vi = v[i]
+             scalars: wp.array(dtype=T), n: int, nt: int, beta1: T, beta2: T, eps: T, wd: T):
+        t = wp.tid()
+        ps = wp.vector(length=V, dtype=T)
+        gs = wp.vector(length=V, dtype=T)
+        ms = wp.vector(length=V, dtype=T)
+        vs = wp.vector(length=V, dtype=T)
+        for k in range(V):
+            i = t + k * nt
+            if i < n:
+                ps[k] = p[i]
+                gs[k] = g[i]
+                ms[k] = m[i]
+                vs[k] = v[i]
         lr = scalars[LR]
-        gi = gi * scalars[COEF]
-        if wp.static(weight_decay and not decoupled):
-            gi = gi + wd * pi
-        if wp.static(weight_decay and decoupled):
-            pi = pi * (T(1.0) - lr * wd)
-        mi = beta1 * mi + (T(1.0) - beta1) * gi
-        vi = beta2 * vi + (T(1.0) - beta2) * gi * gi
-        denom = wp.sqrt(vi) / wp.sqrt(scalars[BC2]) + eps
-        p[i] = pi - (lr / scalars[BC1]) * mi / denom
-        m[i] = mi
-        v[i] = vi
+        coef = scalars[COEF]
+        step = lr / scalars[BC1]
+        sq2 = wp.sqrt(scalars[BC2])
+        for k in range(V):
+            i = t + k * nt
+            if i < n:
+                pi = ps[k]
+                gi = gs[k] * coef
+                if wp.static(weight_decay and not decoupled):
+                    gi = gi + wd * pi
+                if wp.static(weight_decay and decoupled):
+                    pi = pi * (T(1.0) - lr * wd)
+                mi = beta1 * ms[k] + (T(1.0) - beta1) * gi
+                vi = beta2 * vs[k] + (T(1.0) - beta2) * gi * gi
+                denom = wp.sqrt(vi) / sq2 + eps
+                p[i] = pi - step * mi / denom
+                m[i] = mi
+                v[i] = vi
 
     return adam
 

@@ -239,6 +239,63 @@ def test_concat_kernel(widths, gathered, vec_):
     assert out[rows].isnan().all()
 
 
+@pytest.mark.parametrize("deterministic_order", [False, True])
+def test_split_kernel(deterministic_order):
+    """``split_kernel`` (the adjoint of ``concat_kernel``): a stored piece lands in its own rows in
+    the output dtype, added pieces are summed into their (indexed) rows on top of what the
+    output held, padding columns and unrouted pieces are never read, and nothing past the rows
+    is touched."""
+    from gnwarp.kernels import gn_block as K
+    gen = torch.Generator().manual_seed(7)
+    rows, n_dst = 13, 4
+    g = torch.randn(rows, 24, generator=gen)
+    g[:, 21:] = float("nan")  # padding columns: must not be read
+    g[:, 3:6] = float("nan")  # an unrouted piece
+    idx = torch.randint(0, n_dst, (rows,), generator=gen, dtype=torch.int32)
+    if deterministic_order:  # every row to one destination: the most contention
+        idx.zero_()
+    store = torch.full((rows + 1, 3), float("nan"), dtype=torch.float64)
+    acc = torch.randn(n_dst + 1, 5, generator=gen)
+    acc0 = acc.clone()
+    own = torch.randn(rows, 7, generator=gen)
+    own0 = own.clone()
+    pieces = ((0, 3, K.SPLIT_STORE, False, wp.float64), (6, 5, K.SPLIT_ADD, True, wp.float32),
+              (11, 5, K.SPLIT_ADD, True, wp.float32), (16, 5, K.SPLIT_ADD, False, wp.float32))
+    # pieces 1 and 2 add into one output (sender and receiver columns into the nodes' gradient)
+    kern = K.split_kernel(pieces, wp.float32)
+    wp.launch(kern, dim=rows * 18, device="cpu",
+              inputs=[wp.from_torch(g)] + [wp.from_torch(idx)] * 4
+              + [wp.from_torch(store), wp.from_torch(acc), wp.from_torch(acc), wp.from_torch(own[:, :5])])
+    assert torch.equal(store[:rows], g[:, :3].double()) and store[rows].isnan().all()
+    expect = acc0.clone()
+    expect.index_add_(0, idx.long(), g[:, 6:11])
+    expect.index_add_(0, idx.long(), g[:, 11:16])
+    assert torch.allclose(acc, expect, atol=1e-5) and torch.equal(acc[n_dst], acc0[n_dst])
+    assert torch.allclose(own[:, :5], own0[:, :5] + g[:, 16:21]) and torch.equal(own[:, 5:], own0[:, 5:])
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_strided_and_broadcast_output_gradients(deterministic):
+    """The backward reads the gradients autograd hands over as they are: column slices of a
+    concatenation (strided) and a sum's broadcast gradient (stride 0) give the reference's
+    input and parameter gradients."""
+    gn, ref = pair(SMALL, deterministic=deterministic)
+    g = make_batch("mixed")
+    gw, gr = with_grad(cast(g, torch.float32)), with_grad(g)
+    losses = []
+    for net, x in ((gn, gw), (ref, gr)):
+        out = net(x)
+        cat = torch.cat([out.nodes, out.nodes[:, :2] * 2], 1)  # backward: strided column slices
+        losses.append((torch.sin(cat) * torch.linspace(-1, 1, cat.shape[1], dtype=cat.dtype)).sum()
+                      + out.edges.sum() + out.globals.sum())  # sums: broadcast gradients
+    losses[0].backward()
+    losses[1].backward()
+    for name in ("nodes", "edges", "globals"):
+        assert rel_err(getattr(gw, name).grad, getattr(gr, name).grad) <= 1e-5, name
+    for (name, p), (_, q) in zip(gn.named_parameters(), ref.named_parameters()):
+        assert rel_err(p.grad, q.grad) <= 1e-5, name
+
+
 def test_graph_without_globals():
     """A block that reads no globals runs on a GraphsTuple with globals=None."""
     kw = dict(SMALL, global_size=0, update_globals=False, edge_block=EdgeBlockConfig(use_globals=False),

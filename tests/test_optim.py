@@ -166,6 +166,26 @@ def test_gn_backend_accumulates_into_main_grad(precision, deterministic):
     assert not opt.grad_flat.any()
 
 
+def test_gn_backend_main_grad_with_a_frozen_parameter():
+    """A parameter frozen after FlatAdam was made (requires_grad off) gets nothing added into its
+    main_grad; the others get the gradients autograd gives without FlatAdam."""
+    torch.manual_seed(5)
+    a = GraphNetwork(**SMALL)
+    b = copy.deepcopy(a)
+    g = cast(make_batch("mixed"), torch.float32)
+    opt = FlatAdam(b.parameters())
+    opt.zero_grad()
+    a.node_mlp.layers[0].bias.requires_grad_(False)
+    b.node_mlp.layers[0].bias.requires_grad_(False)
+    loss_of(a(g)).backward()
+    loss_of(b(g)).backward()
+    for (name, p), q in zip(a.named_parameters(), b.parameters()):
+        if not p.requires_grad:
+            assert not q.main_grad.any(), name
+        else:
+            assert torch.allclose(q.main_grad, p.grad, rtol=1e-6, atol=1e-6), name
+
+
 def test_gn_training_with_flat_adam_matches_torch_adam():
     """Three training steps of two chained Warp blocks: FlatAdam (gradients through main_grad)
     against torch's Adam + clip_grad_norm_ (gradients through p.grad)."""
@@ -233,20 +253,32 @@ def test_cuda_captured_training_step_matches_eager_torch_adam(precision):
         assert torch.allclose(p, q, rtol=tol, atol=tol), (p - q).abs().max()
 
 
-def test_flatten_parameters_keeps_outputs_and_casts_one_span():
+# first-layer input widths that are multiples of 8 (node 8 + 8 + 8, global 8 + 8 + 8): those
+# weights are read in place (from the cast copy), not as padded blocks
+ALIGNED = dict(SMALL, node_size=8, edge_size=8, global_size=8, node_out=8, edge_out=8, global_out=8)
+
+
+@pytest.mark.parametrize("mode,sizes", [("concat", "small"), ("split", "small"), ("concat", "aligned")])
+def test_flatten_parameters_keeps_outputs_and_casts_one_span(mode, sizes):
     """fp16 block on flattened parameters: the same outputs bit for bit, and the backend sees
-    one span (one cast launch, no cat)."""
+    one span (one cast launch, no cat) for either edge first layer, with padded first-layer
+    blocks or weights read in place."""
     from gnwarp import flatten_parameters
     from gnwarp.gn_warp import _flat_span
     torch.manual_seed(4)
-    a = GraphNetwork(**SMALL, precision="fp16")
+    kw = SMALL if sizes == "small" else ALIGNED
+    a = GraphNetwork(**kw, precision="fp16", edge_first_layer=mode)
     b = copy.deepcopy(a)
-    g = cast(make_batch("mixed"), torch.float32)
+    g = cast(make_batch("mixed", fv=kw["node_size"], fe=kw["edge_size"], fu=kw["global_size"]), torch.float32)
     assert _flat_span(b.flat_parameters()) is None
     flat, offsets = flatten_parameters(b.parameters())
     assert _flat_span(b.flat_parameters()) is not None and flat.numel() >= sum(p.numel() for p in b.parameters())
-    for x, y in zip(a(g), b(g)):
+    ref = copy.deepcopy(a)
+    ref.precision = "fp32"
+    for x, y, z in zip(a(g), b(g), ref(g)):
         assert (x is None and y is None) or torch.equal(x, y)
+        if z is not None:  # and both right: fp16 GEMMs against fp32 ones
+            assert (y - z).abs().max() <= 1e-2 * z.abs().max(), (y - z).abs().max()
     with pytest.raises(ValueError, match="twice"):
         flatten_parameters([a.edge_mlp.layers[0].weight] * 2)
     with pytest.raises(ValueError, match="no parameters"):
