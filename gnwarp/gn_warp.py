@@ -489,7 +489,7 @@ class _FirstLayer:
         buf = torch.empty(max(self.total, 1), dtype=self.dtype, device=gw0.device)  # GEMM output: compute dtype
         return self._views(buf), buf
 
-    def backward_concat(self, launch, plan, side, g0, x, gw0, accumulate: bool):
+    def backward_concat(self, plan, side, g0, x, gw0, accumulate: bool):
         """Backward of the concatenated first layer y = x @ W.T: writes (``accumulate``: adds)
         dL/dW into ``gw0`` (when given; its GEMM and unpack on ``side``) and returns dL/dx."""
         if gw0 is not None:
@@ -857,7 +857,7 @@ class _SplitBlock(torch.autograd.Function):
                                              gbs[-1] if need_w else None)
                 g0 = _mlp_backward(launch, plan, side, gu_tot, s["hs_g"], wg, gws, gbs, need_w, summed, w_main)
                 fl = s["fl_g"]
-                g_x = fl.backward_concat(launch, plan, side, g0, s["x_g"], gws[0] if need_w else None, w_main)
+                g_x = fl.backward_concat(plan, side, g0, s["x_g"], gws[0] if need_w else None, w_main)
                 gcols = column_slices(c.global_layout)
                 g_sum_v = g_x[:, gcols["nodes"]] if "nodes" in gcols else None
                 g_sum_e = g_x[:, gcols["edges"]] if "edges" in gcols else None
@@ -874,7 +874,7 @@ class _SplitBlock(torch.autograd.Function):
                 wn = pn[0::2]
                 g0 = _mlp_backward(launch, plan, side, gv_tot, s["hs_n"], wn, gws, gbs, need_w, summed, w_main)
                 fl = s["fl_n"]
-                g_x = fl.backward_concat(launch, plan, side, g0, s["x_n"], gws[0] if need_w else None, w_main)
+                g_x = fl.backward_concat(plan, side, g0, s["x_n"], gws[0] if need_w else None, w_main)
                 g_agg = g_x[:, ncols["received_edges"]] if "received_edges" in ncols else None
                 routes = {}
                 if need_v and "nodes" in ncols:
