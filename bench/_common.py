@@ -39,3 +39,30 @@ def run_side_by_side(commands: dict[str, list[str]], log_dir: Path, threads: int
             codes[name] = p.wait()
         log.close()
     return codes
+
+
+def median_ms(fn, device, reps: int, warmup: int) -> float:
+    """Median milliseconds of ``fn()`` over ``reps`` calls after ``warmup``: CUDA events around
+    each call on a CUDA ``device`` (a torch.device), perf_counter elsewhere."""
+    import statistics
+    import time
+
+    import torch
+    for _ in range(warmup):
+        fn()
+    ts = []
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+        for _ in range(reps):
+            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            a.record()
+            fn()
+            b.record()
+            b.synchronize()
+            ts.append(a.elapsed_time(b))
+    else:
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            ts.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(ts)

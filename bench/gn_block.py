@@ -11,7 +11,8 @@ Sections (``--sections``, all by default):
   main       cheetah: fwd, fwd+bwd, train step (fwd, MSE loss, bwd, clip, Adam) at batch 200 and
              4096, fwd at 65536; peers: torch eager, torch.compile default and reduce-overhead
              (fp32, tf32; fp16 / bf16 under torch.autocast), our split path (fp32, tf32, fp16,
-             bf16), our tile path (fp32)
+             bf16, fp16x3: float32-accurate GEMMs from fp16 tensor cores, compared with the fp32
+             peers and the fp32 peak), our tile path (fp32)
   shapes     swimmer6 and pendulum: the same modes for torch eager / compile-ro and our split path
   capture    our split path with the whole training step (and the forward) in one CUDA graph
   errors     max error of every peer/precision against the float64 torch reference (batch 200)
@@ -43,7 +44,6 @@ import json
 import os
 import platform
 import re
-import statistics
 import sys
 import time
 import traceback
@@ -58,7 +58,10 @@ try:
 except ImportError:  # pragma: no cover
     wp = None
 
-from gnwarp import GraphsTuple, gn_warp
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import median_ms  # noqa: E402
+from gnwarp import GraphsTuple, gn_warp  # noqa: E402
 from gnwarp.gn import GNBlockConfig, GraphNetwork, matmul_precision
 from gnwarp.gn_warp import cuda_graph, graph_index, tile_feasible
 from gnwarp.optim import FlatAdam, flatten_parameters
@@ -195,24 +198,7 @@ def core_flops(shape: str, sizes, split: bool = False) -> int:
 
 # -- timing -------------------------------------------------------------------------------------
 def timeit(fn, device, reps, warmup):
-    for _ in range(warmup):
-        fn()
-    ts = []
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-        for _ in range(reps):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            b.synchronize()
-            ts.append(a.elapsed_time(b))
-    else:
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(ts)
+    return median_ms(fn, device, reps, warmup)
 
 
 def sync(device):
@@ -222,6 +208,10 @@ def sync(device):
 
 # -- peers --------------------------------------------------------------------------------------
 TORCH_PEERS = ("torch-eager", "torch-compile", "torch-compile-ro")
+OUR_PRECISIONS = ("fp32", "tf32", "fp16", "bf16", "fp16x3")
+# fp16x3 is float32-accurate (error against float64 within ~2x of IEEE fp32's): its peers and
+# matmul peak are fp32's; torch has no such mode
+PEER_PRECISION = {"fp16x3": "fp32"}
 WARP_PEERS = ("warp-split", "warp-tile")
 
 
@@ -245,6 +235,7 @@ class Runner:
         self.det = args.deterministic                   # our peers' aggregation: segment sums
         self.opt = args.optimizer                       # our peers' optimizer: torch Adam or FlatAdam
         self.flatp = args.flat_params                   # our peers' parameters in one flat buffer
+        self.emu = (tuple(int(x) for x in args.emulate_min.split(",")) if args.emulate_min else None)
         self.side_default = gn_warp.SIDE_STREAMS
         if args.side_streams is not None:               # our backward's side streams (weight-gradient GEMMs)
             self.side = args.side_streams
@@ -270,6 +261,8 @@ class Runner:
             row["opt"] = "flat"
         if row.get("peer", "").startswith("warp") and self.flatp:
             row["flatp"] = True
+        if row.get("peer", "").startswith("warp") and row.get("precision") == "fp16x3" and self.emu is not None:
+            row["emu"] = "%d,%d" % self.emu
         if row.get("peer", "").startswith("warp") and row.get("mode") in ("train", "fwdbwd") and \
                 self.side != self.side_default:
             row["side"] = self.side
@@ -313,7 +306,7 @@ class Runner:
             cleanup()
         flops = core_flops(shape, sizes) * B * (3 if mode != "fwd" else 1)
         tflops = flops / ms / 1e9
-        peak = self.peaks.get(precision)
+        peak = self.peaks.get(PEER_PRECISION.get(precision, precision))
         self.record(**base, ms=round(ms, 4), graph_steps_per_s=B / ms * 1e3, tflops=round(tflops, 4),
                     frac_peak=(tflops / peak) if peak else None, model_gflop=flops / 1e9)
         return ms
@@ -361,6 +354,10 @@ class Runner:
             idx = graph_index(g, deterministic=self.det)
             if self.flatp:  # parameters as views of one buffer: one cast launch per block in fp16 / bf16
                 flatten_parameters(params)
+            if self.emu is not None:  # fp16x3's rule (rows, hidden width) overridden
+                for m in model.modules():
+                    if isinstance(m, GraphNetwork):
+                        m.emulate_min = self.emu
 
             def run():
                 return model(g, idx)
@@ -444,6 +441,8 @@ class Runner:
             precs = list(a.precisions)
             if peer == "warp-tile":
                 precs = [p for p in precs if p == "fp32"]
+            elif peer.startswith("torch"):
+                precs = [p for p in precs if p not in PEER_PRECISION]
             for prec in precs:
                 self.measure(peer, prec, shape, B, mode)
 
@@ -461,7 +460,7 @@ class Runner:
             return
         for B in self.args.batches:
             for mode in ("train", "fwd"):
-                for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
+                for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                     self.measure("warp-split-graph", prec, "cheetah", B, mode)
 
     def _ablation(self, attr, values, cases):
@@ -475,7 +474,7 @@ class Runner:
             for value in values:
                 setattr(self, attr, value)
                 for B, mode in cases:
-                    for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "bf16", "fp16")]:
+                    for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                         self.measure("warp-split-graph", prec, "cheetah", B, mode)
         finally:
             setattr(self, attr, old)
@@ -509,7 +508,7 @@ class Runner:
             expect = TorchCore(ref_model)(*torch_inputs(g64))
         for peer in self.args.peers:
             for prec in self.args.precisions:
-                if peer == "warp-tile" and prec != "fp32":
+                if (peer == "warp-tile" and prec != "fp32") or (peer.startswith("torch") and prec in PEER_PRECISION):
                     continue
                 row = dict(peer=peer, precision=prec, mode="error", shape="cheetah", batch=g.n_node.shape[0])
                 try:
@@ -526,6 +525,9 @@ class Runner:
                         else:
                             model.set(backend="warp", path="tile" if peer == "warp-tile" else "split",
                                       precision=prec)
+                            for m in model.modules():  # fp16x3: the layers that emulate at batch 4096, here too
+                                if isinstance(m, GraphNetwork):
+                                    m.emulate_min = (0, gn_warp._EMU_MIN_WIDTH)
                             out = model(g)
                     err = ((out.double() - expect).abs().max() / expect.abs().max()).item()
                     self.record(**row, max_rel_err=err)
@@ -561,7 +563,7 @@ class Runner:
         peers = [p for p in self.args.peers if p in ("warp-split", "torch-eager")] or ["warp-split"]
         with open(path, "w") as f:
             for peer in peers:
-                for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "fp16", "bf16")]:
+                for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                     for B, mode in ((big, "fwd"), (big, "train"), (small, "train")):
                         try:
                             fn, _ = self.make_step(peer, prec, "cheetah", B, mode, self.sizes)
@@ -599,7 +601,7 @@ class Runner:
         B = self.args.batches[0]
         path = self.jsonl.with_name(self.jsonl.stem + "_timeline.txt")
         with open(path, "w") as f:
-            for prec in [p for p in self.args.precisions if p in ("fp32", "tf32", "fp16", "bf16")]:
+            for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                 try:
                     fn, _ = self.make_step("warp-split-graph", prec, "cheetah", B, "train", self.sizes)
                     for _ in range(5):
@@ -626,7 +628,7 @@ class Runner:
     def write_markdown(self):
         rows = [json.loads(line) for line in open(self.jsonl)] if self.jsonl.exists() else []
         # a re-run replaces earlier rows of the same measurement
-        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp", "side")
+        key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp", "side", "emu")
         rows = list({tuple(r.get(k) for k in key): r for r in rows}.values())
         # the versions the rows were measured with (a rewrite elsewhere must not name its own)
         versions = ", ".join(f"{k} {'/'.join(sorted({str(r.get(k)) for r in rows if r.get(k)}))}"
@@ -654,6 +656,7 @@ class Runner:
                     (f" [edge first layer: {r['efl']}]" if r.get("efl") else "") + \
                     (" [deterministic]" if r.get("det") else "") + (" [FlatAdam]" if r.get("opt") == "flat" else "") + \
                     (" [flat params]" if r.get("flatp") else "") + \
+                    (" [fp16x3 from rows, width %s]" % r["emu"] if r.get("emu") else "") + \
                     (" [no side stream]" if r.get("side") in (False, 0) else
                      f" [side streams: {r['side']}]" if r.get("side") is not None else "")
                 if r.get("error"):
@@ -678,11 +681,12 @@ class Runner:
         print(f"\nwrote {self.jsonl} and {self.md}")
 
     def goals(self, rows):
-        ok = [r for r in rows if "ms" in r and r.get("shape") == "cheetah" and "width" not in r]
+        ok = [r for r in rows if "ms" in r and r.get("shape") == "cheetah" and "width" not in r and "emu" not in r]
         peaks = {r["precision"]: r["tflops"] for r in rows if r.get("mode") == "peak" and "tflops" in r}
         for r in ok:  # rows timed without a peak measurement in their run: the latest peak
-            if not r.get("frac_peak") and r.get("precision") in peaks:
-                r["frac_peak"] = r["tflops"] / peaks[r["precision"]]
+            pp = PEER_PRECISION.get(r.get("precision"), r.get("precision"))
+            if not r.get("frac_peak") and pp in peaks:
+                r["frac_peak"] = r["tflops"] / peaks[pp]
 
         def best(pred):
             c = [r for r in ok if pred(r)]
@@ -691,15 +695,17 @@ class Runner:
         r = best(lambda r: r["mode"] == "train" and r["batch"] == 200 and r["peer"].startswith("warp"))
         got = "n/a" if r is None else f"{r['ms']:.3f} ms ({r['peer']}, {r['precision']})"
         out.append(f"- training step at batch 200 <= 0.5 ms: best of ours {got}")
-        for prec in ("fp32", "tf32", "fp16", "bf16"):
+        for prec in OUR_PRECISIONS:
+            pp = PEER_PRECISION.get(prec, prec)
             ours = best(lambda r: r["mode"] == "fwd" and r["batch"] == 4096 and r["peer"].startswith("warp")
                         and r["precision"] == prec)
             peer = best(lambda r: r["mode"] == "fwd" and r["batch"] == 4096 and r["peer"].startswith("torch")
-                        and r["precision"] == prec)
+                        and r["precision"] == pp)
             if ours and peer:
-                out.append(f"- forward at batch 4096, {prec}: ours {ours['ms']:.3f} ms ({ours['peer']}) vs best torch "
+                out.append(f"- forward at batch 4096, {prec}{f' (vs torch {pp})' if pp != prec else ''}: ours "
+                           f"{ours['ms']:.3f} ms ({ours['peer']}) vs best torch "
                            f"{peer['ms']:.3f} ms ({peer['peer']}): {peer['ms'] / ours['ms']:.2f}x (goal >= 1.5x); "
-                           f"{100 * (ours.get('frac_peak') or 0):.1f}% of {prec} matmul peak (goal >= 50%)")
+                           f"{100 * (ours.get('frac_peak') or 0):.1f}% of {pp} matmul peak (goal >= 50%)")
             top = [r for r in ok if r["mode"] == "fwd" and r["batch"] > 4096 and r["peer"].startswith("warp")
                    and r["precision"] == prec and r.get("frac_peak")]
             if top:
@@ -773,7 +779,7 @@ def main(argv=None):
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--sections", default="peak,main,shapes,capture,errors,crossover")
     p.add_argument("--peers", default=",".join(TORCH_PEERS + WARP_PEERS))
-    p.add_argument("--precisions", default="fp32,tf32,fp16,bf16")
+    p.add_argument("--precisions", default=",".join(OUR_PRECISIONS))
     p.add_argument("--batches", default="200,4096", help="batches of fwd / fwd+bwd / train")
     p.add_argument("--fwd-batches", default="65536", help="extra forward-only batches")
     p.add_argument("--compile-modes", default="fwd,train",
@@ -794,6 +800,8 @@ def main(argv=None):
     p.add_argument("--side-streams", type=int, default=None,
                    help="side streams of our backward's weight-gradient GEMMs, 0: none (gnwarp.gn_warp.SIDE_STREAMS; "
                         "default: the library's)")
+    p.add_argument("--emulate-min", default=None, metavar="ROWS,WIDTH",
+                   help="fp16x3: emulate MLP layers from this many rows and hidden width (default: the library's rule)")
     p.add_argument("--verbose", action="store_true")
     a = p.parse_args(argv)
     if a.device is None:

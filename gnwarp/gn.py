@@ -38,7 +38,7 @@ __all__ = [
     "check_graph",
 ]
 
-PRECISIONS = ("fp32", "tf32", "fp16", "bf16")
+PRECISIONS = ("fp32", "tf32", "fp16", "bf16", "fp16x3")
 
 
 # -- configuration ------------------------------------------------------------------------------
@@ -353,7 +353,12 @@ class GraphNetwork(TorchGraphNetwork):
             fused Warp-tile kernel per update) or "auto" (the rule in ``gn_warp.choose_path``).
         precision: "fp32" (default: the parameters' dtype, float32 or float64), "tf32" (float32
             GEMMs on TF32 tensor cores), "fp16" or "bf16" (GEMM inputs and activations in that
-            dtype, sums accumulated in float32; outputs returned in the parameters' dtype).
+            dtype, sums accumulated in float32; outputs returned in the parameters' dtype), or
+            "fp16x3" (float32 parameters: float32-accurate GEMMs as three fp16 tensor-core
+            products of row-scaled hi / lo pieces, for the MLPs ``emulate_min`` selects; IEEE
+            fp32 elsewhere, in the backward, and on the torch backend).
+        emulate_min: fp16x3's rule, (rows, hidden width): an MLP emulates from that many input
+            rows and that hidden width; None (default) takes ``gn_warp``'s measured rule.
         deterministic: aggregate with ordered segment sums (edges sorted by receiver) instead of
             atomics: bitwise identical results run to run, forward and backward.
         edge_first_layer: how the split path computes the edge MLP's first layer: "concat" (the
@@ -370,7 +375,7 @@ class GraphNetwork(TorchGraphNetwork):
 
     def __init__(self, config: GNBlockConfig | None = None, *, backend: str = "warp", path: str = "auto",
                  precision: str = "fp32", deterministic: bool = False, edge_first_layer: str = "auto",
-                 check_inputs: bool = True, **kwargs):
+                 check_inputs: bool = True, emulate_min: tuple[int, int] | None = None, **kwargs):
         super().__init__(config, **kwargs)
         self.backend = backend
         self.path = path
@@ -378,6 +383,7 @@ class GraphNetwork(TorchGraphNetwork):
         self.precision = precision
         self.deterministic = deterministic
         self.check_inputs = check_inputs
+        self.emulate_min = emulate_min
         self._check_options()
 
     def _check_options(self):
@@ -389,6 +395,10 @@ class GraphNetwork(TorchGraphNetwork):
             raise ValueError(f"edge_first_layer must be 'auto', 'concat' or 'split', got {self.edge_first_layer!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        em = self.emulate_min
+        if em is not None and not (isinstance(em, (tuple, list)) and len(em) == 2
+                                   and all(isinstance(x, int) and x >= 0 for x in em)):
+            raise ValueError(f"emulate_min must be None or (rows, width), two ints >= 0, got {em!r}")
 
     def extra_repr(self) -> str:
         return (f"backend={self.backend!r}, path={self.path!r}, precision={self.precision!r}, "

@@ -180,6 +180,14 @@ class _Launcher:
             return
         wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device, stream=self.stream)
 
+    def rows(self, kernel, rows: int, *args):
+        """Launch a one-block-per-row kernel (``K.emu_split_kernel``): ``K.EMU_BLOCK`` threads a
+        row on CUDA, one on the CPU."""
+        if rows == 0:
+            return
+        wp.launch_tiled(kernel, dim=[rows], inputs=[self.array(a) for a in args], device=self.device,
+                        stream=self.stream, block_dim=K.EMU_BLOCK if self.stream is not None else 1)
+
 
 # How many side streams the backward spreads its weight-gradient GEMMs over (``_Side``; 0: all on
 # the current stream); read when a backward runs (a captured graph keeps the choice it was
@@ -251,6 +259,7 @@ class _Plan:
     n_edge_params: int
     n_node_params: int
     edge_concat: bool = True     # edge first layer on concatenated gathered rows (else split)
+    emulate_min: tuple = (0, 0)  # fp16x3: (rows, hidden width) from which an MLP emulates
 
     @property
     def wp_dtype(self):
@@ -520,14 +529,107 @@ def _linear(x, w, b, relu: bool):
     return torch.addmm(b, x, w.t())
 
 
-def _mlp_forward(h, ws, bs, keep: bool):
+# fp16x3 (precision="fp16x3"): float32-accurate GEMMs from fp16 tensor cores. Each float32
+# operand row is scaled by a power of two and split into fp16 hi + lo (``K.emu_split_kernel``);
+# one GEMM over [hi | lo | hi] x [Whi | Whi | Wlo] (3x the K, float32 out) sums the three
+# products that carry float32's 24 bits (lo * Wlo, ~2^-24 relative, is left out), and the next
+# split's kernel unscales, adds the bias and applies the ReLU. Measured on an H200 (torch.mm
+# peers in the same run; bench/results/fp32_emulation_probe_nvidia-h200.md; errors against
+# float64): at 73728 x 512 @ 512 x 512 IEEE fp32 takes 0.82-0.84 ms, the one GEMM of the three
+# fp16 products 0.16-0.17 ms (bf16x6, range-safe without scales: 0.57 ms; tf32x3: 0.45 ms) and
+# the split pass 0.17 ms. At 32768 x 256 @ 256 x 256 emulation loses (IEEE 0.12 ms); the node
+# MLPs' width-256 layers emulated made the paper core's forward 2% slower. Hence the rule: an
+# MLP emulates when its hidden width is >= ``_EMU_MIN_WIDTH`` on >= ``_EMU_MIN_ROWS`` rows:
+# layers 1..L, and layer 0 too when it is one GEMM on the concatenated input rows (fp16x3 takes
+# the edge update's concat mode above the rows; below them it is the fp32 path, bitwise). Paper
+# core at batch 4096 (bench/results/gn_block_nvidia-h200.md): forward 5.70 -> 3.45-3.48 ms
+# captured, error against float64 ~1.0e-6 (IEEE fp32: 4.1-4.3e-7). The backward runs IEEE fp32
+# GEMMs on the float32 activations the epilogues also write when autograd needs them.
+_EMU_MIN_ROWS = 16384
+_EMU_MIN_WIDTH = 512
+
+
+def _emulates(plan, rows: int, ws) -> bool:
+    """Whether layers 1..L of this MLP run as fp16x3 GEMMs (the rule above)."""
+    return (plan.precision == "fp16x3" and plan.compute_dtype == torch.float32 and len(ws) > 1
+            and rows >= plan.emulate_min[0] and ws[1].shape[1] >= plan.emulate_min[1])
+
+
+def _emu_gemm(a3, w3):
+    """a3 @ w3.T in float32 from fp16 pieces: cuBLAS with float32 output on CUDA; on the CPU the
+    pieces in float32 (their products are exact there too)."""
+    if a3.is_cuda:
+        return torch.mm(a3, w3.t(), out_dtype=torch.float32)
+    return torch.mm(a3.float(), w3.float().t())
+
+
+def _emu_split(launch, width: int, rows: int, src, epilogue=None, relu=False, dst=None, pieces=None,
+               inv=None, weights=False):
+    """``K.emu_split_kernel`` over ``rows`` rows of ``width`` columns: ``src`` float32 rows (and
+    ``dst`` when given: the epilogue's float32 output, may be ``src``); ``epilogue``: (row_inv,
+    col_inv, bias) of the GEMM that made ``src``; ``pieces`` [rows, 3 * width] fp16 and ``inv``
+    [rows] when splitting. Arrays go as Warp views of ``K.emu_group``-vectors."""
+    g = K.emu_group(width)
+    F, H = wp.types.vector(g, wp.float32), wp.types.vector(g, wp.float16)
+
+    def vec(t, dtype):
+        return wp.from_torch(t.view(*t.shape[:-1], t.shape[-1] // g, g), dtype=dtype, requires_grad=False,
+                             return_ctype=True)
+    ph = launch.placeholder
+    ri, ci, b = epilogue if epilogue is not None else (ph(torch.float32, 1), ph(torch.float32, 1), ph(torch.float32, 1))
+    launch.rows(K.emu_split_kernel(width, epilogue is not None, relu, dst is not None, pieces is not None, weights),
+                rows, vec(src, F), ri,
+                vec(ci, F) if epilogue is not None else wp.empty(0, dtype=F, device=launch.device),
+                vec(b, F) if epilogue is not None else wp.empty(0, dtype=F, device=launch.device),
+                vec(dst, F) if dst is not None else wp.empty((0, 0), dtype=F, device=launch.device),
+                vec(pieces, H) if pieces is not None else wp.empty((0, 0), dtype=H, device=launch.device),
+                inv if inv is not None else ph(torch.float32, 1))
+
+
+def _mlp_forward_emulated(launch, h, ws, bs, keep: bool, hs: list):
+    """Layers ``ws`` (with biases ``bs``, ReLU after all but the last) on input rows ``h`` as
+    fp16x3 GEMMs (``_emulates``); ``hs``: the activations kept before them (``keep``). Returns
+    (hs + the float32 inputs of the later layers when ``keep``, output)."""
+    M, k = h.shape
+    dev = h.device
+
+    def pieces(n, width):
+        return (torch.empty(n, 3 * width, dtype=torch.float16, device=dev),
+                torch.empty(n, dtype=torch.float32, device=dev))
+
+    a3, a_inv = pieces(M, k)
+    _emu_split(launch, k, M, h.contiguous(), pieces=a3, inv=a_inv)
+    out = None
+    for l in range(len(ws)):
+        w = ws[l].contiguous()
+        n = w.shape[0]
+        w3, w_inv = pieces(n, k)
+        _emu_split(launch, k, n, w, pieces=w3, inv=w_inv, weights=True)
+        p = _emu_gemm(a3, w3)
+        if l == len(ws) - 1:
+            _emu_split(launch, n, M, p, epilogue=(a_inv, w_inv, bs[l].contiguous()), dst=p)
+            out = p
+        else:
+            a3, a_next = pieces(M, n)
+            _emu_split(launch, n, M, p, epilogue=(a_inv, w_inv, bs[l].contiguous()), relu=True,
+                       dst=p if keep else None, pieces=a3, inv=a_next)
+            a_inv, k = a_next, n
+            if keep:
+                hs.append(p)
+    return hs, out
+
+
+def _mlp_forward(h, ws, bs, keep: bool, emulated=None):
     """Layers 1..L of an MLP whose first layer's output (after its ReLU) is ``h``.
 
     Returns (hs, out): the hidden activations [h0, h1, ...] (inputs of layers 1..L, saved for
     backward; without ``keep`` only the last one is held, so memory stays flat) and the MLP's
-    output (bias included). A single-layer MLP returns ([], h)."""
+    output (bias included). A single-layer MLP returns ([], h). ``emulated``: (launcher, plan)
+    when layers 1..L may run as fp16x3 GEMMs (``_emulates`` decides)."""
     if len(ws) == 1:
         return [], h
+    if emulated is not None and _emulates(emulated[1], h.shape[0], ws):
+        return _mlp_forward_emulated(emulated[0], h, ws[1:], bs[1:], keep, [h] if keep else [])
     hs = [h]
     for l in range(1, len(ws) - 1):
         h = _linear(h, ws[l], bs[l], relu=True)
@@ -639,7 +741,7 @@ def edge_concat(config: GNBlockConfig, mode: str = "auto", precision: str = "fp3
     "split" force it; "auto" applies the measured rule above for ``precision``."""
     if mode != "auto":
         return mode == "concat"
-    if precision in _TENSOR_CORE_PRECISIONS:
+    if precision in _TENSOR_CORE_PRECISIONS or precision == "fp16x3":
         return True
     cols = column_slices(config.edge_layout)
     extra = sum(_pad(_width(cols, n)) for n in ("sender_nodes", "receiver_nodes", "globals") if n in cols)
@@ -721,12 +823,15 @@ class _SplitBlock(torch.autograd.Function):
             cols = column_slices(c.edge_layout)
             H = we[0].shape[0]
             fl_e = fls[0]
-            x_e = None
+            x_e = h = None
             if plan.edge_concat:
                 x_e = _concat(launch, plan, E, c.edge_layout,
                               {"edges": (e, None), "sender_nodes": (v, gi.senders),
                                "receiver_nodes": (v, gi.receivers), "globals": (u, gi.edge_graph)})
-                h = _linear(x_e, fl_e.w["all"], be[0], relu=len(we) > 1)
+                if _emulates(plan, E, we):  # the first layer too: its K (the concatenated row) is wide
+                    hs_e, e_out = _mlp_forward_emulated(launch, x_e, [fl_e.w["all"], *we[1:]], be, keep, [])
+                else:
+                    h = _linear(x_e, fl_e.w["all"], be[0], relu=len(we) > 1)
             else:
                 v_c, e_c, u_c = _padded(v, cd), _padded(e, cd), _padded(u, cd)
                 direct = _gemm(e_c, fl_e.w["edges"].t()) if "edges" in cols else None
@@ -739,7 +844,8 @@ class _SplitBlock(torch.autograd.Function):
                        glob_proj if glob_proj is not None else ph(cd, 2), gi.senders, gi.receivers, gi.edge_graph,
                        be[0], h)
                 del direct, node_proj, glob_proj
-            hs_e, e_out = _mlp_forward(h, we, be, keep)
+            if h is not None:
+                hs_e, e_out = _mlp_forward(h, we, be, keep, (launch, plan))
             e_ret = _scatter_out(launch, plan, e_out, out_dtype, (agg, gi.receivers, gi.recv_perm, gi.recv_offsets))
             if sum_e is not None:
                 # per-graph sums: ordered sums over each graph's contiguous rows (no atomics); the
@@ -755,7 +861,8 @@ class _SplitBlock(torch.autograd.Function):
             x_n = _concat(launch, plan, N, c.node_layout,
                           {"nodes": (v, None), "received_edges": (agg, None), "globals": (u, gi.node_graph)})
             fl_n = fls[n_e]
-            hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep)
+            hs_n, v_out = _mlp_forward(_linear(x_n, fl_n.w["all"], bn[0], relu=len(wn) > 1), wn, bn, keep,
+                                       (launch, plan))
             if sum_v is not None:
                 _segment(launch, plan, v_out, None, gi.node_offsets, sum_v)
             v_ret = v_out.to(out_dtype)
@@ -768,7 +875,8 @@ class _SplitBlock(torch.autograd.Function):
                 x_g = _concat(launch, plan, B, c.global_layout,
                               {"globals": (u, None), "nodes": (sum_v, None), "edges": (sum_e, None)})
                 fl_g = fls[n_n]
-                hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep)
+                hs_g, u_out = _mlp_forward(_linear(x_g, fl_g.w["all"], bg[0], relu=len(wg) > 1), wg, bg, keep,
+                                           (launch, plan))
                 u_ret = u_out.to(out_dtype)
 
         ctx.plan, ctx.gi = plan, gi
@@ -1185,9 +1293,12 @@ def gn_block_forward(module, graph: GraphsTuple, index: GraphIndex | None = None
     if outs is None:
         cd = _compute_dtype(module.precision, p0.dtype)
         ad = torch.float64 if cd == torch.float64 else torch.float32
+        emu = tuple(getattr(module, "emulate_min", None) or (_EMU_MIN_ROWS, _EMU_MIN_WIDTH))
+        # fp16x3 below its rule's rows is IEEE fp32, with fp32's edge first-layer rule too
+        rule = "fp32" if module.precision == "fp16x3" and index.n_edges < emu[0] else module.precision
         plan = _Plan(c, cd, ad, module.precision, module.deterministic,
                      2 * len(module.edge_mlp.layers), 2 * len(module.node_mlp.layers),
-                     edge_concat(c, getattr(module, "edge_first_layer", "auto"), module.precision))
+                     edge_concat(c, getattr(module, "edge_first_layer", "auto"), rule), emu)
         # under no_grad (inference, rollouts) keep no activations for a backward that cannot come
         keep = torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (v, e, u, *params))
         outs = _SplitBlock.apply(plan, keep, index, v, e, u, *params)

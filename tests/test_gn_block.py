@@ -632,3 +632,129 @@ def test_cuda_side_stream_gradients_identical(mode):
         assert len(grads[side]) == len(grads[0])
         for a, b in zip(grads[0], grads[side]):
             assert torch.equal(a, b)
+
+
+# -- fp16x3: float32-accurate GEMMs from fp16 pieces ---------------------------------------------
+EMU = dict(SMALL, edge_hidden=(16, 16, 16), node_hidden=(16, 16), global_hidden=(16, 8))
+
+
+def _emu_split(src, epilogue=None, relu=False, write_f32=False, split=True, weights=False):
+    """Run ``emu_split_kernel`` on the rows of ``src`` (CPU). ``epilogue``: (row_inv, col_inv, bias)."""
+    rows, w = src.shape
+    pieces = torch.full((rows, 3 * w), float("nan"), dtype=torch.float16)
+    inv = torch.full((rows,), float("nan"))
+    gn_warp._emu_split(gn_warp._Launcher(src), w, rows, src, epilogue, relu, src if write_f32 else None,
+                       pieces if split else None, inv if split else None, weights)
+    return pieces, inv
+
+
+@pytest.mark.parametrize("w", [37, 38, 64])  # column groups of 1, 2, 4 (``emu_group``)
+@pytest.mark.parametrize("weights", [False, True])
+def test_emu_split_kernel(weights, w):
+    """Row scales put each row's largest |y| in [2^14, 2^15); hi = fp16(y * s) (torch's rounding),
+    lo = fp16 of the remainder; (hi + lo) / s recovers y to ~2^-22 of the row's largest element,
+    including rows far outside fp16's range (1e30, 1e-30), an all-zero row and a NaN row."""
+    gen = torch.Generator().manual_seed(0)
+    y = torch.randn(7, w, generator=gen)
+    y[1] *= 1e30
+    y[2] *= 1e-30
+    y[3] = 0.0
+    y[4, :5] = torch.tensor([65504.0, -1e5, 1e-8, 3.0, -0.0])
+    y[5, 7] = float("nan")
+    pieces, inv = _emu_split(y.clone(), weights=weights)
+    hi, second, third = pieces[:, :w], pieces[:, w:2 * w], pieces[:, 2 * w:]
+    lo = third if weights else second
+    ok = torch.ones(7, dtype=torch.bool)
+    ok[5] = False
+    assert torch.equal((second if weights else third)[ok], hi[ok])  # [hi|hi|lo] or [hi|lo|hi]
+    s = 1.0 / inv.double()
+    top = (y.double().abs().max(1).values * s)[ok & (y.abs().max(1).values > 0)]
+    assert ((top >= 2.0 ** 14) & (top < 2.0 ** 15)).all(), top
+    assert torch.equal(hi[ok], (y.double() * s[:, None]).float().half()[ok])  # exact powers of two: same rounding
+    back = (hi.double() + lo.double()) * inv.double()[:, None]
+    err = (back - y.double()).abs().max(1).values / y.double().abs().max(1).values.clamp_min(1e-300)
+    assert (err[ok] <= 2.0 ** -22).all(), err
+    assert torch.isnan(hi[5, 7]) and torch.isfinite(hi[5, :7]).all()
+
+
+def test_emu_split_kernel_epilogue_in_place():
+    """The epilogue: y = relu(src * row_inv * col_inv + bias) written back over ``src`` and split."""
+    gen = torch.Generator().manual_seed(1)
+    src = torch.randn(5, 20, generator=gen) * 100
+    ri = torch.tensor([2.0 ** -3, 1.0, 2.0 ** 5, 0.5, 4.0])
+    ci = 2.0 ** torch.randint(-4, 4, (20,), generator=gen).float()
+    b = torch.randn(20, generator=gen)
+    expect = torch.relu(src * ri[:, None] * ci + b)
+    buf = src.clone()
+    pieces, inv = _emu_split(buf, (ri, ci, b), relu=True, write_f32=True)
+    assert torch.equal(buf, expect)
+    back = (pieces[:, :20].double() + pieces[:, 20:40].double()) * inv.double()[:, None]
+    assert ((back - expect.double()).abs().max(1).values <= 2.0 ** -22 * expect.abs().max(1).values).all()
+
+
+def _fp16x3_pair(scale=1.0, mode="auto"):
+    gn, ref = pair(EMU, precision="fp16x3", edge_first_layer=mode)
+    gn.emulate_min = (0, 0)  # every MLP's layers 1..L emulate, whatever the batch
+    return gn, ref, make_batch("mixed", scale=scale)
+
+
+def _assert_fp16x3_within_4x_of_fp32(gn, ref, g):
+    """fp16x3's forward error against float64 within 4x of IEEE fp32's (or under 1e-6)."""
+    x = cast(g, torch.float32)
+    with torch.no_grad():
+        out, expect = gn(x), ref(g)
+        gn.precision = "fp32"
+        o32 = gn(x)
+        gn.precision = "fp16x3"
+    for name in ("nodes", "edges", "globals"):
+        e16x3 = rel_err(getattr(out, name), getattr(expect, name))
+        e32 = rel_err(getattr(o32, name), getattr(expect, name))
+        assert e16x3 <= max(4 * e32, 1e-6), (name, e16x3, e32)
+
+
+@pytest.mark.parametrize("mode", ["auto", "split"])
+def test_fp16x3_matches_float64_reference(mode):
+    """fp16x3 forward and every gradient against float64 at float32's tolerance (the backward's
+    GEMMs are IEEE fp32 on the float32 activations the emulated forward also writes). "auto" is
+    concat for fp16x3: the edge MLP's first layer emulates too; "split": from its second layer."""
+    gn, ref, g = _fp16x3_pair(mode=mode)
+    compare(gn, ref, g, fwd_tol=1e-5, grad_tol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e4, 1e6])
+def test_fp16x3_outside_fp16_range(scale):
+    """Inputs and activations beyond fp16's range (65504): the row scales keep the pieces finite;
+    the error stays within 4x of IEEE fp32's (plain fp16 overflows at 1e6)."""
+    _assert_fp16x3_within_4x_of_fp32(*_fp16x3_pair(scale))
+
+
+def test_fp16x3_rule_falls_back_to_fp32():
+    """Below the rule's rows / width (small batches, narrow MLPs) fp16x3 runs the IEEE fp32 path:
+    bitwise the same outputs; and it does emulate once allowed (different rounding)."""
+    gn, _, g = _fp16x3_pair()
+    x = cast(g, torch.float32)
+    gn.emulate_min = (gn_warp._EMU_MIN_ROWS, gn_warp._EMU_MIN_WIDTH)
+    a = gn(x)
+    gn.precision = "fp32"
+    b = gn(x)
+    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in ("nodes", "edges", "globals"))
+    gn.precision, gn.emulate_min = "fp16x3", (0, 0)
+    c = gn(x)
+    assert not torch.equal(c.edges, b.edges)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_fp16x3():
+    """fp16x3 on CUDA (fp16 GEMMs with float32 output) against float64: float32's tolerance
+    for the forward and every gradient, and within 4x of IEEE fp32's forward error."""
+    gn, ref, g = _fp16x3_pair()
+    gn, ref = gn.cuda(), ref.cuda()
+    g = _on(g, "cuda")
+    compare(gn, ref, g, fwd_tol=1e-5, grad_tol=1e-5)
+    _assert_fp16x3_within_4x_of_fp32(gn, ref, g)
+
+
+@pytest.mark.parametrize("bad", [(1,), (1, -2), (1.5, 3), "16384,512"])
+def test_emulate_min_checked(bad):
+    with pytest.raises(ValueError, match="emulate_min"):
+        GraphNetwork(**EMU, precision="fp16x3", emulate_min=bad)
