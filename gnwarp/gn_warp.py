@@ -575,15 +575,23 @@ def _emu_split(launch, width: int, rows: int, src, epilogue=None, relu=False, ds
     def vec(t, dtype):
         return wp.from_torch(t.view(*t.shape[:-1], t.shape[-1] // g, g), dtype=dtype, requires_grad=False,
                              return_ctype=True)
+    def none(dtype, ndim):  # zero-size Warp array for an argument the kernel was built without
+        key = (str(launch.device), dtype, ndim)
+        if key not in _EMU_PLACEHOLDERS:
+            _EMU_PLACEHOLDERS[key] = wp.empty((0,) * ndim, dtype=dtype, device=launch.device)
+        return _EMU_PLACEHOLDERS[key]
     ph = launch.placeholder
-    ri, ci, b = epilogue if epilogue is not None else (ph(torch.float32, 1), ph(torch.float32, 1), ph(torch.float32, 1))
+    ri = epilogue[0] if epilogue is not None else ph(torch.float32, 1)
     launch.rows(K.emu_split_kernel(width, epilogue is not None, relu, dst is not None, pieces is not None, weights),
                 rows, vec(src, F), ri,
-                vec(ci, F) if epilogue is not None else wp.empty(0, dtype=F, device=launch.device),
-                vec(b, F) if epilogue is not None else wp.empty(0, dtype=F, device=launch.device),
-                vec(dst, F) if dst is not None else wp.empty((0, 0), dtype=F, device=launch.device),
-                vec(pieces, H) if pieces is not None else wp.empty((0, 0), dtype=H, device=launch.device),
+                vec(epilogue[1], F) if epilogue is not None else none(F, 1),
+                vec(epilogue[2], F) if epilogue is not None else none(F, 1),
+                vec(dst, F) if dst is not None else none(F, 2),
+                vec(pieces, H) if pieces is not None else none(H, 2),
                 inv if inv is not None else ph(torch.float32, 1))
+
+
+_EMU_PLACEHOLDERS: dict[tuple, object] = {}
 
 
 def _mlp_forward_emulated(launch, h, ws, bs, keep: bool, hs: list):
@@ -1294,8 +1302,11 @@ def gn_block_forward(module, graph: GraphsTuple, index: GraphIndex | None = None
         cd = _compute_dtype(module.precision, p0.dtype)
         ad = torch.float64 if cd == torch.float64 else torch.float32
         emu = tuple(getattr(module, "emulate_min", None) or (_EMU_MIN_ROWS, _EMU_MIN_WIDTH))
-        # fp16x3 below its rule's rows is IEEE fp32, with fp32's edge first-layer rule too
-        rule = "fp32" if module.precision == "fp16x3" and index.n_edges < emu[0] else module.precision
+        # fp16x3 below its rule's rows (or on float64 parameters) is the fp32 path, with fp32's
+        # edge first-layer rule too
+        rule = module.precision
+        if rule == "fp16x3" and (index.n_edges < emu[0] or cd != torch.float32):
+            rule = "fp32"
         plan = _Plan(c, cd, ad, module.precision, module.deterministic,
                      2 * len(module.edge_mlp.layers), 2 * len(module.node_mlp.layers),
                      edge_concat(c, getattr(module, "edge_first_layer", "auto"), rule), emu)

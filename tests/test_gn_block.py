@@ -741,6 +741,13 @@ def test_fp16x3_rule_falls_back_to_fp32():
     gn.precision, gn.emulate_min = "fp16x3", (0, 0)
     c = gn(x)
     assert not torch.equal(c.edges, b.edges)
+    # float64 parameters: no fp16 pieces, the float64 path bitwise (whatever emulate_min says)
+    gn = gn.double()
+    x64 = cast(g, torch.float64)
+    d = gn(x64)
+    gn.precision = "fp32"
+    e = gn(x64)
+    assert all(torch.equal(getattr(d, n), getattr(e, n)) for n in ("nodes", "edges", "globals"))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
