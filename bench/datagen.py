@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gnwarp import data, systems  # noqa: E402
-from gnwarp._warp import cuda_available  # noqa: E402
+from gnwarp.interop import cuda_available  # noqa: E402
 from bench._common import device_name  # noqa: E402
 
 

@@ -92,8 +92,9 @@ def make_batch(shape: str, B: int, device, seed=0):
     s = (torch.tensor(snd)[None] + off).reshape(-1)
     r = (torch.tensor(rcv)[None] + off).reshape(-1)
     E = len(snd)
-    g = GraphsTuple(torch.randn(B * n, NODE_IN, generator=gen), torch.randn(B * E, EDGE_IN, generator=gen),
-                    torch.randn(B, GLOB_IN, generator=gen), s, r, torch.full((B,), n), torch.full((B,), E))
+    g = GraphsTuple(nodes=torch.randn(B * n, NODE_IN, generator=gen), edges=torch.randn(B * E, EDGE_IN, generator=gen),
+                    globals=torch.randn(B, GLOB_IN, generator=gen), senders=s, receivers=r,
+                    n_node=torch.full((B,), n), n_edge=torch.full((B,), E))
     g = GraphsTuple(*(x.to(device) for x in g))
     target = torch.randn(B * n, NODE_OUT, generator=gen).to(device)
     return g, target

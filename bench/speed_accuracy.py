@@ -144,7 +144,7 @@ def main():
 
     from gnwarp import data
     from gnwarp import evaluate as ev
-    from gnwarp._warp import cuda_available
+    from gnwarp.interop import cuda_available
     from gnwarp.train import load_model
     out = Path(args.out)
     (out / "data").mkdir(parents=True, exist_ok=True)

@@ -65,8 +65,8 @@ class Topology:
 
     def graph(self) -> GraphsTuple:
         """A single-graph GraphsTuple with this topology and no features."""
-        return GraphsTuple(None, None, None, self.senders.copy(), self.receivers.copy(),
-                           np.array([self.nbody]), np.array([self.n_edge]))
+        return GraphsTuple(nodes=None, edges=None, receivers=self.receivers.copy(), senders=self.senders.copy(),
+                           globals=None, n_node=np.array([self.nbody]), n_edge=np.array([self.n_edge]))
 
 
 def topology(model: mujoco.MjModel) -> Topology:

@@ -249,10 +249,12 @@ class GraphBuilder:
         snd = self.senders[instance] + off[:, None]
         rcv = self.receivers[instance] + off[:, None]
         if self.uniform:
-            return GraphsTuple(nodes.reshape(-1, nodes.shape[-1]), edges.reshape(-1, edges.shape[-1]),
-                               self.s_globals[instance], snd.reshape(-1), rcv.reshape(-1), n_node, n_edge)
+            return GraphsTuple(nodes=nodes.reshape(-1, nodes.shape[-1]), edges=edges.reshape(-1, edges.shape[-1]),
+                               receivers=rcv.reshape(-1), senders=snd.reshape(-1), globals=self.s_globals[instance],
+                               n_node=n_node, n_edge=n_edge)
         nm, em = self.node_mask[instance], self.edge_mask[instance]
-        return GraphsTuple(nodes[nm], edges[em], self.s_globals[instance], snd[em], rcv[em], n_node, n_edge)
+        return GraphsTuple(nodes=nodes[nm], edges=edges[em], receivers=rcv[em], senders=snd[em],
+                           globals=self.s_globals[instance], n_node=n_node, n_edge=n_edge)
 
 
 # -- generation ---------------------------------------------------------------------------------

@@ -4,9 +4,12 @@ A ``GraphsTuple`` holds a batch of directed graphs concatenated into flat arrays
 
 - ``nodes``: [sum(n_node), F_v] node features (or None)
 - ``edges``: [sum(n_edge), F_e] edge features (or None)
+- ``receivers``, ``senders``: [sum(n_edge)] int node indices into the *batched* node array
 - ``globals``: [n_graph, F_u] per-graph features (or None)
-- ``senders``, ``receivers``: [sum(n_edge)] int node indices into the *batched* node array
 - ``n_node``, ``n_edge``: [n_graph] int counts per graph
+
+The fields are in jraph's order (``jraph.GraphsTuple``), so code written against jraph reads the
+same; construct with keywords all the same.
 
 Batching concatenates graphs and offsets each graph's sender/receiver indices by the number of
 nodes before it; ``unbatch`` undoes that. Arrays may be numpy arrays or torch tensors (on any
@@ -27,9 +30,9 @@ except ImportError:  # pragma: no cover
 class GraphsTuple(NamedTuple):
     nodes: Any
     edges: Any
-    globals: Any
-    senders: Any
     receivers: Any
+    senders: Any
+    globals: Any
     n_node: Any
     n_edge: Any
 
@@ -49,11 +52,11 @@ class GraphsTuple(NamedTuple):
     # -- index helpers -------------------------------------------------------------------------
     def node_graph_index(self):
         """[sum(n_node)] index of the graph each node belongs to."""
-        return _repeat_arange(self.n_node, self.total_nodes)
+        return graph_of(self.n_node, self.total_nodes)
 
     def edge_graph_index(self):
         """[sum(n_edge)] index of the graph each edge belongs to."""
-        return _repeat_arange(self.n_edge, self.total_edges)
+        return graph_of(self.n_edge, self.total_edges)
 
     # -- conversions ---------------------------------------------------------------------------
     def to_torch(self, device=None, dtype=None) -> "GraphsTuple":
@@ -67,8 +70,9 @@ class GraphsTuple(NamedTuple):
         def i(x):
             return None if x is None else torch.as_tensor(x).to(device=device, dtype=torch.int64)
 
-        return GraphsTuple(f(self.nodes), f(self.edges), f(self.globals), i(self.senders),
-                           i(self.receivers), i(self.n_node), i(self.n_edge))
+        return GraphsTuple(nodes=f(self.nodes), edges=f(self.edges), receivers=i(self.receivers),
+                           senders=i(self.senders), globals=f(self.globals), n_node=i(self.n_node),
+                           n_edge=i(self.n_edge))
 
     def to_numpy(self) -> "GraphsTuple":
         def f(x):
@@ -90,9 +94,13 @@ def _is_torch(x) -> bool:
     return torch is not None and isinstance(x, torch.Tensor)
 
 
-def _repeat_arange(counts, total: int):
+def graph_of(counts, total: int):
+    """[total] index of the graph each row belongs to, for per-graph row ``counts`` [n_graph]
+    (n_node or n_edge): 0 repeated counts[0] times, then 1, ... . ``total`` = sum(counts), given
+    so that torch needs no host sync. Torch tensors give int64 on their device, numpy arrays numpy."""
     if _is_torch(counts):
-        return torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts,
+        # int64 arange: torch's int32 repeat_interleave is slow on the CPU
+        return torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts.long(),
                                        output_size=total)
     return np.repeat(np.arange(len(counts)), counts)
 
@@ -220,4 +228,5 @@ def tile(template: GraphsTuple, n_graph: int, nodes=None, edges=None, globals=No
 
     def flat(x):
         return None if x is None else x.reshape(-1, x.shape[-1])
-    return GraphsTuple(flat(nodes), flat(edges), globals, snd, rcv, n_node, n_edge)
+    return GraphsTuple(nodes=flat(nodes), edges=flat(edges), receivers=rcv, senders=snd, globals=globals,
+                       n_node=n_node, n_edge=n_edge)

@@ -21,7 +21,7 @@ from typing import Callable, Sequence
 import mujoco
 import numpy as np
 
-from gnwarp._warp import cuda_available, warp
+from gnwarp.interop import cuda_available, warp
 from gnwarp.convert import DYN_NODE_SIZE
 
 BACKENDS = ("auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu")

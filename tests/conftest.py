@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from gnwarp._warp import warp
+from gnwarp.interop import warp
 
 warp()  # initialize Warp once, quietly
 

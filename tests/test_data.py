@@ -11,7 +11,7 @@ from gnwarp import data, systems
 from gnwarp.controls import control_range, random_spline_controls
 from gnwarp.convert import (DYN_NODE_SIZE, FeatureLayout, body_states, edge_controls, static_graph,
                             topology)
-from gnwarp._warp import cuda_available
+from gnwarp.interop import cuda_available
 from gnwarp.simulate import simulate
 
 

@@ -35,8 +35,8 @@ def one_graph(gen, n_node, n_edge, fv=FV, fe=FE, fu=FU, dtype=torch.float64, act
 
     def feats(rows, f):
         return None if f == 0 else scale * torch.randn(rows, f, generator=gen, dtype=dtype)
-    return GraphsTuple(feats(n_node, fv), feats(n_edge, fe), feats(1, fu), s, r,
-                       torch.tensor([n_node]), torch.tensor([n_edge]))
+    return GraphsTuple(nodes=feats(n_node, fv), edges=feats(n_edge, fe), globals=feats(1, fu), senders=s,
+                       receivers=r, n_node=torch.tensor([n_node]), n_edge=torch.tensor([n_edge]))
 
 
 def make_batch(kind, dtype=torch.float64, seed=0, scale=1.0, fv=FV, fe=FE, fu=FU):

@@ -7,8 +7,9 @@ from gnwarp.graphs import GraphsTuple, batch, tile, unbatch, validate
 
 
 def _graph(rng, nv, ne, fv=4, fe=3, fg=2):
-    return GraphsTuple(rng.normal(size=(nv, fv)), rng.normal(size=(ne, fe)), rng.normal(size=(1, fg)),
-                       rng.integers(0, nv, ne), rng.integers(0, nv, ne), np.array([nv]), np.array([ne]))
+    return GraphsTuple(nodes=rng.normal(size=(nv, fv)), edges=rng.normal(size=(ne, fe)),
+                       globals=rng.normal(size=(1, fg)), senders=rng.integers(0, nv, ne),
+                       receivers=rng.integers(0, nv, ne), n_node=np.array([nv]), n_edge=np.array([ne]))
 
 
 @pytest.mark.parametrize("to_torch", [False, True])
@@ -51,8 +52,9 @@ def test_tile_matches_batch():
     (dict(senders=np.array([0.0, 1, 1, 2])), "integer"),
 ])
 def test_validate_names_the_problem(change, msg):
-    g = GraphsTuple(np.zeros((3, 4)), np.zeros((4, 2)), np.zeros((1, 2)), np.array([0, 1, 1, 2]),
-                    np.array([1, 0, 2, 1]), np.array([3]), np.array([4]))
+    g = GraphsTuple(nodes=np.zeros((3, 4)), edges=np.zeros((4, 2)), globals=np.zeros((1, 2)),
+                    senders=np.array([0, 1, 1, 2]), receivers=np.array([1, 0, 2, 1]), n_node=np.array([3]),
+                    n_edge=np.array([4]))
     validate(g)
     with pytest.raises(ValueError, match=msg):
         validate(g._replace(**change))

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from gnwarp import data
-from gnwarp._warp import warp
+from gnwarp.interop import warp
 from gnwarp.convert import DYN_NODE_SIZE
 from gnwarp.models import (ForwardModel, GNCoreConfig, GraphTemplate, LayoutMismatchError, MLPForwardModel,
                            ModelConfig, Normalizer, apply_delta, quat_mul, quat_normalize, rotation_loss,

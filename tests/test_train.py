@@ -10,7 +10,7 @@ import torch
 import gnwarp
 from gnwarp import data
 from gnwarp import evaluate as ev
-from gnwarp._warp import warp
+from gnwarp.interop import warp
 from gnwarp.models import GNCoreConfig, LayoutMismatchError, ModelConfig
 from gnwarp.train import CheckpointError, TrainConfig, load_model, merge_layouts, train
 

@@ -1,0 +1,132 @@
+"""Warp beside torch: initialization, dtypes, streams, kernel launches and CUDA-graph capture.
+
+Everything gnwarp launches goes through here: a ``Launcher`` runs Warp kernels on the device and
+current torch stream of a tensor, with zero-copy Warp views of torch tensors as arguments, so
+Warp work interleaves with torch's and a ``torch.cuda.graph`` capture records it (``cuda_graph``).
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import torch
+import warp as wp
+
+__all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Launcher"]
+
+
+@functools.lru_cache(maxsize=None)
+def warp():
+    """The ``warp`` module, initialized once with its banner silenced."""
+    wp.config.quiet = True
+    wp.init()
+    return wp
+
+
+def cuda_available() -> bool:
+    """Whether Warp sees a CUDA device."""
+    try:
+        return warp().get_cuda_device_count() > 0
+    except Exception:  # noqa: BLE001 - no usable Warp CUDA runtime means no CUDA here
+        return False
+
+
+def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
+    """``"auto"`` (or None): CUDA when torch sees it, else the CPU; anything else as torch reads it."""
+    if device is None or device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+# torch dtype -> Warp dtype
+WP_DTYPE = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
+            torch.bfloat16: wp.bfloat16, torch.int32: wp.int32}
+
+_STREAMS: dict[int, object] = {}
+
+
+def warp_stream(torch_stream: torch.cuda.Stream):
+    """The Warp stream wrapping a torch CUDA stream (made once per stream, then cached)."""
+    key = torch_stream.cuda_stream
+    s = _STREAMS.get(key)
+    if s is None:
+        warp()
+        s = _STREAMS[key] = wp.stream_from_torch(torch_stream)
+    return s
+
+
+@contextlib.contextmanager
+def cuda_graph(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream | None = None, **kwargs):
+    """``torch.cuda.graph(graph, stream)`` that Warp knows about: gnwarp launches inside are
+    recorded into ``graph`` (Warp also keeps their modules loaded while the graph lives).
+
+    Run the step once before (on ``stream``): kernels compile and load on first use, which must
+    not happen during capture. Usage::
+
+        s = torch.cuda.Stream(); s.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(s):
+            step()                      # warm-up
+        torch.cuda.current_stream().wait_stream(s)
+        g = torch.cuda.CUDAGraph()
+        with gnwarp.cuda_graph(g, s):
+            step()
+        g.replay()
+    """
+    stream = stream if stream is not None else torch.cuda.Stream()
+    with wp.ScopedStream(warp_stream(stream)), torch.cuda.graph(graph, stream=stream, **kwargs):
+        wp.capture_begin(force_module_load=False, external=True)
+        try:
+            yield
+        finally:
+            wp.capture_end()
+
+
+_PLACEHOLDERS: dict[tuple, torch.Tensor] = {}
+
+
+class Launcher:
+    """Launches Warp kernels on the device and current torch stream of ``like`` (a tensor)."""
+
+    def __init__(self, like: torch.Tensor):
+        warp()  # initialized once
+        self.torch_device = like.device
+        self.device = wp.device_from_torch(like.device)
+        self.stream = warp_stream(torch.cuda.current_stream(like.device)) if like.device.type == "cuda" else None
+
+    @property
+    def is_cuda(self) -> bool:
+        return self.stream is not None
+
+    def placeholder(self, dtype: torch.dtype, ndim: int) -> torch.Tensor:
+        """Zero-size array for the argument of an input a kernel was built without (never read)."""
+        key = (self.torch_device, dtype, ndim)
+        t = _PLACEHOLDERS.get(key)
+        if t is None:
+            t = _PLACEHOLDERS[key] = torch.empty((0,) * ndim, dtype=dtype, device=self.torch_device)
+        return t
+
+    @staticmethod
+    def array(a):
+        """Zero-copy Warp view of a torch tensor (other arguments pass through)."""
+        if isinstance(a, torch.Tensor):
+            return wp.from_torch(a, dtype=WP_DTYPE.get(a.dtype), requires_grad=False, return_ctype=True)
+        return a
+
+    def __call__(self, kernel, dim: int, *args):
+        """Launch ``kernel`` over ``dim`` threads (nothing when ``dim`` is 0)."""
+        if dim == 0:
+            return
+        wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device,
+                       stream=self.stream)
+
+    def tiled(self, kernel, blocks: int, block_dim: int, *args, adjoint: list | None = None):
+        """Launch a tile kernel over ``blocks`` blocks of ``block_dim`` threads on CUDA (one thread a
+        block on the CPU); ``adjoint``: the adjoint launch, with these gradient arrays (None for
+        integer arguments) in the order of ``args``."""
+        if blocks == 0:
+            return
+        kw = {}
+        if adjoint is not None:
+            kw = dict(adjoint=True, adj_inputs=[None if a is None else self.array(a) for a in adjoint])
+        wp.launch_tiled(kernel, dim=[blocks], inputs=[self.array(a) for a in args], device=self.device,
+                             stream=self.stream, block_dim=block_dim if self.is_cuda else 1, **kw)
