@@ -26,7 +26,8 @@ def _find_kernels():
 
 _find_kernels()
 
-from gnwarp import data, systems  # noqa: E402  (systems -> data: the stages users call by name)
+from gnwarp import data  # noqa: E402  (systems -> data: the stages users call by name)
+from gnwarp.sim import systems  # noqa: E402
 from gnwarp.gn import GNBlockConfig, GraphNetwork  # noqa: E402
 from gnwarp.graphs import GraphsTuple  # noqa: E402
 from gnwarp.optim import FlatAdam, flatten_parameters  # noqa: E402

@@ -7,7 +7,7 @@ import time
 
 
 def _cmd_systems(args) -> int:
-    from gnwarp import systems
+    from gnwarp.sim import systems
     rows = []
     for name in systems.names():
         rows.append(systems.describe(systems.make(name)))
@@ -36,7 +36,7 @@ def _sizes(args):
         return args.num_sequences
     if args.num_sequences is not None:
         raise SystemExit("give either --num-sequences or --train/--valid/--test, not both")
-    from gnwarp.data import PAPER_SIZES
+    from gnwarp.data.generate import PAPER_SIZES
     paper = PAPER_SIZES[args.parameterized]
     return {k: getattr(args, k) if getattr(args, k) is not None else paper[k] for k in ("train", "valid", "test")}
 
@@ -44,14 +44,15 @@ def _sizes(args):
 def _cmd_generate(args) -> int:
     from pathlib import Path
 
-    from gnwarp import data, systems
+    from gnwarp.data.generate import generate
+    from gnwarp.sim.systems import from_mjcf
     out = Path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
     if out.exists() and not args.overwrite:  # fail before simulating, not after
         raise FileExistsError(f"output exists: {out} (use --overwrite)")
-    system = systems.from_mjcf(args.mjcf, dt=args.dt, substeps=args.substeps) if args.mjcf else args.system
+    system = from_mjcf(args.mjcf, dt=args.dt, substeps=args.substeps) if args.mjcf else args.system
     t0 = time.perf_counter()
-    ds = data.generate(system, _sizes(args), num_steps=args.steps, seed=args.seed,
-                       parameterized=args.parameterized, backend=args.backend, progress=not args.quiet)
+    ds = generate(system, _sizes(args), num_steps=args.steps, seed=args.seed,
+                  parameterized=args.parameterized, backend=args.backend, progress=not args.quiet)
     ds.save(out, overwrite=args.overwrite)
     n = sum(ds.meta["splits"].values())
     steps = n * ds.meta["num_steps"]
@@ -129,35 +130,37 @@ def _cmd_evaluate(args) -> int:
     import json
     from pathlib import Path
 
-    from gnwarp import data
-    from gnwarp import evaluate as ev
+    from gnwarp.data.dataset import load
+    from gnwarp.eval.animate import animate
+    from gnwarp.eval.metrics import evaluate
+    from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces
+    from gnwarp.files import jsonable
     from gnwarp.train import load_model
-    ds = data.load(args.data)
+    ds = load(args.data)
     results = {}
     for k, path in enumerate(args.checkpoints):
         name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
         m = load_model(path, device=args.device, backend=args.backend)
-        results[name] = ev.evaluate(m, ds, args.split, args.sequences, tuple(args.horizons),
-                                    keep_predictions=bool(args.out))
+        results[name] = evaluate(m, ds, args.split, args.sequences, tuple(args.horizons),
+                                 keep_predictions=bool(args.out))
     preds = {n: r.pop("predictions", None) for n, r in results.items()}
-    table = ev.markdown_table(results, ds.system)
+    table = markdown_table(results, ds.system)
     print(table)
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "errors.md").write_text(table)
-        ev.plot_errors(results, out / "errors.png", f"{ds.system}: normalized errors")
+        plot_errors(results, out / "errors.png", f"{ds.system}: normalized errors")
         first = next(iter(preds.values()))
         if first is not None:
             true, inst = first["true"], first["instance"]
             body = 1 if true.shape[2] > 1 else 0
-            ev.plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
-                                 out / "states.png", f"{ds.system}, body {body}")
+            plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
+                              out / "states.png", f"{ds.system}, body {body}")
             k = min(3, true.shape[0])
-            ev.animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
-                       title=f"{ds.system}: true vs predicted")
-        from gnwarp.demo import _jsonable
-        (out / "results.json").write_text(json.dumps(_jsonable(results), indent=1))
+            animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
+                    title=f"{ds.system}: true vs predicted")
+        (out / "results.json").write_text(json.dumps(jsonable(results), indent=1))
         print(f"wrote {out}/errors.md, errors.png, states.png, rollouts.gif, results.json")
     return 0
 

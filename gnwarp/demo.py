@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
+from gnwarp.files import jsonable
 from gnwarp.models import GNCoreConfig, ModelConfig
 
 __all__ = ["DemoConfig", "run_demo"]
@@ -65,37 +63,16 @@ class DemoConfig:
             self.gn = GNCoreConfig(**self.gn)
 
 
-def _plot_training(logs: dict[str, Path], path: Path) -> None:
-    import csv
-
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
-    for (name, p), c in zip(logs.items(), ("tab:red", "tab:blue")):
-        rows = list(csv.DictReader(open(p)))
-        tr = [(int(r["step"]), float(r["loss"])) for r in rows if r.get("loss")]
-        va = [(int(r["step"]), float(r["valid_error"])) for r in rows if r.get("valid_error")]
-        if tr:
-            a.plot(*zip(*tr), color=c, label=name)
-        if va:
-            b.plot(*zip(*va), "o-", color=c, label=name)
-    a.set(yscale="log", xlabel="training step", ylabel="training loss (with input noise)")
-    b.set(yscale="log", xlabel="training step", ylabel="20-step rollout error (valid)")
-    a.legend(fontsize=8)
-    b.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     """Run the demo; returns a summary (timings, errors, paths). ``overrides``: DemoConfig fields."""
     import torch
 
-    from gnwarp import data
-    from gnwarp import evaluate as ev
-    from gnwarp.simulate import resolve_backend
+    from gnwarp.data.dataset import load
+    from gnwarp.data.generate import generate
+    from gnwarp.eval.animate import animate
+    from gnwarp.eval.metrics import evaluate
+    from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
+    from gnwarp.sim.simulate import resolve_backend
     from gnwarp.train import TrainConfig, load_model, resolve_device, train
 
     cfg = dataclasses.replace(config or DemoConfig(), **overrides)
@@ -109,7 +86,7 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     # 1. data
     t = time.perf_counter()
     if cfg.dataset:
-        ds = data.load(cfg.dataset, lazy=False)
+        ds = load(cfg.dataset, lazy=False)
         sim_backend = ds.meta["backend"]
         data_path = Path(cfg.dataset)
         say(f"[1/4] using {data_path}: {ds.meta['splits']} sequences of {ds.meta['num_steps']} steps")
@@ -117,8 +94,8 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
         sim_backend = resolve_backend("auto")
         say(f"[1/4] simulating {cfg.system}: {cfg.train_sequences}/{cfg.valid_sequences}/{cfg.test_sequences} "
             f"sequences x {cfg.num_steps} steps ({sim_backend})")
-        ds = data.generate(cfg.system, (cfg.train_sequences, cfg.valid_sequences, cfg.test_sequences),
-                           num_steps=cfg.num_steps, seed=cfg.seed, backend="auto", progress=cfg.progress)
+        ds = generate(cfg.system, (cfg.train_sequences, cfg.valid_sequences, cfg.test_sequences),
+                      num_steps=cfg.num_steps, seed=cfg.seed, backend="auto", progress=cfg.progress)
         data_path = out / f"{cfg.system}.h5"
         ds.save(data_path, overwrite=True)
     timings["data"] = time.perf_counter() - t
@@ -149,22 +126,22 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     t = time.perf_counter()
     models = {"GN": load_model(gn_run["best"], device=device),
               f"MLP {cfg.mlp_size}": load_model(mlp_run["best"], device=device)}
-    results = {name: ev.evaluate(m, ds, "test", keep_predictions=True) for name, m in models.items()}
+    results = {name: evaluate(m, ds, "test", keep_predictions=True) for name, m in models.items()}
     timings["evaluate"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    table = ev.markdown_table(results, cfg.system)
-    ev.plot_errors(results, out / "errors.png", f"{cfg.system}: normalized errors")
+    table = markdown_table(results, cfg.system)
+    plot_errors(results, out / "errors.png", f"{cfg.system}: normalized errors")
     preds = {n: r.pop("predictions") for n, r in results.items()}
     true, inst = preds["GN"]["true"], preds["GN"]["instance"]
     body = 1 if true.shape[2] > 1 else 0
-    ev.plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
-                         out / "states.png", f"{cfg.system}, body {body}: {true.shape[1] - 1}-step rollout")
+    plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
+                      out / "states.png", f"{cfg.system}, body {body}: {true.shape[1] - 1}-step rollout")
     k = min(cfg.animate_rollouts, true.shape[0])
-    ev.animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
-               title=f"{cfg.system}: true (grey) vs predicted rollouts", renderer=cfg.renderer)
-    _plot_training({"GN": out / "gn" / "log.csv", f"MLP {cfg.mlp_size}": out / "mlp" / "log.csv"},
-                   out / "training.png")
+    animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
+            title=f"{cfg.system}: true (grey) vs predicted rollouts", renderer=cfg.renderer)
+    plot_training({"GN": out / "gn" / "log.csv", f"MLP {cfg.mlp_size}": out / "mlp" / "log.csv"},
+                  out / "training.png")
     timings["plots"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
@@ -173,24 +150,12 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
         "torch_threads": torch.get_num_threads(), "dataset": ds.meta["splits"], "num_steps": ds.meta["num_steps"],
         "gn": {k: gn_run[k] for k in ("steps", "best_step", "seconds", "steps_per_second", "stop")},
         "mlp": {k: mlp_run[k] for k in ("steps", "best_step", "seconds", "steps_per_second", "stop")},
-        "results": _jsonable(results), "timings_s": timings, "config": _jsonable(dataclasses.asdict(cfg)),
+        "results": jsonable(results), "timings_s": timings, "config": jsonable(dataclasses.asdict(cfg)),
     }
     (out / "results.json").write_text(json.dumps(summary, indent=1))
     (out / "report.md").write_text(_report(cfg, summary, table))
     say(f"\n{table}\nwrote {out / 'report.md'} in {timings['total']:.0f} s")
     return summary
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, (np.integer, np.bool_)):
-        return x.item()
-    return x
 
 
 def _report(cfg: DemoConfig, s: dict, table: str) -> str:

@@ -11,7 +11,7 @@ One model, two cores::
     world body (node 0 of each graph) kept fixed; re-centred in x, y for translation-invariant
     single-system models (D.4).
 
-A node's 13 dynamic features and their change use the layout of ``gnwarp.convert``: position (0:3),
+A node's 13 dynamic features and their change use the layout of ``gnwarp.state``: position (0:3),
 orientation w, x, y, z (3:7), linear (7:10) and angular (10:13) velocity in the world frame. The
 change of orientation is the rotation ``dq`` with ``q_next = dq (x) q`` (Hamilton product, world
 frame), sign-fixed so that ``dq.w >= 0``.
@@ -25,72 +25,20 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
 import torch.nn as nn
 
-from gnwarp.convert import ANGVEL, DYN_NODE_NAMES, DYN_NODE_SIZE, LINVEL, POS, QUAT, FeatureLayout
+from gnwarp.data.builder import GraphTemplate, graph_builder
+from gnwarp.data.layout import FeatureLayout
 from gnwarp.gn import MLP, EdgeBlockConfig, GlobalBlockConfig, GNBlockConfig, GraphNetwork, NodeBlockConfig
 from gnwarp.graphs import GraphsTuple
+from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
+                          state_delta)
 
 __all__ = [
-    "quat_mul", "quat_conj", "quat_normalize", "state_delta", "apply_delta", "rotation_loss",
     "Normalizer", "GNCoreConfig", "MLPCoreConfig", "ModelConfig", "MLP_SIZES", "GNCore", "MLPCore",
-    "ForwardModel", "MLPForwardModel", "GraphTemplate", "LayoutMismatchError", "graph_builder",
+    "ForwardModel", "MLPForwardModel",
 ]
-
-
-# -- quaternions (w, x, y, z) -------------------------------------------------------------------
-
-def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a (x) b of quaternions [..., 4] (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
-def quat_conj(q: torch.Tensor) -> torch.Tensor:
-    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
-
-
-def quat_normalize(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """q / |q| (a zero quaternion stays finite)."""
-    return q / q.norm(dim=-1, keepdim=True).clamp_min(eps)
-
-
-def _canonical(q: torch.Tensor) -> torch.Tensor:
-    """The one of q, -q with w >= 0 (they are the same rotation)."""
-    return torch.where(q[..., :1] < 0, -q, q)
-
-
-def state_delta(x: torch.Tensor, x_next: torch.Tensor) -> torch.Tensor:
-    """Change [..., 13] from dynamic states x to x_next [..., 13] (D.5): differences of position
-    and velocities, and the rotation dq = q_next (x) q^-1 with dq.w >= 0."""
-    q, qn = x[..., QUAT], x_next[..., QUAT]
-    inv = quat_conj(q) / (q * q).sum(-1, keepdim=True).clamp_min(1e-24)
-    dq = _canonical(quat_normalize(quat_mul(qn, inv)))
-    return torch.cat([x_next[..., POS] - x[..., POS], dq, x_next[..., LINVEL] - x[..., LINVEL],
-                      x_next[..., ANGVEL] - x[..., ANGVEL]], -1)
-
-
-def apply_delta(x: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """Next dynamic states [..., 13] (D.5): position and velocities by addition, orientation by the
-    Hamilton product with the change's rotation forced to unit norm (the product is re-normalized
-    too, so rounding does not drift over long rollouts)."""
-    q = quat_normalize(quat_mul(quat_normalize(delta[..., QUAT]), x[..., QUAT]))
-    return torch.cat([x[..., POS] + delta[..., POS], q, x[..., LINVEL] + delta[..., LINVEL],
-                      x[..., ANGVEL] + delta[..., ANGVEL]], -1)
-
-
-def rotation_loss(q_expected: torch.Tensor, q_predicted: torch.Tensor) -> torch.Tensor:
-    """[...] 1 - (q_e . q_p)^2 for unit quaternions (D.7.4): sin^2 of half the angle between the
-    rotations; zero for q_p = +-q_e. (The paper writes 1 - cos^2(q_e . q_p); with q_e . q_p =
-    cos(angle / 2) this is the same loss read as the angle distance it is said to minimize.)"""
-    d = (q_expected * q_predicted).sum(-1)
-    return 1.0 - d * d
 
 
 # -- normalization (D.3, D.7.1) ---------------------------------------------------------------
@@ -249,18 +197,18 @@ class GNCore(nn.Module):
                             global_block=GlobalBlockConfig(use_globals=g))
         gn2 = GNBlockConfig(fv + L, fe + L, fg + L, node_out=DYN_NODE_SIZE, edge_out=L, global_out=L, **hidden,
                             update_globals=False)
-        opts = dict(backend=config.backend, path=config.path, precision=config.precision,
+        opts = dict(impl=config.backend, path={"split": "blas"}.get(config.path, config.path), precision=config.precision,
                     deterministic=config.deterministic, check_inputs=False)  # graphs come from GraphBuilder
         self.gn1 = GraphNetwork(gn1, **opts)
         self.gn2 = GraphNetwork(gn2, **opts)
 
     @property
     def backend(self) -> str:
-        return self.gn1.backend
+        return self.gn1.impl
 
     @backend.setter
     def backend(self, value: str) -> None:
-        self.gn1.backend = self.gn2.backend = value
+        self.gn1.impl = self.gn2.impl = value
 
     def graph_index(self, graph: GraphsTuple):
         """Index of ``graph``'s topology, shared by both blocks (None for the torch backend)."""
@@ -299,123 +247,6 @@ class MLPCore(nn.Module):
                              f"edges for {n} graphs")
         x = torch.cat([graph.globals.reshape(n, -1), graph.nodes.reshape(n, -1), graph.edges.reshape(n, -1)], -1)
         return self.mlp(x).reshape(n * self.n_node, DYN_NODE_SIZE)
-
-
-# -- binding data to a model's layout ---------------------------------------------------------
-
-class LayoutMismatchError(ValueError):
-    """Data whose static features cannot be mapped onto a model's feature layout."""
-
-
-class _Static(NamedTuple):
-    static: dict  # GraphBuilder reads only ``.static``
-
-
-def _close(a: float, b: float) -> bool:
-    return abs(a - b) <= 1e-5 * max(1.0, abs(a), abs(b))  # datasets store static features as float32
-
-
-def map_static(layout: FeatureLayout, data_layout: FeatureLayout, static: dict, strict: bool = True) -> dict:
-    """A dataset's ``static`` arrays laid out as ``layout`` (a model's).
-
-    Kept columns are mapped by name (``FeatureLayout.map_static``). ``strict``: also refuse data
-    where a column the model saw as constant has another value (the model could not tell the
-    difference), e.g. a Pendulum model on Cartpole data. Raises ``LayoutMismatchError``.
-    """
-    if data_layout.n_ctrl_slots > layout.n_ctrl_slots:
-        raise LayoutMismatchError(f"the data has {data_layout.n_ctrl_slots} control slots per edge, the model "
-                                  f"{layout.n_ctrl_slots}")
-    if strict:
-        bad = []
-        for kind, attr in (("globals", "global_names"), ("nodes", "node_names"), ("edges", "edge_names")):
-            theirs = set(getattr(data_layout, attr))
-            const = data_layout.dropped.get(kind, {})
-            for name, v in layout.dropped.get(kind, {}).items():
-                if name in theirs:
-                    bad.append(f"{kind}.{name} (constant {v:g} for the model, varying in the data)")
-                elif name in const and not _close(const[name], v):
-                    bad.append(f"{kind}.{name} (model: {v:g}, data: {const[name]:g})")
-        if bad:
-            more = f" and {len(bad) - 8} more" if len(bad) > 8 else ""
-            raise LayoutMismatchError("the data's static features do not match the model's feature layout: "
-                                      + "; ".join(bad[:8]) + more)
-    out = dict(static)
-    try:
-        for kind in ("globals", "nodes", "edges"):
-            out[kind] = layout.map_static(data_layout, kind, np.asarray(static[kind][...])).astype(np.float32)
-    except ValueError as e:
-        raise LayoutMismatchError(f"the data does not fit the model's feature layout: {e}") from None
-    ec = np.asarray(static["edge_ctrl"][...])
-    if ec.shape[-1] < layout.n_ctrl_slots:  # fewer actuators per joint than the model's data had
-        pad = -np.ones(ec.shape[:-1] + (layout.n_ctrl_slots - ec.shape[-1],), dtype=ec.dtype)
-        out["edge_ctrl"] = np.concatenate([ec, pad], -1)
-    return out
-
-
-def graph_builder(layout: FeatureLayout, source, device=None, dtype=None, strict: bool = True):
-    """A ``GraphBuilder`` of ``source``'s graphs in ``layout``: source is a ``Dataset`` or a
-    ``gnwarp.systems.System`` (its static graph, for planning without a dataset)."""
-    from gnwarp.data import Dataset, GraphBuilder, _static_arrays
-    from gnwarp.systems import System
-    if isinstance(source, System):
-        static, data_layout, _ = _static_arrays([source])
-    elif isinstance(source, Dataset):
-        names = tuple(source.meta.get("dynamic_node_names", DYN_NODE_NAMES))
-        if names != DYN_NODE_NAMES:
-            raise LayoutMismatchError(f"the data's dynamic node features {names} are not {DYN_NODE_NAMES}")
-        static, data_layout = source.static, source.layout
-    else:
-        raise TypeError(f"expected a gnwarp Dataset or System, got {type(source).__name__}")
-    return GraphBuilder(_Static(map_static(layout, data_layout, static, strict)), device=device, dtype=dtype)
-
-
-class GraphTemplate:
-    """The static part of a batch of input graphs (given system instances), built once, so that
-    each rollout step only fills in body states and controls: ``graph(body [N, B, 13], ctrl [N, U])``
-    runs without host synchronization. ``to_body(nodes, like)`` maps flat node rows back to [N, B, 13]."""
-
-    def __init__(self, builder, instance: torch.Tensor):
-        dev = builder.s_nodes.device
-        instance = instance.to(dev)
-        N, B = int(instance.shape[0]), int(builder.s_nodes.shape[1])
-        self.N, self.B = N, B
-        self.dtype = builder.dtype
-        K = builder.edge_ctrl.shape[-1]
-        U = max(int(builder.edge_ctrl.max()) + 1, 1)  # host sync, here only
-        g = builder(instance, torch.zeros(N, B, DYN_NODE_SIZE, device=dev), torch.zeros(N, U, device=dev))
-        self.static_nodes = g.nodes[:, :-DYN_NODE_SIZE]
-        self.static_edges = g.edges[:, :-K]
-        self.topology = g._replace(nodes=None, edges=None)
-        nm = builder.node_mask[instance].reshape(-1)
-        em = builder.edge_mask[instance].reshape(-1)
-        self.rows = None if builder.uniform else nm.nonzero().squeeze(1)       # one sync, here only
-        ec = builder.edge_ctrl[instance]                                          # [N, E, K]
-        self.ctrl_index = ec.reshape(-1, K) if builder.uniform else ec.reshape(-1, K)[em.nonzero().squeeze(1)]
-        self.edge_of = torch.arange(N, device=dev).repeat_interleave(ec.shape[1])
-        if not builder.uniform:
-            self.edge_of = self.edge_of[em]
-        self.n_nodes = int(self.static_nodes.shape[0])
-
-    def graph(self, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
-        dyn = self.nodes(body)
-        U = ctrl.shape[-1]
-        idx = self.ctrl_index
-        c = ctrl.to(self.dtype).reshape(-1)[(self.edge_of[:, None] * U + idx.clamp(min=0)).reshape(-1)]
-        c = torch.where(idx >= 0, c.reshape(idx.shape), torch.zeros((), dtype=c.dtype, device=c.device))
-        return self.topology._replace(nodes=torch.cat([self.static_nodes, dyn], -1),
-                                      edges=torch.cat([self.static_edges, c], -1))
-
-    def nodes(self, body: torch.Tensor) -> torch.Tensor:
-        """[N, B, 13] -> [sum(n_node), 13]."""
-        flat = body.to(self.dtype).reshape(self.N * self.B, DYN_NODE_SIZE)
-        return flat if self.rows is None else flat.index_select(0, self.rows)
-
-    def to_body(self, nodes: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        """[sum(n_node), 13] -> [N, B, 13], padding rows taken from ``like``."""
-        if self.rows is None:
-            return nodes.reshape(self.N, self.B, DYN_NODE_SIZE)
-        flat = like.to(nodes.dtype).reshape(self.N * self.B, DYN_NODE_SIZE)
-        return flat.index_copy(0, self.rows, nodes).reshape(self.N, self.B, DYN_NODE_SIZE)
 
 
 # -- the model ------------------------------------------------------------------------------------

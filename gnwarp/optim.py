@@ -1,5 +1,5 @@
 """``FlatAdam``: Adam / AdamW with gradient-norm clipping over one flat parameter buffer, in
-Warp kernels (``kernels/optim.py``): 2-3 launches per step whatever the number of tensors.
+Warp kernels (``kernels/train/optim.py``): 2-3 launches per step whatever the number of tensors.
 
 At construction the parameters are moved into one flat buffer (each ``p.data`` becomes a view
 of it, so modules keep working unchanged) and every parameter gets ``p.main_grad``, a view of
@@ -27,53 +27,12 @@ from __future__ import annotations
 import math
 
 import torch
-import warp as wp
 
-from gnwarp.kernels import optim as K
+from gnwarp.gn.flat import flatten_parameters
+from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.kernels.train import optim as K
 
-__all__ = ["FlatAdam", "flatten_parameters", "has_main_grad", "accumulate_main_grads"]
-
-# Shared with the Warp GN backend (gnwarp.gn_warp imports them from here: this module imports it
-# only lazily, so there is no import cycle).
-WP_DTYPE = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16,
-            torch.bfloat16: wp.bfloat16}
-ALIGN = 64  # elements: views carved from one buffer start 256-byte aligned (fp32), as cuBLAS likes
-
-
-def flatten_parameters(params) -> tuple[torch.Tensor, list[int]]:
-    """Move ``params`` (one dtype, one device) into one flat buffer: each ``p.data`` becomes a
-    view of it, starting 64-element aligned, zeros in the gaps. Returns (buffer, offsets).
-
-    Modules keep working unchanged. The Warp GN backend then casts a block's parameters for
-    fp16 / bf16 in one launch over their span instead of a cat and a cast (FlatAdam does this
-    itself; call it on a model used for inference or with another optimizer). Call it after
-    ``model.to(...)``, which would replace the views."""
-    ps = list(params)
-    if not ps:
-        raise ValueError("flatten_parameters got no parameters")
-    dt, dev = ps[0].dtype, ps[0].device
-    for k, p in enumerate(ps):
-        if p.dtype != dt or p.device != dev:
-            raise ValueError(f"parameter {k} is {p.dtype} on {p.device}, parameter 0 {dt} on {dev}: "
-                             "flatten_parameters needs one dtype and one device")
-    if len({id(p) for p in ps}) != len(ps):
-        raise ValueError("flatten_parameters got a parameter twice")
-    offsets, total = [], 0
-    for p in ps:
-        offsets.append(total)
-        total += -(-p.numel() // ALIGN) * ALIGN
-    with torch.no_grad():
-        flat = torch.zeros(total, dtype=dt, device=dev)
-        for p, o in zip(ps, offsets):
-            view = flat[o:o + p.numel()].view_as(p)
-            view.copy_(p)
-            p.data = view
-    return flat, offsets
-
-
-def _launcher(like: torch.Tensor):
-    from gnwarp.gn_warp import _Launcher  # noqa: PLC0415 (gn_warp imports this module lazily too)
-    return _Launcher(like)
+__all__ = ["FlatAdam"]
 
 
 class FlatAdam(torch.optim.Optimizer):
@@ -173,19 +132,16 @@ class FlatAdam(torch.optim.Optimizer):
         capturing = self.flat.is_cuda and torch.cuda.is_current_stream_capturing()
         if not capturing:
             self.sync_lr()
-        launch = _launcher(self.flat)
+        launch = Launcher(self.flat)
         T = self._wp_dtype
         b1, b2 = group["betas"]
-        arr = launch.array
         norm = self.max_grad_norm is not None or self.check_finite
         if norm:
             bd = K.BLOCK if self.flat.is_cuda else 1
             blocks = max(1, min(1024, -(-self.numel // (bd * 8))))
-            wp.launch_tiled(K.sumsq_kernel(T), dim=[blocks],
-                            inputs=[arr(self.grad_flat), self.numel, bd, blocks * bd, arr(self.scalars)],
-                            block_dim=bd, device=launch.device, stream=launch.stream)
+            launch.tiled(K.sumsq_kernel(T), blocks, bd, self.grad_flat, self.numel, bd, blocks * bd, self.scalars)
         clip = self.max_grad_norm is not None
-        launch.n(K.finalize_kernel(T, clip), 1, self.scalars, b1, b2, self.max_grad_norm if clip else 0.0)
+        launch(K.finalize_kernel(T, clip=clip), 1, self.scalars, b1, b2, self.max_grad_norm if clip else 0.0)
         if self.check_finite and not capturing:
             n = float(self.scalars[K.NORM].item())
             if not math.isfinite(n):
@@ -194,8 +150,8 @@ class FlatAdam(torch.optim.Optimizer):
                                          "(parameters left unchanged)")
         wd = group["weight_decay"]
         nt = K.adam_threads(self.numel)
-        launch.n(K.adam_kernel(T, wd > 0, self.decoupled), nt, self.flat, self.grad_flat, self.exp_avg,
-                 self.exp_avg_sq, self.scalars, self.numel, nt, b1, b2, group["eps"], wd)
+        launch(K.adam_kernel(T, weight_decay=wd > 0, decoupled=self.decoupled), nt, self.flat, self.grad_flat,
+               self.exp_avg, self.exp_avg_sq, self.scalars, self.numel, nt, b1, b2, group["eps"], wd)
         return loss
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -232,45 +188,3 @@ class FlatAdam(torch.optim.Optimizer):
         self.decoupled = bool(state.get("decoupled_weight_decay", self.decoupled))
         self.max_grad_norm = state.get("max_grad_norm", self.max_grad_norm)
         self.sync_lr()
-
-
-# -- used by the Warp GN backend ------------------------------------------------------------------
-def has_main_grad(params) -> bool:
-    """Whether every parameter carries a ``main_grad`` of its own shape and dtype, all views of
-    one contiguous buffer (FlatAdam's), so a block's gradients can be added in one launch."""
-    base = None
-    for p in params:
-        mg = getattr(p, "main_grad", None)
-        if mg is None or mg.shape != p.shape or mg.dtype != p.dtype or not mg.is_contiguous() or mg._base is None:
-            return False
-        if base is None:
-            base = mg._base
-        elif mg._base is not base:
-            return False
-    return base is not None and base.is_contiguous()
-
-
-_TABLES: dict[tuple, tuple] = {}
-
-
-def accumulate_main_grads(launch, src: torch.Tensor, segments, mains):
-    """mains[k] += src[off_k : off_k + numel_k] (dtype cast) for (off_k, k) in ``segments``, in
-    one launch: ``src`` a flat gradient buffer, ``mains`` views of one flat buffer
-    (``has_main_grad``). The segment table is made once per layout and kept on the device (so
-    run a step before capturing a CUDA graph)."""
-    if not segments:
-        return
-    base = mains[segments[0][1]]._base
-    item = base.element_size()
-    rows, starts, t = [], [0], 0
-    for off, k in segments:
-        mg = mains[k]
-        rows.append((off, (mg.data_ptr() - base.data_ptr()) // item))
-        t += mg.numel()
-        starts.append(t)
-    key = (tuple(rows), tuple(starts), base.device)
-    tabs = _TABLES.get(key)
-    if tabs is None:
-        tabs = _TABLES[key] = (torch.tensor(rows, dtype=torch.int32, device=base.device),
-                               torch.tensor(starts, dtype=torch.int32, device=base.device))
-    launch.n(K.accumulate_kernel(WP_DTYPE[src.dtype], WP_DTYPE[base.dtype]), t, src, tabs[0], tabs[1], len(rows), base)

@@ -39,12 +39,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gnwarp.convert import DYN_NODE_SIZE, FeatureLayout
-from gnwarp.models import ForwardModel, LayoutMismatchError, ModelConfig
+from gnwarp.data.layout import FeatureLayout, merge_layouts
+from gnwarp.models import ForwardModel, ModelConfig
 from gnwarp.optim import FlatAdam
+from gnwarp.state import DYN_NODE_SIZE
 
 __all__ = ["TrainConfig", "train", "save_checkpoint", "load_model", "load_checkpoint", "CheckpointError",
-           "merge_layouts", "SCHEDULES", "resolve_device"]
+           "SCHEDULES", "resolve_device"]
 
 FORMAT, VERSION = "gnwarp-model", 1
 SCHEDULES = {"fast": 50_000, "slow": 200_000}   # D.8: learning-rate decay period in steps
@@ -135,38 +136,6 @@ def resolve_device(device: str = "auto") -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
-
-
-# -- layouts of several datasets --------------------------------------------------------------
-
-def merge_layouts(layouts: list[FeatureLayout]) -> FeatureLayout:
-    """One layout for several datasets: a column is kept if any dataset keeps it or the datasets'
-    constants for it differ; the rest stay dropped with their common constant."""
-    if len(layouts) == 1:
-        return layouts[0]
-    out = {}
-    dropped = {}
-    for kind, attr in (("globals", "global_names"), ("nodes", "node_names"), ("edges", "edge_names")):
-        order: list[str] = []
-        for lay in layouts:
-            for n in list(getattr(lay, attr)) + list(lay.dropped.get(kind, {})):
-                if n not in order:
-                    order.append(n)
-        keep, const = [], {}
-        for n in order:
-            vals = [lay.dropped.get(kind, {}).get(n) for lay in layouts]
-            if any(n in getattr(lay, attr) for lay in layouts) or len({v for v in vals}) > 1:
-                if all(n in getattr(lay, attr) or n in lay.dropped.get(kind, {}) for lay in layouts):
-                    keep.append(n)
-                else:
-                    raise LayoutMismatchError(f"static {kind} feature '{n}' is missing from some of the datasets")
-            else:
-                const[n] = vals[0]
-        out[attr] = keep
-        dropped[kind] = const
-    return FeatureLayout(out["global_names"], out["node_names"], out["edge_names"], dropped,
-                         n_ctrl_slots=max(lay.n_ctrl_slots for lay in layouts),
-                         n_global_ctrl=max(lay.n_global_ctrl for lay in layouts))
 
 
 # -- checkpoints --------------------------------------------------------------------------------
@@ -316,12 +285,12 @@ def _sample(parts: list[_TrainData], batch_size: int, gen: torch.Generator):
 
 
 def _load_datasets(config: TrainConfig, datasets):
-    from gnwarp import data
+    from gnwarp.data.dataset import load
     if datasets is not None:
         return list(datasets)
     if not config.data:
         raise ValueError("no training data: set `data` to one or more dataset files")
-    return [data.load(p, lazy=True) for p in config.data]
+    return [load(p, lazy=True) for p in config.data]
 
 
 def _build_model(config: TrainConfig, datasets) -> ForwardModel:
@@ -357,7 +326,7 @@ def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None)
     """
     from tqdm.auto import tqdm
 
-    from gnwarp.evaluate import rollout_error
+    from gnwarp.eval.metrics import rollout_error
 
     out = Path(config.out)
     device = resolve_device(config.device)

@@ -7,12 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from gnwarp import data, systems
-from gnwarp.controls import control_range, random_spline_controls
-from gnwarp.convert import (DYN_NODE_SIZE, FeatureLayout, body_states, edge_controls, static_graph,
-                            topology)
+from gnwarp import data
+from gnwarp.data.convert import body_states, edge_controls, static_graph, topology
+from gnwarp.data.layout import FeatureLayout
 from gnwarp.interop import cuda_available
-from gnwarp.simulate import simulate
+from gnwarp.sim import systems
+from gnwarp.sim.excitation import control_range, random_spline_controls
+from gnwarp.sim.simulate import simulate
+from gnwarp.state import DYN_NODE_SIZE
 
 
 def _reference_rollout(system, q0, v0, u):
@@ -226,7 +228,7 @@ def test_unstable_simulation_reported(monkeypatch):
 
 
 def test_graph_builder_torch_device_roundtrip(small_dataset):
-    b = data.GraphBuilder(small_dataset, dtype=torch.float64)
+    b = data.GraphBuilder(small_dataset.static, dtype=torch.float64)
     sp = small_dataset["valid"]
     g = b(torch.as_tensor(sp.instance), torch.as_tensor(sp.body[:, 3]), torch.as_tensor(sp.ctrl[:, 3]))
     g.validate()

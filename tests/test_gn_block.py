@@ -14,9 +14,10 @@ wp.config.quiet = True
 from torch.func import functional_call  # noqa: E402
 
 from gnwarp import GNBlockConfig, GraphNetwork, GraphsTuple  # noqa: E402
-from gnwarp import gn_warp  # noqa: E402
-from gnwarp.gn import EdgeBlockConfig, GlobalBlockConfig, NodeBlockConfig, TorchGraphNetwork  # noqa: E402
+from gnwarp.gn import (TUNABLES, EdgeBlockConfig, GlobalBlockConfig, NodeBlockConfig, RunOptions,  # noqa: E402
+                       TorchGraphNetwork, fp16x3, graph_index, graph_ops, rules, tile_block)
 from gnwarp.graphs import batch  # noqa: E402
+from gnwarp.interop import WP_DTYPE, Launcher  # noqa: E402
 
 FV, FE, FU = 3, 2, 4
 SMALL = dict(node_size=FV, edge_size=FE, global_size=FU, node_out=5, edge_out=6, global_out=7,
@@ -169,19 +170,19 @@ _EDGE_CASES = [c for c in _switch_cases() if c[0] == "edge"]
 
 @pytest.mark.parametrize("case", _EDGE_CASES, ids=lambda c: "edge:" + "".join(
     "1" if getattr(c[1]["edge_block"], f) else "0" for f in c[1]["edge_block"].__dataclass_fields__))
-def test_split_edge_first_layer_switches(case, monkeypatch):
-    """Edge blocks with wide gathered inputs split their first layer (node / global projections
-    gathered per edge, ``first_layer`` kernel) instead of concatenating the inputs: every edge
-    switch combination in that mode (float64: exact to rounding)."""
-    monkeypatch.setattr(gn_warp, "_EDGE_CONCAT_MAX_K", -1)
+def test_project_edge_first_layer_switches(case, monkeypatch):
+    """Edge blocks with wide gathered inputs compute their first layer from projections (node /
+    global projections gathered per edge, ``project`` kernel) instead of concatenating the inputs:
+    every edge switch combination in that mode (float64: exact to rounding)."""
+    monkeypatch.setattr(TUNABLES, "edge_concat_max_k", -1)
     gn, ref = pair({**SMALL, **case[1]}, dtype=torch.float64)
     compare(gn, ref, make_batch("mixed"), fwd_tol=1e-12, grad_tol=1e-12)
 
 
 @pytest.mark.parametrize("deterministic", [False, True])
-def test_split_edge_first_layer(deterministic, monkeypatch):
-    """The split edge first layer in float32 (both aggregation modes) and under gradcheck."""
-    monkeypatch.setattr(gn_warp, "_EDGE_CONCAT_MAX_K", -1)
+def test_project_edge_first_layer(deterministic, monkeypatch):
+    """The projected edge first layer in float32 (both aggregation modes) and under gradcheck."""
+    monkeypatch.setattr(TUNABLES, "edge_concat_max_k", -1)
     gn, ref = pair(SMALL, deterministic=deterministic)
     compare(gn, ref, make_batch("mixed"), fwd_tol=1e-5, grad_tol=1e-5)
     g = make_batch("gradcheck", fv=2, fe=2, fu=2)
@@ -189,7 +190,7 @@ def test_split_edge_first_layer(deterministic, monkeypatch):
     _gradcheck(GraphNetwork(**TINY, deterministic=deterministic, check_inputs=False).double(), g)
 
 
-@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("mode", ["concat", "project"])
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_edge_first_layer_forced(mode, deterministic):
     """``edge_first_layer`` forces either first-layer mode; both match the float64 reference,
@@ -200,14 +201,24 @@ def test_edge_first_layer_forced(mode, deterministic):
         GraphNetwork(**SMALL, edge_first_layer="fused")
 
 
+def _run(dtype=torch.float32, **options):
+    return RunOptions(**options).resolve(dtype)
+
+
 def test_edge_first_layer_mode_rule():
-    """Narrow gathered edge inputs concatenate, wide ones split (the paper core's two blocks)."""
-    assert gn_warp.edge_concat(GNBlockConfig(31, 64, 32))
-    assert not gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128))
+    """Narrow gathered edge inputs concatenate, wide ones project (the paper core's two blocks)."""
+    narrow, wide = GNBlockConfig(31, 64, 32), GNBlockConfig(31 + 128, 64 + 128, 32 + 128)
+    assert rules.edge_concat(narrow, _run(), 1000)
+    assert not rules.edge_concat(wide, _run(), 1000)
+    assert not rules.edge_concat(wide, _run(torch.float64, precision="fp64"), 1000)
     for precision in ("tf32", "fp16", "bf16"):  # tensor cores: concat measured faster everywhere
-        assert gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128), "auto", precision)
-    assert gn_warp.edge_concat(GNBlockConfig(31 + 128, 64 + 128, 32 + 128), "concat")
-    assert not gn_warp.edge_concat(GNBlockConfig(31, 64, 32), "split")
+        assert rules.edge_concat(wide, _run(precision=precision), 1000)
+    # fp16x3: concat where it emulates, fp32's rule below its rows and on float64 parameters
+    assert rules.edge_concat(wide, _run(precision="fp16x3"), TUNABLES.emulate_min_rows)
+    assert not rules.edge_concat(wide, _run(precision="fp16x3"), TUNABLES.emulate_min_rows - 1)
+    assert not rules.edge_concat(wide, _run(torch.float64, precision="fp16x3"), 10 ** 6)
+    assert rules.edge_concat(wide, _run(edge_first_layer="concat"), 1000)
+    assert not rules.edge_concat(narrow, _run(edge_first_layer="project"), 1000)
 
 
 @pytest.mark.parametrize("widths,gathered,vec_", [
@@ -221,15 +232,15 @@ def test_concat_kernel(widths, gathered, vec_):
     """``concat_kernel`` writes each piece's (gathered) rows side by side, cast to the output
     dtype, and zeros in the padding columns; nothing outside its rows (11 rows: the last block
     of rows sharing warps is partial)."""
-    from gnwarp.kernels import gn_block as K
+    from gnwarp.kernels.gn import graph_ops as K
     gen = torch.Generator().manual_seed(sum(widths))
-    rows, src_rows, K_ = 11, 4, gn_warp._pad(sum(widths)) + 8
+    rows, src_rows, K_ = 11, 4, rules.pad(sum(widths)) + 8
     dtypes = (torch.float32, torch.float64, torch.float32, torch.float16)
     srcs = [torch.randn(src_rows if g else rows, max(w, 1), generator=gen).to(dt)[:, :w].contiguous()
             for w, g, dt in zip(widths, gathered, dtypes)]
     idx = [torch.randint(0, src_rows, (rows,), generator=gen, dtype=torch.int32) for _ in widths]
     out = torch.full((rows + 1, K_), float("nan"), dtype=torch.float32)  # one row past the end
-    kern = K.concat_kernel(widths, gathered, tuple(gn_warp._WP_DTYPE[t.dtype] for t in srcs), wp.float32, K_, vec_)
+    kern = K.concat_kernel(widths, gathered, tuple(WP_DTYPE[t.dtype] for t in srcs), wp.float32, K_, max_vec=vec_)
     wp.launch(kern, dim=K.concat_threads(rows, widths, K_, vec_), device="cpu",
               inputs=[wp.from_torch(t.view(-1)) for t in srcs] + [wp.from_torch(i) for i in idx]
               + [rows, wp.from_torch(out.view(-1))])
@@ -240,12 +251,12 @@ def test_concat_kernel(widths, gathered, vec_):
 
 
 @pytest.mark.parametrize("deterministic_order", [False, True])
-def test_split_kernel(deterministic_order):
-    """``split_kernel`` (the adjoint of ``concat_kernel``): a stored piece lands in its own rows in
+def test_route_kernel(deterministic_order):
+    """``route_kernel`` (the adjoint of ``concat_kernel``): a stored piece lands in its own rows in
     the output dtype, added pieces are summed into their (indexed) rows on top of what the
     output held, padding columns and unrouted pieces are never read, and nothing past the rows
     is touched."""
-    from gnwarp.kernels import gn_block as K
+    from gnwarp.kernels.gn import graph_ops as K
     gen = torch.Generator().manual_seed(7)
     rows, n_dst = 13, 4
     g = torch.randn(rows, 24, generator=gen)
@@ -259,10 +270,10 @@ def test_split_kernel(deterministic_order):
     acc0 = acc.clone()
     own = torch.randn(rows, 7, generator=gen)
     own0 = own.clone()
-    pieces = ((0, 3, K.SPLIT_STORE, False, wp.float64), (6, 5, K.SPLIT_ADD, True, wp.float32),
-              (11, 5, K.SPLIT_ADD, True, wp.float32), (16, 5, K.SPLIT_ADD, False, wp.float32))
+    pieces = ((0, 3, K.ROUTE_STORE, False, wp.float64), (6, 5, K.ROUTE_ADD, True, wp.float32),
+              (11, 5, K.ROUTE_ADD, True, wp.float32), (16, 5, K.ROUTE_ADD, False, wp.float32))
     # pieces 1 and 2 add into one output (sender and receiver columns into the nodes' gradient)
-    kern = K.split_kernel(pieces, wp.float32)
+    kern = K.route_kernel(pieces, wp.float32)
     wp.launch(kern, dim=rows * 18, device="cpu",
               inputs=[wp.from_torch(g)] + [wp.from_torch(idx)] * 4
               + [wp.from_torch(store), wp.from_torch(acc), wp.from_torch(acc), wp.from_torch(own[:, :5])])
@@ -340,7 +351,7 @@ def test_state_dict_interchangeable():
     torch_gn.load_state_dict(warp_gn.state_dict())
     a, b = warp_gn(g), torch_gn(g)
     assert rel_err(a.nodes, b.nodes) < 1e-5 and rel_err(a.globals, b.globals) < 1e-5
-    warp_gn.backend = "torch"
+    warp_gn.impl = "torch"
     assert torch.equal(warp_gn(g).nodes, b.nodes)
 
 
@@ -373,7 +384,7 @@ def test_shared_index_and_unchecked_inputs():
     gn2 = GraphNetwork(**dict(SMALL, node_size=5, edge_size=6, global_size=7), check_inputs=False)
     idx = gn1.graph_index(g)
     out = gn2(gn1(g, idx), idx)
-    gn1.backend = gn2.backend = "torch"
+    gn1.impl = gn2.impl = "torch"
     expect = gn2(gn1(g))
     assert rel_err(out.nodes, expect.nodes) < 1e-5
     assert rel_err(out.edges, expect.edges) < 1e-5
@@ -382,7 +393,7 @@ def test_shared_index_and_unchecked_inputs():
 # -- aggregation order and determinism ----------------------------------------------------------
 def test_csr_index_groups_edges_by_receiver():
     g = make_batch("mixed")
-    gi = gn_warp.graph_index(g, deterministic=True)
+    gi = graph_index(g, deterministic=True)
     rcv, snd = g.receivers, g.senders
     for perm, offs, idx in ((gi.recv_perm, gi.recv_offsets, rcv), (gi.send_perm, gi.send_offsets, snd)):
         assert offs[0] == 0 and offs[-1] == g.total_edges
@@ -397,13 +408,12 @@ def test_segment_sum_is_sequential_in_edge_order():
     """Deterministic aggregation sums each segment left to right in float32, starting from 0."""
     gen = torch.Generator().manual_seed(5)
     g = make_batch("mixed")
-    gi = gn_warp.graph_index(g, deterministic=True)
+    gi = graph_index(g, deterministic=True)
     # magnitudes spread over many binades make any other summation order round differently
     src = (torch.randn(g.total_edges, 6, generator=gen) * 10.0 ** torch.randint(-4, 5, (g.total_edges, 6),
                                                                              generator=gen)).float()
     out = torch.zeros(g.total_nodes, 6)
-    plan = gn_warp._Plan(GNBlockConfig(**SMALL), torch.float32, torch.float32, "fp32", True, 0, 0)
-    gn_warp._segment(gn_warp._Launcher(src), plan, src, gi.recv_perm, gi.recv_offsets, out)
+    graph_ops.segment(Launcher(src), _run(deterministic=True), src, gi.recv_perm, gi.recv_offsets, out)
     expect = torch.zeros(g.total_nodes, 6)
     for k in range(g.total_edges):  # edges in id order: the order of the stable sort
         i = int(g.receivers[k])
@@ -428,7 +438,7 @@ def test_deterministic_mode_is_bitwise_reproducible():
 
 
 # -- precisions ---------------------------------------------------------------------------------
-@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("mode", ["concat", "project"])
 @pytest.mark.parametrize("precision,tol", [("tf32", 1e-5), ("fp16", 5e-3), ("bf16", 4e-2)])
 def test_reduced_precision_close_to_reference(precision, tol, mode):
     """tf32 is plain fp32 on the CPU; fp16/bf16 round GEMM inputs and activations (float32
@@ -500,6 +510,54 @@ def test_bad_config_raises():
         GraphNetwork(**SMALL, path="tile", deterministic=True)(make_batch("mixed", dtype=torch.float32))
 
 
+# -- run options ----------------------------------------------------------------------------------
+def test_run_options_resolve_once_per_dtype():
+    """Each precision resolves to its compute / accumulation dtypes, TF32 switch and fp16x3 rule."""
+    r = _run(precision="fp16")
+    assert (r.compute_dtype, r.acc_dtype, r.autocast, r.tf32, r.emulate) == (
+        torch.float16, torch.float32, torch.float16, False, None)
+    r = _run(torch.float64, precision="tf32")
+    assert (r.compute_dtype, r.acc_dtype, r.tf32) == (torch.float64, torch.float64, True)
+    assert _run(precision="fp16x3").emulate == (TUNABLES.emulate_min_rows, TUNABLES.emulate_min_width)
+    assert _run(precision="fp16x3", emulate_min=(3, 4)).emulate == (3, 4)
+    assert _run(torch.float64, precision="fp16x3").emulate is None  # float64 parameters never emulate
+    assert RunOptions(precision="fp64").param_dtype == torch.float64 and RunOptions().param_dtype == torch.float32
+
+
+def test_run_options_saved_names_and_errors():
+    """Saved option dicts round-trip; earlier versions' names are read as today's; bad values and
+    unknown keys are refused naming what is wrong."""
+    o = RunOptions(impl="torch", path="blas", precision="fp16x3", emulate_min=(5, 6), check_inputs=False)
+    assert RunOptions.from_dict(o.to_dict()) == o
+    old = RunOptions.from_dict({"backend": "torch", "path": "split", "edge_first_layer": "split"})
+    assert (old.impl, old.path, old.edge_first_layer) == ("torch", "blas", "project")
+    with pytest.raises(ValueError, match="unknown run options"):
+        RunOptions.from_dict({"precison": "fp16"})
+    for bad in (dict(impl="jax"), dict(path="split"), dict(edge_first_layer="split"), dict(deterministic=1)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RunOptions(**bad)
+
+
+def test_graph_network_options_attributes():
+    """Options are set as a whole or one by one (validated; a refused value changes nothing), and
+    "fp64" checks that the parameters are float64: there it is the fp32 path bit for bit."""
+    gn = GraphNetwork(**SMALL, options=RunOptions(precision="tf32"))
+    assert gn.precision == "tf32" and gn.options.precision == "tf32"
+    with pytest.raises(TypeError, match="options"):
+        GraphNetwork(**SMALL, options=RunOptions(), precision="fp16")
+    with pytest.raises(ValueError, match="precision"):
+        gn.precision = "fp8"
+    assert gn.precision == "tf32"
+    g = make_batch("mixed", dtype=torch.float32)
+    gn.precision = "fp64"
+    with pytest.raises(ValueError, match="float64 parameters"):
+        gn(g)
+    gn = gn.double()
+    a = gn(cast(g, torch.float64))
+    gn.precision = "fp32"
+    assert torch.equal(a.nodes, gn(cast(g, torch.float64)).nodes)
+
+
 # -- numerical stability ------------------------------------------------------------------------
 CHAIN = dict(node_size=4, edge_size=4, global_size=4, node_out=4, edge_out=4, global_out=4,
              edge_hidden=(16, 16), node_hidden=(16,), global_hidden=(16,))
@@ -547,8 +605,7 @@ def test_tile_path_float32():
 
 def test_tile_kernel_too_large_is_refused_before_launch(monkeypatch):
     """A fused kernel over the CPU tile arena (256 KiB; Warp would abort the process) raises;
-    path="auto" falls back to the split path."""
-    from gnwarp import gn_tile
+    path="auto" falls back to the blas path."""
     kw = dict(node_size=2, edge_size=2, global_size=2, node_out=2, edge_out=2, global_out=2,
               edge_hidden=(2, 128 * 1024 // 4 // 2), node_hidden=(2,), global_hidden=(2,))  # two 128 KiB layers
     g = make_batch("mixed", dtype=torch.float32, fv=2, fe=2, fu=2)
@@ -556,26 +613,27 @@ def test_tile_kernel_too_large_is_refused_before_launch(monkeypatch):
     launches = []
     real = wp.launch_tiled
     monkeypatch.setattr(wp, "launch_tiled", lambda *a, **k: launches.append(a) or real(*a, **k))
-    with pytest.raises(gn_tile.TileSharedMemoryError, match="shared memory"):
+    with pytest.raises(tile_block.TileSharedMemoryError, match="shared memory"):
         gn(with_grad(g))
     assert not launches
-    monkeypatch.setattr(gn_warp, "choose_path", lambda *a, **k: "tile")
+    monkeypatch.setattr(rules, "choose_path", lambda *a, **k: "tile")
     gn.path = "auto"
     out = gn(with_grad(g))
-    gn.path = "split"
+    gn.path = "blas"
     assert torch.equal(out.nodes, gn(g).nodes)
 
 
 def test_auto_path_rule():
     cfg = GNBlockConfig(**TINY)
     cuda = torch.device("cuda")
-    assert gn_warp.choose_path(cfg, "fp32", False, torch.device("cpu"), 1000) == "split"
-    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 1000) == "tile"
-    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 18) == "split"       # batch 1: split measured faster
-    assert gn_warp.choose_path(cfg, "fp32", False, cuda, 10 ** 6) == "split"  # beyond the measured range
-    assert gn_warp.choose_path(cfg, "fp32", True, cuda, 1000) == "split"      # deterministic
-    assert gn_warp.choose_path(GNBlockConfig(**SMALL), "fp16", False, torch.device("cuda"), 10) == "split"
-    assert "shared-memory" in gn_warp.tile_feasible(GNBlockConfig(10, 10, 10), "fp32", False, torch.device("cuda"))
+    assert rules.choose_path(cfg, _run(), torch.device("cpu"), 1000) == "blas"
+    assert rules.choose_path(cfg, _run(), cuda, 1000) == "tile"
+    assert rules.choose_path(cfg, _run(torch.float64, precision="fp64"), cuda, 1000) == "tile"
+    assert rules.choose_path(cfg, _run(), cuda, 18) == "blas"        # batch 1: blas measured faster
+    assert rules.choose_path(cfg, _run(), cuda, 10 ** 6) == "blas"   # beyond the measured range
+    assert rules.choose_path(cfg, _run(deterministic=True), cuda, 1000) == "blas"
+    assert rules.choose_path(GNBlockConfig(**SMALL), _run(precision="fp16"), cuda, 10) == "blas"
+    assert "shared-memory" in rules.tile_feasible(GNBlockConfig(10, 10, 10), _run(), cuda)
 
 
 # -- CUDA (runs where a GPU is present: the device machine; skipped in CI) -----------------------
@@ -584,7 +642,7 @@ def _on(g, device):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("mode", ["concat", "project"])
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_cuda_matches_float64_reference(mode, deterministic):
     """The CUDA kernels (both edge first-layer modes, both aggregations) against the float64
@@ -594,7 +652,7 @@ def test_cuda_matches_float64_reference(mode, deterministic):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("mode", ["concat", "project"])
 @pytest.mark.parametrize("precision,tol", [("tf32", 5e-3), ("fp16", 5e-3), ("bf16", 4e-2)])
 def test_cuda_reduced_precision(precision, tol, mode):
     gn, ref = pair(SMALL, precision=precision, edge_first_layer=mode)
@@ -606,19 +664,19 @@ def test_cuda_reduced_precision(precision, tol, mode):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("mode", ["concat", "split"])
+@pytest.mark.parametrize("mode", ["concat", "project"])
 def test_cuda_side_stream_gradients_identical(mode):
-    """The weight-gradient GEMMs on side streams (``gn_warp.SIDE_STREAMS``) give the same
+    """The weight-gradient GEMMs on side streams (``TUNABLES.side_streams``) give the same
     gradients, bit for bit, as on the current stream (deterministic aggregation), also when two
     backward passes run back to back."""
     gn, _ = pair(SMALL, deterministic=True, edge_first_layer=mode)
     gn = gn.cuda()
     g = with_grad(cast(_on(make_batch("mixed"), "cuda"), torch.float32))
     grads = {}
-    old = gn_warp.SIDE_STREAMS
+    old = TUNABLES.side_streams
     try:
         for side in (0, 1, 3):
-            gn_warp.SIDE_STREAMS = side
+            TUNABLES.side_streams = side
             gn.zero_grad(set_to_none=True)
             for x in (g.nodes, g.edges, g.globals):
                 x.grad = None
@@ -627,7 +685,7 @@ def test_cuda_side_stream_gradients_identical(mode):
             torch.cuda.synchronize()
             grads[side] = [p.grad.clone() for p in gn.parameters()] + [x.grad.clone() for x in (g.nodes, g.edges, g.globals)]
     finally:
-        gn_warp.SIDE_STREAMS = old
+        TUNABLES.side_streams = old
     for side in (1, 3):
         assert len(grads[side]) == len(grads[0])
         for a, b in zip(grads[0], grads[side]):
@@ -638,19 +696,19 @@ def test_cuda_side_stream_gradients_identical(mode):
 EMU = dict(SMALL, edge_hidden=(16, 16, 16), node_hidden=(16, 16), global_hidden=(16, 8))
 
 
-def _emu_split(src, epilogue=None, relu=False, write_f32=False, split=True, weights=False):
-    """Run ``emu_split_kernel`` on the rows of ``src`` (CPU). ``epilogue``: (row_inv, col_inv, bias)."""
+def _emu_pieces(src, epilogue=None, relu=False, write_f32=False, weights=False):
+    """Run ``pieces_kernel`` on the rows of ``src`` (CPU). ``epilogue``: (row_inv, col_inv, bias)."""
     rows, w = src.shape
     pieces = torch.full((rows, 3 * w), float("nan"), dtype=torch.float16)
     inv = torch.full((rows,), float("nan"))
-    gn_warp._emu_split(gn_warp._Launcher(src), w, rows, src, epilogue, relu, src if write_f32 else None,
-                       pieces if split else None, inv if split else None, weights)
+    fp16x3.pieces(Launcher(src), w, rows, src, epilogue=epilogue, relu=relu, dst=src if write_f32 else None,
+                  out=pieces, inv=inv, weights=weights)
     return pieces, inv
 
 
-@pytest.mark.parametrize("w", [37, 38, 64])  # column groups of 1, 2, 4 (``emu_group``)
+@pytest.mark.parametrize("w", [37, 38, 64])  # column groups of 1, 2, 4 (``group``)
 @pytest.mark.parametrize("weights", [False, True])
-def test_emu_split_kernel(weights, w):
+def test_fp16x3_pieces_kernel(weights, w):
     """Row scales put each row's largest |y| in [2^14, 2^15); hi = fp16(y * s) (torch's rounding),
     lo = fp16 of the remainder; (hi + lo) / s recovers y to ~2^-22 of the row's largest element,
     including rows far outside fp16's range (1e30, 1e-30), an all-zero row and a NaN row."""
@@ -661,7 +719,7 @@ def test_emu_split_kernel(weights, w):
     y[3] = 0.0
     y[4, :5] = torch.tensor([65504.0, -1e5, 1e-8, 3.0, -0.0])
     y[5, 7] = float("nan")
-    pieces, inv = _emu_split(y.clone(), weights=weights)
+    pieces, inv = _emu_pieces(y.clone(), weights=weights)
     hi, second, third = pieces[:, :w], pieces[:, w:2 * w], pieces[:, 2 * w:]
     lo = third if weights else second
     ok = torch.ones(7, dtype=torch.bool)
@@ -677,7 +735,7 @@ def test_emu_split_kernel(weights, w):
     assert torch.isnan(hi[5, 7]) and torch.isfinite(hi[5, :7]).all()
 
 
-def test_emu_split_kernel_epilogue_in_place():
+def test_fp16x3_pieces_kernel_epilogue_in_place():
     """The epilogue: y = relu(src * row_inv * col_inv + bias) written back over ``src`` and split."""
     gen = torch.Generator().manual_seed(1)
     src = torch.randn(5, 20, generator=gen) * 100
@@ -686,7 +744,7 @@ def test_emu_split_kernel_epilogue_in_place():
     b = torch.randn(20, generator=gen)
     expect = torch.relu(src * ri[:, None] * ci + b)
     buf = src.clone()
-    pieces, inv = _emu_split(buf, (ri, ci, b), relu=True, write_f32=True)
+    pieces, inv = _emu_pieces(buf, (ri, ci, b), relu=True, write_f32=True)
     assert torch.equal(buf, expect)
     back = (pieces[:, :20].double() + pieces[:, 20:40].double()) * inv.double()[:, None]
     assert ((back - expect.double()).abs().max(1).values <= 2.0 ** -22 * expect.abs().max(1).values).all()
@@ -712,11 +770,11 @@ def _assert_fp16x3_within_4x_of_fp32(gn, ref, g):
         assert e16x3 <= max(4 * e32, 1e-6), (name, e16x3, e32)
 
 
-@pytest.mark.parametrize("mode", ["auto", "split"])
+@pytest.mark.parametrize("mode", ["auto", "project"])
 def test_fp16x3_matches_float64_reference(mode):
     """fp16x3 forward and every gradient against float64 at float32's tolerance (the backward's
     GEMMs are IEEE fp32 on the float32 activations the emulated forward also writes). "auto" is
-    concat for fp16x3: the edge MLP's first layer emulates too; "split": from its second layer."""
+    concat for fp16x3: the edge MLP's first layer emulates too; "project": from its second layer."""
     gn, ref, g = _fp16x3_pair(mode=mode)
     compare(gn, ref, g, fwd_tol=1e-5, grad_tol=1e-5)
 
@@ -733,7 +791,7 @@ def test_fp16x3_rule_falls_back_to_fp32():
     bitwise the same outputs; and it does emulate once allowed (different rounding)."""
     gn, _, g = _fp16x3_pair()
     x = cast(g, torch.float32)
-    gn.emulate_min = (gn_warp._EMU_MIN_ROWS, gn_warp._EMU_MIN_WIDTH)
+    gn.emulate_min = (TUNABLES.emulate_min_rows, TUNABLES.emulate_min_width)
     a = gn(x)
     gn.precision = "fp32"
     b = gn(x)

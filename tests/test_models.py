@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from gnwarp import data
+from gnwarp.data.builder import GraphTemplate
+from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.interop import warp
-from gnwarp.convert import DYN_NODE_SIZE
-from gnwarp.models import (ForwardModel, GNCoreConfig, GraphTemplate, LayoutMismatchError, MLPForwardModel,
-                           ModelConfig, Normalizer, apply_delta, quat_mul, quat_normalize, rotation_loss,
-                           state_delta)
+from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig, Normalizer
+from gnwarp.state import DYN_NODE_SIZE, apply_delta, quat_mul, quat_normalize, rotation_loss, state_delta
 
 warp()  # initialize Warp quietly
 
@@ -343,7 +343,7 @@ def test_data_with_another_layout_is_refused(pendulum):
     with pytest.raises(LayoutMismatchError, match="body_mass"):
         m.bind(bad)
     # a system object binds directly (planning without a dataset)
-    from gnwarp import systems
+    from gnwarp.sim import systems
     m.bind(systems.make("pendulum"))
     assert m.rollout(torch.as_tensor(pendulum["test"].body[:1, 0], dtype=torch.float64),
                      torch.zeros(1, 2, 1, dtype=torch.float64)).shape == (1, 3, 2, 13)

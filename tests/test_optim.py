@@ -1,5 +1,5 @@
 """FlatAdam (Warp kernels over one flat buffer) against torch.optim.Adam + clip_grad_norm_, and
-the Warp GN backend's gradients added into ``main_grad`` against autograd's ``p.grad`` (CPU)."""
+the Warp GN implementation's gradients added into ``main_grad`` against autograd's ``p.grad`` (CPU)."""
 import copy
 
 import pytest
@@ -9,7 +9,8 @@ import warp as wp
 wp.config.quiet = True
 
 from gnwarp import GraphNetwork  # noqa: E402
-from gnwarp.optim import FlatAdam, has_main_grad  # noqa: E402
+from gnwarp.gn.flat import flat_span, has_main_grad  # noqa: E402
+from gnwarp.optim import FlatAdam  # noqa: E402
 from test_gn_block import SMALL, cast, loss_of, make_batch  # noqa: E402
 
 
@@ -144,10 +145,10 @@ def test_check_finite_refuses_nan_gradients_and_leaves_parameters():
     assert all(torch.equal(p, q) for p, q in zip(m.parameters(), before))
 
 
-# -- the Warp GN backend writes main_grad ---------------------------------------------------------
+# -- the Warp GN implementation writes main_grad--------------------------------------------------------
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 @pytest.mark.parametrize("deterministic", [False, True])
-def test_gn_backend_accumulates_into_main_grad(precision, deterministic):
+def test_gn_warp_accumulates_into_main_grad(precision, deterministic):
     """Gradients the Warp backward adds into main_grad (one launch per weights / biases) equal
     the p.grad it returns without FlatAdam; two backward passes accumulate."""
     torch.manual_seed(1)
@@ -160,13 +161,13 @@ def test_gn_backend_accumulates_into_main_grad(precision, deterministic):
     for _ in range(2):
         loss_of(b(g)).backward()
     for (name, p), q in zip(a.named_parameters(), b.parameters()):
-        assert q.grad is None, name  # the backend returned None: the gradient went to main_grad
+        assert q.grad is None, name  # the Warp block returned None: the gradient went to main_grad
         assert torch.allclose(q.main_grad, 2 * p.grad, rtol=1e-6, atol=1e-6), name
     opt.zero_grad()
     assert not opt.grad_flat.any()
 
 
-def test_gn_backend_main_grad_with_a_frozen_parameter():
+def test_gn_warp_main_grad_with_a_frozen_parameter():
     """A parameter frozen after FlatAdam was made (requires_grad off) gets nothing added into its
     main_grad; the others get the gradients autograd gives without FlatAdam."""
     torch.manual_seed(5)
@@ -217,7 +218,7 @@ def test_cuda_captured_training_step_matches_eager_torch_adam(precision):
     """A whole training step (two Warp blocks, FlatAdam with clipping) captured as one CUDA
     graph and replayed 4 times, against eager steps with torch's Adam + clip_grad_norm_: bias
     corrections advance on the device, so the replays match."""
-    from gnwarp.gn_warp import cuda_graph
+    from gnwarp.interop import cuda_graph
     from test_gn_block import _on
     torch.manual_seed(3)
     net = torch.nn.ModuleList([GraphNetwork(**SMALL, precision=precision, check_inputs=False),
@@ -258,21 +259,20 @@ def test_cuda_captured_training_step_matches_eager_torch_adam(precision):
 ALIGNED = dict(SMALL, node_size=8, edge_size=8, global_size=8, node_out=8, edge_out=8, global_out=8)
 
 
-@pytest.mark.parametrize("mode,sizes", [("concat", "small"), ("split", "small"), ("concat", "aligned")])
+@pytest.mark.parametrize("mode,sizes", [("concat", "small"), ("project", "small"), ("concat", "aligned")])
 def test_flatten_parameters_keeps_outputs_and_casts_one_span(mode, sizes):
-    """fp16 block on flattened parameters: the same outputs bit for bit, and the backend sees
+    """fp16 block on flattened parameters: the same outputs bit for bit, and the block sees
     one span (one cast launch, no cat) for either edge first layer, with padded first-layer
     blocks or weights read in place."""
     from gnwarp import flatten_parameters
-    from gnwarp.gn_warp import _flat_span
     torch.manual_seed(4)
     kw = SMALL if sizes == "small" else ALIGNED
     a = GraphNetwork(**kw, precision="fp16", edge_first_layer=mode)
     b = copy.deepcopy(a)
     g = cast(make_batch("mixed", fv=kw["node_size"], fe=kw["edge_size"], fu=kw["global_size"]), torch.float32)
-    assert _flat_span(b.flat_parameters()) is None
+    assert flat_span(b.flat_parameters()) is None
     flat, offsets = flatten_parameters(b.parameters())
-    assert _flat_span(b.flat_parameters()) is not None and flat.numel() >= sum(p.numel() for p in b.parameters())
+    assert flat_span(b.flat_parameters()) is not None and flat.numel() >= sum(p.numel() for p in b.parameters())
     ref = copy.deepcopy(a)
     ref.precision = "fp32"
     for x, y, z in zip(a(g), b(g), ref(g)):

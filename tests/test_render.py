@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 from gnwarp import data
-from gnwarp import evaluate as ev
-from gnwarp.render import RenderUnavailable, geom_poses, render_rollouts
+from gnwarp import eval as ev
+from gnwarp.eval.render import RenderUnavailable, render_rollouts
+from gnwarp.state import geom_poses
 
 
 @pytest.fixture(scope="module")
@@ -15,8 +16,8 @@ def cartpole():
 def test_geom_poses_match_mujoco_kinematics():
     import mujoco
 
-    from gnwarp import systems
-    from gnwarp.convert import body_states
+    from gnwarp.data.convert import body_states
+    from gnwarp.sim import systems
     s = systems.make("cheetah")
     d = mujoco.MjData(s.model)
     d.qpos[:] = np.random.default_rng(0).uniform(-0.5, 0.5, s.model.nq)

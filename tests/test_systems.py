@@ -1,11 +1,11 @@
-"""Tests of gnwarp.systems: the paper's systems (section B), their parameterized variants, MJCF."""
+"""Tests of gnwarp.sim.systems: the paper's systems (section B), their parameterized variants, MJCF."""
 import math
 
 import mujoco
 import numpy as np
 import pytest
 
-from gnwarp import systems
+from gnwarp.sim import builders, systems
 
 # name: (bodies incl. world, nq, nv, nu, data timestep) -- issue 2's table.
 TABLE = {
@@ -149,7 +149,7 @@ def test_jaco_structure():
 
 @pytest.mark.parametrize("gear", [1.0, 1.5])
 def test_jaco_velocity_actuators_track_targets(gear):
-    params = {f"gear_{a}": gear for a in systems._JACO_ACTUATOR_NAMES}
+    params = {f"gear_{a}": gear for a in builders.JACO_ACTUATOR_NAMES}
     system = systems.make("jaco", params=params)
     high = system.model.actuator_ctrlrange[:, 1]
     target = 0.5 * high
@@ -334,7 +334,7 @@ def test_cheetah_chain_scales_with_parent_length():
 
 def test_cheetah_keeps_its_floor_clearance():
     def lowest(model):
-        return systems._lowest_point(model)
+        return builders._lowest_point(model)
 
     fixed = lowest(systems.make("cheetah").model)
     assert fixed > 0

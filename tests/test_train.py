@@ -9,10 +9,11 @@ import torch
 
 import gnwarp
 from gnwarp import data
-from gnwarp import evaluate as ev
+from gnwarp import eval as ev
+from gnwarp.data.layout import LayoutMismatchError, merge_layouts
 from gnwarp.interop import warp
-from gnwarp.models import GNCoreConfig, LayoutMismatchError, ModelConfig
-from gnwarp.train import CheckpointError, TrainConfig, load_model, merge_layouts, train
+from gnwarp.models import GNCoreConfig, ModelConfig
+from gnwarp.train import CheckpointError, TrainConfig, load_model, train
 
 warp()
 

@@ -1,5 +1,5 @@
-"""Fused Warp-tile kernels of a GN block: one launch per update does gather, the whole MLP
-(``wp.tile_matmul``) and the scatter-sums.
+"""Fused Warp-tile kernels of a GN block on the tile path (launched by ``gnwarp/gn/tile_block.py``):
+one launch per update does gather, the whole MLP (``wp.tile_matmul``) and the scatter-sums.
 
 One kernel factory serves the three updates. A thread block owns ``tile_rows`` consecutive rows
 (edges, nodes or graphs). Up to four input pieces (slots) form the first layer's input, in the
@@ -33,7 +33,7 @@ MAX_HIDDEN = 4
 
 @functools.cache
 def update_tile_kernel(tile_rows: int, slots: tuple[tuple[int, int], ...], hidden: tuple[int, ...],
-                       out_size: int, n_scatter: int, dtype, mathdx: bool = True):
+                       out_size: int, n_scatter: int, dtype, *, mathdx: bool = True):
     """Kernel for one update. ``slots``: four (mode, width) pairs; ``hidden``: hidden widths
     (at most ``MAX_HIDDEN``); ``n_scatter``: number of scatter-sums of the output (0-2);
     ``mathdx``: CUDA tile GEMMs through cuBLASDx (Warp's default; ~1-2.5 min to compile per

@@ -1,5 +1,5 @@
-"""Warp kernels of ``gnwarp.optim``: Adam over one flat parameter buffer, its gradient norm, and
-the accumulation of a GN block's parameter gradients into that buffer.
+"""Warp kernels of ``gnwarp/train/optim.py`` (``FlatAdam``): Adam over one flat parameter buffer
+and its gradient norm.
 
 Why flat: a training step of the paper's GN core at batch 200 has ~40 parameter tensors. Torch's
 fused Adam (``multi_tensor_apply``) splits them into chunks of 65536 elements, one thread block
@@ -18,7 +18,7 @@ import warp as wp
 
 __all__ = ["SUMSQ", "STEP", "LR", "COEF", "BC1", "BC2", "NORM", "SCALARS", "BLOCK", "SUMSQ_UNROLL", "sumsq_kernel",
            "ADAM_VEC", "adam_threads",
-           "finalize_kernel", "adam_kernel", "accumulate_kernel"]
+           "finalize_kernel", "adam_kernel"]
 
 # slots of the device scalars array (the norm's tile reduction adds into slot 0: keep SUMSQ first)
 SUMSQ, STEP, LR, COEF, BC1, BC2, NORM = range(7)
@@ -68,7 +68,7 @@ def sumsq_kernel(dtype):
 
 
 @functools.cache
-def finalize_kernel(dtype, clip: bool):
+def finalize_kernel(dtype, *, clip: bool):
     """One thread, between the norm and the update: step += 1; the bias corrections of that step;
     the clipping coefficient min(1, max_norm / (norm + 1e-6)) (as torch's ``clip_grad_norm_``);
     the norm kept in scalars[NORM] and the accumulator zeroed for the next step."""
@@ -99,7 +99,7 @@ def adam_threads(n: int) -> int:
 
 
 @functools.cache
-def adam_kernel(dtype, weight_decay: bool, decoupled: bool):
+def adam_kernel(dtype, *, weight_decay: bool, decoupled: bool):
     """One Adam (``decoupled``: AdamW) step of elements i = t + k * nt (k < ``ADAM_VEC``, i < n)
     of thread t of nt = ``adam_threads(n)``, in torch's formulation:
     g = coef * grad (+ wd * p for Adam's L2 decay); m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2;
@@ -144,27 +144,3 @@ def adam_kernel(dtype, weight_decay: bool, decoupled: bool):
                 v[i] = vi
 
     return adam
-
-
-@functools.cache
-def accumulate_kernel(src_dtype, dst_dtype):
-    """dst[dst_off_k + j] += src[src_off_k + j] for j < n_k of each segment k of ``table`` [S, 2]
-    (src_off, dst_off), segment k covering threads [starts[k], starts[k + 1]): a GN block's weight
-    (or bias) gradients, packed in its own buffer, added into the optimizer's flat gradient with
-    the dtype cast, in one launch. One thread per element; segments found by a linear scan."""
-    S = src_dtype
-    D = dst_dtype
-
-    @wp.kernel(module="unique", module_options=_options())
-    def accumulate(src: wp.array(dtype=S), table: wp.array2d(dtype=wp.int32), starts: wp.array(dtype=wp.int32),
-                   n_seg: int, dst: wp.array(dtype=D)):
-        t = wp.tid()
-        k = int(0)
-        while k + 1 < n_seg and t >= starts[k + 1]:
-            k += 1
-        j = t - starts[k]
-        x = D(src[table[k, 0] + j])
-        d = table[k, 1] + j
-        dst[d] = dst[d] + x
-
-    return accumulate

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["random_spline_controls", "control_range"]
+
 
 def _catmull_rom(knots: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Evaluate a uniform Catmull-Rom spline through ``knots`` [..., K] at times ``t`` [..., M] in [0, K-1]."""

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gnwarp.controls import random_spline_controls
+from gnwarp.sim.excitation import random_spline_controls
 
 
 def test_controls_in_range_smooth_and_seeded():

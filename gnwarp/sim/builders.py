@@ -1,129 +1,26 @@
-"""The paper's seven MuJoCo systems (supplementary section B), built in code, and user MJCF files.
+"""MjSpec builders of the paper's seven systems (supplementary section B) and their spec helpers.
 
-Every system is built with `mujoco.MjSpec`, mirroring the DeepMind Control Suite models
-(suite/pendulum.xml, cartpole.xml, acrobot.xml, swimmer.py, cheetah.xml, walker.xml) and the
-Kinova JACO of dm_control's manipulation suite (third_party/kinova, with capsules in place of the
-meshes). A `System` is a compiled `mujoco.MjModel` plus the data timestep at which datasets record
-states; the physics steps `substeps` times per data step.
-
-Parameterized variants draw relative factors uniformly in the paper's ranges (section B, last
-column). Where a size changes, geoms carry a density rather than a mass, so masses and inertias
-follow the sizes; child bodies move with the length of their parent so the chain stays connected.
-
-    >>> pendulum = make("pendulum")                       # fixed
-    >>> pendulum = make("pendulum", seed=3)               # factors sampled with default_rng(3)
-    >>> pendulum = make("pendulum", params={"length": 0.5})   # exactly these factors
-    >>> custom = from_mjcf("my_robot.xml", dt=0.02, substeps=4)
+Each ``build_<system>(p, timestep)`` takes the full parameter dict of one instance (defaults
+filled in by the registry, ``gnwarp.sim.systems``; the cheetah also the fixed system's, which
+calibrate its density) and the physics timestep, and returns a ``mujoco.MjSpec`` mirroring the
+DeepMind Control Suite model (the JACO: dm_control's manipulation suite, with capsules in place
+of the meshes).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-import numbers
-import pathlib
-import re
-from typing import Callable
 
 import mujoco
 import numpy as np
 
-__all__ = [
-    "System",
-    "names",
-    "make",
-    "param_ranges",
-    "sample_params",
-    "from_mjcf",
-    "describe",
-]
+from gnwarp.state import quat_axis_angle, quat_mul, quat_rotate
 
-_SWIMMER_LINKS = (3, 15)           # SwimmerN exists for these N
-_SWIMMER_SAMPLED_LINKS = (3, 9)    # the parameterized SwimmerN samples N in this range (paper B)
-
-
-@dataclasses.dataclass(eq=False)
-class System:
-    """A compiled MuJoCo model and the timesteps at which it is simulated and recorded.
-
-    Attributes:
-      name: "pendulum", "cartpole", "acrobot", "swimmer<N>", "cheetah", "walker", "jaco", or the
-        stem of a user MJCF file.
-      model: the compiled model; `model.opt.timestep == dt / substeps`.
-      dt: data timestep in seconds (the interval between recorded states).
-      substeps: physics steps per data step.
-      params: the parameter factors this instance was built with (empty for fixed systems).
-      parameterized: whether this is an instance of a parameterized variant.
-      translation_invariant: whether the dynamics do not depend on the horizontal position
-        (swimmer, cheetah, walker; paper D.4 re-centers these before prediction).
-      source: "builtin" or the path of the MJCF file.
-      spec: the `mujoco.MjSpec` the model was compiled from (to derive variants of the model,
-        e.g. with sensors added, without re-parsing).
-    """
-
-    name: str
-    model: mujoco.MjModel
-    dt: float
-    substeps: int
-    params: dict[str, float] = dataclasses.field(default_factory=dict)
-    parameterized: bool = False
-    translation_invariant: bool = False
-    source: str = "builtin"
-    spec: mujoco.MjSpec | None = dataclasses.field(default=None, repr=False)
-
-    @property
-    def nbody(self) -> int:
-        """Number of bodies, the world included (= graph nodes)."""
-        return self.model.nbody
-
-    @property
-    def nq(self) -> int:
-        return self.model.nq
-
-    @property
-    def nv(self) -> int:
-        return self.model.nv
-
-    @property
-    def nu(self) -> int:
-        return self.model.nu
-
-    @property
-    def njnt(self) -> int:
-        return self.model.njnt
-
-    @property
-    def timestep(self) -> float:
-        """Physics timestep in seconds (dt / substeps)."""
-        return float(self.model.opt.timestep)
-
-    @property
-    def contacts(self) -> bool:
-        """Whether the model computes contacts (neither contacts nor constraints disabled)."""
-        off = mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-        return not (int(self.model.opt.disableflags) & int(off))
+__all__ = ["build_pendulum", "build_cartpole", "build_acrobot", "build_swimmer", "build_cheetah", "build_walker",
+           "build_jaco", "CHEETAH_BODIES", "CHEETAH_LIMBS", "JACO_BODIES", "JACO_ACTUATOR_NAMES"]
 
 
 # ------------------------------------------------------------------------------------------------
-# Small geometry helpers.
-
-
-def _quat_axis_angle(axis, angle: float) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation by `angle` radians about `axis`."""
-    axis = np.asarray(axis, dtype=float)
-    axis = axis / np.linalg.norm(axis)
-    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
-
-
-def _quat_mul(a, b) -> np.ndarray:
-    out = np.zeros(4)
-    mujoco.mju_mulQuat(out, np.asarray(a, dtype=float), np.asarray(b, dtype=float))
-    return out
-
-
-def _rotate(quat, vec) -> np.ndarray:
-    out = np.zeros(3)
-    mujoco.mju_rotVecQuat(out, np.asarray(vec, dtype=float), np.asarray(quat, dtype=float))
-    return out
+# Spec helpers.
 
 
 def _capsule_volume(radius: float, length: float) -> float:
@@ -199,7 +96,7 @@ def _capsule(body, name: str, radius: float, fromto=None, pos=None, quat=None, h
 # The systems. Each builder takes the full parameter dict (defaults filled in) and returns a spec.
 
 
-def _build_pendulum(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_pendulum(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """suite/pendulum.xml: a massless rod with a 1 kg bob, torque at the hinge."""
     spec = _new_spec("pendulum", timestep)
     _disable(spec, mujoco.mjtDisableBit.mjDSBL_CONTACT)
@@ -223,7 +120,7 @@ _CARTPOLE_POLE_RADIUS = 0.045
 _CARTPOLE_POLE_DENSITY = 0.1 / _capsule_volume(_CARTPOLE_POLE_RADIUS, 1.0)
 
 
-def _build_cartpole(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_cartpole(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """suite/cartpole.xml: a cart on a rail (force input) with an unactuated pole."""
     spec = _new_spec("cart-pole", timestep)
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -245,7 +142,7 @@ def _build_cartpole(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     return spec
 
 
-def _build_acrobot(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_acrobot(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """suite/acrobot.xml (Coulom's model): two 1 kg links, torque at the elbow only."""
     spec = _new_spec("acrobot", timestep)
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -273,7 +170,7 @@ _SWIMMER_BOX = (0.001, 0.05, 0.01)  # half sizes: thickness (in plane), half len
 _SWIMMER_DENSITY = 0.01 / (8 * _SWIMMER_BOX[0] * _SWIMMER_BOX[1] * _SWIMMER_BOX[2])
 
 
-def _build_swimmer(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_swimmer(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """suite/swimmer.py + swimmer.xml: N links in a viscous medium, N-1 motors between links.
 
     Link i is centered on its body frame along y with half length h_i; its joint sits at -h_i and
@@ -331,7 +228,7 @@ def _build_swimmer(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
 
 # suite/cheetah.xml, per body: (parent, pos in parent, joint range (deg), stiffness, damping,
 # geoms as (pos, pitch (deg), half length)); the torso's first geom spans -.5..+.5 along x.
-_CHEETAH_BODIES = {
+CHEETAH_BODIES = {
     "torso": (None, (0, 0, 0.7), None, None, None,
               [((0, 0, 0), -90.0, 0.5), ((0.6, 0, 0.1), 50.0, 0.15)]),
     "bthigh": ("torso", (-0.5, 0, 0), (-30, 60), 240, 6, [((0.1, 0, -0.13), -218.0, 0.145)]),
@@ -341,7 +238,7 @@ _CHEETAH_BODIES = {
     "fshin": ("fthigh", (-0.14, 0, -0.24), (-70, 50), 120, 3, [((0.065, 0, -0.09), -34.0, 0.106)]),
     "ffoot": ("fshin", (0.13, 0, -0.18), (-28, 28), 60, 1.5, [((0.045, 0, -0.07), -34.0, 0.07)]),
 }
-_CHEETAH_LIMBS = tuple(b for b in _CHEETAH_BODIES if b != "torso")
+CHEETAH_LIMBS = tuple(b for b in CHEETAH_BODIES if b != "torso")
 _CHEETAH_GEARS = {"bthigh": 120, "bshin": 90, "bfoot": 60, "fthigh": 90, "fshin": 60, "ffoot": 30}
 _CHEETAH_RADIUS = 0.046
 _CHEETAH_TOTAL_MASS = 14.0  # dm_control: <compiler settotalmass="14"/>
@@ -354,7 +251,7 @@ def _cheetah_spec(p: dict[str, float], timestep: float, density: float,
     spec.stat.extent = 2.0
     _floor(spec, [100, 1.25, 0.5], pos=[98, 0, 0], conaffinity=1)
     bodies = {}
-    for name, (parent, pos, rng, stiffness, damping, geoms) in _CHEETAH_BODIES.items():
+    for name, (parent, pos, rng, stiffness, damping, geoms) in CHEETAH_BODIES.items():
         length, thickness = p[f"length_{name}"], p[f"thickness_{name}"]
         parent_body = spec.worldbody if parent is None else bodies[parent]
         # Child frames sit at the end of the parent's link: they scale with the parent's length.
@@ -370,16 +267,16 @@ def _cheetah_spec(p: dict[str, float], timestep: float, density: float,
         else:
             angle = p[f"base_angle_{name}"]
             body = parent_body.add_body(name=name, pos=body_pos,
-                                        quat=_quat_axis_angle([0, 1, 0], angle))
+                                        quat=quat_axis_angle([0, 1, 0], angle))
             _hinge(body, name, [0, 1, 0], stiffness=stiffness, damping=damping, armature=0.1,
                    **_limits(rng[0] * _DEG, rng[1] * _DEG))
         bodies[name] = body
         for k, (gpos, pitch, half_length) in enumerate(geoms):
             _capsule(body, name if k == 0 else "head", _CHEETAH_RADIUS * thickness,
-                     pos=np.asarray(gpos) * length, quat=_quat_axis_angle([0, 1, 0], pitch * _DEG),
+                     pos=np.asarray(gpos) * length, quat=quat_axis_angle([0, 1, 0], pitch * _DEG),
                      half_length=half_length * length, density=density, contype=1, conaffinity=1,
                      condim=3, friction=[0.4, 0.1, 0.1], rgba=_SELF_RGBA)
-    for name in _CHEETAH_LIMBS:
+    for name in CHEETAH_LIMBS:
         _motor(spec, name, name, gear=_CHEETAH_GEARS[name])
     return spec
 
@@ -401,10 +298,10 @@ def _lowest_point(model: mujoco.MjModel) -> float:
 _CHEETAH_FIXED: dict[str, float] = {}
 
 
-def _cheetah_fixed() -> dict[str, float]:
-    """The density that gives the fixed cheetah its 14 kg, and its feet's clearance at qpos0."""
+def _cheetah_fixed(p: dict[str, float]) -> dict[str, float]:
+    """The density that gives the fixed cheetah (parameters ``p``) its 14 kg, and its feet's
+    clearance at qpos0."""
     if not _CHEETAH_FIXED:
-        p = _defaults("cheetah", None)
         raw = _cheetah_spec(p, 0.01, 1000.0, 0.0).compile()
         density = 1000.0 * _CHEETAH_TOTAL_MASS / float(raw.body_mass.sum())
         fixed = _cheetah_spec(p, 0.01, density, 0.0).compile()
@@ -412,20 +309,21 @@ def _cheetah_fixed() -> dict[str, float]:
     return _CHEETAH_FIXED
 
 
-def _build_cheetah(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_cheetah(p: dict[str, float], timestep: float, fixed: dict[str, float]) -> mujoco.MjSpec:
     """suite/cheetah.xml: planar half-cheetah, 3 root dofs, 6 motors, contacts with the floor.
 
     dm_control rescales its geoms to 14 kg in total (settotalmass); we bake that into one density
     so that parameterized bodies keep it and their masses follow their sizes. The torso starts
     raised or lowered so the lowest point keeps the fixed model's clearance above the floor.
+    ``fixed``: the parameters of the fixed cheetah (the registry's defaults), which set both.
     """
-    fixed = _cheetah_fixed()
+    fixed = _cheetah_fixed(fixed)
     probe = _cheetah_spec(p, timestep, fixed["density"], 0.0).compile()
     lift = fixed["lowest"] - _lowest_point(probe)
     return _cheetah_spec(p, timestep, fixed["density"], lift)
 
 
-def _build_walker(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_walker(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """suite/walker.xml: planar biped, 3 root dofs, hips, knees and ankles, contacts with floor."""
     spec = _new_spec("planar walker", timestep)
     spec.stat.center = [0, 0, 1]
@@ -439,7 +337,7 @@ def _build_walker(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     _slide(torso, "rootx", [1, 0, 0], **free)
     _hinge(torso, "rooty", [0, 1, 0], **free)
     _capsule(torso, "torso", 0.07, pos=[0, 0, 0], half_length=0.3, rgba=_SELF_RGBA, **geom_kw)
-    foot_quat = _quat_axis_angle([0, 1, 0], math.pi / 2)  # zaxis="1 0 0"
+    foot_quat = quat_axis_angle([0, 1, 0], math.pi / 2)  # zaxis="1 0 0"
     for side, y in (("right", -0.05), ("left", 0.05)):
         thigh = torso.add_body(name=f"{side}_thigh", pos=[0, y, -0.3])
         _hinge(thigh, f"{side}_hip", [0, -1, 0], **joint_kw, **_limits(-20 * _DEG, 100 * _DEG))
@@ -467,7 +365,7 @@ def _build_walker(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
 # joint class, geoms as (fromto in the body frame, radius, mass)). Joints 2, 3, 5 and the fingers
 # get a `ref` so that qpos0 is the upright "candle" pose with half-closed fingers, inside the
 # limits, while joint angles keep Kinova's (and dm_control's) convention.
-_JACO_HAND_QUAT = (0.0, 0.70710678118, 0.70710678118, 0.0)  # dm_control's wristsite
+_JACO_HAND_QUAT = np.array([0.0, 0.70710678118, 0.70710678118, 0.0])  # dm_control's wristsite
 _JACO_ARM = {
     "shoulder": (None, (0, 0, 0.15675), (0, 0, 1, 0), 0.0, "large",
                  [((0, 0, 0, 0, 0.0016, -0.11875), 0.045, 0.643205)]),
@@ -505,11 +403,11 @@ _JACO_ACTUATORS = {
     "small": (500.0, 48 * _DEG, 6.8),
     "finger": (10.0, 5.0, 1.0),
 }
-_JACO_BODIES = tuple(_JACO_ARM) + tuple(_JACO_FINGERS)
-_JACO_ACTUATOR_NAMES = tuple(f"joint_{i}" for i in range(1, 7)) + tuple(_JACO_FINGERS)
+JACO_BODIES = tuple(_JACO_ARM) + tuple(_JACO_FINGERS)
+JACO_ACTUATOR_NAMES = tuple(f"joint_{i}" for i in range(1, 7)) + tuple(_JACO_FINGERS)
 
 
-def _build_jaco(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+def build_jaco(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
     """A kinematically faithful Kinova JACO: 6 arm joints, 3 fingers, 9 velocity actuators."""
     spec = _new_spec("jaco", timestep)
     # The velocity actuators act as stiff dampers: integrate them implicitly.
@@ -537,8 +435,8 @@ def _build_jaco(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
         for k, (fromto, radius, mass) in enumerate(geoms):
             fromto = np.asarray(fromto, dtype=float)
             if frame_quat is not None:
-                fromto = np.concatenate([_rotate(frame_quat, fromto[:3]) + frame_pos,
-                                         _rotate(frame_quat, fromto[3:]) + frame_pos])
+                fromto = np.concatenate([quat_rotate(frame_quat, fromto[:3]) + frame_pos,
+                                         quat_rotate(frame_quat, fromto[3:]) + frame_pos])
             _capsule(body, f"{name}_{k}", radius, fromto=fromto, mass=mass * p[f"mass_{name}"],
                      rgba=_SELF_RGBA if k == 0 else _DECOR_RGBA)
 
@@ -548,313 +446,18 @@ def _build_jaco(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
         # A joint with ref r shows its body frame at q = r: turn the frame by r about the axis so
         # the pose at angle q stays dm_control's.
         body = parent_body.add_body(name=name, pos=list(pos),
-                                    quat=_quat_mul(quat, _quat_axis_angle([0, 0, 1], ref)))
+                                    quat=quat_mul(np.asarray(quat, dtype=float), quat_axis_angle([0, 0, 1], ref)))
         add_joint(body, f"joint_{i}", kind, ref, _JACO_LIMITS.get(name))
         add_geoms(body, name, geoms)
         bodies[name] = body
     hand = bodies["hand"]
     finger_ref = 0.5 * sum(_JACO_FINGER_RANGE)
     for name, (pos, quat) in _JACO_FINGERS.items():
-        frame = _quat_mul(_JACO_HAND_QUAT, quat)
-        body = hand.add_body(name=name, pos=_rotate(_JACO_HAND_QUAT, pos),
-                             quat=_quat_mul(frame, _quat_axis_angle([0, 0, 1], finger_ref)))
+        frame = quat_mul(_JACO_HAND_QUAT, np.asarray(quat, dtype=float))
+        body = hand.add_body(name=name, pos=quat_rotate(_JACO_HAND_QUAT, np.asarray(pos, dtype=float)),
+                             quat=quat_mul(frame, quat_axis_angle([0, 0, 1], finger_ref)))
         add_joint(body, name, "finger", finger_ref, _JACO_FINGER_RANGE)
         # Geoms are given in the dm_control finger frame, which is ours turned back by the ref.
         add_geoms(body, name, _JACO_FINGER_GEOMS,
-                  frame_quat=_quat_axis_angle([0, 0, 1], -finger_ref), frame_pos=np.zeros(3))
+                  frame_quat=quat_axis_angle([0, 0, 1], -finger_ref), frame_pos=np.zeros(3))
     return spec
-
-
-# ------------------------------------------------------------------------------------------------
-# The registry: builder, data timestep, physics substeps, and parameter ranges of each system.
-
-
-@dataclasses.dataclass(frozen=True)
-class _Family:
-    build: Callable[[dict[str, float], float], mujoco.MjSpec]
-    dt: float
-    substeps: int
-    translation_invariant: bool
-
-
-_FAMILIES: dict[str, _Family] = {
-    "pendulum": _Family(_build_pendulum, dt=0.02, substeps=1, translation_invariant=False),
-    "cartpole": _Family(_build_cartpole, dt=0.01, substeps=1, translation_invariant=False),
-    "acrobot": _Family(_build_acrobot, dt=0.01, substeps=1, translation_invariant=False),
-    # dm_control's swimmer steps at 2 ms.
-    "swimmer": _Family(_build_swimmer, dt=0.02, substeps=10, translation_invariant=True),
-    "cheetah": _Family(_build_cheetah, dt=0.01, substeps=1, translation_invariant=True),
-    "walker": _Family(_build_walker, dt=0.0025, substeps=1, translation_invariant=True),
-    # 100 ms data steps over 10 ms implicit physics steps.
-    "jaco": _Family(_build_jaco, dt=0.1, substeps=10, translation_invariant=False),
-}
-_DEFAULT_SWIMMER_LINKS = 6
-
-
-def names() -> list[str]:
-    """The built-in systems. The swimmer takes its number of links as a suffix: "swimmer6"."""
-    return list(_FAMILIES)
-
-
-def _parse(name: str) -> tuple[str, int | None]:
-    """Splits a system name into its family and, for the swimmer, the number of links (or None)."""
-    if not isinstance(name, str):
-        raise ValueError(f"system name must be a string, got {name!r}")
-    key = name.strip().lower()
-    if key in _FAMILIES:
-        return key, None
-    match = re.fullmatch(r"swimmer(\d+)", key)
-    if match:
-        n = int(match.group(1))
-        lo, hi = _SWIMMER_LINKS
-        if not lo <= n <= hi:
-            raise ValueError(f"swimmer{n}: the swimmer has {lo} to {hi} links, got {n}")
-        return "swimmer", n
-    raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(names())} "
-                     f"(swimmer takes a number of links {_SWIMMER_LINKS[0]}..{_SWIMMER_LINKS[1]} "
-                     f"as a suffix, e.g. swimmer6)")
-
-
-def _ranges(family: str, n: int | None) -> list[tuple[str, str, tuple[float, float]]]:
-    """(parameter, group label, range) of every parameter of a system, in sampling order."""
-    if family == "pendulum":
-        return [("length", "length", (0.2, 1.0)), ("mass", "mass", (0.5, 3.0))]
-    if family == "cartpole":
-        return [("cart_mass", "cart_mass", (0.2, 2.0)),
-                ("pole_length", "pole_length", (0.3, 1.0)),
-                ("pole_thickness", "pole_thickness", (0.4, 2.2))]
-    if family == "swimmer":
-        # Without a suffix the number of links is a parameter; with one it is fixed.
-        links = (float(n), float(n)) if n is not None else tuple(map(float, _SWIMMER_SAMPLED_LINKS))
-        out = [("n_links", "n_links", links)]
-        for i in range(int(links[1])):
-            out.append((f"link_length_{i}", "link_length_*", (0.3, 2.0)))
-            out.append((f"link_thickness_{i}", "link_thickness_*", (0.5, 5.0)))
-        return out
-    if family == "cheetah":
-        out = [(f"base_angle_{b}", "base_angle_*", (-0.1, 0.1)) for b in _CHEETAH_LIMBS]
-        out += [(f"length_{b}", "length_*", (0.5, 2.0)) for b in _CHEETAH_BODIES]
-        out += [(f"thickness_{b}", "thickness_*", (0.5, 2.0)) for b in _CHEETAH_BODIES]
-        return out
-    if family == "jaco":
-        return ([(f"mass_{b}", "mass_*", (0.5, 1.5)) for b in _JACO_BODIES]
-                + [(f"gear_{a}", "gear_*", (0.5, 1.5)) for a in _JACO_ACTUATOR_NAMES])
-    return []  # acrobot, walker: no parameterized variant in the paper
-
-
-def param_ranges(name: str) -> dict[str, tuple[float, float]]:
-    """The range of every parameter of a system ({} for acrobot and walker).
-
-    Factors are relative to the fixed system (1.0), except the cheetah's base angles (absolute,
-    radians, fixed value 0) and the swimmer's integer "n_links" ("swimmer" samples it in 3..9;
-    "swimmer<N>" fixes it to N).
-    """
-    family, n = _parse(name)
-    return {key: rng for key, _, rng in _ranges(family, n)}
-
-
-def _defaults(family: str, n: int | None) -> dict[str, float]:
-    """The parameters of the fixed system."""
-    out = {}
-    for key, _, _ in _ranges(family, n):
-        if key == "n_links":
-            out[key] = float(n if n is not None else _DEFAULT_SWIMMER_LINKS)
-        elif key.startswith("base_angle_"):
-            out[key] = 0.0
-        else:
-            out[key] = 1.0
-    if family == "swimmer":  # only the links that exist
-        links = int(out["n_links"])
-        out = {k: v for k, v in out.items()
-               if not k.startswith("link_") or int(k.rsplit("_", 1)[1]) < links}
-    return out
-
-
-def _no_variant(name: str) -> ValueError:
-    with_variant = [f for f in _FAMILIES if _ranges(f, None)]
-    return ValueError(f"{name} has no parameterized variant (the paper varies only "
-                      f"{', '.join(with_variant)}); use make({name!r}) for the fixed system")
-
-
-def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
-    """Draws every parameter uniformly in its range (the swimmer's n_links uniformly in 3..9).
-
-    Returns the full parameter dict of one instance, as stored in `System.params`.
-    """
-    family, n = _parse(name)
-    ranges = _ranges(family, n)
-    if not ranges:
-        raise _no_variant(name)
-    out: dict[str, float] = {}
-    if family == "swimmer":
-        lo, hi = (int(v) for v in ranges[0][2])
-        links = int(rng.integers(lo, hi + 1))
-        out["n_links"] = float(links)
-        lengths = rng.uniform(0.3, 2.0, size=links)
-        thicknesses = rng.uniform(0.5, 5.0, size=links)
-        for i in range(links):
-            out[f"link_length_{i}"] = float(lengths[i])
-            out[f"link_thickness_{i}"] = float(thicknesses[i])
-        return out
-    for key, _, (lo, hi) in ranges:
-        out[key] = float(rng.uniform(lo, hi))
-    return out
-
-
-def _validate(name: str, family: str, n: int | None, params: dict) -> dict[str, float]:
-    """Checks user parameters against their ranges; returns the full dict with defaults filled."""
-    ranges = param_ranges(name)
-    if not ranges:
-        raise _no_variant(name)
-    if not isinstance(params, dict):
-        raise ValueError(f"{name}: params must be a dict of parameter name -> value, "
-                         f"got {type(params).__name__}")
-    unknown = sorted(set(params) - set(ranges))
-    if unknown:
-        raise ValueError(f"{name}: unknown parameter(s) {', '.join(map(repr, unknown))}; "
-                         f"valid: {', '.join(ranges)}")
-    checked: dict[str, float] = {}
-    for key, value in params.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-            raise ValueError(f"{name}: parameter {key!r} must be a number, got {value!r}")
-        value = float(value)
-        lo, hi = ranges[key]
-        if not (math.isfinite(value) and lo <= value <= hi):
-            hint = ""
-            if key == "n_links" and n is not None:
-                hint = " (make('swimmer', ...) varies the number of links)"
-            raise ValueError(f"{name}: parameter {key!r}={value!r} is outside its range "
-                             f"[{lo}, {hi}]{hint}")
-        if key == "n_links" and value != int(value):
-            raise ValueError(f"{name}: parameter 'n_links' must be an integer, got {value!r}")
-        checked[key] = value
-    links = int(checked.get("n_links", n if n is not None else _DEFAULT_SWIMMER_LINKS))
-    full = _defaults(family, links if family == "swimmer" else n)
-    extra = sorted(k for k in checked if k not in full)
-    if extra:
-        raise ValueError(f"{name}: parameter(s) {', '.join(map(repr, extra))} name links beyond "
-                         f"the swimmer's {links} links")
-    full.update(checked)
-    return full
-
-
-def make(name: str, params: dict[str, float] | None = None, seed: int | None = None) -> System:
-    """Builds a built-in system.
-
-    Args:
-      name: one of `names()`; the swimmer as "swimmer<N>" (N = 3..15), "swimmer" means swimmer6
-        when fixed and samples N in 3..9 when parameterized.
-      params: exact parameters of a parameterized instance (see `param_ranges`); missing ones
-        take the fixed system's value.
-      seed: with params=None, samples the parameters with `np.random.default_rng(seed)`.
-
-    Returns:
-      the fixed system if neither params nor seed is given, else a parameterized instance whose
-      full parameter dict is `System.params`.
-    """
-    family, n = _parse(name)
-    fam = _FAMILIES[family]
-    if params is not None and seed is not None:
-        raise ValueError(f"{name}: give either params or seed, not both")
-    if params is None and seed is None:
-        full, parameterized = _defaults(family, n), False
-    elif params is None:
-        full, parameterized = sample_params(name, np.random.default_rng(seed)), True
-    else:
-        full, parameterized = _validate(name, family, n, params), True
-    spec = fam.build(full, fam.dt / fam.substeps)
-    system_name = f"swimmer{int(full['n_links'])}" if family == "swimmer" else family
-    return System(name=system_name, model=spec.compile(), dt=fam.dt, substeps=fam.substeps,
-                  params=full if parameterized else {}, parameterized=parameterized,
-                  translation_invariant=fam.translation_invariant, spec=spec)
-
-
-def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
-    """Loads a user MJCF file as a fixed system.
-
-    Args:
-      path: the MJCF file (includes and assets resolve relative to it).
-      dt: data timestep in seconds; default the file's timestep times `substeps`. When given, the
-        physics timestep becomes dt / substeps.
-      substeps: physics steps per data step (>= 1).
-
-    Raises:
-      FileNotFoundError: no such file.
-      ValueError: the file does not compile, has no joints or no actuators, or bad dt/substeps.
-    """
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"MJCF file not found: {path}")
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"{path}: substeps must be a positive integer, got {substeps!r}")
-    if dt is not None and not (isinstance(dt, numbers.Real) and not isinstance(dt, bool)
-                               and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"{path}: dt must be a positive number of seconds, got {dt!r}")
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-        if dt is not None:
-            spec.option.timestep = float(dt) / int(substeps)
-        model = spec.compile()
-    except Exception as err:  # mujoco reports every parse and compile error as ValueError
-        raise ValueError(f"{path}: not a valid MJCF model: {err}".rstrip()) from err
-    if model.njnt == 0:
-        raise ValueError(f"{path}: the model has no joints; gnwarp needs at least one joint "
-                         "(joints are the graph's edges)")
-    if model.nu == 0:
-        raise ValueError(f"{path}: the model has no actuators; gnwarp needs at least one "
-                         "actuator (actions drive the dynamics)")
-    if dt is None:
-        dt = float(model.opt.timestep) * int(substeps)
-    return System(name=path.stem, model=model, dt=float(dt), substeps=int(substeps),
-                  source=str(path), spec=spec)
-
-
-def _actuator_type(model: mujoco.MjModel, i: int) -> str:
-    """motor, velocity, position or general, by the gain and bias of actuator i."""
-    gain, bias = model.actuator_gaintype[i], model.actuator_biastype[i]
-    dyn = model.actuator_dyntype[i]
-    fixed = mujoco.mjtGain.mjGAIN_FIXED
-    if dyn != mujoco.mjtDyn.mjDYN_NONE or gain != fixed:
-        return "general"
-    if bias == mujoco.mjtBias.mjBIAS_NONE:
-        return "motor"
-    if bias == mujoco.mjtBias.mjBIAS_AFFINE:
-        kp, kv = -model.actuator_biasprm[i, 1], -model.actuator_biasprm[i, 2]
-        g = model.actuator_gainprm[i, 0]
-        if kp == 0 and kv > 0 and math.isclose(g, kv):
-            return "velocity"
-        if kp > 0 and math.isclose(g, kp):
-            return "position"
-    return "general"
-
-
-def describe(system: System) -> dict:
-    """One row of `gnwarp systems`: sizes, actuator types, timesteps and parameter ranges.
-
-    "parameters" gives the ranges of the system's parameterized variant (per-body and per-link
-    factors collapsed into one entry each, e.g. "link_length_*"); {} where there is none.
-    """
-    model = system.model
-    types: list[str] = []
-    for i in range(model.nu):
-        kind = _actuator_type(model, i)
-        if kind not in types:
-            types.append(kind)
-    parameters: dict[str, tuple[float, float]] = {}
-    if system.source == "builtin":
-        family, _ = _parse(system.name)
-        for _, label, rng in _ranges(family, None):
-            parameters.setdefault(label, rng)
-    return {
-        "name": system.name,
-        "bodies": system.nbody,
-        "nq": system.nq,
-        "nv": system.nv,
-        "nu": system.nu,
-        "actuators": ", ".join(types),
-        "timestep": system.timestep,
-        "dt": system.dt,
-        "substeps": system.substeps,
-        "contacts": system.contacts,
-        "parameters": parameters,
-    }

@@ -4,7 +4,7 @@ Body poses (true or predicted) are written straight into the scene: each geom's 
 its body's pose composed with the geom's local pose, so predicted states that break the joints
 show as they are. Rendering runs in a child process with ``MUJOCO_GL`` set before MuJoCo is
 imported (MuJoCo picks its GL backend at import), which also keeps a GL failure from taking the
-caller down; ``render_rollouts`` raises ``RenderUnavailable`` then, and ``evaluate.animate``
+caller down; ``render_rollouts`` raises ``RenderUnavailable`` then, and ``gnwarp.eval.animate``
 falls back to drawing the poses with matplotlib.
 
 Frames are laid out with one row per rollout and one column per trajectory: true first, then each
@@ -21,29 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
+from gnwarp.sim.systems import from_mjcf, make
+from gnwarp.state import POS, QUAT, geom_poses
+
+__all__ = ["RenderUnavailable", "render_rollouts"]
+
 
 class RenderUnavailable(RuntimeError):
     """No working OpenGL context for MuJoCo's offscreen renderer on this machine."""
-
-
-def _quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """[..., 4] unit quaternions (w, x, y, z) -> [..., 3, 3] rotation matrices."""
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def geom_poses(model, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World poses of every geom from body states ``body`` [B, 13]: (geom_xpos [ngeom, 3],
-    geom_xmat [ngeom, 9]). Vectorized over geoms."""
-    gb = np.asarray(model.geom_bodyid)
-    R = _quat_to_mat(body[:, 3:7])[gb]                                   # [G, 3, 3]
-    xpos = body[gb, 0:3] + np.einsum("gij,gj->gi", R, np.asarray(model.geom_pos))
-    xmat = R @ _quat_to_mat(np.asarray(model.geom_quat))
-    return xpos, xmat.reshape(-1, 9)
 
 
 def _render_job(job: dict, arrays: dict) -> None:
@@ -51,7 +36,6 @@ def _render_job(job: dict, arrays: dict) -> None:
     import imageio.v3 as iio
     import mujoco
 
-    from gnwarp import systems
     W, H = job["width"], job["height"]
     names = ["true"] + job["pred_names"]
     trajs = [arrays["true"]] + [arrays[f"pred{j}"] for j in range(len(job["pred_names"]))]
@@ -59,7 +43,7 @@ def _render_job(job: dict, arrays: dict) -> None:
     rows = []
     for k in range(K):
         spec = job["systems"][k]
-        s = systems.from_mjcf(spec["mjcf"]) if spec.get("mjcf") else systems.make(spec["name"], params=spec["params"])
+        s = from_mjcf(spec["mjcf"]) if spec.get("mjcf") else make(spec["name"], params=spec["params"])
         m = s.model
         d = mujoco.MjData(m)
         mujoco.mj_forward(m, d)
@@ -85,8 +69,8 @@ def _render_job(job: dict, arrays: dict) -> None:
                     xpos, xmat = geom_poses(m, b)
                     d.geom_xpos[movable] = xpos[movable]
                     d.geom_xmat[movable] = xmat[movable]
-                    d.xpos[:] = b[:, 0:3]
-                    d.xquat[:] = b[:, 3:7]
+                    d.xpos[:] = b[:, POS]
+                    d.xquat[:] = b[:, QUAT]
                     r.update_scene(d, cam)
                     frames[f, :, j * W:(j + 1) * W] = r.render()
         rows.append(frames)
@@ -118,8 +102,10 @@ def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs
         elif env["MUJOCO_GL"] == "egl":
             env.setdefault("PYOPENGL_PLATFORM", "egl")
         try:
-            res = subprocess.run([sys.executable, "-m", "gnwarp.render", tmp], env=env, capture_output=True,
-                                 text=True, timeout=timeout)
+            # gnwarp.eval imports this module before runpy runs it as __main__: silence runpy's note of that
+            quiet = "ignore:'gnwarp.eval.render' found in sys.modules:RuntimeWarning"
+            res = subprocess.run([sys.executable, "-W", quiet, "-m", "gnwarp.eval.render", tmp], env=env,
+                                 capture_output=True, text=True, timeout=timeout)
         except subprocess.TimeoutExpired:
             raise RenderUnavailable(f"MuJoCo rendering did not finish in {timeout:g} s") from None
     if res.returncode != 0 or not path.exists():
@@ -128,7 +114,7 @@ def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs
     return path
 
 
-if __name__ == "__main__":  # child process: python -m gnwarp.render <job folder>
+if __name__ == "__main__":  # child process: python -m gnwarp.eval.render <job folder>
     folder = Path(sys.argv[1])
     with np.load(folder / "arrays.npz") as z:
         _render_job(json.loads((folder / "job.json").read_text()), {k: z[k] for k in z.files})

@@ -5,26 +5,23 @@ body and its parent body. The *static* graph holds model parameters; the *dynami
 each body's absolute pose and world-frame velocities and, on each edge, the control of the
 actuator that drives the joint. The conversion is generic over ``mujoco.MjModel``.
 
-Feature columns carry names (``FeatureLayout``); a dataset keeps only the static columns that
-vary over it and records the dropped ones with their constant value, so a model can map any
-other dataset to the inputs it was trained on (``FeatureLayout.map_static``).
+Feature columns carry names; ``static_arrays`` pads the static graphs of several system instances
+and keeps only the columns that vary over them, recording the dropped ones in a ``FeatureLayout``
+(``gnwarp.data.layout``) with their constant value.
 """
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
+from gnwarp.data.layout import FeatureLayout, varying_columns
 from gnwarp.graphs import GraphsTuple
+from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT
 
-# Dynamic node layout (13 per body): position, orientation (w, x, y, z), linear and angular
-# velocity of the body frame in world coordinates (mj_objectVelocity(mjOBJ_XBODY, flg_local=0)).
-DYN_NODE_NAMES = ("pos_x", "pos_y", "pos_z", "quat_w", "quat_x", "quat_y", "quat_z",
-                  "linvel_x", "linvel_y", "linvel_z", "angvel_x", "angvel_y", "angvel_z")
-POS, QUAT, LINVEL, ANGVEL = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
-DYN_NODE_SIZE = 13
+__all__ = ["Topology", "topology", "static_global_features", "static_node_features", "static_edge_features",
+           "StaticGraph", "static_graph", "static_arrays", "body_states", "edge_controls"]
 
 
 def _enum_names(enum) -> list[str]:
@@ -207,65 +204,61 @@ def static_graph(model: mujoco.MjModel) -> StaticGraph:
     return StaticGraph(g, v, e, gn, vn, en, topo)
 
 
-# -- layouts ------------------------------------------------------------------------------------
+def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict]:
+    """Static graphs of several system instances (``System``s of one family), padded to the most
+    bodies B and edges E, the columns constant over all of them dropped.
 
-@dataclass
-class FeatureLayout:
-    """Names of the kept static columns, and the dropped constant ones with their value.
-
-    The dynamic layout is fixed: DYN_NODE_NAMES per node, ``n_ctrl_slots`` controls per edge,
-    ``n_global_ctrl`` controls on the globals (actuators not on a joint).
+    Returns (static, layout, meta): ``static`` the arrays of a dataset's ``/static`` group
+    (globals [I, F_g], nodes [I, B, F_v], edges [I, E, F_e] float32; senders, receivers [I, E] and
+    edge_ctrl [I, E, K] int64, -1 = padding or none; n_node, n_edge [I]), ``layout`` the
+    ``FeatureLayout`` of the kept columns, ``meta`` {"n_global_ctrl", "full_sizes"}.
     """
-    global_names: list[str]
-    node_names: list[str]
-    edge_names: list[str]
-    dropped: dict[str, dict[str, float]] = field(default_factory=lambda: {"globals": {}, "nodes": {}, "edges": {}})
-    n_ctrl_slots: int = 1
-    n_global_ctrl: int = 0
+    graphs = [static_graph(s.model) for s in instances]
+    g0 = graphs[0]
+    I = len(graphs)
+    B = max(g.nodes.shape[0] for g in graphs)
+    E = max(g.edges.shape[0] for g in graphs)
+    K = max(g.topology.edge_ctrl.shape[1] for g in graphs)
+    G = max(g.topology.global_ctrl.shape[0] for g in graphs)
+    Fg, Fv, Fe = g0.globals.shape[0], g0.nodes.shape[1], g0.edges.shape[1]
+    glob = np.stack([g.globals for g in graphs])
+    nodes = np.zeros((I, B, Fv))
+    edges = np.zeros((I, E, Fe))
+    snd = -np.ones((I, E), dtype=np.int64)
+    rcv = -np.ones((I, E), dtype=np.int64)
+    ectrl = -np.ones((I, E, K), dtype=np.int64)
+    n_node = np.zeros(I, dtype=np.int64)
+    n_edge = np.zeros(I, dtype=np.int64)
+    for i, g in enumerate(graphs):  # one row per system instance, not per state
+        nb, ne = g.nodes.shape[0], g.edges.shape[0]
+        nodes[i, :nb], edges[i, :ne] = g.nodes, g.edges
+        snd[i, :ne], rcv[i, :ne] = g.topology.senders, g.topology.receivers
+        ectrl[i, :ne, :g.topology.edge_ctrl.shape[1]] = g.topology.edge_ctrl
+        n_node[i], n_edge[i] = nb, ne
+    node_mask = np.arange(B)[None] < n_node[:, None]
+    edge_mask = np.arange(E)[None] < n_edge[:, None]
+    kg = varying_columns(glob)
+    kv = varying_columns(nodes, node_mask)
+    ke = varying_columns(edges, edge_mask)
 
-    @property
-    def sizes(self) -> dict[str, int]:
-        """Input sizes of the full (static + dynamic) graph."""
-        return {"globals": len(self.global_names) + self.n_global_ctrl,
-                "nodes": len(self.node_names) + DYN_NODE_SIZE,
-                "edges": len(self.edge_names) + self.n_ctrl_slots}
+    def dropped(names, keep, vals, mask=None):
+        flat = vals.reshape(-1, vals.shape[-1])
+        row = flat[mask.reshape(-1)][0] if mask is not None else flat[0]
+        return {n: float(row[k]) for k, n in enumerate(names) if not keep[k]}
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "FeatureLayout":
-        return cls(**d)
-
-    def map_static(self, other: "FeatureLayout", kind: str, values: np.ndarray) -> np.ndarray:
-        """Map ``values`` [..., F] laid out as ``other`` to this layout; ``kind``: globals|nodes|edges.
-
-        A column this layout keeps is taken from ``other`` where ``other`` kept it, else from
-        ``other``'s dropped constant; a column neither has raises ValueError naming it.
-        """
-        attr = {"globals": "global_names", "nodes": "node_names", "edges": "edge_names"}[kind]
-        mine = getattr(self, attr)
-        theirs = {n: i for i, n in enumerate(getattr(other, attr))}
-        const = other.dropped.get(kind, {})
-        out = np.empty(values.shape[:-1] + (len(mine),), dtype=values.dtype)
-        for k, n in enumerate(mine):
-            if n in theirs:
-                out[..., k] = values[..., theirs[n]]
-            elif n in const:
-                out[..., k] = const[n]
-            else:
-                raise ValueError(f"static {kind} feature '{n}' expected by the model is missing from the data")
-        return out
-
-
-def varying_columns(values: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Boolean [F]: which columns of values [..., F] are not constant over the valid rows."""
-    flat = values.reshape(-1, values.shape[-1])
-    if mask is not None:
-        flat = flat[mask.reshape(-1)]
-    if flat.shape[0] == 0:
-        return np.zeros(values.shape[-1], dtype=bool)
-    return ~np.all(flat == flat[:1], axis=0)
+    layout = FeatureLayout(
+        global_names=[n for n, k in zip(g0.global_names, kg) if k],
+        node_names=[n for n, k in zip(g0.node_names, kv) if k],
+        edge_names=[n for n, k in zip(g0.edge_names, ke) if k],
+        dropped={"globals": dropped(g0.global_names, kg, glob),
+                 "nodes": dropped(g0.node_names, kv, nodes, node_mask),
+                 "edges": dropped(g0.edge_names, ke, edges, edge_mask)},
+        n_ctrl_slots=K, n_global_ctrl=G)
+    static = {"globals": glob[:, kg].astype(np.float32), "nodes": nodes[..., kv].astype(np.float32),
+              "edges": edges[..., ke].astype(np.float32), "senders": snd, "receivers": rcv,
+              "n_node": n_node, "n_edge": n_edge, "edge_ctrl": ectrl}
+    meta = {"n_global_ctrl": G, "full_sizes": {"globals": Fg, "nodes": Fv, "edges": Fe}}
+    return static, layout, meta
 
 
 # -- dynamic graph ------------------------------------------------------------------------------
@@ -287,7 +280,8 @@ def body_states(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
 
 
 def edge_controls(topo: Topology, ctrl: np.ndarray) -> np.ndarray:
-    """[..., n_edge, n_slot] controls per edge from ctrl [..., nu] (0 where no actuator)."""
+    """[..., n_edge, n_slot] controls per edge from ctrl [..., nu] (0 where no actuator). The numpy
+    reference of ``gnwarp.data.builder.edge_control_values``, which input graphs are built with."""
     idx = topo.edge_ctrl
     c = np.take(ctrl, np.maximum(idx, 0), axis=-1)
     return np.where(idx >= 0, c, 0.0)

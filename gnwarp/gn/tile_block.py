@@ -1,25 +1,25 @@
 """The fused Warp-tile path of the GN block: three launches forward (edge, node, global update,
-each gather + MLP + scatter in one kernel), their adjoint launches backward.
+each gather + MLP + scatter in one kernel, ``kernels/gn/tile_block.py``), their adjoint launches
+backward (Warp's autodiff).
 
-Used by ``gn_warp.gn_block_forward`` when ``path="tile"`` (or "auto" picks it). fp32 / fp64 only.
+``GraphNetwork`` runs it when ``path="tile"`` (or "auto" picks it, ``rules.choose_path``). fp32 /
+fp64 only.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-import warp as wp
 
-from gnwarp.gn import GNBlockConfig
-from gnwarp.gn_warp import _WP_DTYPE, GraphIndex, _Launcher
-from gnwarp.kernels import gn_tile as KT
+from gnwarp.gn.config import GNBlockConfig
+from gnwarp.gn.index import GraphIndex
+from gnwarp.gn.rules import TUNABLES
+from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.kernels.gn import tile_block as KT
 
 __all__ = ["tile_block", "TILE_ROWS", "TileSharedMemoryError"]
 
 TILE_ROWS = 16     # rows (edges / nodes / graphs) per thread block
 BLOCK_DIM = 64     # threads per block on CUDA (the CPU runs a block as one thread)
-# Tile GEMMs through cuBLASDx (Warp's default) or Warp's plain shared-memory GEMM: cuBLASDx takes
-# 1-2.5 min to compile each kernel for sm_90, the plain one seconds (measured on the 2-core CPU).
-USE_MATHDX = True
 
 
 def pack_mlp(layers) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,7 +53,7 @@ class _Update:
         self.name = name
         self.slots = tuple(slots) + ((KT.ABSENT, 0),) * (4 - len(slots))
         self.kernel = KT.update_tile_kernel(TILE_ROWS, self.slots, tuple(hidden), out_size, n_scatter, dtype,
-                                            USE_MATHDX)
+                                            mathdx=TUNABLES.tile_mathdx)
 
     def check_shared_memory(self, device, backward: bool):
         """Compile / load the kernel and raise ValueError if its tiles exceed the shared memory
@@ -64,26 +64,14 @@ class _Update:
         for direction in ("forward",) + (("backward",) if backward else ()):
             need = max((v for k, v in meta.items() if k.endswith(f"_{direction}_smem_bytes")), default=0)
             if limit and need > limit:
-                raise TileSharedMemoryError(f"path='tile': the fused {self.name} kernel needs {need // 1024} KiB of shared "
-                                 f"memory ({direction}), over the {limit // 1024} KiB of {device}; "
-                                 f"use path='split' or smaller MLPs")
+                raise TileSharedMemoryError(f"path='tile': the fused {self.name} kernel needs {need // 1024} KiB of "
+                                            f"shared memory ({direction}), over the {limit // 1024} KiB of {device}; "
+                                            f"use path='blas' or smaller MLPs")
 
 
 def _launch_update(launch, upd, rows, xs, idx, scat, w, b, out, sums, adj=None):
     """Launch (or, with ``adj``, launch the adjoint of) one update kernel over ``rows`` rows."""
-    n_tiles = -(-rows // TILE_ROWS)
-    if n_tiles == 0:
-        return
-    args = [*xs, *idx, *scat, w, b, out, *sums]
-    wargs = [launch.array(a) for a in args]
-    block_dim = BLOCK_DIM if launch.device.is_cuda else 1
-    if adj is None:
-        wp.launch_tiled(upd.kernel, dim=[n_tiles], inputs=wargs, device=launch.device, stream=launch.stream,
-                        block_dim=block_dim)
-    else:
-        wadj = [None if a is None else launch.array(a) for a in adj]
-        wp.launch_tiled(upd.kernel, dim=[n_tiles], inputs=wargs, adj_inputs=wadj, adjoint=True,
-                        device=launch.device, stream=launch.stream, block_dim=block_dim)
+    launch.tiled(upd.kernel, -(-rows // TILE_ROWS), BLOCK_DIM, *xs, *idx, *scat, w, b, out, *sums, adjoint=adj)
 
 
 class _TileBlock(torch.autograd.Function):
@@ -93,8 +81,8 @@ class _TileBlock(torch.autograd.Function):
         c: GNBlockConfig = spec["config"]
         like = we
         dt = like.dtype
-        T = _WP_DTYPE[dt]
-        launch = _Launcher(like)
+        T = WP_DTYPE[dt]
+        launch = Launcher(like)
         ph2 = launch.placeholder(dt, 2)
         ph1 = launch.placeholder(torch.int32, 1)
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
@@ -182,7 +170,7 @@ class _TileBlock(torch.autograd.Function):
         we, be, wn, bn, wg, bg = st["params"]
         v, e, u = st["inputs"]
         agg, sum_e, sum_v = st["sums"]
-        launch = _Launcher(we)
+        launch = Launcher(we)
         N, E, B = gi.n_nodes, gi.n_edges, gi.n_graphs
 
         def zeros(x):
@@ -229,7 +217,7 @@ class _TileBlock(torch.autograd.Function):
         return (None, None, *grads)
 
 
-def tile_block(config: GNBlockConfig, gi: GraphIndex, v, e, u, params, edge_layers, node_layers, global_layers):
+def tile_block(config: GNBlockConfig, gi: GraphIndex, v, e, u, edge_layers, node_layers, global_layers):
     """Run one GN block on the fused tile path; returns (nodes', edges'[, globals'])."""
     we, be = pack_mlp(edge_layers)
     wn, bn = pack_mlp(node_layers)

@@ -1,7 +1,7 @@
 """Warp kernels that feed controls into, and read graph node states out of, batched MuJoCo-Warp data.
 
-They run inside a captured step loop, so the data step they act on comes from a device-side
-counter (``step_in``) instead of a launch argument.
+Launched by ``gnwarp.sim.mujoco_warp``. They run inside a captured step loop, so the data step
+they act on comes from a device-side counter (``step_in``) instead of a launch argument.
 """
 import warp as wp
 

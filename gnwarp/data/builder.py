@@ -1,0 +1,142 @@
+"""Input graphs of a model from static graphs and dynamic states, built on the device.
+
+``GraphBuilder`` makes batches of input graphs (static features concatenated with body states
+and controls) for any system instances of a dataset; ``GraphTemplate`` fixes the instances of a
+rollout once so that every step only fills in states and controls; ``graph_builder`` binds a
+Dataset or a System to a model's ``FeatureLayout``. Everything is torch, vectorized over the batch.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gnwarp.data.convert import static_arrays
+from gnwarp.data.layout import FeatureLayout, LayoutMismatchError, map_static
+from gnwarp.graphs import GraphsTuple, graph_of
+from gnwarp.sim.systems import System
+from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
+
+__all__ = ["edge_control_values", "GraphBuilder", "GraphTemplate", "graph_builder"]
+
+
+def edge_control_values(ctrl: torch.Tensor, index: torch.Tensor, graph: torch.Tensor) -> torch.Tensor:
+    """Controls on edges (torch; ``gnwarp.data.convert.edge_controls`` is the numpy reference).
+
+    ``ctrl`` [N, U]: the controls of N graphs; ``index`` [..., K]: the control index of each of an
+    edge's K slots (-1: no actuator); ``graph``: the graph of each edge, broadcastable to
+    index.shape[:-1]. Returns [..., K] in ctrl's dtype, 0 where no actuator; no host sync.
+    """
+    flat = graph[..., None] * ctrl.shape[-1] + index.clamp(min=0)
+    c = ctrl.reshape(-1)[flat.reshape(-1)].reshape(flat.shape)
+    return torch.where(index >= 0, c, torch.zeros((), dtype=ctrl.dtype, device=ctrl.device))
+
+
+class GraphBuilder:
+    """Builds batched input graphs from per-instance static graphs and dynamic states.
+
+    Vectorized over the batch (no Python loop over bodies or states); works on torch tensors on
+    any device so rollouts can rebuild graphs every step without leaving the device.
+    ``static``: the arrays of a dataset's ``/static`` group (``Dataset.static``, or
+    ``gnwarp.data.convert.static_arrays``), numpy or h5py.
+    ``__call__(instance [N], body [N, B, 13], ctrl [N, U]) -> GraphsTuple`` with
+    nodes = [static node features, 13 dynamic], edges = [static edge features, controls],
+    globals = static global features.
+    """
+
+    def __init__(self, static: dict, device=None, dtype=None):
+        self.dtype = dtype or torch.float32
+        t = lambda k, dt=None: torch.as_tensor(np.asarray(static[k][...]), device=device, dtype=dt)  # noqa: E731
+        self.s_globals = t("globals", self.dtype)
+        self.s_nodes = t("nodes", self.dtype)
+        self.s_edges = t("edges", self.dtype)
+        self.senders = t("senders", torch.int64)
+        self.receivers = t("receivers", torch.int64)
+        self.n_node = t("n_node", torch.int64)
+        self.n_edge = t("n_edge", torch.int64)
+        self.edge_ctrl = t("edge_ctrl", torch.int64)
+        B, E = self.s_nodes.shape[1], self.s_edges.shape[1]
+        self.node_mask = torch.arange(B, device=device)[None] < self.n_node[:, None]   # [I, B]
+        self.edge_mask = torch.arange(E, device=device)[None] < self.n_edge[:, None]   # [I, E]
+        self.uniform = bool((self.n_node == B).all() and (self.n_edge == E).all())
+
+    def __call__(self, instance, body, ctrl) -> GraphsTuple:
+        dev = self.s_nodes.device
+        instance = instance.to(dev)
+        body = body.to(dev, self.dtype)
+        ctrl = ctrl.to(dev, self.dtype)
+        N = instance.shape[0]
+        graph = torch.arange(N, device=dev)[:, None]
+        c = edge_control_values(ctrl, self.edge_ctrl[instance], graph)  # [N, E, K]
+        nodes = torch.cat([self.s_nodes[instance], body], -1)           # [N, B, Fv+13]
+        edges = torch.cat([self.s_edges[instance], c], -1)              # [N, E, Fe+K]
+        n_node, n_edge = self.n_node[instance], self.n_edge[instance]
+        off = torch.cumsum(n_node, 0) - n_node
+        snd = self.senders[instance] + off[:, None]
+        rcv = self.receivers[instance] + off[:, None]
+        if self.uniform:
+            return GraphsTuple(nodes=nodes.reshape(-1, nodes.shape[-1]), edges=edges.reshape(-1, edges.shape[-1]),
+                               receivers=rcv.reshape(-1), senders=snd.reshape(-1), globals=self.s_globals[instance],
+                               n_node=n_node, n_edge=n_edge)
+        nm, em = self.node_mask[instance], self.edge_mask[instance]
+        return GraphsTuple(nodes=nodes[nm], edges=edges[em], receivers=rcv[em], senders=snd[em],
+                           globals=self.s_globals[instance], n_node=n_node, n_edge=n_edge)
+
+
+class GraphTemplate:
+    """The static part of a batch of input graphs (given system instances), built once, so that
+    each rollout step only fills in body states and controls: ``graph(body [N, B, 13], ctrl [N, U])``
+    runs without host synchronization. ``to_body(nodes, like)`` maps flat node rows back to [N, B, 13]."""
+
+    def __init__(self, builder: GraphBuilder, instance: torch.Tensor):
+        dev = builder.s_nodes.device
+        instance = instance.to(dev)
+        N, B = int(instance.shape[0]), int(builder.s_nodes.shape[1])
+        self.N, self.B = N, B
+        self.dtype = builder.dtype
+        K = builder.edge_ctrl.shape[-1]
+        U = max(int(builder.edge_ctrl.max()) + 1, 1)  # host sync, here only
+        g = builder(instance, torch.zeros(N, B, DYN_NODE_SIZE, device=dev), torch.zeros(N, U, device=dev))
+        self.static_nodes = g.nodes[:, :-DYN_NODE_SIZE]
+        self.static_edges = g.edges[:, :-K]
+        self.topology = g._replace(nodes=None, edges=None)
+        nm = builder.node_mask[instance].reshape(-1)
+        em = builder.edge_mask[instance].reshape(-1)
+        self.rows = None if builder.uniform else nm.nonzero().squeeze(1)       # one sync, here only
+        ec = builder.edge_ctrl[instance]                                          # [N, E, K]
+        self.ctrl_index = ec.reshape(-1, K) if builder.uniform else ec.reshape(-1, K)[em.nonzero().squeeze(1)]
+        self.edge_of = graph_of(self.topology.n_edge, int(self.static_edges.shape[0]))  # graph of each edge
+        self.n_nodes = int(self.static_nodes.shape[0])
+
+    def graph(self, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
+        """Input graphs of the N instances from ``body`` [N, B, 13] and ``ctrl`` [N, U]."""
+        dyn = self.nodes(body)
+        c = edge_control_values(ctrl.to(self.dtype), self.ctrl_index, self.edge_of)
+        return self.topology._replace(nodes=torch.cat([self.static_nodes, dyn], -1),
+                                      edges=torch.cat([self.static_edges, c], -1))
+
+    def nodes(self, body: torch.Tensor) -> torch.Tensor:
+        """[N, B, 13] -> [sum(n_node), 13]."""
+        flat = body.to(self.dtype).reshape(self.N * self.B, DYN_NODE_SIZE)
+        return flat if self.rows is None else flat.index_select(0, self.rows)
+
+    def to_body(self, nodes: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """[sum(n_node), 13] -> [N, B, 13], padding rows taken from ``like``."""
+        if self.rows is None:
+            return nodes.reshape(self.N, self.B, DYN_NODE_SIZE)
+        flat = like.to(nodes.dtype).reshape(self.N * self.B, DYN_NODE_SIZE)
+        return flat.index_copy(0, self.rows, nodes).reshape(self.N, self.B, DYN_NODE_SIZE)
+
+
+def graph_builder(layout: FeatureLayout, source, device=None, dtype=None, strict: bool = True) -> GraphBuilder:
+    """A ``GraphBuilder`` of ``source``'s graphs in ``layout``: source is a ``Dataset`` or a
+    ``gnwarp.sim.systems.System`` (its static graph, for planning without a dataset)."""
+    if isinstance(source, System):
+        static, data_layout, _ = static_arrays([source])
+    elif all(hasattr(source, a) for a in ("static", "layout", "meta")):  # a Dataset: its module imports this one
+        names = tuple(source.meta.get("dynamic_node_names", DYN_NODE_NAMES))
+        if names != DYN_NODE_NAMES:
+            raise LayoutMismatchError(f"the data's dynamic node features {names} are not {DYN_NODE_NAMES}")
+        static, data_layout = source.static, source.layout
+    else:
+        raise TypeError(f"expected a gnwarp Dataset or System, got {type(source).__name__}")
+    return GraphBuilder(map_static(layout, data_layout, static, strict), device=device, dtype=dtype)

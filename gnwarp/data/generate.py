@@ -1,0 +1,202 @@
+"""Dataset generation (paper, section C): random initial states, random spline controls (C.1),
+batched simulation, and the split sizes of C.2.
+
+``generate`` simulates every sequence of a system (or of sampled instances of its parameterized
+variant), checks that the simulation did not diverge, and returns a ``Dataset``
+(``gnwarp.data.dataset``) with the static graphs of its instances (``gnwarp.data.convert``).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from gnwarp.data.convert import static_arrays
+from gnwarp.data.dataset import SPLITS, Dataset, Split
+from gnwarp.sim.common import topology_signature
+from gnwarp.sim.excitation import control_range, random_spline_controls
+from gnwarp.sim.simulate import resolve_backend, simulate
+from gnwarp.sim.systems import make
+from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
+
+__all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate"]
+
+# Paper, C.2: sequences per split.
+PAPER_SIZES = {False: {"train": 10000, "valid": 1000, "test": 1000},
+               True: {"train": 20000, "valid": 5000, "test": 5000}}
+
+
+# -- initial states ------------------------------------------------------------------------------
+
+# Per built-in system: how far from the model's reference pose initial states are drawn.
+# (scale of uniform noise on hinge/slide joints, unlimited hinges drawn over the full circle)
+_FULL_CIRCLE = {"pendulum", "acrobot", "cartpole"}
+
+
+def initial_states(system, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random initial (qpos [n, nq], qvel [n, nv]) for a system.
+
+    Hinge and slide joints: uniform inside their range (shrunk to its middle half) when limited;
+    unlimited hinges over the full circle for pendulum, cartpole and acrobot, and +-0.1 rad
+    otherwise (so floating bases such as cheetah's torso start upright). Velocities ~ N(0, 0.1).
+    """
+    import mujoco
+    m = system.model
+    qpos = np.tile(np.asarray(m.qpos0, dtype=np.float64), (n, 1))
+    base = system.name.rstrip("0123456789")
+    for j in range(m.njnt):
+        t = int(m.jnt_type[j])
+        if t not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            continue
+        a = int(m.jnt_qposadr[j])
+        if m.jnt_limited[j]:
+            lo, hi = m.jnt_range[j]
+            mid, half = 0.5 * (lo + hi), 0.25 * (hi - lo)
+            qpos[:, a] = rng.uniform(mid - half, mid + half, n)
+        elif t == mujoco.mjtJoint.mjJNT_HINGE and base in _FULL_CIRCLE:
+            qpos[:, a] = rng.uniform(-np.pi, np.pi, n)
+        else:
+            qpos[:, a] += rng.uniform(-0.1, 0.1, n)
+    qvel = rng.normal(0.0, 0.1, (n, m.nv))
+    return qpos, qvel
+
+
+# -- generation ---------------------------------------------------------------------------------
+
+def split_sizes(num_sequences, parameterized: bool) -> dict[str, int]:
+    """Sequences per split: None -> the paper's; an int -> split in the paper's proportions;
+    a dict or (train, valid, test) tuple -> as given."""
+    paper = PAPER_SIZES[bool(parameterized)]
+    if num_sequences is None:
+        return dict(paper)
+    if isinstance(num_sequences, dict):
+        sizes = {k: int(num_sequences.get(k, 0)) for k in SPLITS}
+    elif isinstance(num_sequences, (tuple, list)):
+        if len(num_sequences) != 3:
+            raise ValueError(f"num_sequences as a sequence must be (train, valid, test), got {num_sequences}")
+        sizes = dict(zip(SPLITS, (int(x) for x in num_sequences)))
+    else:
+        n = int(num_sequences)
+        if n < 1:
+            raise ValueError(f"num_sequences must be >= 1, got {n}")
+        tot = sum(paper.values())
+        sizes = {k: int(round(n * paper[k] / tot)) for k in ("valid", "test")}
+        sizes["train"] = n - sizes["valid"] - sizes["test"]
+        sizes = {k: sizes[k] for k in SPLITS}
+    if any(v < 0 for v in sizes.values()) or sum(sizes.values()) < 1:
+        raise ValueError(f"split sizes must be non-negative and not all zero, got {sizes}")
+    return sizes
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+    return tqdm(total=total, desc=desc, unit="seq", disable=not enabled, dynamic_ncols=True)
+
+
+def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, parameterized: bool = False,
+             backend: str = "auto", progress: bool = True) -> Dataset:
+    """Simulate sequences under random spline controls (C.1) and return a ``Dataset``.
+
+    ``system``: a built-in name (``gnwarp.sim.systems.names()``, e.g. "cheetah", "swimmer6") or a
+    ``System``. ``parameterized``: draw each sequence's system instance from the system's
+    parameter ranges (built-in systems only). ``num_sequences``: see ``split_sizes``.
+    ``backend``: "auto", "mujoco_warp" (CUDA), "mujoco_warp_cpu" or "mujoco" (MuJoCo C).
+    """
+    if num_steps < 1:
+        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    backend = resolve_backend(backend)
+    sizes = split_sizes(num_sequences, parameterized)
+    total = sum(sizes.values())
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+
+    if isinstance(system, str):
+        name = system
+        base_sys = make(name)
+    else:
+        base_sys, name = system, system.name
+        if parameterized:
+            raise ValueError("parameterized=True needs a built-in system name, not a System instance")
+    if base_sys.model.nu == 0:
+        raise ValueError(f"system '{name}' has no actuators: random-control datasets need at least one")
+    if parameterized:
+        seeds = rng.integers(0, 2**31 - 1, total)
+        bar = _progress(total, f"{name}: building instances", progress)
+        instances = []
+        for s in seeds:  # one model compile per sampled instance
+            instances.append(make(name, seed=int(s)))
+            bar.update(1)
+        bar.close()
+        seq_instance = np.arange(total)
+    else:
+        instances = [base_sys]
+        seq_instance = np.zeros(total, dtype=np.int64)
+
+    # group instances by topology (SwimmerN with several N): one simulation per group
+    groups: dict[tuple, list[int]] = {}
+    for i, inst in enumerate(instances):
+        groups.setdefault(topology_signature(inst.model), []).append(i)
+
+    B = max(s.model.nbody for s in instances)
+    nq = max(s.model.nq for s in instances)
+    nv = max(s.model.nv for s in instances)
+    nu = max(s.model.nu for s in instances)
+    body = np.zeros((total, num_steps + 1, B, DYN_NODE_SIZE), dtype=np.float32)
+    ctrl = np.zeros((total, num_steps, nu), dtype=np.float32)
+    qpos = np.zeros((total, num_steps + 1, nq), dtype=np.float32)
+    qvel = np.zeros((total, num_steps + 1, nv), dtype=np.float32)
+
+    bar = _progress(total, f"{name}: simulating ({backend})", progress)
+    sim_time = 0.0
+    for key, inst_ids in groups.items():
+        seqs = np.flatnonzero(np.isin(seq_instance, inst_ids))
+        rep = instances[inst_ids[0]]
+        m = rep.model
+        q0, v0 = initial_states(rep, len(seqs), rng)
+        u = random_spline_controls(len(seqs), num_steps, control_range(m), rng)
+        group_systems = [instances[seq_instance[s]] for s in seqs] if parameterized else rep
+        ts = time.perf_counter()
+        tr = simulate(group_systems, q0, v0, u, backend=backend, progress=bar.update)
+        sim_time += time.perf_counter() - ts
+        bad = [k for k, a in (("body", tr.body), ("qpos", tr.qpos), ("qvel", tr.qvel)) if not _sane(a)]
+        if bad:
+            raise FloatingPointError(f"simulation of '{name}' produced NaN/Inf or huge (>{_MAXVAL:g}) values in "
+                                     f"{', '.join(bad)}: the model is unstable at this timestep or under these controls")
+        body[seqs, :, :m.nbody] = tr.body
+        ctrl[seqs, :, :m.nu] = u
+        qpos[seqs, :, :m.nq] = tr.qpos
+        qvel[seqs, :, :m.nv] = tr.qvel
+    bar.close()
+
+    static, layout, graph_meta = static_arrays(instances)
+    param_names = sorted({k for s in instances for k in s.params})
+    static["params"] = np.array([[float(s.params.get(k, np.nan)) for k in param_names] for s in instances],
+                                dtype=np.float64).reshape(len(instances), len(param_names))
+
+    # splits: consecutive blocks of the (already random) sequences
+    splits, start = {}, 0
+    for k in SPLITS:
+        n = sizes[k]
+        sl = slice(start, start + n)
+        splits[k] = Split(body[sl], ctrl[sl], qpos[sl], qvel[sl], seq_instance[sl])
+        start += n
+
+    meta = {
+        "system": name, "parameterized": bool(parameterized), "dt": float(base_sys.dt),
+        "physics_timestep": float(base_sys.model.opt.timestep), "substeps": int(base_sys.substeps),
+        "num_steps": int(num_steps), "seed": int(seed), "backend": backend, "splits": sizes,
+        "param_names": param_names, "translation_invariant": bool(base_sys.translation_invariant),
+        "layout": layout.to_dict(), "max_bodies": int(B), "max_edges": int(static["senders"].shape[1]),
+        "nq": int(nq), "nv": int(nv), "nu": int(nu), "graph": graph_meta,
+        "dynamic_node_names": list(DYN_NODE_NAMES),
+        "generation_seconds": time.perf_counter() - t0, "simulation_seconds": sim_time,
+        "gnwarp_version": __import__("gnwarp").__version__,
+    }
+    return Dataset(meta, static, splits)
+
+
+_MAXVAL = 1e9  # MuJoCo flags |values| over 1e10 as divergence; stay below that
+
+
+def _sane(a: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(a)) and np.all(np.abs(a) < _MAXVAL))

@@ -1,0 +1,20 @@
+"""Evaluation: the paper's normalized one-step and rollout errors, their tables and plots, and
+animations of true vs predicted motion.
+
+    >>> from gnwarp import eval as ev
+    >>> results = {"GN": ev.evaluate(model, dataset, "test")}
+    >>> print(ev.markdown_table(results, dataset.system))
+
+Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animate`` (GIFs), ``render``
+(MuJoCo's offscreen renderer in a child process).
+"""
+from gnwarp.eval.animate import animate
+from gnwarp.eval.metrics import (evaluate, movable_mask, normalized_errors, one_step_predictions, rollout_error,
+                                 rollout_predictions, squared_errors)
+from gnwarp.eval.render import RenderUnavailable, render_rollouts
+from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
+from gnwarp.state import GROUPS
+
+__all__ = ["evaluate", "rollout_error", "rollout_predictions", "one_step_predictions", "normalized_errors",
+           "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors", "plot_state_traces",
+           "plot_training", "animate", "render_rollouts", "RenderUnavailable"]

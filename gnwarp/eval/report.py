@@ -1,0 +1,124 @@
+"""Reports of evaluation results: markdown tables, bar charts of the normalized errors (like the
+paper's Figs. 4-5), state traces along a rollout (Fig. H.1) and training curves."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from gnwarp.state import DYN_NODE_NAMES, GROUPS
+
+__all__ = ["markdown_table", "plot_errors", "plot_state_traces", "plot_training"]
+
+
+def _pyplot():
+    """matplotlib.pyplot on the Agg backend (figures go to files, never to a display)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, path, dpi: int) -> Path:
+    """Write ``fig`` to ``path`` at ``dpi`` and close it; returns the path."""
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    _pyplot().close(fig)
+    return path
+
+
+def _fmt(x: float) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "n/a"
+    return f"{x:.3g}"
+
+
+def markdown_table(results: dict[str, dict], system: str = "") -> str:
+    """Markdown tables of normalized errors: ``results`` is {model name: ``evaluate`` output}; a
+    "constant" row (1 by definition) is added. First the mean over groups per horizon, then the
+    per-group ratios of each horizon."""
+    keys = [k for k in next(iter(results.values())) if k == "one_step" or k.startswith("rollout_")]
+    head = {k: ("one-step" if k == "one_step" else f"{k.split('_')[1]}-step rollout") for k in keys}
+    lines = [f"Normalized error{f' on {system}' if system else ''} (model / constant-prediction baseline; "
+             f"lower is better):", "", "| model | " + " | ".join(head[k] for k in keys) + " |",
+             "|---|" + "---|" * len(keys)]
+    for name, r in results.items():
+        lines.append(f"| {name} | " + " | ".join(_fmt(r[k]["mean"]) for k in keys) + " |")
+    lines.append("| constant | " + " | ".join("1" for _ in keys) + " |")
+    lines += ["", "Per state group (position, orientation, linear and angular velocity):", "",
+              "| model | horizon | pos | quat | linvel | angvel |", "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        for k in keys:
+            lines.append(f"| {name} | {head[k]} | " + " | ".join(_fmt(r[k][g]) for g in GROUPS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_errors(results: dict[str, dict], path, title: str = "") -> Path:
+    """Bar chart of normalized errors per horizon, one bar per model plus the constant baseline
+    (log scale, like the paper's Figs. 4-5)."""
+    plt = _pyplot()
+    keys = [k for k in next(iter(results.values())) if k == "one_step" or k.startswith("rollout_")]
+    names = list(results) + ["constant"]
+    vals = np.array([[results[n][k]["mean"] if n != "constant" else 1.0 for k in keys] for n in names])
+    fig, ax = plt.subplots(figsize=(1.6 + 1.6 * len(keys), 3.2))
+    width = 0.8 / len(names)
+    colors = ["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "0.6"]
+    for i, n in enumerate(names):
+        c = "0.6" if n == "constant" else colors[i % (len(colors) - 1)]
+        ax.bar(np.arange(len(keys)) + (i - (len(names) - 1) / 2) * width, vals[i], width, label=n, color=c)
+    ax.set_xticks(np.arange(len(keys)))
+    ax.set_xticklabels(["one-step" if k == "one_step" else f"{k.split('_')[1]}-step" for k in keys])
+    ax.set_yscale("log")
+    ax.set_ylabel("error / constant baseline")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path, 120)
+
+
+def plot_state_traces(true: np.ndarray, preds: dict[str, np.ndarray], dt: float, path, title: str = "") -> Path:
+    """The 13 state variables of one body along a rollout, true vs predicted (like Fig. H.1).
+    ``true`` [H+1, 13], ``preds`` {name: [H+1, 13]}."""
+    plt = _pyplot()
+    t = np.arange(true.shape[0]) * dt
+    fig, axes = plt.subplots(4, 4, figsize=(12, 8), sharex=True)
+    styles = [("tab:red", "--"), ("tab:blue", ":"), ("tab:green", "-.")]
+    for k, ax in enumerate(axes.flat):
+        if k >= true.shape[1]:
+            ax.axis("off")
+            continue
+        ax.plot(t, true[:, k], color="k", lw=1.5, label="true")
+        for j, (name, p) in enumerate(preds.items()):
+            c, ls = styles[j % len(styles)]
+            ax.plot(t, p[:, k], color=c, ls=ls, lw=1.2, label=name)
+        ax.set_title(DYN_NODE_NAMES[k], fontsize=9)
+        ax.tick_params(labelsize=7)
+    axes.flat[0].legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path, 110)
+
+
+def plot_training(logs: dict[str, Path], path) -> Path:
+    """Training loss and validation error against training steps, one line per run: ``logs``
+    {run name: its ``log.csv`` (``gnwarp.train``)}; at most two runs (red, blue)."""
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
+    for (name, p), c in zip(logs.items(), ("tab:red", "tab:blue")):
+        rows = list(csv.DictReader(open(p)))
+        tr = [(int(r["step"]), float(r["loss"])) for r in rows if r.get("loss")]
+        va = [(int(r["step"]), float(r["valid_error"])) for r in rows if r.get("valid_error")]
+        if tr:
+            a.plot(*zip(*tr), color=c, label=name)
+        if va:
+            b.plot(*zip(*va), "o-", color=c, label=name)
+    a.set(yscale="log", xlabel="training step", ylabel="training loss (with input noise)")
+    b.set(yscale="log", xlabel="training step", ylabel="20-step rollout error (valid)")
+    a.legend(fontsize=8)
+    b.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path, 110)

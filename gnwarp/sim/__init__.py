@@ -1,0 +1,21 @@
+"""Simulation: the paper's systems and user MJCF files, batched simulation on MuJoCo C or
+MuJoCo-Warp, and the random excitation controls datasets are recorded under.
+
+    >>> from gnwarp import sim
+    >>> cartpole = sim.make("cartpole")
+    >>> m = cartpole.model
+    >>> u = sim.random_spline_controls(8, 100, sim.control_range(m), rng=0)     # [8, 100, nu]
+    >>> traj = sim.simulate(cartpole, np.tile(m.qpos0, (8, 1)), np.zeros((8, m.nv)), u)
+    >>> traj.body.shape                                                         # (8, 101, nbody, 13)
+
+Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``excitation``
+(random spline controls), ``simulate`` (backend choice) over ``mujoco_c`` and ``mujoco_warp``,
+``common`` (what the backends share).
+"""
+from gnwarp.sim.common import Trajectories
+from gnwarp.sim.excitation import control_range, random_spline_controls
+from gnwarp.sim.simulate import BACKENDS, resolve_backend, simulate
+from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_ranges, sample_params
+
+__all__ = ["System", "names", "make", "param_ranges", "sample_params", "from_mjcf", "describe", "simulate",
+           "Trajectories", "BACKENDS", "resolve_backend", "random_spline_controls", "control_range"]

@@ -1,0 +1,407 @@
+"""The paper's seven MuJoCo systems (supplementary section B) and user MJCF files: the registry.
+
+Every system is built with `mujoco.MjSpec` (by ``gnwarp.sim.builders``), mirroring the DeepMind
+Control Suite models (suite/pendulum.xml, cartpole.xml, acrobot.xml, swimmer.py, cheetah.xml,
+walker.xml) and the Kinova JACO of dm_control's manipulation suite (third_party/kinova, with
+capsules in place of the meshes). A `System` is a compiled `mujoco.MjModel` plus the data
+timestep at which datasets record states; the physics steps `substeps` times per data step.
+
+Parameterized variants draw relative factors uniformly in the paper's ranges (section B, last
+column). Where a size changes, geoms carry a density rather than a mass, so masses and inertias
+follow the sizes; child bodies move with the length of their parent so the chain stays connected.
+
+    >>> pendulum = make("pendulum")                       # fixed
+    >>> pendulum = make("pendulum", seed=3)               # factors sampled with default_rng(3)
+    >>> pendulum = make("pendulum", params={"length": 0.5})   # exactly these factors
+    >>> custom = from_mjcf("my_robot.xml", dt=0.02, substeps=4)
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import pathlib
+import re
+from typing import Callable
+
+import mujoco
+import numpy as np
+
+from gnwarp.sim.builders import (CHEETAH_BODIES, CHEETAH_LIMBS, JACO_ACTUATOR_NAMES, JACO_BODIES, build_acrobot,
+                                 build_cartpole, build_cheetah, build_jaco, build_pendulum, build_swimmer,
+                                 build_walker)
+
+__all__ = [
+    "System",
+    "names",
+    "make",
+    "param_ranges",
+    "sample_params",
+    "from_mjcf",
+    "describe",
+]
+
+_SWIMMER_LINKS = (3, 15)           # SwimmerN exists for these N
+_SWIMMER_SAMPLED_LINKS = (3, 9)    # the parameterized SwimmerN samples N in this range (paper B)
+
+
+@dataclasses.dataclass(eq=False)
+class System:
+    """A compiled MuJoCo model and the timesteps at which it is simulated and recorded.
+
+    Attributes:
+      name: "pendulum", "cartpole", "acrobot", "swimmer<N>", "cheetah", "walker", "jaco", or the
+        stem of a user MJCF file.
+      model: the compiled model; `model.opt.timestep == dt / substeps`.
+      dt: data timestep in seconds (the interval between recorded states).
+      substeps: physics steps per data step.
+      params: the parameter factors this instance was built with (empty for fixed systems).
+      parameterized: whether this is an instance of a parameterized variant.
+      translation_invariant: whether the dynamics do not depend on the horizontal position
+        (swimmer, cheetah, walker; paper D.4 re-centers these before prediction).
+      source: "builtin" or the path of the MJCF file.
+      spec: the `mujoco.MjSpec` the model was compiled from (to derive variants of the model,
+        e.g. with sensors added, without re-parsing).
+    """
+
+    name: str
+    model: mujoco.MjModel
+    dt: float
+    substeps: int
+    params: dict[str, float] = dataclasses.field(default_factory=dict)
+    parameterized: bool = False
+    translation_invariant: bool = False
+    source: str = "builtin"
+    spec: mujoco.MjSpec | None = dataclasses.field(default=None, repr=False)
+
+    @property
+    def nbody(self) -> int:
+        """Number of bodies, the world included (= graph nodes)."""
+        return self.model.nbody
+
+    @property
+    def nq(self) -> int:
+        return self.model.nq
+
+    @property
+    def nv(self) -> int:
+        return self.model.nv
+
+    @property
+    def nu(self) -> int:
+        return self.model.nu
+
+    @property
+    def njnt(self) -> int:
+        return self.model.njnt
+
+    @property
+    def timestep(self) -> float:
+        """Physics timestep in seconds (dt / substeps)."""
+        return float(self.model.opt.timestep)
+
+    @property
+    def contacts(self) -> bool:
+        """Whether the model computes contacts (neither contacts nor constraints disabled)."""
+        off = mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+        return not (int(self.model.opt.disableflags) & int(off))
+
+
+# ------------------------------------------------------------------------------------------------
+# The registry: builder, data timestep, physics substeps, and parameter ranges of each system.
+
+
+@dataclasses.dataclass(frozen=True)
+class _Family:
+    build: Callable[[dict[str, float], float], mujoco.MjSpec]
+    dt: float
+    substeps: int
+    translation_invariant: bool
+
+
+def _build_cheetah(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
+    # the cheetah's density and clearance are calibrated on the fixed system, whose parameters live here
+    return build_cheetah(p, timestep, _defaults("cheetah", None))
+
+
+_FAMILIES: dict[str, _Family] = {
+    "pendulum": _Family(build_pendulum, dt=0.02, substeps=1, translation_invariant=False),
+    "cartpole": _Family(build_cartpole, dt=0.01, substeps=1, translation_invariant=False),
+    "acrobot": _Family(build_acrobot, dt=0.01, substeps=1, translation_invariant=False),
+    # dm_control's swimmer steps at 2 ms.
+    "swimmer": _Family(build_swimmer, dt=0.02, substeps=10, translation_invariant=True),
+    "cheetah": _Family(_build_cheetah, dt=0.01, substeps=1, translation_invariant=True),
+    "walker": _Family(build_walker, dt=0.0025, substeps=1, translation_invariant=True),
+    # 100 ms data steps over 10 ms implicit physics steps.
+    "jaco": _Family(build_jaco, dt=0.1, substeps=10, translation_invariant=False),
+}
+_DEFAULT_SWIMMER_LINKS = 6
+
+
+def names() -> list[str]:
+    """The built-in systems. The swimmer takes its number of links as a suffix: "swimmer6"."""
+    return list(_FAMILIES)
+
+
+def _parse(name: str) -> tuple[str, int | None]:
+    """Splits a system name into its family and, for the swimmer, the number of links (or None)."""
+    if not isinstance(name, str):
+        raise ValueError(f"system name must be a string, got {name!r}")
+    key = name.strip().lower()
+    if key in _FAMILIES:
+        return key, None
+    match = re.fullmatch(r"swimmer(\d+)", key)
+    if match:
+        n = int(match.group(1))
+        lo, hi = _SWIMMER_LINKS
+        if not lo <= n <= hi:
+            raise ValueError(f"swimmer{n}: the swimmer has {lo} to {hi} links, got {n}")
+        return "swimmer", n
+    raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(names())} "
+                     f"(swimmer takes a number of links {_SWIMMER_LINKS[0]}..{_SWIMMER_LINKS[1]} "
+                     f"as a suffix, e.g. swimmer6)")
+
+
+def _ranges(family: str, n: int | None) -> list[tuple[str, str, tuple[float, float]]]:
+    """(parameter, group label, range) of every parameter of a system, in sampling order."""
+    if family == "pendulum":
+        return [("length", "length", (0.2, 1.0)), ("mass", "mass", (0.5, 3.0))]
+    if family == "cartpole":
+        return [("cart_mass", "cart_mass", (0.2, 2.0)),
+                ("pole_length", "pole_length", (0.3, 1.0)),
+                ("pole_thickness", "pole_thickness", (0.4, 2.2))]
+    if family == "swimmer":
+        # Without a suffix the number of links is a parameter; with one it is fixed.
+        links = (float(n), float(n)) if n is not None else tuple(map(float, _SWIMMER_SAMPLED_LINKS))
+        out = [("n_links", "n_links", links)]
+        for i in range(int(links[1])):
+            out.append((f"link_length_{i}", "link_length_*", (0.3, 2.0)))
+            out.append((f"link_thickness_{i}", "link_thickness_*", (0.5, 5.0)))
+        return out
+    if family == "cheetah":
+        out = [(f"base_angle_{b}", "base_angle_*", (-0.1, 0.1)) for b in CHEETAH_LIMBS]
+        out += [(f"length_{b}", "length_*", (0.5, 2.0)) for b in CHEETAH_BODIES]
+        out += [(f"thickness_{b}", "thickness_*", (0.5, 2.0)) for b in CHEETAH_BODIES]
+        return out
+    if family == "jaco":
+        return ([(f"mass_{b}", "mass_*", (0.5, 1.5)) for b in JACO_BODIES]
+                + [(f"gear_{a}", "gear_*", (0.5, 1.5)) for a in JACO_ACTUATOR_NAMES])
+    return []  # acrobot, walker: no parameterized variant in the paper
+
+
+def param_ranges(name: str) -> dict[str, tuple[float, float]]:
+    """The range of every parameter of a system ({} for acrobot and walker).
+
+    Factors are relative to the fixed system (1.0), except the cheetah's base angles (absolute,
+    radians, fixed value 0) and the swimmer's integer "n_links" ("swimmer" samples it in 3..9;
+    "swimmer<N>" fixes it to N).
+    """
+    family, n = _parse(name)
+    return {key: rng for key, _, rng in _ranges(family, n)}
+
+
+def _defaults(family: str, n: int | None) -> dict[str, float]:
+    """The parameters of the fixed system."""
+    out = {}
+    for key, _, _ in _ranges(family, n):
+        if key == "n_links":
+            out[key] = float(n if n is not None else _DEFAULT_SWIMMER_LINKS)
+        elif key.startswith("base_angle_"):
+            out[key] = 0.0
+        else:
+            out[key] = 1.0
+    if family == "swimmer":  # only the links that exist
+        links = int(out["n_links"])
+        out = {k: v for k, v in out.items()
+               if not k.startswith("link_") or int(k.rsplit("_", 1)[1]) < links}
+    return out
+
+
+def _no_variant(name: str) -> ValueError:
+    with_variant = [f for f in _FAMILIES if _ranges(f, None)]
+    return ValueError(f"{name} has no parameterized variant (the paper varies only "
+                      f"{', '.join(with_variant)}); use make({name!r}) for the fixed system")
+
+
+def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
+    """Draws every parameter uniformly in its range (the swimmer's n_links uniformly in 3..9).
+
+    Returns the full parameter dict of one instance, as stored in `System.params`.
+    """
+    family, n = _parse(name)
+    ranges = _ranges(family, n)
+    if not ranges:
+        raise _no_variant(name)
+    out: dict[str, float] = {}
+    if family == "swimmer":
+        lo, hi = (int(v) for v in ranges[0][2])
+        links = int(rng.integers(lo, hi + 1))
+        out["n_links"] = float(links)
+        lengths = rng.uniform(0.3, 2.0, size=links)
+        thicknesses = rng.uniform(0.5, 5.0, size=links)
+        for i in range(links):
+            out[f"link_length_{i}"] = float(lengths[i])
+            out[f"link_thickness_{i}"] = float(thicknesses[i])
+        return out
+    for key, _, (lo, hi) in ranges:
+        out[key] = float(rng.uniform(lo, hi))
+    return out
+
+
+def _validate(name: str, family: str, n: int | None, params: dict) -> dict[str, float]:
+    """Checks user parameters against their ranges; returns the full dict with defaults filled."""
+    ranges = param_ranges(name)
+    if not ranges:
+        raise _no_variant(name)
+    if not isinstance(params, dict):
+        raise ValueError(f"{name}: params must be a dict of parameter name -> value, "
+                         f"got {type(params).__name__}")
+    unknown = sorted(set(params) - set(ranges))
+    if unknown:
+        raise ValueError(f"{name}: unknown parameter(s) {', '.join(map(repr, unknown))}; "
+                         f"valid: {', '.join(ranges)}")
+    checked: dict[str, float] = {}
+    for key, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name}: parameter {key!r} must be a number, got {value!r}")
+        value = float(value)
+        lo, hi = ranges[key]
+        if not (math.isfinite(value) and lo <= value <= hi):
+            hint = ""
+            if key == "n_links" and n is not None:
+                hint = " (make('swimmer', ...) varies the number of links)"
+            raise ValueError(f"{name}: parameter {key!r}={value!r} is outside its range "
+                             f"[{lo}, {hi}]{hint}")
+        if key == "n_links" and value != int(value):
+            raise ValueError(f"{name}: parameter 'n_links' must be an integer, got {value!r}")
+        checked[key] = value
+    links = int(checked.get("n_links", n if n is not None else _DEFAULT_SWIMMER_LINKS))
+    full = _defaults(family, links if family == "swimmer" else n)
+    extra = sorted(k for k in checked if k not in full)
+    if extra:
+        raise ValueError(f"{name}: parameter(s) {', '.join(map(repr, extra))} name links beyond "
+                         f"the swimmer's {links} links")
+    full.update(checked)
+    return full
+
+
+def make(name: str, params: dict[str, float] | None = None, seed: int | None = None) -> System:
+    """Builds a built-in system.
+
+    Args:
+      name: one of `names()`; the swimmer as "swimmer<N>" (N = 3..15), "swimmer" means swimmer6
+        when fixed and samples N in 3..9 when parameterized.
+      params: exact parameters of a parameterized instance (see `param_ranges`); missing ones
+        take the fixed system's value.
+      seed: with params=None, samples the parameters with `np.random.default_rng(seed)`.
+
+    Returns:
+      the fixed system if neither params nor seed is given, else a parameterized instance whose
+      full parameter dict is `System.params`.
+    """
+    family, n = _parse(name)
+    fam = _FAMILIES[family]
+    if params is not None and seed is not None:
+        raise ValueError(f"{name}: give either params or seed, not both")
+    if params is None and seed is None:
+        full, parameterized = _defaults(family, n), False
+    elif params is None:
+        full, parameterized = sample_params(name, np.random.default_rng(seed)), True
+    else:
+        full, parameterized = _validate(name, family, n, params), True
+    spec = fam.build(full, fam.dt / fam.substeps)
+    system_name = f"swimmer{int(full['n_links'])}" if family == "swimmer" else family
+    return System(name=system_name, model=spec.compile(), dt=fam.dt, substeps=fam.substeps,
+                  params=full if parameterized else {}, parameterized=parameterized,
+                  translation_invariant=fam.translation_invariant, spec=spec)
+
+
+def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
+    """Loads a user MJCF file as a fixed system.
+
+    Args:
+      path: the MJCF file (includes and assets resolve relative to it).
+      dt: data timestep in seconds; default the file's timestep times `substeps`. When given, the
+        physics timestep becomes dt / substeps.
+      substeps: physics steps per data step (>= 1).
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: the file does not compile, has no joints or no actuators, or bad dt/substeps.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"MJCF file not found: {path}")
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"{path}: substeps must be a positive integer, got {substeps!r}")
+    if dt is not None and not (isinstance(dt, numbers.Real) and not isinstance(dt, bool)
+                               and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"{path}: dt must be a positive number of seconds, got {dt!r}")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        if dt is not None:
+            spec.option.timestep = float(dt) / int(substeps)
+        model = spec.compile()
+    except Exception as err:  # mujoco reports every parse and compile error as ValueError
+        raise ValueError(f"{path}: not a valid MJCF model: {err}".rstrip()) from err
+    if model.njnt == 0:
+        raise ValueError(f"{path}: the model has no joints; gnwarp needs at least one joint "
+                         "(joints are the graph's edges)")
+    if model.nu == 0:
+        raise ValueError(f"{path}: the model has no actuators; gnwarp needs at least one "
+                         "actuator (actions drive the dynamics)")
+    if dt is None:
+        dt = float(model.opt.timestep) * int(substeps)
+    return System(name=path.stem, model=model, dt=float(dt), substeps=int(substeps),
+                  source=str(path), spec=spec)
+
+
+def _actuator_type(model: mujoco.MjModel, i: int) -> str:
+    """motor, velocity, position or general, by the gain and bias of actuator i."""
+    gain, bias = model.actuator_gaintype[i], model.actuator_biastype[i]
+    dyn = model.actuator_dyntype[i]
+    fixed = mujoco.mjtGain.mjGAIN_FIXED
+    if dyn != mujoco.mjtDyn.mjDYN_NONE or gain != fixed:
+        return "general"
+    if bias == mujoco.mjtBias.mjBIAS_NONE:
+        return "motor"
+    if bias == mujoco.mjtBias.mjBIAS_AFFINE:
+        kp, kv = -model.actuator_biasprm[i, 1], -model.actuator_biasprm[i, 2]
+        g = model.actuator_gainprm[i, 0]
+        if kp == 0 and kv > 0 and math.isclose(g, kv):
+            return "velocity"
+        if kp > 0 and math.isclose(g, kp):
+            return "position"
+    return "general"
+
+
+def describe(system: System) -> dict:
+    """One row of `gnwarp systems`: sizes, actuator types, timesteps and parameter ranges.
+
+    "parameters" gives the ranges of the system's parameterized variant (per-body and per-link
+    factors collapsed into one entry each, e.g. "link_length_*"); {} where there is none.
+    """
+    model = system.model
+    types: list[str] = []
+    for i in range(model.nu):
+        kind = _actuator_type(model, i)
+        if kind not in types:
+            types.append(kind)
+    parameters: dict[str, tuple[float, float]] = {}
+    if system.source == "builtin":
+        family, _ = _parse(system.name)
+        for _, label, rng in _ranges(family, None):
+            parameters.setdefault(label, rng)
+    return {
+        "name": system.name,
+        "bodies": system.nbody,
+        "nq": system.nq,
+        "nv": system.nv,
+        "nu": system.nu,
+        "actuators": ", ".join(types),
+        "timestep": system.timestep,
+        "dt": system.dt,
+        "substeps": system.substeps,
+        "contacts": system.contacts,
+        "parameters": parameters,
+    }

@@ -1,0 +1,1 @@
+"""Warp kernels of the GN block (``gnwarp.gn``), one module per launching module."""

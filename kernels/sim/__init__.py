@@ -1,0 +1,1 @@
+"""Warp kernels of the simulation stage (``gnwarp.sim``), one module per launching module."""
