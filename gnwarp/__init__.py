@@ -26,13 +26,16 @@ def _find_kernels():
 
 _find_kernels()
 
-from gnwarp import data  # noqa: E402  (systems -> data: the stages users call by name)
-from gnwarp.sim import systems  # noqa: E402
-from gnwarp.gn import GNBlockConfig, GraphNetwork  # noqa: E402
+# the public API: the stages by name, and the handful of objects a user calls
+from gnwarp import data, eval, sim  # noqa: E402
+from gnwarp.gn import TUNABLES, GNBlockConfig, GraphNetwork, RunOptions, flatten_parameters  # noqa: E402
 from gnwarp.graphs import GraphsTuple  # noqa: E402
-from gnwarp.optim import FlatAdam, flatten_parameters  # noqa: E402
-from gnwarp.train import load_model  # noqa: E402
+from gnwarp.interop import cuda_graph  # noqa: E402
+from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
+from gnwarp.sim import systems  # noqa: E402
+# (the function ``train`` stays in ``gnwarp.train``: at the top it would hide that subpackage)
+from gnwarp.train import FlatAdam, TrainConfig, Trainer, load_model  # noqa: E402
 
-__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "FlatAdam", "flatten_parameters", "load_model", "systems",
-           "data"]
-
+__all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "RunOptions", "TUNABLES", "ForwardModel", "ModelConfig",
+           "Trainer", "TrainConfig", "load_model", "FlatAdam", "flatten_parameters", "cuda_graph", "systems",
+           "sim", "data", "eval"]

@@ -36,7 +36,7 @@ def _sizes(args):
         return args.num_sequences
     if args.num_sequences is not None:
         raise SystemExit("give either --num-sequences or --train/--valid/--test, not both")
-    from gnwarp.data.generate import PAPER_SIZES
+    from gnwarp.data.generation import PAPER_SIZES
     paper = PAPER_SIZES[args.parameterized]
     return {k: getattr(args, k) if getattr(args, k) is not None else paper[k] for k in ("train", "valid", "test")}
 
@@ -44,7 +44,7 @@ def _sizes(args):
 def _cmd_generate(args) -> int:
     from pathlib import Path
 
-    from gnwarp.data.generate import generate
+    from gnwarp.data.generation import generate
     from gnwarp.sim.systems import from_mjcf
     out = Path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
     if out.exists() and not args.overwrite:  # fail before simulating, not after
@@ -131,7 +131,7 @@ def _cmd_evaluate(args) -> int:
     from pathlib import Path
 
     from gnwarp.data.dataset import load
-    from gnwarp.eval.animate import animate
+    from gnwarp.eval.animation import animate
     from gnwarp.eval.metrics import evaluate
     from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces
     from gnwarp.files import jsonable
@@ -140,7 +140,7 @@ def _cmd_evaluate(args) -> int:
     results = {}
     for k, path in enumerate(args.checkpoints):
         name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
-        m = load_model(path, device=args.device, backend=args.backend)
+        m = load_model(path, device=args.device, **({"impl": args.impl} if args.impl else {}))
         results[name] = evaluate(m, ds, args.split, args.sequences, tuple(args.horizons),
                                  keep_predictions=bool(args.out))
     preds = {n: r.pop("predictions", None) for n, r in results.items()}
@@ -168,7 +168,7 @@ def _cmd_evaluate(args) -> int:
 def _cmd_demo(args) -> int:
     from gnwarp.demo import DemoConfig, run_demo
     over = {k: v for k, v in (("out", args.out), ("train_steps", args.steps), ("train_seconds", args.seconds),
-                              ("backend", args.backend), ("device", args.device), ("system", args.system))
+                              ("impl", args.impl), ("device", args.device), ("system", args.system))
             if v is not None}
     if args.quiet:
         over["progress"] = False
@@ -196,7 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--steps", type=int, default=100, help="data steps per sequence")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--parameterized", action="store_true", help="randomize system parameters per sequence")
-    g.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"])
+    g.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"],
+                   help="simulator (default: MuJoCo-Warp on a GPU, else MuJoCo C)")
     g.add_argument("-o", "--out", help="output file (default: <system>.h5)")
     g.add_argument("--overwrite", action="store_true")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -204,8 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train a forward model (config file plus --set overrides)",
                        description="Train a forward model. Keys are those of gnwarp.train.TrainConfig; nested "
-                                   "model keys are dotted, e.g. --set model.core=mlp --set model.gn.latent=64. "
-                                   "Resumes from <out>/last when it exists.")
+                                   "model keys are dotted, e.g. --set model.core=mlp --set model.gn.latent=64 "
+                                   "--set model.run.precision=tf32. Resumes from <out>/last when it exists.")
     t.add_argument("config", nargs="?", help="JSON or TOML training config (TrainConfig fields)")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable; values parsed as JSON when they parse)")
@@ -223,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-n", "--sequences", type=int, default=None, help="first N sequences of the split (default all)")
     e.add_argument("--horizons", type=int, nargs="+", default=[20, 100])
     e.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
-    e.add_argument("--backend", choices=["warp", "torch"], default=None, help="override the GN backend")
+    e.add_argument("--impl", choices=["warp", "torch"], default=None,
+                   help="run the GN on Warp kernels or the torch reference (default: as the checkpoint was saved)")
     e.add_argument("-o", "--out", help="also write the table, bar chart, state plot and GIF here")
     e.set_defaults(func=_cmd_evaluate)
 
@@ -232,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--steps", type=int, help="training steps per model")
     d.add_argument("--seconds", type=float, help="training time cap for the GN (the MLP gets its step count)")
     d.add_argument("--system", help="system to model (default: pendulum)")
-    d.add_argument("--backend", choices=["warp", "torch"], help="GN backend (default: warp)")
+    d.add_argument("--impl", choices=["warp", "torch"], help="GN implementation (default: warp)")
     d.add_argument("--device", help="cpu, cuda, ... (default: CUDA when present)")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=_cmd_demo)

@@ -21,7 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gnwarp.files import jsonable
-from gnwarp.models import GNCoreConfig, ModelConfig
+from gnwarp.gn.options import RunOptions
+from gnwarp.interop import resolve_device
+from gnwarp.models.config import GNCoreConfig, ModelConfig
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -53,7 +55,7 @@ class DemoConfig:
     valid_every: int = 500
     animate_rollouts: int = 3
     renderer: str = "auto"                # rollout video: "mujoco" (EGL/OSMesa), "matplotlib", or "auto"
-    backend: str = "warp"                 # GN backend: "warp" (Warp kernels) or "torch" (reference)
+    impl: str = "warp"                    # GN implementation: "warp" (Warp kernels) or "torch" (reference)
     device: str = "auto"
     seed: int = 0
     progress: bool = True
@@ -68,12 +70,12 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     import torch
 
     from gnwarp.data.dataset import load
-    from gnwarp.data.generate import generate
-    from gnwarp.eval.animate import animate
+    from gnwarp.data.generation import generate
+    from gnwarp.eval.animation import animate
     from gnwarp.eval.metrics import evaluate
     from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
-    from gnwarp.sim.simulate import resolve_backend
-    from gnwarp.train import TrainConfig, load_model, resolve_device, train
+    from gnwarp.sim.backends import resolve_backend
+    from gnwarp.train import TrainConfig, load_model, train
 
     cfg = dataclasses.replace(config or DemoConfig(), **overrides)
     t0 = time.perf_counter()
@@ -106,11 +108,10 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
                   valid_every=cfg.valid_every, valid_sequences=cfg.valid_sequences, patience=None,
                   checkpoint_every=max(cfg.train_steps, 1), device=str(device), seed=cfg.seed, resume=False,
                   progress=cfg.progress, data=[str(data_path)])
-    gn_core = dataclasses.replace(cfg.gn, backend=cfg.backend)
-    say(f"[2/4] training a GN ({cfg.backend} backend, {device}) for up to {cfg.train_steps} steps"
+    say(f"[2/4] training a GN ({cfg.impl} implementation, {device}) for up to {cfg.train_steps} steps"
         + (f" or {cfg.train_seconds:g} s" if cfg.train_seconds else ""))
     t = time.perf_counter()
-    gn_run = train(TrainConfig(out=str(out / "gn"), model=ModelConfig(core="gn", gn=gn_core),
+    gn_run = train(TrainConfig(out=str(out / "gn"), model=ModelConfig(core="gn", gn=cfg.gn, run=RunOptions(impl=cfg.impl)),
                                max_seconds=cfg.train_seconds, **common), [ds])
     timings["train_gn"] = time.perf_counter() - t
     mlp_common = {**common, "steps": gn_run["steps"]}
@@ -146,7 +147,7 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     timings["total"] = time.perf_counter() - t0
 
     summary = {
-        "system": cfg.system, "device": str(device), "gn_backend": cfg.backend, "simulator": sim_backend,
+        "system": cfg.system, "device": str(device), "gn_impl": cfg.impl, "simulator": sim_backend,
         "torch_threads": torch.get_num_threads(), "dataset": ds.meta["splits"], "num_steps": ds.meta["num_steps"],
         "gn": {k: gn_run[k] for k in ("steps", "best_step", "seconds", "steps_per_second", "stop")},
         "mlp": {k: mlp_run[k] for k in ("steps", "best_step", "seconds", "steps_per_second", "stop")},
@@ -168,7 +169,7 @@ Learned forward models of the {cfg.system} (Sanchez-Gonzalez et al., ICML 2018),
 small dataset in a few minutes: a graph network (GN) and an MLP baseline at the same number of
 training steps, both evaluated against the constant-prediction baseline.
 
-- Device: {s['device']} ({s['torch_threads']} torch threads); GN backend: {s['gn_backend']};
+- Device: {s['device']} ({s['torch_threads']} torch threads); GN implementation: {s['gn_impl']};
   simulator: {s['simulator']}.
 - Data: {sizes['train']} train / {sizes['valid']} valid / {sizes['test']} test sequences of {s['num_steps']} steps
   under random spline controls ({tm['data']:.1f} s).

@@ -13,7 +13,7 @@ from gnwarp.data.layout import FeatureLayout
 from gnwarp.interop import cuda_available
 from gnwarp.sim import systems
 from gnwarp.sim.excitation import control_range, random_spline_controls
-from gnwarp.sim.simulate import simulate
+from gnwarp.sim.backends import simulate
 from gnwarp.state import DYN_NODE_SIZE
 
 

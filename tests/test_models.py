@@ -8,6 +8,7 @@ import torch
 from gnwarp import data
 from gnwarp.data.builder import GraphTemplate
 from gnwarp.data.layout import LayoutMismatchError
+from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig, Normalizer
 from gnwarp.state import DYN_NODE_SIZE, apply_delta, quat_mul, quat_normalize, rotation_loss, state_delta
@@ -27,10 +28,9 @@ def swimmer():
     return data.generate("swimmer3", (4, 1, 1), num_steps=8, seed=1, backend="mujoco", progress=False)
 
 
-def tiny_model(ds, backend="torch", dtype=torch.float64, recenter=False, seed=0, warm=True):
+def tiny_model(ds, impl="torch", dtype=torch.float64, recenter=False, seed=0, warm=True):
     torch.manual_seed(seed)
-    m = ForwardModel(ModelConfig(gn=GNCoreConfig(**{**TINY.__dict__, "backend": backend}), recenter=recenter),
-                     ds.layout).to(dtype)
+    m = ForwardModel(ModelConfig(gn=TINY, run=RunOptions(impl=impl), recenter=recenter), ds.layout).to(dtype)
     m.bind(ds)
     if warm:  # normalizer statistics from the data, so inputs are O(1)
         sp = ds["train"]
@@ -231,9 +231,9 @@ def test_noise_makes_target_from_noisy_input(pendulum):
     assert torch.equal(seen["w"], torch.tensor([0.0, 1.0] * 4, dtype=torch.float64))
 
 
-@pytest.mark.parametrize("backend", ["torch", "warp"])
-def test_rollout_keeps_world_fixed_and_matches_steps(pendulum, backend):
-    m = tiny_model(pendulum, backend=backend, dtype=torch.float32)
+@pytest.mark.parametrize("impl", ["torch", "warp"])
+def test_rollout_keeps_world_fixed_and_matches_steps(pendulum, impl):
+    m = tiny_model(pendulum, impl=impl, dtype=torch.float32)
     sp = pendulum["test"]
     x0 = torch.as_tensor(sp.body[:, 0])
     u = torch.as_tensor(sp.ctrl[:, :5])
@@ -250,18 +250,18 @@ def test_rollout_keeps_world_fixed_and_matches_steps(pendulum, backend):
     torch.testing.assert_close(norms, torch.ones_like(norms))
 
 
-def test_warp_and_torch_backends_agree(pendulum):
-    a = tiny_model(pendulum, backend="torch", dtype=torch.float32)
-    b = tiny_model(pendulum, backend="warp", dtype=torch.float32)
+def test_warp_and_torch_implementations_agree(pendulum):
+    a = tiny_model(pendulum, impl="torch", dtype=torch.float32)
+    b = tiny_model(pendulum, impl="warp", dtype=torch.float32)
     b.load_state_dict(a.state_dict())
     sp = pendulum["test"]
     x0, u = torch.as_tensor(sp.body[:, 0]), torch.as_tensor(sp.ctrl[:, :8])
     torch.testing.assert_close(a.rollout(x0, u), b.rollout(x0, u), rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("backend", ["torch", "warp"])
-def test_rollout_gradients_match_finite_differences(pendulum, backend):
-    m = tiny_model(pendulum, backend=backend, dtype=torch.float64)
+@pytest.mark.parametrize("impl", ["torch", "warp"])
+def test_rollout_gradients_match_finite_differences(pendulum, impl):
+    m = tiny_model(pendulum, impl=impl, dtype=torch.float64)
     sp = pendulum["test"]
     x0 = torch.as_tensor(sp.body[:2, 0], dtype=torch.float64)
     u = torch.as_tensor(sp.ctrl[:2, :3], dtype=torch.float64)

@@ -10,7 +10,7 @@ wp.config.quiet = True
 
 from gnwarp import GraphNetwork  # noqa: E402
 from gnwarp.gn.flat import flat_span, has_main_grad  # noqa: E402
-from gnwarp.optim import FlatAdam  # noqa: E402
+from gnwarp.train import FlatAdam  # noqa: E402
 from test_gn_block import SMALL, cast, loss_of, make_batch  # noqa: E402
 
 

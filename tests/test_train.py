@@ -12,6 +12,7 @@ from gnwarp import data
 from gnwarp import eval as ev
 from gnwarp.data.layout import LayoutMismatchError, merge_layouts
 from gnwarp.interop import warp
+from gnwarp.gn import RunOptions
 from gnwarp.models import GNCoreConfig, ModelConfig
 from gnwarp.train import CheckpointError, TrainConfig, load_model, train
 
@@ -25,8 +26,8 @@ def pendulum():
     return data.generate("pendulum", (20, 3, 4), num_steps=20, seed=0, backend="mujoco", progress=False)
 
 
-def config(tmp_path, name="run", backend="torch", **kw):
-    base = dict(out=str(tmp_path / name), model=ModelConfig(gn=GNCoreConfig(**TINY, backend=backend)),
+def config(tmp_path, name="run", impl="torch", **kw):
+    base = dict(out=str(tmp_path / name), model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl=impl)),
                 steps=60, batch_size=32, lr=3e-3, lr_decay_steps=1000, valid_every=30, valid_sequences=3,
                 log_every=10, checkpoint_every=30, normalizer_warmup=2, progress=False, device="cpu")
     base.update(kw)
@@ -39,7 +40,7 @@ def read_log(path):
 
 
 def test_training_reduces_the_loss(tmp_path, pendulum):
-    r = train(config(tmp_path, backend="warp", steps=150, valid_every=50), [pendulum])
+    r = train(config(tmp_path, impl="warp", steps=150, valid_every=50), [pendulum])
     rows = [x for x in read_log(tmp_path / "run" / "log.csv") if x["loss"]]
     first, last = float(rows[0]["loss"]), np.mean([float(x["loss"]) for x in rows[-3:]])
     assert last < 0.5 * first, (first, last)
@@ -48,7 +49,7 @@ def test_training_reduces_the_loss(tmp_path, pendulum):
     assert len(valid) == 3 and r["best_error"] == min(valid)
     assert (tmp_path / "run" / "best" / "model.pt").is_file()
     m = load_model(r["best"])
-    assert m.config.gn.backend == "warp" and m.config.recenter is False  # pendulum: no re-centring (D.4)
+    assert m.options.impl == "warp" and m.config.recenter is False  # pendulum: no re-centring (D.4)
 
 
 def test_checkpoint_round_trip_gives_identical_predictions(tmp_path, pendulum):
@@ -114,11 +115,93 @@ def test_corrupt_checkpoints_give_clear_errors(tmp_path, pendulum):
     cfg["model"]["gn"]["latent"] = 9
     (bad / "config.json").write_text(json.dumps(cfg))
     man = json.loads((bad / "manifest.json").read_text())
-    man["config.json"] = gnwarp.train._sha256(bad / "config.json")
+    man["config.json"] = gnwarp.files.sha256_file(bad / "config.json")
     (bad / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(CheckpointError, match="cannot load the weights"):
         load_model(bad)
     assert not any(p.name.startswith(".") for p in (tmp_path / "run").iterdir())  # no temporary folders left
+
+
+def _rewrite_config(folder, edit):
+    """Edit a checkpoint's config.json and re-sign it in the manifest."""
+    cfg = json.loads((folder / "config.json").read_text())
+    edit(cfg)
+    (folder / "config.json").write_text(json.dumps(cfg))
+    man = json.loads((folder / "manifest.json").read_text())
+    man["config.json"] = gnwarp.files.sha256_file(folder / "config.json")
+    (folder / "manifest.json").write_text(json.dumps(man))
+
+
+def test_load_model_overrides_run_options_not_weights(tmp_path, pendulum):
+    """``load_model(path, impl=..., precision=...)`` changes how the model runs, not its weights:
+    the Warp implementation in float64 ("fp64") predicts what the saved torch fp32 model does, and
+    ``set_options`` goes back to float32 with the same weights bit for bit."""
+    r = train(config(tmp_path, steps=20, valid_every=20), [pendulum])
+    a = load_model(r["last"], device="cpu")
+    b = load_model(r["last"], device="cpu", impl="warp", precision="fp64")
+    assert (a.options.impl, a.options.precision, a.dtype) == ("torch", "fp32", torch.float32)
+    assert (b.options.impl, b.options.precision, b.dtype) == ("warp", "fp64", torch.float64)
+    for (k, p), q in zip(a.named_parameters(), b.parameters()):
+        assert torch.equal(p.double(), q), k
+    sp = pendulum["test"]
+    x0, u = torch.as_tensor(sp.body[:, 0]), torch.as_tensor(sp.ctrl[:, :10])
+    pa, pb = a.bind(pendulum).rollout(x0, u), b.bind(pendulum).rollout(x0, u)
+    assert pb.dtype == torch.float64 and (pa.double() - pb).abs().max() < 1e-4
+    b.set_options(precision="fp32", impl="torch")
+    assert b.dtype == torch.float32 and all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
+    with pytest.raises(TypeError, match="unknown run options"):
+        load_model(r["last"], device="cpu", precison="tf32")
+    with pytest.raises(ValueError, match="precision"):
+        load_model(r["last"], device="cpu", precision="fp8")
+
+
+def test_checkpoints_of_earlier_versions_load(tmp_path, pendulum):
+    """Configs written before run options had their own home (``model.gn.backend`` / ``path`` /
+    ``precision``, ``path="split"``, ``train.dtype``) load with the same meaning."""
+    r = train(config(tmp_path, steps=10, valid_every=10), [pendulum])
+    old = tmp_path / "old"
+    import shutil
+    shutil.copytree(r["last"], old)
+
+    def to_old(cfg):
+        run = cfg["model"].pop("run")
+        cfg["model"]["gn"].update(backend=run["impl"], path="split", precision="tf32", deterministic=True)
+        cfg["train"]["dtype"] = "float32"
+    _rewrite_config(old, to_old)
+    m = load_model(old, device="cpu")
+    assert (m.options.impl, m.options.path, m.options.precision, m.options.deterministic) == (
+        "torch", "blas", "tf32", True)
+    cfg = TrainConfig.from_dict({**json.loads((old / "config.json").read_text())["train"], "dtype": "float64"})
+    assert cfg.model.run.precision == "fp64" and cfg.model.run.impl == "torch"
+    with pytest.raises(ValueError, match="dtype"):
+        TrainConfig.from_dict({"dtype": "float16"})
+
+
+def test_trainer_seams(tmp_path, pendulum):
+    """The Trainer's seams: a subclass replaces where batches come from, callbacks see every log
+    row, validation and checkpoint, and ``step`` alone runs one optimization step."""
+    events = []
+
+    class Counting(gnwarp.Trainer):
+        batches = 0
+
+        def sample(self):
+            Counting.batches += 1
+            return super().sample()
+    t = Counting(config(tmp_path, steps=20, valid_every=10, log_every=10, checkpoint_every=20, normalizer_warmup=2),
+                 [pendulum], callbacks=[lambda tr, event, info: events.append((event, info))])
+    p0 = [p.detach().clone() for p in t.model.parameters()]
+    r = t.run()
+    assert Counting.batches == 20 + 2  # the steps and the normalizer warm-up
+    kinds = [e for e, _ in events]
+    assert kinds.count("log") == 2 and kinds.count("validate") == 2 and kinds[-1] == "end"
+    assert [i["name"] for e, i in events if e == "checkpoint"][-1] == "last"
+    assert [i["row"]["step"] for e, i in events if e == "log"] == [10, 20]
+    assert next(i for e, i in events if e == "validate")["error"] == float(read_log(tmp_path / "run" / "log.csv")[0]
+                                                                          ["valid_error"])
+    assert r["steps"] == 20 and not all(torch.equal(a, b) for a, b in zip(p0, t.model.parameters()))
+    terms = t.step()  # one more step, outside the loop
+    assert set(terms) == {"loss", "pos", "quat", "linvel", "angvel"} and terms["loss"].requires_grad
 
 
 def test_mismatched_dataset_gives_a_clear_error(tmp_path, pendulum):
@@ -207,9 +290,9 @@ def test_cli_train_and_evaluate(tmp_path, pendulum, capsys):
         'node_hidden = [16]\nglobal_hidden = [16]\n')
     out = tmp_path / "cli"
     assert main(["train", str(tmp_path / "cfg.toml"), "--data", str(path), "--out", str(out),
-                 "--set", "model.gn.backend=torch", "--set", "lr=0.002"]) == 0
+                 "--set", "model.run.impl=torch", "--set", "lr=0.002"]) == 0
     saved = json.loads((out / "best" / "config.json").read_text())
-    assert saved["train"]["lr"] == 0.002 and saved["model"]["gn"]["backend"] == "torch"
+    assert saved["train"]["lr"] == 0.002 and saved["model"]["run"]["impl"] == "torch"
     assert main(["evaluate", str(out / "best"), "--data", str(path), "--horizons", "5", "10",
                  "--out", str(tmp_path / "ev")]) == 0
     assert "| cli |" in capsys.readouterr().out
@@ -233,22 +316,22 @@ def test_demo_end_to_end_tiny(tmp_path):
     assert "| GN |" in (tmp_path / "demo" / "report.md").read_text()
 
 
-@pytest.mark.parametrize("backend", ["warp", "torch"])
-def test_flat_adam_trains_like_torch_adam(tmp_path, pendulum, backend):
-    """optimizer="flat_adam" (Warp kernels; gradients through main_grad on the Warp backend,
+@pytest.mark.parametrize("impl", ["warp", "torch"])
+def test_flat_adam_trains_like_torch_adam(tmp_path, pendulum, impl):
+    """optimizer="flat_adam" (Warp kernels; gradients through main_grad on the Warp implementation,
     through p.grad on the torch one) ends where torch's Adam + clip_grad_norm_ does."""
-    kw = dict(backend=backend, steps=20, valid_every=20, checkpoint_every=20, grad_clip=0.5)
+    kw = dict(impl=impl, steps=20, valid_every=20, checkpoint_every=20, grad_clip=0.5)
     a = train(config(tmp_path, "adam", **kw), [pendulum])
     b = train(config(tmp_path, "flat", optimizer="flat_adam", **kw), [pendulum])
     ma, mb = load_model(a["last"], device="cpu"), load_model(b["last"], device="cpu")
     for (k, v), w in zip(ma.state_dict().items(), mb.state_dict().values()):
         torch.testing.assert_close(v, w, rtol=2e-4, atol=2e-5, msg=k)
     # not vacuous: training moved the parameters away from their (seeded) start
-    assert any(not torch.allclose(p, q) for p, q in zip(mb.parameters(), _fresh_params(tmp_path, pendulum, backend)))
+    assert any(not torch.allclose(p, q) for p, q in zip(mb.parameters(), _fresh_params(tmp_path, pendulum, impl)))
     with pytest.raises(CheckpointError, match="optimizer state does not fit"):
         train(config(tmp_path, "flat", optimizer="adam", **{**kw, "steps": 30}), [pendulum])
 
 
-def _fresh_params(tmp_path, pendulum, backend):
-    r = train(config(tmp_path, "zero", backend=backend, steps=0, valid_every=20), [pendulum])
+def _fresh_params(tmp_path, pendulum, impl):
+    r = train(config(tmp_path, "zero", impl=impl, steps=0, valid_every=20), [pendulum])
     return list(load_model(r["last"], device="cpu").parameters())

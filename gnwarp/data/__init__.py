@@ -12,7 +12,7 @@ Modules: ``convert`` (MjModel -> static graph), ``layout`` (which static columns
 from gnwarp.data.builder import GraphBuilder, GraphTemplate, graph_builder
 from gnwarp.data.convert import static_arrays, static_graph
 from gnwarp.data.dataset import FORMAT, SPLITS, VERSION, Dataset, DatasetError, Split, load
-from gnwarp.data.generate import PAPER_SIZES, generate, initial_states, split_sizes
+from gnwarp.data.generation import PAPER_SIZES, generate, initial_states, split_sizes
 from gnwarp.data.layout import FeatureLayout, LayoutMismatchError, map_static, merge_layouts, varying_columns
 
 __all__ = ["generate", "initial_states", "split_sizes", "PAPER_SIZES", "load", "Dataset", "Split", "DatasetError",

@@ -8,7 +8,7 @@ animations of true vs predicted motion.
 Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animate`` (GIFs), ``render``
 (MuJoCo's offscreen renderer in a child process).
 """
-from gnwarp.eval.animate import animate
+from gnwarp.eval.animation import animate
 from gnwarp.eval.metrics import (evaluate, movable_mask, normalized_errors, one_step_predictions, rollout_error,
                                  rollout_predictions, squared_errors)
 from gnwarp.eval.render import RenderUnavailable, render_rollouts

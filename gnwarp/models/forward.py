@@ -11,18 +11,13 @@ One model, two cores::
     world body (node 0 of each graph) kept fixed; re-centred in x, y for translation-invariant
     single-system models (D.4).
 
-A node's 13 dynamic features and their change use the layout of ``gnwarp.state``: position (0:3),
-orientation w, x, y, z (3:7), linear (7:10) and angular (10:13) velocity in the world frame. The
-change of orientation is the rotation ``dq`` with ``q_next = dq (x) q`` (Hamilton product, world
-frame), sign-fixed so that ``dq.w >= 0``.
-
-Everything below works on *flat* nodes ([sum(n_node), 13]) so batches may mix graphs of any size;
-``rollout`` maps [N, B, 13] body states to and from them with a ``GraphTemplate`` built once.
+A node's 13 dynamic features and their change: ``gnwarp.state`` (``state_delta``,
+``apply_delta``). Everything below works on *flat* nodes ([sum(n_node), 13]) so batches may mix
+graphs of any size; ``rollout`` maps [N, B, 13] body states to and from them with a
+``GraphTemplate`` built once.
 """
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import torch
@@ -30,142 +25,15 @@ import torch.nn as nn
 
 from gnwarp.data.builder import GraphTemplate, graph_builder
 from gnwarp.data.layout import FeatureLayout
-from gnwarp.gn import MLP, EdgeBlockConfig, GlobalBlockConfig, GNBlockConfig, GraphNetwork, NodeBlockConfig
-from gnwarp.graphs import GraphsTuple
+from gnwarp.gn.options import RunOptions
+from gnwarp.graphs import GraphsTuple, graph_of
+from gnwarp.models.config import MLPCoreConfig, ModelConfig
+from gnwarp.models.cores import GNCore, MLPCore
+from gnwarp.models.normalizer import Normalizer
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
                           state_delta)
 
-__all__ = [
-    "Normalizer", "GNCoreConfig", "MLPCoreConfig", "ModelConfig", "MLP_SIZES", "GNCore", "MLPCore",
-    "ForwardModel", "MLPForwardModel",
-]
-
-
-# -- normalization (D.3, D.7.1) ---------------------------------------------------------------
-
-class Normalizer(nn.Module):
-    """Online mean/std per feature, shared by every row (every node, edge or graph) (D.3).
-
-    Accumulates count, sum and squared sum (float64 buffers, so they travel in the state dict and
-    keep float64 when the model is cast). ``std = max(sqrt(var), std_floor)``; before any data the
-    transform is the identity. No host synchronization anywhere.
-    """
-
-    def __init__(self, size: int, std_floor: float = 1e-4):
-        super().__init__()
-        self.size = int(size)
-        self.std_floor = float(std_floor)
-        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("sum", torch.zeros(self.size, dtype=torch.float64))
-        self.register_buffer("sumsq", torch.zeros(self.size, dtype=torch.float64))
-
-    def _apply(self, fn, recurse=True):
-        saved = {k: self._buffers[k] for k in ("count", "sum", "sumsq")}
-        super()._apply(fn, recurse)
-        for k, old in saved.items():  # keep the accumulators in float64 whatever the model's dtype
-            if self._buffers[k].dtype != torch.float64:
-                self._buffers[k] = old.to(self._buffers[k].device)
-        return self
-
-    @torch.no_grad()
-    def accumulate(self, x: torch.Tensor, weight: torch.Tensor | None = None) -> None:
-        """Add rows of x [n, size]; ``weight`` [n] (0/1) leaves rows out."""
-        x = x.detach().to(torch.float64).reshape(-1, self.size)
-        if weight is None:
-            self.count += x.shape[0]
-            self.sum += x.sum(0)
-            self.sumsq += (x * x).sum(0)
-        else:
-            w = weight.detach().to(torch.float64).reshape(-1, 1)
-            self.count += w.sum()
-            self.sum += (x * w).sum(0)
-            self.sumsq += (x * x * w).sum(0)
-
-    def reset(self) -> None:
-        for b in (self.count, self.sum, self.sumsq):
-            b.zero_()
-
-    def mean_std(self, dtype: torch.dtype | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean [size], std [size]) in ``dtype``."""
-        n = self.count.clamp_min(1.0)
-        mean = self.sum / n
-        var = (self.sumsq / n - mean * mean).clamp_min(0.0)
-        std = var.sqrt().clamp_min(self.std_floor)
-        seen = self.count > 0
-        mean = torch.where(seen, mean, torch.zeros_like(mean))
-        std = torch.where(seen, std, torch.ones_like(std))
-        dtype = dtype or torch.get_default_dtype()
-        return mean.to(dtype), std.to(dtype)
-
-    def extra_repr(self) -> str:
-        return f"size={self.size}, std_floor={self.std_floor:g}"
-
-
-# -- configs ------------------------------------------------------------------------------------
-
-@dataclass
-class GNCoreConfig:
-    """The two-block GN core (D.2). Defaults are the paper's standard sizes: edge MLP 3x512, node
-    and global MLPs 2x256, updated edge/node/global size 128."""
-    latent: int = 128
-    edge_hidden: tuple[int, ...] = (512, 512, 512)
-    node_hidden: tuple[int, ...] = (256, 256)
-    global_hidden: tuple[int, ...] = (256, 256)
-    backend: str = "warp"          # GraphNetwork backend: "warp" or "torch" (the reference)
-    path: str = "auto"             # Warp path: "auto", "split" or "tile"
-    precision: str = "fp32"
-    deterministic: bool = False
-
-    def __post_init__(self):
-        for k in ("edge_hidden", "node_hidden", "global_hidden"):
-            setattr(self, k, tuple(int(h) for h in getattr(self, k)))
-
-
-# Section E: the five MLP baselines, "<layers>x<width>".
-MLP_SIZES = ("3x128", "3x512", "9x128", "9x512", "5x256")
-
-
-@dataclass
-class MLPCoreConfig:
-    """MLP baseline core (E): ``layers`` hidden layers of ``width`` on the flattened graph of a
-    fixed topology (``n_node`` bodies, ``n_edge`` edges; set from the training data)."""
-    layers: int = 5
-    width: int = 256
-    n_node: int = 0
-    n_edge: int = 0
-
-    @classmethod
-    def preset(cls, size: str, n_node: int = 0, n_edge: int = 0) -> "MLPCoreConfig":
-        if size not in MLP_SIZES:
-            raise ValueError(f"unknown MLP size {size!r}; the paper's are {MLP_SIZES}")
-        layers, width = (int(s) for s in size.split("x"))
-        return cls(layers, width, n_node, n_edge)
-
-
-@dataclass
-class ModelConfig:
-    """What a forward model is made of; saved as JSON in checkpoints."""
-    core: str = "gn"                                   # "gn" (D.2) or "mlp" (E)
-    gn: GNCoreConfig = field(default_factory=GNCoreConfig)
-    mlp: MLPCoreConfig = field(default_factory=MLPCoreConfig)
-    recenter: bool | None = None  # D.4: re-centre x, y before prediction; None: decided by training
-                                  # (True for a single translation-invariant system), False when used as is
-    std_floor: float = 1e-4    # normalizers' smallest standard deviation
-
-    def __post_init__(self):
-        if isinstance(self.gn, dict):
-            self.gn = GNCoreConfig(**self.gn)
-        if isinstance(self.mlp, dict):
-            self.mlp = MLPCoreConfig(**self.mlp)
-        if self.core not in ("gn", "mlp"):
-            raise ValueError(f"ModelConfig.core must be 'gn' or 'mlp', got {self.core!r}")
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
-        return cls(**d)
+__all__ = ["input_sizes", "StepContext", "ForwardModel", "MLPForwardModel"]
 
 
 def input_sizes(layout: FeatureLayout) -> dict[str, int]:
@@ -175,81 +43,6 @@ def input_sizes(layout: FeatureLayout) -> dict[str, int]:
                          "GraphBuilder does not put them on the globals, so models cannot use this data")
     return dict(layout.sizes)
 
-
-# -- cores --------------------------------------------------------------------------------------
-
-class GNCore(nn.Module):
-    """GN1 on the normalized input graph; GN2 on [input, GN1 output] (graph skip), with GN2's
-    global update switched off since only its nodes are read: the normalized change of each
-    body's dynamic state (D.1, D.2). Both are ``gnwarp.gn.GraphNetwork`` blocks."""
-
-    def __init__(self, config: GNCoreConfig, sizes: dict[str, int]):
-        super().__init__()
-        fv, fe, fg = sizes["nodes"], sizes["edges"], sizes["globals"]
-        L = config.latent
-        hidden = dict(edge_hidden=config.edge_hidden, node_hidden=config.node_hidden,
-                      global_hidden=config.global_hidden)
-        # A graph without global features (a fixed system: no static global varies) gives GN1 no
-        # global input at all; GN1 still makes globals from its nodes and edges for GN2.
-        g = fg > 0
-        gn1 = GNBlockConfig(fv, fe, fg, node_out=L, edge_out=L, global_out=L, **hidden,
-                            edge_block=EdgeBlockConfig(use_globals=g), node_block=NodeBlockConfig(use_globals=g),
-                            global_block=GlobalBlockConfig(use_globals=g))
-        gn2 = GNBlockConfig(fv + L, fe + L, fg + L, node_out=DYN_NODE_SIZE, edge_out=L, global_out=L, **hidden,
-                            update_globals=False)
-        opts = dict(impl=config.backend, path={"split": "blas"}.get(config.path, config.path), precision=config.precision,
-                    deterministic=config.deterministic, check_inputs=False)  # graphs come from GraphBuilder
-        self.gn1 = GraphNetwork(gn1, **opts)
-        self.gn2 = GraphNetwork(gn2, **opts)
-
-    @property
-    def backend(self) -> str:
-        return self.gn1.impl
-
-    @backend.setter
-    def backend(self, value: str) -> None:
-        self.gn1.impl = self.gn2.impl = value
-
-    def graph_index(self, graph: GraphsTuple):
-        """Index of ``graph``'s topology, shared by both blocks (None for the torch backend)."""
-        return self.gn1.graph_index(graph) if self.backend == "warp" else None
-
-    def forward(self, graph: GraphsTuple, index=None) -> torch.Tensor:
-        """Normalized input graph -> [sum(n_node), 13] normalized state changes."""
-        g1 = self.gn1(graph, index)
-        skip = graph._replace(nodes=torch.cat([graph.nodes, g1.nodes], -1),
-                              edges=torch.cat([graph.edges, g1.edges], -1),
-                              globals=torch.cat([graph.globals, g1.globals], -1))
-        return self.gn2(skip, index).nodes
-
-
-class MLPCore(nn.Module):
-    """Section E: the GN core replaced by an MLP on the flattened graph [globals, all nodes, all
-    edges] -> all nodes' normalized changes. Fixed topology: every graph has n_node nodes and
-    n_edge edges in the order of the training data."""
-
-    def __init__(self, config: MLPCoreConfig, sizes: dict[str, int]):
-        super().__init__()
-        if config.n_node <= 0 or config.n_edge < 0:
-            raise ValueError("MLPCoreConfig needs the fixed topology (n_node, n_edge) of its data")
-        self.n_node, self.n_edge = config.n_node, config.n_edge
-        n_in = sizes["globals"] + self.n_node * sizes["nodes"] + self.n_edge * sizes["edges"]
-        self.mlp = MLP(n_in, [config.width] * config.layers, self.n_node * DYN_NODE_SIZE)
-
-    def graph_index(self, graph: GraphsTuple):
-        return None
-
-    def forward(self, graph: GraphsTuple, index=None) -> torch.Tensor:
-        n = graph.n_node.shape[0]
-        if graph.nodes.shape[0] != n * self.n_node or graph.edges.shape[0] != n * self.n_edge:
-            raise ValueError(f"the MLP baseline has a fixed topology of {self.n_node} nodes and {self.n_edge} "
-                             f"edges per graph; got {graph.nodes.shape[0]} nodes and {graph.edges.shape[0]} "
-                             f"edges for {n} graphs")
-        x = torch.cat([graph.globals.reshape(n, -1), graph.nodes.reshape(n, -1), graph.edges.reshape(n, -1)], -1)
-        return self.mlp(x).reshape(n * self.n_node, DYN_NODE_SIZE)
-
-
-# -- the model ------------------------------------------------------------------------------------
 
 class StepContext(NamedTuple):
     """Per-topology bookkeeping of a batch of graphs, computed once and reused every step."""
@@ -264,8 +57,11 @@ class ForwardModel(nn.Module):
     """One-step forward model (Algorithm D.1): ``x_{t+1} = M(static graph, x_t, a_t)``.
 
     Args:
-        config: ``ModelConfig`` (core "gn" or "mlp", sizes, backend, re-centring).
+        config: ``ModelConfig`` (core "gn" or "mlp", sizes, run options, re-centring).
         layout: the ``FeatureLayout`` of its input graphs (from the training dataset).
+
+    The model is built in the dtype its run options ask for (float64 for precision "fp64", else
+    float32); ``set_options`` changes how it runs without touching the weights.
 
     Main methods (shapes: N graphs, B bodies, T steps, U controls):
         ``bind(source)``: use the static graphs of a Dataset or System for ``rollout``.
@@ -284,8 +80,27 @@ class ForwardModel(nn.Module):
         self.norm_nodes = Normalizer(sizes["nodes"], f)
         self.norm_edges = Normalizer(sizes["edges"], f)
         self.norm_delta = Normalizer(DYN_NODE_SIZE, f)
-        self.core = GNCore(config.gn, sizes) if config.core == "gn" else MLPCore(config.mlp, sizes)
+        core = GNCore(config.gn, sizes, config.run) if config.core == "gn" else MLPCore(config.mlp, sizes, config.run)
+        self.core = core.to(config.run.param_dtype)
         self.builder = None
+
+    # -- how it runs ------------------------------------------------------------------------
+    @property
+    def options(self) -> RunOptions:
+        """How the model runs (``config.run``): implementation, path, precision, ..."""
+        return self.config.run
+
+    def set_options(self, options: RunOptions | None = None, **changes) -> "ForwardModel":
+        """Run with ``options`` (or the current ones with ``changes``, e.g. ``precision="tf32"``);
+        the weights stay as they are, cast to float64 when "fp64" comes and to float32 when it
+        goes (bind again then). Returns self."""
+        old = self.config.run
+        opts = (options if options is not None else old).replace(**changes)
+        self.config.run = opts
+        self.core.set_options(opts)
+        if (opts.precision == "fp64") != (old.precision == "fp64"):
+            self.to(opts.param_dtype)
+        return self
 
     # -- data -------------------------------------------------------------------------------
     @property
@@ -322,7 +137,7 @@ class ForwardModel(nn.Module):
         n_nodes = graph.nodes.shape[0]
         n_graph = graph.n_node.shape[0]
         n_node = graph.n_node.long()
-        node_graph = torch.repeat_interleave(torch.arange(n_graph, device=n_node.device), n_node, output_size=n_nodes)
+        node_graph = graph_of(n_node, n_nodes)
         first = torch.cumsum(n_node, 0) - n_node
         movable = torch.arange(n_nodes, device=n_node.device) != first[node_graph]
         return StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), self.stats(graph.nodes.dtype))

@@ -15,7 +15,7 @@ from gnwarp.data.convert import static_arrays
 from gnwarp.data.dataset import SPLITS, Dataset, Split
 from gnwarp.sim.common import topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
-from gnwarp.sim.simulate import resolve_backend, simulate
+from gnwarp.sim.backends import resolve_backend, simulate
 from gnwarp.sim.systems import make
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 

@@ -1,0 +1,104 @@
+"""The cores of a forward model: normalized input graph -> normalized change of each body's state.
+
+``GNCore`` is the paper's (D.1, D.2): two ``GraphNetwork`` blocks with a graph skip. ``MLPCore``
+is the baseline of section E: an MLP on the flattened graph of a fixed topology.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from gnwarp.gn.config import EdgeBlockConfig, GlobalBlockConfig, GNBlockConfig, NodeBlockConfig
+from gnwarp.gn.index import GraphIndex
+from gnwarp.gn.module import GraphNetwork
+from gnwarp.gn.options import RunOptions
+from gnwarp.gn.reference import MLP
+from gnwarp.graphs import GraphsTuple
+from gnwarp.models.config import GNCoreConfig, MLPCoreConfig
+from gnwarp.state import DYN_NODE_SIZE
+
+__all__ = ["GNCore", "MLPCore"]
+
+
+class GNCore(nn.Module):
+    """GN1 on the normalized input graph; GN2 on [input, GN1 output] (graph skip), with GN2's
+    global update switched off since only its nodes are read: the normalized change of each
+    body's dynamic state (D.1, D.2).
+
+    ``sizes``: input widths {"nodes", "edges", "globals"}; ``options``: how both blocks run (their
+    input checks are off: a model's graphs come from its ``GraphBuilder``)."""
+
+    def __init__(self, config: GNCoreConfig, sizes: dict[str, int], options: RunOptions | None = None):
+        super().__init__()
+        fv, fe, fg = sizes["nodes"], sizes["edges"], sizes["globals"]
+        L = config.latent
+        hidden = dict(edge_hidden=config.edge_hidden, node_hidden=config.node_hidden,
+                      global_hidden=config.global_hidden)
+        # A graph without global features (a fixed system: no static global varies) gives GN1 no
+        # global input at all; GN1 still makes globals from its nodes and edges for GN2.
+        g = fg > 0
+        gn1 = GNBlockConfig(fv, fe, fg, node_out=L, edge_out=L, global_out=L, **hidden,
+                            edge_block=EdgeBlockConfig(use_globals=g), node_block=NodeBlockConfig(use_globals=g),
+                            global_block=GlobalBlockConfig(use_globals=g))
+        gn2 = GNBlockConfig(fv + L, fe + L, fg + L, node_out=DYN_NODE_SIZE, edge_out=L, global_out=L, **hidden,
+                            update_globals=False)
+        self.gn1 = GraphNetwork(gn1)
+        self.gn2 = GraphNetwork(gn2)
+        self.set_options(options or RunOptions())
+
+    @property
+    def options(self) -> RunOptions:
+        return self.gn1.options
+
+    def set_options(self, options: RunOptions) -> None:
+        """Run both blocks with ``options`` (their input checks off)."""
+        self.gn1.options = self.gn2.options = options.replace(check_inputs=False)
+
+    def graph_index(self, graph: GraphsTuple) -> GraphIndex | None:
+        """Index of ``graph``'s topology, shared by both blocks (None for the torch implementation)."""
+        return self.gn1.graph_index(graph) if self.options.impl == "warp" else None
+
+    def forward(self, graph: GraphsTuple, index: GraphIndex | None = None) -> torch.Tensor:
+        """Normalized input graph -> [sum(n_node), 13] normalized state changes."""
+        g1 = self.gn1(graph, index)
+        skip = graph._replace(nodes=torch.cat([graph.nodes, g1.nodes], -1),
+                              edges=torch.cat([graph.edges, g1.edges], -1),
+                              globals=torch.cat([graph.globals, g1.globals], -1))
+        return self.gn2(skip, index).nodes
+
+
+class MLPCore(nn.Module):
+    """Section E: the GN core replaced by an MLP on the flattened graph [globals, all nodes, all
+    edges] -> all nodes' normalized changes. Fixed topology: every graph has n_node nodes and
+    n_edge edges in the order of the training data. ``options.precision`` applies to its GEMMs
+    (torch's: tf32, or autocast for fp16 / bf16)."""
+
+    def __init__(self, config: MLPCoreConfig, sizes: dict[str, int], options: RunOptions | None = None):
+        super().__init__()
+        if config.n_node <= 0 or config.n_edge < 0:
+            raise ValueError("MLPCoreConfig needs the fixed topology (n_node, n_edge) of its data")
+        self.n_node, self.n_edge = config.n_node, config.n_edge
+        n_in = sizes["globals"] + self.n_node * sizes["nodes"] + self.n_edge * sizes["edges"]
+        self.mlp = MLP(n_in, [config.width] * config.layers, self.n_node * DYN_NODE_SIZE)
+        self.options = options or RunOptions()
+
+    def set_options(self, options: RunOptions) -> None:
+        self.options = options
+
+    def graph_index(self, graph: GraphsTuple) -> None:
+        return None
+
+    def forward(self, graph: GraphsTuple, index=None) -> torch.Tensor:
+        n = graph.n_node.shape[0]
+        if graph.nodes.shape[0] != n * self.n_node or graph.edges.shape[0] != n * self.n_edge:
+            raise ValueError(f"the MLP baseline has a fixed topology of {self.n_node} nodes and {self.n_edge} "
+                             f"edges per graph; got {graph.nodes.shape[0]} nodes and {graph.edges.shape[0]} "
+                             f"edges for {n} graphs")
+        x = torch.cat([graph.globals.reshape(n, -1), graph.nodes.reshape(n, -1), graph.edges.reshape(n, -1)], -1)
+        run = self.options.resolve(x.dtype)
+        if run.autocast is not None:
+            with torch.autocast(x.device.type, dtype=run.autocast):
+                y = self.mlp(x)
+            return y.to(x.dtype).reshape(n * self.n_node, DYN_NODE_SIZE)
+        with run.matmul():
+            return self.mlp(x).reshape(n * self.n_node, DYN_NODE_SIZE)

@@ -1,0 +1,65 @@
+"""Online input / output normalization of a forward model (paper, D.3, D.7.1)."""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+__all__ = ["Normalizer"]
+
+
+class Normalizer(nn.Module):
+    """Online mean/std per feature, shared by every row (every node, edge or graph) (D.3).
+
+    Accumulates count, sum and squared sum (float64 buffers, so they travel in the state dict and
+    keep float64 when the model is cast). ``std = max(sqrt(var), std_floor)``; before any data the
+    transform is the identity. No host synchronization anywhere.
+    """
+
+    def __init__(self, size: int, std_floor: float = 1e-4):
+        super().__init__()
+        self.size = int(size)
+        self.std_floor = float(std_floor)
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("sum", torch.zeros(self.size, dtype=torch.float64))
+        self.register_buffer("sumsq", torch.zeros(self.size, dtype=torch.float64))
+
+    def _apply(self, fn, recurse=True):
+        saved = {k: self._buffers[k] for k in ("count", "sum", "sumsq")}
+        super()._apply(fn, recurse)
+        for k, old in saved.items():  # keep the accumulators in float64 whatever the model's dtype
+            if self._buffers[k].dtype != torch.float64:
+                self._buffers[k] = old.to(self._buffers[k].device)
+        return self
+
+    @torch.no_grad()
+    def accumulate(self, x: torch.Tensor, weight: torch.Tensor | None = None) -> None:
+        """Add rows of x [n, size]; ``weight`` [n] (0/1) leaves rows out."""
+        x = x.detach().to(torch.float64).reshape(-1, self.size)
+        if weight is None:
+            self.count += x.shape[0]
+            self.sum += x.sum(0)
+            self.sumsq += (x * x).sum(0)
+        else:
+            w = weight.detach().to(torch.float64).reshape(-1, 1)
+            self.count += w.sum()
+            self.sum += (x * w).sum(0)
+            self.sumsq += (x * x * w).sum(0)
+
+    def reset(self) -> None:
+        for b in (self.count, self.sum, self.sumsq):
+            b.zero_()
+
+    def mean_std(self, dtype: torch.dtype | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean [size], std [size]) in ``dtype``."""
+        n = self.count.clamp_min(1.0)
+        mean = self.sum / n
+        var = (self.sumsq / n - mean * mean).clamp_min(0.0)
+        std = var.sqrt().clamp_min(self.std_floor)
+        seen = self.count > 0
+        mean = torch.where(seen, mean, torch.zeros_like(mean))
+        std = torch.where(seen, std, torch.ones_like(std))
+        dtype = dtype or torch.get_default_dtype()
+        return mean.to(dtype), std.to(dtype)
+
+    def extra_repr(self) -> str:
+        return f"size={self.size}, std_floor={self.std_floor:g}"

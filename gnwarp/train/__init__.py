@@ -1,0 +1,10 @@
+"""Training of forward models (D.7, D.8): ``Trainer`` / ``train``, ``TrainConfig``, the checkpoint
+format (``save_checkpoint``, ``load_model``), the batch sampler and ``FlatAdam``."""
+from gnwarp.train.checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
+from gnwarp.train.config import SCHEDULES, TrainConfig
+from gnwarp.train.optim import FlatAdam
+from gnwarp.train.sampler import BatchSampler
+from gnwarp.train.trainer import Trainer, build_model, train
+
+__all__ = ["Trainer", "train", "build_model", "TrainConfig", "SCHEDULES", "save_checkpoint", "load_model",
+           "load_checkpoint", "CheckpointError", "FlatAdam", "BatchSampler"]

@@ -1,0 +1,279 @@
+"""Training of forward models (supplementary D.7, D.8): the ``Trainer`` and ``train(config)``.
+
+A ``Trainer`` fits a ``ForwardModel`` to one or more datasets: Adam with gradient clipping,
+learning rate ``lr * lr_decay ** (step // lr_decay_steps)`` (paper: 1e-4, 0.975, every 50k steps
+"fast" or 200k "slow"), batches of ``batch_size`` graphs drawn uniformly over (sequence, step) of
+each train split, several datasets mixed in equal proportion, normalizers accumulated from the
+training batches, validation by the 20-step rollout error on the valid split, best checkpoint
+kept, early stopping. A run folder holds::
+
+    <out>/last/   the latest checkpoint (training resumes from it)
+    <out>/best/   the checkpoint with the lowest validation error
+    <out>/log.csv losses, learning rate and validation errors
+
+Its seams, for the stages that reuse it (captured steps, system identification, RL learners,
+distributed ranks): ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
+``step`` (one optimization step), ``validate``, ``checkpoint`` and ``callbacks`` (called as
+``callback(trainer, event, info)`` for the events "log", "validate", "checkpoint" and "end").
+Override a method in a subclass, or replace ``trainer.sampler``, to change one seam.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import time
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from gnwarp.data.dataset import load
+from gnwarp.data.layout import merge_layouts
+from gnwarp.eval.metrics import rollout_error
+from gnwarp.graphs import GraphsTuple
+from gnwarp.interop import resolve_device
+from gnwarp.models.forward import ForwardModel
+from gnwarp.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from gnwarp.train.config import TrainConfig
+from gnwarp.train.optim import FlatAdam
+from gnwarp.train.sampler import BatchSampler
+
+__all__ = ["Trainer", "train", "build_model", "LOG_FIELDS"]
+
+LOG_FIELDS = ("step", "seconds", "lr", "loss", "pos", "quat", "linvel", "angvel", "valid_error")
+
+
+def build_model(config: TrainConfig, datasets) -> ForwardModel:
+    """A new model for ``datasets``: their merged feature layout, re-centring decided (D.4), the
+    MLP baseline's fixed topology read from the data."""
+    mcfg = dataclasses.replace(config.model)
+    layout = merge_layouts([d.layout for d in datasets])
+    if mcfg.recenter is None:  # D.4: re-centre single-system models of translation-invariant systems
+        mcfg.recenter = len(datasets) == 1 and bool(datasets[0].meta.get("translation_invariant", False))
+    if mcfg.core == "mlp":
+        B = {int(d.meta["max_bodies"]) for d in datasets}
+        E = {int(d.meta["max_edges"]) for d in datasets}
+        uniform = all(np.all(np.asarray(d.static["n_node"]) == d.meta["max_bodies"]) for d in datasets)
+        if len(B) > 1 or len(E) > 1 or not uniform:
+            raise ValueError("the MLP baseline needs one fixed topology; these datasets mix graph sizes")
+        mcfg.mlp = dataclasses.replace(mcfg.mlp, n_node=B.pop(), n_edge=E.pop())
+    return ForwardModel(mcfg, layout)
+
+
+def _data_info(datasets) -> list[dict]:
+    keys = ("system", "parameterized", "dt", "num_steps", "seed", "splits", "translation_invariant")
+    return [{k: d.meta.get(k) for k in keys} for d in datasets]
+
+
+class Trainer:
+    """Fits a ``ForwardModel`` as ``config`` says (see the module docstring).
+
+    ``datasets``: ``Dataset`` objects to use instead of loading ``config.data``. ``model``: an
+    initial model (else built from ``config.model``, or resumed from ``<out>/last``: its weights,
+    optimizer and sampler state; the run options are the config's). ``callbacks``: functions
+    ``callback(trainer, event, info)``.
+    """
+
+    def __init__(self, config: TrainConfig, datasets=None, model: ForwardModel | None = None,
+                 callbacks: list[Callable] = ()):
+        self.config = config
+        self.out = Path(config.out)
+        self.device = resolve_device(config.device)
+        self.callbacks = list(callbacks)
+        torch.manual_seed(config.seed)
+        if datasets is None:
+            if not config.data:
+                raise ValueError("no training data: set `data` to one or more dataset files")
+            datasets = [load(p, lazy=True) for p in config.data]
+        self.datasets = list(datasets)
+        training = None
+        if config.resume and (self.out / "last").is_dir():
+            model, training, _ = load_checkpoint(self.out / "last", self.device)
+            model.set_options(config.model.run)
+            if merge_layouts([d.layout for d in self.datasets]).to_dict() != model.layout.to_dict():
+                warnings.warn(f"resuming {self.out / 'last'}: the datasets' merged layout differs from the model's; "
+                              "mapping them onto the model's layout")
+        elif model is None:
+            model = build_model(config, self.datasets)
+        self.model = model.to(self.device)
+        self.sampler = BatchSampler(self.datasets, self.model, self.device)
+        self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
+        self.optimizer = self.make_optimizer()
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self.state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
+        if training is not None:
+            self._restore(training)
+        self.info = {"train": config.to_dict(), "data": _data_info(self.datasets)}
+        self._running: dict[str, torch.Tensor] = {}
+        self._n_running = 0
+
+    # -- seams -----------------------------------------------------------------------------------
+    def make_optimizer(self) -> torch.optim.Optimizer:
+        """``config.optimizer``: torch's Adam (clipping in ``step``) or FlatAdam (clipping inside)."""
+        c = self.config
+        if c.optimizer == "flat_adam":
+            return FlatAdam(self.model.parameters(), lr=c.lr, max_grad_norm=c.grad_clip)
+        return torch.optim.Adam(self.model.parameters(), lr=c.lr)
+
+    def sample(self) -> tuple[GraphsTuple, torch.Tensor]:
+        """One training batch: (input graphs, true next states [sum(n_node), 13])."""
+        return self.sampler.sample(self.config.batch_size, self.generator)
+
+    def loss(self, graph: GraphsTuple, target: torch.Tensor, accumulate: bool = True) -> dict[str, torch.Tensor]:
+        """The loss terms of a batch (``ForwardModel.loss`` with the config's noise and rotation
+        loss); ``accumulate``: update the normalizers from it first."""
+        c = self.config
+        return self.model.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate,
+                               rotation_scale=c.rotation_loss, generator=self.generator)
+
+    def step(self) -> dict[str, torch.Tensor]:
+        """One optimization step at the current learning rate: sample, loss, backward, clip, update.
+        Returns the loss terms (device tensors; nothing here syncs with the host)."""
+        c = self.config
+        for group in self.optimizer.param_groups:
+            group["lr"] = c.lr_at(self.state["step"])
+        terms = self.loss(*self.sample())
+        self.optimizer.zero_grad(set_to_none=True)
+        terms["loss"].backward()
+        if not isinstance(self.optimizer, FlatAdam):
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), c.grad_clip)
+        self.optimizer.step()
+        return terms
+
+    def validate(self) -> float:
+        """Mean normalized ``valid_horizon``-step rollout error over the datasets with a valid split."""
+        c = self.config
+        self.model.eval()
+        errs = [rollout_error(self.model, d, "valid", c.valid_horizon, c.valid_sequences) for d in self.valid]
+        self.model.train()
+        return float(np.mean(errs)) if errs else math.nan
+
+    def checkpoint(self, name: str) -> Path:
+        """Write ``<out>/<name>`` (model, optimizer, sampler and run state)."""
+        st = self.state
+        readable = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in st.items()}
+        path = save_checkpoint(self.out / name, self.model,
+                               {"optimizer": self.optimizer.state_dict(), "state": dict(st),
+                                "generator": self.generator.get_state()}, {**self.info, "state": readable})
+        self.emit("checkpoint", name=name, path=path)
+        return path
+
+    def warmup(self) -> None:
+        """Normalizer statistics from a few batches before the first gradient step, so the first
+        steps do not train against identity transforms."""
+        if self.state["step"] == 0 and self.model.norm_nodes.count.item() == 0:
+            with torch.no_grad():
+                for _ in range(self.config.normalizer_warmup):
+                    self.loss(*self.sample())
+
+    def emit(self, event: str, **info) -> None:
+        for cb in self.callbacks:
+            cb(self, event, info)
+
+    # -- the loop -------------------------------------------------------------------------------
+    def _restore(self, training: dict) -> None:
+        try:
+            self.optimizer.load_state_dict(training["optimizer"])
+        except (ValueError, KeyError) as exc:
+            raise CheckpointError(f"{self.out / 'last'}: its optimizer state does not fit optimizer="
+                                  f"{self.config.optimizer!r} ({exc}); resume with the optimizer the run started "
+                                  "with, or set resume=False") from exc
+        self.state.update(training["state"])
+        try:
+            self.generator.set_state(training["generator"])
+        except (RuntimeError, TypeError):  # resumed on another kind of device: a fresh sampler stream
+            warnings.warn("could not restore the batch sampler's random state; reseeding it")
+            self.generator.manual_seed(self.config.seed + self.state["step"])
+
+    def _after_step(self, terms: dict, bar, log, t_start: float) -> str | None:
+        """Bookkeeping after a step: running sums, the log row (``log(row)``), validation,
+        checkpoints; a reason to stop or None."""
+        c, st = self.config, self.state
+        for k, v in terms.items():  # summed on the device; read once per log line
+            self._running[k] = self._running.get(k, 0.0) + v.detach()
+        self._n_running += 1
+        lr = c.lr_at(st["step"])
+        st["step"] = step = st["step"] + 1
+        st["seconds"] = time.perf_counter() - t_start
+        bar.update(1)
+        row = None
+        if step % c.log_every == 0 or step == c.steps:
+            vals = {k: float(v) / self._n_running for k, v in self._running.items()}
+            if not all(math.isfinite(v) for v in vals.values()):
+                raise FloatingPointError(f"training diverged at step {step}: losses {vals}")
+            self._running, self._n_running = {}, 0
+            row = {"step": step, "seconds": round(st["seconds"], 3), "lr": lr, **vals, "valid_error": ""}
+            bar.set_postfix(loss=f"{vals['loss']:.4g}", best=f"{st['best_error']:.4g}")
+        timed_out = c.max_seconds is not None and st["seconds"] >= c.max_seconds
+        if self.valid and (step % c.valid_every == 0 or step == c.steps or timed_out):
+            err = self.validate()
+            row = row or {"step": step, "seconds": round(st["seconds"], 3), "lr": lr}
+            row["valid_error"] = err
+            if err < st["best_error"]:
+                st.update(best_error=err, best_step=step, bad_validations=0)
+                self.checkpoint("best")
+            else:
+                st["bad_validations"] += 1
+            bar.set_postfix(loss=row.get("loss", ""), valid=f"{err:.4g}", best=f"{st['best_error']:.4g}")
+            self.emit("validate", step=step, error=err)
+        if row is not None:
+            log(row)
+            self.emit("log", row=row)
+        if step % c.checkpoint_every == 0:
+            self.checkpoint("last")
+        if c.patience is not None and st["bad_validations"] >= c.patience:
+            return "early stopping"
+        return "time budget" if timed_out else None
+
+    def run(self) -> dict:
+        """Train until ``steps``, the time budget, early stopping or Ctrl-C; returns a summary
+        (paths, steps, best error, timing)."""
+        from tqdm.auto import tqdm
+
+        c, st, out = self.config, self.state, self.out
+        self.warmup()
+        out.mkdir(parents=True, exist_ok=True)
+        log_path = out / "log.csv"
+        new_log = not log_path.exists() or st["step"] == 0
+        start_step = st["step"]
+        t_start = time.perf_counter() - st["seconds"]
+        bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.model.config.core}", unit="step",
+                   disable=not c.progress, dynamic_ncols=True, smoothing=0.05)
+        self.model.train()
+        with open(log_path, "w" if new_log else "a", newline="") as log_file:
+            writer = csv.DictWriter(log_file, LOG_FIELDS)
+            if new_log:
+                writer.writeheader()
+
+            def log(row):  # every row on disk as it comes
+                writer.writerow(row)
+                log_file.flush()
+            try:
+                stop = "steps"
+                while st["step"] < c.steps:
+                    reason = self._after_step(self.step(), bar, log, t_start)
+                    if reason:
+                        stop = reason
+                        break
+            except KeyboardInterrupt:  # keep what was learned; training resumes from <out>/last
+                stop = "interrupted"
+            finally:
+                bar.close()
+        self.checkpoint("last")
+        if not (out / "best").is_dir():  # no validation split: the last model is the best we know
+            self.checkpoint("best")
+        steps_run = st["step"] - start_step
+        summary = {"out": str(out), "best": str(out / "best"), "last": str(out / "last"), "steps": st["step"],
+                   "best_step": st["best_step"], "best_error": st["best_error"], "stop": stop,
+                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9)}
+        self.emit("end", summary=summary)
+        return summary
+
+
+def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None, callbacks=()) -> dict:
+    """Train (or resume) a forward model: ``Trainer(config, datasets, model, callbacks).run()``."""
+    return Trainer(config, datasets, model, callbacks).run()
