@@ -43,7 +43,6 @@ import copy
 import json
 import os
 import platform
-import re
 import sys
 import time
 import traceback
@@ -60,81 +59,33 @@ except ImportError:  # pragma: no cover
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._common import median_ms  # noqa: E402
-from gnwarp import GraphsTuple, gn_warp  # noqa: E402
-from gnwarp.gn import GNBlockConfig, GraphNetwork, matmul_precision
-from gnwarp.gn_warp import cuda_graph, graph_index, tile_feasible
-from gnwarp.optim import FlatAdam, flatten_parameters
-
-# -- graph shapes -------------------------------------------------------------------------------
-def _tree_edges(parent, joint_body):
-    """Directed edges (both ways) between each joint's body and its parent body."""
-    snd = [parent[b] for b in joint_body] + list(joint_body)
-    rcv = list(joint_body) + [parent[b] for b in joint_body]
-    return snd, rcv
+from bench.harness import (EDGE_IN, GLOB_IN, NODE_IN, NODE_OUT, PAPER, QUICK, SHAPES, build_core,  # noqa: E402
+                           capture, make_batch, median_ms, results_dir, slug, uniform_sizes)
+from gnwarp.gn import TUNABLES, GNBlockConfig, flatten_parameters, graph_index, tf32_matmul  # noqa: E402
+from gnwarp.gn.rules import tile_feasible  # noqa: E402
+from gnwarp.graphs import GraphsTuple  # noqa: E402
+from gnwarp.models import GNCore, GNCoreConfig  # noqa: E402
+from gnwarp.train import FlatAdam  # noqa: E402
 
 
-SHAPES = {
-    # body 0 is the world; joint_body lists the body of each joint (root joints repeat body 1)
-    "cheetah": (8, *_tree_edges([0, 0, 1, 2, 3, 1, 5, 6], [1, 1, 1, 2, 3, 4, 5, 6, 7])),
-    "swimmer6": (7, *_tree_edges([0, 0, 1, 2, 3, 4, 5], [1, 1, 1, 2, 3, 4, 5, 6])),
-    "pendulum": (2, *_tree_edges([0, 0], [1])),
-}
-NODE_IN, EDGE_IN, GLOB_IN, NODE_OUT = 31, 64, 32, 13
-PAPER = dict(latent=128, edge_hidden=(512,) * 3, node_hidden=(256,) * 2, global_hidden=(256,) * 2)
-QUICK = dict(latent=16, edge_hidden=(32,) * 3, node_hidden=(16,) * 2, global_hidden=(16,) * 2)
-
-
-def make_batch(shape: str, B: int, device, seed=0):
-    n, snd, rcv = SHAPES[shape]
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    off = torch.arange(B)[:, None] * n
-    s = (torch.tensor(snd)[None] + off).reshape(-1)
-    r = (torch.tensor(rcv)[None] + off).reshape(-1)
-    E = len(snd)
-    g = GraphsTuple(nodes=torch.randn(B * n, NODE_IN, generator=gen), edges=torch.randn(B * E, EDGE_IN, generator=gen),
-                    globals=torch.randn(B, GLOB_IN, generator=gen), senders=s, receivers=r,
-                    n_node=torch.full((B,), n), n_edge=torch.full((B,), E))
-    g = GraphsTuple(*(x.to(device) for x in g))
-    target = torch.randn(B * n, NODE_OUT, generator=gen).to(device)
-    return g, target
-
-
-# -- the model ----------------------------------------------------------------------------------
-class Core(nn.Module):
-    """The paper's forward core: GN1 -> GN2 on [input, GN1 output], nodes out."""
-
-    def __init__(self, sizes, **gn_kwargs):
-        super().__init__()
-        lat = sizes["latent"]
-        hid = dict(edge_hidden=sizes["edge_hidden"], node_hidden=sizes["node_hidden"],
-                   global_hidden=sizes["global_hidden"])
-        self.gn1 = GraphNetwork(GNBlockConfig(NODE_IN, EDGE_IN, GLOB_IN, lat, lat, lat, **hid), **gn_kwargs)
-        self.gn2 = GraphNetwork(GNBlockConfig(NODE_IN + lat, EDGE_IN + lat, GLOB_IN + lat, NODE_OUT, lat, lat,
-                                              update_globals=False, **hid), **gn_kwargs)
-
-    def set(self, **kw):
-        for gn in (self.gn1, self.gn2):
-            for k, v in kw.items():
-                setattr(gn, k, v)
-        return self
-
-    def forward(self, g: GraphsTuple, index=None):
-        g1 = self.gn1(g, index)
-        g2 = g._replace(nodes=torch.cat([g.nodes, g1.nodes], -1), edges=torch.cat([g.edges, g1.edges], -1),
-                        globals=torch.cat([g.globals, g1.globals], -1))
-        return self.gn2(g2, index).nodes
-
-
-def _mlp(m, x):
-    return m(x)
+def check_paper_blocks(core: GNCore, sizes: GNCoreConfig) -> None:
+    """The library's core builds the blocks this benchmark has always timed: GN1 on the input
+    (globals used: the input has global features), GN2 on [input, GN1 output] with NODE_OUT node
+    outputs and no global update."""
+    lat = sizes.latent
+    hid = dict(edge_hidden=sizes.edge_hidden, node_hidden=sizes.node_hidden, global_hidden=sizes.global_hidden)
+    want1 = GNBlockConfig(NODE_IN, EDGE_IN, GLOB_IN, lat, lat, lat, **hid)
+    want2 = GNBlockConfig(NODE_IN + lat, EDGE_IN + lat, GLOB_IN + lat, NODE_OUT, lat, lat, update_globals=False, **hid)
+    for got, want in ((core.gn1.config, want1), (core.gn2.config, want2)):
+        if got != want:
+            raise AssertionError(f"gnwarp.models.GNCore builds {got}, the benchmark's core is {want}")
 
 
 class TorchCore(nn.Module):
     """The torch peer, written as a PyTorch user would (as gn_torch_anchor.py), on the weights of
-    a ``Core``; graph index tensors are precomputed inputs, as in the anchor."""
+    the library's ``GNCore``; graph index tensors are precomputed inputs, as in the anchor."""
 
-    def __init__(self, core: Core):
+    def __init__(self, core: GNCore):
         super().__init__()
         self.core = core
 
@@ -164,13 +115,14 @@ def torch_inputs(g: GraphsTuple):
     return (g.nodes, g.edges, g.globals, g.senders, g.receivers, ng, eg)
 
 
-def core_flops(shape: str, sizes, split: bool = False) -> int:
-    """Multiply-add FLOPs (x2) of one graph's forward. ``split=False``: the concatenated first
-    layers of the reference (the anchor's count, used for every peer's TFLOP/s); ``split=True``:
-    what our split path executes (node / global projections once per node / graph)."""
+def core_flops(shape: str, sizes: GNCoreConfig, projected: bool = False) -> int:
+    """Multiply-add FLOPs (x2) of one graph's forward. ``projected=False``: the concatenated first
+    layers of the reference (the anchor's count, used for every peer's TFLOP/s); ``projected=True``:
+    what our blas path executes with projected first layers (node / global projections once per
+    node / graph)."""
     n, snd, _ = SHAPES[shape]
     E, N = len(snd), n
-    lat = sizes["latent"]
+    lat = sizes.latent
 
     def mlp(rows, d, hs, o):
         f = 0
@@ -180,8 +132,8 @@ def core_flops(shape: str, sizes, split: bool = False) -> int:
         return f
 
     def block(fv, fe, fu, vo, eo, uo, glob):
-        eh, nh, gh = sizes["edge_hidden"], sizes["node_hidden"], sizes["global_hidden"]
-        if split:  # first layers: edge rows per edge, node projections per node, global per graph
+        eh, nh, gh = sizes.edge_hidden, sizes.node_hidden, sizes.global_hidden
+        if projected:  # first layers: edge rows per edge, node projections per node, global per graph
             h0 = eh[0] if eh else eo
             f = 2 * E * fe * h0 + 2 * N * fv * 2 * h0 + 2 * fu * h0 + (mlp(E, h0, eh[1:], eo) if eh else 0)
             hn = nh[0] if nh else vo
@@ -197,11 +149,6 @@ def core_flops(shape: str, sizes, split: bool = False) -> int:
     return f1 + f2
 
 
-# -- timing -------------------------------------------------------------------------------------
-def timeit(fn, device, reps, warmup):
-    return median_ms(fn, device, reps, warmup)
-
-
 def sync(device):
     if device.type == "cuda":
         torch.cuda.synchronize()
@@ -213,7 +160,15 @@ OUR_PRECISIONS = ("fp32", "tf32", "fp16", "bf16", "fp16x3")
 # fp16x3 is float32-accurate (error against float64 within ~2x of IEEE fp32's): its peers and
 # matmul peak are fp32's; torch has no such mode
 PEER_PRECISION = {"fp16x3": "fp32"}
-WARP_PEERS = ("warp-split", "warp-tile")
+WARP_PEERS = ("warp-blas", "warp-tile")
+# names in earlier rows: the blas path's peers were "warp-split*", the edge first layer's
+# "project" mode was "split"
+RENAMED = {"peer": {"warp-split": "warp-blas", "warp-split-graph": "warp-blas-graph"}, "efl": {"split": "project"}}
+
+
+def renamed(row: dict) -> dict:
+    """A results row with earlier names read as today's."""
+    return {k: RENAMED.get(k, {}).get(v, v) if isinstance(v, str) else v for k, v in row.items()}
 
 
 class Runner:
@@ -225,33 +180,30 @@ class Runner:
         self.peaks = {}
         self.device_name = (torch.cuda.get_device_name(self.device) if self.device.type == "cuda"
                             else f"CPU {platform.processor() or platform.machine()} x{os.cpu_count()}")
-        slug = re.sub(r"[^A-Za-z0-9]+", "-", self.device_name).strip("-").lower()
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.jsonl = self.out / f"gn_block_{slug}{'_quick' if args.quick else ''}.jsonl"
+        self.jsonl = self.out / f"gn_block_{slug(self.device_name)}{'_quick' if args.quick else ''}.jsonl"
         self.md = self.jsonl.with_suffix(".md")
         torch.manual_seed(0)
-        self.base = Core(self.sizes).to(self.device)   # one set of weights for every peer
+        self.base = build_core(self.sizes).to(self.device)  # one set of weights for every peer
+        if args.quick:
+            check_paper_blocks(self.base, self.sizes)
         self.efl = args.edge_first_layer                # our peers' edge first-layer mode
         self.det = args.deterministic                   # our peers' aggregation: segment sums
         self.opt = args.optimizer                       # our peers' optimizer: torch Adam or FlatAdam
         self.flatp = args.flat_params                   # our peers' parameters in one flat buffer
         self.emu = (tuple(int(x) for x in args.emulate_min.split(",")) if args.emulate_min else None)
-        self.side_default = gn_warp.SIDE_STREAMS
+        self.side_default = TUNABLES.side_streams
         if args.side_streams is not None:               # our backward's side streams (weight-gradient GEMMs)
             self.side = args.side_streams
 
     @property
     def side(self) -> int:
-        return gn_warp.SIDE_STREAMS
+        return TUNABLES.side_streams
 
     @side.setter
     def side(self, n: int):
-        gn_warp.SIDE_STREAMS = n
-
-    def model(self, **kw):
-        m = copy.deepcopy(self.base)
-        return m.set(**kw)
+        TUNABLES.side_streams = n
 
     def record(self, **row):
         if row.get("peer", "").startswith("warp") and self.efl != "auto":
@@ -295,9 +247,8 @@ class Runner:
                 traceback.print_exc()
             return None
         try:
-            ctx = matmul_precision(precision if peer.startswith("torch") else "fp32")
-            with ctx:
-                ms = timeit(fn, dev, args.reps, args.warmup)
+            with tf32_matmul(peer.startswith("torch") and precision == "tf32"):
+                ms = median_ms(fn, dev, args.reps, args.warmup)
         except Exception as exc:  # noqa: BLE001
             self.record(**base, error=f"{type(exc).__name__}: {exc}")
             if args.verbose:
@@ -318,7 +269,7 @@ class Runner:
         g, target = make_batch(shape, B, dev)
         if sizes is not self.sizes:
             torch.manual_seed(0)
-            model = Core(sizes).to(dev)
+            model = build_core(sizes).to(dev)
         else:
             model = copy.deepcopy(self.base)
         params = list(model.parameters())
@@ -343,22 +294,20 @@ class Runner:
                 with amp():
                     return fwd(*x)
         else:
-            path = "tile" if peer.startswith("warp-tile") else "split"
-            model.set(backend="warp", path=path, precision=precision, check_inputs=False,
-                      edge_first_layer=self.efl, deterministic=self.det)
+            path = "tile" if peer.startswith("warp-tile") else "blas"
+            # emulate_min: fp16x3's rule (rows, hidden width), None: the library's
+            model.set_options(model.options.replace(impl="warp", path=path, precision=precision,
+                                                    edge_first_layer=self.efl, deterministic=self.det,
+                                                    emulate_min=self.emu))
             if path == "tile":
-                why = tile_feasible(model.gn1.config, precision, False, dev) or \
-                    tile_feasible(model.gn2.config, precision, False, dev)
+                run = model.options.resolve(params[0].dtype)
+                why = tile_feasible(model.gn1.config, run, dev) or tile_feasible(model.gn2.config, run, dev)
                 if why:
                     raise ValueError(f"tile path not feasible: {why}")
             # static topology: built once, as the torch peer's index inputs
             idx = graph_index(g, deterministic=self.det)
             if self.flatp:  # parameters as views of one buffer: one cast launch per block in fp16 / bf16
                 flatten_parameters(params)
-            if self.emu is not None:  # fp16x3's rule (rows, hidden width) overridden
-                for m in model.modules():
-                    if isinstance(m, GraphNetwork):
-                        m.emulate_min = self.emu
 
             def run():
                 return model(g, idx)
@@ -370,7 +319,7 @@ class Runner:
         else:
             opt = None
             flat = mode == "train" and self.opt == "flat" and peer.startswith("warp")
-            if flat:  # gnwarp.optim.FlatAdam: clipping and Adam over one flat buffer
+            if flat:  # gnwarp.train.FlatAdam: clipping and Adam over one flat buffer
                 opt = FlatAdam(params, 1e-4, max_grad_norm=1.0)
             elif mode == "train":
                 opt = torch.optim.Adam(params, 1e-4, fused=dev.type == "cuda", capturable=captured)
@@ -418,7 +367,7 @@ class Runner:
                 a = torch.randn(M, K, device=dev).to(dt)
                 b = torch.randn(K, N, device=dev).to(dt)
                 with matmul_precision(prec):
-                    ms = timeit(lambda: torch.mm(a, b), dev, max(self.args.reps, 20), 5)
+                    ms = median_ms(lambda: torch.mm(a, b), dev, max(self.args.reps, 20), 5)
                 tf = 2 * M * K * N / ms / 1e9
                 self.peaks[prec] = tf
                 self.record(peer="torch.mm", precision=prec, mode="peak", shape=f"{M}x{K}@{K}x{N}", batch=0,

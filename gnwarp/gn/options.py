@@ -118,7 +118,7 @@ class RunOptions:
         if p == "fp16x3" and param_dtype == torch.float32:
             emulate = self.emulate_min or (TUNABLES.emulate_min_rows, TUNABLES.emulate_min_width)
         return ResolvedRun(self, param_dtype, compute, torch.float64 if compute == torch.float64 else torch.float32,
-                           tf32=p == "tf32", tensor_cores=p in ("tf32", "fp16", "bf16", "fp16x3"),
+                           tf32=p == "tf32", tensor_cores=p in ("tf32", "fp16", "bf16"), ieee=p in ("fp32", "fp64"),
                            emulate=emulate, autocast=half)
 
 
@@ -130,8 +130,10 @@ class ResolvedRun:
     compute_dtype: torch.dtype        # GEMM inputs and activations
     acc_dtype: torch.dtype            # scatter-sums, bias and input gradients
     tf32: bool                        # float32 GEMMs on TF32 tensor cores
-    tensor_cores: bool                # the GEMMs run on tensor cores (the edge first-layer rule)
-    emulate: tuple[int, int] | None   # fp16x3: (rows, hidden width) from which an MLP emulates
+    tensor_cores: bool                # every GEMM runs on tensor cores (tf32, fp16, bf16)
+    ieee: bool                        # IEEE arithmetic in the parameters' dtype (fp32, fp64)
+    emulate: tuple[int, int] | None   # fp16x3: (rows, hidden width) from which an MLP's GEMMs emulate
+                                      # float32 on fp16 tensor cores (float32 parameters only)
     autocast: torch.dtype | None      # fp16 / bf16: the torch implementation's autocast dtype
 
     @property

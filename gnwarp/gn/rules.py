@@ -79,7 +79,7 @@ def edge_concat(config: GNBlockConfig, run, n_edges: int) -> bool:
     mode = run.options.edge_first_layer
     if mode != "auto":
         return mode == "concat"
-    if run.tensor_cores and (run.precision != "fp16x3" or (run.emulate is not None and n_edges >= run.emulate[0])):
+    if run.tensor_cores or (run.emulate is not None and n_edges >= run.emulate[0]):
         return True
     cols = column_slices(config.edge_layout)
     extra = sum(pad(cols[n].stop - cols[n].start) for n in ("sender_nodes", "receiver_nodes", "globals") if n in cols)
@@ -111,7 +111,7 @@ def tile_feasible(config: GNBlockConfig, run, device: torch.device) -> str | Non
     """None if the fused tile path can run this block, else the reason why not."""
     if run.deterministic:
         return "deterministic mode needs ordered segment sums (tile scatters are atomic)"
-    if run.precision not in ("fp32", "fp64"):
+    if not run.ieee:
         return f"tile path runs fp32/fp64 only (precision={run.precision!r})"
     if device.type == "cuda":
         c = config

@@ -98,7 +98,7 @@ class ForwardModel(nn.Module):
         opts = (options if options is not None else old).replace(**changes)
         self.config.run = opts
         self.core.set_options(opts)
-        if (opts.precision == "fp64") != (old.precision == "fp64"):
+        if opts.param_dtype != old.param_dtype:
             self.to(opts.param_dtype)
         return self
 
