@@ -23,9 +23,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gnwarp import data, systems  # noqa: E402
+from bench.harness import device_name, results_dir  # noqa: E402
+from gnwarp import data, sim  # noqa: E402
 from gnwarp.interop import cuda_available  # noqa: E402
-from bench._common import device_name  # noqa: E402
 
 
 def run_one(name, backend, sizes, steps, parameterized, tmpdir):
@@ -43,7 +43,7 @@ def run_one(name, backend, sizes, steps, parameterized, tmpdir):
     # graph building throughput from the stored states
     import torch
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    builder = data.GraphBuilder(ds, device=dev)
+    builder = data.GraphBuilder(ds.static, device=dev)
     tr = ds["train"]
     n = min(len(tr), 4096)
     inst = torch.as_tensor(tr.instance[:n], device=dev)
@@ -81,10 +81,10 @@ def main():
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--parameterized", action="store_true")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (CPU smoke test)")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--out", default=results_dir())
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
-    names = systems.names() if args.systems == "all" else args.systems.split(",")
+    names = sim.names() if args.systems == "all" else args.systems.split(",")
     names = ["swimmer6" if n == "swimmer" else n for n in names]
     backends = args.backends.split(",")
     if backends == ["auto"]:

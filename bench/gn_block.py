@@ -1,28 +1,32 @@
 """Benchmark of the paper's two-block GN forward core: our Warp paths against torch peers.
 
-The core (paper section D.2 sizes): GN1 on the input graph (edge MLP 3x512, node and global MLPs
-2x256, latent 128); GN2 on [input, GN1 output] (node output 13, no global update). Graph shapes:
-dm_control cheetah (8 nodes incl. world, 9 joints -> 18 directed edges), swimmer6 (7 nodes, 3
-root joints + 5 hinges -> 16 edges), pendulum (2 nodes, 1 hinge -> 2 edges); feature widths as in
+The core is the library's ``gnwarp.models.GNCore`` (paper section D.2 sizes): GN1 on the input
+graph (edge MLP 3x512, node and global MLPs 2x256, latent 128); GN2 on [input, GN1 output] (node
+output 13, no global update). The torch peers run its weights through a forward written as a
+PyTorch user would (``TorchCore``). Graph shapes (``bench/harness.py``): dm_control cheetah (8
+nodes incl. world, 9 joints -> 18 directed edges), swimmer6 (7 nodes, 3 root joints + 5 hinges ->
+16 edges), pendulum (2 nodes, 1 hinge -> 2 edges); feature widths as in
 ../shared/probes/gn_torch_anchor.py (node 31, edge 64, global 32) for every shape.
 
 Sections (``--sections``, all by default):
   peak       torch.matmul at the edge-MLP hidden shape (73728x512 @ 512x512) per precision
   main       cheetah: fwd, fwd+bwd, train step (fwd, MSE loss, bwd, clip, Adam) at batch 200 and
              4096, fwd at 65536; peers: torch eager, torch.compile default and reduce-overhead
-             (fp32, tf32; fp16 / bf16 under torch.autocast), our split path (fp32, tf32, fp16,
+             (fp32, tf32; fp16 / bf16 under torch.autocast), our blas path (fp32, tf32, fp16,
              bf16, fp16x3: float32-accurate GEMMs from fp16 tensor cores, compared with the fp32
              peers and the fp32 peak), our tile path (fp32)
-  shapes     swimmer6 and pendulum: the same modes for torch eager / compile-ro and our split path
-  capture    our split path with the whole training step (and the forward) in one CUDA graph
+  shapes     swimmer6 and pendulum: the same modes for torch eager / compile-ro and our blas path
+  capture    our blas path with the whole training step (and the forward) in one CUDA graph
   errors     max error of every peer/precision against the float64 torch reference (batch 200)
-  crossover  small MLPs (widths 16-64) at small batches: split vs tile, to set the "auto" rule
-  efl        (only when asked) the captured split path with each edge first-layer mode forced
-  flat       (only when asked) the captured split path with and without ``--flat-params``
-  optim      (only when asked) the captured split path's training step with torch's Adam and with
-             gnwarp.optim.FlatAdam (``--optimizer`` picks the one of the other sections)
-  side       (only when asked) the captured split path's training step with the backward's
+  crossover  small MLPs (widths 16-64) at small batches: blas vs tile, to set the "auto" rule
+  efl        (only when asked) the captured blas path with each edge first-layer mode forced
+             ("project", "concat")
+  flat       (only when asked) the captured blas path with and without ``--flat-params``
+  optim      (only when asked) the captured blas path's training step with torch's Adam and with
+             gnwarp.train.FlatAdam (``--optimizer`` picks the one of the other sections)
+  side       (only when asked) the captured blas path's training step with the backward's
              weight-gradient GEMMs on the current stream and on 1, 2 and 3 side streams
+             (``gnwarp.gn.TUNABLES.side_streams``)
   profile    (only when asked) torch.profiler kernel tables of one fwd / train step at batch 4096
              and of one train step at batch 200 (kernel count: the nodes of a captured step)
   timeline   (only when asked) every kernel of one replay of the captured training step at the
@@ -31,7 +35,9 @@ Sections (``--sections``, all by default):
 
 Each measurement is wrapped: a failing peer (torch.compile included) is reported, not fatal.
 Rows are appended to ``<out>/gn_block_<device>.jsonl`` as they come (a timeout keeps what ran);
-``<out>/gn_block_<device>.md`` is rewritten from all rows of that device after each section.
+``<out>/gn_block_<device>.md`` is rewritten from all rows of that device after each section
+(rows of earlier versions read with today's names: peers "warp-split*" as "warp-blas*", edge
+first layer "split" as "project").
 Timing: CUDA events (CPU: perf_counter) around each call after warm-up; median of repeats.
 
 ``--quick`` runs tiny sizes on the CPU (a smoke test of the script, not a measurement).
@@ -41,8 +47,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
-import platform
 import sys
 import time
 import traceback
@@ -50,17 +54,12 @@ from pathlib import Path
 
 import torch
 import torch.nn as nn
-
-try:
-    import warp as wp
-    wp.config.quiet = True
-except ImportError:  # pragma: no cover
-    wp = None
+import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.harness import (EDGE_IN, GLOB_IN, NODE_IN, NODE_OUT, PAPER, QUICK, SHAPES, build_core,  # noqa: E402
-                           capture, make_batch, median_ms, results_dir, slug, uniform_sizes)
+                           capture, device_name, make_batch, median_ms, results_dir, slug, uniform_sizes)
 from gnwarp.gn import TUNABLES, GNBlockConfig, flatten_parameters, graph_index, tf32_matmul  # noqa: E402
 from gnwarp.gn.rules import tile_feasible  # noqa: E402
 from gnwarp.graphs import GraphsTuple  # noqa: E402
@@ -178,8 +177,7 @@ class Runner:
         self.sizes = QUICK if args.quick else PAPER
         self.rows = []
         self.peaks = {}
-        self.device_name = (torch.cuda.get_device_name(self.device) if self.device.type == "cuda"
-                            else f"CPU {platform.processor() or platform.machine()} x{os.cpu_count()}")
+        self.device_name = device_name(self.device)
         self.out = Path(args.out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.jsonl = self.out / f"gn_block_{slug(self.device_name)}{'_quick' if args.quick else ''}.jsonl"
@@ -220,7 +218,7 @@ class Runner:
                 self.side != self.side_default:
             row["side"] = self.side
         row = dict(device=self.device_name, quick=self.args.quick, torch=torch.__version__,
-                   warp=getattr(wp, "__version__", None), time=time.strftime("%Y-%m-%d %H:%M:%S"), **row)
+                   warp=wp.__version__, time=time.strftime("%Y-%m-%d %H:%M:%S"), **row)
         self.rows.append(row)
         with open(self.jsonl, "a") as f:
             f.write(json.dumps(row) + "\n")
@@ -339,23 +337,9 @@ class Runner:
 
         if not captured:
             return step, (lambda: None)
-        return self.capture(step), (lambda: None)
-
-    def capture(self, step):
-        """The whole step as one CUDA graph (Warp launches on torch's capture stream)."""
-        if self.device.type != "cuda":
+        if dev.type != "cuda":
             raise RuntimeError("CUDA graph capture needs a CUDA device")
-        s = torch.cuda.Stream()
-        s.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(s):
-            for _ in range(3):  # warm-up: compiles and loads every kernel before capture
-                step()
-        torch.cuda.current_stream().wait_stream(s)
-        torch.cuda.synchronize()
-        graph = torch.cuda.CUDAGraph()
-        with cuda_graph(graph, s):  # torch.cuda.graph registered with Warp (gnwarp.gn_warp)
-            step()
-        return graph.replay
+        return capture(step), (lambda: None)  # the whole step as one CUDA graph
 
     # -- sections -------------------------------------------------------------------------------
     def section_peak(self):
@@ -366,7 +350,7 @@ class Runner:
             try:
                 a = torch.randn(M, K, device=dev).to(dt)
                 b = torch.randn(K, N, device=dev).to(dt)
-                with matmul_precision(prec):
+                with tf32_matmul(prec == "tf32"):
                     ms = median_ms(lambda: torch.mm(a, b), dev, max(self.args.reps, 20), 5)
                 tf = 2 * M * K * N / ms / 1e9
                 self.peaks[prec] = tf
@@ -398,7 +382,7 @@ class Runner:
 
     def section_shapes(self):
         a = self.args
-        peers = [p for p in a.peers if p in ("torch-eager", "torch-compile-ro", "warp-split")]
+        peers = [p for p in a.peers if p in ("torch-eager", "torch-compile-ro", "warp-blas")]
         for shape in ("swimmer6", "pendulum"):
             for B in a.batches:
                 for mode in ("fwd", "train"):
@@ -406,18 +390,18 @@ class Runner:
 
     def section_capture(self):
         if self.device.type != "cuda":
-            self.record(peer="warp-split-graph", mode="train", error="CUDA graph capture needs a CUDA device")
+            self.record(peer="warp-blas-graph", mode="train", error="CUDA graph capture needs a CUDA device")
             return
         for B in self.args.batches:
             for mode in ("train", "fwd"):
                 for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
-                    self.measure("warp-split-graph", prec, "cheetah", B, mode)
+                    self.measure("warp-blas-graph", prec, "cheetah", B, mode)
 
     def _ablation(self, attr, values, cases):
-        """Our captured split path at each (batch, mode) of ``cases`` and each precision, with the
+        """Our captured blas path at each (batch, mode) of ``cases`` and each precision, with the
         Runner setting ``attr`` (one of our peers' options) set to each of ``values`` in turn."""
         if self.device.type != "cuda":
-            self.record(peer="warp-split-graph", mode=cases[0][1], error="CUDA graph capture needs a CUDA device")
+            self.record(peer="warp-blas-graph", mode=cases[0][1], error="CUDA graph capture needs a CUDA device")
             return
         old = getattr(self, attr)
         try:
@@ -425,18 +409,18 @@ class Runner:
                 setattr(self, attr, value)
                 for B, mode in cases:
                     for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
-                        self.measure("warp-split-graph", prec, "cheetah", B, mode)
+                        self.measure("warp-blas-graph", prec, "cheetah", B, mode)
         finally:
             setattr(self, attr, old)
 
     def section_efl(self):
         """The edge first layer forced to each mode (the ``edge_first_layer`` rule): forward at
         batch 4096, training steps at 200 and 4096."""
-        self._ablation("efl", ("split", "concat"), ((4096, "fwd"), (200, "train"), (4096, "train")))
+        self._ablation("efl", ("project", "concat"), ((4096, "fwd"), (200, "train"), (4096, "train")))
 
     def section_optim(self):
         """The training step with torch's fused Adam + clip_grad_norm_ and with
-        gnwarp.optim.FlatAdam (same clipping, same update), at each of ``--batches``."""
+        gnwarp.train.FlatAdam (same clipping, same update), at each of ``--batches``."""
         self._ablation("opt", ("torch", "flat"), tuple((B, "train") for B in self.args.batches))
 
     def section_flat(self):
@@ -446,7 +430,7 @@ class Runner:
 
     def section_side(self):
         """The backward's weight-gradient GEMMs on the current stream and on 1, 2 and 3 side
-        streams (``gnwarp.gn_warp.SIDE_STREAMS``): training steps at each of ``--batches``."""
+        streams (``gnwarp.gn.TUNABLES.side_streams``): training steps at each of ``--batches``."""
         self._ablation("side", (0, 1, 2, 3), tuple((B, "train") for B in self.args.batches))
 
     def section_errors(self):
@@ -470,14 +454,14 @@ class Runner:
                                 torch._dynamo.reset()
                                 tc = torch.compile(tc, dynamic=False,
                                                    mode="reduce-overhead" if peer == "torch-compile-ro" else None)
-                            with matmul_precision(prec), _autocast(prec, dev)():
+                            with tf32_matmul(prec == "tf32"), _autocast(prec, dev)():
                                 out = tc(*torch_inputs(g))
                         else:
-                            model.set(backend="warp", path="tile" if peer == "warp-tile" else "split",
-                                      precision=prec)
-                            for m in model.modules():  # fp16x3: the layers that emulate at batch 4096, here too
-                                if isinstance(m, GraphNetwork):
-                                    m.emulate_min = (0, gn_warp._EMU_MIN_WIDTH)
+                            # fp16x3: the layers that emulate at batch 4096, here too
+                            model.set_options(model.options.replace(
+                                impl="warp", path="tile" if peer == "warp-tile" else "blas", precision=prec,
+                                edge_first_layer=self.efl, deterministic=self.det,
+                                emulate_min=(0, TUNABLES.emulate_min_width)))
                             out = model(g)
                     err = ((out.double() - expect).abs().max() / expect.abs().max()).item()
                     self.record(**row, max_rel_err=err)
@@ -486,14 +470,14 @@ class Runner:
                     self.record(**row, error=f"{type(exc).__name__}: {exc}")
 
     def section_crossover(self):
-        """Split vs tile on small MLPs (all widths w, latent w), for the "auto" rule."""
+        """Blas vs tile on small MLPs (all widths w, latent w), for the "auto" rule."""
         widths = (16, 32, 64) if not self.args.quick else (8, 16)
         batches = (1, 16, 200) if not self.args.quick else (1, 8)
-        peers = ["warp-split", "warp-tile"]
+        peers = ["warp-blas", "warp-tile"]
         if self.device.type == "cuda":
-            peers += ["warp-split-graph", "warp-tile-graph"]
+            peers += ["warp-blas-graph", "warp-tile-graph"]
         for w in widths:
-            sizes = dict(latent=w, edge_hidden=(w,) * 3, node_hidden=(w,) * 2, global_hidden=(w,) * 2)
+            sizes = uniform_sizes(w)
             for B in batches:
                 for mode in ("fwd", "fwdbwd"):
                     for peer in peers:
@@ -510,14 +494,14 @@ class Runner:
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
         big, small = (4096, 200) if not self.args.quick else (16, 4)
         path = self.jsonl.with_name(self.jsonl.stem + "_profile.txt")
-        peers = [p for p in self.args.peers if p in ("warp-split", "torch-eager")] or ["warp-split"]
+        peers = [p for p in self.args.peers if p in ("warp-blas", "torch-eager")] or ["warp-blas"]
         with open(path, "w") as f:
             for peer in peers:
                 for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                     for B, mode in ((big, "fwd"), (big, "train"), (small, "train")):
                         try:
                             fn, _ = self.make_step(peer, prec, "cheetah", B, mode, self.sizes)
-                            with matmul_precision(prec if peer.startswith("torch") else "fp32"):
+                            with tf32_matmul(peer.startswith("torch") and prec == "tf32"):
                                 for _ in range(3):
                                     fn()
                                 sync(dev)
@@ -553,7 +537,7 @@ class Runner:
         with open(path, "w") as f:
             for prec in [p for p in self.args.precisions if p in OUR_PRECISIONS]:
                 try:
-                    fn, _ = self.make_step("warp-split-graph", prec, "cheetah", B, "train", self.sizes)
+                    fn, _ = self.make_step("warp-blas-graph", prec, "cheetah", B, "train", self.sizes)
                     for _ in range(5):
                         fn()
                     sync(self.device)
@@ -565,7 +549,7 @@ class Runner:
                     events = json.load(open(trace))["traceEvents"]
                     trace.unlink()
                     lines, head = timeline_table(events)
-                    head = f"== warp-split-graph {prec} train cheetah B={B} (side streams {self.side}): {head}"
+                    head = f"== warp-blas-graph {prec} train cheetah B={B} (side streams {self.side}): {head}"
                     print(head, flush=True)
                     f.write(head + "\n" + "\n".join(lines) + "\n\n")
                 except Exception as exc:  # noqa: BLE001
@@ -576,7 +560,7 @@ class Runner:
 
     # -- report ---------------------------------------------------------------------------------
     def write_markdown(self):
-        rows = [json.loads(line) for line in open(self.jsonl)] if self.jsonl.exists() else []
+        rows = [renamed(json.loads(line)) for line in open(self.jsonl)] if self.jsonl.exists() else []
         # a re-run replaces earlier rows of the same measurement
         key = ("peer", "precision", "shape", "batch", "mode", "width", "efl", "det", "opt", "flatp", "side", "emu")
         rows = list({tuple(r.get(k) for k in key): r for r in rows}.values())
@@ -587,7 +571,7 @@ class Runner:
                  f"{versions}; paper two-block core "
                  f"({'QUICK tiny sizes' if self.args.quick else 'edge MLP 3x512, node/global 2x256, latent 128'}). "
                  "TFLOP/s from the reference FLOP count (concatenated first layers; training step = 3x forward; "
-                 "our split path executes ~12% fewer FLOPs); % peak against the measured torch.mm peak of the "
+                 "our blas path executes ~12% fewer FLOPs); % peak against the measured torch.mm peak of the "
                  "same precision. Median of repeats; CUDA events after warm-up.", ""]
         peaks = [r for r in rows if r.get("mode") == "peak" and "tflops" in r]
         if peaks:
@@ -663,17 +647,17 @@ class Runner:
                 out.append(f"  - at batch {r['batch']}: {100 * r['frac_peak']:.1f}% of peak ({r['peer']}, {r['ms']:.3f} ms)")
         cross = [r for r in rows if "width" in r and "ms" in r]
         if cross:
-            out += ["", "### Path crossover (split vs tile, fp32, cheetah)", "",
-                    "| width | batch | mode | split ms | tile ms | winner |", "|---|---|---|---|---|---|"]
+            out += ["", "### Path crossover (blas vs tile, fp32, cheetah)", "",
+                    "| width | batch | mode | blas ms | tile ms | winner |", "|---|---|---|---|---|---|"]
             for graph in ("", "-graph"):
                 keyed = {}
                 for r in cross:
-                    if r["peer"] in (f"warp-split{graph}", f"warp-tile{graph}"):
+                    if r["peer"] in (f"warp-blas{graph}", f"warp-tile{graph}"):
                         keyed.setdefault((r["width"], r["batch"], r["mode"]), {})[r["peer"].split("-")[1]] = r["ms"]
                 for (w, B, mode), d in sorted(keyed.items()):
-                    if "split" in d and "tile" in d:
-                        win = "tile" if d["tile"] < d["split"] else "split"
-                        out.append(f"| {w} | {B} | {mode}{' (captured)' if graph else ''} | {d['split']:.3f} | "
+                    if "blas" in d and "tile" in d:
+                        win = "tile" if d["tile"] < d["blas"] else "blas"
+                        out.append(f"| {w} | {B} | {mode}{' (captured)' if graph else ''} | {d['blas']:.3f} | "
                                    f"{d['tile']:.3f} | {win} |")
         return out + [""]
 
@@ -725,7 +709,7 @@ def _md(s: str) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: smoke test of this script")
-    p.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    p.add_argument("--out", default=results_dir())
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--sections", default="peak,main,shapes,capture,errors,crossover")
     p.add_argument("--peers", default=",".join(TORCH_PEERS + WARP_PEERS))
@@ -739,17 +723,17 @@ def main(argv=None):
     p.add_argument("--tile-mathdx", type=int, default=0,
                    help="1: fused tile GEMMs through cuBLASDx (1-2.5 min compile per kernel on sm_90); "
                         "0: Warp's plain tile GEMM (seconds)")
-    p.add_argument("--edge-first-layer", default="auto", choices=("auto", "concat", "split"),
-                   help="our peers' GraphNetwork(edge_first_layer=...)")
+    p.add_argument("--edge-first-layer", default="auto", choices=("auto", "concat", "project"),
+                   help="our peers' RunOptions(edge_first_layer=...)")
     p.add_argument("--deterministic", action="store_true",
-                   help="our peers aggregate with ordered segment sums (GraphNetwork(deterministic=True))")
+                   help="our peers aggregate with ordered segment sums (RunOptions(deterministic=True))")
     p.add_argument("--optimizer", default="torch", choices=("torch", "flat"),
-                   help="our peers' training step: torch's fused Adam + clip_grad_norm_, or gnwarp.optim.FlatAdam")
+                   help="our peers' training step: torch's fused Adam + clip_grad_norm_, or gnwarp.train.FlatAdam")
     p.add_argument("--flat-params", action="store_true",
                    help="our peers' parameters moved into one buffer first (gnwarp.flatten_parameters)")
     p.add_argument("--side-streams", type=int, default=None,
-                   help="side streams of our backward's weight-gradient GEMMs, 0: none (gnwarp.gn_warp.SIDE_STREAMS; "
-                        "default: the library's)")
+                   help="side streams of our backward's weight-gradient GEMMs, 0: none "
+                        "(gnwarp.gn.TUNABLES.side_streams; default: the library's)")
     p.add_argument("--emulate-min", default=None, metavar="ROWS,WIDTH",
                    help="fp16x3: emulate MLP layers from this many rows and hidden width (default: the library's rule)")
     p.add_argument("--verbose", action="store_true")
@@ -770,12 +754,11 @@ def main(argv=None):
     a.peers = [x for x in a.peers.split(",") if x]
     a.precisions = [x for x in a.precisions.split(",") if x]
     a.compile_modes = [x for x in a.compile_modes.split(",") if x]
-    from gnwarp import gn_tile  # noqa: PLC0415
-    gn_tile.USE_MATHDX = bool(a.tile_mathdx)
+    TUNABLES.tile_mathdx = bool(a.tile_mathdx)
 
     r = Runner(a)
     print(f"GN block benchmark on {r.device_name} (torch {torch.__version__}, warp "
-          f"{getattr(wp, '__version__', '?')}); rows -> {r.jsonl}", flush=True)
+          f"{wp.__version__}); rows -> {r.jsonl}", flush=True)
     for section in a.sections.split(","):
         print(f"\n== {section}", flush=True)
         t0 = time.time()

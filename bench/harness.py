@@ -6,11 +6,13 @@ Scripts put the repository root on ``sys.path`` (from their own path) and import
 """
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import re
 import statistics
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -32,12 +34,23 @@ def results_dir(name: str = "") -> str:
         return str(path)
 
 
+def experiment_out(name: str, out: str | None, quick: bool) -> Path:
+    """Where an experiment writes: ``out`` when given, else ``bench/results/<name>``; a ``--quick``
+    run without ``out`` gets a new temporary folder (a smoke run must not overwrite results)."""
+    if out:
+        return Path(out)
+    if quick:
+        return Path(tempfile.mkdtemp(prefix=f"{name}_quick_"))
+    return Path(results_dir(name))
+
+
 # -- devices ------------------------------------------------------------------------------------
-def device_name() -> str:
-    """The GPU's name, or the CPU's core count where there is no GPU."""
+def device_name(device: torch.device | None = None) -> str:
+    """The name of ``device`` (default: the first GPU where there is one, else the CPU): a GPU's
+    name, or the CPU's core count."""
     try:
-        if torch.cuda.is_available():
-            return torch.cuda.get_device_name(0)
+        if (device.type == "cuda") if device is not None else torch.cuda.is_available():
+            return torch.cuda.get_device_name(device if device is not None else 0)
     except Exception:  # noqa: BLE001 - no usable torch CUDA means a CPU run
         pass
     return f"CPU ({os.cpu_count()} cores, {platform.processor() or platform.machine()})"
@@ -178,17 +191,28 @@ def build_core(sizes: GNCoreConfig, options=None) -> GNCore:
 SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
 
 
-def add_training_args(ap, *, seconds: float, max_steps: int) -> None:
-    """The options every experiment trains its GNs with (data sizes, budget, schedule, sizes)."""
+def add_training_args(ap, *, seconds: float, max_steps: int, core_sizes: bool = True) -> None:
+    """The options the experiments train their GNs with: data sizes, budget, schedule and (with
+    ``core_sizes``) the GN core's sizes (``gn_sizes``)."""
     ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200), metavar=("TRAIN", "VALID", "TEST"))
-    ap.add_argument("--steps", type=int, default=100, help="steps per simulated sequence")
     ap.add_argument("--seconds", type=float, default=seconds, help="training cap per model (wall clock)")
     ap.add_argument("--max-steps", type=int, default=max_steps)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--valid-every", type=int, default=2000)
-    ap.add_argument("--latent", type=int, default=128)
-    ap.add_argument("--edge-width", type=int, default=256)
-    ap.add_argument("--node-width", type=int, default=128)
+    if core_sizes:
+        ap.add_argument("--latent", type=int, default=128)
+        ap.add_argument("--edge-width", type=int, default=256)
+        ap.add_argument("--node-width", type=int, default=128)
+
+
+def add_run_args(ap, name: str, *child_options: str) -> None:
+    """``--out`` (``experiment_out``), ``--quick``, and what the script's child processes take:
+    ``--child`` and ``child_options`` (strings), kept out of ``--help``."""
+    ap.add_argument("--out", default=None, help=f"default: bench/results/{name} (--quick: a temporary folder)")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    for option in child_options:
+        ap.add_argument(option, help=argparse.SUPPRESS)
 
 
 def forward_args(args, *dests: str) -> list[str]:
@@ -234,3 +258,10 @@ def train_model(data: list[str], out, model, steps: int, *, lr: float, decay_eve
 def mean_errors(result: dict) -> dict:
     """An ``eval.evaluate`` result with each horizon's errors reduced to their mean over state groups."""
     return {k: (v["mean"] if isinstance(v, dict) else v) for k, v in result.items()}
+
+
+def write_summary(out: Path, lines: list[str]) -> None:
+    """An experiment's table: printed and written to ``out/summary.md``."""
+    table = "\n".join(lines)
+    (Path(out) / "summary.md").write_text(table + "\n")
+    print(f"{table}\nwrote {Path(out) / 'summary.md'}")

@@ -17,8 +17,9 @@ __all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream"
 
 @functools.lru_cache(maxsize=None)
 def warp():
-    """The ``warp`` module, initialized once with its banner silenced."""
-    wp.config.quiet = True
+    """The ``warp`` module, initialized once, its banner and module-load lines silenced (Warp
+    1.19 logs them at info level; warnings and errors still show)."""
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
     return wp
 

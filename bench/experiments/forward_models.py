@@ -7,8 +7,8 @@ side by side on the one GPU (the GPU has room for many small models; the step lo
 launch-bound, so processes overlap). Each process runs ``gnwarp.demo.run_demo`` on its dataset
 with a wall-clock cap, then a 1000-step rollout of the best GN under new random controls.
 
-    python bench/forward_models.py --seconds 240 --out bench/results/forward_models
-    python bench/forward_models.py --quick      # tiny CPU smoke run
+    python bench/experiments/forward_models.py --seconds 240 --out bench/results/forward_models
+    python bench/experiments/forward_models.py --quick      # tiny CPU smoke run
 """
 from __future__ import annotations
 
@@ -18,11 +18,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._common import device_name, run_side_by_side  # noqa: E402
-
-SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
+from bench.harness import (SYSTEMS, add_run_args, add_training_args, device_name, ensure_dataset,  # noqa: E402
+                           experiment_out, forward_args, gn_sizes, run_side_by_side, write_summary)
 
 
 def child(args) -> None:
@@ -30,27 +29,22 @@ def child(args) -> None:
     import numpy as np
     import torch
 
-    from gnwarp import data, systems
-    from gnwarp.controls import control_range, random_spline_controls
+    from gnwarp import data, sim
     from gnwarp.demo import DemoConfig, run_demo
-    from gnwarp.models import GNCoreConfig
     from gnwarp.train import load_model
 
     cfg = DemoConfig(out=args.child_out, system=args.system, dataset=args.dataset,
                      valid_sequences=args.valid_eval, train_steps=args.max_steps, train_seconds=args.seconds,
                      lr=args.lr, lr_decay=0.6, lr_decay_every=max(1, args.max_steps // 4), valid_every=args.valid_every,
-                     mlp_size=args.mlp, progress=False,
-                     gn=GNCoreConfig(latent=args.latent, edge_hidden=(args.edge_width,) * 2,
-                                     node_hidden=(args.node_width,) * 2, global_hidden=(args.node_width,) * 2))
+                     mlp_size=args.mlp, progress=False, gn=gn_sizes(args.latent, args.edge_width, args.node_width))
     summary = run_demo(cfg)
     # experiment 5: a 1000-step rollout stays finite; error growth with horizon from the 100-step test
     ds = data.load(args.dataset, lazy=False)
     dev = summary["device"]
-    model = load_model(Path(args.child_out) / "gn" / "best", device=dev)
-    model = model.bind(ds) if hasattr(model, "bind") else model
-    sys_ = systems.make(args.system)
+    model = load_model(Path(args.child_out) / "gn" / "best", device=dev).bind(ds)
+    system = sim.make(args.system)
     n, T = 16, 1000
-    u = random_spline_controls(n, T, control_range(sys_.model), np.random.default_rng(7))
+    u = sim.random_spline_controls(n, T, sim.control_range(system.model), np.random.default_rng(7))
     te = ds["test"]
     x0 = torch.as_tensor(te.body[:n, 0], device=dev)
     inst = torch.as_tensor(te.instance[:n], device=dev)
@@ -67,23 +61,10 @@ def child(args) -> None:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--systems", default=",".join(SYSTEMS))
-    ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200), metavar=("TRAIN", "VALID", "TEST"))
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--seconds", type=float, default=240.0, help="GN training cap per system (wall clock)")
-    ap.add_argument("--max-steps", type=int, default=40000)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--valid-every", type=int, default=2000)
-    ap.add_argument("--latent", type=int, default=128)
-    ap.add_argument("--edge-width", type=int, default=256)
-    ap.add_argument("--node-width", type=int, default=128)
+    ap.add_argument("--steps", type=int, default=100, help="steps per simulated sequence")
+    add_training_args(ap, seconds=240.0, max_steps=40000)
     ap.add_argument("--mlp", default="3x512")
-    ap.add_argument("--out", default="bench/results/forward_models")
-    ap.add_argument("--quick", action="store_true")
-    # child mode
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--system", help=argparse.SUPPRESS)
-    ap.add_argument("--dataset", help=argparse.SUPPRESS)
-    ap.add_argument("--child-out", help=argparse.SUPPRESS)
+    add_run_args(ap, "forward_models", "--system", "--dataset", "--child-out")
     ap.add_argument("--valid-eval", type=int, default=50, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -91,26 +72,19 @@ def main():
     if args.quick:
         args.sequences, args.steps, args.seconds, args.max_steps = (40, 5, 10), 20, 20.0, 60
         args.valid_every, args.latent, args.edge_width, args.node_width, args.mlp = 30, 16, 32, 16, "3x32"
-    from gnwarp import data
-    out = Path(args.out)
+    out = experiment_out("forward_models", args.out, args.quick)
     (out / "data").mkdir(parents=True, exist_ok=True)
     names = args.systems.split(",")
     t0 = time.perf_counter()
     for name in names:  # MuJoCo C on every core: seconds per system
-        p = out / "data" / f"{name}.h5"
-        if not p.exists():
-            ds = data.generate(name, tuple(args.sequences), num_steps=args.steps, seed=1, backend="mujoco",
-                               progress=False)
-            ds.save(p)
+        ensure_dataset(out / "data" / f"{name}.h5", name, args.sequences, args.steps, seed=1)
     t_data = time.perf_counter() - t0
     commands = {}
     for name in names:
-        cmd = [sys.executable, __file__, "--child", "--system", name, "--dataset", str(out / "data" / f"{name}.h5"),
-               "--child-out", str(out / name), "--seconds", str(args.seconds), "--max-steps", str(args.max_steps),
-               "--lr", str(args.lr), "--valid-every", str(args.valid_every), "--latent", str(args.latent),
-               "--edge-width", str(args.edge_width), "--node-width", str(args.node_width), "--mlp", args.mlp,
-               "--valid-eval", str(args.sequences[1])]
-        commands[name] = cmd
+        commands[name] = [sys.executable, __file__, "--child", "--system", name,
+                          "--dataset", str(out / "data" / f"{name}.h5"), "--child-out", str(out / name),
+                          *forward_args(args, "seconds", "max_steps", "lr", "valid_every", "latent", "edge_width",
+                                        "node_width", "mlp"), "--valid-eval", str(args.sequences[1])]
     run_side_by_side(commands, out)
     rows = []
     for name in names:
@@ -138,16 +112,13 @@ def main():
         lines.append(f"| {name} | {s['gn']['steps']} ({s['gn']['seconds']:.0f}) | {_e(g, 'one_step')} | {_e(g, 'rollout_20')} | "
                      f"{_e(g, 'rollout_100')} | {_e(m, 'one_step')} | {_e(m, 'rollout_20')} | {_e(m, 'rollout_100')} | "
                      f"{s['stability']['finite']} |")
-    table = "\n".join(lines)
-    (out / "summary.md").write_text(table + "\n")
-    print(table)
+    write_summary(out, lines)
 
 
 def _e(r: dict, key: str) -> str:
     """The normalized error averaged over state groups, for one horizon of an evaluate() result."""
     v = r.get(key, {}).get("mean")
     return "n/a" if v is None else f"{v:.3g}"
-
 
 
 if __name__ == "__main__":

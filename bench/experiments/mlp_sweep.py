@@ -1,9 +1,9 @@
 """The MLP baseline sweep of section E: the five MLP sizes per system, each trained for the same
-number of steps as the GN of ``bench/forward_models.py`` on the same data (regenerated from the
-same seed), evaluated the same way; the best MLP per system is the paper's baseline.
+number of steps as the GN of ``bench/experiments/forward_models.py`` on the same data (regenerated
+from the same seed), evaluated the same way; the best MLP per system is the paper's baseline.
 
-    python bench/mlp_sweep.py --gn-results bench/results/forward_models --out bench/results/mlp_sweep
-    python bench/mlp_sweep.py --quick
+    python bench/experiments/mlp_sweep.py --gn-results bench/results/forward_models --out bench/results/mlp_sweep
+    python bench/experiments/mlp_sweep.py --quick
 """
 from __future__ import annotations
 
@@ -12,29 +12,26 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._common import run_side_by_side  # noqa: E402
-
-SYSTEMS = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah", "walker", "jaco"]
+from bench.harness import (SYSTEMS, add_run_args, ensure_dataset, experiment_out, mean_errors,  # noqa: E402
+                           results_dir, run_side_by_side, train_model, write_summary)
+from gnwarp.models import MLP_SIZES  # noqa: E402
 
 
 def child(args):
     from gnwarp import data
-    from gnwarp import evaluate as ev
-    from gnwarp.models import MLP_SIZES, MLPCoreConfig, ModelConfig
-    from gnwarp.train import TrainConfig, load_model, train
+    from gnwarp import eval as ev
+    from gnwarp.models import MLPCoreConfig, ModelConfig
+    from gnwarp.train import load_model
     ds_path = str(Path(args.out) / "data" / f"{args.system}.h5")
     ds = data.load(ds_path, lazy=False)
     for size in [args.size] if args.size else MLP_SIZES:
-        layers, width = (int(x) for x in size.split("x"))
         out = Path(args.out) / args.system / size
-        run = train(TrainConfig(data=[ds_path], out=str(out), model=ModelConfig(core="mlp", mlp=MLPCoreConfig(layers, width)),
-                                steps=args.train_steps, lr=args.lr, lr_decay=0.6, lr_decay_steps=args.decay_every,
-                                valid_every=args.valid_every, valid_sequences=args.valid, patience=None,
-                                checkpoint_every=args.train_steps, resume=False, progress=False))
-        r = ev.evaluate(load_model(run["best"]).bind(ds), ds, "test")
-        res = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
+        model = ModelConfig(core="mlp", mlp=MLPCoreConfig.preset(size))
+        run = train_model([ds_path], out, model, args.train_steps, lr=args.lr, decay_every=args.decay_every,
+                          valid_every=args.valid_every, valid=args.valid)
+        res = mean_errors(ev.evaluate(load_model(run["best"]).bind(ds), ds, "test"))
         res["steps"] = run["steps"]
         (out / "results.json").write_text(json.dumps(res, indent=1, default=float))
 
@@ -43,7 +40,7 @@ def collect(out: Path, system: str) -> dict:
     """The finished sizes of one system: per-size files, or the older one-file-per-system form."""
     f = out / system / "results.json"
     res = json.loads(f.read_text()) if f.exists() else {}
-    for size in ("3x128", "3x512", "9x128", "9x512", "5x256"):
+    for size in MLP_SIZES:
         g = out / system / size / "results.json"
         if g.exists():
             res[size] = json.loads(g.read_text())
@@ -53,12 +50,9 @@ def collect(out: Path, system: str) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--systems", default=",".join(SYSTEMS))
-    ap.add_argument("--gn-results", default="bench/results/forward_models")
-    ap.add_argument("--out", default="bench/results/mlp_sweep")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--system", help=argparse.SUPPRESS)
-    ap.add_argument("--size", help=argparse.SUPPRESS)
+    ap.add_argument("--gn-results", default=results_dir("forward_models"),
+                    help="bench/experiments/forward_models.py's results (their steps, data sizes and schedule)")
+    add_run_args(ap, "mlp_sweep", "--system", "--size")
     ap.add_argument("--deadline", type=float, default=None,
                     help="seconds after which unfinished trainings are stopped and the table written")
     ap.add_argument("--train-steps", type=int, help=argparse.SUPPRESS)
@@ -69,9 +63,8 @@ def main():
     args = ap.parse_args()
     if args.child:
         return child(args)
-    from gnwarp import data
     names = args.systems.split(",")
-    out = Path(args.out)
+    out = experiment_out("mlp_sweep", args.out, args.quick)
     (out / "data").mkdir(parents=True, exist_ok=True)
     gn = {}
     commands = {}
@@ -84,11 +77,9 @@ def main():
         steps, valid_every, decay = g["gn"]["steps"], cfg["valid_every"], cfg["lr_decay_every"]
         if args.quick:
             sizes, steps, valid_every, decay = (30, 4, 8), 40, 20, 20
-        p = out / "data" / f"{s}.h5"
-        if not p.exists():  # the same data as bench/forward_models.py (seed 1, MuJoCo C)
-            data.generate(s, sizes, num_steps=g["num_steps"] if not args.quick else 20, seed=1, backend="mujoco",
-                          progress=False).save(p)
-        for size in ("3x128", "3x512", "9x128", "9x512", "5x256"):  # one process per (system, size)
+        # the same data as bench/experiments/forward_models.py (seed 1, MuJoCo C)
+        ensure_dataset(out / "data" / f"{s}.h5", s, sizes, g["num_steps"] if not args.quick else 20, seed=1)
+        for size in MLP_SIZES:  # one process per (system, size)
             commands[f"{s}_{size}"] = [sys.executable, __file__, "--child", "--system", s, "--size", size,
                                        "--out", str(out), "--train-steps", str(steps), "--lr", str(cfg["lr"]),
                                        "--decay-every", str(decay), "--valid-every", str(valid_every),
@@ -98,10 +89,10 @@ def main():
         if s not in gn and (Path(args.gn_results) / s / "results.json").exists() and collect(out, s):
             gn[s] = json.loads((Path(args.gn_results) / s / "results.json").read_text())
             names.append(s)
-    lines = ["# MLP baseline sweep (section E) beside the GN of bench/forward_models.py", "",
+    lines = ["# MLP baseline sweep (section E) beside the GN of bench/experiments/forward_models.py", "",
              "Each MLP trained for the GN's number of steps on the same data; 20-step rollout error / constant.", "",
-             "| system | GN | 3x128 | 3x512 | 9x128 | 9x512 | 5x256 | best MLP | GN better than best MLP |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"| system | GN | {' | '.join(MLP_SIZES)} | best MLP | GN better than best MLP |",
+             "|---|---|" + "---|" * len(MLP_SIZES) + "---|---|"]
     for s in names:
         r = collect(out, s)
         g20 = gn[s]["results"]["GN"]["rollout_20"]["mean"]
@@ -109,14 +100,11 @@ def main():
             lines.append(f"| {s} | {g20:.3g} | failed (see {s}_*.log) | | | | | | |")
             continue
         best = min(r, key=lambda k: r[k]["rollout_20"])
-        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" if k in r else "not finished"
-                           for k in ("3x128", "3x512", "9x128", "9x512", "5x256"))
+        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" if k in r else "not finished" for k in MLP_SIZES)
         verdict = "yes" if g20 < r[best]["rollout_20"] else "no"
         lines.append(f"| {s} ({gn[s]['gn']['steps']} steps) | {g20:.3g} | {cells} | {best} ({r[best]['rollout_20']:.3g})"
-                     f"{'' if len(r) == 5 else f' of {len(r)}'} | {verdict} |")
-    table = "\n".join(lines)
-    (out / "summary.md").write_text(table + "\n")
-    print(table)
+                     f"{'' if len(r) == len(MLP_SIZES) else f' of {len(r)}'} | {verdict} |")
+    write_summary(out, lines)
 
 
 if __name__ == "__main__":

@@ -8,8 +8,8 @@
 Datasets are simulated with MuJoCo C on all cores; the three trainings run side by side on the one
 device, each capped at ``--seconds`` of wall clock.
 
-    python bench/multi_system.py --seconds 300 --out bench/results/multi_system
-    python bench/multi_system.py --quick
+    python bench/experiments/multi_system.py --seconds 300 --out bench/results/multi_system
+    python bench/experiments/multi_system.py --quick
 """
 from __future__ import annotations
 
@@ -19,9 +19,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._common import device_name, run_side_by_side  # noqa: E402
+from bench.harness import (add_run_args, add_training_args, device_name, ensure_dataset, experiment_out,  # noqa: E402
+                           forward_args, gn_sizes, mean_errors, run_side_by_side, train_model, write_summary)
 
 RUNS = {
     "multi4": (["pendulum", "cartpole", "acrobot", "swimmer6"], ["pendulum", "cartpole", "acrobot", "swimmer6"]),
@@ -33,26 +34,21 @@ RUNS = {
 
 def child(args):
     from gnwarp import data
-    from gnwarp import evaluate as ev
-    from gnwarp.models import GNCoreConfig, ModelConfig
-    from gnwarp.train import TrainConfig, load_model, train
+    from gnwarp import eval as ev
+    from gnwarp.models import ModelConfig
+    from gnwarp.train import load_model
 
     train_sys, test_sys = RUNS[args.run]
     out = Path(args.out) / args.run
     files = [str(Path(args.out) / "data" / f"{s}.h5") for s in train_sys]
-    gn = GNCoreConfig(latent=args.latent, edge_hidden=(args.edge_width,) * 2, node_hidden=(args.node_width,) * 2,
-                      global_hidden=(args.node_width,) * 2)
-    run = train(TrainConfig(data=files, out=str(out), model=ModelConfig(core="gn", gn=gn), steps=args.max_steps,
-                            max_seconds=args.seconds, lr=args.lr, lr_decay=0.6,
-                            lr_decay_steps=max(1, args.max_steps // 4), valid_every=args.valid_every,
-                            valid_sequences=args.valid, patience=None, checkpoint_every=args.max_steps,
-                            resume=False, progress=False))
+    gn = gn_sizes(args.latent, args.edge_width, args.node_width)
+    run = train_model(files, out, ModelConfig(core="gn", gn=gn), args.max_steps, seconds=args.seconds, lr=args.lr,
+                      decay_every=args.max_steps // 4, valid_every=args.valid_every, valid=args.valid)
     model = load_model(Path(run["best"]))
     results = {}
     for s in test_sys:
         ds = data.load(Path(args.out) / "data" / f"{s}.h5", lazy=False)
-        r = ev.evaluate(model.bind(ds), ds, "test")
-        results[s] = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in r.items()}
+        results[s] = mean_errors(ev.evaluate(model.bind(ds), ds, "test"))
         results[s]["seen_in_training"] = s in train_sys
     summary = {"run": args.run, "train_systems": train_sys, "steps": run["steps"], "seconds": run["seconds"],
                "results": results}
@@ -62,19 +58,9 @@ def child(args):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", default=",".join(RUNS))
-    ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200), metavar=("TRAIN", "VALID", "TEST"))
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--seconds", type=float, default=300.0)
-    ap.add_argument("--max-steps", type=int, default=60000)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--valid-every", type=int, default=2000)
-    ap.add_argument("--latent", type=int, default=128)
-    ap.add_argument("--edge-width", type=int, default=256)
-    ap.add_argument("--node-width", type=int, default=128)
-    ap.add_argument("--out", default="bench/results/multi_system")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--run", help=argparse.SUPPRESS)
+    ap.add_argument("--steps", type=int, default=100, help="steps per simulated sequence")
+    add_training_args(ap, seconds=300.0, max_steps=60000)
+    add_run_args(ap, "multi_system", "--run")
     ap.add_argument("--valid", type=int, default=50, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -82,27 +68,21 @@ def main():
     if args.quick:
         args.sequences, args.steps, args.seconds, args.max_steps = (30, 4, 6), 12, 15.0, 40
         args.valid_every, args.latent, args.edge_width, args.node_width = 20, 16, 32, 16
-    from gnwarp import data
     runs = args.runs.split(",")
-    out = Path(args.out)
+    out = experiment_out("multi_system", args.out, args.quick)
     (out / "data").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     needed = sorted({s for r in runs for s in RUNS[r][0] + RUNS[r][1]})
     for s in needed:
-        p = out / "data" / f"{s}.h5"
-        if p.exists():
-            continue
         trained = any(s in RUNS[r][0] for r in runs)
         sizes = tuple(args.sequences) if trained else (1, 1, args.sequences[2])  # test-only systems
-        data.generate(s, sizes, num_steps=args.steps, seed=2, backend="mujoco", progress=False).save(p)
+        ensure_dataset(out / "data" / f"{s}.h5", s, sizes, args.steps, seed=2)
     t_data = time.perf_counter() - t0
     commands = {}
     for r in runs:
-        cmd = [sys.executable, __file__, "--child", "--run", r, "--out", str(out), "--seconds", str(args.seconds),
-               "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every),
-               "--latent", str(args.latent), "--edge-width", str(args.edge_width), "--node-width", str(args.node_width),
-               "--valid", str(args.sequences[1])]
-        commands[r] = cmd
+        commands[r] = [sys.executable, __file__, "--child", "--run", r, "--out", str(out),
+                       *forward_args(args, "seconds", "max_steps", "lr", "valid_every", "latent", "edge_width",
+                                     "node_width"), "--valid", str(args.sequences[1])]
     run_side_by_side(commands, out)
     lines = [f"# One model for several systems, and SwimmerN zero-shot ({device_name()})", "",
              f"Data: {args.sequences[0]}/{args.sequences[1]}/{args.sequences[2]} sequences x {args.steps} steps per "
@@ -119,14 +99,11 @@ def main():
         for name, v in s["results"].items():
             lines.append(f"| {r} | {s['steps']} | {name} | {'yes' if v['seen_in_training'] else 'no'} | "
                          f"{_f(v.get('one_step'))} | {_f(v.get('rollout_20'))} | {_f(v.get('rollout_100'))} |")
-    table = "\n".join(lines)
-    (out / "summary.md").write_text(table + "\n")
-    print(table)
+    write_summary(out, lines)
 
 
 def _f(x) -> str:
     return "n/a" if x is None else f"{x:.3g}"
-
 
 
 if __name__ == "__main__":

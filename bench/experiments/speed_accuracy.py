@@ -5,8 +5,9 @@ budget each), then every model is evaluated in fp32, tf32 and fp16 (and bf16): i
 rollout error on the test split (normalized by the constant baseline) against its time per rollout
 step at a large batch, beside MuJoCo-Warp's own time per data step on the same system and batch.
 
-    python bench/speed_accuracy.py --systems pendulum,cheetah,swimmer6 --seconds 150 --out bench/results/speed_accuracy
-    python bench/speed_accuracy.py --quick
+    python bench/experiments/speed_accuracy.py --systems pendulum,cheetah,swimmer6 --seconds 150 \
+        --out bench/results/speed_accuracy
+    python bench/experiments/speed_accuracy.py --quick
 """
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._common import device_name, run_side_by_side  # noqa: E402
+from bench.harness import (add_run_args, add_training_args, capture, device_name, ensure_dataset,  # noqa: E402
+                           experiment_out, forward_args, median_ms, run_side_by_side, train_model, write_summary)
 
 SIZES = {  # name: (latent, edge hidden, node/global hidden)
     "small": (64, (128,), (64,)),
@@ -30,22 +32,10 @@ PRECISIONS = ("fp32", "tf32", "fp16", "bf16")
 
 def train_child(args):
     from gnwarp.models import GNCoreConfig, ModelConfig
-    from gnwarp.train import TrainConfig, train
     lat, eh, nh = SIZES[args.size]
     gn = GNCoreConfig(latent=lat, edge_hidden=eh, node_hidden=nh, global_hidden=nh)
-    train(TrainConfig(data=[args.dataset], out=args.child_out, model=ModelConfig(core="gn", gn=gn),
-                      steps=args.max_steps, max_seconds=args.seconds, lr=args.lr, lr_decay=0.6,
-                      lr_decay_steps=max(1, args.max_steps // 4), valid_every=args.valid_every,
-                      valid_sequences=50, patience=None, checkpoint_every=args.max_steps, resume=False,
-                      progress=False))
-
-
-def _set_precision(model, precision: str):
-    from gnwarp.gn import GraphNetwork
-    for m in model.modules():
-        if isinstance(m, GraphNetwork):
-            m.precision = precision
-            m.check_inputs = False  # no host syncs inside the timed (and captured) loop
+    train_model([args.dataset], args.child_out, ModelConfig(core="gn", gn=gn), args.max_steps, seconds=args.seconds,
+                lr=args.lr, decay_every=args.max_steps // 4, valid_every=args.valid_every, valid=50)
 
 
 def time_rollout(model, ds, batch: int, horizon: int, reps: int) -> tuple[float, str]:
@@ -70,46 +60,23 @@ def time_rollout(model, ds, batch: int, horizon: int, reps: int) -> tuple[float,
     fn = step
     if dev.type == "cuda":
         try:
-            from gnwarp.gn_warp import cuda_graph
-            s = torch.cuda.Stream()
-            s.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(s):
-                step()
-            torch.cuda.current_stream().wait_stream(s)
-            g = torch.cuda.CUDAGraph()
-            with cuda_graph(g, s):
-                step()
-            fn, mode = g.replay, "captured"
+            fn, mode = capture(step, warmup=1), "captured"
         except Exception as e:  # noqa: BLE001 - report the mode that ran
             mode = f"eager (capture failed: {type(e).__name__})"
             torch.cuda.synchronize()
-    times = []
-    for _ in range(reps):
-        if dev.type == "cuda":
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            torch.cuda.synchronize()
-            times.append(a.elapsed_time(b) / 1e3)
-        else:
-            t = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t)
-    return float(np.median(times)) / horizon, mode
+    return median_ms(fn, dev, reps, 0) / 1e3 / horizon, mode
 
 
 def mjwarp_step_time(system: str, batch: int, steps: int = 50) -> float:
     """Seconds per data step of MuJoCo-Warp at ``batch`` worlds (graph-captured, body states recorded)."""
     import numpy as np
 
-    from gnwarp import data, systems
-    from gnwarp.controls import control_range, random_spline_controls
-    from gnwarp.simulate import simulate_mujoco_warp
-    s = systems.make(system)
+    from gnwarp import data, sim
+    from gnwarp.sim.mujoco_warp import simulate_mujoco_warp
+    s = sim.make(system)
     rng = np.random.default_rng(0)
     q0, v0 = data.initial_states(s, batch, rng)
-    u = random_spline_controls(batch, steps, control_range(s.model), rng)
+    u = sim.random_spline_controls(batch, steps, sim.control_range(s.model), rng)
     simulate_mujoco_warp([s.model], s.substeps, q0[:8], v0[:8], u[:8, :2])  # compile
     t = time.perf_counter()
     simulate_mujoco_warp([s.model], s.substeps, q0, v0, u)
@@ -120,20 +87,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--systems", default="pendulum,cheetah,swimmer6")
     ap.add_argument("--sizes", default=",".join(SIZES))
-    ap.add_argument("--sequences", type=int, nargs=3, default=(2000, 50, 200))
-    ap.add_argument("--seconds", type=float, default=150.0)
-    ap.add_argument("--max-steps", type=int, default=40000)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--valid-every", type=int, default=2000)
+    add_training_args(ap, seconds=150.0, max_steps=40000, core_sizes=False)
     ap.add_argument("--batch", type=int, default=4096)
     ap.add_argument("--horizon", type=int, default=20)
     ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--out", default="bench/results/speed_accuracy")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--size", help=argparse.SUPPRESS)
-    ap.add_argument("--dataset", help=argparse.SUPPRESS)
-    ap.add_argument("--child-out", help=argparse.SUPPRESS)
+    add_run_args(ap, "speed_accuracy", "--size", "--dataset", "--child-out")
     args = ap.parse_args()
     if args.child:
         return train_child(args)
@@ -143,24 +101,20 @@ def main():
     import torch
 
     from gnwarp import data
-    from gnwarp import evaluate as ev
+    from gnwarp import eval as ev
     from gnwarp.interop import cuda_available
     from gnwarp.train import load_model
-    out = Path(args.out)
+    out = experiment_out("speed_accuracy", args.out, args.quick)
     (out / "data").mkdir(parents=True, exist_ok=True)
     names, sizes = args.systems.split(","), args.sizes.split(",")
     for s in names:
-        p = out / "data" / f"{s}.h5"
-        if not p.exists():
-            data.generate(s, tuple(args.sequences), num_steps=max(100, args.horizon), seed=3, backend="mujoco",
-                          progress=False).save(p)
+        ensure_dataset(out / "data" / f"{s}.h5", s, args.sequences, max(100, args.horizon), seed=3)
     commands = {}
     for s in names:
         for z in sizes:
-            cmd = [sys.executable, __file__, "--child", "--size", z, "--dataset", str(out / "data" / f"{s}.h5"),
-                   "--child-out", str(out / f"{s}-{z}"), "--seconds", str(args.seconds),
-                   "--max-steps", str(args.max_steps), "--lr", str(args.lr), "--valid-every", str(args.valid_every)]
-            commands[f"{s}-{z}"] = cmd
+            commands[f"{s}-{z}"] = [sys.executable, __file__, "--child", "--size", z,
+                                    "--dataset", str(out / "data" / f"{s}.h5"), "--child-out", str(out / f"{s}-{z}"),
+                                    *forward_args(args, "seconds", "max_steps", "lr", "valid_every")]
     run_side_by_side(commands, out, threads=1)
     rows = []
     cuda = torch.cuda.is_available()
@@ -175,7 +129,7 @@ def main():
                 continue
             model = load_model(ck).bind(ds)
             for prec in precisions:
-                _set_precision(model, prec)
+                model.set_options(precision=prec)
                 err = ev.evaluate(model, ds, "test", horizons=(args.horizon,))[f"rollout_{args.horizon}"]["mean"]
                 dt, mode = time_rollout(model, ds, args.batch, args.horizon, args.reps)
                 rows.append(dict(system=s, size=z, precision=prec, rollout_error=err, step_seconds=dt, mode=mode,
@@ -196,11 +150,9 @@ def main():
         sim = "n/a" if r["mjwarp_step_seconds"] is None else f"{1e3 * r['mjwarp_step_seconds']:.3f}"
         lines.append(f"| {r['system']} | {r['size']} | {r['precision']} | {r['rollout_error']:.3g} | "
                      f"{1e3 * r['step_seconds']:.3f} | {args.batch / r['step_seconds']:.3g} | {r['mode']} | {sim} |")
-    table = "\n".join(lines)
-    (out / "summary.md").write_text(table + "\n")
     (out / "rows.json").write_text(json.dumps(rows, indent=1))
     _plot(rows, out / "speed_accuracy.png")
-    print(table)
+    write_summary(out, lines)
 
 
 def _plot(rows, path):

@@ -1,33 +1,35 @@
 """Probe: how fast do Warp's scalar-access kernels move memory, against torch on the same copy?
 
-Times the split path's ``concat`` kernel at the paper core's second-block edge shape (73728 rows,
-pieces 192 + 159 + 159 + 160 fp32 columns -> 672 fp16 columns, three of them gathered), its
-variants (fp32 output, block sizes, no gathers), a one-line Warp copy kernel fp32 -> fp16 of the
-same element count, torch's ``copy_`` of it and the torch idiom (index, cat, cast). CUDA only.
+Times the blas path's ``concat_kernel`` (``gnwarp.kernels.gn.graph_ops``) at the paper core's
+second-block edge shape (73728 rows, pieces 192 + 159 + 159 + 160 fp32 columns -> 672 fp16
+columns, three of them gathered), its variants (fp32 output, block sizes, no gathers), a one-line
+Warp copy kernel fp32 -> fp16 of the same element count, torch's ``copy_`` of it and the torch
+idiom (index, cat, cast). CUDA only.
 
-    python bench/warp_copy_probe.py
+    python bench/probes/warp_copy_probe.py
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
+import warp as wp
 
-import torch  # noqa: E402
-import warp as wp  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench._common import device_name  # noqa: E402
-from bench.gn_block import timeit  # noqa: E402
+from bench.harness import device_name, median_ms  # noqa: E402
+from gnwarp.interop import warp  # noqa: E402
+from gnwarp.kernels.gn.graph_ops import concat_kernel, concat_threads  # noqa: E402
 
 
 def main():
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     if not torch.cuda.is_available():
         print("needs a CUDA device")
         return 1
-    wp.config.quiet = True
-    wp.init()
-    from gnwarp.kernels import gn_block as K
+    warp()  # initialized as the library does
     dev = torch.device("cuda:0")
     wd = wp.device_from_torch(dev)
     stream = wp.stream_from_torch(torch.cuda.current_stream(dev))
@@ -43,14 +45,14 @@ def main():
         return wp.from_torch(x, return_ctype=True)
 
     def concat(out_dtype, gathered=True, block_dim=256):
-        kern = K.concat_kernel((192, 159, 159, 160), (False, gathered, gathered, gathered), (wp.float32,) * 4,
-                               wp.float16 if out_dtype == torch.float16 else wp.float32, KO)
+        kern = concat_kernel((192, 159, 159, 160), (False, gathered, gathered, gathered), (wp.float32,) * 4,
+                             wp.float16 if out_dtype == torch.float16 else wp.float32, KO)
         out = torch.empty(E, KO, device=dev, dtype=out_dtype)
         vv = v if gathered else torch.randn(E, 159, device=dev)
         uu = u if gathered else torch.randn(E, 160, device=dev)
         args = [arr(e), arr(vv), arr(vv), arr(uu), arr(s), arr(s), arr(r), arr(g), E, arr(out)]
-        return lambda: wp.launch(kern, dim=K.concat_threads(E, (192, 159, 159, 160), KO), inputs=args, device=wd, stream=stream,
-                                 block_dim=block_dim)
+        return lambda: wp.launch(kern, dim=concat_threads(E, (192, 159, 159, 160), KO), inputs=args, device=wd,
+                                 stream=stream, block_dim=block_dim)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
     def copy_cast(a: wp.array(dtype=wp.float32), b: wp.array(dtype=wp.float16)):
@@ -74,7 +76,7 @@ def main():
     print(f"# Warp scalar kernels vs torch on one copy ({device_name()}, warp {wp.__version__}, torch {torch.__version__})")
     print(f"\n{E} x {KO} elements\n\n| kernel | us | GB/s (elements x bytes read + written) |\n|---|---|---|")
     for name, fn, nbytes in rows:
-        us = timeit(fn, dev, 20, 3) * 1e3
+        us = median_ms(fn, dev, 20, 3) * 1e3
         bw = f"{E * KO * nbytes / us / 1e3:.0f}" if nbytes else ""
         print(f"| {name} | {us:.1f} | {bw} |")
     return 0
