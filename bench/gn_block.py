@@ -62,7 +62,7 @@ from bench.harness import (EDGE_IN, GLOB_IN, NODE_IN, NODE_OUT, PAPER, QUICK, SH
                            capture, device_name, make_batch, median_ms, results_dir, slug, uniform_sizes)
 from gnwarp.gn import TUNABLES, GNBlockConfig, flatten_parameters, graph_index, tf32_matmul  # noqa: E402
 from gnwarp.gn.rules import tile_feasible  # noqa: E402
-from gnwarp.graphs import GraphsTuple  # noqa: E402
+from gnwarp.graphs import GraphsTuple, graph_of  # noqa: E402
 from gnwarp.models import GNCore, GNCoreConfig  # noqa: E402
 from gnwarp.train import FlatAdam  # noqa: E402
 
@@ -108,9 +108,9 @@ class TorchCore(nn.Module):
 
 
 def torch_inputs(g: GraphsTuple):
-    B = g.n_node.shape[0]
-    ng = torch.repeat_interleave(torch.arange(B, device=g.nodes.device), g.n_node, output_size=g.nodes.shape[0])
-    eg = torch.repeat_interleave(torch.arange(B, device=g.nodes.device), g.n_edge, output_size=g.edges.shape[0])
+    """The torch peer's inputs: features, indices and the graph of each node / edge, precomputed
+    (as the GraphIndex is for ours)."""
+    ng, eg = graph_of(g.n_node, g.nodes.shape[0]), graph_of(g.n_edge, g.edges.shape[0])
     return (g.nodes, g.edges, g.globals, g.senders, g.receivers, ng, eg)
 
 
