@@ -27,7 +27,7 @@ def _find_kernels():
 _find_kernels()
 
 # the public API: the stages by name, and the handful of objects a user calls
-from gnwarp import data, eval, sim  # noqa: E402
+from gnwarp import data, eval, sim  # noqa: E402, F401  (eval: reachable as gnwarp.eval)
 from gnwarp.gn import TUNABLES, GNBlockConfig, GraphNetwork, RunOptions, flatten_parameters  # noqa: E402
 from gnwarp.graphs import GraphsTuple  # noqa: E402
 from gnwarp.interop import cuda_graph  # noqa: E402
@@ -36,6 +36,7 @@ from gnwarp.sim import systems  # noqa: E402
 # (the function ``train`` stays in ``gnwarp.train``: at the top it would hide that subpackage)
 from gnwarp.train import FlatAdam, TrainConfig, Trainer, load_model  # noqa: E402
 
+# (``gnwarp.eval`` stays out of __all__: a star import would hide Python's builtin ``eval``)
 __all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "RunOptions", "TUNABLES", "ForwardModel", "ModelConfig",
            "Trainer", "TrainConfig", "load_model", "FlatAdam", "flatten_parameters", "cuda_graph", "systems",
-           "sim", "data", "eval"]
+           "sim", "data"]

@@ -5,6 +5,8 @@ import argparse
 import sys
 import time
 
+from gnwarp.gn.options import IMPLS
+
 
 def _cmd_systems(args) -> int:
     from gnwarp.sim import systems
@@ -224,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-n", "--sequences", type=int, default=None, help="first N sequences of the split (default all)")
     e.add_argument("--horizons", type=int, nargs="+", default=[20, 100])
     e.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
-    e.add_argument("--impl", choices=["warp", "torch"], default=None,
+    e.add_argument("--impl", choices=IMPLS, default=None,
                    help="run the GN on Warp kernels or the torch reference (default: as the checkpoint was saved)")
     e.add_argument("-o", "--out", help="also write the table, bar chart, state plot and GIF here")
     e.set_defaults(func=_cmd_evaluate)
@@ -234,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--steps", type=int, help="training steps per model")
     d.add_argument("--seconds", type=float, help="training time cap for the GN (the MLP gets its step count)")
     d.add_argument("--system", help="system to model (default: pendulum)")
-    d.add_argument("--impl", choices=["warp", "torch"], help="GN implementation (default: warp)")
+    d.add_argument("--impl", choices=IMPLS, help="GN implementation (default: warp)")
     d.add_argument("--device", help="cpu, cuda, ... (default: CUDA when present)")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=_cmd_demo)

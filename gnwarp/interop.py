@@ -82,7 +82,7 @@ def cuda_graph(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream | None = N
             wp.capture_end()
 
 
-_PLACEHOLDERS: dict[tuple, torch.Tensor] = {}
+_PLACEHOLDERS: dict[tuple, object] = {}
 
 
 class Launcher:
@@ -98,12 +98,16 @@ class Launcher:
     def is_cuda(self) -> bool:
         return self.stream is not None
 
-    def placeholder(self, dtype: torch.dtype, ndim: int) -> torch.Tensor:
-        """Zero-size array for the argument of an input a kernel was built without (never read)."""
+    def placeholder(self, dtype, ndim: int):
+        """Zero-size array for the argument of an input a kernel was built without (never read):
+        a torch tensor for a torch ``dtype``, a Warp array for a Warp one (vector types too);
+        made once per device, dtype and rank."""
         key = (self.torch_device, dtype, ndim)
         t = _PLACEHOLDERS.get(key)
         if t is None:
-            t = _PLACEHOLDERS[key] = torch.empty((0,) * ndim, dtype=dtype, device=self.torch_device)
+            shape = (0,) * ndim
+            t = _PLACEHOLDERS[key] = (torch.empty(shape, dtype=dtype, device=self.torch_device)
+                                      if isinstance(dtype, torch.dtype) else wp.empty(shape, dtype=dtype, device=self.device))
         return t
 
     @staticmethod

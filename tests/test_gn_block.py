@@ -16,6 +16,7 @@ from torch.func import functional_call  # noqa: E402
 from gnwarp import GNBlockConfig, GraphNetwork, GraphsTuple  # noqa: E402
 from gnwarp.gn import (TUNABLES, EdgeBlockConfig, GlobalBlockConfig, NodeBlockConfig, RunOptions,  # noqa: E402
                        TorchGraphNetwork, fp16x3, graph_index, graph_ops, rules, tile_block)
+from gnwarp.gn.config import pad  # noqa: E402
 from gnwarp.graphs import batch  # noqa: E402
 from gnwarp.interop import WP_DTYPE, Launcher  # noqa: E402
 
@@ -234,7 +235,7 @@ def test_concat_kernel(widths, gathered, vec_):
     of rows sharing warps is partial)."""
     from gnwarp.kernels.gn import graph_ops as K
     gen = torch.Generator().manual_seed(sum(widths))
-    rows, src_rows, K_ = 11, 4, rules.pad(sum(widths)) + 8
+    rows, src_rows, K_ = 11, 4, pad(sum(widths)) + 8
     dtypes = (torch.float32, torch.float64, torch.float32, torch.float16)
     srcs = [torch.randn(src_rows if g else rows, max(w, 1), generator=gen).to(dt)[:, :w].contiguous()
             for w, g, dt in zip(widths, gathered, dtypes)]
@@ -548,6 +549,10 @@ def test_graph_network_options_attributes():
     with pytest.raises(ValueError, match="precision"):
         gn.precision = "fp8"
     assert gn.precision == "tf32"
+    with pytest.raises(AttributeError, match="backend is now .impl"):  # an earlier version's name
+        gn.backend = "torch"
+    with pytest.raises(TypeError, match="'backend' is now 'impl'"):
+        GraphNetwork(**SMALL, backend="torch")
     g = make_batch("mixed", dtype=torch.float32)
     gn.precision = "fp64"
     with pytest.raises(ValueError, match="float64 parameters"):

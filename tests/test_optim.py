@@ -148,7 +148,7 @@ def test_check_finite_refuses_nan_gradients_and_leaves_parameters():
 # -- the Warp GN implementation writes main_grad--------------------------------------------------------
 @pytest.mark.parametrize("precision", ["fp32", "fp16"])
 @pytest.mark.parametrize("deterministic", [False, True])
-def test_gn_warp_accumulates_into_main_grad(precision, deterministic):
+def test_warp_block_accumulates_into_main_grad(precision, deterministic):
     """Gradients the Warp backward adds into main_grad (one launch per weights / biases) equal
     the p.grad it returns without FlatAdam; two backward passes accumulate."""
     torch.manual_seed(1)
@@ -167,7 +167,7 @@ def test_gn_warp_accumulates_into_main_grad(precision, deterministic):
     assert not opt.grad_flat.any()
 
 
-def test_gn_warp_main_grad_with_a_frozen_parameter():
+def test_warp_block_main_grad_with_a_frozen_parameter():
     """A parameter frozen after FlatAdam was made (requires_grad off) gets nothing added into its
     main_grad; the others get the gradients autograd gives without FlatAdam."""
     torch.manual_seed(5)

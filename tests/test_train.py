@@ -163,18 +163,28 @@ def test_checkpoints_of_earlier_versions_load(tmp_path, pendulum):
     import shutil
     shutil.copytree(r["last"], old)
 
+    def old_model(model, precision):
+        run = model.pop("run")
+        model["gn"].update(backend=run["impl"], path="split", precision=precision, deterministic=True)
+
     def to_old(cfg):
-        run = cfg["model"].pop("run")
-        cfg["model"]["gn"].update(backend=run["impl"], path="split", precision="tf32", deterministic=True)
-        cfg["train"]["dtype"] = "float32"
+        old_model(cfg["model"], "tf32")
+        old_model(cfg["train"]["model"], "fp32")  # every old config spelled out gn.precision
+        cfg["train"]["dtype"] = "float64"
     _rewrite_config(old, to_old)
     m = load_model(old, device="cpu")
     assert (m.options.impl, m.options.path, m.options.precision, m.options.deterministic) == (
         "torch", "blas", "tf32", True)
-    cfg = TrainConfig.from_dict({**json.loads((old / "config.json").read_text())["train"], "dtype": "float64"})
-    assert cfg.model.run.precision == "fp64" and cfg.model.run.impl == "torch"
+    # the old train config: float64 training is precision "fp64", whatever gn.precision said
+    cfg = TrainConfig.from_dict(json.loads((old / "config.json").read_text())["train"])
+    assert (cfg.model.run.precision, cfg.model.run.impl, cfg.model.run.path) == ("fp64", "torch", "blas")
     with pytest.raises(ValueError, match="dtype"):
         TrainConfig.from_dict({"dtype": "float16"})
+    # earlier names of the GN's implementation get an error that names today's
+    with pytest.raises(TypeError, match="'backend' is now 'impl'"):
+        load_model(r["last"], device="cpu", backend="torch")
+    with pytest.raises(AttributeError, match="backend is now"):
+        m.core.backend = "warp"
 
 
 def test_trainer_seams(tmp_path, pendulum):
@@ -200,8 +210,26 @@ def test_trainer_seams(tmp_path, pendulum):
     assert next(i for e, i in events if e == "validate")["error"] == float(read_log(tmp_path / "run" / "log.csv")[0]
                                                                           ["valid_error"])
     assert r["steps"] == 20 and not all(torch.equal(a, b) for a, b in zip(p0, t.model.parameters()))
-    terms = t.step()  # one more step, outside the loop
+    terms = t.step()  # one more step, outside the loop: the count and the schedule advance
     assert set(terms) == {"loss", "pos", "quat", "linvel", "angvel"} and terms["loss"].requires_grad
+    assert t.state["step"] == 21 and t.optimizer.param_groups[0]["lr"] == t.config.lr_at(20)
+
+
+def test_trainer_runs_a_given_model_as_its_config_says(tmp_path, pendulum):
+    """A model passed to the Trainer runs as ``config.model.run`` says ("fp64": float64), and
+    changing a model's options leaves other models built from the same config alone."""
+    cfg = config(tmp_path, steps=2, valid_every=2)
+    other = gnwarp.train.build_model(cfg, [pendulum])
+    m = gnwarp.train.build_model(cfg, [pendulum])
+    cfg.model.run = cfg.model.run.replace(precision="fp64")
+    t = gnwarp.Trainer(cfg, [pendulum], model=m)
+    assert t.model.dtype == torch.float64 and t.model.options.precision == "fp64"
+    assert other.options.precision == "fp32" and other.dtype == torch.float32
+    a, b = (gnwarp.ForwardModel(other.config, pendulum.layout) for _ in range(2))  # one config object
+    a.set_options(precision="tf32")
+    assert b.options.precision == "fp32" and other.options.precision == "fp32"
+    t.run()
+    assert load_model(t.out / "last", device="cpu").dtype == torch.float64
 
 
 def test_mismatched_dataset_gives_a_clear_error(tmp_path, pendulum):

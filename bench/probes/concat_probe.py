@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import EDGE_IN, GLOB_IN, NODE_IN, PAPER, captured_us, make_batch, results_dir, slug  # noqa: E402
 from gnwarp.gn import graph_index  # noqa: E402
-from gnwarp.gn.rules import pad  # noqa: E402
+from gnwarp.gn.config import pad  # noqa: E402
 from gnwarp.interop import WP_DTYPE, Launcher  # noqa: E402
 from gnwarp.kernels.gn.graph_ops import CONCAT_VEC, concat_kernel, concat_threads  # noqa: E402
 

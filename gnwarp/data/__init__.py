@@ -7,7 +7,7 @@
     >>> g = ds.graphs("train", seq=[0, 1], t=[5, 7])           # input graphs, torch
 
 Modules: ``convert`` (MjModel -> static graph), ``layout`` (which static columns a model reads),
-``dataset`` (the file format), ``generate`` (simulating datasets), ``builder`` (input graphs).
+``dataset`` (the file format), ``generation`` (simulating datasets), ``builder`` (input graphs).
 """
 from gnwarp.data.builder import GraphBuilder, GraphTemplate, graph_builder
 from gnwarp.data.convert import static_arrays, static_graph

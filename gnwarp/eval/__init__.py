@@ -5,7 +5,7 @@ animations of true vs predicted motion.
     >>> results = {"GN": ev.evaluate(model, dataset, "test")}
     >>> print(ev.markdown_table(results, dataset.system))
 
-Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animate`` (GIFs), ``render``
+Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animation`` (GIFs), ``render``
 (MuJoCo's offscreen renderer in a child process).
 """
 from gnwarp.eval.animation import animate

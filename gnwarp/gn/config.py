@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 __all__ = ["EdgeBlockConfig", "NodeBlockConfig", "GlobalBlockConfig", "GNBlockConfig", "column_slices",
-           "layout_width"]
+           "layout_width", "pad"]
 
 
 @dataclass(frozen=True)
@@ -158,3 +158,10 @@ def column_slices(layout: Sequence[tuple[str, int]]) -> dict[str, slice]:
 def layout_width(layout: Sequence[tuple[str, int]]) -> int:
     """Total width of a layout: the MLP's input size."""
     return sum(w for _, w in layout)
+
+
+def pad(cols: int) -> int:
+    """Padded width of a first-layer GEMM operand: a multiple of 8 elements (16 bytes in fp16 /
+    bf16, 32 in fp32), which cuBLAS's fast (Hopper) kernels need for their K and leading
+    dimensions; widths such as 31 or 159 otherwise fall back to Ampere / Turing kernels."""
+    return -(-cols // 8) * 8

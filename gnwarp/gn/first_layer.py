@@ -1,5 +1,5 @@
 """The first layer of each MLP as GEMM-ready weight blocks: its layout (aligned, zero-padded to
-``rules.pad`` columns, so cuBLAS takes its fast kernels), written once per forward by one kernel
+``config.pad`` columns, so cuBLAS takes its fast kernels), written once per forward by one kernel
 (``prepare``: the parameter cast and every first-layer block), and its gradient unpacked back
 (``FirstLayer.unpack``). Kernels: ``kernels/gn/first_layer.py``."""
 from __future__ import annotations
@@ -8,10 +8,9 @@ import functools
 
 import torch
 
-from gnwarp.gn.config import column_slices
+from gnwarp.gn.config import column_slices, pad
 from gnwarp.gn.flat import ALIGN, cast_params, flat_span
 from gnwarp.gn.mlp import wgrad
-from gnwarp.gn.rules import pad
 from gnwarp.interop import WP_DTYPE, Launcher
 from gnwarp.kernels.gn import first_layer as K
 

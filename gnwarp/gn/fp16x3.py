@@ -31,9 +31,6 @@ def gemm(a3: torch.Tensor, w3: torch.Tensor) -> torch.Tensor:
     return torch.mm(a3.float(), w3.float().t())
 
 
-_NONE: dict[tuple, object] = {}
-
-
 def pieces(launch, width: int, rows: int, src, epilogue=None, relu=False, dst=None, out=None, inv=None,
            weights=False) -> None:
     """``K.pieces_kernel`` over ``rows`` rows of ``width`` columns: ``src`` float32 rows (and
@@ -46,13 +43,7 @@ def pieces(launch, width: int, rows: int, src, epilogue=None, relu=False, dst=No
     def vec(t, dtype):
         return wp.from_torch(t.view(*t.shape[:-1], t.shape[-1] // g, g), dtype=dtype, requires_grad=False,
                              return_ctype=True)
-
-    def none(dtype, ndim):  # zero-size Warp array for an argument the kernel was built without
-        key = (str(launch.device), dtype, ndim)
-        if key not in _NONE:
-            _NONE[key] = wp.empty((0,) * ndim, dtype=dtype, device=launch.device)
-        return _NONE[key]
-    ph = launch.placeholder
+    ph = none = launch.placeholder
     kernel = K.pieces_kernel(width, epilogue=epilogue is not None, relu=relu, write_f32=dst is not None,
                              write_pieces=out is not None, weights=weights)
     launch.tiled(kernel, rows, K.BLOCK, vec(src, F), epilogue[0] if epilogue is not None else ph(torch.float32, 1),

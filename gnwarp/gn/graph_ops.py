@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import torch
 
-from gnwarp.gn.config import column_slices
+from gnwarp.gn.config import column_slices, pad
 from gnwarp.gn.first_layer import padded
-from gnwarp.gn.rules import pad
 from gnwarp.interop import WP_DTYPE
 from gnwarp.kernels.gn import common as C
 from gnwarp.kernels.gn import graph_ops as K

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import torch
 
-from gnwarp.gn.config import GNBlockConfig, column_slices, layout_width
+from gnwarp.gn.config import GNBlockConfig, column_slices, layout_width, pad
 
-__all__ = ["Tunables", "TUNABLES", "pad", "choose_path", "tile_feasible", "edge_concat", "emulates"]
+__all__ = ["Tunables", "TUNABLES", "choose_path", "tile_feasible", "edge_concat", "emulates"]
 
 
 @dataclass
@@ -47,13 +47,6 @@ class Tunables:
 
 
 TUNABLES = Tunables()
-
-
-def pad(cols: int) -> int:
-    """Padded width of a first-layer GEMM operand: a multiple of 8 elements (16 bytes in fp16 /
-    bf16, 32 in fp32), which cuBLAS's fast (Hopper) kernels need for their K and leading
-    dimensions; widths such as 31 or 159 otherwise fall back to Ampere / Turing kernels."""
-    return -(-cols // 8) * 8
 
 
 # -- the edge update's first layer ----------------------------------------------------------------

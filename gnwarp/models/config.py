@@ -72,8 +72,9 @@ class ModelConfig:
             moved = {k: gn.pop(k) for k in _RUN_KEYS_IN_GN if k in gn}
             self.gn = GNCoreConfig(**gn)
             if moved:  # an earlier version's config: its run options lived in ``gn``
-                run = self.run.to_dict() if isinstance(self.run, RunOptions) else dict(self.run)
-                self.run = {**run, **moved}
+                # options given as a dict beside them win (TrainConfig's old ``dtype`` arrives so);
+                # a RunOptions object here is the default, which the saved options replace
+                self.run = {**moved, **self.run} if isinstance(self.run, dict) else {**self.run.to_dict(), **moved}
         if isinstance(self.mlp, dict):
             self.mlp = MLPCoreConfig(**self.mlp)
         if isinstance(self.run, dict):

@@ -18,6 +18,7 @@ graphs of any size; ``rollout`` maps [N, B, 13] body states to and from them wit
 """
 from __future__ import annotations
 
+import copy
 from typing import Any, NamedTuple
 
 import torch
@@ -72,7 +73,7 @@ class ForwardModel(nn.Module):
 
     def __init__(self, config: ModelConfig, layout: FeatureLayout):
         super().__init__()
-        self.config = config
+        self.config = copy.deepcopy(config)  # its own: set_options must not change another model's
         self.layout = layout
         sizes = input_sizes(layout)
         f = config.std_floor

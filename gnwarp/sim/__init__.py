@@ -9,7 +9,7 @@ MuJoCo-Warp, and the random excitation controls datasets are recorded under.
     >>> traj.body.shape                                                         # (8, 101, nbody, 13)
 
 Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``excitation``
-(random spline controls), ``simulate`` (backend choice) over ``mujoco_c`` and ``mujoco_warp``,
+(random spline controls), ``backends`` (backend choice) over ``mujoco_c`` and ``mujoco_warp``,
 ``common`` (what the backends share).
 """
 from gnwarp.sim.common import Trajectories

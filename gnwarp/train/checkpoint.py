@@ -21,7 +21,7 @@ import torch
 
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.files import sha256_file
-from gnwarp.gn.options import RunOptions
+from gnwarp.gn.options import RunOptions, check_option_names
 from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig
 from gnwarp.models.forward import ForwardModel
@@ -106,9 +106,7 @@ def load_model(path, device=None, *, options: RunOptions | None = None, **option
         layout = FeatureLayout.from_dict(cfg["layout"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: config.json does not describe a model ({type(e).__name__}: {e})") from None
-    unknown = sorted(set(option_changes) - set(RunOptions.__dataclass_fields__))
-    if unknown:
-        raise TypeError(f"load_model got unknown run options {unknown} (see gnwarp.gn.RunOptions)")
+    check_option_names(option_changes, "load_model")
     mcfg.run = (options if options is not None else mcfg.run).replace(**option_changes)
     model = ForwardModel(mcfg, layout)
     try:

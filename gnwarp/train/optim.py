@@ -3,7 +3,7 @@ Warp kernels (``kernels/train/optim.py``): 2-3 launches per step whatever the nu
 
 At construction the parameters are moved into one flat buffer (each ``p.data`` becomes a view
 of it, so modules keep working unchanged) and every parameter gets ``p.main_grad``, a view of
-one flat gradient buffer. The Warp backend of ``GraphNetwork`` adds its parameter gradients
+one flat gradient buffer. The Warp implementation of ``GraphNetwork`` adds its parameter gradients
 straight into ``main_grad`` (one launch per block instead of one tensor per parameter) and
 leaves ``p.grad`` as None; gradients that other code leaves in ``p.grad`` are added into
 ``main_grad`` at ``step()``. Gradients accumulate until ``zero_grad()`` (one memset).
@@ -125,7 +125,7 @@ class FlatAdam(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
         group = self.param_groups[0]
-        for p in group["params"]:  # gradients left by code other than the Warp GN backend
+        for p in group["params"]:  # gradients left by code other than the Warp GN block
             if p.grad is not None:
                 p.main_grad.add_(p.grad)
                 p.grad = None

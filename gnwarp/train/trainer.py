@@ -73,7 +73,8 @@ class Trainer:
 
     ``datasets``: ``Dataset`` objects to use instead of loading ``config.data``. ``model``: an
     initial model (else built from ``config.model``, or resumed from ``<out>/last``: its weights,
-    optimizer and sampler state; the run options are the config's). ``callbacks``: functions
+    optimizer and sampler state). Whichever it is, it runs as ``config.model.run`` says
+    (implementation, precision: "fp64" trains in float64). ``callbacks``: functions
     ``callback(trainer, event, info)``.
     """
 
@@ -92,13 +93,13 @@ class Trainer:
         training = None
         if config.resume and (self.out / "last").is_dir():
             model, training, _ = load_checkpoint(self.out / "last", self.device)
-            model.set_options(config.model.run)
             if merge_layouts([d.layout for d in self.datasets]).to_dict() != model.layout.to_dict():
                 warnings.warn(f"resuming {self.out / 'last'}: the datasets' merged layout differs from the model's; "
                               "mapping them onto the model's layout")
         elif model is None:
             model = build_model(config, self.datasets)
-        self.model = model.to(self.device)
+        run = config.model.run
+        self.model = model.set_options(run).to(device=self.device, dtype=run.param_dtype)
         self.sampler = BatchSampler(self.datasets, self.model, self.device)
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
         self.optimizer = self.make_optimizer()
@@ -131,8 +132,9 @@ class Trainer:
                                rotation_scale=c.rotation_loss, generator=self.generator)
 
     def step(self) -> dict[str, torch.Tensor]:
-        """One optimization step at the current learning rate: sample, loss, backward, clip, update.
-        Returns the loss terms (device tensors; nothing here syncs with the host)."""
+        """One optimization step at the schedule's learning rate: sample, loss, backward, clip,
+        update; then the step count advances and the loss terms join the running sums of the
+        next log row. Returns the loss terms (device tensors; nothing here syncs with the host)."""
         c = self.config
         for group in self.optimizer.param_groups:
             group["lr"] = c.lr_at(self.state["step"])
@@ -142,6 +144,10 @@ class Trainer:
         if not isinstance(self.optimizer, FlatAdam):
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), c.grad_clip)
         self.optimizer.step()
+        self.state["step"] += 1
+        for k, v in terms.items():  # summed on the device; read once per log line
+            self._running[k] = self._running.get(k, 0.0) + v.detach()
+        self._n_running += 1
         return terms
 
     def validate(self) -> float:
@@ -189,15 +195,12 @@ class Trainer:
             warnings.warn("could not restore the batch sampler's random state; reseeding it")
             self.generator.manual_seed(self.config.seed + self.state["step"])
 
-    def _after_step(self, terms: dict, bar, log, t_start: float) -> str | None:
-        """Bookkeeping after a step: running sums, the log row (``log(row)``), validation,
-        checkpoints; a reason to stop or None."""
+    def _after_step(self, bar, log, t_start: float) -> str | None:
+        """Bookkeeping after a step: the log row (``log(row)``), validation, checkpoints; a
+        reason to stop or None."""
         c, st = self.config, self.state
-        for k, v in terms.items():  # summed on the device; read once per log line
-            self._running[k] = self._running.get(k, 0.0) + v.detach()
-        self._n_running += 1
-        lr = c.lr_at(st["step"])
-        st["step"] = step = st["step"] + 1
+        step = st["step"]
+        lr = c.lr_at(step - 1)  # the rate the step ran at
         st["seconds"] = time.perf_counter() - t_start
         bar.update(1)
         row = None
@@ -255,7 +258,8 @@ class Trainer:
             try:
                 stop = "steps"
                 while st["step"] < c.steps:
-                    reason = self._after_step(self.step(), bar, log, t_start)
+                    self.step()
+                    reason = self._after_step(bar, log, t_start)
                     if reason:
                         stop = reason
                         break
