@@ -31,6 +31,7 @@ from gnwarp.graphs import GraphsTuple, graph_of
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
 from gnwarp.models.normalizer import Normalizer
+from gnwarp.models.rollout import rollout_with_adjoint
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
                           state_delta)
 
@@ -197,12 +198,15 @@ class ForwardModel(nn.Module):
         return GraphTemplate(builder, torch.as_tensor(instance))
 
     def rollout(self, initial_body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
-                template: GraphTemplate | None = None) -> torch.Tensor:
+                template: GraphTemplate | None = None, adjoint: bool = True) -> torch.Tensor:
         """Roll the model out from ``initial_body`` [N, B, 13] under ``ctrl`` [N, T, U] for system
         instances ``instance`` [N] (default: all 0) -> states [N, T+1, B, 13] (the initial included).
 
-        Differentiable with respect to ``initial_body`` and ``ctrl``. The loop has no host
-        synchronization (the template and graph index are built once before it).
+        Differentiable with respect to ``initial_body``, ``ctrl`` and the model's parameters. With
+        ``adjoint`` (default) the backward recomputes one step at a time (``rollout_with_adjoint``):
+        memory grows with the states, not with every step's activations; ``adjoint=False`` keeps
+        the activations (plain autograd). The loop has no host synchronization (the template and
+        graph index are built once before it).
         """
         N = initial_body.shape[0]
         if instance is None:
@@ -212,10 +216,16 @@ class ForwardModel(nn.Module):
         body = initial_body.to(dev, tmpl.dtype)
         ctrl = ctrl.to(dev, tmpl.dtype)
         ctx = self.context(tmpl.graph(body, ctrl[:, 0]))  # topology, graph index and statistics: once
+
+        def step(b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+            return tmpl.to_body(self.next_nodes(tmpl.graph(b, c), ctx), b)
+
+        params = [p for p in self.parameters() if p.requires_grad]
+        if adjoint and torch.is_grad_enabled() and (body.requires_grad or ctrl.requires_grad or params):
+            return rollout_with_adjoint(step, body, ctrl, params)
         out = [body]
         for t in range(ctrl.shape[1]):
-            nxt = self.next_nodes(tmpl.graph(body, ctrl[:, t]), ctx)
-            body = tmpl.to_body(nxt, body)
+            body = step(body, ctrl[:, t])
             out.append(body)
         return torch.stack(out, 1)
 
