@@ -12,7 +12,7 @@ import functools
 import torch
 import warp as wp
 
-__all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Launcher"]
+__all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Graphed", "Launcher"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -80,6 +80,38 @@ def cuda_graph(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream | None = N
             yield
         finally:
             wp.capture_end()
+
+
+class Graphed:
+    """``fn()`` replayed from a CUDA graph. The first ``warmup`` calls run it eagerly on a side
+    stream (kernels compile and load, one-off tables are made); the next records it and replays
+    the record; every later call replays it. ``fn`` must read and write only tensors that live
+    from one call to the next (allocated before, or made inside and kept by the graph's pool),
+    and nothing in it may sync with the host. ``generator``: a random generator ``fn`` draws
+    from other than the device's default (registered with the graph)."""
+
+    def __init__(self, fn, warmup: int = 1, generator: torch.Generator | None = None):
+        self.fn, self.warmup, self.generator = fn, warmup, generator
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.stream = torch.cuda.Stream()
+
+    def __call__(self) -> None:
+        if self.graph is None:
+            self.stream.wait_stream(torch.cuda.current_stream())
+            if self.warmup > 0:
+                with torch.cuda.stream(self.stream):
+                    self.fn()
+                torch.cuda.current_stream().wait_stream(self.stream)
+                self.warmup -= 1
+                return
+            graph = torch.cuda.CUDAGraph()
+            if self.generator is not None:
+                graph.register_generator_state(self.generator)
+            with cuda_graph(graph, self.stream):
+                self.fn()  # recorded, not run
+            torch.cuda.current_stream().wait_stream(self.stream)
+            self.graph = graph
+        self.graph.replay()
 
 
 _PLACEHOLDERS: dict[tuple, object] = {}

@@ -330,6 +330,79 @@ def test_adjoint_rollout_keeps_no_activations(pendulum, monkeypatch):
     assert sum(kept) == 2 * 5
 
 
+def _engine_case(ds, device="cpu", dtype=torch.float64, impl="warp", T=5, N=2):
+    m = tiny_model(ds, impl=impl, dtype=dtype).to(device).bind(ds)
+    for p in m.parameters():
+        p.requires_grad_(False)
+    sp = ds["test"]
+    x0 = torch.as_tensor(sp.body[:N, 0], dtype=dtype, device=device)
+    u = torch.as_tensor(sp.ctrl[:N, :T], dtype=dtype, device=device)
+    return m, m.rollout_engine(np.asarray(sp.instance[:N]), T), x0, u
+
+
+def _engine_agrees(m, engine, x0, u, calls=3, tol=1e-12):
+    """The engine's rollouts and their gradients w.r.t. x0 and controls equal model.rollout's, on
+    every call (on CUDA: eager, recorded, replayed), for new inputs each time."""
+    w = torch.linspace(-1, 2, x0.shape[0] * (u.shape[1] + 1) * x0.shape[1] * 13, dtype=x0.dtype,
+                       device=x0.device).reshape(x0.shape[0], u.shape[1] + 1, x0.shape[1], 13)
+    for k in range(calls):
+        xa, ua = (x0 * (1 + 0.01 * k)).requires_grad_(), (u * (1 - 0.1 * k)).requires_grad_()
+        xb, ub = xa.detach().clone().requires_grad_(), ua.detach().clone().requires_grad_()
+        a, b = engine.rollout(xa, ua), m.rollout(xb, ub)
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+        (torch.sin(a) * w).sum().backward()
+        (torch.sin(b) * w).sum().backward()
+        torch.testing.assert_close(xa.grad, xb.grad, rtol=tol, atol=tol)
+        torch.testing.assert_close(ua.grad, ub.grad, rtol=tol, atol=tol)
+        assert ua.grad.abs().max() > 0
+
+
+def test_rollout_engine_matches_model_rollout(pendulum):
+    """``RolloutEngine`` (replayed CUDA graphs on CUDA; the same loops run eagerly on the CPU):
+    rollouts and gradients equal ``model.rollout``'s; another batch shape is refused."""
+    m, engine, x0, u = _engine_case(pendulum)
+    _engine_agrees(m, engine, x0, u)
+    with pytest.raises(ValueError, match="rolls out 5 steps"):
+        m.rollout_engine([0, 0], 5).rollout(x0, u[:, :4])
+    with pytest.raises(ValueError, match="holds x0"):
+        engine.rollout(x0[:1], u[:1])
+    with torch.no_grad():
+        assert torch.equal(engine.rollout(x0, u), m.rollout(x0, u))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_cuda_rollout_engine_replays(pendulum, dtype, tol):
+    """On CUDA the engine's forward and backward replay CUDA graphs and agree with the eager
+    model.rollout, call after call."""
+    m, engine, x0, u = _engine_case(pendulum, "cuda", dtype)
+    _engine_agrees(m, engine, x0, u, calls=4, tol=tol)
+    assert engine._fwd.graph is not None and engine._bwd.graph is not None
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_adjoint_rollout_memory_is_the_states():
+    """Peak memory of a differentiable rollout: with the adjoint loop it grows with the states,
+    not with every step's activations (plain autograd)."""
+    ds = data.generate("cheetah", (8, 1, 4), num_steps=60, seed=0, backend="mujoco", progress=False)
+    m = ForwardModel(ModelConfig(gn=GNCoreConfig(latent=64, edge_hidden=(256, 256), node_hidden=(128,),
+                                                 global_hidden=(128,))), ds.layout).cuda().bind(ds)
+    sp = ds["train"]
+    idx = np.arange(256) % len(sp)
+    x0 = torch.as_tensor(sp.body[idx, 0], device="cuda")
+    u = torch.as_tensor(sp.ctrl[idx, :60], device="cuda").requires_grad_()
+    peaks = {}
+    for adjoint in (True, False):
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+        m.rollout(x0, u, adjoint=adjoint).pow(2).sum().backward()
+        torch.cuda.synchronize()
+        peaks[adjoint] = torch.cuda.max_memory_allocated() - base
+        u.grad = None
+    assert peaks[True] < 0.25 * peaks[False], peaks
+
+
 def test_recentering_makes_rollouts_translation_equivariant(swimmer):
     m = tiny_model(swimmer, recenter=True)
     sp = swimmer["test"]

@@ -31,7 +31,7 @@ from gnwarp.graphs import GraphsTuple, graph_of
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
 from gnwarp.models.normalizer import Normalizer
-from gnwarp.models.rollout import rollout_with_adjoint
+from gnwarp.models.rollout import RolloutEngine, rollout_with_adjoint
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
                           state_delta)
 
@@ -228,6 +228,12 @@ class ForwardModel(nn.Module):
             body = step(body, ctrl[:, t])
             out.append(body)
         return torch.stack(out, 1)
+
+    def rollout_engine(self, instance, horizon: int, builder=None) -> RolloutEngine:
+        """A ``RolloutEngine`` for rollouts of ``horizon`` steps of system instances ``instance``
+        [N]: on CUDA its forward and backward (w.r.t. initial states and controls) replay CUDA
+        graphs. Hold it and call ``engine.rollout(x0, ctrl)`` as often as needed."""
+        return RolloutEngine(self, instance, horizon, builder)
 
     def predict(self, body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None) -> torch.Tensor:
         """One step: body [N, B, 13], ctrl [N, U] -> next body [N, B, 13]."""

@@ -26,6 +26,8 @@ class TrainConfig:
     ``optimizer``: "adam" (torch.optim.Adam + clip_grad_norm_) or "flat_adam"
     (``gnwarp.train.FlatAdam``: the same update and clipping over one flat buffer in Warp
     kernels; faster on the GPU, see README). A run resumes with the optimizer it was started with.
+    ``capture``: on CUDA, replay the training step (and the validation rollouts) from CUDA
+    graphs once warm (``gnwarp.train.capture``); batches of graphs of varying sizes run eagerly.
     How the model runs (implementation, precision; "fp64" trains in float64) is ``model.run``.
     """
     data: list[str] = field(default_factory=list)
@@ -52,6 +54,7 @@ class TrainConfig:
     resume: bool = True
     progress: bool = True
     optimizer: str = "adam"
+    capture: bool = True
 
     def __post_init__(self):
         if isinstance(self.model, dict):

@@ -45,6 +45,12 @@ class BatchSampler:
     def __init__(self, datasets, model, device):
         self.parts = [SplitSampler(d, model, device) for d in datasets]
 
+    @property
+    def static_shapes(self) -> bool:
+        """Whether every batch has the same shapes (each dataset of one topology): then sampling
+        needs no host-side mask and a training step can be captured."""
+        return all(p.builder.uniform for p in self.parts)
+
     def sample(self, batch_size: int, gen: torch.Generator) -> tuple[GraphsTuple, torch.Tensor]:
         """(graph of ``batch_size`` graphs, target next states [sum(n_node), 13])."""
         k = len(self.parts)

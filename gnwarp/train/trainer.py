@@ -34,8 +34,9 @@ from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.graphs import GraphsTuple
-from gnwarp.interop import resolve_device
+from gnwarp.interop import Graphed, resolve_device
 from gnwarp.models.forward import ForwardModel
+from gnwarp.train.capture import capture_problem, default_generator, registers_generators
 from gnwarp.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.optim import FlatAdam
@@ -102,15 +103,29 @@ class Trainer:
         self.model = model.set_options(run).to(device=self.device, dtype=run.param_dtype)
         self.sampler = BatchSampler(self.datasets, self.model, self.device)
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
-        self.optimizer = self.make_optimizer()
-        self.generator = torch.Generator(device=self.device)
+        cuda = self.device.type == "cuda"
+        # a CUDA graph replays the device's default generator by itself; others need registering
+        self.generator = (default_generator(self.device) if cuda and config.capture and not registers_generators()
+                          else torch.Generator(device=self.device))
         self.generator.manual_seed(config.seed)
+        self.optimizer = self.make_optimizer()
         self.state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
         if training is not None:
             self._restore(training)
         self.info = {"train": config.to_dict(), "data": _data_info(self.datasets)}
-        self._running: dict[str, torch.Tensor] = {}
+        self._running: dict[str, torch.Tensor] = {}   # loss sums since the last log row, on the device
         self._n_running = 0
+        self._lr = None                               # the learning rate the optimizer holds now
+        self._terms: dict[str, torch.Tensor] = {}     # the last step's loss terms
+        self.captured = None
+        self._valid_engines: dict = {}
+        if config.capture and cuda:
+            problem = capture_problem(self.device, self.sampler.static_shapes, self.generator)
+            if problem is None:
+                own = self.generator if self.generator is not default_generator(self.device) else None
+                self.captured = Graphed(self._device_step, warmup=2, generator=own)
+            else:
+                warnings.warn(f"training steps run uncaptured: {problem}")
 
     # -- seams -----------------------------------------------------------------------------------
     def make_optimizer(self) -> torch.optim.Optimizer:
@@ -118,6 +133,9 @@ class Trainer:
         c = self.config
         if c.optimizer == "flat_adam":
             return FlatAdam(self.model.parameters(), lr=c.lr, max_grad_norm=c.grad_clip)
+        if self.device.type == "cuda":  # capturable: the learning rate and step count on the device
+            return torch.optim.Adam(self.model.parameters(), lr=torch.tensor(c.lr, device=self.device),
+                                    capturable=True, foreach=True)
         return torch.optim.Adam(self.model.parameters(), lr=c.lr)
 
     def sample(self) -> tuple[GraphsTuple, torch.Tensor]:
@@ -133,30 +151,67 @@ class Trainer:
 
     def step(self) -> dict[str, torch.Tensor]:
         """One optimization step at the schedule's learning rate: sample, loss, backward, clip,
-        update; then the step count advances and the loss terms join the running sums of the
-        next log row. Returns the loss terms (device tensors; nothing here syncs with the host)."""
-        c = self.config
+        update, the loss terms added to the running sums of the next log row (replayed from a CUDA
+        graph once warm, see ``captured``); then the step count advances. Returns the loss terms
+        (device tensors, overwritten by the next captured step; nothing here syncs with the host)."""
+        self.set_lr(self.config.lr_at(self.state["step"]))
+        if self.captured is not None:
+            self.captured()
+        else:
+            self._device_step()
+        self.state["step"] += 1
+        self._n_running += 1
+        return self._terms
+
+    def set_lr(self, lr: float) -> None:
+        """Give the optimizer this learning rate (into its device scalar when it has one)."""
+        if lr == self._lr:
+            return
         for group in self.optimizer.param_groups:
-            group["lr"] = c.lr_at(self.state["step"])
+            if isinstance(group["lr"], torch.Tensor):
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
+        if isinstance(self.optimizer, FlatAdam):
+            self.optimizer.sync_lr()
+        self._lr = lr
+
+    def _device_step(self) -> None:
+        """The device work of one step (what ``captured`` records): no host sync, no reallocation
+        of anything read between steps."""
         terms = self.loss(*self.sample())
         self.optimizer.zero_grad(set_to_none=True)
         terms["loss"].backward()
         if not isinstance(self.optimizer, FlatAdam):
-            torch.nn.utils.clip_grad_norm_(self.model.parameters(), c.grad_clip)
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         self.optimizer.step()
-        self.state["step"] += 1
-        for k, v in terms.items():  # summed on the device; read once per log line
-            self._running[k] = self._running.get(k, 0.0) + v.detach()
-        self._n_running += 1
-        return terms
+        for k, v in terms.items():  # summed on the device, in place; read once per log line
+            if k not in self._running:
+                self._running[k] = torch.zeros((), dtype=v.dtype, device=v.device)
+            self._running[k].add_(v.detach())
+        self._terms = terms
 
     def validate(self) -> float:
-        """Mean normalized ``valid_horizon``-step rollout error over the datasets with a valid split."""
+        """Mean normalized ``valid_horizon``-step rollout error over the datasets with a valid
+        split (the rollouts replayed from CUDA graphs when the step is captured)."""
         c = self.config
         self.model.eval()
-        errs = [rollout_error(self.model, d, "valid", c.valid_horizon, c.valid_sequences) for d in self.valid]
+        errs = [rollout_error(self.model, d, "valid", c.valid_horizon, c.valid_sequences,
+                              engine=self._valid_engine(k, d)) for k, d in enumerate(self.valid)]
         self.model.train()
         return float(np.mean(errs)) if errs else math.nan
+
+    def _valid_engine(self, k: int, ds):
+        """The captured validation rollouts of dataset ``k`` (None when steps run uncaptured)."""
+        if self.captured is None:
+            return None
+        if k not in self._valid_engines:
+            sp, c = ds["valid"], self.config
+            n = min(c.valid_sequences, len(sp))
+            self._valid_engines[k] = self.model.rollout_engine(np.asarray(sp.instance[:n]),
+                                                               min(c.valid_horizon, sp.num_steps),
+                                                               self.model.graph_builder(ds))
+        return self._valid_engines[k]
 
     def checkpoint(self, name: str) -> Path:
         """Write ``<out>/<name>`` (model, optimizer, sampler and run state)."""
@@ -189,6 +244,7 @@ class Trainer:
                                   f"{self.config.optimizer!r} ({exc}); resume with the optimizer the run started "
                                   "with, or set resume=False") from exc
         self.state.update(training["state"])
+        self._lr = None  # the loaded optimizer state brought its own learning rate
         try:
             self.generator.set_state(training["generator"])
         except (RuntimeError, TypeError):  # resumed on another kind of device: a fresh sampler stream
@@ -208,7 +264,9 @@ class Trainer:
             vals = {k: float(v) / self._n_running for k, v in self._running.items()}
             if not all(math.isfinite(v) for v in vals.values()):
                 raise FloatingPointError(f"training diverged at step {step}: losses {vals}")
-            self._running, self._n_running = {}, 0
+            for v in self._running.values():
+                v.zero_()
+            self._n_running = 0
             row = {"step": step, "seconds": round(st["seconds"], 3), "lr": lr, **vals, "valid_error": ""}
             bar.set_postfix(loss=f"{vals['loss']:.4g}", best=f"{st['best_error']:.4g}")
         timed_out = c.max_seconds is not None and st["seconds"] >= c.max_seconds
