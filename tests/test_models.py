@@ -28,10 +28,10 @@ def swimmer():
     return data.generate("swimmer3", (4, 1, 1), num_steps=8, seed=1, backend="mujoco", progress=False)
 
 
-def tiny_model(ds, impl="torch", dtype=torch.float64, recenter=False, seed=0, warm=True):
+def tiny_model(ds, impl="torch", dtype=torch.float64, recenter=False, seed=0, warm=True, device="cpu"):
     torch.manual_seed(seed)
-    m = ForwardModel(ModelConfig(gn=TINY, run=RunOptions(impl=impl), recenter=recenter), ds.layout).to(dtype)
-    m.bind(ds)
+    m = ForwardModel(ModelConfig(gn=TINY, run=RunOptions(impl=impl), recenter=recenter), ds.layout)
+    m.to(device=device, dtype=dtype).bind(ds)
     if warm:  # normalizer statistics from the data, so inputs are O(1)
         sp = ds["train"]
         S, T = sp.ctrl.shape[:2]
@@ -43,7 +43,8 @@ def tiny_model(ds, impl="torch", dtype=torch.float64, recenter=False, seed=0, wa
         b = m.builder
         target = nxt.reshape(-1, DYN_NODE_SIZE) if b.uniform else nxt[b.node_mask[inst]]
         with torch.no_grad():  # with training noise, as in train(): no feature has a vanishing std
-            m.loss(g, target.to(dtype), noise_std=0.01, accumulate=True, generator=torch.Generator().manual_seed(0))
+            m.loss(g, target.to(device, dtype), noise_std=0.01, accumulate=True,
+                   generator=torch.Generator(device=device).manual_seed(0))
     return m
 
 
@@ -331,7 +332,7 @@ def test_adjoint_rollout_keeps_no_activations(pendulum, monkeypatch):
 
 
 def _engine_case(ds, device="cpu", dtype=torch.float64, impl="warp", T=5, N=2):
-    m = tiny_model(ds, impl=impl, dtype=dtype).to(device).bind(ds)
+    m = tiny_model(ds, impl=impl, dtype=dtype, device=device)
     for p in m.parameters():
         p.requires_grad_(False)
     sp = ds["test"]
