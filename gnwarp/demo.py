@@ -21,9 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gnwarp.files import jsonable
-from gnwarp.gn.options import RunOptions
 from gnwarp.interop import resolve_device
-from gnwarp.models.config import GNCoreConfig, ModelConfig
+from gnwarp.models.config import DEFAULT_RUN, GNCoreConfig, ModelConfig
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -111,7 +110,8 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     say(f"[2/4] training a GN ({cfg.impl} implementation, {device}) for up to {cfg.train_steps} steps"
         + (f" or {cfg.train_seconds:g} s" if cfg.train_seconds else ""))
     t = time.perf_counter()
-    gn_run = train(TrainConfig(out=str(out / "gn"), model=ModelConfig(core="gn", gn=cfg.gn, run=RunOptions(impl=cfg.impl)),
+    gn_model = ModelConfig(core="gn", gn=cfg.gn, run=DEFAULT_RUN.replace(impl=cfg.impl))
+    gn_run = train(TrainConfig(out=str(out / "gn"), model=gn_model,
                                max_seconds=cfg.train_seconds, **common), [ds])
     timings["train_gn"] = time.perf_counter() - t
     mlp_common = {**common, "steps": gn_run["steps"]}

@@ -525,6 +525,23 @@ def test_run_options_resolve_once_per_dtype():
     assert RunOptions(precision="fp64").param_dtype == torch.float64 and RunOptions().param_dtype == torch.float32
 
 
+def test_tf32_off_cuda_is_fp32(monkeypatch):
+    """TF32 exists only on CUDA: elsewhere precision "tf32" resolves to fp32 (no tensor-core
+    rules either) and gives fp32's outputs bit for bit; models default to it."""
+    from gnwarp.models import ModelConfig
+    cpu = torch.device("cpu")
+    r = RunOptions(precision="tf32").resolve(torch.float32, cpu)
+    assert not r.tf32 and not r.tensor_cores and r.ieee and r.precision == "tf32"
+    assert RunOptions(precision="tf32").resolve(torch.float32, torch.device("cuda")).tf32
+    monkeypatch.setattr(TUNABLES, "edge_concat_max_k", -1)  # fp32's rule: project; tensor cores': concat
+    gn = GraphNetwork(**SMALL, precision="tf32")
+    g = make_batch("mixed", dtype=torch.float32)
+    a = gn(g)
+    gn.precision = "fp32"
+    assert all(torch.equal(getattr(a, n), getattr(gn(g), n)) for n in ("nodes", "edges", "globals"))
+    assert ModelConfig().run.precision == "tf32"
+
+
 def test_run_options_saved_names_and_errors():
     """Saved option dicts round-trip; earlier versions' names are read as today's; bad values and
     unknown keys are refused naming what is wrong."""

@@ -80,7 +80,7 @@ class GraphNetwork(TorchGraphNetwork):
 
     def forward(self, graph: GraphsTuple, index: GraphIndex | None = None) -> GraphsTuple:
         param = self.edge_mlp.layers[0].weight
-        run = self.options.resolve(param.dtype)
+        run = self.options.resolve(param.dtype, param.device)
         if run.options.check_inputs:
             check_graph(self.config, graph, param)
         if run.impl == "torch":

@@ -106,9 +106,12 @@ class RunOptions:
         """The parameter dtype these options ask a model for: float64 for "fp64", else float32."""
         return torch.float64 if self.precision == "fp64" else torch.float32
 
-    def resolve(self, param_dtype: torch.dtype) -> "ResolvedRun":
-        """What these options mean for parameters of ``param_dtype`` (float32 or float64)."""
+    def resolve(self, param_dtype: torch.dtype, device: torch.device | None = None) -> "ResolvedRun":
+        """What these options mean for parameters of ``param_dtype`` (float32 or float64) on
+        ``device``: off CUDA there is no TF32, and "tf32" runs exactly as "fp32"."""
         p = self.precision
+        if p == "tf32" and device is not None and device.type != "cuda":
+            p = "fp32"
         if param_dtype not in (torch.float32, torch.float64):
             raise TypeError(f"parameters must be float32 or float64, got {param_dtype}")
         if p == "fp64" and param_dtype != torch.float64:

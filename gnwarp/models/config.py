@@ -7,7 +7,15 @@ from dataclasses import dataclass, field
 
 from gnwarp.gn.options import RunOptions
 
-__all__ = ["GNCoreConfig", "MLP_SIZES", "MLPCoreConfig", "ModelConfig"]
+__all__ = ["GNCoreConfig", "MLP_SIZES", "MLPCoreConfig", "ModelConfig", "DEFAULT_RUN"]
+
+# How models run unless told otherwise: TF32 GEMMs on CUDA (exactly fp32 on the CPU). Measured on an
+# H200 (bench/results/train_loop_nvidia-h200.md, rollout_nvidia-h200.md): the captured training
+# loop 702 steps/s against fp32's 467, 4096-graph rollouts 1.38 against 5.61 ms a step; and the
+# 20-step rollout errors of trained models unchanged to 3 digits against fp32
+# (bench/results/speed_accuracy/). fp16 is faster still (783 steps/s, 1.02 ms) with errors also
+# unchanged there, but its range (65504) leaves less margin: a choice, not the default.
+DEFAULT_RUN = RunOptions(precision="tf32")
 
 
 @dataclass
@@ -54,7 +62,8 @@ class ModelConfig:
     """What a forward model is made of; saved as JSON in checkpoints.
 
     ``core``: "gn" (D.2) or "mlp" (E), sized by ``gn`` / ``mlp``. ``run``: how it runs
-    (``RunOptions``: implementation, path, precision, ...); "fp64" makes a float64 model.
+    (``RunOptions``: implementation, path, precision, ...; default ``DEFAULT_RUN``, TF32 on
+    CUDA); "fp64" makes a float64 model.
     ``recenter`` (D.4): re-centre x, y before prediction; None: decided by training (True for a
     single translation-invariant system), False when used as is. ``std_floor``: the normalizers'
     smallest standard deviation.
@@ -62,7 +71,7 @@ class ModelConfig:
     core: str = "gn"
     gn: GNCoreConfig = field(default_factory=GNCoreConfig)
     mlp: MLPCoreConfig = field(default_factory=MLPCoreConfig)
-    run: RunOptions = field(default_factory=RunOptions)
+    run: RunOptions = field(default_factory=lambda: DEFAULT_RUN)
     recenter: bool | None = None
     std_floor: float = 1e-4
 

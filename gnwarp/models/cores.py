@@ -96,7 +96,7 @@ class MLPCore(nn.Module):
                              f"edges per graph; got {graph.nodes.shape[0]} nodes and {graph.edges.shape[0]} "
                              f"edges for {n} graphs")
         x = torch.cat([graph.globals.reshape(n, -1), graph.nodes.reshape(n, -1), graph.edges.reshape(n, -1)], -1)
-        run = self.options.resolve(x.dtype)
+        run = self.options.resolve(x.dtype, x.device)
         if run.autocast is not None:
             with torch.autocast(x.device.type, dtype=run.autocast):
                 y = self.mlp(x)
