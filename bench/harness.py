@@ -265,3 +265,18 @@ def write_summary(out: Path, lines: list[str]) -> None:
     table = "\n".join(lines)
     (Path(out) / "summary.md").write_text(table + "\n")
     print(f"{table}\nwrote {Path(out) / 'summary.md'}")
+
+
+def save_results(out, name: str, device: str, quick: bool, rows: list[dict], lines: list[str]) -> Path:
+    """A benchmark's rows appended to ``out/<name>_<device>[_quick].jsonl`` and its table written
+    to the ``.md`` beside it (and printed); returns the stem."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"{name}_{slug(device)}{'_quick' if quick else ''}"
+    import json  # noqa: PLC0415
+    with open(stem.with_suffix(".jsonl"), "a") as f:
+        for r in rows:
+            f.write(json.dumps(r) + "\n")
+    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return stem

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.harness import PAPER, QUICK, captured_us, device_name, median_ms, results_dir, slug  # noqa: E402
+from bench.harness import PAPER, QUICK, captured_us, device_name, median_ms, results_dir, save_results  # noqa: E402
 from gnwarp import data  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
 from gnwarp.train.sampler import BatchSampler  # noqa: E402
@@ -116,12 +116,6 @@ def main(argv=None):
                     row["core_fwd_ms"] = round(captured_us(lambda: model.core(gn, ctx.index)) / 1e3, 4)
             rows.append(row)
             print(json.dumps(row), flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = out / f"rollout_{slug(name)}{'_quick' if args.quick else ''}"
-    with open(stem.with_suffix(".jsonl"), "a") as f:
-        for r in rows:
-            f.write(json.dumps(r) + "\n")
     lines = [f"# Rollouts of the learned model, on {name}", "",
              f"`python bench/rollout.py` ({time.strftime('%Y-%m-%d')}): {'quick sizes' if args.quick else 'paper core'} "
              f"on cheetah graphs, {T}-step rollouts; ms per rollout step (median of {args.reps}), peak memory above "
@@ -139,8 +133,7 @@ def main(argv=None):
             f"{r['fwdbwd_eager_ms_per_step']} | {r['fwdbwd_engine_ms_per_step']} | "
             f"{r['fwdbwd_engine_ms_per_step'] / r['fwd_engine_ms_per_step']:.2f} | {plain if plain else 'not run'} | "
             f"{r['fwdbwd_engine_peak_mb']} / {r['fwdbwd_eager_peak_mb']} / {r.get('fwdbwd_plain_peak_mb', '-')} |")
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    save_results(args.out, "rollout", name, args.quick, rows, lines)
     return 0
 
 

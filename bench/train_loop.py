@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import PAPER, QUICK, device_name, median_ms, results_dir, slug  # noqa: E402
+from bench.harness import PAPER, QUICK, device_name, median_ms, results_dir, save_results  # noqa: E402
 from gnwarp import data  # noqa: E402
 from gnwarp.gn import RunOptions  # noqa: E402
 from gnwarp.models import ModelConfig  # noqa: E402
@@ -75,12 +75,6 @@ def main(argv=None):
                         row["step_ms"] = round(median_ms(t.step, dev, 200, 5), 4)  # the captured step alone
                     rows.append(row)
                     print(json.dumps(row), flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = out / f"train_loop_{slug(name)}{'_quick' if args.quick else ''}"
-    with open(stem.with_suffix(".jsonl"), "a") as f:
-        for r in rows:
-            f.write(json.dumps(r) + "\n")
     lines = [f"# The training loop users run, on {name}", "",
              f"`python bench/train_loop.py` ({time.strftime('%Y-%m-%d')}): `gnwarp.train.Trainer` on cheetah, "
              f"{'quick sizes' if args.quick else 'paper core'}, batch {args.batch}, validation every 1000 steps "
@@ -96,8 +90,7 @@ def main(argv=None):
             ratio = f"{1000 / c['steps_per_s'] / alone:.2f}" if alone else ""
             lines.append(f"| {prec} | {opt} | {e['steps_per_s']:.0f} | {c['steps_per_s']:.0f} | "
                          f"{c['steps_per_s'] / e['steps_per_s']:.1f}x | {alone if alone else ''} | {ratio} |")
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    save_results(args.out, "train_loop", name, args.quick, rows, lines)
     return 0
 
 
