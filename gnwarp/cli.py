@@ -46,11 +46,13 @@ def _sizes(args):
 def _cmd_generate(args) -> int:
     from pathlib import Path
 
+    from gnwarp.data.dataset import remove_stale_temporaries
     from gnwarp.data.generation import generate
     from gnwarp.sim.systems import from_mjcf
     out = Path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
     if out.exists() and not args.overwrite:  # fail before simulating, not after
         raise FileExistsError(f"output exists: {out} (use --overwrite)")
+    remove_stale_temporaries(out)  # what a killed generate to this path left
     system = from_mjcf(args.mjcf, dt=args.dt, substeps=args.substeps) if args.mjcf else args.system
     t0 = time.perf_counter()
     ds = generate(system, _sizes(args), num_steps=args.steps, seed=args.seed,
@@ -65,7 +67,8 @@ def _cmd_generate(args) -> int:
 
 
 def _parse_value(text: str):
-    """A --set value: JSON when it parses (numbers, true/false/null, lists), else the string."""
+    """A --set value: JSON when it parses (numbers, true/false/null, lists), else the string; the
+    config's validation then checks it like any other value."""
     import json
     try:
         return json.loads(text)
@@ -74,53 +77,90 @@ def _parse_value(text: str):
 
 
 def _read_config(path: str | None) -> dict:
+    """A JSON or TOML (``.toml``) config file as a dict; a file that does not parse raises
+    ``ConfigError`` naming the file and the line."""
     import json
     from pathlib import Path
+
+    from gnwarp.gn.config import ConfigError
     if path is None:
         return {}
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no config file at {p}")
+    try:
+        text = p.read_text()
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(p), f"not a text file ({e.reason} at byte {e.start})") from None
     if p.suffix == ".toml":
         try:
             import tomllib
         except ImportError:  # Python 3.10
             import tomli as tomllib
-        return tomllib.loads(p.read_text())
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{p} is not valid JSON ({e}); TOML files need the .toml suffix") from None
+        try:
+            d = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(str(p), f"not valid TOML: {e}") from None
+    else:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ConfigError(str(p), f"not valid JSON: {e.msg} (at line {e.lineno}, column {e.colno}); "
+                                      "TOML files need the .toml suffix") from None
+    if not isinstance(d, dict):
+        raise ConfigError(str(p), f"a config file holds a table of TrainConfig keys, got a {type(d).__name__}")
+    return d
 
 
 def _apply_overrides(cfg: dict, items: list[str]) -> dict:
     """``key=value`` overrides into a nested dict; dotted keys reach nested configs (model.gn.latent=64)."""
+    from gnwarp.gn.config import ConfigError
     for item in items or []:
         if "=" not in item:
-            raise ValueError(f"--set expects key=value, got {item!r}")
+            raise ConfigError("--set", f"expects KEY=VALUE, got {item!r}")
         key, value = item.split("=", 1)
-        d = cfg
         *parents, leaf = key.strip().split(".")
-        for k in parents:
+        if not all(k.strip() for k in parents + [leaf]):
+            raise ConfigError("--set", f"malformed key {key!r} in {item!r} (keys are dotted names: model.gn.latent)")
+        d = cfg
+        for i, k in enumerate(parents):
             d = d.setdefault(k, {})
             if not isinstance(d, dict):
-                raise ValueError(f"--set {key}: {k} is not a nested config")
+                raise ConfigError(".".join(parents[:i + 1]), f"is not a nested config, so --set {key} cannot "
+                                                             "set a key inside it")
         d[leaf] = _parse_value(value)
     return cfg
 
 
+def _config_source(path: str, items: list[str], flags: dict, config: str | None) -> str:
+    """Where the value of config key ``path`` came from, for an error message."""
+    parts = path.split(".")
+    for item in reversed(items or []):
+        key = item.split("=", 1)[0].strip()
+        if key.split(".") == parts[:len(key.split("."))] or parts == key.split(".")[:len(parts)]:
+            return f"--set {item}"
+    if parts[0] in flags:
+        return flags[parts[0]]
+    return config or "the defaults"
+
+
 def _cmd_train(args) -> int:
+    from gnwarp.gn.config import ConfigError
     from gnwarp.train import TrainConfig, train
     raw = _apply_overrides(_read_config(args.config), args.set)
+    flags = {}
     if args.data:
-        raw["data"] = args.data
+        raw["data"], flags["data"] = args.data, "--data"
     if args.out:
-        raw["out"] = args.out
+        raw["out"], flags["out"] = args.out, "--out"
     if args.no_resume:
         raw["resume"] = False
     if args.quiet:
         raw["progress"] = False
-    cfg = TrainConfig.from_dict(raw)
+    try:
+        cfg = TrainConfig.from_dict(raw)
+    except ConfigError as e:  # the same error as from Python, plus where the value came from
+        raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
     r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
           f"stop: {r['stop']}); "
@@ -128,9 +168,38 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _positive_ints(option: str, values) -> list[int]:
+    """``values`` (strings; commas also separate) as integers >= 1, or ValueError naming ``option``."""
+    out = []
+    for v in values:
+        for part in str(v).split(","):
+            try:
+                n = int(part.strip())
+            except ValueError:
+                n = None
+            if n is None or n < 1:
+                raise ValueError(f"{option} must be an integer >= 1, got {part.strip()!r}")
+            out.append(n)
+    if not out:
+        raise ValueError(f"{option} needs at least one integer >= 1")
+    return out
+
+
 def _cmd_evaluate(args) -> int:
     import json
+    import math
     from pathlib import Path
+
+    # the arguments first: nothing is loaded for a run that cannot report anything
+    sequences = None
+    if args.sequences is not None:
+        try:
+            sequences = int(args.sequences)
+        except ValueError:
+            sequences = 0
+        if sequences < 1:
+            raise ValueError(f"-n/--sequences must be an integer >= 1, got {args.sequences!r}")
+    horizons = tuple(dict.fromkeys(_positive_ints("--horizons", args.horizons)))
 
     from gnwarp.data.dataset import load
     from gnwarp.eval.animation import animate
@@ -143,8 +212,7 @@ def _cmd_evaluate(args) -> int:
     for k, path in enumerate(args.checkpoints):
         name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
         m = load_model(path, device=args.device, **({"impl": args.impl} if args.impl else {}))
-        results[name] = evaluate(m, ds, args.split, args.sequences, tuple(args.horizons),
-                                 keep_predictions=bool(args.out))
+        results[name] = evaluate(m, ds, args.split, sequences, horizons, keep_predictions=bool(args.out))
     preds = {n: r.pop("predictions", None) for n, r in results.items()}
     table = markdown_table(results, ds.system)
     print(table)
@@ -164,7 +232,37 @@ def _cmd_evaluate(args) -> int:
                     title=f"{ds.system}: true vs predicted")
         (out / "results.json").write_text(json.dumps(jsonable(results), indent=1))
         print(f"wrote {out}/errors.md, errors.png, states.png, rollouts.gif, results.json")
+    # predictions that left the finite range: reported above, and the exit status says so
+    bad = []
+    for name, r in results.items():
+        step = r.get("first_nonfinite_step")
+        if step is not None:
+            bad.append(f"{name}: rollouts not finite from step {step} ({r['nonfinite_sequences']} of "
+                       f"{r['sequences']} sequences)")
+        elif r["one_step"].get("nonfinite_steps") or not math.isfinite(r["one_step"]["mean"]):
+            bad.append(f"{name}: {r['one_step'].get('nonfinite_steps', 0)} one-step predictions not finite")
+    if bad:
+        print(f"gnwarp evaluate: error: predictions left the finite range: {'; '.join(bad)}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _cmd_check(args) -> int:
+    """``gnwarp check PATH``: the full validation of a dataset file or a checkpoint folder; prints
+    what it found, one line per problem; exit 0 when clean, 1 when there are problems."""
+    from pathlib import Path
+    path = Path(args.path)
+    if not path.exists():
+        raise FileNotFoundError(f"nothing at {path}")
+    if path.is_dir():
+        from gnwarp.train.checkpoint import check_checkpoint  # lines starting with "error:" are problems
+        lines = [str(x) for x in check_checkpoint(path)]
+    else:
+        from gnwarp.data.dataset import check
+        lines = check(path)
+    for line in lines:
+        print(line)
+    return 1 if any(line.startswith("error:") for line in lines) else 0
 
 
 def _cmd_demo(args) -> int:
@@ -208,7 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a forward model (config file plus --set overrides)",
                        description="Train a forward model. Keys are those of gnwarp.train.TrainConfig; nested "
                                    "model keys are dotted, e.g. --set model.core=mlp --set model.gn.latent=64 "
-                                   "--set model.run.precision=tf32. Resumes from <out>/last when it exists.")
+                                   "--set model.run.precision=tf32. Every value is validated before anything "
+                                   "runs. Resumes from <out>/last when it exists.")
     t.add_argument("config", nargs="?", help="JSON or TOML training config (TrainConfig fields)")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable; values parsed as JSON when they parse)")
@@ -218,13 +317,18 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 
-    e = sub.add_parser("evaluate", help="one-step and rollout errors of checkpoints on a dataset")
+    e = sub.add_parser("evaluate", help="one-step and rollout errors of checkpoints on a dataset",
+                       description="One-step and rollout errors of checkpoints on a dataset. Predictions that "
+                                   "leave the finite range are reported with the first step where they did, "
+                                   "and the exit status is then 1.")
     e.add_argument("checkpoints", nargs="+", help="checkpoint folders (e.g. runs/gn/best runs/mlp/best)")
     e.add_argument("--data", required=True, help="dataset file")
     e.add_argument("--names", nargs="+", help="model names for the table (default: the run folder names)")
     e.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    e.add_argument("-n", "--sequences", type=int, default=None, help="first N sequences of the split (default all)")
-    e.add_argument("--horizons", type=int, nargs="+", default=[20, 100])
+    e.add_argument("-n", "--sequences", default=None, metavar="N",
+                   help="first N sequences of the split, N >= 1 (default all)")
+    e.add_argument("--horizons", nargs="+", default=["20", "100"], metavar="H",
+                   help="rollout horizons in steps, each >= 1 (default: 20 100; commas also separate)")
     e.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
     e.add_argument("--impl", choices=IMPLS, default=None,
                    help="run the GN on Warp kernels or the torch reference (default: as the checkpoint was saved)")
@@ -240,6 +344,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--device", help="cpu, cuda, ... (default: CUDA when present)")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=_cmd_demo)
+
+    c = sub.add_parser("check", help="validate a dataset file or a checkpoint folder (every array read, checksums "
+                                     "verified); exit 1 when it finds problems")
+    c.add_argument("path", help="dataset file (.h5) or checkpoint folder (e.g. runs/gn/best)")
+    c.set_defaults(func=_cmd_check)
     return p
 
 
@@ -247,7 +356,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, FileExistsError, PermissionError, RuntimeError, TypeError) as e:
+    except (ValueError, OSError, FloatingPointError, RuntimeError, TypeError) as e:
         print(f"gnwarp {args.command}: error: {e}", file=sys.stderr)
         return 2
 

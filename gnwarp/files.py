@@ -3,11 +3,26 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable"]
+__all__ = ["sha256_file", "jsonable", "pid_alive"]
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` may still be running (True when it cannot be told, e.g. another
+    user's process): files a killed writer left may be removed only when this is False."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
 
 
 def sha256_file(path: str | Path) -> str:

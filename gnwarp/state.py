@@ -117,12 +117,28 @@ def quat_axis_angle(axis, angle: float) -> np.ndarray:
 
 def state_delta(x, x_next):
     """Change [..., 13] from states x to x_next [..., 13] (D.5): differences of position and
-    velocities, and the rotation dq = q_next (x) q^-1 with dq.w >= 0."""
+    velocities, and the rotation dq = q_next (x) q^-1 with dq.w >= 0. Torch tensors that need no
+    gradient run one Warp kernel (``gnwarp.kernels.state``; the same formulas)."""
+    if (_torch(x) and _torch(x_next) and x.shape == x_next.shape and x.shape[-1:] == (DYN_NODE_SIZE,)
+            and x.dtype == x_next.dtype
+            and x.dtype in (torch.float32, torch.float64) and x.device == x_next.device
+            and not (torch.is_grad_enabled() and (x.requires_grad or x_next.requires_grad))):
+        return _state_delta_warp(x, x_next)
     q, qn = x[..., QUAT], x_next[..., QUAT]
     inv = quat_conj(q) / _clamp_min((q * q).sum(-1)[..., None], 1e-24)
     dq = quat_canonical(quat_normalize(quat_mul(qn, inv)))
     return _cat([x_next[..., POS] - x[..., POS], dq, x_next[..., LINVEL] - x[..., LINVEL],
                  x_next[..., ANGVEL] - x[..., ANGVEL]], x)
+
+
+def _state_delta_warp(x, x_next):
+    from gnwarp.interop import WP_DTYPE, Launcher
+    from gnwarp.kernels.state import state_delta_kernel
+    a = x.detach().reshape(-1, DYN_NODE_SIZE).contiguous()
+    b = x_next.detach().reshape(-1, DYN_NODE_SIZE).contiguous()
+    out = torch.empty_like(a)
+    Launcher(a)(state_delta_kernel(WP_DTYPE[a.dtype]), a.shape[0], a, b, out)
+    return out.reshape(x.shape)
 
 
 def apply_delta(x, delta):

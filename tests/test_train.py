@@ -14,7 +14,7 @@ from gnwarp.data.layout import LayoutMismatchError, merge_layouts
 from gnwarp.interop import warp
 from gnwarp.gn import RunOptions
 from gnwarp.models import GNCoreConfig, ModelConfig
-from gnwarp.train import CheckpointError, TrainConfig, load_model, train
+from gnwarp.train import CheckpointError, FlatAdam, TrainConfig, Trainer, load_model, train
 
 warp()
 
@@ -389,6 +389,20 @@ def test_flat_adam_trains_like_torch_adam(tmp_path, pendulum, impl):
     assert any(not torch.allclose(p, q) for p, q in zip(mb.parameters(), _fresh_params(tmp_path, pendulum, impl)))
     with pytest.raises(CheckpointError, match="optimizer state does not fit"):
         train(config(tmp_path, "flat", optimizer="adam", **{**kw, "steps": 30}), [pendulum])
+
+
+def test_auto_optimizer_is_adam_on_cpu_and_resumes_the_saved_kind(tmp_path, pendulum):
+    """optimizer="auto" (the default): torch's Adam on the CPU; a run saved with FlatAdam state
+    resumes with FlatAdam under "auto" instead of failing on the other kind's state."""
+    assert TrainConfig().optimizer == "auto"
+    t = Trainer(config(tmp_path, "auto", steps=4, valid_every=4, checkpoint_every=4), [pendulum])
+    assert type(t.optimizer) is torch.optim.Adam
+    t.run()
+    flat = config(tmp_path, "flat", optimizer="flat_adam", steps=4, valid_every=4, checkpoint_every=4)
+    train(flat, [pendulum])
+    resumed = Trainer(config(tmp_path, "flat", steps=8, valid_every=4, checkpoint_every=4), [pendulum])
+    assert isinstance(resumed.optimizer, FlatAdam) and resumed.state["step"] == 4
+    assert resumed.run()["steps"] == 8
 
 
 def _fresh_params(tmp_path, pendulum, impl):

@@ -7,19 +7,21 @@ variant), checks that the simulation did not diverge, and returns a ``Dataset``
 """
 from __future__ import annotations
 
+import numbers
+import os
 import time
 
 import numpy as np
 
 from gnwarp.data.convert import static_arrays
-from gnwarp.data.dataset import SPLITS, Dataset, Split
+from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
 from gnwarp.sim.common import topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import resolve_backend, simulate
-from gnwarp.sim.systems import make
+from gnwarp.sim.systems import check_model, make
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 
-__all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate"]
+__all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate", "memory_estimate"]
 
 # Paper, C.2: sequences per split.
 PAPER_SIZES = {False: {"train": 10000, "valid": 1000, "test": 1000},
@@ -88,6 +90,62 @@ def split_sizes(num_sequences, parameterized: bool) -> dict[str, int]:
     return sizes
 
 
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux: MemAvailable), else physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def memory_estimate(total: int, num_steps: int, bodies: int, nq: int, nv: int, nu: int, substeps: int = 1,
+                    backend: str = "mujoco") -> dict[str, int]:
+    """Bytes a dataset of ``total`` sequences of ``num_steps`` steps needs: "dataset" (its float32
+    arrays: body [S, T+1, B, 13], ctrl [S, T, U], qpos [S, T+1, nq], qvel [S, T+1, nv]) and "peak"
+    (about what generating it holds at once: the dataset, the simulator's copy of one topology's
+    trajectories, float64 controls and the backend's per-chunk buffers)."""
+    S, T = int(total), int(num_steps)
+    states = S * (T + 1) * (bodies * 13 + nq + nv) * 4
+    data = states + S * T * nu * 4
+    ctrl64 = S * T * nu * 8
+    if backend == "mujoco":  # mujoco.rollout: states and sensors of every physics step of a chunk
+        chunk = min(S, 512) * (T * substeps + 1) * (1 + 2 * (nq + nv + nu) + 13 * bodies + nu) * 8
+    else:  # MuJoCo-Warp: outputs of a chunk of worlds copied back to the host
+        chunk = min(S, 32768) * (T + 1) * (bodies * 13 + nq + nv) * 4
+    return {"dataset": data, "peak": data + states + ctrl64 + chunk}
+
+
+def _check_memory(name, total, num_steps, dims, substeps, backend):
+    """Refuse, before allocating, a dataset that would not fit in memory; ``dims``: (B, nq, nv, nu)."""
+    est = memory_estimate(total, num_steps, *dims, substeps, backend)
+    avail = _available_memory()
+    if avail is not None and est["peak"] > avail:
+        gib = lambda n: f"{n / 2**30:.3g} GiB"  # noqa: E731
+        raise ValueError(f"dataset of '{name}' too large: {total} sequences x {num_steps} steps x {dims[0]} bodies "
+                         f"is {gib(est['dataset'])} of float32 states and controls, and generating it needs about "
+                         f"{gib(est['peak'])} of memory; this machine has {gib(avail)} available. Use fewer sequences "
+                         f"or steps")
+    if backend == "mujoco_warp":  # one chunk of worlds' outputs lives on the GPU
+        B, nq, nv, nu = dims
+        gpu = min(total, 32768) * ((num_steps + 1) * (B * 13 + nq + nv) + num_steps * nu) * 4
+        try:
+            import torch
+            free = torch.cuda.mem_get_info()[0]
+        except Exception:  # no CUDA context to ask: MuJoCo-Warp reports it when it allocates
+            free = None
+        if free is not None and gpu > free:
+            raise ValueError(f"dataset of '{name}' too large for the GPU: a chunk of {min(total, 32768)} worlds x "
+                             f"{num_steps} steps needs {gpu / 2**30:.3g} GiB of GPU memory, {free / 2**30:.3g} GiB "
+                             f"are free. Use fewer steps")
+
+
 def _progress(total: int, desc: str, enabled: bool):
     from tqdm.auto import tqdm
     return tqdm(total=total, desc=desc, unit="seq", disable=not enabled, dynamic_ncols=True)
@@ -102,8 +160,11 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     parameter ranges (built-in systems only). ``num_sequences``: see ``split_sizes``.
     ``backend``: "auto", "mujoco_warp" (CUDA), "mujoco_warp_cpu" or "mujoco" (MuJoCo C).
     """
-    if num_steps < 1:
-        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    if isinstance(num_steps, bool) or not isinstance(num_steps, numbers.Integral) or num_steps < 1:
+        raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    num_steps, seed = int(num_steps), int(seed)
     backend = resolve_backend(backend)
     sizes = split_sizes(num_sequences, parameterized)
     total = sum(sizes.values())
@@ -117,8 +178,11 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         base_sys, name = system, system.name
         if parameterized:
             raise ValueError("parameterized=True needs a built-in system name, not a System instance")
+        check_model(base_sys.model, f"system '{name}'")
     if base_sys.model.nu == 0:
         raise ValueError(f"system '{name}' has no actuators: random-control datasets need at least one")
+    m0 = base_sys.model
+    _check_memory(name, total, num_steps, (m0.nbody, m0.nq, m0.nv, m0.nu), base_sys.substeps, backend)
     if parameterized:
         seeds = rng.integers(0, 2**31 - 1, total)
         bar = _progress(total, f"{name}: building instances", progress)
@@ -141,6 +205,8 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     nq = max(s.model.nq for s in instances)
     nv = max(s.model.nv for s in instances)
     nu = max(s.model.nu for s in instances)
+    if parameterized:  # sampled instances may be larger than the fixed system (swimmer links)
+        _check_memory(name, total, num_steps, (B, nq, nv, nu), base_sys.substeps, backend)
     body = np.zeros((total, num_steps + 1, B, DYN_NODE_SIZE), dtype=np.float32)
     ctrl = np.zeros((total, num_steps, nu), dtype=np.float32)
     qpos = np.zeros((total, num_steps + 1, nq), dtype=np.float32)
@@ -195,8 +261,8 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     return Dataset(meta, static, splits)
 
 
-_MAXVAL = 1e9  # MuJoCo flags |values| over 1e10 as divergence; stay below that
+_MAXVAL = MAX_ABS  # what a dataset may hold (loading refuses more): MuJoCo's own divergence bound is 1e10
 
 
 def _sane(a: np.ndarray) -> bool:
-    return bool(np.all(np.isfinite(a)) and np.all(np.abs(a) < _MAXVAL))
+    return bool(np.all(np.abs(a) <= _MAXVAL))  # False for NaN and Inf too

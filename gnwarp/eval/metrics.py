@@ -22,8 +22,8 @@ import torch
 
 from gnwarp.state import GROUPS
 
-__all__ = ["movable_mask", "squared_errors", "rollout_predictions", "one_step_predictions",
-           "normalized_errors", "rollout_error", "evaluate"]
+__all__ = ["movable_mask", "body_mask", "squared_errors", "rollout_predictions", "one_step_predictions",
+           "normalized_errors", "first_nonfinite_steps", "rollout_error", "evaluate"]
 
 
 def movable_mask(dataset, instance: np.ndarray) -> np.ndarray:
@@ -32,6 +32,20 @@ def movable_mask(dataset, instance: np.ndarray) -> np.ndarray:
     B = np.asarray(dataset.static["nodes"]).shape[1]
     b = np.arange(B)[None]
     return (b >= 1) & (b < n_node[:, None])
+
+
+def body_mask(dataset, instance: np.ndarray) -> np.ndarray:
+    """[S, B] bool: bodies that exist (not padding), the world body included."""
+    n_node = np.asarray(dataset.static["n_node"])[np.asarray(instance)]
+    B = np.asarray(dataset.static["nodes"]).shape[1]
+    return np.arange(B)[None] < n_node[:, None]
+
+
+def first_nonfinite_steps(pred: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """[S] int: for predicted states [S, H+1, B, 13] (bodies ``mask`` [S, B]), the first step at
+    which a body's state is NaN or Inf; -1 where a sequence stays finite."""
+    bad = (~np.isfinite(pred).all(-1) & mask[:, None]).any(-1)   # [S, H+1]
+    return np.where(bad.any(1), bad.argmax(1), -1)
 
 
 def squared_errors(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
@@ -101,7 +115,9 @@ def one_step_predictions(model, dataset, split: str = "test", sequences: int | N
 def normalized_errors(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mask: np.ndarray) -> dict:
     """Errors of ``pred`` and of the constant prediction ``const`` against ``true`` (all [S, H, B, 13],
     ``mask`` [S, B]): {"pos"/"quat"/"linvel"/"angvel": ratio, "mean": mean ratio, "model": {group:
-    mean squared error}, "constant": {...}}."""
+    mean squared error}, "constant": {...}}. A group the constant baseline predicts exactly has no
+    ratio (NaN, left out of the mean); where the model's predictions are not finite the ratio and
+    the mean are Inf (never NaN: a diverged model is not a group without a ratio)."""
     w = np.broadcast_to(mask[:, None], pred.shape[:3]).astype(np.float64)
     em, ec = squared_errors(pred, true), squared_errors(const, true)
     out = {"model": {}, "constant": {}}
@@ -113,7 +129,11 @@ def normalized_errors(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mas
     for g in GROUPS:
         c = out["constant"][g]
         # a group the constant baseline gets right up to float32 rounding has no meaningful ratio
-        r = out["model"][g] / c if c > 1e-8 * scale and c > 0 else math.nan
+        m = out["model"][g]
+        if not math.isfinite(m):
+            r = math.inf       # predictions left the finite range
+        else:
+            r = m / c if c > 1e-8 * scale and c > 0 else math.nan
         out[g] = r
         if not math.isnan(r):
             ratios.append(r)
@@ -136,25 +156,39 @@ def evaluate(model, dataset, split: str = "test", sequences: int | None = None,
     """{"one_step": errors, "rollout_20": errors, "rollout_100": errors, ...} (see
     ``normalized_errors``) on the first ``sequences`` sequences of ``split``. Horizons longer than
     the sequences are cut to their length (the key keeps the asked horizon and "steps" says how
-    many were used). ``keep_predictions``: also return the longest rollout under "predictions"."""
+    many were used). ``keep_predictions``: also return the longest rollout under "predictions".
+
+    Predictions that leave the finite range are reported, not hidden: their errors are Inf,
+    each horizon's "first_nonfinite_step" is the first rollout step (1..H) at which any sequence's
+    state was NaN or Inf (None: finite throughout), "nonfinite_sequences" how many sequences left
+    the range, and the one-step errors' "nonfinite_steps" how many one-step predictions did."""
     was_training = model.training
     model.eval()
     try:
         out = {}
         pred, true, inst = one_step_predictions(model, dataset, split, sequences)
         mask = movable_mask(dataset, inst)
+        bodies = body_mask(dataset, inst)
         out["one_step"] = normalized_errors(pred, true[:, 1:], true[:, :-1], mask)
         out["one_step"]["steps"] = 1
+        out["one_step"]["nonfinite_steps"] = int((~np.isfinite(pred).all(-1) & bodies[:, None]).any(-1).sum())
         H = max(horizons) if horizons else 0
         if H:
             pred, true, inst = rollout_predictions(model, dataset, split, H, sequences)
             const = np.broadcast_to(true[:, :1], true.shape)
+            first = first_nonfinite_steps(pred, bodies)
             for h in horizons:
                 k = min(h, pred.shape[1] - 1)
-                out[f"rollout_{h}"] = normalized_errors(pred[:, 1:k + 1], true[:, 1:k + 1], const[:, 1:k + 1], mask)
-                out[f"rollout_{h}"]["steps"] = k
-            # stability: the rollout stayed finite
-            out["finite"] = bool(np.isfinite(pred).all())
+                r = normalized_errors(pred[:, 1:k + 1], true[:, 1:k + 1], const[:, 1:k + 1], mask)
+                gone = (first >= 0) & (first <= k)
+                r["steps"] = k
+                r["first_nonfinite_step"] = int(first[gone].min()) if gone.any() else None
+                r["nonfinite_sequences"] = int(gone.sum())
+                out[f"rollout_{h}"] = r
+            # stability: the rollout stayed finite, else the first step where it did not
+            out["finite"] = bool((first < 0).all())
+            out["first_nonfinite_step"] = int(first[first >= 0].min()) if (first >= 0).any() else None
+            out["nonfinite_sequences"] = int((first >= 0).sum())
             if keep_predictions:
                 out["predictions"] = {"pred": pred, "true": true, "instance": inst}
         out["sequences"] = int(mask.shape[0])

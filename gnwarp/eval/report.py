@@ -31,23 +31,36 @@ def _save(fig, path, dpi: int) -> Path:
 
 def _fmt(x: float) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
-        return "n/a"
+        return "n/a"          # a group the constant baseline predicts exactly: no ratio
+    if isinstance(x, float) and math.isinf(x):
+        return "non-finite"   # the model's predictions left the finite range
     return f"{x:.3g}"
+
+
+def _nonfinite(r: dict) -> str:
+    """The "first non-finite step" cell of one model's ``evaluate`` results."""
+    step = r.get("first_nonfinite_step")
+    if step is not None:
+        return f"{step} ({r.get('nonfinite_sequences', '?')} of {r.get('sequences', '?')} sequences)"
+    n = r.get("one_step", {}).get("nonfinite_steps", 0)
+    return f"one-step: {n} predictions" if n else "none"
 
 
 def markdown_table(results: dict[str, dict], system: str = "") -> str:
     """Markdown tables of normalized errors: ``results`` is {model name: ``evaluate`` output}; a
-    "constant" row (1 by definition) is added. First the mean over groups per horizon, then the
-    per-group ratios of each horizon."""
+    "constant" row (1 by definition) is added. First the mean over groups per horizon, with the
+    first rollout step at which a model's predictions left the finite range ("non-finite"
+    errors), then the per-group ratios of each horizon."""
     keys = [k for k in next(iter(results.values())) if k == "one_step" or k.startswith("rollout_")]
     head = {k: ("one-step" if k == "one_step" else f"{k.split('_')[1]}-step rollout") for k in keys}
     lines = [f"Normalized error{f' on {system}' if system else ''} (model / constant-prediction baseline; "
-             f"lower is better):", "", "| model | " + " | ".join(head[k] for k in keys) + " |",
-             "|---|" + "---|" * len(keys)]
+             f"lower is better):", "", "| model | " + " | ".join(head[k] for k in keys) + " | first non-finite step |",
+             "|---|" + "---|" * (len(keys) + 1)]
     for name, r in results.items():
-        lines.append(f"| {name} | " + " | ".join(_fmt(r[k]["mean"]) for k in keys) + " |")
-    lines.append("| constant | " + " | ".join("1" for _ in keys) + " |")
-    lines += ["", "Per state group (position, orientation, linear and angular velocity):", "",
+        lines.append(f"| {name} | " + " | ".join(_fmt(r[k]["mean"]) for k in keys) + f" | {_nonfinite(r)} |")
+    lines.append("| constant | " + " | ".join("1" for _ in keys) + " | none |")
+    lines += ["", "Per state group (position, orientation, linear and angular velocity; n/a: the constant "
+              "baseline predicts the group exactly, so it has no ratio):", "",
               "| model | horizon | pos | quat | linvel | angvel |", "|---|---|---|---|---|---|"]
     for name, r in results.items():
         for k in keys:
@@ -62,6 +75,7 @@ def plot_errors(results: dict[str, dict], path, title: str = "") -> Path:
     keys = [k for k in next(iter(results.values())) if k == "one_step" or k.startswith("rollout_")]
     names = list(results) + ["constant"]
     vals = np.array([[results[n][k]["mean"] if n != "constant" else 1.0 for k in keys] for n in names])
+    vals[~np.isfinite(vals)] = np.nan   # no bar for a non-finite error (the table names its step)
     fig, ax = plt.subplots(figsize=(1.6 + 1.6 * len(keys), 3.2))
     width = 0.8 / len(names)
     colors = ["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "0.6"]

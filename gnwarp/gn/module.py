@@ -18,7 +18,7 @@ import torch
 
 from gnwarp.gn import blas_block, rules, tile_block
 from gnwarp.gn.config import GNBlockConfig
-from gnwarp.gn.index import GraphIndex, graph_index
+from gnwarp.gn.index import GraphIndex, check_index, graph_index
 from gnwarp.gn.options import ResolvedRun, RunOptions, check_option_names, renamed_attribute
 from gnwarp.gn.reference import TorchGraphNetwork, check_graph
 from gnwarp.graphs import GraphsTuple
@@ -48,8 +48,11 @@ class GraphNetwork(TorchGraphNetwork):
 
     ``forward(graph, index=None)``: ``graph`` is a GraphsTuple of torch tensors on the
     parameters' device; ``index`` an optional ``GraphIndex`` of that graph (build it once with
-    ``gn.graph_index(graph)`` to share it across blocks and steps). Returns a GraphsTuple with new
-    nodes, edges and (with ``update_globals``) globals.
+    ``gn.graph_index(graph)`` to share it across blocks and steps; building it validates the
+    counts and indices). Returns a GraphsTuple with new nodes, edges and (with ``update_globals``)
+    globals. An index of another topology raises: its node, edge and graph counts are compared with
+    the graph's shapes on every call (no host sync), its arrays with the graph's values too when
+    ``check_inputs`` is on.
     """
     impl = _option("impl")
     path = _option("path")
@@ -75,7 +78,8 @@ class GraphNetwork(TorchGraphNetwork):
         return f"impl={o.impl!r}, path={o.path!r}, precision={o.precision!r}, deterministic={o.deterministic}"
 
     def graph_index(self, graph: GraphsTuple) -> GraphIndex:
-        """Index arrays of ``graph`` for the Warp kernels (reusable across blocks and steps)."""
+        """Index arrays of ``graph`` for the Warp kernels (reusable across blocks and steps),
+        validated once here (one host sync): counts, index ranges, edges inside their graph."""
         return graph_index(graph, deterministic=self.options.deterministic)
 
     def forward(self, graph: GraphsTuple, index: GraphIndex | None = None) -> GraphsTuple:
@@ -83,6 +87,8 @@ class GraphNetwork(TorchGraphNetwork):
         run = self.options.resolve(param.dtype, param.device)
         if run.options.check_inputs:
             check_graph(self.config, graph, param)
+        if index is not None:  # from shapes; the arrays too (a host sync) when inputs are checked
+            check_index(index, graph, values=run.options.check_inputs)
         if run.impl == "torch":
             return self._torch_forward(graph, run)
         return self._warp_forward(graph, index, run)
@@ -100,8 +106,8 @@ class GraphNetwork(TorchGraphNetwork):
         c = self.config
         params = self.flat_parameters()
         device = params[0].device
-        if index is None:
-            index = graph_index(graph, deterministic=run.deterministic)
+        if index is None:  # validated here unless check_graph just did
+            index = graph_index(graph, deterministic=run.deterministic, validate=not run.options.check_inputs)
         elif run.deterministic and not index.deterministic:
             raise ValueError("deterministic GraphNetwork needs a GraphIndex built with deterministic=True")
         auto = run.path == "auto"

@@ -10,19 +10,23 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from dataclasses import dataclass
+from typing import Annotated, Literal, get_args
 
 import torch
 
+from gnwarp.gn.config import Allowed, ConfigError, Count, Flag, check_fields, check_keys
 from gnwarp.gn.rules import TUNABLES
 from gnwarp.interop import WP_DTYPE
 
 __all__ = ["PRECISIONS", "IMPLS", "PATHS", "EDGE_FIRST_LAYERS", "RunOptions", "ResolvedRun", "tf32_matmul",
-           "check_option_names", "renamed_attribute"]
+           "check_option_names", "renamed_attribute", "ConfigError"]
 
-PRECISIONS = ("fp32", "tf32", "fp16", "bf16", "fp16x3", "fp64")
-IMPLS = ("warp", "torch")
-PATHS = ("auto", "blas", "tile")
-EDGE_FIRST_LAYERS = ("auto", "concat", "project")
+Precision = Literal["fp32", "tf32", "fp16", "bf16", "fp16x3", "fp64"]
+Impl = Literal["warp", "torch"]
+PathName = Literal["auto", "blas", "tile"]
+EdgeFirstLayer = Literal["auto", "concat", "project"]
+EmulateMin = Annotated[tuple[Count, Count], Allowed("(rows, width), two integers >= 0")]
+PRECISIONS, IMPLS, PATHS, EDGE_FIRST_LAYERS = (get_args(t) for t in (Precision, Impl, PathName, EdgeFirstLayer))
 # names of earlier versions, still read from saved configs
 _LEGACY_KEYS = {"backend": "impl"}
 _LEGACY_VALUES = {"path": {"split": "blas"}, "edge_first_layer": {"split": "project"}}
@@ -53,28 +57,16 @@ class RunOptions:
         check_inputs: validate graphs before any launch (shapes, dtypes, devices, index ranges,
             finiteness). Costs a few host syncs; models, which build their own graphs, skip it.
     """
-    impl: str = "warp"
-    path: str = "auto"
-    precision: str = "fp32"
-    deterministic: bool = False
-    edge_first_layer: str = "auto"
-    emulate_min: tuple[int, int] | None = None
-    check_inputs: bool = True
+    impl: Impl = "warp"
+    path: PathName = "auto"
+    precision: Precision = "fp32"
+    deterministic: Flag = False
+    edge_first_layer: EdgeFirstLayer = "auto"
+    emulate_min: EmulateMin | None = None
+    check_inputs: Flag = True
 
     def __post_init__(self):
-        for name, allowed in (("impl", IMPLS), ("path", PATHS), ("precision", PRECISIONS),
-                              ("edge_first_layer", EDGE_FIRST_LAYERS)):
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        for name in ("deterministic", "check_inputs"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        em = self.emulate_min
-        if em is not None:
-            if not (isinstance(em, (tuple, list)) and len(em) == 2
-                    and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in em)):
-                raise ValueError(f"emulate_min must be None or (rows, width), two ints >= 0, got {em!r}")
-            object.__setattr__(self, "emulate_min", tuple(em))
+        check_fields(self)  # every value against its annotation: one ConfigError naming the key
 
     def replace(self, **changes) -> "RunOptions":
         """A copy with ``changes`` (validated)."""
@@ -89,17 +81,13 @@ class RunOptions:
     def from_dict(cls, d: dict) -> "RunOptions":
         """Options from a saved dict; names of earlier versions (``backend``, path / edge first
         layer "split") are read as today's; unknown keys raise ValueError."""
+        if not isinstance(d, dict):
+            check_keys(cls, d)
         d = {_LEGACY_KEYS.get(k, k): v for k, v in d.items()}
         for k, renames in _LEGACY_VALUES.items():
-            if d.get(k) in renames:
+            if isinstance(d.get(k), str) and d[k] in renames:
                 d[k] = renames[d[k]]
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown run options {unknown} (known: {sorted(known)})")
-        if isinstance(d.get("emulate_min"), list):
-            d["emulate_min"] = tuple(d["emulate_min"])
-        return cls(**d)
+        return cls(**check_keys(cls, d, "run options"))
 
     @property
     def param_dtype(self) -> torch.dtype:

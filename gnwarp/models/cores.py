@@ -8,13 +8,12 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from gnwarp.gn.config import EdgeBlockConfig, GlobalBlockConfig, GNBlockConfig, NodeBlockConfig
 from gnwarp.gn.index import GraphIndex
 from gnwarp.gn.module import GraphNetwork
 from gnwarp.gn.options import RunOptions, renamed_attribute
 from gnwarp.gn.reference import MLP
 from gnwarp.graphs import GraphsTuple
-from gnwarp.models.config import GNCoreConfig, MLPCoreConfig
+from gnwarp.models.config import GNCoreConfig, MLPCoreConfig, core_blocks
 from gnwarp.state import DYN_NODE_SIZE
 
 __all__ = ["GNCore", "MLPCore"]
@@ -23,7 +22,9 @@ __all__ = ["GNCore", "MLPCore"]
 class GNCore(nn.Module):
     """GN1 on the normalized input graph; GN2 on [input, GN1 output] (graph skip), with GN2's
     global update switched off since only its nodes are read: the normalized change of each
-    body's dynamic state (D.1, D.2).
+    body's dynamic state (D.1, D.2). ``config``'s wiring switches give Figure H.2's variants
+    (one block; no skip; GN1's output keeping the input's edges, nodes or globals): see
+    ``GNCoreConfig`` and ``core_blocks``.
 
     ``sizes``: input widths {"nodes", "edges", "globals"}; ``options``: how both blocks run (their
     input checks are off: a model's graphs come from its ``GraphBuilder``)."""
@@ -31,20 +32,10 @@ class GNCore(nn.Module):
 
     def __init__(self, config: GNCoreConfig, sizes: dict[str, int], options: RunOptions | None = None):
         super().__init__()
-        fv, fe, fg = sizes["nodes"], sizes["edges"], sizes["globals"]
-        L = config.latent
-        hidden = dict(edge_hidden=config.edge_hidden, node_hidden=config.node_hidden,
-                      global_hidden=config.global_hidden)
-        # A graph without global features (a fixed system: no static global varies) gives GN1 no
-        # global input at all; GN1 still makes globals from its nodes and edges for GN2.
-        g = fg > 0
-        gn1 = GNBlockConfig(fv, fe, fg, node_out=L, edge_out=L, global_out=L, **hidden,
-                            edge_block=EdgeBlockConfig(use_globals=g), node_block=NodeBlockConfig(use_globals=g),
-                            global_block=GlobalBlockConfig(use_globals=g))
-        gn2 = GNBlockConfig(fv + L, fe + L, fg + L, node_out=DYN_NODE_SIZE, edge_out=L, global_out=L, **hidden,
-                            update_globals=False)
-        self.gn1 = GraphNetwork(gn1)
-        self.gn2 = GraphNetwork(gn2)
+        self.config = config
+        blocks = core_blocks(config, sizes)
+        self.gn1 = GraphNetwork(blocks[0])
+        self.gn2 = GraphNetwork(blocks[1]) if len(blocks) > 1 else None
         self.set_options(options or RunOptions())
 
     @property
@@ -53,7 +44,9 @@ class GNCore(nn.Module):
 
     def set_options(self, options: RunOptions) -> None:
         """Run both blocks with ``options`` (their input checks off)."""
-        self.gn1.options = self.gn2.options = options.replace(check_inputs=False)
+        for block in (self.gn1, self.gn2):
+            if block is not None:
+                block.options = options.replace(check_inputs=False)
 
     def graph_index(self, graph: GraphsTuple) -> GraphIndex | None:
         """Index of ``graph``'s topology, shared by both blocks (None for the torch implementation)."""
@@ -62,10 +55,17 @@ class GNCore(nn.Module):
     def forward(self, graph: GraphsTuple, index: GraphIndex | None = None) -> torch.Tensor:
         """Normalized input graph -> [sum(n_node), 13] normalized state changes."""
         g1 = self.gn1(graph, index)
-        skip = graph._replace(nodes=torch.cat([graph.nodes, g1.nodes], -1),
-                              edges=torch.cat([graph.edges, g1.edges], -1),
-                              globals=torch.cat([graph.globals, g1.globals], -1))
-        return self.gn2(skip, index).nodes
+        if self.gn2 is None:
+            return g1.nodes
+        c = self.config
+        out = g1._replace(nodes=g1.nodes if c.gn1_nodes else graph.nodes,
+                          edges=g1.edges if c.gn1_edges else graph.edges,
+                          globals=g1.globals if c.gn1_globals else graph.globals)
+        if c.skip:
+            out = graph._replace(nodes=torch.cat([graph.nodes, out.nodes], -1),
+                                 edges=torch.cat([graph.edges, out.edges], -1),
+                                 globals=torch.cat([graph.globals, out.globals], -1))
+        return self.gn2(out, index).nodes
 
 
 class MLPCore(nn.Module):

@@ -31,7 +31,8 @@ from gnwarp.graphs import GraphsTuple, graph_of
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
 from gnwarp.models.normalizer import Normalizer
-from gnwarp.models.rollout import RolloutEngine, rollout_with_adjoint
+from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, float_tensor, check_instance,
+                                   rollout_with_adjoint, source_info)
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
                           state_delta)
 
@@ -133,16 +134,33 @@ class ForwardModel(nn.Module):
             out["globals"] = self.norm_globals.mean_std(dtype)
         return out
 
-    def context(self, graph: GraphsTuple) -> StepContext:
+    def context(self, graph: GraphsTuple, stats: bool = True) -> StepContext:
         """Bookkeeping of ``graph``'s topology and the current normalizer statistics (no host
-        sync when graph.nodes is given)."""
+        sync when graph.nodes is given; ``stats=False`` leaves them out). The topology part is
+        kept for the graph's index tensors: a batch built on the same ones (a ``GraphBuilder`` of
+        one topology makes them once per batch size) reuses it."""
+        topo = self._topology_context(graph)
+        return topo._replace(stats=self.stats(graph.nodes.dtype) if stats else {})
+
+    def _topology_context(self, graph: GraphsTuple) -> StepContext:
+        # kept on the senders tensor itself, so that it lives exactly as long as the batch's index
+        # tensors do (a captured step that read it keeps working; nothing evicts it under one)
+        snd, others = graph.senders, (graph.receivers, graph.n_node, graph.n_edge)
+        sig = (tuple(t._version for t in (snd, *others)), graph.nodes.shape[0], self.options.impl,
+               self.options.deterministic)
+        entries = getattr(snd, "_gnwarp_contexts", None) or []
+        for key, s, ctx in entries:
+            if s == sig and all(a is b for a, b in zip(key, others)):
+                return ctx
         n_nodes = graph.nodes.shape[0]
         n_graph = graph.n_node.shape[0]
         n_node = graph.n_node.long()
         node_graph = graph_of(n_node, n_nodes)
         first = torch.cumsum(n_node, 0) - n_node
         movable = torch.arange(n_nodes, device=n_node.device) != first[node_graph]
-        return StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), self.stats(graph.nodes.dtype))
+        ctx = StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), {})
+        snd._gnwarp_contexts = (entries + [(others, sig, ctx)])[-4:]
+        return ctx
 
     # -- the pieces of Algorithm D.1 ------------------------------------------------------------
     def _recenter(self, dyn: torch.Tensor, ctx: StepContext) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -198,7 +216,8 @@ class ForwardModel(nn.Module):
         return GraphTemplate(builder, torch.as_tensor(instance))
 
     def rollout(self, initial_body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
-                template: GraphTemplate | None = None, adjoint: bool = True) -> torch.Tensor:
+                template: GraphTemplate | None = None, adjoint: bool = True, ctrl_policy: str = "clamp",
+                check: bool = True) -> torch.Tensor:
         """Roll the model out from ``initial_body`` [N, B, 13] under ``ctrl`` [N, T, U] for system
         instances ``instance`` [N] (default: all 0) -> states [N, T+1, B, 13] (the initial included).
 
@@ -207,14 +226,35 @@ class ForwardModel(nn.Module):
         memory grows with the states, not with every step's activations; ``adjoint=False`` keeps
         the activations (plain autograd). The loop has no host synchronization (the template and
         graph index are built once before it).
+
+        Inputs are checked before any launch (``RolloutInputError``, a ValueError, naming the
+        argument): shapes (B the bound source's bodies, U its controls, N alike, T >= 1), instances
+        (integers in range of the bound source) and, with ``check`` (default), NaN / Inf in the
+        initial states of real bodies and in the controls (one host sync). ``ctrl_policy``:
+        "clamp" (default) clamps each control to its actuator's range where the actuator is
+        ctrllimited, as MuJoCo does (the range is a static edge feature of the model's data);
+        "error" refuses controls outside it; "none" uses them as they are.
         """
+        initial_body = float_tensor(initial_body, "initial_body")
+        if initial_body.ndim != 3:
+            raise RolloutInputError(f"initial_body must be [N, B, 13], got shape {tuple(initial_body.shape)}")
         N = initial_body.shape[0]
-        if instance is None:
-            instance = torch.zeros(N, dtype=torch.int64)
-        tmpl = template if template is not None else self.template(instance, builder)
+        source = builder if builder is not None else self.builder
+        if template is None:
+            if source is None:
+                raise ValueError("no static graphs: call model.bind(dataset_or_system) first, or pass builder=")
+            n_inst, n_ctrl = source_info(source)
+            if N < 1:
+                raise RolloutInputError("initial_body holds no sequences (N = 0)")
+            instance = torch.zeros(N, dtype=torch.int64) if instance is None else check_instance(instance, n_inst, N)
+            tmpl = self.template(instance, builder)
+        else:
+            tmpl, n_ctrl = template, (source_info(builder)[1] if builder is not None else None)
+        inputs = RolloutInputs(tmpl, self.layout, n_ctrl, ctrl_policy, check)
+        body, ctrl = inputs.shapes(initial_body, ctrl)
         dev = tmpl.static_nodes.device
-        body = initial_body.to(dev, tmpl.dtype)
-        ctrl = ctrl.to(dev, tmpl.dtype)
+        body = body.to(dev, tmpl.dtype)
+        ctrl = inputs.values(body, ctrl.to(dev, tmpl.dtype))   # checked; clamped to the actuators' ranges
         ctx = self.context(tmpl.graph(body, ctrl[:, 0]))  # topology, graph index and statistics: once
 
         def step(b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -229,15 +269,21 @@ class ForwardModel(nn.Module):
             out.append(body)
         return torch.stack(out, 1)
 
-    def rollout_engine(self, instance, horizon: int, builder=None) -> RolloutEngine:
+    def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp",
+                       check: bool = True) -> RolloutEngine:
         """A ``RolloutEngine`` for rollouts of ``horizon`` steps of system instances ``instance``
         [N]: on CUDA its forward and backward (w.r.t. initial states and controls) replay CUDA
-        graphs. Hold it and call ``engine.rollout(x0, ctrl)`` as often as needed."""
-        return RolloutEngine(self, instance, horizon, builder)
+        graphs. Hold it and call ``engine.rollout(x0, ctrl)`` as often as needed. ``ctrl_policy``
+        and ``check`` as in ``rollout`` (the checks run on the host once per call, before the replay)."""
+        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check)
 
-    def predict(self, body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None) -> torch.Tensor:
-        """One step: body [N, B, 13], ctrl [N, U] -> next body [N, B, 13]."""
-        return self.rollout(body, ctrl[:, None], instance, builder)[:, 1]
+    def predict(self, body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
+                ctrl_policy: str = "clamp", check: bool = True) -> torch.Tensor:
+        """One step: body [N, B, 13], ctrl [N, U] -> next body [N, B, 13] (checked as ``rollout``)."""
+        ctrl = float_tensor(ctrl, "ctrl")
+        if ctrl.ndim != 2:
+            raise RolloutInputError(f"predict's ctrl must be [N, U] (one step), got shape {tuple(ctrl.shape)}")
+        return self.rollout(body, ctrl[:, None], instance, builder, ctrl_policy=ctrl_policy, check=check)[:, 1]
 
     # -- training (D.7.1, D.7.4) --------------------------------------------------------------
     def loss(self, graph: GraphsTuple, target: torch.Tensor, noise_std: float = 0.0, accumulate: bool = False,
@@ -253,7 +299,7 @@ class ForwardModel(nn.Module):
         normalized position and velocity terms (the paper's raw term is ~1e3 times smaller).
         Returns {"loss", "pos", "quat", "linvel", "angvel"} (each a mean over movable nodes).
         """
-        ctx = self.context(graph)
+        ctx = self.context(graph, stats=not accumulate)
         dyn = graph.nodes[:, -DYN_NODE_SIZE:]
         if noise_std > 0:
             eps = torch.randn(dyn.shape, generator=generator, device=dyn.device, dtype=dyn.dtype) * noise_std
@@ -263,25 +309,29 @@ class ForwardModel(nn.Module):
         graph = self._with_dynamic(graph, dyn_c)
         delta = state_delta(dyn, target)  # translation does not change it
         w = ctx.movable.to(dyn.dtype)
-        if accumulate:
-            self._accumulate_input(graph)
-            self.norm_delta.accumulate(delta, w)
-            ctx = ctx._replace(stats=self.stats(dyn.dtype))
+        if accumulate:  # each normalizer's sums and new statistics in one launch
+            stats = {"nodes": self.norm_nodes.accumulate_stats(graph.nodes),
+                     "edges": self.norm_edges.accumulate_stats(graph.edges),
+                     "delta": self.norm_delta.accumulate_stats(delta, w)}
+            if self.norm_globals is not None:
+                stats["globals"] = self.norm_globals.accumulate_stats(graph.globals)
+            ctx = ctx._replace(stats=stats)
         pred_n = self.predict_delta(graph, ctx)
         m, s = ctx.stats["delta"]
         target_n = (delta - m) / s
         denom = w.sum().clamp_min(1.0)
-        terms = {}
-        for name, sl in (("pos", POS), ("linvel", LINVEL), ("angvel", ANGVEL)):
-            terms[name] = (((pred_n[:, sl] - target_n[:, sl]) ** 2).sum(-1) * w).sum() / denom
+        # squared errors summed per column over movable nodes, then per term (few kernels)
+        col = ((pred_n - target_n).square() * w[:, None]).sum(0)
+        assert (POS, LINVEL, ANGVEL) == (slice(0, 3), slice(7, 10), slice(10, 13))
         q_pred = quat_normalize(pred_n[:, QUAT] * s[QUAT] + m[QUAT])
         rot = rotation_loss(delta[:, QUAT], q_pred)
         if rotation_scale == "normalized":
             rot = rot / (s[4:7] ** 2).sum()
         elif rotation_scale != "paper":
             raise ValueError(f"rotation_scale must be 'normalized' or 'paper', got {rotation_scale!r}")
-        terms["quat"] = (rot * w).sum() / denom
-        terms["loss"] = terms["pos"] + terms["quat"] + terms["linvel"] + terms["angvel"]
+        parts = torch.cat([col[POS].sum()[None], col[7:].view(2, 3).sum(1), (rot * w).sum()[None]]) / denom
+        terms = {name: parts[k] for k, name in enumerate(("pos", "linvel", "angvel", "quat"))}
+        terms["loss"] = parts.sum()
         return terms
 
     def extra_repr(self) -> str:

@@ -4,6 +4,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.kernels.models import normalizer as K
+
 __all__ = ["Normalizer"]
 
 
@@ -44,6 +47,30 @@ class Normalizer(nn.Module):
             self.count += w.sum()
             self.sum += (x * w).sum(0)
             self.sumsq += (x * x * w).sum(0)
+
+    @torch.no_grad()
+    def accumulate_stats(self, x: torch.Tensor, weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``accumulate(x, weight)`` and then ``mean_std(x.dtype)``, in one Warp launch (plus the
+        count's update): what a training step does each batch. Same sums, same statistics (the
+        column sums in a fixed order: deterministic)."""
+        x = x.detach().reshape(-1, self.size)
+        if x.dtype not in (torch.float32, torch.float64) or x.shape[0] == 0:
+            self.accumulate(x, weight)
+            return self.mean_std(x.dtype)
+        x = x.contiguous()
+        launch = Launcher(x)
+        mean = torch.empty(self.size, dtype=x.dtype, device=x.device)
+        std = torch.empty_like(mean)
+        w = None if weight is None else weight.detach().to(x.dtype).reshape(-1).contiguous()
+        bd = K.BLOCK if launch.is_cuda else 1
+        kernel = K.accumulate_kernel(WP_DTYPE[x.dtype], w is not None)
+        launch.tiled(kernel, self.size, bd, x, w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd,
+                     self.count.reshape(1), self.sum, self.sumsq, self.std_floor, mean, std)
+        if w is None:
+            self.count += x.shape[0]
+        else:
+            self.count += w.sum(dtype=torch.float64)
+        return mean, std
 
     def reset(self) -> None:
         for b in (self.count, self.sum, self.sumsq):

@@ -14,13 +14,196 @@ launch instead of thousands from Python.
 """
 from __future__ import annotations
 
+import math
+import weakref
 from typing import Callable
 
 import torch
 
 from gnwarp.interop import Graphed
+from gnwarp.state import DYN_NODE_SIZE
 
-__all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine"]
+__all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICIES", "RolloutInputError",
+           "check_instance", "RolloutInputs"]
+
+# What a rollout does with controls outside an actuator's range: "clamp" them to it (as MuJoCo
+# does for ctrllimited actuators), "error" (refuse them), or "none" (use them as they are).
+CTRL_POLICIES = ("clamp", "error", "none")
+
+
+class RolloutInputError(ValueError):
+    """Rollout inputs refused before any launch: a shape, an instance, a non-finite value or a
+    control outside its actuator's range; the message names the argument."""
+
+
+def _as_tensor(x, name: str) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x
+    try:
+        return torch.as_tensor(x)
+    except Exception as e:
+        raise RolloutInputError(f"{name} must be a tensor (or array), got {type(x).__name__}: {e}") from None
+
+
+def float_tensor(x, name: str) -> torch.Tensor:
+    x = _as_tensor(x, name)
+    if x.dtype == torch.bool or x.is_complex():
+        raise RolloutInputError(f"{name} must hold real numbers, got dtype {x.dtype}")
+    return x
+
+
+def check_instance(instance, n_instances: int, N: int | None = None) -> torch.Tensor:
+    """``instance`` as an int64 tensor [N] of system instances in [0, n_instances), or
+    ``RolloutInputError`` naming what is wrong (float or bool values, shape, range)."""
+    t = _as_tensor(instance, "instance")
+    if t.dtype == torch.bool or t.is_floating_point() or t.is_complex():
+        raise RolloutInputError(f"instance must hold integers (system instance numbers), got dtype {t.dtype}")
+    if t.ndim != 1:
+        raise RolloutInputError(f"instance must be 1-D [N], got shape {tuple(t.shape)}")
+    if N is not None and t.shape[0] != N:
+        raise RolloutInputError(f"instance has {t.shape[0]} entries but initial_body {N} sequences")
+    if t.numel():
+        lo, hi = (int(v) for v in torch.stack([t.min(), t.max()]).tolist())  # on the host: one sync at most
+        if lo < 0 or hi >= n_instances:
+            bad = lo if lo < 0 else hi
+            raise RolloutInputError(f"instance {bad} is out of range: the bound source has {n_instances} system "
+                                    f"instance(s), 0..{n_instances - 1}")
+    return t.long()
+
+
+# per GraphTemplate: (number of controls, control ranges (lo, hi) [N, U] or None), made once
+_TEMPLATE_INFO: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+# per GraphBuilder: (system instances, controls its actuators take)
+_BUILDER_INFO: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def source_info(builder) -> tuple[int, int]:
+    """(system instances, controls U) of a bound source's ``GraphBuilder`` (one host sync, once)."""
+    info = _BUILDER_INFO.get(builder)
+    if info is None:
+        ec = builder.edge_ctrl
+        info = (int(builder.s_nodes.shape[0]), int(ec.max()) + 1 if ec.numel() else 0)
+        _BUILDER_INFO[builder] = info
+    return info
+
+
+def _range_columns(layout):
+    """{name: column index or constant} of the actuator's ctrllimited flag and range in a feature
+    layout (the static edge features of the actuator on each joint edge's first slot), or None
+    when the layout has no control ranges."""
+    out = {}
+    for name in ("act_ctrllimited", "act_ctrlrange_0", "act_ctrlrange_1"):
+        if name in layout.edge_names:
+            out[name] = layout.edge_names.index(name)
+        elif name in layout.dropped.get("edges", {}):
+            out[name] = float(layout.dropped["edges"][name])
+        else:
+            return None
+    return out
+
+
+def _template_info(template, layout, n_ctrl: int | None):
+    """(controls U, (lo, hi) [N, U] or None) of a GraphTemplate (cached per template)."""
+    info = _TEMPLATE_INFO.get(template)
+    if info is not None and (n_ctrl is None or info[0] == n_ctrl):
+        return info
+    ci = template.ctrl_index
+    if n_ctrl is None:  # the template's own instances: their largest control index
+        n_ctrl = int(ci.max()) + 1 if ci.numel() else 0                     # one host sync, once
+    ranges = None
+    cols = _range_columns(layout) if layout is not None else None
+    if cols is not None and n_ctrl > 0 and ci.numel():
+        se = template.static_edges
+        col = lambda k: se[:, cols[k]] if isinstance(cols[k], int) else torch.full_like(se[:, 0], cols[k])  # noqa: E731
+        limited, lo_e, hi_e = col("act_ctrllimited") > 0.5, col("act_ctrlrange_0"), col("act_ctrlrange_1")
+        c0 = ci[:, 0]
+        use = (c0 >= 0) & limited & (lo_e <= hi_e)
+        N, U = template.N, n_ctrl
+        slot = torch.where(use, template.edge_of.long() * U + c0.clamp(min=0).long(), torch.full_like(c0, N * U))
+        inf = torch.full((N * U + 1,), math.inf, dtype=se.dtype, device=se.device)
+        # both edges of a joint carry the same actuator and range: duplicates write equal values
+        lo = (-inf).index_put((slot,), lo_e)[:-1].reshape(N, U)
+        hi = inf.index_put((slot,), hi_e)[:-1].reshape(N, U)
+        if bool(torch.isfinite(torch.stack([lo, hi])).any()):   # else no limited actuator: nothing to do
+            ranges = (lo, hi)
+    info = (n_ctrl, ranges)
+    _TEMPLATE_INFO[template] = info
+    return info
+
+
+class RolloutInputs:
+    """Checks and clamping of a rollout's inputs for one ``GraphTemplate`` (N system instances, B
+    bodies), before any launch.
+
+    ``n_ctrl``: the controls U the source's actuators take (None: the template's own largest
+    control index + 1). ``layout``: the model's ``FeatureLayout``, where the actuators' control
+    ranges are read from (the static edge features ``act_ctrllimited`` / ``act_ctrlrange_*`` of
+    the actuator on each joint; an actuator sharing a joint with another, in a later slot, has no
+    range there and is not clamped). ``ctrl_policy``: one of ``CTRL_POLICIES``. ``check``: also
+    refuse NaN / Inf in the initial states (of real bodies) and the controls (one host sync).
+    """
+
+    def __init__(self, template, layout=None, n_ctrl: int | None = None, ctrl_policy: str = "clamp",
+                 check: bool = True):
+        if ctrl_policy not in CTRL_POLICIES:
+            raise ValueError(f"ctrl_policy must be one of {CTRL_POLICIES}, got {ctrl_policy!r}")
+        if not isinstance(check, bool):
+            raise ValueError(f"check must be True or False, got {check!r}")
+        self.template, self.ctrl_policy, self.check = template, ctrl_policy, check
+        self.n_ctrl, ranges = _template_info(template, layout, n_ctrl)
+        self.ranges = None if ctrl_policy == "none" else ranges
+
+    def shapes(self, body, ctrl) -> tuple[torch.Tensor, torch.Tensor]:
+        """``body`` [N, B, 13] and ``ctrl`` [N, T, U] (T >= 1) as tensors, or RolloutInputError."""
+        tm = self.template
+        body, ctrl = float_tensor(body, "initial_body"), float_tensor(ctrl, "ctrl")
+        want = f"[N, B, {DYN_NODE_SIZE}] = [{tm.N}, {tm.B}, {DYN_NODE_SIZE}] (N sequences, B bodies of the bound source)"
+        if body.ndim != 3 or tuple(body.shape) != (tm.N, tm.B, DYN_NODE_SIZE):
+            raise RolloutInputError(f"initial_body must be {want}, got shape {tuple(body.shape)}")
+        cw, cshape = f"[N, T, U] = [{tm.N}, T >= 1, {self.n_ctrl}]", tuple(ctrl.shape)
+        if ctrl.ndim != 3 or ctrl.shape[0] != tm.N or ctrl.shape[1] < 1 or ctrl.shape[2] != self.n_ctrl:
+            why = ("the number of sequences differs from initial_body's" if ctrl.ndim == 3 and ctrl.shape[0] != tm.N
+                   else "no steps" if ctrl.ndim == 3 and ctrl.shape[1] < 1
+                   else f"the source's actuators take {self.n_ctrl} control(s)" if ctrl.ndim == 3 else "")
+            raise RolloutInputError(f"ctrl must be {cw} (U: the bound source's controls), got shape {cshape}"
+                                    + (f": {why}" if why else ""))
+        return body, ctrl
+
+    def values(self, body: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:
+        """Finiteness (``check``) and the control policy: the controls to roll out with. At most
+        one host sync (none when ``check`` is off and the policy is not "error")."""
+        flags, names = [], []
+        if self.check:
+            flags += [torch.isfinite(self.template.nodes(body)).all(), torch.isfinite(ctrl).all()]
+            names += ["initial_body", "ctrl"]
+        if self.ranges is not None and self.ctrl_policy == "error":
+            lo, hi = (r.to(ctrl.device, ctrl.dtype)[:, None] for r in self.ranges)
+            flags.append(((ctrl >= lo) & (ctrl <= hi) | ~torch.isfinite(ctrl)).all())
+            names.append("range")
+        if flags:
+            ok = torch.stack(flags).tolist()
+            for name, good in zip(names, ok):
+                if good:
+                    continue
+                if name == "range":
+                    lo, hi = (r.to(ctrl.device, ctrl.dtype)[:, None].expand_as(ctrl) for r in self.ranges)
+                    n, t, u = (int(i) for i in ((ctrl < lo) | (ctrl > hi)).nonzero()[0])
+                    raise RolloutInputError(
+                        f"ctrl[{n}, {t}, {u}] = {float(ctrl[n, t, u]):g} is outside actuator {u}'s control range "
+                        f"[{float(lo[n, t, u]):g}, {float(hi[n, t, u]):g}] (ctrl_policy='error'; 'clamp' clamps "
+                        "it as MuJoCo does)")
+                x = self.template.nodes(body) if name == "initial_body" else ctrl
+                where = tuple(int(i) for i in (~torch.isfinite(x)).nonzero()[0])
+                if name == "initial_body":
+                    tm = self.template
+                    r = where[0] if tm.rows is None else int(tm.rows[where[0]])
+                    raise RolloutInputError(f"initial_body contains NaN or Inf (at initial_body[{r // tm.B}, "
+                                            f"{r % tm.B}])")
+                raise RolloutInputError(f"ctrl contains NaN or Inf (at ctrl{list(where)})")
+        if self.ranges is not None and self.ctrl_policy == "clamp":
+            lo, hi = (r.to(ctrl.device, ctrl.dtype)[:, None] for r in self.ranges)
+            ctrl = torch.minimum(torch.maximum(ctrl, lo), hi)   # as MuJoCo clamps ctrllimited actuators
+        return ctrl
 
 
 def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool, params=()):
@@ -115,11 +298,27 @@ class RolloutEngine:
     and its backward each replay one CUDA graph (recorded on the second call of each, after an
     eager warm-up). Gradients with respect to the model's parameters are not computed (use
     ``model.rollout``). The model's weights and normalizer statistics are read at every replay;
-    change them in place, not by replacing tensors. Results are fresh tensors (copies)."""
+    change them in place, not by replacing tensors. Results are fresh tensors (copies).
+    ``instance`` is checked against the bound source; every call's inputs are checked before any
+    launch and the controls clamped to the actuators' ranges (``ctrl_policy``, ``check``: see
+    ``ForwardModel.rollout``)."""
 
-    def __init__(self, model, instance, horizon: int, builder=None):
+    def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True):
+        try:
+            ok = not isinstance(horizon, bool) and int(horizon) == horizon and horizon >= 1
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise RolloutInputError(f"horizon must be an integer >= 1, got {horizon!r}")
         self.model = model
+        source = builder if builder is not None else model.builder
+        if source is not None:
+            n_inst, n_ctrl = source_info(source)
+            instance = check_instance(instance, n_inst)
+        else:
+            n_ctrl = None   # model.template says what is missing
         self.template = model.template(torch.as_tensor(instance), builder)
+        self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)
         self.horizon = int(horizon)
         self.cuda = self.template.static_nodes.is_cuda
         self._bufs = None
@@ -187,6 +386,19 @@ class RolloutEngine:
         return b["g_x0"].clone(), b["g_ctrl"].clone()
 
     def rollout(self, x0: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:
-        """States [N, T+1, B, 13] from ``x0`` [N, B, 13] under ``ctrl`` [N, T, U]."""
-        dev, dt = self.template.static_nodes.device, self.template.dtype
-        return _EngineRollout.apply(self, x0.to(dev, dt), ctrl.to(dev, dt))
+        """States [N, T+1, B, 13] from ``x0`` [N, B, 13] under ``ctrl`` [N, T, U]. The inputs are
+        checked before any launch (shapes; with ``check``, finiteness: one host sync) and the
+        controls clamped to the actuators' ranges (``ctrl_policy``, see ``RolloutInputs``)."""
+        tm = self.template
+        x0, ctrl = float_tensor(x0, "x0"), float_tensor(ctrl, "ctrl")
+        if ctrl.ndim == 3 and ctrl.shape[1] != self.horizon:
+            raise RolloutInputError(f"this RolloutEngine rolls out {self.horizon} steps, got controls for "
+                                    f"{ctrl.shape[1]}")
+        want_x, want_u = (tm.N, tm.B, DYN_NODE_SIZE), (tm.N, self.horizon, self.inputs.n_ctrl)
+        if tuple(x0.shape) != want_x or tuple(ctrl.shape) != want_u:
+            raise RolloutInputError(f"this RolloutEngine holds x0 {want_x} and controls {want_u} ([N, B, 13] and "
+                                    f"[N, T, U]), got {tuple(x0.shape)} and {tuple(ctrl.shape)}")
+        dev, dt = tm.static_nodes.device, tm.dtype
+        x0, ctrl = x0.to(dev, dt), ctrl.to(dev, dt)
+        ctrl = self.inputs.values(x0, ctrl)
+        return _EngineRollout.apply(self, x0, ctrl)

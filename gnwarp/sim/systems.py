@@ -38,8 +38,20 @@ __all__ = [
     "param_ranges",
     "sample_params",
     "from_mjcf",
+    "check_model",
     "describe",
+    "MASS_RANGE",
+    "SIZE_RANGE",
+    "INERTIA_MAX",
 ]
+
+# What the pipeline accepts of a model (``check_model``): masses of moving bodies in kg, geom sizes in
+# m (planes may be 0: infinite), principal inertias in kg m^2 (up to MASS_RANGE[1] x 1e3 m squared),
+# every other listed field finite; welded (jointless) bodies may be massless.
+MASS_RANGE = (1e-6, 1e6)
+SIZE_RANGE = (1e-6, 1e6)
+INERTIA_MAX = 1e12
+_CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.dataset.MAX_ABS)
 
 _SWIMMER_LINKS = (3, 15)           # SwimmerN exists for these N
 _SWIMMER_SAMPLED_LINKS = (3, 9)    # the parameterized SwimmerN samples N in this range (paper B)
@@ -311,7 +323,9 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
         full, parameterized = _validate(name, family, n, params), True
     spec = fam.build(full, fam.dt / fam.substeps)
     system_name = f"swimmer{int(full['n_links'])}" if family == "swimmer" else family
-    return System(name=system_name, model=spec.compile(), dt=fam.dt, substeps=fam.substeps,
+    model = spec.compile()
+    check_model(model, system_name)
+    return System(name=system_name, model=model, dt=fam.dt, substeps=fam.substeps,
                   params=full if parameterized else {}, parameterized=parameterized,
                   translation_invariant=fam.translation_invariant, spec=spec)
 
@@ -327,7 +341,10 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
 
     Raises:
       FileNotFoundError: no such file.
-      ValueError: the file does not compile, has no joints or no actuators, or bad dt/substeps.
+      ValueError: the file does not compile, has no joints or no actuators, bad dt/substeps, a
+        NaN or Inf in a numeric attribute, or values the pipeline cannot use (``check_model``:
+        non-positive timestep, masses, inertias or sizes outside their sane ranges), naming the
+        element or option.
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -344,6 +361,8 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
         model = spec.compile()
     except Exception as err:  # mujoco reports every parse and compile error as ValueError
         raise ValueError(f"{path}: not a valid MJCF model: {err}".rstrip()) from err
+    _check_mjcf_numbers(path)  # MuJoCo reads "nan" as "not given" in places (geom mass): refuse it
+    check_model(model, str(path))
     if model.njnt == 0:
         raise ValueError(f"{path}: the model has no joints; gnwarp needs at least one joint "
                          "(joints are the graph's edges)")
@@ -354,6 +373,161 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
         dt = float(model.opt.timestep) * int(substeps)
     return System(name=path.stem, model=model, dt=float(dt), substeps=int(substeps),
                   source=str(path), spec=spec)
+
+
+# Attributes that hold names or text, never numbers (a body may be called "inf").
+_TEXT_ATTRIBUTES = frozenset({
+    "name", "class", "childclass", "file", "model", "prefix", "content_type", "joint", "joint1", "joint2", "jointinparent",
+    "tendon", "tendon1", "tendon2", "site", "site1", "site2", "body", "body1", "body2", "bodyname", "geom", "geom1",
+    "geom2", "target", "actuator", "mesh", "material", "texture", "hfield", "slidersite", "cranksite", "objname",
+    "refname", "objtype", "reftype", "type", "meshdir", "texturedir", "assetdir", "key", "plugin", "instance",
+    "attach", "camera", "light", "skin", "flex", "frame", "sensor", "user", "mode", "target_site", "gridlayout",
+    "builtin", "mark", "fileright", "fileleft", "fileup", "filedown", "filefront", "fileback",
+})
+
+
+def _check_mjcf_numbers(path: pathlib.Path, _seen=None) -> None:
+    """Raise ValueError when a numeric attribute of the MJCF file (or a file it includes) holds
+    NaN or Inf, naming the element, its name, the attribute and the line."""
+    import xml.parsers.expat
+    seen = set() if _seen is None else _seen
+    path = pathlib.Path(path)
+    if path.resolve() in seen or len(seen) > 100:
+        return
+    seen.add(path.resolve())
+    found, includes = [], []
+    parser = xml.parsers.expat.ParserCreate()
+
+    def start(tag, attrs):
+        if tag == "include" and "file" in attrs:
+            includes.append(attrs["file"])
+        for key, value in attrs.items():
+            if key in _TEXT_ATTRIBUTES or found:
+                continue
+            tokens = value.split()
+            try:
+                numbers_ = [float(t) for t in tokens]
+            except ValueError:
+                continue
+            if numbers_ and not all(math.isfinite(x) for x in numbers_):
+                name = f" '{attrs['name']}'" if "name" in attrs else ""
+                found.append(f"{path}: <{tag}{name}> attribute {key}=\"{value}\" (line {parser.CurrentLineNumber}) "
+                             "is not finite; gnwarp needs finite numbers")
+
+    parser.StartElementHandler = start
+    try:
+        parser.Parse(path.read_bytes(), True)
+    except (xml.parsers.expat.ExpatError, OSError):
+        return  # MuJoCo parsed it: nothing more to say here
+    if found:
+        raise ValueError(found[0])
+    for inc in includes:
+        p = path.parent / inc
+        if p.is_file():
+            _check_mjcf_numbers(p, seen)
+
+
+def _obj_name(model: mujoco.MjModel, obj, i: int, kind: str) -> str:
+    name = mujoco.mj_id2name(model, obj, i)
+    return f"{kind} '{name}'" if name else f"{kind} {i} (unnamed)"
+
+
+_FINITE_OPTIONS = ("gravity", "wind", "magnetic", "density", "viscosity", "impratio", "o_margin", "o_solref",
+                   "o_solimp", "o_friction")
+_FINITE_FIELDS = (
+    ("body", mujoco.mjtObj.mjOBJ_BODY, ("body_pos", "body_quat", "body_ipos", "body_iquat")),
+    ("joint", mujoco.mjtObj.mjOBJ_JOINT, ("jnt_pos", "jnt_axis", "jnt_range", "jnt_stiffness", "jnt_margin",
+                                          "jnt_solref", "jnt_solimp")),
+    ("dof", None, ("dof_damping", "dof_armature", "dof_frictionloss")),
+    ("geom", mujoco.mjtObj.mjOBJ_GEOM, ("geom_pos", "geom_quat", "geom_friction", "geom_margin", "geom_solref",
+                                        "geom_solimp")),
+    ("actuator", mujoco.mjtObj.mjOBJ_ACTUATOR, ("actuator_gear", "actuator_ctrlrange", "actuator_forcerange",
+                                                "actuator_gainprm", "actuator_biasprm", "actuator_dynprm")),
+)
+
+# geom type -> the size entries it uses (the others are 0): sphere radius; capsule and cylinder
+# radius and half-length (which may be 0: a sphere or a disc); ellipsoid and box three half-sizes.
+# Planes may have 0 (infinite); meshes, height fields and SDFs get their sizes from their data.
+_GEOM_SIZES = {int(mujoco.mjtGeom.mjGEOM_SPHERE): 1, int(mujoco.mjtGeom.mjGEOM_CAPSULE): 2,
+               int(mujoco.mjtGeom.mjGEOM_CYLINDER): 2, int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): 3,
+               int(mujoco.mjtGeom.mjGEOM_BOX): 3}
+_GEOM_USED = [[k < _GEOM_SIZES.get(t, 0) for k in range(3)] for t in range(max(_GEOM_SIZES) + 2)]  # last row: none
+_HALF_LENGTH = [int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)]
+_PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
+
+
+def check_model(model: mujoco.MjModel, where: str = "model") -> None:
+    """Raise ValueError unless a compiled model is one the pipeline can simulate and learn.
+
+    Checks: finite positive ``option.timestep`` and finite options; every body but the world with
+    finite mass and inertia, masses in ``MASS_RANGE`` (kg) for bodies that move (welded, jointless
+    bodies may be massless) and principal inertias in [0, ``INERTIA_MAX``]; primitive geoms with
+    sizes in ``SIZE_RANGE`` (m; planes 0 to the upper end); finite poses, joint, dof, geom and
+    actuator parameters; actuator control ranges within +-1e6. The message names ``where``, the
+    option or the body / geom / joint / actuator, and the value.
+    """
+    def fail(msg):
+        raise ValueError(f"{where}: {msg}")
+
+    ts = float(model.opt.timestep)
+    if not (math.isfinite(ts) and ts > 0):
+        fail(f"option timestep is {ts!r}; it must be a finite positive number of seconds")
+    opts = [np.asarray(getattr(model.opt, name), dtype=np.float64).reshape(-1) for name in _FINITE_OPTIONS]
+    if not np.isfinite(np.concatenate(opts)).all():
+        for name, v in zip(_FINITE_OPTIONS, opts):
+            if not np.isfinite(v).all():
+                fail(f"option {name} is {v.tolist()}; it must be finite")
+    lo_s, hi_s = SIZE_RANGE
+    size = np.asarray(model.geom_size, dtype=np.float64).reshape(-1, 3)
+    gtype = np.asarray(model.geom_type).reshape(-1)
+    used = np.asarray(_GEOM_USED, dtype=bool)[np.minimum(gtype, len(_GEOM_USED) - 1)]        # [ngeom, 3]
+    primitive = used.any(axis=1)
+    half = (gtype == _HALF_LENGTH[0]) | (gtype == _HALF_LENGTH[1])
+    need = used & ~half[:, None] | (np.arange(3) == 0)[None] & primitive[:, None]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(size).all(axis=1) & (np.abs(size) <= hi_s).all(axis=1)
+        ok &= np.where(primitive | (gtype == _PLANE), (size >= 0).all(axis=1), True)
+        ok &= ~(need & ~(size >= lo_s)).any(axis=1)
+    if not ok.all():
+        g = int(np.argmin(ok))
+        rng = (f"[{lo_s:g}, {hi_s:g}] m" if primitive[g] else f"[0, {hi_s:g}] m" if gtype[g] == _PLANE
+               else f"within +-{hi_s:g} m")
+        geom = _obj_name(model, mujoco.mjtObj.mjOBJ_GEOM, g, "geom")
+        body = _obj_name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[g]), "body")
+        fail(f"{geom} of {body} has size {size[g].tolist()}, outside {rng}")
+    lo_m, hi_m = MASS_RANGE
+    mass = np.asarray(model.body_mass, dtype=np.float64)[1:]
+    inertia = np.asarray(model.body_inertia, dtype=np.float64).reshape(-1, 3)[1:]
+    moving = np.asarray(model.body_dofnum)[1:] > 0
+    with np.errstate(invalid="ignore"):
+        ok = (mass <= hi_m) & np.where(moving, mass >= lo_m, mass >= 0)  # False for NaN
+    if not ok.all():
+        b = int(np.argmin(ok))
+        rng = f"[{lo_m:g}, {hi_m:g}] kg" if moving[b] else f"[0, {hi_m:g}] kg (a welded body may be massless)"
+        fail(f"{_obj_name(model, mujoco.mjtObj.mjOBJ_BODY, b + 1, 'body')} has mass {float(mass[b])!r}, outside {rng}")
+    with np.errstate(invalid="ignore"):
+        ok = ((inertia >= 0) & (inertia <= INERTIA_MAX)).all(axis=1)
+    if not ok.all():
+        b = int(np.argmin(ok))
+        fail(f"{_obj_name(model, mujoco.mjtObj.mjOBJ_BODY, b + 1, 'body')} has inertia {inertia[b].tolist()}, outside "
+             f"[0, {INERTIA_MAX:g}] kg m^2 (each principal moment)")
+    fields = [(kind, obj, name, np.asarray(getattr(model, name), dtype=np.float64))
+              for kind, obj, names in _FINITE_FIELDS for name in names]
+    if np.isfinite(np.concatenate([a.reshape(-1) for *_, a in fields])).all():
+        fields = []  # all finite: nothing to name
+    for kind, obj, name, a in fields:
+        if a.size and not np.isfinite(a).all():
+            i = int(np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)))[0][0])
+            if obj is None:  # dofs: name their joint
+                label = f"dof {i} of {_obj_name(model, mujoco.mjtObj.mjOBJ_JOINT, int(model.dof_jntid[i]), 'joint')}"
+            else:
+                label = _obj_name(model, obj, i, kind)
+            fail(f"{label} has {name} {a[i].tolist()}; it must be finite")
+    cr = np.asarray(model.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
+    limited = np.asarray(model.actuator_ctrllimited).reshape(-1).astype(bool)
+    for i in np.flatnonzero(limited & np.any(np.abs(cr) > _CTRL_MAX, axis=1)):
+        fail(f"{_obj_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, int(i), 'actuator')} has ctrlrange {cr[i].tolist()}, "
+             f"beyond +-{_CTRL_MAX:g}")
 
 
 def _actuator_type(model: mujoco.MjModel, i: int) -> str:

@@ -6,44 +6,91 @@ A checkpoint is a self-describing folder, written to a temporary folder and rena
                    training config and data
     model.pt       state dict: weights and normalizer accumulators (count, sum, squared sum)
     training.pt    optimizer state, step, best validation error, sampler state (optional)
-    manifest.json  sha256 of each file above (checked on load)
+    manifest.json  sha256 of each file above (checked on load; it must cover every file)
 
-``load_model(path)`` restores a model from it without any of the training code's state.
+Loading never runs code: both ``.pt`` files hold only tensors and plain values (dicts, lists,
+tuples, numbers, strings) and are read with ``torch.load(weights_only=True)``; a file that needs
+more (a pickle payload, or an earlier format's objects) is refused with ``CheckpointError``.
+Weights must be finite, and a config asking for an absurd model is refused before allocating.
+
+``load_model(path)`` restores a model from it without any of the training code's state;
+``check_checkpoint(path)`` validates a folder and lists its findings. A process killed while
+replacing a checkpoint leaves ``.<name>.tmp-<pid>`` / ``.<name>.old-<pid>`` folders beside it;
+``recover_checkpoint`` puts the newest intact one back in place and ``clean_debris`` removes
+the rest (the ``Trainer`` runs both before resuming).
 """
 from __future__ import annotations
 
 import json
+import math
 import os
+import pickle
+import re
 import shutil
+import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from gnwarp.data.layout import FeatureLayout
-from gnwarp.files import sha256_file
+from gnwarp.files import pid_alive, sha256_file
 from gnwarp.gn.options import RunOptions, check_option_names
 from gnwarp.interop import resolve_device
-from gnwarp.models.config import ModelConfig
-from gnwarp.models.forward import ForwardModel
+from gnwarp.models.config import ModelConfig, check_model_size
+from gnwarp.models.forward import ForwardModel, input_sizes
 
-__all__ = ["FORMAT", "VERSION", "CheckpointError", "save_checkpoint", "load_model", "load_checkpoint"]
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "save_checkpoint", "load_model", "load_checkpoint",
+           "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes"]
 
 FORMAT, VERSION = "gnwarp-model", 1
+MANIFEST = "manifest.json"
+_DEBRIS = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)$")
 
 
 class CheckpointError(ValueError):
-    """A checkpoint folder that is missing, incomplete, corrupt or of another format."""
+    """A checkpoint folder that is missing, incomplete, corrupt, unsafe or of another format."""
 
 
+# -- plain values ------------------------------------------------------------------------------
+def _plain(x, where: str):
+    """``x`` as tensors and plain values only (what ``torch.load(weights_only=True)`` reads back):
+    numpy scalars and arrays converted; anything else raises TypeError naming where it is."""
+    if isinstance(x, np.generic):  # before float: np.float64 is one
+        return x.item()
+    if x is None or type(x) in (bool, int, float, str):
+        return x
+    if isinstance(x, torch.Tensor):
+        return x.detach()
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(x.copy())
+    if isinstance(x, dict):
+        for k in x:
+            if not isinstance(k, (str, int)) or isinstance(k, bool):
+                raise TypeError(f"{where}: key {k!r} is a {type(k).__name__}; checkpoint keys are str or int")
+        return {k: _plain(v, f"{where}[{k!r}]") for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_plain(v, f"{where}[{i}]") for i, v in enumerate(x))
+    raise TypeError(f"{where} is a {type(x).__module__}.{type(x).__qualname__}; a checkpoint's training state "
+                    "holds only tensors and plain values (dict, list, tuple, int, float, bool, str, None)")
+
+
+# -- writing -----------------------------------------------------------------------------------
 def save_checkpoint(path, model: ForwardModel, training: dict | None = None, info: dict | None = None) -> Path:
-    """Write ``model`` (and optional training state) as a checkpoint folder at ``path``,
-    atomically: into a temporary folder beside it, then renamed over any previous one."""
+    """Write ``model`` (and optional training state: tensors and plain values only) as a
+    checkpoint folder at ``path``, atomically: into a temporary folder beside it, then renamed
+    over any previous one (a kill between the two renames is undone by ``recover_checkpoint``)."""
     path = Path(path)
+    if training is not None:
+        training = _plain(training, "training")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    old = path.parent / f".{path.name}.old-{os.getpid()}"
+    for p in (tmp, old):
+        if p.exists():
+            shutil.rmtree(p)
     tmp.mkdir()
+    moved = False
     try:
         cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __import__("gnwarp").__version__,
                "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
@@ -52,42 +99,145 @@ def save_checkpoint(path, model: ForwardModel, training: dict | None = None, inf
         if training is not None:
             torch.save(training, tmp / "training.pt")
         files = sorted(p.name for p in tmp.iterdir())
-        (tmp / "manifest.json").write_text(json.dumps({n: sha256_file(tmp / n) for n in files}, indent=1))
-        old = path.parent / f".{path.name}.old-{os.getpid()}"
+        (tmp / MANIFEST).write_text(json.dumps({n: sha256_file(tmp / n) for n in files}, indent=1))
         if path.exists():
             os.replace(path, old)
+            moved = True
         os.replace(tmp, path)
-        if old.exists():
-            shutil.rmtree(old)
     except BaseException:
+        if moved and not path.exists():  # put the previous checkpoint back
+            try:
+                os.replace(old, path)
+            except OSError:
+                pass
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    shutil.rmtree(old, ignore_errors=True)
     return path
 
 
+# -- reading -----------------------------------------------------------------------------------
 def _read_checkpoint(path) -> tuple[Path, dict]:
+    """(path, config.json) of a checkpoint folder whose manifest covers every file and matches it."""
     path = Path(path)
     if not path.is_dir():
         raise CheckpointError(f"no checkpoint folder at {path}")
-    for name in ("config.json", "model.pt", "manifest.json"):
+    for name in ("config.json", "model.pt", MANIFEST):
         if not (path / name).is_file():
             raise CheckpointError(f"{path} is not a complete checkpoint: {name} is missing")
     try:
-        manifest = json.loads((path / "manifest.json").read_text())
-        cfg = json.loads((path / "config.json").read_text())
+        manifest = json.loads((path / MANIFEST).read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CheckpointError(f"{path}: unreadable JSON ({e}); the checkpoint is corrupt") from None
+        raise CheckpointError(f"{path}: unreadable JSON in {MANIFEST} ({e}); the checkpoint is corrupt") from None
+    if not isinstance(manifest, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                 for k, v in manifest.items()):
+        raise CheckpointError(f"{path}: {MANIFEST} is not a map of file names to sha256 digests")
+    for name in manifest:
+        if name in ("", ".", "..", MANIFEST) or "/" in name or "\\" in name:
+            raise CheckpointError(f"{path}: {MANIFEST} lists {name!r}, which is not a file of the checkpoint")
+    for name in ("config.json", "model.pt"):
+        if name not in manifest:
+            raise CheckpointError(f"{path}: {MANIFEST} does not cover {name}; the checkpoint is incomplete or "
+                                  "was altered")
+    extra = sorted(p.name for p in path.iterdir() if p.name != MANIFEST and p.name not in manifest)
+    if extra:
+        raise CheckpointError(f"{path}: {', '.join(extra)} not covered by {MANIFEST}; the checkpoint was altered "
+                              "(a checkpoint folder holds only the files its manifest lists)")
     for name, digest in manifest.items():
         f = path / name
         if not f.is_file():
             raise CheckpointError(f"{path}: {name} listed in the manifest is missing")
         if sha256_file(f) != digest:
             raise CheckpointError(f"{path}: {name} is corrupt (its checksum does not match the manifest)")
-    if cfg.get("format") != FORMAT:
-        raise CheckpointError(f"{path} is not a gnwarp model checkpoint (format {cfg.get('format')!r})")
-    if int(cfg.get("version", -1)) > VERSION:
+    try:
+        cfg = json.loads((path / "config.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{path}: unreadable JSON in config.json ({e}); the checkpoint is corrupt") from None
+    if not isinstance(cfg, dict) or cfg.get("format") != FORMAT:
+        fmt = cfg.get("format") if isinstance(cfg, dict) else None
+        raise CheckpointError(f"{path} is not a gnwarp model checkpoint (format {fmt!r})")
+    try:
+        version = int(cfg.get("version", -1))
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{path}: config.json has version {cfg.get('version')!r}, not a number") from None
+    if version > VERSION:
         raise CheckpointError(f"{path} has checkpoint version {cfg.get('version')}, newer than this gnwarp ({VERSION})")
     return path, cfg
+
+
+def _model_of(path: Path, cfg: dict) -> tuple[ModelConfig, FeatureLayout]:
+    """The model config and layout of config.json, its size checked before anything is allocated."""
+    try:
+        mcfg = ModelConfig.from_dict(cfg["model"])
+        layout = FeatureLayout.from_dict(cfg["layout"])
+        sizes = input_sizes(layout)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: config.json does not describe a model ({type(e).__name__}: {e})") from None
+    try:
+        check_model_size(mcfg, sizes)
+    except ValueError as e:
+        raise CheckpointError(f"{path}: config.json asks for an impossible model: {e}") from None
+    return mcfg, layout
+
+
+def _safe_load(path: Path, name: str):
+    """``torch.load(weights_only=True)`` of a checkpoint file: tensors and plain values, no code."""
+    try:
+        return torch.load(path / name, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "weights only" in str(e).lower():
+            raise CheckpointError(
+                f"{path}: {name} holds objects other than tensors and plain values (a pickle payload, or the format "
+                "of an earlier gnwarp); it is refused unread, since unpickling it could run code. Only checkpoints "
+                "written by this gnwarp load; start a new run (resume=False), or re-save the model from a trusted "
+                "source") from None
+        raise CheckpointError(f"{path}: cannot read {name} (UnpicklingError: {e})") from None
+    except Exception as e:  # noqa: BLE001 - any failure to read the file is a corrupt checkpoint
+        raise CheckpointError(f"{path}: cannot read {name} ({type(e).__name__}: {e})") from None
+
+
+def _nonfinite(tensors: dict, prefix: str = "") -> list[str]:
+    """Names of the floating tensors in a (nested) dict / list holding NaN or Inf."""
+    bad = []
+    items = tensors.items() if isinstance(tensors, dict) else enumerate(tensors)
+    for k, v in items:
+        name = f"{prefix}{k}"
+        if isinstance(v, torch.Tensor):
+            if (v.is_floating_point() or v.is_complex()) and not bool(torch.isfinite(v).all()):
+                bad.append(name)
+        elif isinstance(v, (dict, list, tuple)):
+            bad += _nonfinite(v, name + ".")
+        elif isinstance(v, float) and math.isnan(v):
+            bad.append(name)
+    return bad
+
+
+def _load_weights(path: Path) -> dict[str, torch.Tensor]:
+    state = _safe_load(path, "model.pt")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise CheckpointError(f"{path}: model.pt is not a state dict (names to tensors)")
+    bad = _nonfinite(state)
+    if bad:
+        raise CheckpointError(f"{path}: model.pt has NaN or Inf in {', '.join(bad[:5])}"
+                              f"{f' and {len(bad) - 5} more tensors' if len(bad) > 5 else ''}")
+    return state
+
+
+def _load_training(path: Path) -> dict:
+    t = _safe_load(path, "training.pt")
+    if not isinstance(t, dict):
+        raise CheckpointError(f"{path}: training.pt is not a training state (a dict)")
+    for key, kind in (("optimizer", dict), ("state", dict), ("generator", torch.Tensor)):
+        if key in t and not isinstance(t[key], kind):
+            raise CheckpointError(f"{path}: training.pt's {key!r} is a {type(t[key]).__name__}, not a {kind.__name__}")
+    state = t.get("state", {})
+    if not all(isinstance(v, (int, float, type(None))) for v in state.values()):
+        raise CheckpointError(f"{path}: training.pt's run state holds values other than numbers: {state}")
+    bad = _nonfinite(t.get("optimizer", {}), "optimizer.")
+    if bad:
+        raise CheckpointError(f"{path}: training.pt has NaN or Inf in {', '.join(bad[:5])}")
+    return t
 
 
 def load_model(path, device=None, *, options: RunOptions | None = None, **option_changes) -> ForwardModel:
@@ -97,22 +247,23 @@ def load_model(path, device=None, *, options: RunOptions | None = None, **option
     options it was saved with, replaced by ``options`` and then by ``option_changes`` (fields of
     ``RunOptions``: ``precision="tf32"``, ``impl="torch"``, ...); the weights are the same
     whatever the options ("fp64" casts them to float64). Raises ``CheckpointError`` for a
-    missing or corrupt checkpoint, ``ValueError`` / ``TypeError`` for unknown options. The model
+    missing, corrupt or unsafe checkpoint (weights read with ``weights_only=True``, checked
+    finite), ``ValueError`` / ``TypeError`` for unknown options. A folder a killed save left
+    missing is first restored from what it left beside it (``recover_checkpoint``). The model
     is unbound: ``model.bind(dataset_or_system)`` before ``rollout``.
     """
+    path = Path(path)
+    if not path.exists():
+        recover_checkpoint(path)
     path, cfg = _read_checkpoint(path)
-    try:
-        mcfg = ModelConfig.from_dict(cfg["model"])
-        layout = FeatureLayout.from_dict(cfg["layout"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(f"{path}: config.json does not describe a model ({type(e).__name__}: {e})") from None
+    mcfg, layout = _model_of(path, cfg)
     check_option_names(option_changes, "load_model")
+    state = _load_weights(path)
     mcfg.run = (options if options is not None else mcfg.run).replace(**option_changes)
     model = ForwardModel(mcfg, layout)
     try:
-        state = torch.load(path / "model.pt", map_location="cpu", weights_only=True)
         model.load_state_dict(state)
-    except Exception as e:  # noqa: BLE001 - any failure to read the weights is a corrupt checkpoint
+    except Exception as e:  # noqa: BLE001 - weights of another architecture
         raise CheckpointError(f"{path}: cannot load the weights ({type(e).__name__}: {e})") from None
     model.to(resolve_device(device))
     model.checkpoint_info = cfg
@@ -120,13 +271,150 @@ def load_model(path, device=None, *, options: RunOptions | None = None, **option
 
 
 def load_checkpoint(path, device=None) -> tuple[ForwardModel, dict | None, dict]:
-    """(model, training state or None, config.json) of a checkpoint, for resuming."""
+    """(model, training state or None, config.json) of a checkpoint, for resuming. The training
+    state is read with ``weights_only=True``: tensors and plain values, never code."""
     model = load_model(path, device)
-    p = Path(path) / "training.pt"
-    training = None
-    if p.is_file():
-        try:
-            training = torch.load(p, map_location="cpu", weights_only=False)
-        except Exception as e:  # noqa: BLE001
-            raise CheckpointError(f"{path}: cannot read training.pt ({type(e).__name__}: {e})") from None
+    training = _load_training(Path(path)) if (Path(path) / "training.pt").is_file() else None
     return model, training, model.checkpoint_info
+
+
+# -- checking ----------------------------------------------------------------------------------
+def check_checkpoint(path) -> list[str]:
+    """Validate a checkpoint folder fully: manifest (covering every file) and checksums, config
+    format and model sizes, weights (loaded safely, finite, fitting the model) and training
+    state (loaded safely). Returns findings, one line each, starting "ok: " or "error: "; raises
+    nothing (the ``gnwarp check`` command prints them)."""
+    out: list[str] = []
+    p = Path(path)
+    try:
+        p, cfg = _read_checkpoint(p)
+        names = sorted(json.loads((p / MANIFEST).read_text()))
+        out.append(f"ok: {MANIFEST} covers every file ({', '.join(names)}); checksums match")
+        out.append(f"ok: format {cfg['format']} version {cfg.get('version')} (written by gnwarp "
+                   f"{cfg.get('gnwarp_version', '?')})")
+        mcfg, layout = _model_of(p, cfg)
+        n = check_model_size(mcfg, input_sizes(layout))
+        core = (f"gn latent {mcfg.gn.latent}" if mcfg.core == "gn" else f"mlp {mcfg.mlp.layers}x{mcfg.mlp.width}")
+        out.append(f"ok: model config: core {core}, {n} weight elements; run options {mcfg.run.to_dict()}")
+    except Exception as e:  # noqa: BLE001 - later checks need these
+        return out + [f"error: {e}"]
+    try:
+        state = _load_weights(p)
+        model = ForwardModel(mcfg, layout)
+        model.load_state_dict(state)
+        out.append(f"ok: model.pt: {len(state)} tensors, all finite, loaded with weights_only=True, fit the model")
+    except CheckpointError as e:
+        out.append(f"error: {e}")
+    except Exception as e:  # noqa: BLE001
+        out.append(f"error: {p}: model.pt does not fit the model its config describes ({type(e).__name__}: {e})")
+    if (p / "training.pt").is_file():
+        try:
+            t = _load_training(p)
+            st = t.get("state", {})
+            out.append(f"ok: training.pt: loaded with weights_only=True; step {st.get('step')}, best error "
+                       f"{st.get('best_error')} at step {st.get('best_step')}")
+        except Exception as e:  # noqa: BLE001
+            out.append(f"error: {e}")
+    else:
+        out.append("ok: no training.pt (a model-only checkpoint: loads, cannot resume training)")
+    return out
+
+
+# -- resuming ----------------------------------------------------------------------------------
+def _flat(d, prefix: str = "") -> dict:
+    if not isinstance(d, dict):
+        return {prefix[:-1]: d}
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}."))
+    return out
+
+
+def model_config_changes(saved: ModelConfig | dict, wanted: ModelConfig | dict) -> list[str]:
+    """What differs between a checkpoint's model config and the one a run asks for, apart from
+    the run options (which may change on resume) and what ``wanted`` leaves to be decided from
+    the data (``recenter`` None, the MLP's ``n_node`` / ``n_edge`` 0): lines
+    "model.gn.latent: 16 -> 32"."""
+    a = saved.to_dict() if isinstance(saved, ModelConfig) else ModelConfig.from_dict(saved).to_dict()
+    b = wanted.to_dict() if isinstance(wanted, ModelConfig) else ModelConfig.from_dict(wanted).to_dict()
+    a, b = (_flat({k: v for k, v in d.items() if k != "run"}, "model.") for d in (a, b))
+    if a.get("model.core") != b.get("model.core"):  # another core: its sizes do not compare
+        return [f"model.core: {a.get('model.core')!r} -> {b.get('model.core')!r}"]
+    core = "model.gn." if a.get("model.core") == "gn" else "model.mlp."
+    keys = [k for k in sorted(set(a) | set(b)) if not k.startswith(("model.gn.", "model.mlp.")) or k.startswith(core)]
+    undecided = {"model.recenter": None, "model.mlp.n_node": 0, "model.mlp.n_edge": 0}
+    norm = lambda v: list(v) if isinstance(v, tuple) else v  # noqa: E731
+    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in keys
+            if norm(a.get(k)) != norm(b.get(k)) and not (k in undecided and b.get(k) == undecided[k])]
+
+
+def checkpoint_config(path) -> dict:
+    """The config.json of a checkpoint folder, after checking its manifest (``CheckpointError``)."""
+    return _read_checkpoint(path)[1]
+
+
+def _debris(folder: Path, name: str | None = None) -> list[tuple[Path, str, str, int]]:
+    """(path, name, kind, pid) of the temporary folders of checkpoint saves in ``folder``."""
+    if not folder.is_dir():
+        return []
+    got = []
+    for p in folder.iterdir():
+        m = _DEBRIS.match(p.name)
+        if m and (name is None or m["name"] == name):
+            got.append((p, m["name"], m["kind"], int(m["pid"])))
+    return got
+
+
+def _step_of(path: Path) -> int | None:
+    """The training step of an intact checkpoint (-1 without one), None if it is not intact."""
+    try:
+        _, cfg = _read_checkpoint(path)
+    except CheckpointError:
+        return None
+    st = cfg.get("state")
+    step = st.get("step") if isinstance(st, dict) else None
+    return int(step) if isinstance(step, int) else -1
+
+
+def recover_checkpoint(path, fallbacks=()) -> Path | None:
+    """If the checkpoint folder ``path`` is missing, put back the newest intact one that a killed
+    save left beside it (``.<name>.old-<pid>``: the previous one, moved aside; ``.<name>.tmp-<pid>``:
+    a complete new one not yet renamed; only of processes no longer running), or else a copy of
+    the newest intact folder of ``fallbacks`` (e.g. ``<run>/best`` for ``<run>/last``). Returns
+    where it came from, or None (nothing to do, or nothing intact). Intact: a manifest that
+    covers every file and matches it."""
+    path = Path(path)
+    if path.exists():
+        return None
+    found = [(s, 1, p) for p, _, _, pid in _debris(path.parent, path.name)
+             if not pid_alive(pid) and (s := _step_of(p)) is not None]
+    found += [(s, 0, Path(f)) for f in fallbacks if Path(f).is_dir() and (s := _step_of(Path(f))) is not None]
+    if not found:
+        return None
+    _, moved, src = max(found, key=lambda x: (x[0], x[1], x[2].stat().st_mtime))
+    if moved:
+        os.replace(src, path)
+    else:
+        tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp)
+        os.replace(tmp, path)
+    warnings.warn(f"restored {path} from {src.name}, left by a run killed while saving it", stacklevel=2)
+    return src
+
+
+def clean_debris(folder, names=None) -> list[Path]:
+    """Remove the temporary folders (``.<name>.tmp-<pid>``, ``.<name>.old-<pid>``; or files of
+    that name) that killed saves left in ``folder``: those of processes no longer running that
+    are incomplete or whose ``<name>`` exists (run ``recover_checkpoint`` first), of the names
+    ``names`` (None: any). Returns what was removed."""
+    removed = []
+    for p, name, _, pid in _debris(Path(folder)):
+        if (names is None or name in names) and not pid_alive(pid) and (
+                (Path(folder) / name).exists() or _step_of(p) is None):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed

@@ -4,12 +4,27 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass, field
+from typing import Annotated, Literal, Union
 
+from pydantic import Field
+
+from gnwarp.gn.config import (Allowed, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
+                              check_fields, check_keys)
 from gnwarp.models.config import ModelConfig
 
-__all__ = ["TrainConfig", "SCHEDULES"]
+__all__ = ["TrainConfig", "SCHEDULES", "ConfigError"]
 
 SCHEDULES = {"fast": 50_000, "slow": 200_000}   # D.8: learning-rate decay period in steps
+
+# the allowed values of TrainConfig's fields (gnwarp.gn.config validates them)
+BatchSize = IntRange(1, 1 << 24)
+Seed = IntRange(0, (1 << 63) - 1)
+DecaySteps = Annotated[Union[PositiveInt, Literal["fast", "slow"]],
+                       Allowed("an integer >= 1, or 'fast' (50000) or 'slow' (200000)")]
+Paths = Annotated[list[str], Allowed("a list of file paths (strings)")]
+Decay = FloatRange(gt=0, le=1)
+NonNegativeFloat = FloatRange(ge=0)
+Device = Annotated[str, Field(pattern=r"^(auto|cpu|cuda(:[0-9]+)?)$"), Allowed("'auto', 'cpu', 'cuda' or 'cuda:N'")]
 
 
 @dataclass
@@ -23,53 +38,60 @@ class TrainConfig:
     ``max_seconds``: stop after this much training time (None: ``steps`` only).
     ``patience``: stop after this many validations without improvement (None: never).
     ``device``: "auto" (CUDA when present), "cpu", "cuda", "cuda:1", ...
-    ``optimizer``: "adam" (torch.optim.Adam + clip_grad_norm_) or "flat_adam"
+    ``optimizer``: "adam" (torch.optim.Adam + clip_grad_norm_), "flat_adam"
     (``gnwarp.train.FlatAdam``: the same update and clipping over one flat buffer in Warp
-    kernels; faster on the GPU, see README). A run resumes with the optimizer it was started with.
+    kernels; faster on the GPU, see README) or "auto" (default: flat_adam on CUDA, adam
+    elsewhere). A run resumes with the optimizer it was started with (under "auto", the kind
+    its saved optimizer state is).
     ``capture``: on CUDA, replay the training step (and the validation rollouts) from CUDA
     graphs once warm (``gnwarp.train.capture``); batches of graphs of varying sizes run eagerly.
     How the model runs (implementation, precision; "fp64" trains in float64) is ``model.run``.
+    ``on_config_change``: when ``resume`` finds a run in ``out`` it cannot continue as configured
+    (its checkpoint's model differs from ``model``: run options may change, sizes not; or its
+    log.csv records progress but no checkpoint is left), "error" refuses, naming what differs;
+    "restart" moves the old run's files to ``out/replaced-<n>/`` and starts a new run.
+    ``grad_clip``: the gradients' global norm is clipped to it (> 0; None: no clipping).
+    ``lr_decay``: in (0, 1]. Every value is validated against its field's type (above): a wrong
+    type, a zero or negative interval or an impossible size raises one ``ConfigError`` naming the
+    key path (``model.gn.latent``) and the allowed values, from Python, a config file or ``--set``.
     """
-    data: list[str] = field(default_factory=list)
+    data: Paths = field(default_factory=list)
     out: str = "runs/model"
     model: ModelConfig = field(default_factory=ModelConfig)
-    steps: int = 100_000
-    max_seconds: float | None = None
-    batch_size: int = 200
-    lr: float = 1e-4
-    lr_decay: float = 0.975
-    lr_decay_steps: int | str = "fast"
-    grad_clip: float = 1.0
-    noise_std: float = 0.003
-    rotation_loss: str = "normalized"
-    normalizer_warmup: int = 20
-    valid_every: int = 1000
-    valid_sequences: int = 100
-    valid_horizon: int = 20
-    patience: int | None = 20
-    checkpoint_every: int = 1000
-    log_every: int = 50
-    seed: int = 0
-    device: str = "auto"
-    resume: bool = True
-    progress: bool = True
-    optimizer: str = "adam"
-    capture: bool = True
+    steps: Count = 100_000
+    max_seconds: PositiveFloat | None = None
+    batch_size: BatchSize = 200
+    lr: PositiveFloat = 1e-4
+    lr_decay: Decay = 0.975
+    lr_decay_steps: DecaySteps = "fast"
+    grad_clip: PositiveFloat | None = 1.0
+    noise_std: NonNegativeFloat = 0.003
+    rotation_loss: Literal["normalized", "paper"] = "normalized"
+    normalizer_warmup: Count = 20
+    valid_every: PositiveInt = 1000
+    valid_sequences: PositiveInt = 100
+    valid_horizon: PositiveInt = 20
+    patience: PositiveInt | None = 20
+    checkpoint_every: PositiveInt = 1000
+    log_every: PositiveInt = 50
+    seed: Seed = 0
+    device: Device = "auto"
+    resume: Flag = True
+    on_config_change: Literal["error", "restart"] = "error"
+    progress: Flag = True
+    optimizer: Literal["auto", "adam", "flat_adam"] = "auto"
+    capture: Flag = True
 
     def __post_init__(self):
-        if isinstance(self.model, dict):
-            self.model = ModelConfig.from_dict(self.model)
         if isinstance(self.data, (str, os.PathLike)):
-            self.data = [str(self.data)]
-        self.data = [str(d) for d in self.data]
-        if isinstance(self.lr_decay_steps, str):
-            if self.lr_decay_steps not in SCHEDULES:
-                raise ValueError(f"lr_decay_steps must be an int or one of {sorted(SCHEDULES)}, "
-                                 f"got {self.lr_decay_steps!r}")
-        if self.batch_size < 1 or self.steps < 0:
-            raise ValueError("batch_size must be >= 1 and steps >= 0")
-        if self.optimizer not in ("adam", "flat_adam"):
-            raise ValueError(f"optimizer must be 'adam' or 'flat_adam', got {self.optimizer!r}")
+            self.data = [self.data]
+        if isinstance(self.data, (list, tuple)):
+            self.data = [os.fspath(d) if isinstance(d, os.PathLike) else d for d in self.data]
+        if isinstance(self.out, os.PathLike):
+            self.out = os.fspath(self.out)
+        # every value against its annotation (types, ranges, allowed words; ``model`` from a dict):
+        # one ConfigError naming the key path, e.g. "model.gn.latent", and the allowed values
+        check_fields(self)
 
     @property
     def decay_steps(self) -> int:
@@ -85,18 +107,16 @@ class TrainConfig:
     def from_dict(cls, d: dict) -> "TrainConfig":
         """A config from a dict (``to_dict``'s, a config file's); unknown keys raise ValueError.
         An earlier version's ``dtype`` key is read as the model's precision ("float64": "fp64")."""
+        if not isinstance(d, dict):
+            check_keys(cls, d)
         d = dict(d)
         if "dtype" in d:
             dtype = d.pop("dtype")
             if dtype not in ("float32", "float64"):
-                raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+                raise ConfigError("dtype", f"must be 'float32' or 'float64' (an earlier version's key), got {dtype!r}")
             if dtype == "float64":
                 model = d.get("model", {})
-                model = model.to_dict() if isinstance(model, ModelConfig) else dict(model)
+                model = model.to_dict() if isinstance(model, ModelConfig) else dict(check_keys(ModelConfig, model))
                 model["run"] = {**model.get("run", {}), "precision": "fp64"}
                 d["model"] = model
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown training config keys: {unknown} (known: {sorted(known)})")
-        return cls(**d)
+        return cls(**check_keys(cls, d, "training config keys"))

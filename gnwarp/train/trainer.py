@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import os
 import time
 import warnings
 from pathlib import Path
@@ -35,9 +36,11 @@ from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.graphs import GraphsTuple
 from gnwarp.interop import Graphed, resolve_device
-from gnwarp.models.forward import ForwardModel
+from gnwarp.models.config import check_model_size
+from gnwarp.models.forward import ForwardModel, input_sizes
 from gnwarp.train.capture import capture_problem, default_generator, registers_generators
-from gnwarp.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from gnwarp.train.checkpoint import (CheckpointError, checkpoint_config, clean_debris, load_checkpoint,
+                                     model_config_changes, recover_checkpoint, save_checkpoint)
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.optim import FlatAdam
 from gnwarp.train.sampler import BatchSampler
@@ -61,6 +64,7 @@ def build_model(config: TrainConfig, datasets) -> ForwardModel:
         if len(B) > 1 or len(E) > 1 or not uniform:
             raise ValueError("the MLP baseline needs one fixed topology; these datasets mix graph sizes")
         mcfg.mlp = dataclasses.replace(mcfg.mlp, n_node=B.pop(), n_edge=E.pop())
+    check_model_size(mcfg, input_sizes(layout))  # an impossible size: an error naming it, before allocating
     return ForwardModel(mcfg, layout)
 
 
@@ -92,7 +96,7 @@ class Trainer:
             datasets = [load(p, lazy=True) for p in config.data]
         self.datasets = list(datasets)
         training = None
-        if config.resume and (self.out / "last").is_dir():
+        if self._prepare_out(model):  # with resume: recovers what killed runs left, refuses what it cannot resume
             model, training, _ = load_checkpoint(self.out / "last", self.device)
             if merge_layouts([d.layout for d in self.datasets]).to_dict() != model.layout.to_dict():
                 warnings.warn(f"resuming {self.out / 'last'}: the datasets' merged layout differs from the model's; "
@@ -108,12 +112,15 @@ class Trainer:
         self.generator = (default_generator(self.device) if cuda and config.capture and not registers_generators()
                           else torch.Generator(device=self.device))
         self.generator.manual_seed(config.seed)
-        self.optimizer = self.make_optimizer()
+        self.optimizer = self.make_optimizer(self._optimizer_kind(training))
         self.state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
         if training is not None:
             self._restore(training)
-        self.info = {"train": config.to_dict(), "data": _data_info(self.datasets)}
+        # what is recorded is the model trained: its config, whether new, passed in or resumed
+        self.info = {"train": {**config.to_dict(), "model": self.model.config.to_dict()},
+                     "data": _data_info(self.datasets)}
         self._running: dict[str, torch.Tensor] = {}   # loss sums since the last log row, on the device
+        self._running_sum: torch.Tensor | None = None  # the same sums as one vector
         self._n_running = 0
         self._lr = None                               # the learning rate the optimizer holds now
         self._terms: dict[str, torch.Tensor] = {}     # the last step's loss terms
@@ -128,10 +135,23 @@ class Trainer:
                 warnings.warn(f"training steps run uncaptured: {problem}")
 
     # -- seams -----------------------------------------------------------------------------------
-    def make_optimizer(self) -> torch.optim.Optimizer:
-        """``config.optimizer``: torch's Adam (clipping in ``step``) or FlatAdam (clipping inside)."""
+    def _optimizer_kind(self, training: dict | None) -> str:
+        """``config.optimizer``, "auto" resolved: the kind a resumed run's saved state is, else
+        FlatAdam on CUDA (one flat update, faster there) and torch's Adam elsewhere."""
+        kind = self.config.optimizer
+        if kind != "auto":
+            return kind
+        saved = training.get("optimizer") if isinstance(training, dict) else None
+        if isinstance(saved, dict):
+            return "flat_adam" if saved.get("format") == "gnwarp.FlatAdam/1" else "adam"
+        return "flat_adam" if self.device.type == "cuda" else "adam"
+
+    def make_optimizer(self, kind: str | None = None) -> torch.optim.Optimizer:
+        """torch's Adam (clipping in ``step``) or FlatAdam (clipping inside), as ``kind`` (default:
+        ``config.optimizer``, "auto" resolved) says."""
         c = self.config
-        if c.optimizer == "flat_adam":
+        kind = kind or self._optimizer_kind(None)
+        if kind == "flat_adam":
             return FlatAdam(self.model.parameters(), lr=c.lr, max_grad_norm=c.grad_clip)
         if self.device.type == "cuda":  # capturable: the learning rate and step count on the device
             return torch.optim.Adam(self.model.parameters(), lr=torch.tensor(c.lr, device=self.device),
@@ -182,13 +202,16 @@ class Trainer:
         terms = self.loss(*self.sample())
         self.optimizer.zero_grad(set_to_none=True)
         terms["loss"].backward()
-        if not isinstance(self.optimizer, FlatAdam):
+        if not isinstance(self.optimizer, FlatAdam) and self.config.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         self.optimizer.step()
-        for k, v in terms.items():  # summed on the device, in place; read once per log line
-            if k not in self._running:
-                self._running[k] = torch.zeros((), dtype=v.dtype, device=v.device)
-            self._running[k].add_(v.detach())
+        # summed on the device, in place, into one vector (``_running`` holds views of its
+        # entries by name); read once per log line
+        vec = torch.stack([v.detach() for v in terms.values()])
+        if self._running_sum is None or self._running_sum.shape != vec.shape:
+            self._running_sum = torch.zeros_like(vec)
+            self._running = {k: self._running_sum[i] for i, k in enumerate(terms)}
+        self._running_sum.add_(vec)
         self._terms = terms
 
     def validate(self) -> float:
@@ -236,6 +259,44 @@ class Trainer:
             cb(self, event, info)
 
     # -- the loop -------------------------------------------------------------------------------
+    def _prepare_out(self, model: ForwardModel | None) -> bool:
+        """Before a run in ``out``: put back checkpoints that runs killed while saving them left
+        aside and remove the rest of their debris. Returns whether to resume from ``out/last``
+        (``resume`` and a checkpoint there whose model is the one the config asks for). A run it
+        cannot continue (another model; log.csv rows but no checkpoint left) raises
+        ``CheckpointError``, or with ``on_config_change="restart"`` is moved to ``out/replaced-<n>``."""
+        c, out, last = self.config, self.out, self.out / "last"
+        if c.resume:
+            recover_checkpoint(out / "best")
+            recover_checkpoint(last, fallbacks=[out / "best"])  # the newest intact one
+        clean_debris(out, ("last", "best", "log.csv"))
+        if not c.resume:
+            return False
+        if last.is_dir():
+            wanted = model.config if model is not None else c.model
+            saved = checkpoint_config(last)
+            try:
+                changes = model_config_changes(saved["model"], wanted)
+            except (KeyError, TypeError, ValueError) as e:
+                raise CheckpointError(f"{last}: config.json does not describe a model ({e})") from None
+            if not changes:
+                return True
+            problem = (f"{last} holds a model other than the config asks for ({'; '.join(changes)}); "
+                       "resuming cannot change a model's sizes (run options may change)")
+        else:
+            steps = _logged_steps(out / "log.csv")
+            if not steps:
+                return False
+            problem = (f"{out / 'log.csv'} records training up to step {max(steps)} but no checkpoint is left to "
+                       f"resume from ({last} is missing and nothing a killed run left could be restored); "
+                       "refusing to start again from step 0 over it")
+        if c.on_config_change != "restart":
+            raise CheckpointError(f"{problem}. Set on_config_change='restart' to move the old run to "
+                                  f"{out}/replaced-<n>/ and start a new one, or choose another out")
+        dest = _move_aside(out)
+        warnings.warn(f"{problem}: moved it to {dest} and starting a new run (on_config_change='restart')")
+        return False
+
     def _restore(self, training: dict) -> None:
         try:
             self.optimizer.load_state_dict(training["optimizer"])
@@ -261,11 +322,12 @@ class Trainer:
         bar.update(1)
         row = None
         if step % c.log_every == 0 or step == c.steps:
-            vals = {k: float(v) / self._n_running for k, v in self._running.items()}
+            sums = self._running_sum.tolist() if self._running_sum is not None else []
+            vals = {k: v / self._n_running for k, v in zip(self._running, sums)}
             if not all(math.isfinite(v) for v in vals.values()):
                 raise FloatingPointError(f"training diverged at step {step}: losses {vals}")
-            for v in self._running.values():
-                v.zero_()
+            if self._running_sum is not None:
+                self._running_sum.zero_()
             self._n_running = 0
             row = {"step": step, "seconds": round(st["seconds"], 3), "lr": lr, **vals, "valid_error": ""}
             bar.set_postfix(loss=f"{vals['loss']:.4g}", best=f"{st['best_error']:.4g}")
@@ -300,6 +362,8 @@ class Trainer:
         out.mkdir(parents=True, exist_ok=True)
         log_path = out / "log.csv"
         new_log = not log_path.exists() or st["step"] == 0
+        if not new_log:  # rows past the checkpoint resumed from (a killed run's) are run again
+            _trim_log(log_path, st["step"])
         start_step = st["step"]
         t_start = time.perf_counter() - st["seconds"]
         bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.model.config.core}", unit="step",
@@ -334,6 +398,58 @@ class Trainer:
                    "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9)}
         self.emit("end", summary=summary)
         return summary
+
+
+def _logged_steps(path: Path) -> list[int]:
+    """The steps of the complete rows of a log.csv (none when it is missing)."""
+    if not path.is_file():
+        return []
+    steps = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            try:
+                if None not in row and None not in row.values():
+                    steps.append(int(row["step"]))
+            except (KeyError, TypeError, ValueError):
+                pass
+    return steps
+
+
+def _trim_log(path: Path, step: int) -> None:
+    """Keep the header and the complete rows up to ``step`` of a log.csv (rewritten atomically):
+    a run resumed from a checkpoint at ``step`` writes the later rows again."""
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+        fields = reader.fieldnames or LOG_FIELDS
+    keep = []
+    for row in rows:
+        try:
+            if None not in row and None not in row.values() and int(row["step"]) <= step:
+                keep.append(row)
+        except (KeyError, TypeError, ValueError):
+            pass
+    if len(keep) == len(rows):
+        return
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fields)
+        w.writeheader()
+        w.writerows(keep)
+    os.replace(tmp, path)
+
+
+def _move_aside(out: Path) -> Path:
+    """Move a run's log.csv, last and best into a new ``out/replaced-<n>``; return that folder."""
+    n = 1
+    while (out / f"replaced-{n}").exists():
+        n += 1
+    dest = out / f"replaced-{n}"
+    dest.mkdir(parents=True)
+    for name in ("log.csv", "last", "best"):
+        if (out / name).exists():
+            os.replace(out / name, dest / name)
+    return dest
 
 
 def train(config: TrainConfig, datasets=None, model: ForwardModel | None = None, callbacks=()) -> dict:

@@ -1,0 +1,73 @@
+"""Warp kernel of ``gnwarp/models/normalizer.py``: a normalizer's accumulation and statistics in
+one launch.
+
+In torch, accumulating a batch into the float64 sums (cast, weight, square, two column sums,
+adds) and reading mean and std back (count clamp, divisions, variance, clamps, square root, the
+"no data yet" selects, casts) are ~20 kernels per normalizer; a training step has four. Here one
+block per feature column sums its column's weighted values, squares and weights over the rows
+(each lane a strided range, then one tile reduction: a fixed order, so deterministic), adds them
+to the column's float64 sums and writes the column's new mean and std in the model's dtype.
+The row count is added by the caller afterwards (every block reads the old count; none writes it).
+"""
+# no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
+import functools
+
+import warp as wp
+
+__all__ = ["BLOCK", "accumulate_kernel"]
+
+BLOCK = 128  # threads per column block on CUDA (Warp's CPU device runs one thread a block)
+
+
+@functools.cache
+def accumulate_kernel(dtype, weighted: bool):
+    """Kernel ``(x [n, F], w [n], n, bd, count [1], sum [F], sumsq [F], floor, mean [F], std [F])``
+    launched tiled over F blocks of ``bd`` threads: sum[j] += sum_i w_i x_ij, sumsq[j] += sum_i
+    w_i x_ij^2 (w = 1 when not ``weighted``), then mean[j], std[j] of the updated sums with the
+    count ``count + sum_i w_i``: std = max(sqrt(max(var, 0)), floor); mean 0 and std 1 while the
+    count is 0. ``x``, ``w``, ``mean``, ``std`` in ``dtype``; the sums in float64."""
+    T = dtype
+    W = 1 if weighted else 0
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def accumulate(x: wp.array2d(dtype=T), w: wp.array(dtype=T), n: int, bd: int, count: wp.array(dtype=wp.float64),
+                   total: wp.array(dtype=wp.float64), total_sq: wp.array(dtype=wp.float64), floor: wp.float64,
+                   mean: wp.array(dtype=T), std: wp.array(dtype=T)):
+        col, lane = wp.tid()
+        a = wp.float64(0.0)
+        b = wp.float64(0.0)
+        c = wp.float64(0.0)
+        i = lane
+        while i < n:
+            v = wp.float64(x[i, col])
+            if wp.static(W == 1):
+                wi = wp.float64(w[i])
+                a += wi * v
+                b += wi * v * v
+                c += wi
+            else:
+                a += v
+                b += v * v
+            i += bd
+        sa = wp.tile_sum(wp.tile(a))
+        sb = wp.tile_sum(wp.tile(b))
+        sc = wp.tile_sum(wp.tile(c))
+        if lane == 0:
+            s = total[col] + sa[0]
+            q = total_sq[col] + sb[0]
+            cnt = count[0] + wp.float64(n)
+            if wp.static(W == 1):
+                cnt = count[0] + sc[0]
+            total[col] = s
+            total_sq[col] = q
+            if cnt > wp.float64(0.0):
+                d = wp.max(cnt, wp.float64(1.0))
+                m = s / d
+                var = wp.max(q / d - m * m, wp.float64(0.0))
+                mean[col] = T(m)
+                std[col] = T(wp.max(wp.sqrt(var), floor))
+            else:
+                mean[col] = T(0.0)
+                std[col] = T(1.0)
+
+    return accumulate
