@@ -82,7 +82,7 @@ def _read_config(path: str | None) -> dict:
     import json
     from pathlib import Path
 
-    from gnwarp.gn.config import ConfigError
+    from gnwarp.validation import ConfigError
     if path is None:
         return {}
     p = Path(path)
@@ -114,7 +114,7 @@ def _read_config(path: str | None) -> dict:
 
 def _apply_overrides(cfg: dict, items: list[str]) -> dict:
     """``key=value`` overrides into a nested dict; dotted keys reach nested configs (model.gn.latent=64)."""
-    from gnwarp.gn.config import ConfigError
+    from gnwarp.validation import ConfigError
     for item in items or []:
         if "=" not in item:
             raise ConfigError("--set", f"expects KEY=VALUE, got {item!r}")
@@ -145,7 +145,7 @@ def _config_source(path: str, items: list[str], flags: dict, config: str | None)
 
 
 def _cmd_train(args) -> int:
-    from gnwarp.gn.config import ConfigError
+    from gnwarp.validation import ConfigError
     from gnwarp.train import TrainConfig, train
     raw = _apply_overrides(_read_config(args.config), args.set)
     flags = {}

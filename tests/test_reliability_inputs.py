@@ -16,7 +16,7 @@ from gnwarp import cli, data
 from gnwarp.eval import metrics
 from gnwarp.eval.report import markdown_table
 from gnwarp.gn import GNBlockConfig, GraphNetwork, RunOptions
-from gnwarp.gn.config import ConfigError
+from gnwarp.validation import ConfigError
 from gnwarp.gn.index import check_index, graph_index
 from gnwarp.graphs import GraphsTuple, batch, unbatch, validate
 from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig

@@ -14,7 +14,7 @@ from typing import Annotated, Literal, get_args
 
 import torch
 
-from gnwarp.gn.config import Allowed, ConfigError, Count, Flag, check_fields, check_keys
+from gnwarp.validation import Allowed, ConfigError, Count, Flag, check_fields, check_keys
 from gnwarp.gn.rules import TUNABLES
 from gnwarp.interop import WP_DTYPE
 

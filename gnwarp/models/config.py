@@ -7,8 +7,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gnwarp.gn.config import (ConfigError, Count, EdgeBlockConfig, Flag, GlobalBlockConfig, GNBlockConfig,
-                              LayerCount, NodeBlockConfig, PositiveFloat, Width, Widths, check_fields, check_keys)
+from gnwarp.gn.config import EdgeBlockConfig, GlobalBlockConfig, GNBlockConfig, NodeBlockConfig
+from gnwarp.validation import (ConfigError, Count, Flag, LayerCount, PositiveFloat, Width, Widths, check_fields,
+                               check_keys)
 from gnwarp.gn.options import RunOptions
 from gnwarp.state import DYN_NODE_SIZE
 

@@ -8,8 +8,8 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field
 
-from gnwarp.gn.config import (Allowed, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
-                              check_fields, check_keys)
+from gnwarp.validation import (Allowed, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
+                               check_fields, check_keys)
 from gnwarp.models.config import ModelConfig
 
 __all__ = ["TrainConfig", "SCHEDULES", "ConfigError"]

@@ -1,0 +1,197 @@
+"""Typed, validated configurations: the one place every gnwarp config (``GNBlockConfig``,
+``RunOptions``, ``ModelConfig``, ``TrainConfig``, ...) checks its values.
+
+Each dataclass field's annotation says what it allows (pydantic types with constraints, e.g.
+``PositiveInt``, ``Width``); ``check_fields`` validates a config against its annotations in
+``__post_init__``, and every refusal is one ``ConfigError`` that names the key path
+(``model.gn.latent``) and the allowed values, whether the value came from Python, a config file or
+``gnwarp train --set``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import types
+import typing
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Sequence, Union
+
+import numpy as np
+import pydantic
+from pydantic import BeforeValidator, Field, Strict
+
+__all__ = ["ConfigError", "Allowed", "check_fields", "check_keys", "allowed_values", "MAX_WIDTH", "MAX_LAYERS", "IntRange", "FloatRange", "Flag", "Count", "PositiveInt", "PositiveFloat", "InputWidth", "Width", "Widths", "LayerCount"]
+
+
+class ConfigError(ValueError):
+    """A refused configuration value: ``path`` is the key (dotted through nested configs:
+    ``model.gn.latent``; empty for a whole-config problem), ``reason`` what is wrong, with the
+    allowed values."""
+
+    def __init__(self, path: str, reason: str):
+        self.path, self.reason = path, reason
+        super().__init__(f"{path}: {reason}" if path else reason)
+
+    def __reduce__(self):
+        return type(self), (self.path, self.reason)
+
+    def within(self, prefix: str) -> "ConfigError":
+        """The same error seen from the config that holds this one under key ``prefix``."""
+        return type(self)(f"{prefix}.{self.path}" if self.path else prefix, self.reason)
+
+
+@dataclass(frozen=True)
+class Allowed:
+    """Annotation metadata: how a refusal describes the allowed values (``Annotated[int, ...,
+    Allowed("an integer >= 1")]``)."""
+    text: str
+
+
+def _no_bool(v):
+    if isinstance(v, (bool, np.bool_)):  # pydantic reads True as 1; a config never means that
+        raise ValueError("a boolean is not a number")
+    return v
+
+
+def _plain_bool(v):
+    return bool(v) if isinstance(v, np.bool_) else v
+
+
+def _bounds(lo, hi, gt=None) -> str:
+    n = lambda x: str(x) if isinstance(x, int) else f"{x:g}"  # noqa: E731
+    if gt is not None:
+        return f"> {n(gt)}" + (f" and <= {n(hi)}" if hi is not None else "")
+    if hi is None:
+        return f">= {n(lo)}"
+    return f"from {n(lo)} to {n(hi)}"
+
+
+def IntRange(lo: int, hi: int | None = None):
+    """An integer type from ``lo`` to ``hi`` (inclusive; None: no upper bound)."""
+    return Annotated[int, BeforeValidator(_no_bool), Field(ge=lo, le=hi), Allowed(f"an integer {_bounds(lo, hi)}")]
+
+
+def FloatRange(gt: float | None = None, ge: float | None = None, le: float | None = None):
+    """A finite number type: > ``gt`` (or >= ``ge``), <= ``le``."""
+    text = f"a finite number {_bounds(ge, le, gt)}" if (gt is not None or ge is not None) else "a finite number"
+    return Annotated[float, BeforeValidator(_no_bool), Field(gt=gt, ge=ge, le=le, allow_inf_nan=False), Allowed(text)]
+
+
+MAX_WIDTH = 1 << 16    # widest layer a config may ask for (a 65536 x 65536 layer is 16 GiB in float32)
+MAX_LAYERS = 64        # most hidden layers of one MLP
+Flag = Annotated[bool, BeforeValidator(_plain_bool), Strict(), Allowed("true or false")]
+Count = IntRange(0)                 # an integer >= 0
+PositiveInt = IntRange(1)           # an integer >= 1
+Width = IntRange(1, MAX_WIDTH)
+InputWidth = IntRange(0, 1 << 20)     # input widths: a model's static features plus latents
+LayerCount = IntRange(0, MAX_LAYERS)
+PositiveFloat = FloatRange(gt=0)        # a finite number > 0
+Widths = Annotated[tuple[Width, ...], Field(max_length=MAX_LAYERS),
+                   Allowed(f"a list of at most {MAX_LAYERS} layer widths, each an integer from 1 to {MAX_WIDTH}")]
+
+
+def allowed_values(tp) -> str:
+    """Words for what an annotation allows (its ``Allowed`` text where it has one)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is Annotated:
+        for m in tp.__metadata__:
+            if isinstance(m, Allowed):
+                return m.text
+        return allowed_values(args[0])
+    if origin in (Union, types.UnionType):
+        return " or ".join(allowed_values(a) for a in args)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if tp is type(None):
+        return "None"
+    if origin in (list, tuple, Sequence):
+        return f"a list of {allowed_values(args[0])}" if args else "a list"
+    if dataclasses.is_dataclass(tp):
+        return f"a table of {tp.__name__} keys"
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
+        tp, getattr(tp, "__name__", str(tp)))
+
+
+def _nested_class(tp):
+    """The config dataclass an annotation holds (through Annotated / Optional), else None."""
+    if typing.get_origin(tp) is Annotated:
+        return _nested_class(typing.get_args(tp)[0])
+    if typing.get_origin(tp) in (Union, types.UnionType):
+        inner = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _nested_class(inner[0]) if len(inner) == 1 else None
+    return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+
+
+_FIELD_CHECKS: dict[type, dict[str, tuple]] = {}
+
+
+def _field_checks(cls) -> dict[str, tuple]:
+    """{field: (annotation, pydantic TypeAdapter or None, nested config class or None)} of a
+    dataclass, built once per class. A field whose annotation cannot be read is not checked here."""
+    checks = _FIELD_CHECKS.get(cls)
+    if checks is None:
+        module = vars(sys.modules[cls.__module__])
+        checks = {}
+        for f in dataclasses.fields(cls):
+            tp = f.type
+            try:
+                if isinstance(tp, str):
+                    tp = eval(tp, dict(module), dict(vars(cls)))  # noqa: S307 (our own annotations)
+                nested = _nested_class(tp)
+                adapter = None if nested is not None else pydantic.TypeAdapter(tp)
+            except Exception:  # an annotation pydantic cannot read: left to the class's own checks
+                tp, nested, adapter = None, None, None
+            checks[f.name] = (tp, adapter, nested)
+        _FIELD_CHECKS[cls] = checks
+    return checks
+
+
+def _short(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
+
+
+def _nested_value(name: str, tp, cls, v):
+    if isinstance(v, cls) or (v is None and _accepts_none(tp)):
+        return v
+    if isinstance(v, dict):
+        try:
+            return cls.from_dict(dict(v)) if hasattr(cls, "from_dict") else cls(**check_keys(cls, v))
+        except ConfigError as e:
+            raise e.within(name) from None
+    raise ConfigError(name, f"must be {allowed_values(tp)}, got {_short(v)}")
+
+
+def _accepts_none(tp) -> bool:
+    return typing.get_origin(tp) in (Union, types.UnionType) and type(None) in typing.get_args(tp)
+
+
+def check_fields(obj) -> None:
+    """Validate every field of the dataclass ``obj`` against its annotation and store the
+    validated value (``[1, 2]`` becomes ``(1, 2)`` for a tuple, a dict a nested config); raise
+    ``ConfigError`` naming the first refused field and the allowed values."""
+    for name, (tp, adapter, nested) in _field_checks(type(obj)).items():
+        v = getattr(obj, name)
+        if nested is not None:
+            new = _nested_value(name, tp, nested, v)
+        elif adapter is not None:
+            try:
+                new = adapter.validate_python(v)
+            except pydantic.ValidationError:
+                raise ConfigError(name, f"must be {allowed_values(tp)}, got {_short(v)}") from None
+        else:
+            continue
+        if new is not v:
+            object.__setattr__(obj, name, new)
+
+
+def check_keys(cls, d: Any, what: str | None = None) -> dict:
+    """``d`` as a dict of ``cls``'s fields; ConfigError for a non-dict or unknown keys (naming
+    the first, listing the known ones)."""
+    if not isinstance(d, dict):
+        raise ConfigError("", f"a {cls.__name__} needs a table (dict) of keys, got {_short(d)}")
+    known = sorted(f.name for f in dataclasses.fields(cls))
+    unknown = sorted(str(k) for k in set(d) - set(known))
+    if unknown:
+        raise ConfigError(unknown[0], f"unknown {what or cls.__name__ + ' keys'} {unknown} (known: {known})")
+    return d
