@@ -1,0 +1,149 @@
+"""Recurrent vs feed-forward one-step models on the proprioceptive JACO (paper Figure 7, D.7.3).
+
+The JACO of ``gnwarp.data.proprio.proprio_jaco`` (40 ms observations of cos q, sin q, qdot per body;
+a lagged command behind a soft velocity servo, hidden from the observation) is simulated; a
+recurrent GN (``RecurrentForwardModel``, hidden graph of 20 per edge / node / global) and the same
+model without memory (its hidden graph reset every step) are trained with teacher forcing on
+21-observation windows; both are rolled out on test sequences after a warm-up on the true
+observations, beside the constant baseline (the last true observation held). Errors per horizon:
+RMS joint-angle error (rad, wrapped) and RMS joint-velocity error (rad/s) over the arm's joints.
+
+    python bench/experiments/recurrent_jaco.py --quick              # CPU smoke run, < 1 min
+    python bench/experiments/recurrent_jaco.py                      # full size (GPU)
+
+Writes results.json, results.md and recurrent_jaco.png (error per horizon and one joint's
+trajectory, like Figure 7) under --out (default bench/results/recurrent_jaco).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from bench.harness import experiment_out  # noqa: E402
+from gnwarp.data import proprio  # noqa: E402
+from gnwarp.models.recurrent import RecurrentGNConfig  # noqa: E402
+from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel,  # noqa: E402
+                                             train_teacher_forcing)
+
+FULL = dict(sequences=(2000, 100, 200), steps=100, train_steps=20000, batch=200, lr=1e-3, latent=128,
+            hidden=20, mlp=(256, 256), warmup=20, impl="warp")
+# --quick runs the GN block's torch reference: on a CPU it is faster than Warp's CPU kernels at this size
+QUICK = dict(sequences=(48, 4, 8), steps=50, train_steps=50, batch=12, lr=3e-3, latent=32,
+             hidden=8, mlp=(64,), warmup=20, impl="torch")
+
+
+def errors(pred: torch.Tensor, true: torch.Tensor, movable: torch.Tensor, warmup: int) -> dict[str, list[float]]:
+    """RMS angle and velocity errors per horizon 1..T-warmup over sequences and movable bodies."""
+    p, t = pred[:, warmup + 1:, movable], true[:, warmup + 1:, movable]
+    dq = torch.atan2(p[..., 1] * t[..., 0] - p[..., 0] * t[..., 1], p[..., 0] * t[..., 0] + p[..., 1] * t[..., 1])
+    return {"angle": dq.square().mean((0, 2)).sqrt().tolist(),
+            "velocity": (p[..., 2] - t[..., 2]).square().mean((0, 2)).sqrt().tolist()}
+
+
+def plot(res: dict, traces: dict, joint: str, warmup: int, dt: float, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    color = {"true": "k", "constant": "C0", "recurrent": "C1", "feed-forward": "C2"}
+    fig, ax = plt.subplots(1, 3, figsize=(14, 3.8))
+    for name, r in res.items():
+        h = np.arange(1, len(r["angle"]) + 1)
+        ax[0].plot(h, r["angle"], color=color[name], label=name)
+        ax[1].plot(h, r["velocity"], color=color[name], label=name)
+    ax[0].set(xlabel="rollout step after warm-up", ylabel="RMS joint angle error (rad)", yscale="log")
+    ax[1].set(xlabel="rollout step after warm-up", ylabel="RMS joint velocity error (rad/s)", yscale="log")
+    ax[0].legend()
+    t = np.arange(len(traces["true"])) * dt
+    for name, q in traces.items():
+        ax[2].plot(t, q, color=color[name], label=name, lw=2 if name == "true" else 1)
+    ax[2].axvline(warmup * dt, color="gray", ls=":")
+    ax[2].set(xlabel="time (s)", ylabel=f"joint angle of {joint} (rad)")
+    ax[2].legend(fontsize=8)
+    fig.suptitle("Proprioceptive JACO: recurrent vs feed-forward one-step models (cf. Figure 7)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="tiny CPU run (< 1 min)")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--train-steps", type=int, default=None)
+    ap.add_argument("--lag", type=float, default=0.2, help="command lag (s) of the simulated arm")
+    ap.add_argument("--servo-scale", type=float, default=0.1, help="velocity servo gain, relative to the JACO's")
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    cfg = dict(QUICK if args.quick else FULL)
+    if args.train_steps:
+        cfg["train_steps"] = args.train_steps
+    out = experiment_out("recurrent_jaco", args.out, args.quick)
+    out.mkdir(parents=True, exist_ok=True)
+    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    backend = "mujoco" if args.quick else args.backend
+    torch.manual_seed(args.seed)
+
+    t0 = time.perf_counter()
+    system = proprio.proprio_jaco(args.lag, args.servo_scale)
+    data = proprio.ProprioData.simulate(system, cfg["sequences"], num_steps=cfg["steps"], seed=args.seed,
+                                        backend=backend, device=dev)
+    train, test = data.split("train"), data.split("test")
+    print(f"simulated {cfg['sequences']} x {cfg['steps']} steps of {system.name} in {time.perf_counter() - t0:.1f} s")
+
+    w = cfg["hidden"]
+    core = RecurrentGNConfig(latent=cfg["latent"], hidden_edges=w, hidden_nodes=w, hidden_globals=w,
+                             edge_mlp=cfg["mlp"], node_mlp=cfg["mlp"], global_mlp=cfg["mlp"])
+    movable = data.movable.to(dev)
+    W = cfg["warmup"]
+    res, traces, logs = {}, {}, {}
+    with torch.no_grad():
+        const = test.obs.clone()
+        const[:, W + 1:] = test.obs[:, W:W + 1]
+    res["constant"] = errors(const, test.obs, movable, W)
+    b, j = 0, 2  # trace: the first test sequence, body 2 (the arm's second joint)
+    traces["true"] = torch.atan2(test.obs[b, :, j, 1], test.obs[b, :, j, 0]).cpu().numpy()
+    for name, recurrent in (("recurrent", True), ("feed-forward", False)):
+        run = RecurrentForwardConfig(core=core, recurrent=recurrent)
+        run.run = run.run.replace(impl=cfg["impl"])
+        model = RecurrentForwardModel(run, data.sizes, data.graphs, data.movable).to(dev)
+        t1 = time.perf_counter()
+        losses = train_teacher_forcing(model, train, cfg["train_steps"], cfg["batch"], lr=cfg["lr"], seed=args.seed,
+                                       log_every=max(1, cfg["train_steps"] // 5))
+        logs[name] = {"loss_first": losses[0], "loss_last10": float(np.mean(losses[-10:])),
+                      "train_seconds": time.perf_counter() - t1}
+        with torch.no_grad():
+            pred = model.rollout(test.instance, test.obs, test.ctrl, warmup=W)
+        res[name] = errors(pred, test.obs, movable, W)
+        traces[name] = torch.atan2(pred[b, :, j, 1], pred[b, :, j, 0]).cpu().numpy()
+        print(f"{name}: loss {losses[0]:.3g} -> {logs[name]['loss_last10']:.3g}")
+
+    horizons = [h for h in (1, 5, 10, 20, 50, 80) if h <= cfg["steps"] - W]
+    lines = ["| model | " + " | ".join(f"angle h={h}" for h in horizons) + " | "
+             + " | ".join(f"vel h={h}" for h in horizons) + " |", "|---" * (1 + 2 * len(horizons)) + "|"]
+    for name, r in res.items():
+        lines.append(f"| {name} | " + " | ".join(f"{r['angle'][h - 1]:.3g}" for h in horizons) + " | "
+                     + " | ".join(f"{r['velocity'][h - 1]:.3g}" for h in horizons) + " |")
+    table = "\n".join(lines)
+    print(table)
+    meta = {"config": cfg, "lag": args.lag, "servo_scale": args.servo_scale, "seed": args.seed, "device": str(dev),
+            "backend": backend, "quick": args.quick, "training": logs}
+    (out / "results.json").write_text(json.dumps({"meta": meta, "errors": res}, indent=1, default=float))
+    (out / "results.md").write_text(f"# Recurrent vs feed-forward, proprioceptive JACO\n\n"
+                                    f"RMS errors per rollout step after a {W}-step warm-up on true observations "
+                                    f"(angle rad, velocity rad/s; arm and finger joints).\n\n{table}\n\n"
+                                    f"```\n{json.dumps(meta, indent=1, default=float)}\n```\n")
+    plot(res, traces, f"body {j}", W, system.dt, out / "recurrent_jaco.png")
+    print(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
+
+
+if __name__ == "__main__":
+    main()

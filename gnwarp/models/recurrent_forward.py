@@ -1,0 +1,225 @@
+"""The recurrent one-step model of the paper (D.7.3) on proprioceptive observations, and its
+feed-forward baseline.
+
+Per step, for observation graph G_t (``gnwarp.data.proprio``: nodes [static, cos q, sin q, qdot],
+edges [static, controls]) and hidden graph H_{t-1}::
+
+    O_t, H_t = RecurrentGNCore(Norm_in(G_t), H_{t-1})      O_t.nodes: normalized (dq, dqdot) per body
+    (dq, dqdot) = Norm_out^-1(O_t.nodes)
+    next = (cos(q + dq), sin(q + dq), qdot + dqdot)          rotated, so (cos, sin) stays on the circle;
+                                                             bodies without a joint (the world) kept
+
+The feed-forward baseline is the same model with ``recurrent=False``: its hidden graph is reset
+to zeros before every step, so it sees the current observation only, with the same weights'
+shapes and the same normalization: the comparison isolates memory.
+
+Training (D.7.3, teacher forcing): windows of 21 observations; the first 20 are the inputs, in
+order, carrying the hidden graph along; the last 20 are the targets; the loss is the mean squared
+error of the normalized changes over all steps and bodies with a joint.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn as nn
+
+from gnwarp.gn.options import RunOptions
+from gnwarp.graphs import GraphsTuple
+from gnwarp.models.normalizer import Normalizer
+from gnwarp.models.recurrent import RecurrentGNConfig, RecurrentGNCore
+
+__all__ = ["RecurrentForwardConfig", "RecurrentForwardModel", "observation_delta", "apply_observation_delta",
+           "train_teacher_forcing"]
+
+DELTA_SIZE = 2  # (dq, dqdot) per body
+
+
+def observation_delta(obs: torch.Tensor, nxt: torch.Tensor) -> torch.Tensor:
+    """The change [..., 2] = (angle change in (-pi, pi], velocity change) between observations
+    [..., 3] = (cos q, sin q, qdot)."""
+    c0, s0, c1, s1 = obs[..., 0], obs[..., 1], nxt[..., 0], nxt[..., 1]
+    dq = torch.atan2(s1 * c0 - c1 * s0, c1 * c0 + s1 * s0)
+    return torch.stack([dq, nxt[..., 2] - obs[..., 2]], -1)
+
+
+def apply_observation_delta(obs: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """``obs`` [..., 3] advanced by ``delta`` [..., 2]: (cos, sin) rotated by dq, qdot + dqdot."""
+    c, s = torch.cos(delta[..., 0]), torch.sin(delta[..., 0])
+    return torch.stack([obs[..., 0] * c - obs[..., 1] * s, obs[..., 1] * c + obs[..., 0] * s,
+                        obs[..., 2] + delta[..., 1]], -1)
+
+
+@dataclass
+class RecurrentForwardConfig:
+    """``core``: the recurrent core's sizes (its output sizes are set by the model: 2 per node,
+    none on edges and globals); ``recurrent``: False for the feed-forward baseline (hidden reset
+    every step); ``run``: how the GN block runs; ``std_floor``: the normalizers' smallest std."""
+    core: RecurrentGNConfig = field(default_factory=RecurrentGNConfig)
+    recurrent: bool = True
+    run: RunOptions = field(default_factory=RunOptions)
+    std_floor: float = 1e-4
+
+    def core_config(self) -> RecurrentGNConfig:
+        return dataclasses.replace(self.core, out_nodes=DELTA_SIZE, out_edges=0, out_globals=0)
+
+
+class RecurrentForwardModel(nn.Module):
+    """Recurrent (or, with ``config.recurrent=False``, feed-forward) one-step model of observation
+    graphs (see the module docstring).
+
+    ``sizes``: input widths {"nodes", "edges", "globals"} (``ProprioData.sizes``: the last 3 node
+    columns are the observation). ``graphs``: a callable (instance [N], obs [N, B, 3],
+    ctrl [N, U]) -> GraphsTuple (``ProprioData.graphs``). ``movable`` [B] bool: bodies with a joint,
+    whose observations change (``ProprioData.movable``; default all but body 0, the world).
+    Shapes: N sequences, B bodies, U controls.
+    """
+
+    def __init__(self, config: RecurrentForwardConfig, sizes: dict[str, int], graphs,
+                 movable: torch.Tensor | None = None):
+        super().__init__()
+        self.config = copy.deepcopy(config)
+        self.sizes = dict(sizes)
+        self.graphs = graphs
+        f = config.std_floor
+        self.norm_nodes = Normalizer(sizes["nodes"], f)
+        self.norm_edges = Normalizer(sizes["edges"], f)
+        self.norm_globals = Normalizer(sizes["globals"], f) if sizes["globals"] else None
+        self.norm_delta = Normalizer(DELTA_SIZE, f)
+        self.core = RecurrentGNCore(config.core_config(), sizes, config.run)
+        self.movable = None if movable is None else torch.as_tensor(movable, dtype=torch.bool)
+
+    @property
+    def recurrent(self) -> bool:
+        return self.config.recurrent
+
+    # -- one step ---------------------------------------------------------------------------------
+    def stats(self, dtype: torch.dtype) -> dict:
+        out = {"nodes": self.norm_nodes.mean_std(dtype), "edges": self.norm_edges.mean_std(dtype),
+               "delta": self.norm_delta.mean_std(dtype)}
+        if self.norm_globals is not None:
+            out["globals"] = self.norm_globals.mean_std(dtype)
+        return out
+
+    @staticmethod
+    def _normalized(graph: GraphsTuple, stats: dict) -> GraphsTuple:
+        def norm(kind, x):
+            m, s = stats[kind]
+            return (x - m) / s
+        g = norm("globals", graph.globals) if "globals" in stats else graph.globals
+        return graph._replace(nodes=norm("nodes", graph.nodes), edges=norm("edges", graph.edges), globals=g)
+
+    def initial_hidden(self, graph: GraphsTuple) -> GraphsTuple:
+        return self.core.initial_hidden(graph)
+
+    def step_delta(self, graph: GraphsTuple, hidden: GraphsTuple, stats: dict, index=None
+                   ) -> tuple[torch.Tensor, GraphsTuple]:
+        """Normalized predicted changes [sum(n_node), 2] of one input graph, and the next hidden
+        graph (the feed-forward model ignores ``hidden`` and returns zeros)."""
+        if not self.recurrent:
+            hidden = self.core.initial_hidden(graph)
+        out, hidden = self.core.step(self._normalized(graph, stats), hidden, index)
+        return out.nodes, hidden
+
+    def step(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, hidden: GraphsTuple | None,
+             stats: dict | None = None, index=None) -> tuple[torch.Tensor, GraphsTuple]:
+        """One step: ``obs`` [N, B, 3], ``ctrl`` [N, U], ``hidden`` (None: zeros) -> (next
+        observation [N, B, 3], next hidden graph). Bodies without a joint keep their observation."""
+        graph = self.graphs(instance, obs, ctrl)
+        stats = stats if stats is not None else self.stats(graph.nodes.dtype)
+        hidden = self.initial_hidden(graph) if hidden is None else hidden
+        delta_n, hidden = self.step_delta(graph, hidden, stats, index)
+        m, s = stats["delta"]
+        nxt = apply_observation_delta(obs, (delta_n * s + m).reshape(*obs.shape[:2], DELTA_SIZE))
+        return torch.where(self._movable(obs)[:, None], nxt, obs), hidden
+
+    def _movable(self, obs: torch.Tensor) -> torch.Tensor:
+        """[B] bool of observations [N, (T,) B, 3]: bodies with a joint."""
+        if self.movable is not None:
+            return self.movable.to(obs.device)
+        movable = torch.ones(obs.shape[-2], dtype=torch.bool, device=obs.device)
+        movable[0] = False
+        return movable
+
+    # -- training (D.7.3) -------------------------------------------------------------------------
+    def loss(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, accumulate: bool = False
+             ) -> torch.Tensor:
+        """Teacher-forcing loss of windows ``obs`` [N, T+1, B, 3] (T+1 = 21 in the paper) under
+        ``ctrl`` [N, T, U]: inputs obs[:, :T] in order with the hidden graph carried along, targets
+        obs[:, 1:]; mean squared error of the normalized (dq, dqdot) over steps and movable bodies.
+        ``accumulate``: update the normalizers from this batch first."""
+        N, T1, B, _ = obs.shape
+        T = T1 - 1
+        if ctrl.shape[:2] != (N, T):
+            raise ValueError(f"ctrl must be [N, T, U] = [{N}, {T}, U] for obs of {T1} steps, got {tuple(ctrl.shape)}")
+        graphs = [self.graphs(instance, obs[:, t], ctrl[:, t]) for t in range(T)]
+        delta = observation_delta(obs[:, :-1], obs[:, 1:])                       # [N, T, B, 2]
+        w = self._movable(obs).to(obs.dtype).repeat(N)                           # [N*B], rows of a graph batch
+        if accumulate:
+            for g in graphs:
+                self.norm_nodes.accumulate(g.nodes)
+                self.norm_edges.accumulate(g.edges)
+                if self.norm_globals is not None:
+                    self.norm_globals.accumulate(g.globals)
+            self.norm_delta.accumulate(delta.reshape(-1, DELTA_SIZE), w.repeat(T))  # w depends on the body only
+        stats = self.stats(obs.dtype)
+        m, s = stats["delta"]
+        index = self.core.graph_index(graphs[0])
+        hidden = self.initial_hidden(graphs[0])
+        total = obs.new_zeros(())
+        for t, g in enumerate(graphs):
+            pred, hidden = self.step_delta(g, hidden, stats, index)
+            target = ((delta[:, t] - m) / s).reshape(-1, DELTA_SIZE)
+            total = total + ((pred - target).square().sum(-1) * w).sum()
+        return total / (w.sum() * T * DELTA_SIZE)
+
+    # -- rollouts ---------------------------------------------------------------------------------
+    def rollout(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, warmup: int = 20
+                ) -> torch.Tensor:
+        """Warm up on true observations, then feed back predictions.
+
+        ``obs`` [N, >= warmup+1, B, 3]: true observations (only the first warmup+1 are read);
+        ``ctrl`` [N, T, U] with T > warmup. Inputs at steps t = 0..warmup are the true obs[:, t]
+        (teacher forcing: the hidden graph takes them in), later inputs the model's previous
+        prediction. Returns [N, T+1, B, 3]: obs[:, :warmup+1] and then the predictions of steps
+        warmup+1..T (the free rollout, horizon h at index warmup+h)."""
+        N, T = ctrl.shape[:2]
+        if not (0 <= warmup < T and obs.shape[1] >= warmup + 1):
+            raise ValueError(f"rollout needs 0 <= warmup < T and warmup+1 true observations; got warmup {warmup}, "
+                             f"T {T}, {obs.shape[1]} observations")
+        instance = instance.to(obs.device)
+        g0 = self.graphs(instance, obs[:, 0], ctrl[:, 0])
+        stats, index = self.stats(g0.nodes.dtype), self.core.graph_index(g0)
+        hidden = self.initial_hidden(g0)
+        out = [obs[:, t] for t in range(warmup + 1)]
+        x = obs[:, 0]
+        for t in range(T):
+            x = obs[:, t] if t <= warmup else x
+            x, hidden = self.step(instance, x, ctrl[:, t], hidden, stats, index)
+            if t >= warmup:
+                out.append(x)
+        return torch.stack(out, 1)
+
+
+def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300, batch: int = 32,
+                          window: int = 21, lr: float = 1e-3, seed: int = 0, log_every: int = 0,
+                          normalizer_steps: int | None = None) -> list[float]:
+    """Adam on teacher-forcing losses of random ``window``-observation windows of ``split`` (a
+    ``ProprioSplit``). The normalizers accumulate for the first ``normalizer_steps`` steps (default
+    all). Returns the loss of every step."""
+    gen = torch.Generator().manual_seed(seed)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    losses = []
+    for k in range(steps):
+        obs, ctrl, inst = split.windows(batch, window, gen)
+        acc = normalizer_steps is None or k < normalizer_steps
+        loss = model.loss(inst, obs, ctrl, accumulate=acc)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        if log_every and (k % log_every == 0 or k == steps - 1):
+            print(f"  step {k:5d}  loss {losses[-1]:.4g}")
+    return losses

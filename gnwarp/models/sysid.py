@@ -1,0 +1,349 @@
+"""System identification (paper D.2, D.3, D.6.2, Algorithms D.2 and D.4): a recurrent GN reads a
+window of dynamic graphs and outputs a latent static graph G_ID that replaces the true static
+graph in a forward model.
+
+::
+
+    G_d^t  = dynamic graph of step t (13 body states per node, controls per edge; no static features)
+    G_o, G_h = GN_p(Norm_in(G_d^t), G_h)   for t over the window (``RecurrentGNCore``), G_h = 0 first
+    G_ID   = G_o of the last step          (per-node, per-edge and global latents; not normalized, D.3)
+    x_t+1  = ForwardModel(concat(G_ID, G_d^t))   (the forward model's static columns are G_ID)
+
+The forward model is a plain ``ForwardModel`` on a ``FeatureLayout`` whose static columns are
+G_ID's (``gid_node_<i>``, ...); its input normalizers leave those columns as they are. ``Norm_in``
+of the window is the forward model's, on the dynamic columns. In rollouts G_ID is identified
+once and reused every step (``identify`` then ``rollout``); ``save_gid`` / ``load_gid`` keep it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+
+from gnwarp.data.builder import GraphTemplate, graph_builder
+from gnwarp.data.layout import FeatureLayout
+from gnwarp.gn.options import RunOptions
+from gnwarp.graphs import GraphsTuple
+from gnwarp.models.config import ModelConfig
+from gnwarp.models.forward import ForwardModel
+from gnwarp.models.normalizer import Normalizer
+from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
+from gnwarp.models.rollout import RolloutInputError, RolloutInputs, check_instance, float_tensor, source_info
+from gnwarp.state import DYN_NODE_SIZE
+from gnwarp.validation import PositiveInt, check_fields, check_keys
+
+__all__ = ["SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
+
+
+def _identifier_default() -> RecurrentGNConfig:
+    # D.2: abstract static graph of size 10 per node, edge and global; the hidden graph as wide
+    return RecurrentGNConfig(hidden_edges=10, hidden_nodes=10, hidden_globals=10, out_edges=10, out_nodes=10,
+                             out_globals=10)
+
+
+@dataclass
+class SysIDConfig:
+    """A system-identification model: ``forward`` (the forward model's ``ModelConfig``; its run
+    options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths)
+    and ``window`` (steps of the identification window, paper: 20)."""
+    forward: ModelConfig = field(default_factory=ModelConfig)
+    identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
+    window: PositiveInt = 20
+
+    def __post_init__(self):
+        check_fields(self)
+
+    @property
+    def core(self) -> str:
+        return "sysid"   # what a run's progress bar and logs call the model
+
+    def to_dict(self) -> dict:
+        return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SysIDConfig":
+        return cls(**check_keys(cls, d, "sysid config keys"))
+
+
+class LatentColumnsNormalizer(Normalizer):
+    """A ``Normalizer`` whose first ``skip`` columns (G_ID's latents) stay as they are (D.3)."""
+
+    def __init__(self, size: int, skip: int, std_floor: float = 1e-4):
+        super().__init__(size, std_floor)
+        self.skip = int(skip)
+        self.register_buffer("latent", torch.arange(self.size) < self.skip, persistent=False)
+
+    def _masked(self, mean, std):
+        m = self.latent.to(mean.device)
+        return torch.where(m, torch.zeros_like(mean), mean), torch.where(m, torch.ones_like(std), std)
+
+    def accumulate_stats(self, x, weight=None):
+        return self._masked(*super().accumulate_stats(x, weight))
+
+    def mean_std(self, dtype=None):
+        return self._masked(*super().mean_std(dtype))
+
+
+class GIDError(ValueError):
+    """A G_ID file that is missing, corrupt or not a G_ID; or a G_ID that does not fit a rollout."""
+
+
+def gid_layout(sizes: dict[str, int], n_ctrl_slots: int) -> FeatureLayout:
+    """The forward model's layout: G_ID's latents as its static columns."""
+    return FeatureLayout([f"gid_global_{i}" for i in range(sizes["globals"])],
+                         [f"gid_node_{i}" for i in range(sizes["nodes"])],
+                         [f"gid_edge_{i}" for i in range(sizes["edges"])], n_ctrl_slots=n_ctrl_slots)
+
+
+class SysIDModel(nn.Module):
+    """GN_p (``identifier``, a ``RecurrentGNCore``) + a ``ForwardModel`` (``forward_model``) on G_ID.
+
+    ``config``: ``SysIDConfig``; ``layout``: the data's ``FeatureLayout`` (only its control slots
+    are read: GN_p and the forward model see no static feature of the data).
+
+    Main methods (N graphs, W window steps, B bodies, U controls, T steps):
+        ``bind(source)``: the Dataset or System whose graphs it reads.
+        ``identify(window_body [N, W, B, 13], window_ctrl [N, W, U], instance [N]) -> G_ID``.
+        ``rollout(initial_body [N, B, 13], ctrl [N, T, U], g_id, instance) -> [N, T+1, B, 13]``.
+    """
+
+    def __init__(self, config: SysIDConfig, layout: FeatureLayout):
+        super().__init__()
+        if layout.n_global_ctrl:
+            raise ValueError("system identification needs every actuator on a joint edge")
+        self.sysid = dataclasses.replace(config)
+        c = config.identifier
+        self.gid_sizes = {k: c.out(k) for k in KINDS}
+        K = int(layout.n_ctrl_slots)
+        # what the model reads of the data: its dynamic graph only
+        self.layout = FeatureLayout([], [], [], n_ctrl_slots=K)
+        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K))
+        fm, f = self.forward_model, config.forward.std_floor
+        fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, self.gid_sizes["nodes"], f)
+        fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"], f)
+        if fm.norm_globals is not None:
+            fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
+        sizes = {"nodes": DYN_NODE_SIZE, "edges": K, "globals": 0}
+        self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
+        self.builder = None
+
+    # -- what the Trainer and users read --------------------------------------------------------
+    @property
+    def config(self) -> SysIDConfig:
+        return dataclasses.replace(self.sysid, forward=self.forward_model.config)
+
+    @property
+    def window(self) -> int:
+        return self.sysid.window
+
+    @property
+    def options(self) -> RunOptions:
+        return self.forward_model.options
+
+    @property
+    def norm_nodes(self) -> Normalizer:
+        return self.forward_model.norm_nodes
+
+    @property
+    def device(self) -> torch.device:
+        return self.forward_model.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.forward_model.dtype
+
+    def set_options(self, options: RunOptions | None = None, **changes) -> "SysIDModel":
+        """Run both parts with ``options`` (or the current ones with ``changes``); returns self."""
+        self.forward_model.set_options(options, **changes)
+        self.identifier.set_options(self.options)
+        self.identifier.to(self.options.param_dtype)
+        return self
+
+    def graph_builder(self, source, strict: bool = True):
+        """A ``GraphBuilder`` of ``source``'s dynamic graphs (no static columns), on the model's
+        device and dtype. Data with more control slots per edge raises ``LayoutMismatchError``."""
+        return graph_builder(self.layout, source, self.device, self.dtype, strict)
+
+    def bind(self, source, strict: bool = True) -> "SysIDModel":
+        """Read ``source``'s graphs (a Dataset or System) in ``identify`` and ``rollout``."""
+        self.builder = self.graph_builder(source, strict)
+        return self
+
+    # -- Algorithm D.2 ------------------------------------------------------------------------
+    def with_gid(self, graph: GraphsTuple, g_id: GraphsTuple) -> GraphsTuple:
+        """The forward model's input graph: G_ID's latents concatenated with a dynamic graph."""
+        def cat(k):
+            x, z = getattr(graph, k), getattr(g_id, k)
+            return x if z is None else torch.cat([z.to(x.dtype), x], -1)
+        return graph._replace(**{k: cat(k) for k in KINDS})
+
+    def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
+        """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable
+        t -> graph), normalized with the forward model's input statistics (``stats``: as
+        ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4).
+        No host synchronization once the topology's index exists."""
+        fm = self.forward_model
+        get = window if callable(window) else window.__getitem__
+        g0 = get(0)
+        ctx = fm.context(g0, stats=False)      # the topology's index, shared with the forward model
+        stats = stats if stats is not None else fm.stats(g0.nodes.dtype)
+        (mn, sn), (me, se) = stats["nodes"], stats["edges"]
+        K = g0.edges.shape[-1]
+
+        def normalized(t):
+            g = get(t)
+            dyn, _ = fm._recenter(g.nodes, ctx)
+            return g._replace(nodes=(dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:],
+                              edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
+        index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
+        outs, _ = self.identifier.sequence(normalized, steps=steps, index=index)
+        return outs[-1]
+
+    def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
+        if self.builder is None:
+            raise ValueError("no graphs to read: call model.bind(dataset_or_system) first")
+        n_inst, n_ctrl = source_info(self.builder)
+        instance = torch.zeros(N, dtype=torch.int64) if instance is None else check_instance(instance, n_inst, N)
+        return GraphTemplate(self.builder, instance), n_ctrl
+
+    def identify(self, window_body, window_ctrl, instance=None, check: bool = True) -> GraphsTuple:
+        """G_ID (a GraphsTuple: nodes [n, G], edges [e, G], globals [N, G] and the topology) of N
+        system instances from an identification window: ``window_body`` [N, W, B, 13] (body
+        states) and ``window_ctrl`` [N, W, U] (the controls applied at those steps); a longer
+        window is cut to its last W = ``config.window`` steps. ``instance`` [N]: the bound
+        source's instances (their topology; default 0). Raises ``RolloutInputError`` for a
+        shorter window, shapes of another system's graph layout, and (``check``) NaN or Inf."""
+        body, ctrl = float_tensor(window_body, "window_body"), float_tensor(window_ctrl, "window_ctrl")
+        W = self.window
+        if body.ndim != 4 or ctrl.ndim != 3:
+            raise RolloutInputError(f"window_body must be [N, W, B, {DYN_NODE_SIZE}] and window_ctrl [N, W, U], got "
+                                    f"shapes {tuple(body.shape)} and {tuple(ctrl.shape)}")
+        if body.shape[1] < W or ctrl.shape[1] < W:
+            raise RolloutInputError(f"the identification window has {min(body.shape[1], ctrl.shape[1])} steps; this "
+                                    f"model identifies systems from {W} (window_body [N, {W}, B, 13], window_ctrl "
+                                    f"[N, {W}, U])")
+        N = body.shape[0]
+        tmpl, n_ctrl = self._template(instance, N)
+        if tuple(body.shape[2:]) != (tmpl.B, DYN_NODE_SIZE) or ctrl.shape[0] != N or ctrl.shape[2] != n_ctrl:
+            raise RolloutInputError(
+                f"the window's graphs do not fit the bound system's graph layout: window_body {tuple(body.shape)} "
+                f"and window_ctrl {tuple(ctrl.shape)}, expected [N, W, {tmpl.B}, {DYN_NODE_SIZE}] and [{N}, W, "
+                f"{n_ctrl}] ({tmpl.B} bodies, {n_ctrl} controls): a window from a system with another graph layout")
+        dev, dt = tmpl.static_nodes.device, tmpl.dtype
+        body, ctrl = body[:, -W:].to(dev, dt), ctrl[:, -W:].to(dev, dt)
+        if check:
+            for name, x in (("window_body", body), ("window_ctrl", ctrl)):
+                bad = ~torch.isfinite(x)
+                if bool(bad.any()):
+                    raise RolloutInputError(f"{name} contains NaN or Inf (first at {name}"
+                                            f"{[int(i) for i in bad.nonzero()[0]]} of its last {W} steps)")
+        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
+
+    def rollout(self, initial_body, ctrl, g_id: GraphsTuple, instance=None, check: bool = True) -> torch.Tensor:
+        """Roll the forward model out from ``initial_body`` [N, B, 13] under ``ctrl`` [N, T, U]
+        with G_ID reused at every step (D.6.2) -> states [N, T+1, B, 13]. ``g_id``: from
+        ``identify`` (or ``load_gid``) on the same N graphs' topology; ``instance`` as there.
+        Controls are used as given (the model knows no actuator ranges). Differentiable (plain
+        autograd) in ``initial_body``, ``ctrl``, G_ID and the weights."""
+        initial_body = float_tensor(initial_body, "initial_body")
+        if initial_body.ndim != 3:
+            raise RolloutInputError(f"initial_body must be [N, B, 13], got shape {tuple(initial_body.shape)}")
+        tmpl, n_ctrl = self._template(instance, initial_body.shape[0])
+        inputs = RolloutInputs(tmpl, None, n_ctrl, "none", check)
+        body, ctrl = inputs.shapes(initial_body, ctrl)
+        dev, dt = tmpl.static_nodes.device, tmpl.dtype
+        body = body.to(dev, dt)
+        ctrl = inputs.values(body, ctrl.to(dev, dt))
+        self.check_gid(g_id, tmpl.topology)
+        g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).to(dev, dt) for k in KINDS})
+        fm = self.forward_model
+        ctx = fm.context(self.with_gid(tmpl.graph(body, ctrl[:, 0]), g_id))
+        out = [body]
+        for t in range(ctrl.shape[1]):
+            body = tmpl.to_body(fm.next_nodes(self.with_gid(tmpl.graph(body, ctrl[:, t]), g_id), ctx), body)
+            out.append(body)
+        return torch.stack(out, 1)
+
+    def check_gid(self, g_id: GraphsTuple, topology: GraphsTuple) -> None:
+        """``GIDError`` unless ``g_id`` has this model's widths and ``topology``'s graphs."""
+        if not isinstance(g_id, GraphsTuple):
+            raise GIDError(f"g_id must be a GraphsTuple (from identify or load_gid), got {type(g_id).__name__}")
+        for k in KINDS:
+            x, want = getattr(g_id, k), self.gid_sizes[k]
+            if (0 if x is None else x.shape[-1]) != want:
+                raise GIDError(f"G_ID's {k} have width {0 if x is None else x.shape[-1]}, this model's {want}")
+        same = (g_id.n_node.shape == topology.n_node.shape and g_id.senders.shape == topology.senders.shape
+                and all(bool(torch.equal(getattr(g_id, a).cpu(), getattr(topology, a).cpu()))
+                        for a in ("n_node", "n_edge", "senders", "receivers")))
+        if not same:
+            raise GIDError(f"G_ID was identified on graphs of another layout ({g_id.n_node.shape[0]} graphs, nodes "
+                           f"{g_id.n_node.tolist()[:4]}, {g_id.senders.shape[0]} edges) than the rollout's "
+                           f"({topology.n_node.shape[0]} graphs, nodes {topology.n_node.tolist()[:4]}, "
+                           f"{topology.senders.shape[0]} edges)")
+
+
+# -- G_ID files -----------------------------------------------------------------------------------
+GID_FORMAT, GID_VERSION = "gnwarp-gid", 1
+_FIELDS = ("nodes", "edges", "globals", "senders", "receivers", "n_node", "n_edge")
+
+
+def _digest(tensors: dict) -> str:
+    h = hashlib.sha256()
+    for k in _FIELDS:
+        t = tensors[k]
+        h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
+        h.update(t.contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def save_gid(path, g_id: GraphsTuple) -> Path:
+    """Write G_ID to ``path`` (``torch.save`` of plain tensors and its sha256), atomically."""
+    path = Path(path)
+    tensors = {k: (torch.zeros(0) if getattr(g_id, k) is None else getattr(g_id, k)).detach().cpu().contiguous()
+               for k in _FIELDS}
+    payload = {"format": GID_FORMAT, "version": GID_VERSION, "tensors": tensors, "sha256": _digest(tensors),
+               "none": [k for k in KINDS if getattr(g_id, k) is None]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def load_gid(path, device=None) -> GraphsTuple:
+    """A G_ID written by ``save_gid``, read with ``weights_only=True`` and checked: format,
+    checksum, shapes consistent with its topology, finite values. Raises ``GIDError``."""
+    path = Path(path)
+    try:
+        p = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - missing, truncated or not a tensor file
+        raise GIDError(f"{path}: cannot read a G_ID ({type(e).__name__}: {e})") from None
+    if not isinstance(p, dict) or p.get("format") != GID_FORMAT or not isinstance(p.get("tensors"), dict):
+        raise GIDError(f"{path} is not a G_ID file (format {p.get('format') if isinstance(p, dict) else None!r})")
+    if int(p.get("version", -1)) > GID_VERSION:
+        raise GIDError(f"{path} has G_ID version {p.get('version')}, newer than this gnwarp ({GID_VERSION})")
+    t = p["tensors"]
+    if set(t) != set(_FIELDS) or not all(isinstance(v, torch.Tensor) for v in t.values()):
+        raise GIDError(f"{path}: a G_ID holds the tensors {_FIELDS}, got {sorted(t)}")
+    if _digest(t) != p.get("sha256"):
+        raise GIDError(f"{path} is corrupt: its tensors do not match their checksum")
+    none = set(p.get("none", []))
+    n_node, n_edge = t["n_node"].long(), t["n_edge"].long()
+    rows = {"nodes": int(n_node.sum()), "edges": int(n_edge.sum()), "globals": n_node.shape[0]}
+    for k in KINDS:
+        if k not in none and (t[k].ndim != 2 or t[k].shape[0] != rows[k] or not t[k].is_floating_point()):
+            raise GIDError(f"{path}: G_ID {k} of shape {tuple(t[k].shape)} do not fit its topology ({rows[k]} rows)")
+        if k not in none and not bool(torch.isfinite(t[k]).all()):
+            raise GIDError(f"{path}: G_ID {k} hold NaN or Inf")
+    if t["senders"].shape != t["receivers"].shape or t["senders"].shape[0] != rows["edges"]:
+        raise GIDError(f"{path}: G_ID senders / receivers do not fit its {rows['edges']} edges")
+    g = GraphsTuple(**{k: (None if k in none else v.to(device)) for k, v in t.items()})
+    return g

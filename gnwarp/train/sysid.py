@@ -1,0 +1,179 @@
+"""End-to-end training of system identification (paper D.7.2, Algorithm D.4): ``SysIDTrainer``.
+
+A ``Trainer`` whose model is a ``SysIDModel`` and whose seams change: ``sample`` draws, per
+sequence of the train split, a random ``window``-step identification window and a different
+random step t0 outside it; ``loss`` identifies G_ID from the window and applies the forward
+model's loss (Algorithm D.3) at t0 with G_ID as the static graph; ``validate`` identifies from
+the first ``window`` steps of each valid sequence and rolls out the next ``valid_horizon``
+steps with that G_ID; checkpoints hold the whole model (``load_sysid`` reads them).
+
+Steps run uncaptured (the step has no host synchronization once warm, but its capture has not
+been verified on a GPU yet).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from gnwarp.data.dataset import load
+from gnwarp.data.layout import FeatureLayout, merge_layouts
+from gnwarp.eval.metrics import movable_mask, normalized_errors
+from gnwarp.graphs import GraphsTuple, batch
+from gnwarp.interop import resolve_device
+from gnwarp.models.sysid import SysIDConfig, SysIDModel
+from gnwarp.state import DYN_NODE_SIZE
+from gnwarp.train.checkpoint import CheckpointError, _load_weights, _read_checkpoint
+from gnwarp.train.config import TrainConfig
+from gnwarp.train.trainer import Trainer
+
+__all__ = ["SysIDTrainer", "SysIDSample", "build_sysid_model", "load_sysid", "sysid_rollout_error"]
+
+
+class SysIDSample(NamedTuple):
+    """One dataset's part of a batch: the identification window's dynamic graphs, the dynamic
+    graph at t0 and the true next states [sum(n_node), 13]."""
+    window: list
+    graph: GraphsTuple
+    target: torch.Tensor
+
+
+def build_sysid_model(config: TrainConfig, datasets, sysid: SysIDConfig | None = None) -> SysIDModel:
+    """A new ``SysIDModel`` for ``datasets``: the forward model from ``config.model`` (re-centring
+    decided as ``build_model`` does, D.4), GN_p and the window from ``sysid``."""
+    sysid = sysid or SysIDConfig()
+    mcfg = dataclasses.replace(config.model)
+    if mcfg.recenter is None:
+        mcfg.recenter = len(datasets) == 1 and bool(datasets[0].meta.get("translation_invariant", False))
+    if mcfg.core != "gn":
+        raise ValueError("system identification trains the GN forward model (model.core = 'gn')")
+    return SysIDModel(dataclasses.replace(sysid, forward=mcfg), merge_layouts([d.layout for d in datasets]))
+
+
+class SysIDTrainer(Trainer):
+    """Trains a ``SysIDModel`` end to end (Algorithm D.4); see the module docstring.
+
+    ``sysid``: sizes of GN_p and the window (default ``SysIDConfig()``); the forward model's
+    sizes and run options are ``config.model``'s. Other arguments as ``Trainer``'s. Runs do not
+    resume from ``<out>/last`` yet: a rerun into a folder holding one is refused."""
+
+    def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
+                 model: SysIDModel | None = None, callbacks=()):
+        if datasets is None:
+            if not config.data:
+                raise ValueError("no training data: set `data` to one or more dataset files")
+            datasets = [load(p, lazy=True) for p in config.data]
+        datasets = list(datasets)
+        torch.manual_seed(config.seed)
+        model = model if model is not None else build_sysid_model(config, datasets, sysid)
+        W = model.window
+        for d in datasets:
+            T = int(d["train"].num_steps)
+            if T < W + 1:
+                raise ValueError(f"dataset {d.system!r} has sequences of {T} steps; system identification needs "
+                                 f"more than the {W}-step window (a window and a different step t0)")
+        super().__init__(dataclasses.replace(config, capture=False), datasets, model, callbacks)
+        self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
+
+    def _prepare_out(self, model) -> bool:
+        if self.config.resume and (self.out / "last").is_dir():
+            raise CheckpointError(f"{self.out / 'last'} exists and system-identification runs do not resume yet; "
+                                  "choose another out, or remove it")
+        return super()._prepare_out(model)
+
+    # -- seams ------------------------------------------------------------------------------
+    def sample(self) -> tuple[list[SysIDSample]]:
+        """Per dataset, its share of ``batch_size`` sequences: a random window [s0, s0 + W) and a
+        random step t0 outside it (Algorithm D.4). On the device, no host sync."""
+        W, n_all = self.model.window, self.config.batch_size
+        parts = self.sampler.parts
+        k = len(parts)
+        out = []
+        for i, p in enumerate(parts):
+            n = n_all // k + (1 if i < n_all % k else 0)
+            if n == 0:
+                continue
+            dev, gen = p.body.device, self.generator
+            seq = torch.randint(p.S, (n,), generator=gen, device=dev)
+            s0 = torch.randint(p.T - W + 1, (n,), generator=gen, device=dev)
+            r = torch.randint(p.T - W, (n,), generator=gen, device=dev)
+            t0 = torch.where(r < s0, r, r + W)      # uniform over the steps outside the window
+            inst = p.instance[seq]
+            window = [p.builder(inst, p.body[seq, s0 + t], p.ctrl[seq, s0 + t]) for t in range(W)]
+            graph = p.builder(inst, p.body[seq, t0], p.ctrl[seq, t0])
+            nxt = p.body[seq, t0 + 1]
+            target = nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst]]
+            out.append(SysIDSample(window, graph, target))
+        return (out,)
+
+    def loss(self, parts: list[SysIDSample], accumulate: bool = True) -> dict[str, torch.Tensor]:
+        """G_ID of each window, then the forward model's loss at t0 with G_ID as its static graph."""
+        m, c = self.model, self.config
+        fm = m.forward_model
+        graphs = []
+        for p in parts:
+            g_id = m.identify_graphs(p.window, len(p.window), fm.stats(p.graph.nodes.dtype))
+            graphs.append(m.with_gid(p.graph, g_id))
+        graph = graphs[0] if len(graphs) == 1 else batch(graphs)
+        target = parts[0].target if len(parts) == 1 else torch.cat([p.target for p in parts], 0)
+        return fm.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate, rotation_scale=c.rotation_loss,
+                       generator=self.generator)
+
+    def validate(self) -> float:
+        c = self.config
+        self.model.eval()
+        errs = [sysid_rollout_error(self.model, d, "valid", c.valid_horizon, c.valid_sequences) for d in self.valid]
+        self.model.train()
+        return float(np.mean(errs)) if errs else math.nan
+
+
+@torch.no_grad()
+def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
+                        sequences: int | None = None, window_from=None) -> float:
+    """Mean normalized rollout error (as ``gnwarp.eval.rollout_error``) of rollouts from step W of
+    each of the first ``sequences`` sequences of ``split``, G_ID identified from its steps
+    [0, W) (``window_from`` [S]: the sequences whose windows to use instead, e.g. another
+    instance's, for the paper's Figure 8)."""
+    sp = dataset[split]
+    n = len(sp) if sequences is None else min(int(sequences), len(sp))
+    W = model.window
+    body = torch.as_tensor(np.asarray(sp.body[:n], dtype=np.float32))
+    ctrl = torch.as_tensor(np.asarray(sp.ctrl[:n], dtype=np.float32))
+    inst = np.asarray(sp.instance[:n])
+    H = min(int(horizon), ctrl.shape[1] - W)
+    if H < 1:
+        raise ValueError(f"the {split} split's sequences are too short for a {W}-step window and a rollout")
+    src = np.arange(n) if window_from is None else np.asarray(window_from)
+    builder = model.graph_builder(dataset)
+    old, model.builder = model.builder, builder
+    try:
+        g_id = model.identify(body[src, :W], ctrl[src, :W], torch.as_tensor(inst[src]))
+        pred = model.rollout(body[:, W], ctrl[:, W:W + H], g_id, torch.as_tensor(inst)).float().cpu().numpy()
+    finally:
+        model.builder = old
+    true = body[:, W:W + H + 1].numpy()
+    const = np.broadcast_to(true[:, :1], true.shape)
+    r = normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], movable_mask(dataset, inst))["mean"]
+    return r if math.isfinite(r) else math.inf
+
+
+def load_sysid(path, device=None) -> SysIDModel:
+    """A ``SysIDModel`` from a checkpoint folder a ``SysIDTrainer`` wrote (manifest and checksums
+    checked, weights read with ``weights_only=True`` and checked finite); unbound."""
+    path, cfg = _read_checkpoint(path)
+    if cfg.get("kind") != "sysid":
+        raise CheckpointError(f"{path} is not a system-identification checkpoint (load it with gnwarp.load_model)")
+    try:
+        config = SysIDConfig.from_dict(cfg["model"])
+        layout = FeatureLayout.from_dict(cfg["layout"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: config.json does not describe a system-identification model ({e})") from None
+    model = SysIDModel(config, layout)
+    try:
+        model.load_state_dict(_load_weights(path))
+    except Exception as e:  # noqa: BLE001 - weights of another architecture
+        raise CheckpointError(f"{path}: cannot load the weights ({type(e).__name__}: {e})") from None
+    return model.to(resolve_device(device))

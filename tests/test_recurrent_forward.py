@@ -1,0 +1,143 @@
+"""The partly observed JACO (gnwarp.data.proprio) and the recurrent one-step model (D.7.3)."""
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from gnwarp.data import proprio
+from gnwarp.models.recurrent import RecurrentGNConfig
+from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel, apply_observation_delta,
+                                             observation_delta, train_teacher_forcing)
+from gnwarp.sim.systems import make
+
+TINY = RecurrentGNConfig(latent=16, hidden_edges=8, hidden_nodes=8, hidden_globals=8, edge_mlp=(32,), node_mlp=(32,),
+                         global_mlp=(32,))
+
+
+@pytest.fixture(scope="module")
+def data():
+    return proprio.ProprioData.simulate(proprio.proprio_jaco(), (8, 2, 2), num_steps=24, seed=3, backend="mujoco")
+
+
+def model(data, recurrent=True, impl="torch", seed=0):
+    torch.manual_seed(seed)
+    cfg = RecurrentForwardConfig(core=TINY, recurrent=recurrent)
+    cfg.run = cfg.run.replace(impl=impl)
+    return RecurrentForwardModel(cfg, data.sizes, data.graphs, data.movable)
+
+
+def test_variant_hides_a_lagged_command():
+    s = proprio.proprio_jaco(lag=0.2, servo_scale=0.1)
+    base = make("jaco")
+    assert (s.dt, s.substeps, s.timestep) == (0.04, 4, 0.01)
+    assert s.model.na == s.model.nu == 9
+    assert all(int(t) == mujoco.mjtDyn.mjDYN_FILTER for t in s.model.actuator_dyntype)
+    np.testing.assert_allclose(s.model.actuator_dynprm[:, 0], 0.2)
+    np.testing.assert_allclose(s.model.actuator_gainprm[:, 0], 0.1 * base.model.actuator_gainprm[:, 0])
+    assert proprio.proprio_jaco(lag=0.0).model.na == 0
+    with pytest.raises(ValueError, match="multiple"):
+        proprio.proprio_jaco(dt=0.035)
+
+
+def test_observe_one_body_by_hand():
+    m = proprio.proprio_jaco().model
+    qpos = np.linspace(-1.0, 2.0, m.nq)
+    qvel = np.linspace(0.5, -0.7, m.nv)
+    obs = proprio.observe(qpos, qvel, m)
+    assert obs.shape == (m.nbody, 3)
+    b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "forearm")
+    j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "joint_3")
+    q, v = qpos[m.jnt_qposadr[j]], qvel[m.jnt_dofadr[j]]
+    np.testing.assert_allclose(obs[b].numpy(), [math.cos(q), math.sin(q), v], rtol=1e-6)
+    np.testing.assert_array_equal(obs[0].numpy(), [1.0, 0.0, 0.0])       # the world: no joint
+    with pytest.raises(ValueError, match="one hinge per body"):
+        proprio.joint_of_body(make("cheetah").model)                       # a root with three joints
+
+
+def test_dataset_view(data):
+    tr, ds = data.split("train"), data.dataset["train"]
+    assert tr.obs.shape == (8, 25, 10, 3) and tr.ctrl.shape == (8, 24, 9)
+    s, t = 5, 17
+    ref = proprio.observe(np.asarray(ds.qpos[s, t], np.float64), np.asarray(ds.qvel[s, t], np.float64),
+                          data.system.model)
+    torch.testing.assert_close(tr.obs[s, t], ref)
+    g = data.graphs(tr.instance[:2], tr.obs[:2, 0], tr.ctrl[:2, 0])
+    assert g.nodes.shape == (20, data.sizes["nodes"]) and g.edges.shape[1] == data.sizes["edges"]
+    torch.testing.assert_close(g.nodes[:10, -3:], tr.obs[0, 0])
+
+
+def test_delta_round_trip():
+    a = torch.rand(50) * 6 - 3
+    b = torch.rand(50) * 6 - 3
+    o0 = torch.stack([a.cos(), a.sin(), torch.randn(50)], -1)
+    o1 = torch.stack([b.cos(), b.sin(), torch.randn(50)], -1)
+    d = observation_delta(o0, o1)
+    assert d.abs()[:, 0].max() <= math.pi
+    torch.testing.assert_close(apply_observation_delta(o0, d), o1, atol=1e-5, rtol=1e-5)
+
+
+def test_loss_and_rollout_shapes(data):
+    tr = data.split("train")
+    m = model(data)
+    obs, ctrl, inst = tr.windows(4, 21, torch.Generator().manual_seed(0))
+    assert obs.shape == (4, 21, 10, 3) and ctrl.shape == (4, 20, 9)
+    loss = m.loss(inst, obs, ctrl, accumulate=True)
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    with torch.no_grad():
+        r = m.rollout(tr.instance[:3], tr.obs[:3], tr.ctrl[:3], warmup=20)
+    assert r.shape == (3, 25, 10, 3)
+    torch.testing.assert_close(r[:, :21], tr.obs[:3, :21])                 # the warm-up is given
+    torch.testing.assert_close(r[:, :, 0], tr.obs[:3, :, 0])               # the world does not move
+    torch.testing.assert_close(r[..., 0] ** 2 + r[..., 1] ** 2, torch.ones(3, 25, 10))
+    with pytest.raises(ValueError, match="warmup"):
+        m.rollout(tr.instance[:3], tr.obs[:3], tr.ctrl[:3], warmup=24)
+
+
+def test_training_lowers_the_loss(data):
+    tr = data.split("train")
+    m = model(data)
+    fixed = tr.windows(8, 21, torch.Generator().manual_seed(1))
+    losses = train_teacher_forcing(m, tr, steps=30, batch=8, lr=3e-3, seed=0)
+    assert len(losses) == 30
+    with torch.no_grad():
+        after = float(m.loss(fixed[2], fixed[0], fixed[1]))
+    assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3]) and after < losses[0]
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_rollout_matches_the_step_loop_by_hand(data, recurrent):
+    tr = data.split("train")
+    m = model(data, recurrent, impl="warp")
+    m.loss(tr.instance[:4], tr.obs[:4, :21], tr.ctrl[:4, :20], accumulate=True)  # non-trivial statistics
+    inst, obs, ctrl = tr.instance[:2], tr.obs[:2], tr.ctrl[:2]
+    with torch.no_grad():
+        r = m.rollout(inst, obs, ctrl, warmup=20)
+        hidden, x, preds = None, None, []
+        for t in range(24):
+            graph = data.graphs(inst, obs[:, t] if t <= 20 else x, ctrl[:, t])
+            stats = m.stats(torch.float32)
+            if hidden is None or not recurrent:
+                hidden = m.core.initial_hidden(graph)
+            out, hidden = m.core.step(m._normalized(graph, stats), hidden)
+            mean, std = stats["delta"]
+            d = (out.nodes * std + mean).reshape(2, 10, 2)
+            nxt = apply_observation_delta(obs[:, t] if t <= 20 else x, d)
+            x = torch.where(data.movable[:, None], nxt, obs[:, t] if t <= 20 else x)
+            preds.append(x)
+    torch.testing.assert_close(r[:, 21:], torch.stack(preds[20:], 1), atol=1e-5, rtol=1e-5)
+
+
+def test_feed_forward_has_no_memory(data):
+    tr = data.split("train")
+    m = model(data, recurrent=False)
+    inst, obs, ctrl = tr.instance[:2], tr.obs[:2].clone(), tr.ctrl[:2]
+    with torch.no_grad():
+        a = m.rollout(inst, obs, ctrl, warmup=20)
+        obs[:, :20] += 0.3                                                   # change the history only
+        b = m.rollout(inst, obs, ctrl, warmup=20)
+        mr = model(data, recurrent=True)
+        c, d = mr.rollout(inst, tr.obs[:2], ctrl, warmup=20), mr.rollout(inst, obs, ctrl, warmup=20)
+    torch.testing.assert_close(a[:, 20:], b[:, 20:])
+    assert (c[:, 21:] - d[:, 21:]).abs().max() > 1e-6                        # the recurrent one remembers
