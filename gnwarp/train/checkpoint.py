@@ -41,7 +41,8 @@ from gnwarp.models.config import ModelConfig, check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "save_checkpoint", "load_model", "load_checkpoint",
-           "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes"]
+           "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
+           "read_checkpoint", "load_weights"]
 
 FORMAT, VERSION = "gnwarp-model", 1
 MANIFEST = "manifest.json"
@@ -117,7 +118,7 @@ def save_checkpoint(path, model: ForwardModel, training: dict | None = None, inf
 
 
 # -- reading -----------------------------------------------------------------------------------
-def _read_checkpoint(path) -> tuple[Path, dict]:
+def read_checkpoint(path) -> tuple[Path, dict]:
     """(path, config.json) of a checkpoint folder whose manifest covers every file and matches it."""
     path = Path(path)
     if not path.is_dir():
@@ -212,7 +213,8 @@ def _nonfinite(tensors: dict, prefix: str = "") -> list[str]:
     return bad
 
 
-def _load_weights(path: Path) -> dict[str, torch.Tensor]:
+def load_weights(path: Path) -> dict[str, torch.Tensor]:
+    """The state dict in a checkpoint folder's model.pt, read without running code (tensors only)."""
     state = _safe_load(path, "model.pt")
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                               for k, v in state.items()):
@@ -255,10 +257,10 @@ def load_model(path, device=None, *, options: RunOptions | None = None, **option
     path = Path(path)
     if not path.exists():
         recover_checkpoint(path)
-    path, cfg = _read_checkpoint(path)
+    path, cfg = read_checkpoint(path)
     mcfg, layout = _model_of(path, cfg)
     check_option_names(option_changes, "load_model")
-    state = _load_weights(path)
+    state = load_weights(path)
     mcfg.run = (options if options is not None else mcfg.run).replace(**option_changes)
     model = ForwardModel(mcfg, layout)
     try:
@@ -287,7 +289,7 @@ def check_checkpoint(path) -> list[str]:
     out: list[str] = []
     p = Path(path)
     try:
-        p, cfg = _read_checkpoint(p)
+        p, cfg = read_checkpoint(p)
         names = sorted(json.loads((p / MANIFEST).read_text()))
         out.append(f"ok: {MANIFEST} covers every file ({', '.join(names)}); checksums match")
         out.append(f"ok: format {cfg['format']} version {cfg.get('version')} (written by gnwarp "
@@ -299,7 +301,7 @@ def check_checkpoint(path) -> list[str]:
     except Exception as e:  # noqa: BLE001 - later checks need these
         return out + [f"error: {e}"]
     try:
-        state = _load_weights(p)
+        state = load_weights(p)
         model = ForwardModel(mcfg, layout)
         model.load_state_dict(state)
         out.append(f"ok: model.pt: {len(state)} tensors, all finite, loaded with weights_only=True, fit the model")
@@ -350,7 +352,7 @@ def model_config_changes(saved: ModelConfig | dict, wanted: ModelConfig | dict) 
 
 def checkpoint_config(path) -> dict:
     """The config.json of a checkpoint folder, after checking its manifest (``CheckpointError``)."""
-    return _read_checkpoint(path)[1]
+    return read_checkpoint(path)[1]
 
 
 def _debris(folder: Path, name: str | None = None) -> list[tuple[Path, str, str, int]]:
@@ -368,7 +370,7 @@ def _debris(folder: Path, name: str | None = None) -> list[tuple[Path, str, str,
 def _step_of(path: Path) -> int | None:
     """The training step of an intact checkpoint (-1 without one), None if it is not intact."""
     try:
-        _, cfg = _read_checkpoint(path)
+        _, cfg = read_checkpoint(path)
     except CheckpointError:
         return None
     st = cfg.get("state")

@@ -26,7 +26,7 @@ from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
 from gnwarp.models.sysid import SysIDConfig, SysIDModel
 from gnwarp.state import DYN_NODE_SIZE
-from gnwarp.train.checkpoint import CheckpointError, _load_weights, _read_checkpoint
+from gnwarp.train.checkpoint import CheckpointError, load_weights, read_checkpoint
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
@@ -163,7 +163,7 @@ def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizo
 def load_sysid(path, device=None) -> SysIDModel:
     """A ``SysIDModel`` from a checkpoint folder a ``SysIDTrainer`` wrote (manifest and checksums
     checked, weights read with ``weights_only=True`` and checked finite); unbound."""
-    path, cfg = _read_checkpoint(path)
+    path, cfg = read_checkpoint(path)
     if cfg.get("kind") != "sysid":
         raise CheckpointError(f"{path} is not a system-identification checkpoint (load it with gnwarp.load_model)")
     try:
@@ -173,7 +173,7 @@ def load_sysid(path, device=None) -> SysIDModel:
         raise CheckpointError(f"{path}: config.json does not describe a system-identification model ({e})") from None
     model = SysIDModel(config, layout)
     try:
-        model.load_state_dict(_load_weights(path))
+        model.load_state_dict(load_weights(path))
     except Exception as e:  # noqa: BLE001 - weights of another architecture
         raise CheckpointError(f"{path}: cannot load the weights ({type(e).__name__}: {e})") from None
     return model.to(resolve_device(device))
