@@ -29,6 +29,7 @@ import torch  # noqa: E402
 from bench.harness import PAPER, QUICK, captured_us, device_name, median_ms, results_dir, save_results  # noqa: E402
 from gnwarp import data  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
+from gnwarp.models.normalizer import normalize_graph  # noqa: E402
 from gnwarp.train.sampler import BatchSampler  # noqa: E402
 
 
@@ -112,7 +113,7 @@ def main(argv=None):
                 with torch.no_grad():
                     g = tmpl.graph(x0, u[:, 0])
                     ctx = model.context(g)
-                    gn = model._normalized_input(g, ctx.stats)
+                    gn = normalize_graph(g, ctx.stats)
                     row["core_fwd_ms"] = round(captured_us(lambda: model.core(gn, ctx.index)) / 1e3, 4)
             rows.append(row)
             print(json.dumps(row), flush=True)

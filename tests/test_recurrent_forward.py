@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from gnwarp.data import proprio
+from gnwarp.models.normalizer import normalize_graph
 from gnwarp.models.recurrent import RecurrentGNConfig
 from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel, apply_observation_delta,
                                              observation_delta, train_teacher_forcing)
@@ -120,7 +121,7 @@ def test_rollout_matches_the_step_loop_by_hand(data, recurrent):
             stats = m.stats(torch.float32)
             if hidden is None or not recurrent:
                 hidden = m.core.initial_hidden(graph)
-            out, hidden = m.core.step(m._normalized(graph, stats), hidden)
+            out, hidden = m.core.step(normalize_graph(graph, stats), hidden)
             mean, std = stats["delta"]
             d = (out.nodes * std + mean).reshape(2, 10, 2)
             nxt = apply_observation_delta(obs[:, t] if t <= 20 else x, d)

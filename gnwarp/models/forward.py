@@ -30,7 +30,7 @@ from gnwarp.gn.options import RunOptions
 from gnwarp.graphs import GraphsTuple, graph_of
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
-from gnwarp.models.normalizer import Normalizer
+from gnwarp.models.normalizer import Normalizer, normalize_graph
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, float_tensor, check_instance,
                                    rollout_with_adjoint, source_info)
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
@@ -175,14 +175,6 @@ class ForwardModel(nn.Module):
         off = torch.cat([off, off.new_zeros(off.shape[0], DYN_NODE_SIZE - 2)], -1)
         return dyn - off, off
 
-    @staticmethod
-    def _normalized_input(graph: GraphsTuple, stats: dict) -> GraphsTuple:
-        def norm(kind, x):
-            m, s = stats[kind]
-            return (x - m) / s
-        u = norm("globals", graph.globals) if "globals" in stats else graph.globals
-        return graph._replace(nodes=norm("nodes", graph.nodes), edges=norm("edges", graph.edges), globals=u)
-
     def _accumulate_input(self, graph: GraphsTuple) -> None:
         if self.norm_globals is not None:
             self.norm_globals.accumulate(graph.globals)
@@ -194,7 +186,7 @@ class ForwardModel(nn.Module):
 
     def predict_delta(self, graph: GraphsTuple, ctx: StepContext) -> torch.Tensor:
         """Normalized predicted changes [n, 13] of a (centred) input graph."""
-        return self.core(self._normalized_input(graph, ctx.stats), ctx.index)
+        return self.core(normalize_graph(graph, ctx.stats), ctx.index)
 
     def next_nodes(self, graph: GraphsTuple, ctx: StepContext | None = None) -> torch.Tensor:
         """One step of Algorithm D.1 on a batch of input graphs: next dynamic states [n, 13]."""

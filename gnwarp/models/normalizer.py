@@ -4,10 +4,11 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from gnwarp.graphs import GraphsTuple
 from gnwarp.interop import WP_DTYPE, Launcher
 from gnwarp.kernels.models import normalizer as K
 
-__all__ = ["Normalizer"]
+__all__ = ["Normalizer", "normalize_graph"]
 
 
 class Normalizer(nn.Module):
@@ -90,3 +91,13 @@ class Normalizer(nn.Module):
 
     def extra_repr(self) -> str:
         return f"size={self.size}, std_floor={self.std_floor:g}"
+
+
+def normalize_graph(graph: GraphsTuple, stats: dict) -> GraphsTuple:
+    """``graph`` with nodes, edges (and globals, when ``stats`` has them) mapped to (x - mean) / std
+    by ``stats`` {"nodes"|"edges"|"globals": (mean, std)} (a model's ``stats()``)."""
+    def norm(kind, x):
+        m, s = stats[kind]
+        return (x - m) / s
+    g = norm("globals", graph.globals) if "globals" in stats else graph.globals
+    return graph._replace(nodes=norm("nodes", graph.nodes), edges=norm("edges", graph.edges), globals=g)

@@ -28,7 +28,7 @@ import torch.nn as nn
 
 from gnwarp.gn.options import RunOptions
 from gnwarp.graphs import GraphsTuple
-from gnwarp.models.normalizer import Normalizer
+from gnwarp.models.normalizer import Normalizer, normalize_graph
 from gnwarp.models.recurrent import RecurrentGNConfig, RecurrentGNCore
 
 __all__ = ["RecurrentForwardConfig", "RecurrentForwardModel", "observation_delta", "apply_observation_delta",
@@ -103,13 +103,6 @@ class RecurrentForwardModel(nn.Module):
             out["globals"] = self.norm_globals.mean_std(dtype)
         return out
 
-    @staticmethod
-    def _normalized(graph: GraphsTuple, stats: dict) -> GraphsTuple:
-        def norm(kind, x):
-            m, s = stats[kind]
-            return (x - m) / s
-        g = norm("globals", graph.globals) if "globals" in stats else graph.globals
-        return graph._replace(nodes=norm("nodes", graph.nodes), edges=norm("edges", graph.edges), globals=g)
 
     def initial_hidden(self, graph: GraphsTuple) -> GraphsTuple:
         return self.core.initial_hidden(graph)
@@ -120,7 +113,7 @@ class RecurrentForwardModel(nn.Module):
         graph (the feed-forward model ignores ``hidden`` and returns zeros)."""
         if not self.recurrent:
             hidden = self.core.initial_hidden(graph)
-        out, hidden = self.core.step(self._normalized(graph, stats), hidden, index)
+        out, hidden = self.core.step(normalize_graph(graph, stats), hidden, index)
         return out.nodes, hidden
 
     def step(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, hidden: GraphsTuple | None,
