@@ -161,10 +161,39 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
-    r = train(cfg)
+    if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
+        from gnwarp.train.sysid import SysIDTrainer
+        r = SysIDTrainer(cfg).run()
+    else:
+        r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
           f"stop: {r['stop']}); "
           f"best 20-step validation error {r['best_error']:.4g} at step {r['best_step']}; checkpoints in {r['out']}")
+    return 0
+
+
+def _evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
+    """Rollout errors of system-identification checkpoints: G_ID identified from the first
+    window of each sequence of the split (the same instance) and from another instance's window
+    (the sequences rotated by one), then rollouts from the window's end."""
+    import math
+    from pathlib import Path
+
+    import numpy as np
+
+    from gnwarp.train.sysid import load_sysid, sysid_rollout_error
+    print("| model | identified from | " + " | ".join(f"{h}-step rollout" for h in horizons) + " |")
+    print("|---|---|" + "---|" * len(horizons))
+    bad = False
+    for path in paths:
+        m = load_sysid(path, device=args.device)
+        n = len(ds[args.split]) if sequences is None else min(sequences, len(ds[args.split]))
+        for label, src in (("same instance", None), ("another instance", np.roll(np.arange(n), 1))):
+            errs = [sysid_rollout_error(m, ds, args.split, h, n, window_from=src) for h in horizons]
+            bad |= not all(math.isfinite(e) for e in errs)
+            print(f"| {Path(path).resolve().parent.name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
+    if bad:
+        raise FloatingPointError("a system-identification rollout left the finite range")
     return 0
 
 
@@ -209,6 +238,10 @@ def _cmd_evaluate(args) -> int:
     from gnwarp.train import load_model
     ds = load(args.data)
     results = {}
+    from gnwarp.train.checkpoint import checkpoint_config
+    sysid = [p for p in args.checkpoints if checkpoint_config(p).get("kind") == "sysid"]
+    if sysid:  # system identification: G_ID from each sequence's first window, then rollouts
+        return _evaluate_sysid(sysid, ds, args, sequences, horizons)
     for k, path in enumerate(args.checkpoints):
         name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
         m = load_model(path, device=args.device, **({"impl": args.impl} if args.impl else {}))
@@ -276,6 +309,54 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_mpc(args) -> int:
+    """``gnwarp mpc``: gradient MPC through a learned model, in closed loop on the true simulator."""
+    import types
+    from pathlib import Path
+
+    import numpy as np
+
+    from gnwarp.control import GradientMPC, GradientMPCConfig, get_task, make_env, run_episodes, sample_targets
+    from gnwarp.control.gradient import model_systems
+    from gnwarp.control.tasks import system_family
+    from gnwarp.data.generation import initial_states
+    from gnwarp.sim import systems
+    from gnwarp.train import load_model
+
+    task = get_task(args.task)
+    config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup, lr=args.lr,
+                               seed=args.seed)   # refused before anything is loaded
+    if args.episodes < 1 or args.steps < 1:
+        raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
+    model = load_model(args.model, device=args.device, **({"impl": args.impl} if args.impl else {}))
+    # the system: --system, else the one the model was trained on that fits the task
+    name = args.system or next((s for s in model_systems(model) if system_family(s) == task.system),
+                               "swimmer6" if task.system == "swimmer" else task.system)
+    system = systems.make(name)
+    n = args.episodes
+    target = sample_targets(task, system, n, args.seed)
+    planner = GradientMPC(model, task, system, n, config, target)
+    env = make_env(system, n, backend=args.backend)
+    qpos, qvel = initial_states(system, n, np.random.default_rng(args.seed))
+    t0 = time.perf_counter()
+    out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target)
+    secs = time.perf_counter() - t0
+    r = out["returns"]
+    print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
+          f"over {n} episodes of {args.steps} steps (horizon {planner.horizon}, {config.iterations} iterations "
+          f"a step; {1e3 * secs / args.steps:.1f} ms a control step, {n * args.steps / secs:.0f} episode-steps/s)")
+    if args.video != "none":
+        from gnwarp.eval.animation import animate
+        k = min(3, n)
+        shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
+                                     static={"n_node": np.full(k, system.nbody)})
+        path = Path(args.video or f"mpc-{task.name}.gif")
+        animate(out["states"][:k].numpy(), {}, shim, np.zeros(k, dtype=np.int64), path, dt=system.dt,
+                title=f"{task.name}: gradient MPC, true simulator", renderer=args.renderer)
+        print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -314,6 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", nargs="+", help="dataset file(s); overrides the config's `data`")
     t.add_argument("-o", "--out", help="run folder (checkpoints and log); overrides the config's `out`")
     t.add_argument("--no-resume", action="store_true", help="start afresh even if <out>/last exists")
+    t.add_argument("--sysid", action="store_true",
+                   help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
+                        "GN infers a latent static graph from a 20-step window; `gnwarp evaluate` reads its checkpoints")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 
@@ -349,6 +433,28 @@ def build_parser() -> argparse.ArgumentParser:
                                      "verified); exit 1 when it finds problems")
     c.add_argument("path", help="dataset file (.h5) or checkpoint folder (e.g. runs/gn/best)")
     c.set_defaults(func=_cmd_check)
+
+    m = sub.add_parser("mpc", help="gradient MPC through a learned model, run in closed loop on the true simulator",
+                       description="Plan actions by gradient steps on the task reward of rollouts of a learned "
+                                   "model (paper F.1.1), apply them on the true simulator, print the true returns "
+                                   "and write a video of the first episodes.")
+    m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
+    m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
+    m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
+    m.add_argument("--episodes", type=int, default=8, help="episodes planned together")
+    m.add_argument("--steps", type=int, default=100, help="control steps per episode")
+    m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
+    m.add_argument("--iterations", type=int, default=5, help="gradient iterations per control step")
+    m.add_argument("--warmup", type=int, help="extra iterations at the first state (default: iterations x horizon)")
+    m.add_argument("--lr", type=float, default=0.1, help="Adam's step size")
+    m.add_argument("--seed", type=int, default=0, help="initial states, targets and initial plans")
+    m.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"],
+                   help="true simulator (default: MuJoCo-Warp on a GPU, else MuJoCo C)")
+    m.add_argument("--device", default=None, help="the model's device: cpu, cuda, ... (default: CUDA when present)")
+    m.add_argument("--impl", choices=IMPLS, default=None, help="GN implementation (default: the checkpoint's)")
+    m.add_argument("--video", help="video path (default: mpc-<task>.gif; 'none': no video)")
+    m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"])
+    m.set_defaults(func=_cmd_mpc)
     return p
 
 
