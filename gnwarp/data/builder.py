@@ -79,7 +79,9 @@ class GraphBuilder:
             topo = ((self.senders[:1] + off).reshape(-1), (self.receivers[:1] + off).reshape(-1),
                     torch.full((N,), B, device=dev, dtype=torch.int64), torch.full((N,), E, device=dev, dtype=torch.int64),
                     (graph * U + ec.clamp(min=0)).reshape(-1), (ec >= 0).reshape(-1))
-            self._topologies[(N, U)] = topo  # never evicted: a captured step may read them
+            if len(self._topologies) >= 16:  # bounded; whoever captured a step on them holds them
+                self._topologies.pop(next(iter(self._topologies)))
+            self._topologies[(N, U)] = topo
         return topo
 
     def __call__(self, instance, body, ctrl) -> GraphsTuple:

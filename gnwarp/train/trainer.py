@@ -199,7 +199,11 @@ class Trainer:
     def _device_step(self) -> None:
         """The device work of one step (what ``captured`` records): no host sync, no reallocation
         of anything read between steps."""
-        terms = self.loss(*self.sample())
+        batch = self.sample()
+        # keep the batch: a captured step reads its index tensors (cached per batch size by the
+        # graph builder, which may drop them) at every replay
+        self._batch = batch
+        terms = self.loss(*batch)
         self.optimizer.zero_grad(set_to_none=True)
         terms["loss"].backward()
         if not isinstance(self.optimizer, FlatAdam) and self.config.grad_clip is not None:
