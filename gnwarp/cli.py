@@ -238,8 +238,14 @@ def _cmd_evaluate(args) -> int:
     from gnwarp.train import load_model
     ds = load(args.data)
     results = {}
-    from gnwarp.train.checkpoint import checkpoint_config
-    sysid = [p for p in args.checkpoints if checkpoint_config(p).get("kind") == "sysid"]
+    from gnwarp.train.checkpoint import CheckpointError, checkpoint_config
+
+    def kind(path):  # (a folder that is no checkpoint gets load_model's error below)
+        try:
+            return checkpoint_config(path).get("kind")
+        except CheckpointError:
+            return None
+    sysid = [p for p in args.checkpoints if kind(p) == "sysid"]
     if sysid:  # system identification: G_ID from each sequence's first window, then rollouts
         return _evaluate_sysid(sysid, ds, args, sequences, horizons)
     for k, path in enumerate(args.checkpoints):

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["random_spline_controls", "control_range"]
+__all__ = ["random_spline_controls", "control_range", "catmull_rom"]
 
 
-def _catmull_rom(knots: np.ndarray, t: np.ndarray) -> np.ndarray:
+def catmull_rom(knots: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Evaluate a uniform Catmull-Rom spline through ``knots`` [..., K] at times ``t`` [..., M] in [0, K-1]."""
     k = knots.shape[-1]
     i = np.clip(np.floor(t).astype(np.int64), 0, k - 2)
@@ -48,7 +48,7 @@ def random_spline_controls(num_sequences: int, num_steps: int, ctrlrange: np.nda
     knots = rng.uniform(0.0, 1.0, size=(num_sequences, nu, n_knots))
     # random, sorted sample times over the dense curve (in knot units)
     times = np.sort(rng.uniform(0.0, n_knots - 1, size=(num_sequences, 1, num_steps)), axis=-1)
-    u = np.clip(_catmull_rom(knots, np.broadcast_to(times, (num_sequences, nu, num_steps))), 0.0, 1.0)
+    u = np.clip(catmull_rom(knots, np.broadcast_to(times, (num_sequences, nu, num_steps))), 0.0, 1.0)
     lo, hi = ctrlrange[:, 0], ctrlrange[:, 1]
     u = lo[None, :, None] + u * (hi - lo)[None, :, None]
     return np.ascontiguousarray(np.transpose(u, (0, 2, 1)))

@@ -1,0 +1,230 @@
+"""Gradient MPC through a learned model (supplementary F.1.1, Algorithm F.1), and closed-loop
+episodes on the true simulator.
+
+Each planning iteration rolls the model out from the current state under the action sequence
+[N, H, U], scores the rollout with the task's reward, back-propagates it to the actions (the
+rollout engine's adjoint loop) and takes one Adam step. Actions stay inside each actuator's
+control range by construction: ``a = mid + half * tanh(z)`` with Adam on ``z`` (an unlimited
+actuator takes ``a = z``). Receding horizon: after planning, the first action is applied, the
+sequence (and Adam's moments) shift by one step with the last repeated, and the shifted sequence
+warm-starts the next state's plan. The first state gets ``warmup`` extra iterations (default
+``iterations x horizon``, as the paper) from a random sequence. Every operation is batched over
+the N episodes; the rewards are independent per episode, so one backward of their sum gives each
+episode its own gradient.
+
+    >>> planner = GradientMPC(model, "pendulum-balance", systems.make("pendulum"), n=64)
+    >>> out = run_episodes(planner, env, planner.task, steps=100, x0=env.reset(qpos, qvel))
+    >>> out["returns"]        # [N] true returns of the closed loop
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+import torch
+
+from gnwarp.control.tasks import Task, TaskError, get_task, system_family
+from gnwarp.data.layout import LayoutMismatchError
+from gnwarp.state import DYN_NODE_SIZE
+from gnwarp.validation import FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
+
+__all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "run_episodes", "model_systems"]
+
+
+class PlanningError(ValueError):
+    """A planner refused its inputs: a model of another system, a state with NaN / Inf, shapes."""
+
+
+@dataclasses.dataclass
+class GradientMPCConfig:
+    """``horizon``: planning steps (None: the task's). ``iterations``: Adam steps per control step
+    (the paper: 3-51). ``warmup``: extra iterations at the first state (None: iterations x
+    horizon). ``lr``: Adam's step size on the unconstrained actions z. ``init_std``: the random
+    initial z ~ N(0, init_std^2). ``seed``: of that initial sequence."""
+    horizon: PositiveInt | None = None
+    iterations: PositiveInt = 5
+    warmup: IntRange(0) | None = None
+    lr: PositiveFloat = 0.1
+    init_std: FloatRange(ge=0) = 0.5
+    betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
+    seed: IntRange(0) = 0
+
+    def __post_init__(self):
+        check_fields(self)
+
+
+def model_systems(model) -> list[str]:
+    """The systems a model loaded from a checkpoint was trained on (its config.json), or []."""
+    info = getattr(model, "checkpoint_info", None) or {}
+    return [d["system"] for d in info.get("data", []) if isinstance(d, dict) and d.get("system")]
+
+
+def _ctrl_range(system, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-actuator (mid, half width) [U] of the control range; half = inf where unlimited."""
+    m = system.model
+    lim = np.asarray(m.actuator_ctrllimited, dtype=bool)
+    rng = np.asarray(m.actuator_ctrlrange, dtype=np.float64)
+    mid = np.where(lim, rng.mean(1), 0.0)
+    half = np.where(lim, 0.5 * (rng[:, 1] - rng[:, 0]), np.inf)
+    t = lambda a: torch.as_tensor(a, device=device, dtype=dtype)  # noqa: E731
+    return t(mid), t(half)
+
+
+class GradientMPC:
+    """Gradient-based MPC with a learned ``ForwardModel`` for N episodes of one system.
+
+    ``model``: a ForwardModel (bound here to ``system``); ``task``: a ``Task`` or its name;
+    ``system``: a ``gnwarp.systems.System`` (or a built-in name); ``n``: episodes planned together;
+    ``target``: per-episode targets for tasks with one (see ``tasks.sample_targets``).
+
+    ``step(x [N, B, 13]) -> first actions [N, U]`` plans from the true states ``x`` and shifts the
+    sequence for the next call; ``actions`` [N, H, U] is the current plan; ``reset()`` draws a new
+    random sequence (the next ``step`` warms up again).
+    Raises ``PlanningError`` for a model trained on another system (or whose static features do
+    not fit it), ``TaskError`` for a task of another system, and, at every step, for states of
+    the wrong shape or with NaN / Inf (naming the episode and body).
+    """
+
+    def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, target=None):
+        from gnwarp.sim.systems import System, make
+        self.system = system if isinstance(system, System) else make(system)
+        self.task: Task = get_task(task, self.system.name)
+        self.config = config if config is not None else GradientMPCConfig()
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
+        trained = model_systems(model)
+        if trained and not any(s == self.system.name or system_family(s) == system_family(self.system.name)
+                               for s in trained):
+            raise PlanningError(f"the model was trained on {', '.join(trained)}, not on {self.system.name} "
+                                f"(task {self.task.name!r})")
+        try:
+            model.bind(self.system)
+        except LayoutMismatchError as e:
+            raise PlanningError(f"the model does not fit {self.system.name} (task {self.task.name!r}): {e}") from None
+        self.model, self.n = model, n
+        self.horizon = self.config.horizon or self.task.horizon
+        self.warmup = self.config.warmup if self.config.warmup is not None else self.config.iterations * self.horizon
+        dev, dt = model.device, model.dtype
+        self.device, self.dtype = dev, dt
+        self.B, self.U = self.system.nbody, self.system.nu
+        self.mid, self.half = _ctrl_range(self.system, dev, dt)
+        # the planner's actions are in range by construction: the engine need not clamp or check
+        self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), self.horizon, ctrl_policy="none",
+                                           check=False)
+        self.target = None if target is None else self._target(target)
+        self._gen = torch.Generator(device="cpu").manual_seed(int(self.config.seed))
+        self.reset()
+
+    # -- the action sequence ------------------------------------------------------------------------
+    def _target(self, target) -> torch.Tensor:
+        t = torch.as_tensor(target).to(self.device, self.dtype)
+        if t.shape[:1] != (self.n,):
+            raise TaskError(f"target must have one entry per episode ({self.n}), got shape {tuple(t.shape)}")
+        return t
+
+    def reset(self, target=None) -> None:
+        """A new random sequence (and fresh Adam moments); the next ``step`` warms up again."""
+        if target is not None:
+            self.target = self._target(target)
+        shape = (self.n, self.horizon, self.U)
+        z = torch.randn(shape, generator=self._gen, dtype=torch.float64) * self.config.init_std
+        self.z = z.to(self.device, self.dtype)
+        self._m, self._v, self._t = torch.zeros_like(self.z), torch.zeros_like(self.z), 0
+        self.started = False
+
+    def to_actions(self, z: torch.Tensor) -> torch.Tensor:
+        """Actions in each actuator's range from unconstrained ``z`` [..., U] (differentiable)."""
+        limited = torch.isfinite(self.half)
+        return torch.where(limited, self.mid + torch.where(limited, self.half, 1.0) * torch.tanh(z), z)
+
+    @property
+    def actions(self) -> torch.Tensor:
+        """The current plan [N, H, U]."""
+        return self.to_actions(self.z)
+
+    # -- planning ------------------------------------------------------------------------------
+    def check_state(self, x) -> torch.Tensor:
+        """``x`` [N, B, 13] as a tensor on the model's device, or ``PlanningError``."""
+        x = torch.as_tensor(x)
+        want = (self.n, self.B, DYN_NODE_SIZE)
+        if tuple(x.shape) != want:
+            raise PlanningError(f"states must be [N, B, 13] = {list(want)} (episodes, bodies of "
+                                f"{self.system.name}), got {list(x.shape)}")
+        bad = ~torch.isfinite(x)
+        if bool(bad.any()):
+            e, b, f = (int(i) for i in bad.nonzero()[0])
+            raise PlanningError(f"the state of episode {e} has NaN or Inf (body {b}, feature {f}): the true "
+                                "simulator diverged or was given bad values")
+        return x.to(self.device, self.dtype)
+
+    def planned_reward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        """[N] the model's predicted reward of the plan (or of ``z``) from states ``x``."""
+        z = self.z if z is None else z
+        with torch.no_grad():
+            u = self.to_actions(z)
+            return self.task.reward(self.engine.rollout(x, u), u, self.target)
+
+    def iterate(self, x: torch.Tensor, k: int = 1) -> torch.Tensor:
+        """``k`` Adam steps on the plan from checked states ``x``; returns the planned reward [N]
+        before the last step."""
+        b1, b2 = self.config.betas
+        lr = self.config.lr
+        for _ in range(k):
+            z = self.z.detach().requires_grad_(True)
+            u = self.to_actions(z)
+            r = self.task.reward(self.engine.rollout(x, u), u, self.target)
+            (g,) = torch.autograd.grad(-r.sum(), z)
+            with torch.no_grad():
+                self._t += 1
+                self._m.mul_(b1).add_(g, alpha=1 - b1)
+                self._v.mul_(b2).addcmul_(g, g, value=1 - b2)
+                m_hat = self._m / (1 - b1 ** self._t)
+                v_hat = self._v / (1 - b2 ** self._t)
+                self.z = self.z - lr * m_hat / (v_hat.sqrt() + 1e-8)
+        return r.detach()
+
+    def shift(self) -> None:
+        """Drop the first step of the plan (and of Adam's moments); repeat the last."""
+        for name in ("z", "_m", "_v"):
+            a = getattr(self, name)
+            setattr(self, name, torch.cat([a[:, 1:], a[:, -1:]], 1))
+
+    def step(self, x) -> torch.Tensor:
+        """Plan from the true states ``x`` [N, B, 13]; return the first actions [N, U] and shift."""
+        x = self.check_state(x)
+        k = self.config.iterations + (0 if self.started else self.warmup)
+        self.iterate(x, k)
+        self.started = True
+        a = self.actions[:, 0].detach().clone()
+        self.shift()
+        return a
+
+
+def run_episodes(planner, env, task, steps: int, x0, target=None,
+                 progress: Callable[[int], None] | None = None) -> dict[str, torch.Tensor]:
+    """N episodes in closed loop: at each of ``steps`` steps ``planner.step(x)`` plans from the true
+    states ``x`` and ``env.step(actions [N, U]) -> states [N, B, 13]`` executes the first actions.
+
+    ``env``: the true simulator, already reset to ``x0`` [N, B, 13] (``x0 = env.reset(...)``);
+    ``task``: the task (or name) whose reward scores the true trajectory; ``target``: per-episode
+    targets (default: the planner's). Returns {"states" [N, steps+1, B, 13], "actions" [N, steps,
+    U], "returns" [N]} on the CPU, the returns the true simulator's."""
+    task = get_task(task)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    if target is not None and hasattr(planner, "reset"):
+        planner.target = planner._target(target) if hasattr(planner, "_target") else target
+    target = target if target is not None else getattr(planner, "target", None)
+    x = torch.as_tensor(x0)
+    states, actions = [x.detach().cpu().float()], []
+    for t in range(steps):
+        a = planner.step(x)
+        x = torch.as_tensor(env.step(a))
+        states.append(x.detach().cpu().float())
+        actions.append(torch.as_tensor(a).detach().cpu().float())
+        if progress:
+            progress(t + 1)
+    states, actions = torch.stack(states, 1), torch.stack(actions, 1)
+    tgt = None if target is None else torch.as_tensor(target).detach().cpu().float()
+    return {"states": states, "actions": actions, "returns": task.reward(states, actions, tgt)}

@@ -1,0 +1,394 @@
+"""iLQG on the true MuJoCo C model (Tassa, Mansard, Todorov 2014): the true-model planning baseline.
+
+As MuJoCo MPC's iLQG: per knot, dynamics linearized by ``mujoco.mjd_transitionFD`` in tangent
+space (state ``dx = [dqpos (nv), dqvel (nv), dact (na)]``, size ``nx = 2 nv + na``), cost
+derivatives by finite differences (or a cost's own ``derivatives``), a backward pass whose
+feedforward step is the box QP of ``mujoco.mju_boxQP`` (feedback rows of clamped controls zeroed),
+a forward line search over step sizes (1 down to 1e-3) that only accepts a lower cost, and
+Levenberg-Marquardt regularization of Quu that grows when the backward pass or the line search
+fails. Knots hold one control for ``substeps`` physics steps: ``ILQG.for_system`` plans on a
+System's data timestep, ``substeps=1`` on the physics timestep. Derivatives run on a thread pool,
+each thread with its own MjData (MuJoCo-Warp 4.0 has no derivatives, hence MuJoCo C).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import mujoco
+import numpy as np
+
+from gnwarp.data.convert import body_states
+
+__all__ = ["ILQG", "QuadraticCost", "body_state_cost", "task_cost", "tangent_difference"]
+
+# running_cost(data, u) and terminal_cost(data): ``data`` holds the state after mj_forward
+RunningCost = Callable[[mujoco.MjData, np.ndarray], float]
+TerminalCost = Callable[[mujoco.MjData], float]
+_INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # qpos, qvel, act, ctrl, warm start, ...
+
+
+def tangent_difference(model: mujoco.MjModel, qpos, qvel, act, qpos_ref, qvel_ref, act_ref) -> np.ndarray:
+    """[2 nv + na] tangent-space difference of a state from a reference state (quaternions via
+    ``mj_differentiatePos``), the coordinates of ``mjd_transitionFD``'s A and B."""
+    dq = np.zeros(model.nv)
+    mujoco.mj_differentiatePos(model, dq, 1.0, np.asarray(qpos_ref, float), np.asarray(qpos, float))
+    return np.concatenate([dq, np.asarray(qvel) - qvel_ref, np.asarray(act) - act_ref])
+
+
+class QuadraticCost:
+    """0.5 dx' Q dx + 0.5 (u - u_ref)' R (u - u_ref), dx = tangent difference from a target state.
+
+    Q: [nx, nx]; R: [nu, nu] or None (a terminal cost). Targets default to qpos0 and zeros. Gives
+    analytic derivatives (exact for hinge and slide joints; ball and free joints get the
+    Gauss-Newton approximation).
+    """
+
+    def __init__(self, model: mujoco.MjModel, Q, R=None, qpos_ref=None, qvel_ref=None, act_ref=None,
+                 u_ref=None):
+        self.model = model
+        self.Q = np.asarray(Q, float)
+        self.R = None if R is None else np.asarray(R, float)
+        self.qpos_ref = np.array(model.qpos0 if qpos_ref is None else qpos_ref, float)
+        self.qvel_ref = np.zeros(model.nv) if qvel_ref is None else np.asarray(qvel_ref, float)
+        self.act_ref = np.zeros(model.na) if act_ref is None else np.asarray(act_ref, float)
+        self.u_ref = np.zeros(model.nu) if u_ref is None else np.asarray(u_ref, float)
+        nx = 2 * model.nv + model.na
+        if self.Q.shape != (nx, nx) or (self.R is not None and self.R.shape != (model.nu,) * 2):
+            raise ValueError(f"QuadraticCost: Q must be [{nx}, {nx}] and R [{model.nu}, {model.nu}]")
+
+    def _dx(self, data):
+        return tangent_difference(self.model, data.qpos, data.qvel, data.act,
+                                  self.qpos_ref, self.qvel_ref, self.act_ref)
+
+    def __call__(self, data: mujoco.MjData, u=None) -> float:
+        dx = self._dx(data)
+        c = 0.5 * dx @ self.Q @ dx
+        if self.R is not None and u is not None:
+            du = np.asarray(u) - self.u_ref
+            c += 0.5 * du @ self.R @ du
+        return float(c)
+
+    def derivatives(self, data: mujoco.MjData, u=None):
+        """(lx [nx], lu [nu], lxx [nx, nx], luu [nu, nu], lux [nu, nx])."""
+        nu, nx = self.model.nu, self.Q.shape[0]
+        R = np.zeros((nu, nu)) if self.R is None or u is None else self.R
+        du = np.zeros(nu) if u is None else np.asarray(u) - self.u_ref
+        return self.Q @ self._dx(data), R @ du, self.Q, R, np.zeros((nu, nx))
+
+
+def body_state_cost(model: mujoco.MjModel, reward_fn: Callable, scale: float = 1.0) -> Callable:
+    """A cost ``cost(data, u=None) = -scale * reward_fn(body [nbody, 13], u [nu])`` of the bodies'
+    13-number states (``gnwarp.state``, the world body included) read from MjData by
+    ``gnwarp.data.convert.body_states``, so a task reward of graph states serves as a running
+    (and, with u = zeros, terminal) cost. ``reward_fn`` gets float64 numpy arrays and returns a
+    scalar (numpy, float or a one-element CPU tensor)."""
+    zeros = np.zeros(model.nu)
+
+    def cost(data: mujoco.MjData, u=None) -> float:
+        r = reward_fn(body_states(model, data), zeros if u is None else np.asarray(u, float))
+        return -scale * np.asarray(r, dtype=np.float64).item()
+    return cost
+
+
+def task_cost(model: mujoco.MjModel, task, target=None) -> Callable:
+    """``body_state_cost`` of a ``gnwarp.control.tasks.Task``: minus its reward of the one-step
+    trajectory [x, x] with action u, i.e. of the state x. Its total over the knots is minus the
+    task's return up to a constant (the start state's term) for rewards that add up a function of
+    each state: every built-in task but swimmer-reach, whose displacement reward is not one.
+    target: one episode's target (no leading batch axis)."""
+    import torch
+    if getattr(task, "target", None) == "position":
+        raise ValueError(f"task {task.name!r} rewards displacements between states, not states; "
+                         "give ILQG a running and a terminal cost of your own")
+    tgt = None if target is None else torch.as_tensor(np.asarray(target), dtype=torch.float64)[None]
+
+    def reward(body, u):
+        s = torch.from_numpy(np.stack([body, body]))[None]           # [1, 2, B, 13]
+        with torch.no_grad():
+            return task.reward(s, torch.from_numpy(u)[None, None], target=tgt)[0]
+    return body_state_cost(model, reward)
+
+
+@dataclasses.dataclass
+class _Trajectory:
+    U: np.ndarray      # [H, nu] the controls applied (clamped into the box)
+    qpos: np.ndarray   # [H+1, nq] knot states
+    qvel: np.ndarray   # [H+1, nv]
+    act: np.ndarray    # [H+1, na]
+    phys: np.ndarray   # [H, substeps, nstate] integration state before each physics step
+    cost: np.ndarray   # [H+1] running costs, then the terminal cost
+
+
+class ILQG:
+    """Box-constrained iLQG on MuJoCo C.
+
+    model: the true model (read only). horizon: knots H. running_cost(data, u) -> float and
+    terminal_cost(data) -> float (or None) see the state after ``mj_forward``; a cost with a
+    ``derivatives(data, u)`` method (``QuadraticCost``) gives its own derivatives. substeps:
+    physics steps per knot, one control held over them. iterations: most iLQG iterations per plan.
+    The total cost is the plain sum of running costs over knots plus the terminal cost.
+    """
+
+    def __init__(self, model: mujoco.MjModel, horizon: int, running_cost: RunningCost,
+                 terminal_cost: TerminalCost | None = None, *, substeps: int = 1, iterations: int = 10,
+                 fd_eps: float = 1e-6, fd_centered: bool = False, cost_eps: float = 1e-4,
+                 reg_init: float = 1e-6, reg_min: float = 1e-6, reg_max: float = 1e6,
+                 reg_factor: float = 10.0, step_sizes=None, tol: float = 1e-8, nthread: int | None = None):
+        if horizon < 1 or substeps < 1 or iterations < 0:
+            raise ValueError("ILQG: horizon and substeps must be >= 1, iterations >= 0")
+        if model.nu < 1:
+            raise ValueError("ILQG: the model has no actuators")
+        self.model, self.horizon, self.substeps, self.iterations = model, horizon, substeps, iterations
+        self.running_cost, self.terminal_cost = running_cost, terminal_cost
+        self.fd_eps, self.fd_centered, self.cost_eps, self.tol = fd_eps, fd_centered, cost_eps, tol
+        self.reg_min, self.reg_max, self.reg_factor = reg_min, reg_max, reg_factor
+        self.reg = reg_init  # kept across plans, as MuJoCo MPC does
+        self.step_sizes = np.logspace(0, -3, 10) if step_sizes is None else np.asarray(step_sizes, float)
+        self.nx, self.nu = 2 * model.nv + model.na, model.nu
+        limited = model.actuator_ctrllimited.astype(bool)
+        self.lower = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
+        self.upper = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+        self.nthread = max(1, min(nthread or os.cpu_count() or 1, horizon))
+        self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+        self._pool = ThreadPoolExecutor(self.nthread) if self.nthread > 1 else None
+        self._nstate = mujoco.mj_stateSize(model, _INTEGRATION)
+        self._U: np.ndarray | None = None
+
+    @classmethod
+    def for_system(cls, system, horizon: int, running_cost: RunningCost,
+                   terminal_cost: TerminalCost | None = None, **kw) -> "ILQG":
+        """Plan on a ``gnwarp.sim.System``'s data timestep (one knot = ``system.substeps`` physics steps)."""
+        return cls(system.model, horizon, running_cost, terminal_cost, substeps=system.substeps, **kw)
+
+    def reset(self) -> None:
+        """Forget the previous plan (the next plan starts from zeros, or ``u_init``)."""
+        self._U = None
+
+    # -- public -----------------------------------------------------------------------------------
+
+    def plan(self, qpos, qvel, act=None, u_init=None) -> tuple[np.ndarray, dict]:
+        """Optimize H controls from the state (qpos [nq], qvel [nv], act [na]).
+
+        The start is ``u_init`` [H, nu] if given, else the previous plan shifted one knot (the
+        receding-horizon warm start, last control repeated), else zeros; clamped into the box.
+        Returns U [H, nu] and info: ``cost`` (final total), ``costs`` (after each iteration, first
+        entry the start; never increasing), ``iterations``, ``reg`` (regularization after each
+        iteration), ``backward_failures``, ``alphas`` (accepted step sizes, 0 = none accepted),
+        ``K`` [H, nu, nx] feedback gains, ``qpos`` [H+1, nq], ``qvel`` [H+1, nv], ``time_s``.
+        """
+        t0 = time.perf_counter()
+        state0 = self._initial_state(qpos, qvel, act)
+        if u_init is not None:
+            U = np.array(u_init, float).reshape(self.horizon, self.nu)
+        elif self._U is not None:
+            U = np.concatenate([self._U[1:], self._U[-1:]])
+        else:
+            U = np.zeros((self.horizon, self.nu))
+        if not np.all(np.isfinite(U)):
+            raise ValueError("ILQG.plan: u_init has NaN or Inf")
+        traj = self._rollout(state0, np.clip(U, self.lower, self.upper))
+        J = traj.cost.sum()
+        info = {"costs": [J], "reg": [], "alphas": [], "backward_failures": 0, "iterations": 0}
+        K = np.zeros((self.horizon, self.nu, self.nx))
+        for _ in range(self.iterations):
+            info["iterations"] += 1
+            D = self._derivatives(traj)
+            bp = self._backward(D, traj.U, self.reg)
+            while bp is None and self.reg < self.reg_max:  # Quu not PD: regularize more
+                info["backward_failures"] += 1
+                self.reg = min(self.reg_max, max(self.reg_min, self.reg * self.reg_factor))
+                bp = self._backward(D, traj.U, self.reg)
+            if bp is None:
+                info["reg"].append(self.reg)
+                info["costs"].append(J)
+                info["alphas"].append(0.0)
+                break
+            k, K, dV = bp
+            alpha, new = 0.0, None
+            for a in self.step_sizes:
+                cand = self._rollout(state0, traj.U, k, K, traj, a)
+                if cand.cost.sum() < J:  # accept only a decrease: the cost never rises
+                    alpha, new = float(a), cand
+                    break
+            info["alphas"].append(alpha)
+            if new is None:  # no step lowered the cost: damp the next step
+                self.reg = min(self.reg_max, max(self.reg_min, self.reg * self.reg_factor))
+                info["reg"].append(self.reg)
+                info["costs"].append(J)
+                if self.reg >= self.reg_max or -(dV[0] + dV[1]) < self.tol * max(1.0, abs(J)):
+                    break
+                continue
+            self.reg = max(self.reg_min, self.reg / self.reg_factor)
+            info["reg"].append(self.reg)
+            dJ, J, traj = J - new.cost.sum(), new.cost.sum(), new
+            info["costs"].append(J)
+            if dJ < self.tol * max(1.0, abs(J)):
+                break
+        self._U = traj.U.copy()
+        info.update(cost=J, K=K, qpos=traj.qpos, qvel=traj.qvel, time_s=time.perf_counter() - t0)
+        return traj.U.copy(), info
+
+    def action(self, qpos, qvel, act=None) -> np.ndarray:
+        """Receding horizon: plan from the measured state (warm-started from the previous plan
+        shifted) and return the first control [nu]."""
+        U, _ = self.plan(qpos, qvel, act)
+        return U[0]
+
+    def total_cost(self, qpos, qvel, U, act=None) -> float:
+        """The total cost of applying U [H, nu] (clamped into the box) open loop from a state."""
+        U = np.clip(np.asarray(U, float).reshape(self.horizon, self.nu), self.lower, self.upper)
+        return float(self._rollout(self._initial_state(qpos, qvel, act), U).cost.sum())
+
+    # -- rollouts ---------------------------------------------------------------------------------
+
+    def _initial_state(self, qpos, qvel, act) -> np.ndarray:
+        m, d = self.model, self._datas[0]
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:] = qpos, qvel
+        if act is not None:
+            d.act[:] = act
+        state = np.empty(self._nstate)
+        mujoco.mj_getState(m, d, state, _INTEGRATION)
+        if not np.all(np.isfinite(state)):
+            raise ValueError("ILQG: the initial state has NaN or Inf")
+        return state
+
+    def _rollout(self, state0, U, k=None, K=None, nominal: _Trajectory | None = None,
+                 alpha: float = 1.0) -> _Trajectory:
+        """Simulate from state0; with gains, u_t = clamp(U_t + alpha k_t + K_t (x_t - nominal x_t))."""
+        m, d, H, S = self.model, self._datas[0], self.horizon, self.substeps
+        tr = _Trajectory(np.empty((H, self.nu)), np.empty((H + 1, m.nq)), np.empty((H + 1, m.nv)),
+                         np.empty((H + 1, m.na)), np.empty((H, S, self._nstate)), np.zeros(H + 1))
+        mujoco.mj_setState(m, d, state0, _INTEGRATION)
+        for t in range(H + 1):
+            mujoco.mj_forward(m, d)
+            tr.qpos[t], tr.qvel[t], tr.act[t] = d.qpos, d.qvel, d.act
+            if t == H:
+                break
+            u = U[t]
+            if k is not None:
+                dx = tangent_difference(m, d.qpos, d.qvel, d.act, nominal.qpos[t], nominal.qvel[t], nominal.act[t])
+                u = u + alpha * k[t] + K[t] @ dx
+            tr.U[t] = u = np.clip(u, self.lower, self.upper)
+            tr.cost[t] = self.running_cost(d, u)
+            d.ctrl[:] = u
+            for s in range(S):
+                mujoco.mj_getState(m, d, tr.phys[t, s], _INTEGRATION)
+                mujoco.mj_step(m, d)
+        if self.terminal_cost is not None:
+            tr.cost[H] = self.terminal_cost(d)
+        if not np.all(np.isfinite(tr.cost)):
+            tr.cost[:] = np.inf  # a diverged rollout is never accepted
+        return tr
+
+    # -- derivatives ------------------------------------------------------------------------------
+
+    def _derivatives(self, tr: _Trajectory) -> dict:
+        """A [H, nx, nx], B [H, nx, nu] per knot and cost derivatives [H+1, ...], on the pool."""
+        H, nx, nu = self.horizon, self.nx, self.nu
+        D = {"A": np.empty((H, nx, nx)), "B": np.empty((H, nx, nu)), "lx": np.zeros((H + 1, nx)),
+             "lu": np.zeros((H, nu)), "lxx": np.zeros((H + 1, nx, nx)), "luu": np.zeros((H, nu, nu)),
+             "lux": np.zeros((H, nu, nx))}
+        chunks = np.array_split(np.arange(H + 1), self.nthread)
+
+        def work(i):
+            for t in chunks[i]:
+                self._knot(self._datas[i], tr, int(t), D)
+        if self._pool is None:
+            work(0)
+        else:
+            list(self._pool.map(work, range(self.nthread)))
+        return D
+
+    def _knot(self, d: mujoco.MjData, tr: _Trajectory, t: int, D: dict) -> None:
+        m, H, nx = self.model, self.horizon, self.nx
+        if t < H:  # chain the physics steps of one knot: A = A_S..A_1, B = sum A_S..A_{s+1} B_s
+            A, B = np.eye(nx), np.zeros((nx, self.nu))
+            As, Bs = np.empty((nx, nx)), np.empty((nx, self.nu))
+            for s in range(self.substeps):
+                mujoco.mj_setState(m, d, tr.phys[t, s], _INTEGRATION)
+                mujoco.mjd_transitionFD(m, d, self.fd_eps, self.fd_centered, As, Bs, None, None)
+                A, B = As @ A, As @ B + Bs
+            D["A"][t], D["B"][t] = A, B
+        base = tr.phys[t, 0] if t < H else tr.phys[H - 1, 0]
+        mujoco.mj_setState(m, d, base, _INTEGRATION)
+        d.qpos[:], d.qvel[:], d.act[:] = tr.qpos[t], tr.qvel[t], tr.act[t]
+        if t == H:
+            if self.terminal_cost is not None:
+                lx, _, lxx, _, _ = self._cost_derivatives(d, self.terminal_cost, None)
+                D["lx"][H], D["lxx"][H] = lx, lxx
+            return
+        lx, lu, lxx, luu, lux = self._cost_derivatives(d, self.running_cost, tr.U[t])
+        D["lx"][t], D["lu"][t], D["lxx"][t], D["luu"][t], D["lux"][t] = lx, lu, lxx, luu, lux
+
+    def _cost_derivatives(self, d: mujoco.MjData, fn, u):
+        """(lx, lu, lxx, luu, lux) of fn at d's state and u (None: a terminal cost), by central
+        differences in tangent space (gradient, Hessian diagonal) and forward ones (cross terms)."""
+        m, nx = self.model, self.nx
+        if hasattr(fn, "derivatives"):
+            mujoco.mj_forward(m, d)
+            return fn.derivatives(d, u)
+        nu = 0 if u is None else self.nu
+        n, h = nx + nu, self.cost_eps
+        qpos0, qvel0, act0 = d.qpos.copy(), d.qvel.copy(), d.act.copy()
+        last = [None]
+
+        def f(z):
+            key = z[:nx].tobytes()
+            if key != last[0]:  # only a state change needs a new mj_forward
+                d.qpos[:] = qpos0
+                mujoco.mj_integratePos(m, d.qpos, z[:m.nv], 1.0)
+                d.qvel[:] = qvel0 + z[m.nv:2 * m.nv]
+                d.act[:] = act0 + z[2 * m.nv:nx]
+                mujoco.mj_forward(m, d)
+                last[0] = key
+            return fn(d) if u is None else fn(d, u + z[nx:])
+
+        E = h * np.eye(n)
+        f0 = f(np.zeros(n))
+        fp, fm = np.array([f(E[i]) for i in range(n)]), np.array([f(-E[i]) for i in range(n)])
+        g = (fp - fm) / (2 * h)
+        Hs = np.diag((fp - 2 * f0 + fm) / h ** 2)
+        for i in range(n):
+            for j in range(i + 1, n):
+                Hs[i, j] = Hs[j, i] = (f(E[i] + E[j]) - fp[i] - fp[j] + f0) / h ** 2
+        return g[:nx], g[nx:], Hs[:nx, :nx], Hs[nx:, nx:], Hs[nx:, :nx]
+
+    # -- backward pass ----------------------------------------------------------------------------
+
+    def _backward(self, D: dict, U: np.ndarray, reg: float):
+        """Feedforward k [H, nu], feedback K [H, nu, nx] and the expected change (dV1, dV2), or
+        None when a regularized Quu is not positive definite (``mju_boxQP`` fails)."""
+        H, nx, nu = self.horizon, self.nx, self.nu
+        k, K = np.zeros((H, nu)), np.zeros((H, nu, nx))
+        Vx, Vxx = D["lx"][H].copy(), D["lxx"][H].copy()
+        dV = np.zeros(2)
+        R, index = np.zeros((nu, nu + 7)), np.zeros(nu, np.int32)
+        boxed = bool(np.any(np.isfinite(self.lower)) or np.any(np.isfinite(self.upper)))
+        for t in range(H - 1, -1, -1):
+            A, B = D["A"][t], D["B"][t]
+            Qx, Qu = D["lx"][t] + A.T @ Vx, D["lu"][t] + B.T @ Vx
+            Qxx = D["lxx"][t] + A.T @ Vxx @ A
+            Qux = D["lux"][t] + B.T @ Vxx @ A
+            Quu = D["luu"][t] + B.T @ Vxx @ B
+            Quu = 0.5 * (Quu + Quu.T)
+            Hr = np.ascontiguousarray(Quu + reg * np.eye(nu))
+            kt = np.zeros(nu)
+            lo, hi = (self.lower - U[t], self.upper - U[t]) if boxed else (None, None)
+            rank = mujoco.mju_boxQP(kt, R, index, Hr, Qu, lo, hi)
+            if rank < 0 or not np.all(np.isfinite(kt)):
+                return None
+            free = index[:rank]
+            Kt = np.zeros((nu, nx))
+            if rank:  # clamped controls get no feedback (Tassa et al. 2014, eq. 7)
+                Kt[free] = -np.linalg.solve(Hr[np.ix_(free, free)], Qux[free])
+            Vx = Qx + Kt.T @ Quu @ kt + Kt.T @ Qu + Qux.T @ kt
+            Vxx = Qxx + Kt.T @ Quu @ Kt + Kt.T @ Qux + Qux.T @ Kt
+            Vxx = 0.5 * (Vxx + Vxx.T)
+            dV += (kt @ Qu, 0.5 * kt @ Quu @ kt)
+            k[t], K[t] = kt, Kt
+        return k, K, dV

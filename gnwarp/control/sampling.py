@@ -1,0 +1,260 @@
+"""Sampling MPC: predictive sampling (MuJoCo MPC's simplest sampling planner), MPPI as an option.
+
+For each of N episodes the planner keeps a nominal action sequence over the horizon, a spline
+through P knots. Each planning step it draws K candidates (the nominal itself and K-1 with
+Gaussian noise on the knots, clamped to the control range), rolls all N*K out from the episode's
+current true state, scores them with ``reward(states [M, T+1, B, 13], actions [M, T, U]) -> [M]``,
+and makes the best candidate (``method="best"``) or the reward-weighted mean (``"mppi"``) the
+new nominal. Its first action is applied; the nominal is then shifted one step (the warm start).
+
+Rollouts come from a ``dynamics``: ``EnvDynamics`` (the true simulator, an ``Env`` of N*K worlds
+reset to each episode's state) or ``ModelDynamics`` (a learned model's rollout callable,
+``(x0 [M, B, 13], actions [M, T, U]) -> [M, T+1, B, 13]``, e.g. ``ForwardModel.rollout`` or a
+``RolloutEngine``'s). ``run_episodes`` runs any planner in closed loop on a true ``Env``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from gnwarp.control.env import Env, Observation, make_env
+from gnwarp.sim.excitation import catmull_rom
+
+__all__ = ["SamplingConfig", "SamplingPlanner", "RandomPlanner", "EnvDynamics", "ModelDynamics",
+           "true_dynamics", "run_episodes", "spline_basis"]
+
+Reward = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+INTERPOLATIONS = ("zero", "linear", "cubic")
+METHODS = ("best", "mppi")
+
+
+@dataclass
+class SamplingConfig:
+    """horizon: data steps planned ahead (T); samples: candidates per episode (K, the nominal
+    included); knots: spline knots P over the horizon (``interpolation`` "zero": piecewise
+    constant, P spans; "linear" / "cubic": P points from the first step to the last);
+    noise: standard deviation of the knot noise, relative to half of each actuator's range;
+    method: "best" (predictive sampling) or "mppi" (softmax of reward / (temperature x the
+    episode's reward spread)); seed: of the noise."""
+    horizon: int = 20
+    samples: int = 64
+    knots: int = 4
+    interpolation: str = "zero"
+    noise: float = 0.2
+    method: str = "best"
+    temperature: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("horizon", "samples", "knots"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"SamplingConfig.{name} must be an integer >= 1, got {v!r}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"SamplingConfig.interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"SamplingConfig.method must be one of {METHODS}, got {self.method!r}")
+        if self.interpolation != "zero" and self.knots < 2:
+            raise ValueError(f"{self.interpolation} interpolation needs knots >= 2")
+        if self.knots > self.horizon:
+            raise ValueError(f"SamplingConfig.knots ({self.knots}) must not exceed the horizon ({self.horizon})")
+        if not (self.noise >= 0 and np.isfinite(self.noise)) or not (self.temperature > 0):
+            raise ValueError("SamplingConfig.noise must be >= 0 and temperature > 0")
+
+
+def spline_basis(kind: str, knots: int, times: np.ndarray) -> np.ndarray:
+    """[len(times), knots] weights: actions at ``times`` (in knot units, clamped to the knots'
+    span) = weights @ knot values, for "zero", "linear" or "cubic" (Catmull-Rom) interpolation."""
+    s = np.clip(np.asarray(times, dtype=np.float64), 0.0, knots - 1)
+    if kind == "zero":
+        return np.eye(knots)[np.floor(s + 1e-9).astype(np.int64).clip(0, knots - 1)]
+    if kind == "linear":
+        return np.maximum(0.0, 1.0 - np.abs(s[:, None] - np.arange(knots)[None, :]))
+    return catmull_rom(np.eye(knots), np.broadcast_to(s, (knots, s.size))).T
+
+
+def _basis_pair(cfg: SamplingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(actions from knots [T, P], shifted knots from knots [P, P]): the shift moves the spline
+    one data step earlier, holding its last value."""
+    T, P = cfg.horizon, cfg.knots
+    per_step = P / T if cfg.interpolation == "zero" else (P - 1) / max(T - 1, 1)
+    at = spline_basis(cfg.interpolation, P, np.arange(T) * per_step)
+    shift = spline_basis(cfg.interpolation, P, np.arange(P) + per_step)
+    return at, shift
+
+
+# -- dynamics ---------------------------------------------------------------------------------
+
+class EnvDynamics:
+    """The true simulator as a planner's dynamics: ``env`` holds N*K worlds; each rollout resets
+    world n*K + k to episode n's state (qpos, qvel) and steps the candidates."""
+
+    def __init__(self, env: Env, source: Env | None = None):
+        self.env, self.source = env, source
+        self.device = env.device
+
+    def rollout(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        if not isinstance(obs, Observation):
+            if self.source is None:
+                raise ValueError("planning on the true simulator needs the true qpos / qvel: pass env.observe(), "
+                                 "or build the dynamics with source=the closed-loop env")
+            obs = self.source.observe()
+        n = obs.qpos.shape[0]
+        if n * samples != self.env.n_worlds:
+            raise ValueError(f"the planning env has {self.env.n_worlds} worlds; {n} episodes x {samples} samples "
+                             f"need {n * samples} (make it with true_dynamics(system, n_episodes, samples))")
+        self.env.reset(obs.qpos.repeat_interleave(samples, 0), obs.qvel.repeat_interleave(samples, 0))
+        return self.env.rollout(actions)
+
+
+class ModelDynamics:
+    """A learned model as a planner's dynamics: ``rollout_fn(x0 [M, B, 13], actions [M, T, U])
+    -> [M, T+1, B, 13]`` from the episodes' body states, without gradients."""
+
+    def __init__(self, rollout_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], device=None):
+        self.rollout_fn = rollout_fn
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+
+    def rollout(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        body = obs.body if isinstance(obs, Observation) else torch.as_tensor(obs)
+        with torch.no_grad():
+            return self.rollout_fn(body.to(self.device).repeat_interleave(samples, 0), actions)
+
+
+def true_dynamics(system, n_episodes: int, samples: int, backend: str = "auto", device=None,
+                  source: Env | None = None, **kw) -> EnvDynamics:
+    """``EnvDynamics`` on a fresh env of ``n_episodes * samples`` worlds of ``system``; ``source``:
+    the closed-loop env whose true state a planning step reads when given body states only."""
+    return EnvDynamics(make_env(system, n_episodes * samples, backend=backend, device=device, **kw), source)
+
+
+# -- planners ---------------------------------------------------------------------------------
+
+class SamplingPlanner:
+    """Predictive sampling / MPPI over ``n_episodes`` episodes at once.
+
+    ``dynamics``: ``EnvDynamics`` or ``ModelDynamics``; ``reward``: a callable of (states
+    [M, T+1, B, 13], actions [M, T, U]) -> [M], higher is better; ``ctrlrange`` [U, 2]: where
+    actions are sampled and clamped (an env's ``ctrlrange``). ``step(obs) -> [N, U]``."""
+
+    def __init__(self, dynamics, reward: Reward, ctrlrange, n_episodes: int, config: SamplingConfig | None = None):
+        self.dynamics, self.reward = dynamics, reward
+        self.cfg = config or SamplingConfig()
+        self.n = int(n_episodes)
+        self.device = dynamics.device
+        cr = torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)).reshape(-1, 2).to(self.device, torch.float32)
+        if not bool(torch.isfinite(cr).all()) or bool((cr[:, 1] < cr[:, 0]).any()):
+            raise ValueError(f"ctrlrange must be finite [U, 2] with lower <= upper, got {cr.tolist()}")
+        self.lo, self.hi = cr[:, 0], cr[:, 1]
+        self.nu = cr.shape[0]
+        at, shift = _basis_pair(self.cfg)
+        self._at = torch.tensor(at, dtype=torch.float32, device=self.device)
+        self._shift = torch.tensor(shift, dtype=torch.float32, device=self.device)
+        self._gen = torch.Generator(device=self.device)
+        self.reset()
+
+    def reset(self) -> None:
+        """Nominal knots at the middle of the range; the noise generator re-seeded."""
+        self._gen.manual_seed(self.cfg.seed)
+        mid = 0.5 * (self.lo + self.hi)
+        self.knots = mid.expand(self.n, self.cfg.knots, self.nu).clone()
+        self.last_rewards = None
+
+    def actions(self, knots: torch.Tensor) -> torch.Tensor:
+        """Action sequences [..., T, U] of knots [..., P, U], inside the range."""
+        a = torch.einsum("tp,...pu->...tu", self._at, knots)
+        return torch.maximum(torch.minimum(a, self.hi), self.lo)
+
+    def nominal(self) -> torch.Tensor:
+        """The current nominal action sequences [N, T, U]."""
+        return self.actions(self.knots)
+
+    def candidates(self) -> torch.Tensor:
+        """Knots of the K candidates of each episode [N, K, P, U]: the nominal first."""
+        cfg = self.cfg
+        shape = (self.n, cfg.samples - 1, cfg.knots, self.nu)
+        scale = cfg.noise * 0.5 * (self.hi - self.lo)
+        noise = torch.randn(shape, generator=self._gen, device=self.device) * scale
+        cand = torch.cat([self.knots[:, None], self.knots[:, None] + noise], 1)
+        return torch.maximum(torch.minimum(cand, self.hi), self.lo)
+
+    def step(self, obs) -> torch.Tensor:
+        """One planning step from the episodes' true states ``obs`` (an ``Observation``, or body
+        states [N, B, 13]) -> first actions [N, U]; the nominal becomes the chosen sequence, shifted."""
+        n = (obs.body if isinstance(obs, Observation) else obs).shape[0]
+        if n != self.n:
+            raise ValueError(f"this planner holds {self.n} episodes, got states of {n}")
+        cfg, N, K = self.cfg, self.n, self.cfg.samples
+        cand = self.candidates()                                       # [N, K, P, U]
+        acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
+        states = self.dynamics.rollout(obs, acts, K)
+        r = torch.as_tensor(self.reward(states, acts.to(states.device))).to(self.device, torch.float32).reshape(N, K)
+        r = torch.where(torch.isfinite(r), r, torch.full_like(r, -torch.inf))   # a diverged rollout never wins
+        if cfg.method == "best":
+            chosen = cand[torch.arange(N, device=self.device), r.argmax(1)]
+        else:
+            top = r.max(1, keepdim=True).values
+            spread = (top - r.masked_fill(~torch.isfinite(r), torch.inf).min(1, keepdim=True).values).clamp_min(1e-9)
+            w = torch.softmax((r - top) / (cfg.temperature * spread), 1)
+            chosen = torch.einsum("nk,nkpu->npu", w, cand)
+        self.last_rewards = r
+        first = self.actions(chosen)[:, 0]
+        self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
+        return first
+
+
+class RandomPlanner:
+    """The random-actions baseline: uniform in ``ctrlrange`` [U, 2], independent each step."""
+
+    def __init__(self, ctrlrange, n_episodes: int, seed: int = 0, device="cpu"):
+        cr = torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)).reshape(-1, 2).to(device, torch.float32)
+        self.lo, self.hi, self.n, self.seed = cr[:, 0], cr[:, 1], int(n_episodes), seed
+        self._gen = torch.Generator(device=device)
+        self.reset()
+
+    def reset(self) -> None:
+        self._gen.manual_seed(self.seed)
+
+    def step(self, obs) -> torch.Tensor:
+        u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
+        return self.lo + u * (self.hi - self.lo)
+
+
+def _sync(device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run_episodes(planner, env: Env, reward: Reward, steps: int, qpos0=None, qvel0=None) -> dict:
+    """Run ``planner`` in closed loop on the true ``env`` (one episode per world) for ``steps``
+    data steps: each step the planner sees the true state, its action runs in ``env``.
+
+    ``qpos0`` / ``qvel0``: reset ``env`` there first (else it continues from its current state).
+    Returns {"returns" [N] (``reward`` of the true trajectory), "states" [N, steps+1, B, 13],
+    "actions" [N, steps, U] (as applied, clamped), "plan_seconds" [steps] (host wall time of
+    each planning step, the device synchronized)}. ``reward`` may be a task (its ``.reward``)."""
+    reward = getattr(reward, "reward", reward)
+    if qpos0 is not None:
+        env.reset(qpos0, qvel0)
+    if hasattr(planner, "reset"):
+        planner.reset()
+    obs = env.observe()
+    states, actions, secs = [obs.body], [], []
+    dev = getattr(planner, "device", env.device)
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        a = planner.step(obs)
+        _sync(dev)
+        secs.append(time.perf_counter() - t0)
+        body = env.step(a)
+        actions.append(env.last_ctrl.to(torch.float32))
+        states.append(body)
+        obs = env.observe()
+    states_t = torch.stack(states, 1)
+    actions_t = torch.stack(actions, 1) if actions else torch.zeros(env.n_worlds, 0, env.nu, device=env.device)
+    returns = torch.as_tensor(reward(states_t, actions_t)).detach()
+    return {"returns": returns, "states": states_t, "actions": actions_t, "plan_seconds": np.asarray(secs)}

@@ -1,0 +1,252 @@
+"""Control tasks of the paper (supplementary F.2): rewards of body-state trajectories.
+
+A reward reads graph states, the 13 numbers of every body (``gnwarp.state``: pos 0:3, quat 3:7
+(w, x, y, z), linvel 7:10, angvel 10:13, node 0 the world), so the same function scores a learned
+model's predicted rollout and the true simulator's trajectory::
+
+    reward(states [N, T+1, B, 13], actions [N, T, U], target=None) -> [N]
+
+summed over the T steps that follow the actions (states 1..T; state 0 is where planning starts,
+which the swimmer's target direction is measured from). Rewards are to be maximized.
+
+    >>> task = get_task("pendulum-balance")            # Task(name, system, horizon, reward, ...)
+    >>> r = task.reward(states, actions)                 # [N]
+    >>> mine = Task("spin", "pendulum", 50, lambda s, a, target=None: s[..., 1:, 1, 11].sum(-1))
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable
+
+import mujoco
+import numpy as np
+import torch
+
+from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul, quat_rotate
+
+__all__ = ["Task", "TASKS", "get_task", "task_names", "system_family", "upright_angle", "body_index",
+           "sample_targets", "TaskError"]
+
+
+class TaskError(ValueError):
+    """An unknown task, a task for another system, or a target of the wrong shape."""
+
+
+Reward = Callable[..., torch.Tensor]
+
+
+def system_family(name: str) -> str:
+    """A system name without its size: "swimmer6" -> "swimmer"."""
+    return name.rstrip("0123456789")
+
+
+@functools.lru_cache(maxsize=None)
+def _body_names(system: str) -> tuple[str, ...]:
+    from gnwarp.sim.systems import make
+    m = make(system).model
+    return tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(m.nbody))
+
+
+def body_index(system: str, *names: str) -> list[int]:
+    """Node index of each named body of a built-in system (its builder's names, world = 0)."""
+    bodies = _body_names(system)
+    missing = [n for n in names if n not in bodies]
+    if missing:
+        raise TaskError(f"{system} has no bodies {missing}; its bodies: {list(bodies)}")
+    return [bodies.index(n) for n in names]
+
+
+@functools.lru_cache(maxsize=None)
+def _walker_head() -> float:
+    """Height of the walker's head above its torso frame: the torso capsule's half length."""
+    from gnwarp.sim.systems import make
+    return float(make("walker").model.geom("torso").size[1])
+
+
+def upright_angle(quat: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
+    """Angle (rad, in [0, pi]) between orientations ``quat`` [..., 4] and ``target`` (default the
+    identity: every built-in pole and link points up at its identity orientation). Its gradient
+    is finite everywhere, also at 0."""
+    q = quat if target is None else quat_mul(quat_conj(target.expand_as(quat)), quat)
+    return 2.0 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0].abs())
+
+
+def _steps(states: torch.Tensor) -> torch.Tensor:
+    """The states after each action, [N, T, B, 13]."""
+    return states[:, 1:]
+
+
+# -- the rewards of F.2 ----------------------------------------------------------------------------
+
+def _balance(bodies: tuple[str, ...], system: str) -> Reward:
+    def reward(states, actions, target=None):
+        idx = body_index(system, *bodies)
+        return -upright_angle(_steps(states)[:, :, idx, QUAT]).sum((1, 2))
+    return reward
+
+
+def _swimmer_reach(states, actions, target=None):
+    """Head displacement from the previous step projected on the target direction (from the head
+    at state 0 to the target, in the x-y plane), minus 0.01 x the squared projection of the head's
+    offset from state 0 on the perpendicular direction (how far it strays from the line)."""
+    if target is None:
+        raise TaskError("swimmer-reach needs target= (the target position [N, 2] or [N, 3] per episode)")
+    head = states[:, :, 1, :2]                                       # [N, T+1, 2]
+    d = target[:, :2].to(head) - head[:, 0]
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-9)
+    perp = torch.stack([-d[:, 1], d[:, 0]], -1)
+    along = ((head[:, 1:] - head[:, :-1]) * d[:, None]).sum(-1)
+    off = ((head[:, 1:] - head[:, :1]) * perp[:, None]).sum(-1)
+    return (along - 0.01 * off.square()).sum(1)
+
+
+def _torso(feature: Callable[[torch.Tensor], torch.Tensor]) -> Reward:
+    """A reward of the torso's state (node 1 of cheetah and walker) summed over the steps."""
+    def reward(states, actions, target=None):
+        return feature(_steps(states)[:, :, 1]).sum(1)
+    return reward
+
+
+def _walker_feet_to_head(states, actions, target=None):
+    """Sum over both feet of the squared height of the head (top of the torso) above the foot."""
+    s = _steps(states)
+    q = s[:, :, 1, QUAT]
+    up = s.new_tensor([0.0, 0.0, _walker_head()]).expand(q.shape[:-1] + (3,))
+    head_z = s[:, :, 1, 2] + quat_rotate(q, up)[..., 2]
+    feet = body_index("walker", "right_foot", "left_foot")
+    return (head_z[..., None] - s[:, :, feet, 2]).square().sum((1, 2))
+
+
+def _pose_loss(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """D.7.4's dynamic-state loss on poses: squared position error + 1 - (q . q_target)^2."""
+    pos = (x[..., POS] - target[..., POS]).square().sum(-1)
+    dot = (x[..., QUAT] * target[..., QUAT]).sum(-1)
+    return pos + 1.0 - dot.square()
+
+
+def _jaco_pose(full: bool) -> Reward:
+    def reward(states, actions, target=None):
+        s = _steps(states)
+        if target is None:
+            raise TaskError(f"jaco-{'full' if full else 'palm'}-pose needs target= (poses "
+                            f"{'[N, B, 7]' if full else '[N, 7]'}: position and w, x, y, z per episode)")
+        target = target.to(s)
+        if full:
+            if target.ndim != 3 or target.shape[1] != s.shape[2] or target.shape[2] < 7:
+                raise TaskError(f"jaco-full-pose's target must be [N, {s.shape[2]}, >= 7], got {tuple(target.shape)}")
+            return -_pose_loss(s[:, :, 1:], target[:, None, 1:]).sum((1, 2))   # the world excluded
+        if target.ndim != 2 or target.shape[1] < 7:
+            raise TaskError(f"jaco-palm-pose's target must be [N, >= 7], got {tuple(target.shape)}")
+        palm = body_index("jaco", "hand")[0]
+        return -_pose_loss(s[:, :, palm], target[:, None]).sum(1)
+    return reward
+
+
+# -- tasks -----------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """A control task: ``reward(states [N, T+1, B, 13], actions [N, T, U], target=None) -> [N]``
+    (to maximize, summed over steps) for ``system`` (a built-in name; a family such as
+    "swimmer" fits every SwimmerN), planned over ``horizon`` steps. ``target``: what a per-episode
+    target is ("position" for the swimmer, "pose" / "poses" for the JACO, None without one)."""
+    name: str
+    system: str
+    horizon: int
+    reward: Reward
+    target: str | None = None
+    doc: str = ""
+
+    def __post_init__(self):
+        if not callable(self.reward):
+            raise TaskError(f"task {self.name!r}: reward must be callable, got {type(self.reward).__name__}")
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
+            raise TaskError(f"task {self.name!r}: horizon must be an integer >= 1, got {self.horizon!r}")
+
+    def fits(self, system: str) -> bool:
+        """Whether the task applies to system ``system`` (e.g. "swimmer6" for a "swimmer" task)."""
+        return system == self.system or system_family(system) == self.system
+
+    def check_system(self, system: str, what: str = "system") -> None:
+        """``TaskError`` unless the task applies to ``system``."""
+        if not self.fits(system):
+            raise TaskError(f"task {self.name!r} is for {self.system}, but the {what} is {system}")
+
+
+def _tasks() -> dict[str, Task]:
+    t = [
+        Task("pendulum-balance", "pendulum", 50, _balance(("pole",), "pendulum"),
+             doc="minus the pole's angle from upright"),
+        Task("cartpole-balance", "cartpole", 100, _balance(("pole_1",), "cartpole"),
+             doc="minus the pole's angle from upright"),
+        Task("acrobot-swingup", "acrobot", 100, _balance(("upper_arm", "lower_arm"), "acrobot"),
+             doc="minus both links' angles from upright"),
+        Task("swimmer-reach", "swimmer", 100, _swimmer_reach, target="position",
+             doc="head displacement towards the target, minus 0.01 x squared offset from the line"),
+        Task("cheetah-forward", "cheetah", 20, _torso(lambda x: x[..., LINVEL][..., 0]),
+             doc="torso's horizontal velocity"),
+        Task("cheetah-height", "cheetah", 20, _torso(lambda x: x[..., 2]), doc="torso's height"),
+        Task("cheetah-vspeed", "cheetah", 20, _torso(lambda x: x[..., 9].square()),
+             doc="torso's squared vertical speed"),
+        Task("cheetah-spin", "cheetah", 20, _torso(lambda x: x[..., 10:13].square().sum(-1)),
+             doc="torso's squared angular speed"),
+        Task("walker-forward", "walker", 20, _torso(lambda x: x[..., LINVEL][..., 0]),
+             doc="torso's horizontal velocity"),
+        Task("walker-height", "walker", 20, _torso(lambda x: x[..., 2]), doc="torso's height"),
+        Task("walker-verticality", "walker", 20,
+             _balance(("torso", "right_thigh", "right_leg", "left_thigh", "left_leg"), "walker"),
+             doc="minus the angles of torso, thighs and legs from upright"),
+        Task("walker-feet-to-head", "walker", 20, _walker_feet_to_head,
+             doc="squared heights of the head above each foot"),
+        Task("jaco-palm-pose", "jaco", 20, _jaco_pose(False), target="pose",
+             doc="minus the palm's pose loss to a target pose"),
+        Task("jaco-full-pose", "jaco", 20, _jaco_pose(True), target="poses",
+             doc="minus the pose loss of every body to target poses"),
+    ]
+    return {x.name: x for x in t}
+
+
+TASKS: dict[str, Task] = _tasks()
+
+
+def task_names() -> list[str]:
+    return list(TASKS)
+
+
+def get_task(name, system: str | None = None) -> Task:
+    """The task ``name`` (a ``Task`` passes through); with ``system``, also check it applies to
+    that system. ``TaskError`` names the known tasks or the mismatch."""
+    task = name if isinstance(name, Task) else TASKS.get(name)
+    if task is None:
+        raise TaskError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}")
+    if system is not None:
+        task.check_system(system)
+    return task
+
+
+def sample_targets(task: Task, system, n: int, seed: int = 0) -> torch.Tensor | None:
+    """Per-episode targets of ``task`` for ``system`` (a ``System``), float32, or None.
+
+    Swimmer: positions [n, 3] 1 m from the origin in a random direction. JACO: the body states
+    [n, B, 13] of random joint configurations (``gnwarp.data.initial_states``), reachable poses.
+    """
+    if task.target is None:
+        return None
+    rng = np.random.default_rng(seed)
+    if task.target == "position":
+        a = rng.uniform(-np.pi, np.pi, n)
+        return torch.tensor(np.stack([np.cos(a), np.sin(a), np.zeros(n)], -1), dtype=torch.float32)
+    from gnwarp.data.convert import body_states
+    from gnwarp.data.generation import initial_states
+    qpos, _ = initial_states(system, n, rng)
+    m = system.model
+    d = mujoco.MjData(m)
+    out = []
+    for q in qpos:
+        d.qpos[:] = q
+        d.qvel[:] = 0
+        mujoco.mj_forward(m, d)
+        out.append(body_states(m, d))
+    poses = torch.tensor(np.stack(out), dtype=torch.float32)
+    return poses[:, body_index(system.name, "hand")[0]] if task.target == "pose" else poses

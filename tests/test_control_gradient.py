@@ -1,0 +1,164 @@
+"""Gradient MPC through a learned model (F.1.1, Algorithm F.1) and closed-loop episodes, on the CPU
+with a tiny pendulum model and a MuJoCo C environment stub."""
+import copy
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from gnwarp import data, systems
+from gnwarp.control import GradientMPC, GradientMPCConfig, PlanningError, TaskError, run_episodes
+from gnwarp.data.convert import body_states
+from gnwarp.gn import RunOptions
+from gnwarp.models import GNCoreConfig, ModelConfig
+from gnwarp.train import TrainConfig, load_model, train
+from gnwarp.validation import ConfigError
+
+TINY = dict(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
+
+
+@pytest.fixture(scope="module")
+def pendulum_data():
+    return data.generate("pendulum", (20, 3, 4), num_steps=20, seed=0, backend="mujoco", progress=False)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory, pendulum_data):
+    out = tmp_path_factory.mktemp("mpc") / "run"
+    cfg = TrainConfig(out=str(out), model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="torch")),
+                      steps=150, batch_size=32, lr=3e-3, lr_decay_steps=1000, valid_every=150, valid_sequences=3,
+                      log_every=50, checkpoint_every=150, normalizer_warmup=2, progress=False, device="cpu")
+    path = train(cfg, [pendulum_data])["last"]
+    m = load_model(path, device="cpu")
+    m.path = path
+    return m
+
+
+class MjEnv:
+    """The true environment's API (``reset``, ``step(ctrl [N, U]) -> body states [N, B, 13]``) on
+    MuJoCo C, one MjData per world."""
+
+    def __init__(self, system, n):
+        self.system, self.m = system, system.model
+        self.d = [mujoco.MjData(self.m) for _ in range(n)]
+
+    def _states(self):
+        for d in self.d:
+            mujoco.mj_forward(self.m, d)
+        return torch.tensor(np.stack([body_states(self.m, d) for d in self.d]), dtype=torch.float32)
+
+    def reset(self, qpos, qvel):
+        for d, q, v in zip(self.d, qpos, qvel):
+            mujoco.mj_resetData(self.m, d)
+            d.qpos[:], d.qvel[:] = q, v
+        return self._states()
+
+    def step(self, ctrl):
+        for d, c in zip(self.d, np.asarray(torch.as_tensor(ctrl).cpu(), dtype=np.float64)):
+            d.ctrl[:] = c
+            mujoco.mj_step(self.m, d, nstep=self.system.substeps)
+        return self._states()
+
+
+def x0(pendulum_data, n):
+    return torch.as_tensor(np.asarray(pendulum_data["test"].body[:n, 0]))
+
+
+def test_one_iteration_lowers_the_planned_cost(model, pendulum_data):
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=3, config=GradientMPCConfig(horizon=10, lr=1e-3))
+    x = p.check_state(x0(pendulum_data, 3))
+    before = p.planned_reward(x)
+    r = p.iterate(x, 1)
+    assert torch.allclose(r, before, atol=1e-5)        # iterate reports the reward it stepped from
+    after = p.planned_reward(x)
+    assert (after >= before - 1e-5).all() and after.sum() > before.sum(), (before, after)
+    r = p.iterate(x, 30)
+    assert p.planned_reward(x).sum() > after.sum()
+
+
+def test_step_applies_the_first_action_and_shifts_the_plan(model, pendulum_data, monkeypatch):
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=6))
+    plan = p.actions.clone()
+    z = p.z.clone()
+    seen = []
+    monkeypatch.setattr(p, "iterate", lambda x, k: seen.append(k))
+    a = p.step(x0(pendulum_data, 2))
+    assert torch.equal(a, plan[:, 0])
+    assert torch.equal(p.z[:, :-1], z[:, 1:]) and torch.equal(p.z[:, -1], z[:, -1])   # the last repeated
+    p.step(x0(pendulum_data, 2))
+    assert seen == [5 + 5 * 6, 5]                      # warm-up at the first state only
+    p.reset()
+    p.step(x0(pendulum_data, 2))
+    assert seen[-1] == 35
+
+
+def test_actions_stay_in_the_control_range(model, pendulum_data):
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=4,
+                    config=GradientMPCConfig(horizon=5, iterations=3, warmup=5, lr=50.0, init_std=5.0))
+    x = x0(pendulum_data, 4)
+    for _ in range(3):
+        a = p.step(x)
+        assert a.shape == (4, 1) and (a.abs() <= 1.0).all()
+    assert (p.actions.abs() <= 1.0).all() and torch.isfinite(p.z).all()
+
+
+def test_closed_loop_on_the_true_simulator(model):
+    pend = systems.make("pendulum")
+    env = MjEnv(pend, 2)
+    qpos, qvel = np.array([[3.0], [-2.5]]), np.zeros((2, 1))
+    start = env.reset(qpos, qvel)
+    p = GradientMPC(model, "pendulum-balance", pend, n=2, config=GradientMPCConfig(horizon=5, iterations=2, warmup=4))
+    out = run_episodes(p, env, "pendulum-balance", 4, start)
+    assert out["states"].shape == (2, 5, 2, 13) and out["actions"].shape == (2, 4, 1)
+    assert torch.equal(out["states"][:, 0], start) and torch.isfinite(out["states"]).all()
+    assert out["returns"].shape == (2,) and (out["returns"] < 0).all()
+    # the recorded trajectory is the true simulator's under the recorded actions
+    env2 = MjEnv(pend, 2)
+    env2.reset(qpos, qvel)
+    for t in range(4):
+        x = env2.step(out["actions"][:, t])
+    assert torch.allclose(x, out["states"][:, -1], atol=1e-6)
+    try:   # the batched environment, where present, runs the same loop
+        from gnwarp.control import make_env
+        env3 = make_env(pend, 2, backend="mujoco")
+    except ImportError:
+        return
+    p.reset()
+    out3 = run_episodes(p, env3, "pendulum-balance", 2, env3.reset(qpos, qvel))
+    assert torch.allclose(out3["states"][:, 0], start, atol=1e-5) and torch.isfinite(out3["returns"]).all()
+
+
+def test_clear_errors(model, pendulum_data):
+    with pytest.raises(TaskError, match="unknown task 'pendulum-flip'"):
+        GradientMPC(model, "pendulum-flip", "pendulum", n=1)
+    with pytest.raises(TaskError, match="is for cartpole, but the system is pendulum"):
+        GradientMPC(model, "cartpole-balance", "pendulum", n=1)
+    with pytest.raises(PlanningError, match="trained on pendulum, not on cartpole"):
+        GradientMPC(model, "cartpole-balance", "cartpole", n=1)
+    bare = copy.deepcopy(model)
+    bare.checkpoint_info = None                        # not from a checkpoint: the feature layout says it
+    with pytest.raises(PlanningError, match="does not fit cartpole"):
+        GradientMPC(bare, "cartpole-balance", "cartpole", n=1)
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=3))
+    x = x0(pendulum_data, 2).clone()
+    x[1, 1, 8] = float("nan")
+    with pytest.raises(PlanningError, match="episode 1 has NaN or Inf \\(body 1, feature 8\\)"):
+        p.step(x)
+    with pytest.raises(PlanningError, match=r"states must be \[N, B, 13\] = \[2, 2, 13\]"):
+        p.step(x[:1])
+    with pytest.raises(ConfigError, match="iterations"):
+        GradientMPCConfig(iterations=0)
+
+
+def test_cli_mpc(model, tmp_path, capsys):
+    from gnwarp.cli import main
+    video = tmp_path / "mpc.gif"
+    args = ["mpc", "--model", str(model.path), "--task", "pendulum-balance", "--episodes", "2", "--steps", "3",
+            "--horizon", "3", "--iterations", "1", "--warmup", "0", "--backend", "mujoco", "--video", str(video),
+            "--renderer", "matplotlib"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "true return" in out and "+-" in out and video.is_file()
+    assert main(args[:4] + ["cheetah-forward"] + args[5:]) == 2
+    assert "the model was trained on pendulum, not on cheetah" in capsys.readouterr().err
