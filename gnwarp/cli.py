@@ -345,7 +345,7 @@ def _cmd_mpc(args) -> int:
     env = make_env(system, n, backend=args.backend)
     qpos, qvel = initial_states(system, n, np.random.default_rng(args.seed))
     t0 = time.perf_counter()
-    out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target)
+    out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target)
     secs = time.perf_counter() - t0
     r = out["returns"]
     print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "

@@ -6,8 +6,9 @@ import torch
 
 from gnwarp import data
 from gnwarp.control.env import make_env
-from gnwarp.control.sampling import (ModelDynamics, RandomPlanner, SamplingConfig, SamplingPlanner, run_episodes,
-                                     spline_basis, true_dynamics)
+from gnwarp.control.episodes import run_episodes
+from gnwarp.control.sampling import (ModelDynamics, RandomPlanner, SamplingConfig, SamplingPlanner, spline_basis,
+                                     true_dynamics)
 from gnwarp.interop import warp
 from gnwarp.models import MLPForwardModel
 
@@ -29,8 +30,8 @@ def test_sampling_mpc_beats_random_actions(method, interp):
     env = make_env("pendulum", N, backend="mujoco")
     cfg = SamplingConfig(horizon=15, samples=K, knots=3, interpolation=interp, method=method)
     planner = SamplingPlanner(true_dynamics("pendulum", N, K, backend="mujoco"), upright, env.ctrlrange, N, cfg)
-    mpc = run_episodes(planner, env, upright, 40, Q0)
-    rnd = run_episodes(RandomPlanner(env.ctrlrange, N, seed=1), env, upright, 40, Q0)
+    mpc = run_episodes(planner, env, upright, 40, qpos0=Q0)
+    rnd = run_episodes(RandomPlanner(env.ctrlrange, N, seed=1), env, upright, 40, qpos0=Q0)
     assert mpc["states"].shape == (N, 41, 2, 13) and mpc["actions"].shape == (N, 40, 1)
     assert mpc["plan_seconds"].shape == (40,)
     assert (mpc["returns"] > rnd["returns"] + 2.0).all(), (mpc["returns"], rnd["returns"])
@@ -86,6 +87,6 @@ def test_sampler_through_a_learned_model():
     env = make_env("pendulum", N, backend="mujoco")
     cfg = SamplingConfig(horizon=5, samples=K, knots=2, interpolation="linear")
     planner = SamplingPlanner(ModelDynamics(model.rollout), upright, env.ctrlrange, N, cfg)
-    out = run_episodes(planner, env, upright, 3, Q0[:N])
+    out = run_episodes(planner, env, upright, 3, qpos0=Q0[:N])
     assert out["returns"].shape == (N,) and planner.last_rewards.shape == (N, K)
     assert (out["actions"].abs() <= 1.0).all()

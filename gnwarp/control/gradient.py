@@ -19,7 +19,6 @@ episode its own gradient.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
 
 import numpy as np
 import torch
@@ -29,7 +28,7 @@ from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.validation import FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
-__all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "run_episodes", "model_systems"]
+__all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems"]
 
 
 class PlanningError(ValueError):
@@ -199,32 +198,3 @@ class GradientMPC:
         a = self.actions[:, 0].detach().clone()
         self.shift()
         return a
-
-
-def run_episodes(planner, env, task, steps: int, x0, target=None,
-                 progress: Callable[[int], None] | None = None) -> dict[str, torch.Tensor]:
-    """N episodes in closed loop: at each of ``steps`` steps ``planner.step(x)`` plans from the true
-    states ``x`` and ``env.step(actions [N, U]) -> states [N, B, 13]`` executes the first actions.
-
-    ``env``: the true simulator, already reset to ``x0`` [N, B, 13] (``x0 = env.reset(...)``);
-    ``task``: the task (or name) whose reward scores the true trajectory; ``target``: per-episode
-    targets (default: the planner's). Returns {"states" [N, steps+1, B, 13], "actions" [N, steps,
-    U], "returns" [N]} on the CPU, the returns the true simulator's."""
-    task = get_task(task)
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
-    if target is not None and hasattr(planner, "reset"):
-        planner.target = planner._target(target) if hasattr(planner, "_target") else target
-    target = target if target is not None else getattr(planner, "target", None)
-    x = torch.as_tensor(x0)
-    states, actions = [x.detach().cpu().float()], []
-    for t in range(steps):
-        a = planner.step(x)
-        x = torch.as_tensor(env.step(a))
-        states.append(x.detach().cpu().float())
-        actions.append(torch.as_tensor(a).detach().cpu().float())
-        if progress:
-            progress(t + 1)
-    states, actions = torch.stack(states, 1), torch.stack(actions, 1)
-    tgt = None if target is None else torch.as_tensor(target).detach().cpu().float()
-    return {"states": states, "actions": actions, "returns": task.reward(states, actions, tgt)}

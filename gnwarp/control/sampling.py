@@ -10,11 +10,10 @@ new nominal. Its first action is applied; the nominal is then shifted one step (
 Rollouts come from a ``dynamics``: ``EnvDynamics`` (the true simulator, an ``Env`` of N*K worlds
 reset to each episode's state) or ``ModelDynamics`` (a learned model's rollout callable,
 ``(x0 [M, B, 13], actions [M, T, U]) -> [M, T+1, B, 13]``, e.g. ``ForwardModel.rollout`` or a
-``RolloutEngine``'s). ``run_episodes`` runs any planner in closed loop on a true ``Env``.
+``RolloutEngine``'s). ``gnwarp.control.episodes.run_episodes`` runs any planner in closed loop.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -25,7 +24,7 @@ from gnwarp.control.env import Env, Observation, make_env
 from gnwarp.sim.excitation import catmull_rom
 
 __all__ = ["SamplingConfig", "SamplingPlanner", "RandomPlanner", "EnvDynamics", "ModelDynamics",
-           "true_dynamics", "run_episodes", "spline_basis"]
+           "true_dynamics", "spline_basis"]
 
 Reward = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 INTERPOLATIONS = ("zero", "linear", "cubic")
@@ -182,6 +181,12 @@ class SamplingPlanner:
         cand = torch.cat([self.knots[:, None], self.knots[:, None] + noise], 1)
         return torch.maximum(torch.minimum(cand, self.hi), self.lo)
 
+    @property
+    def needs_sim_state(self) -> bool:
+        """Whether ``step`` needs the simulator's state (``env.observe()``), not body states
+        alone: planning on the true simulator without a ``source`` env to read it from."""
+        return isinstance(self.dynamics, EnvDynamics) and self.dynamics.source is None
+
     def step(self, obs) -> torch.Tensor:
         """One planning step from the episodes' true states ``obs`` (an ``Observation``, or body
         states [N, B, 13]) -> first actions [N, U]; the nominal becomes the chosen sequence, shifted."""
@@ -222,39 +227,3 @@ class RandomPlanner:
     def step(self, obs) -> torch.Tensor:
         u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
         return self.lo + u * (self.hi - self.lo)
-
-
-def _sync(device) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def run_episodes(planner, env: Env, reward: Reward, steps: int, qpos0=None, qvel0=None) -> dict:
-    """Run ``planner`` in closed loop on the true ``env`` (one episode per world) for ``steps``
-    data steps: each step the planner sees the true state, its action runs in ``env``.
-
-    ``qpos0`` / ``qvel0``: reset ``env`` there first (else it continues from its current state).
-    Returns {"returns" [N] (``reward`` of the true trajectory), "states" [N, steps+1, B, 13],
-    "actions" [N, steps, U] (as applied, clamped), "plan_seconds" [steps] (host wall time of
-    each planning step, the device synchronized)}. ``reward`` may be a task (its ``.reward``)."""
-    reward = getattr(reward, "reward", reward)
-    if qpos0 is not None:
-        env.reset(qpos0, qvel0)
-    if hasattr(planner, "reset"):
-        planner.reset()
-    obs = env.observe()
-    states, actions, secs = [obs.body], [], []
-    dev = getattr(planner, "device", env.device)
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        a = planner.step(obs)
-        _sync(dev)
-        secs.append(time.perf_counter() - t0)
-        body = env.step(a)
-        actions.append(env.last_ctrl.to(torch.float32))
-        states.append(body)
-        obs = env.observe()
-    states_t = torch.stack(states, 1)
-    actions_t = torch.stack(actions, 1) if actions else torch.zeros(env.n_worlds, 0, env.nu, device=env.device)
-    returns = torch.as_tensor(reward(states_t, actions_t)).detach()
-    return {"returns": returns, "states": states_t, "actions": actions_t, "plan_seconds": np.asarray(secs)}

@@ -1,0 +1,74 @@
+"""Closed-loop episodes on the true simulator: one runner for every planner (gradient MPC,
+sampling MPC, random actions, or a user's object with ``step``).
+
+Each of ``steps`` data steps the planner sees the episodes' true state and returns actions
+[N, U]; the true ``Env`` executes them (clamped to the actuators' ranges as MuJoCo does); the
+true trajectory is scored by the task's reward. A planner that plans on the simulator itself
+(``needs_sim_state``: sampling MPC on ``EnvDynamics``) gets ``env.observe()`` (qpos, qvel and
+body states), every other one the body states [N, B, 13].
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+
+from gnwarp.control.tasks import Task, get_task
+
+__all__ = ["run_episodes"]
+
+
+def _sync(device) -> None:
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run_episodes(planner, env, task, steps: int, x0=None, *, target=None, qpos0=None, qvel0=None,
+                 progress: Callable[[int], None] | None = None) -> dict:
+    """Run ``planner`` in closed loop on ``env`` (one episode per world) for ``steps`` steps.
+
+    ``task``: a task name or ``Task`` (its reward, with ``target``: per-episode targets, default
+    the planner's ``target``), or any ``reward(states [N, T+1, B, 13], actions [N, T, U]) -> [N]``.
+    Start: ``qpos0`` / ``qvel0`` (the env is reset there), else ``x0`` (body states of an env
+    already reset: ``x0 = env.reset(...)``), else the env's current state. Returns {"returns" [N]
+    (the true trajectory's reward), "states" [N, steps+1, B, 13], "actions" [N, steps, U] (as
+    applied), "plan_seconds" [steps] (wall time of each planning step, the device synchronized)},
+    tensors on the CPU."""
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    if isinstance(task, (str, Task)):
+        task = get_task(task)
+        if target is not None and hasattr(planner, "_target"):
+            planner.target = planner._target(target)
+        tgt = target if target is not None else getattr(planner, "target", None)
+        tgt = None if tgt is None else torch.as_tensor(tgt).detach().cpu().float()
+        score = lambda s, a: task.reward(s, a, tgt)  # noqa: E731
+    elif callable(getattr(task, "reward", None)) or callable(task):
+        score = getattr(task, "reward", task)
+    else:
+        raise TypeError(f"task must be a task name, a Task or a reward callable, got {type(task).__name__}")
+    if qpos0 is not None:
+        x = torch.as_tensor(env.reset(qpos0, qvel0))
+    elif x0 is not None:
+        x = torch.as_tensor(x0)
+    else:
+        x = torch.as_tensor(env.body_states())
+    sim_state = bool(getattr(planner, "needs_sim_state", False))
+    device = getattr(planner, "device", getattr(env, "device", None))
+    states, actions, secs = [x.detach().cpu().float()], [], []
+    for t in range(steps):
+        t0 = time.perf_counter()
+        a = planner.step(env.observe() if sim_state else x)
+        _sync(device)
+        secs.append(time.perf_counter() - t0)
+        x = torch.as_tensor(env.step(a))
+        applied = getattr(env, "last_ctrl", None)
+        actions.append((applied if applied is not None else torch.as_tensor(a)).detach().cpu().float())
+        states.append(x.detach().cpu().float())
+        if progress:
+            progress(t + 1)
+    states_t, actions_t = torch.stack(states, 1), torch.stack(actions, 1)
+    returns = torch.as_tensor(score(states_t, actions_t)).detach().cpu().float()
+    return {"returns": returns, "states": states_t, "actions": actions_t, "plan_seconds": np.asarray(secs)}
