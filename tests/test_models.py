@@ -508,3 +508,30 @@ def test_core_wirings_match_reference_and_weight_count(swimmer, wiring):
         b = m.set_options(impl="torch").rollout(x0, u)
     torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
     assert torch.isfinite(a).all() and not torch.equal(a[:, 1], a[:, 0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("noise", [0.0, 0.05])
+def test_noisy_centred_inputs_match_the_torch_formulas(swimmer, dtype, noise):
+    """The loss's input states (one Warp launch): noise on moving bodies with re-normalized
+    orientations, then each graph's moving bodies re-centred in x, y, as the torch formulas."""
+    from gnwarp.state import quat_normalize as qn
+    m = tiny_model(swimmer, impl="warp", dtype=dtype, recenter=True, warm=False)
+    sp = swimmer["train"]
+    N = 3
+    g = m.builder(torch.zeros(N, dtype=torch.long), torch.as_tensor(sp.body[:N, 2]), torch.as_tensor(sp.ctrl[:N, 2]))
+    ctx = m.context(g)
+    noisy, centred = m._noisy_centred(g.nodes, noise, ctx, torch.Generator().manual_seed(5))
+    dyn = g.nodes[:, -13:]
+    if noise:
+        eps = torch.randn(dyn.shape, generator=torch.Generator().manual_seed(5), dtype=dtype) * noise
+        ref = dyn + eps * ctx.movable[:, None]
+        ref = torch.cat([ref[:, :3], qn(ref[:, 3:7]), ref[:, 7:]], -1)
+    else:
+        ref = dyn
+    tol = dict(rtol=1e-6, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(noisy, ref, **tol)
+    torch.testing.assert_close(centred, m._recenter(ref, ctx)[0], **tol)
+    assert torch.equal(noisy[~ctx.movable], dyn[~ctx.movable])          # world bodies untouched
+    means = centred[ctx.movable, :2].reshape(N, -1, 2).mean(1)
+    assert means.abs().max() < 1e-5 and (centred[:, :2] != noisy[:, :2]).any()   # centred, and it did something

@@ -28,6 +28,8 @@ from gnwarp.data.builder import GraphTemplate, graph_builder
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.gn.options import RunOptions
 from gnwarp.graphs import GraphsTuple, graph_of
+from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.kernels.models import forward as K
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
 from gnwarp.models.normalizer import Normalizer, normalize_graph
@@ -54,6 +56,8 @@ class StepContext(NamedTuple):
     n_graph: int
     index: Any                 # the core's graph index (Warp GraphIndex or None)
     stats: dict                # normalizer (mean, std) by name, as of when the context was made
+    movable_i32: Any = None    # [n_nodes] int32 of movable, and [n_graph + 1] int32 first node of
+    node_offsets: Any = None   # each graph: what the Warp kernel of a batch's inputs reads
 
 
 class ForwardModel(nn.Module):
@@ -158,7 +162,9 @@ class ForwardModel(nn.Module):
         node_graph = graph_of(n_node, n_nodes)
         first = torch.cumsum(n_node, 0) - n_node
         movable = torch.arange(n_nodes, device=n_node.device) != first[node_graph]
-        ctx = StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), {})
+        offsets = torch.cat([first, first.new_full((1,), n_nodes)]).to(torch.int32)
+        ctx = StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), {}, movable.to(torch.int32),
+                          offsets)
         snd._gnwarp_contexts = (entries + [(others, sig, ctx)])[-4:]
         return ctx
 
@@ -174,6 +180,21 @@ class ForwardModel(nn.Module):
         off = (s / c.clamp_min(1.0))[ctx.node_graph] * w
         off = torch.cat([off, off.new_zeros(off.shape[0], DYN_NODE_SIZE - 2)], -1)
         return dyn - off, off
+
+    def _noisy_centred(self, nodes: torch.Tensor, noise_std: float, ctx: StepContext,
+                       generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """A training batch's input states [n, 13] (D.7.1: Gaussian noise of ``noise_std`` on the
+        moving bodies, orientations re-normalized) and the same re-centred (D.4, when the model
+        re-centres), in one Warp launch (``kernels/models/forward.py``); no gradient flows."""
+        dyn = nodes[:, -DYN_NODE_SIZE:]
+        noise = noise_std > 0
+        eps = torch.randn(dyn.shape, generator=generator, device=dyn.device, dtype=dyn.dtype) if noise else dyn
+        nodes = nodes.detach().contiguous()
+        noisy, centred = torch.empty_like(dyn), torch.empty_like(dyn)
+        kernel = K.noisy_centred_kernel(WP_DTYPE[dyn.dtype], noise, bool(self.config.recenter))
+        Launcher(nodes)(kernel, ctx.n_graph, nodes, nodes.shape[1] - DYN_NODE_SIZE, eps.detach(), float(noise_std),
+                        ctx.movable_i32, ctx.node_offsets, noisy, centred)
+        return noisy, centred
 
     def _accumulate_input(self, graph: GraphsTuple) -> None:
         if self.norm_globals is not None:
@@ -293,11 +314,10 @@ class ForwardModel(nn.Module):
         """
         ctx = self.context(graph, stats=not accumulate)
         dyn = graph.nodes[:, -DYN_NODE_SIZE:]
-        if noise_std > 0:
-            eps = torch.randn(dyn.shape, generator=generator, device=dyn.device, dtype=dyn.dtype) * noise_std
-            noisy = dyn + eps * ctx.movable[:, None]
-            dyn = torch.cat([noisy[:, :3], quat_normalize(noisy[:, QUAT]), noisy[:, 7:]], -1)
-        dyn_c, off = self._recenter(dyn, ctx)
+        if noise_std > 0 or self.config.recenter:
+            dyn, dyn_c = self._noisy_centred(graph.nodes, noise_std, ctx, generator)
+        else:
+            dyn_c = dyn
         graph = self._with_dynamic(graph, dyn_c)
         delta = state_delta(dyn, target)  # translation does not change it
         w = ctx.movable.to(dyn.dtype)
