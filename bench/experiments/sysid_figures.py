@@ -1,0 +1,485 @@
+"""Issue 16, experiments 1, 2 and 4: system identification (paper Figures 8 and 9, Algorithms D.2,
+D.4) and a linear probe of G_ID.
+
+Figure 8 (Pendulum, Cartpole, Cheetah, JACO; parameterized data, one sampled instance per
+sequence): rollout error normalized to the constant baseline of four models, all rolled out from
+step W (= the window, 20) of each test sequence for the rest of it (80 steps of 100):
+
+  no params    a fixed-system forward model trained on the varied data: its ``FeatureLayout`` is
+               the fixed system's and its graph builder gives every sequence the fixed system's
+               static graph (``fixed_system`` below), so it never sees the parameters;
+  true params  the forward model on the parameterized layout (the true static graph);
+  sysid same   ``SysIDModel``: G_ID from steps [0, W) of the same sequence (same instance);
+  sysid other  G_ID from steps [0, W) of another test sequence (another instance).
+
+Goal (issue 16): sysid same within 1.2x of true params, and clearly below no params.
+
+Figure 9 (Pendulum): the pendulum sysid model of Figure 8 on new instances of fixed mass (1.0)
+and given lengths (the length is never observed: no static feature reaches the model). Each
+instance is simulated twice from the same initial states: under random spline controls
+throughout ("with controls"), and with the controls of the identification window [0, W) set to
+zero ("without controls", a passive window; the same controls after it). G_ID from the window,
+rollouts from step W; errors per length and condition, true vs predicted pendulum angle plotted.
+
+Probe (beyond the paper): a least-squares (small ridge) linear map from G_ID (globals, node
+latents mean-pooled over the movable bodies, edge latents mean-pooled) to the instance's true
+parameters (``ds.static["params"]``, names in ``ds.meta["param_names"]``), fitted on G_IDs of
+train sequences (first window) and scored by R^2 per parameter on the test sequences.
+
+    python bench/experiments/sysid_figures.py --quick                       # CPU smoke run (about 1 min)
+    python bench/experiments/sysid_figures.py --systems pendulum --seconds 120
+    python bench/experiments/sysid_figures.py --systems cartpole --seconds 120    # one system a call
+
+Each system trains three models (no params, true params, sysid), each capped at ``--seconds``
+of wall clock (and ``--steps`` steps; learning rate x0.6 every quarter of ``--steps``). One
+system per call fits a 10-minute command at ``--seconds 120``. Rows are appended to
+``results.jsonl``; ``summary.md``, ``fig8.png`` (and ``fig9.png`` when Pendulum ran) are rebuilt
+from all rows there (the newest row of each system / model), so systems can run in separate
+calls. Datasets are cached under ``--data`` (default: a temporary folder), checkpoints under
+``--runs`` (default: a temporary folder).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from bench.harness import device_name, experiment_out, gn_sizes  # noqa: E402
+
+SYSTEMS = ["pendulum", "cartpole", "cheetah", "jaco"]
+MODELS = ("no params", "true params", "sysid same", "sysid other")
+FIG9_LENGTHS = (0.3, 0.6, 0.9)
+
+
+# -- models ---------------------------------------------------------------------------------------
+def fixed_system(model, system: str):
+    """``model`` (on the fixed system's layout) reading every dataset as the fixed system: its
+    graph builder gives each instance the fixed system's static graph, whatever the instance's
+    parameters. (Mapping the parameterized data onto the fixed layout with ``strict=False`` is
+    not enough: columns that vary across bodies, e.g. a pendulum's body mass and inertia, stay
+    kept columns of the fixed layout and would carry the parameters.) Set on the instance, so the
+    Trainer's sampler, its validation and ``gnwarp.eval`` all use it."""
+    from types import SimpleNamespace
+
+    from gnwarp.data import static_arrays
+    from gnwarp.models import ForwardModel
+    from gnwarp.sim import make
+    static, layout, _ = static_arrays([make(system)])
+
+    def graph_builder(source, strict: bool = True):
+        if not hasattr(source, "static"):      # a System: its own static graph
+            return ForwardModel.graph_builder(model, source, strict)
+        I = np.asarray(source.static["n_node"]).shape[0]
+        tiled = {k: np.repeat(np.asarray(v)[:1], I, 0) for k, v in static.items()}
+        for k in ("senders", "receivers", "n_node", "n_edge", "edge_ctrl"):
+            if not np.array_equal(tiled[k], np.asarray(source.static[k])):
+                raise ValueError(f"{system}: the data's instances do not all have the fixed system's topology ({k})")
+        view = SimpleNamespace(static=tiled, layout=layout, meta=source.meta)
+        return ForwardModel.graph_builder(model, view, strict)
+    model.graph_builder = graph_builder
+    return model
+
+
+def fixed_layout(system: str):
+    """The fixed system's ``FeatureLayout`` (the parameters are dropped constants there)."""
+    from gnwarp.data import static_arrays
+    from gnwarp.sim import make
+    return static_arrays([make(system)])[1]
+
+
+def model_config(args, ds):
+    from gnwarp.models import ModelConfig
+    from gnwarp.models.config import DEFAULT_RUN
+    run = DEFAULT_RUN.replace(impl=args.impl)
+    return ModelConfig(gn=gn_sizes(args.latent, args.edge_width, args.node_width), run=run,
+                       recenter=bool(ds.meta.get("translation_invariant", False)))
+
+
+def train_config(args, out, ds):
+    from gnwarp.train import TrainConfig
+    return TrainConfig(out=str(out), model=model_config(args, ds), steps=args.steps, max_seconds=args.seconds,
+                       batch_size=args.batch, lr=args.lr, lr_decay=0.6, lr_decay_steps=max(1, args.steps // 4),
+                       valid_every=args.valid_every, valid_sequences=min(args.valid, len(ds["valid"])),
+                       patience=None, checkpoint_every=max(1, args.steps), resume=False, progress=False,
+                       device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup)
+
+
+def identifier_config(args):
+    from gnwarp.models import RecurrentGNConfig
+    g, mlp = args.gid, tuple(args.identifier_mlp)
+    return RecurrentGNConfig(latent=args.identifier_latent, hidden_edges=g, hidden_nodes=g, hidden_globals=g,
+                             out_edges=g, out_nodes=g, out_globals=g, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
+
+
+def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
+    """The three models of one system, trained on ``ds``: ({label: model}, {label: train summary})."""
+    from gnwarp.models import ForwardModel, SysIDConfig
+    from gnwarp.train import Trainer, load_model
+    from gnwarp.train.sysid import SysIDTrainer, load_sysid
+
+    models, info = {}, {}
+    cfg = train_config(args, runs / system / "no_params", ds)
+    nop = fixed_system(ForwardModel(cfg.model, fixed_layout(system)), system)
+    r = Trainer(cfg, datasets=[ds], model=nop).run()
+    models["no params"], info["no params"] = fixed_system(load_model(r["best"], device=args.device), system), r
+
+    cfg = train_config(args, runs / system / "true_params", ds)
+    r = Trainer(cfg, datasets=[ds]).run()
+    models["true params"], info["true params"] = load_model(r["best"], device=args.device), r
+
+    cfg = train_config(args, runs / system / "sysid", ds)
+    r = SysIDTrainer(cfg, SysIDConfig(identifier=identifier_config(args), window=args.window), datasets=[ds]).run()
+    models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
+    for m in models.values():
+        m.eval()
+    return models, info
+
+
+# -- errors ---------------------------------------------------------------------------------------
+def split_arrays(ds, split: str, n: int | None):
+    sp = ds[split]
+    n = len(sp) if n is None else min(int(n), len(sp))
+    return (np.asarray(sp.body[:n], dtype=np.float32), np.asarray(sp.ctrl[:n], dtype=np.float32),
+            np.asarray(sp.instance[:n]))
+
+
+def window_error(pred: np.ndarray, true: np.ndarray, mask: np.ndarray) -> float:
+    """Normalized error (``gnwarp.eval.metrics.normalized_errors``) of rollouts [S, H+1, B, 13]
+    whose step 0 is the true state; the constant baseline repeats it."""
+    from gnwarp.eval.metrics import normalized_errors
+    const = np.broadcast_to(true[:, :1], true.shape)
+    r = normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"]
+    return r if math.isfinite(r) else math.inf
+
+
+@torch.no_grad()
+def forward_window_error(model, ds, split: str, W: int, horizon: int, n: int | None, batch: int = 1024) -> float:
+    """A forward model's error as ``sysid_rollout_error`` measures sysid's: rollouts from step
+    ``W`` of each of the first ``n`` sequences of ``split`` for ``horizon`` steps (cut to the
+    sequences' end), under their true controls."""
+    from gnwarp.eval.metrics import movable_mask
+    body, ctrl, inst = split_arrays(ds, split, n)
+    H = min(int(horizon), ctrl.shape[1] - W)
+    builder = model.graph_builder(ds)
+    preds = []
+    for a in range(0, body.shape[0], batch):
+        b = slice(a, a + batch)
+        r = model.rollout(torch.as_tensor(body[b, W]), torch.as_tensor(ctrl[b, W:W + H]), torch.as_tensor(inst[b]),
+                          builder=builder)
+        preds.append(r.float().cpu().numpy())
+    return window_error(np.concatenate(preds), body[:, W:W + H + 1], movable_mask(ds, inst))
+
+
+def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
+    from gnwarp.eval.metrics import rollout_error
+    from gnwarp.train.sysid import sysid_rollout_error
+    W, n = args.window, min(args.test, len(ds["test"]))
+    H = ds["test"].num_steps - W
+    other = np.roll(np.arange(n), 1)     # sequence i identified from sequence i-1's window: another instance
+    errs = {"no params": forward_window_error(models["no params"], ds, "test", W, H, n),
+            "true params": forward_window_error(models["true params"], ds, "test", W, H, n),
+            "sysid same": sysid_rollout_error(models["sysid"], ds, "test", H, n),
+            "sysid other": sysid_rollout_error(models["sysid"], ds, "test", H, n, window_from=other)}
+    # for reference, the forward models' usual error (rollouts from step 0, ``gnwarp.eval``)
+    from_0 = {k: rollout_error(models[k], ds, "test", ds["test"].num_steps, n) for k in ("no params", "true params")}
+    return [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
+             "test_sequences": n, "from_step_0": from_0.get(k)} for k, v in errs.items()]
+
+
+# -- probe ----------------------------------------------------------------------------------------
+@torch.no_grad()
+def gid_features(model, ds, split: str, n: int | None, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """([S, F] G_ID features of the first ``n`` sequences of ``split``, identified from their
+    first window: globals, node latents mean-pooled over the movable bodies, edge latents
+    mean-pooled; [S] instances)."""
+    body, ctrl, inst = split_arrays(ds, split, n)
+    W = model.window
+    model.bind(ds)
+    feats = []
+    for a in range(0, body.shape[0], batch):
+        b = slice(a, a + batch)
+        g = model.identify(torch.as_tensor(body[b, :W]), torch.as_tensor(ctrl[b, :W]), torch.as_tensor(inst[b]))
+        N = g.n_node.shape[0]
+        parts = []
+        if g.globals is not None:
+            parts.append(g.globals.float().cpu().numpy())
+        if g.nodes is not None:
+            B = int(g.n_node[0])
+            parts.append(g.nodes.float().cpu().numpy().reshape(N, B, -1)[:, 1:].mean(1))  # fixed topology per system
+        if g.edges is not None:
+            E = int(g.n_edge[0])
+            parts.append(g.edges.float().cpu().numpy().reshape(N, E, -1).mean(1))
+        feats.append(np.concatenate(parts, -1))
+    return np.concatenate(feats), inst
+
+
+def probe_rows(args, system: str, ds, model) -> list[dict]:
+    params = np.asarray(ds.static["params"], dtype=np.float64)
+    names = list(ds.meta.get("param_names", [f"p{i}" for i in range(params.shape[1])]))
+    xtr, itr = gid_features(model, ds, "train", args.probe_train)
+    xte, ite = gid_features(model, ds, "test", args.test)
+    mu, sd = xtr.mean(0), xtr.std(0) + 1e-8
+    A = np.concatenate([(xtr - mu) / sd, np.ones((len(xtr), 1))], 1)
+    At = np.concatenate([(xte - mu) / sd, np.ones((len(xte), 1))], 1)
+    reg = 1e-3 * np.eye(A.shape[1])
+    reg[-1, -1] = 0.0
+    rows = []
+    for j, name in enumerate(names):
+        y, yt = params[itr, j], params[ite, j]
+        ok, okt = np.isfinite(y), np.isfinite(yt)
+        if ok.sum() < 2 or okt.sum() < 2 or np.var(yt[okt]) == 0:
+            continue
+        w = np.linalg.solve(A[ok].T @ A[ok] + reg * ok.sum(), A[ok].T @ y[ok])
+        res = yt[okt] - At[okt] @ w
+        r2 = 1.0 - float(np.mean(res ** 2) / np.var(yt[okt]))
+        rows.append({"part": "probe", "system": system, "param": name, "r2": r2, "train": int(ok.sum()),
+                     "test": int(okt.sum()), "features": int(A.shape[1] - 1)})
+    return rows
+
+
+# -- Figure 9 -------------------------------------------------------------------------------------
+@torch.no_grad()
+def fig9(args, models: dict, out: Path) -> list[dict]:
+    """Pendulum instances of given lengths (mass 1): identification windows with and without
+    controls, rollouts from step W; rows of errors and the trajectories of one sequence each."""
+    from gnwarp.data import initial_states
+    from gnwarp.sim import control_range, make, random_spline_controls, simulate
+    sysid, true_m = models["sysid"], models["true params"]
+    W, T, n = args.window, args.num_steps, args.fig9_sequences
+    H = T - W
+    rows, traces = [], {}
+    for k, L in enumerate(args.fig9_lengths):
+        system = make("pendulum", params={"length": float(L), "mass": 1.0})
+        rng = np.random.default_rng(args.seed + 1000 + k)
+        q0, v0 = initial_states(system, n, rng)
+        u = random_spline_controls(n, T, control_range(system.model), rng).astype(np.float32)
+        passive = u.copy()
+        passive[:, :W] = 0.0
+        sysid.bind(system)
+        builder = true_m.graph_builder(system)
+        for cond, uu in (("with controls", u), ("without controls", passive)):
+            body = simulate(system, q0, v0, uu, backend=args.backend).body.astype(np.float32)
+            mask = np.broadcast_to(np.arange(body.shape[2])[None] >= 1, (n, body.shape[2]))
+            g = sysid.identify(torch.as_tensor(body[:, :W]), torch.as_tensor(uu[:, :W]))
+            pred = sysid.rollout(torch.as_tensor(body[:, W]), torch.as_tensor(uu[:, W:W + H]), g).float().cpu().numpy()
+            ref = true_m.rollout(torch.as_tensor(body[:, W]), torch.as_tensor(uu[:, W:W + H]),
+                                 torch.zeros(n, dtype=torch.int64), builder=builder).float().cpu().numpy()
+            true = body[:, W:W + H + 1]
+            rows.append({"part": "fig9", "system": "pendulum", "length": float(L), "condition": cond,
+                         "sysid": window_error(pred, true, mask), "true params": window_error(ref, true, mask),
+                         "fig9_sequences": n, "window": W, "horizon": H})
+            traces[(float(L), cond)] = (body[0], pred[0], ref[0], uu[0])
+    plot_fig9(traces, args.fig9_lengths, W, out / "fig9.png")
+    return rows
+
+
+def pendulum_angle(body: np.ndarray) -> np.ndarray:
+    """The pole's hinge angle (about y) of states [T, B, 13], unwrapped."""
+    q = body[:, 1]
+    return np.unwrap(2.0 * np.arctan2(q[:, 5], q[:, 3]))
+
+
+def plot_fig9(traces: dict, lengths, W: int, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    conds = ("with controls", "without controls")
+    fig, axes = plt.subplots(2, len(lengths), figsize=(4.2 * len(lengths), 6.4), squeeze=False, sharex=True)
+    for i, cond in enumerate(conds):
+        for j, L in enumerate(lengths):
+            ax = axes[i, j]
+            body, pred, ref, u = traces[(float(L), cond)]
+            t = np.arange(body.shape[0])
+            a = pendulum_angle(body)
+            ax.axvspan(0, W, color="0.9", label="identification window")
+            ax.plot(t, a, "k", label="true")
+            off = a[W] - pendulum_angle(pred)[0]    # the same branch of the unwrapped angle
+            ax.plot(t[W:], pendulum_angle(pred) + off, "C1", label="sysid (G_ID)")
+            ax.plot(t[W:], pendulum_angle(ref) + (a[W] - pendulum_angle(ref)[0]), "C2--", lw=1, label="true params")
+            ax2 = ax.twinx()
+            ax2.plot(t[:-1], u[:, 0], color="C0", alpha=0.3, lw=0.8)
+            ax2.set_yticks([])
+            ax.set_title(f"length x{L:g}, {cond}", fontsize=9)
+            if j == 0:
+                ax.set_ylabel("angle (rad)")
+            if i == 1:
+                ax.set_xlabel("step")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    fig.suptitle("Figure 9: Pendulum (length unobserved), identification with / without control inputs "
+                 "(controls in light blue)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- results --------------------------------------------------------------------------------------
+def latest(rows: list[dict]) -> list[dict]:
+    """The newest row of each (part, system, model / param / length + condition), in first-seen order."""
+    keep = {}
+    for r in rows:
+        keep[(r["part"], r["system"], r.get("model"), r.get("param"), r.get("length"), r.get("condition"))] = r
+    return list(keep.values())
+
+
+def _g(x) -> str:
+    return "-" if x is None else ("inf" if not math.isfinite(x) else f"{x:.3g}")
+
+
+def write_summary(out: Path, rows: list[dict], args) -> None:
+    f8 = [r for r in rows if r["part"] == "fig8"]
+    systems = [s for s in dict.fromkeys(r["system"] for r in f8)]
+    dev = next((r.get("device") for r in reversed(rows) if r.get("device")), "?")
+    lines = [f"# System identification: Figures 8, 9 and a linear probe of G_ID ({dev})", "",
+             f"`python bench/experiments/sysid_figures.py` ({time.strftime('%Y-%m-%d')}"
+             f"{', --quick: smoke sizes, numbers meaningless' if args.quick else ''}). Parameterized data "
+             "(one sampled instance per sequence). Errors: squared error / constant baseline, mean over state "
+             "groups, of rollouts from step W (the window) of each test sequence to its end.", "",
+             "## Figure 8", "",
+             "| system | W / horizon | no params | true params | sysid same | sysid other | sysid / true | "
+             "sysid / no params | goal (<= 1.2x true, < no params) |", "|---|---|---|---|---|---|---|---|---|"]
+    for s in systems:
+        e = {r["model"]: r for r in f8 if r["system"] == s}
+        v = {k: e[k]["error"] if k in e else None for k in MODELS}
+        r_true = v["sysid same"] / v["true params"] if v["true params"] else None
+        r_nop = v["sysid same"] / v["no params"] if v["no params"] else None
+        ok = r_true is not None and r_nop is not None and r_true <= 1.2 and r_nop < 1.0
+        first = next(iter(e.values()))
+        lines.append(f"| {s} | {first['window']} / {first['horizon']} | " + " | ".join(_g(v[k]) for k in MODELS)
+                     + f" | {_g(r_true)} | {_g(r_nop)} | {'yes' if ok else 'no'} |")
+    f9 = [r for r in rows if r["part"] == "fig9"]
+    if f9:
+        lines += ["", "## Figure 9 (Pendulum, mass 1, length unobserved)", "",
+                  f"{f9[0]['fig9_sequences']} sequences per length; window {f9[0]['window']} steps, rollouts "
+                  f"{f9[0]['horizon']} steps. \"without controls\": zero controls in the window (same controls after).",
+                  "", "| length factor | condition | sysid | true params |", "|---|---|---|---|"]
+        for r in f9:
+            lines.append(f"| {r['length']:g} | {r['condition']} | {_g(r['sysid'])} | {_g(r['true params'])} |")
+    pr = [r for r in rows if r["part"] == "probe"]
+    if pr:
+        lines += ["", "## Linear probe: G_ID -> true parameters (R^2 on test instances)", "",
+                  "Least squares (ridge 1e-3) on standardized G_ID features (globals, mean node and edge latents), "
+                  "fitted on train sequences' G_IDs.", "", "| system | parameter | R^2 | train / test |",
+                  "|---|---|---|---|"]
+        for r in pr:
+            lines.append(f"| {r['system']} | {r['param']} | {r['r2']:.3f} | {r['train']} / {r['test']} |")
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def plot_fig8(out: Path, rows: list[dict]) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    f8 = [r for r in rows if r["part"] == "fig8"]
+    systems = list(dict.fromkeys(r["system"] for r in f8))
+    if not systems:
+        return
+    x = np.arange(len(systems))
+    w = 0.2
+    fig, ax = plt.subplots(figsize=(2.2 + 1.8 * len(systems), 3.8))
+    for i, k in enumerate(MODELS):
+        v = [next((r["error"] for r in f8 if r["system"] == s and r["model"] == k), np.nan) for s in systems]
+        ax.bar(x + (i - 1.5) * w, v, w, label=k)
+    ax.axhline(1.0, color="k", lw=0.8, ls=":", label="constant")
+    ax.set_yscale("log")
+    ax.set_xticks(x, systems)
+    h = f8[0]["horizon"]
+    ax.set_ylabel(f"{h}-step rollout error / constant")
+    ax.set_title("Figure 8: system identification", fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "fig8.png", dpi=110)
+    plt.close(fig)
+
+
+# -- main -----------------------------------------------------------------------------------------
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--systems", default=",".join(SYSTEMS))
+    ap.add_argument("--sequences", type=int, nargs=3, default=(5000, 100, 200), metavar=("TRAIN", "VALID", "TEST"))
+    ap.add_argument("--num-steps", type=int, default=100, help="steps per simulated sequence")
+    ap.add_argument("--window", type=int, default=20, help="identification window (steps)")
+    ap.add_argument("--seconds", type=float, default=120.0, help="training cap per model (wall clock)")
+    ap.add_argument("--steps", type=int, default=20000, help="training steps per model (lr x0.6 every quarter)")
+    ap.add_argument("--batch", type=int, default=200)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--valid-every", type=int, default=1000)
+    ap.add_argument("--latent", type=int, default=128)
+    ap.add_argument("--edge-width", type=int, default=256)
+    ap.add_argument("--node-width", type=int, default=128)
+    ap.add_argument("--gid", type=int, default=10, help="G_ID width per node / edge / global (and GN_p's hidden)")
+    ap.add_argument("--identifier-latent", type=int, default=128)
+    ap.add_argument("--identifier-mlp", type=int, nargs="+", default=(128, 128))
+    ap.add_argument("--probe-train", type=int, default=2000, help="train sequences the probe is fitted on")
+    ap.add_argument("--fig9-sequences", type=int, default=50)
+    ap.add_argument("--impl", default="warp", choices=("warp", "torch"))
+    ap.add_argument("--backend", default="mujoco")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--data", default=None, help="dataset folder (cached; default: a temporary one)")
+    ap.add_argument("--runs", default=None, help="checkpoint folder (default: a temporary one)")
+    ap.add_argument("--out", default=None, help="default: bench/results/sysid_figures (--quick: a temporary folder)")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
+    args = ap.parse_args()
+    args.valid, args.test = args.sequences[1], args.sequences[2]
+    args.fig9_lengths, args.normalizer_warmup = FIG9_LENGTHS, 20
+    if args.quick:
+        args.sequences, args.num_steps, args.window, args.seconds, args.steps = (32, 4, 8), 24, 8, 5.0, 40
+        args.valid, args.test, args.batch, args.valid_every, args.normalizer_warmup = 4, 8, 16, 1000, 2
+        args.latent, args.edge_width, args.node_width = 16, 32, 16
+        args.gid, args.identifier_latent, args.identifier_mlp = 4, 16, (16,)
+        args.probe_train, args.fig9_sequences, args.fig9_lengths = 32, 3, (0.4, 0.9)
+        args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
+    out = experiment_out("sysid_figures", args.out, args.quick)
+    out.mkdir(parents=True, exist_ok=True)
+    from gnwarp import data
+    from gnwarp.interop import resolve_device
+
+    dev = device_name(resolve_device(args.device))
+    new = []
+    with tempfile.TemporaryDirectory() as tmp:
+        data_dir = Path(args.data or Path(tmp) / "data")
+        runs = Path(args.runs or Path(tmp) / "runs")
+        data_dir.mkdir(parents=True, exist_ok=True)
+        for system in args.systems.split(","):
+            t0 = time.perf_counter()
+            path = data_dir / f"{system}-param-{'-'.join(map(str, args.sequences))}x{args.num_steps}-s{args.seed}.h5"
+            if not path.exists():
+                data.generate(system, tuple(args.sequences), num_steps=args.num_steps, seed=args.seed,
+                              backend=args.backend, parameterized=True, progress=False).save(path)
+            ds = data.load(path, lazy=False)
+            t_data = time.perf_counter() - t0
+            models, info = train_all(args, ds, system, runs)
+            rows = fig8_rows(args, system, ds, models)
+            for r in rows:
+                key = "sysid" if r["model"].startswith("sysid") else r["model"]
+                r.update(steps=info[key]["steps"], train_seconds=round(info[key]["seconds"], 1))
+            rows += probe_rows(args, system, ds, models["sysid"])
+            if system == "pendulum":
+                rows += fig9(args, models, out)
+            for r in rows:
+                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1),
+                         sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
+                print(json.dumps(r), flush=True)
+            new += rows
+            with open(out / "results.jsonl", "a") as f:
+                for r in rows:
+                    f.write(json.dumps(r) + "\n")
+    every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
+    every = latest(every)
+    write_summary(out, every, args)
+    plot_fig8(out, every)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
