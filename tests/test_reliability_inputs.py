@@ -22,6 +22,7 @@ from gnwarp.graphs import GraphsTuple, batch, unbatch, validate
 from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig
 from gnwarp.models.rollout import RolloutInputError
 from gnwarp.train import TrainConfig
+from oracles import TruthModel
 
 TINY = GNCoreConfig(latent=8, edge_hidden=(16,), node_hidden=(16,), global_hidden=(16,))
 
@@ -169,39 +170,9 @@ def pendulum():
     return data.generate("pendulum", (4, 2, 3), num_steps=8, seed=0, backend="mujoco", progress=False)
 
 
-class _Diverging:
-    """A stand-in model whose rollouts are the true states until step ``k``, then NaN (and whose
-    one-step predictions are exact): what ``evaluate`` reports of it."""
-    training = False
-
-    def __init__(self, ds, k):
-        self.ds, self.k = ds, k
-
-    def eval(self):
-        return self
-
-    def train(self, mode=True):
-        return self
-
-    def graph_builder(self, ds):
-        return None
-
-    def rollout(self, x0, ctrl, instance, builder=None):
-        sp = self.ds["test"]
-        T = ctrl.shape[1]
-        if T == 1:  # one-step predictions: the true next state of each (sequence, step)
-            body = torch.as_tensor(np.asarray(sp.body[:, :-1], dtype=np.float32))
-            nxt = torch.as_tensor(np.asarray(sp.body[:, 1:], dtype=np.float32))
-            flat_x, flat_n = body.reshape(-1, *body.shape[2:]), nxt.reshape(-1, *nxt.shape[2:])
-            idx = [int(torch.nonzero((flat_x == x).all(-1).all(-1))[0]) for x in x0]
-            return torch.stack([x0, flat_n[idx]], 1)
-        traj = torch.as_tensor(np.asarray(sp.body[:x0.shape[0], :T + 1], dtype=np.float32)).clone()
-        traj[:1, self.k:] = float("nan")   # the first sequence diverges at step k
-        return traj
-
 
 def test_evaluate_reports_the_first_nonfinite_step(pendulum, tmp_path, monkeypatch, capsys):
-    r = metrics.evaluate(_Diverging(pendulum, 3), pendulum, "test", horizons=(2, 5))
+    r = metrics.evaluate(TruthModel(pendulum, 3), pendulum, "test", horizons=(2, 5))
     assert r["rollout_2"]["first_nonfinite_step"] is None and math.isfinite(r["rollout_2"]["mean"])
     assert r["rollout_5"]["first_nonfinite_step"] == 3 and r["rollout_5"]["nonfinite_sequences"] == 1
     assert r["rollout_5"]["mean"] == math.inf and r["first_nonfinite_step"] == 3 and not r["finite"]
@@ -212,13 +183,13 @@ def test_evaluate_reports_the_first_nonfinite_step(pendulum, tmp_path, monkeypat
     import gnwarp.data.dataset as dataset_module
     import gnwarp.train as train_module
     monkeypatch.setattr(dataset_module, "load", lambda path: pendulum)
-    monkeypatch.setattr(train_module, "load_model", lambda path, **kw: _Diverging(pendulum, 3))
+    monkeypatch.setattr(train_module, "load_model", lambda path, **kw: TruthModel(pendulum, 3))
     assert cli.main(["evaluate", "ck", "--names", "GN", "--data", "x.h5", "--horizons", "2,5"]) == 1
     out = capsys.readouterr()
     assert "3 (1 of 3 sequences)" in out.out
     assert out.err.strip() == ("gnwarp evaluate: error: predictions left the finite range: GN: rollouts not "
                                "finite from step 3 (1 of 3 sequences)")
-    monkeypatch.setattr(train_module, "load_model", lambda path, **kw: _Diverging(pendulum, 99))
+    monkeypatch.setattr(train_module, "load_model", lambda path, **kw: TruthModel(pendulum, 99))
     assert cli.main(["evaluate", "ck", "--data", "x.h5", "--horizons", "5", "-n", "2"]) == 0
     assert "| none |" in capsys.readouterr().out
 

@@ -14,6 +14,7 @@ from gnwarp.data.layout import LayoutMismatchError, merge_layouts
 from gnwarp.interop import warp
 from gnwarp.gn import RunOptions
 from gnwarp.models import GNCoreConfig, ModelConfig
+from oracles import TruthModel
 from gnwarp.train import CheckpointError, FlatAdam, TrainConfig, Trainer, load_model, train
 
 warp()
@@ -294,36 +295,7 @@ def test_mlp_baseline_trains(tmp_path, pendulum):
 
 
 def test_evaluation_metrics(pendulum):
-    class Truth:  # an oracle "model": evaluation gives zero error; the constant baseline gives 1
-        training = False
-
-        def __init__(self, ds):
-            self.ds = ds
-
-        def eval(self):
-            return self
-
-        def train(self, mode=True):
-            return self
-
-        def graph_builder(self, ds):
-            return None
-
-        def rollout(self, x0, ctrl, inst, builder=None):
-            sp = self.ds["test"]
-            body = torch.as_tensor(sp.body[...])
-            T = ctrl.shape[1]
-            idx = [int(np.flatnonzero((body[:, 0] == x).all(-1).all(-1))[0]) if T > 1 else None for x in x0]
-            if T > 1:
-                return body[idx, :T + 1]
-            # one step from a true state: find (sequence, t)
-            out = []
-            for x in x0:
-                s, t = np.argwhere((body == x).all(-1).all(-1).numpy())[0]
-                out.append(body[s, t:t + 2])
-            return torch.stack(out)
-
-    res = ev.evaluate(Truth(pendulum), pendulum, horizons=(5, 20))
+    res = ev.evaluate(TruthModel(pendulum), pendulum, horizons=(5, 20))
     for k in ("one_step", "rollout_5", "rollout_20"):
         assert res[k]["mean"] == 0.0
         assert math.isnan(res[k]["pos"])     # the pendulum's frame sits on its hinge: nothing to compare

@@ -16,19 +16,25 @@ from gnwarp.graphs import GraphsTuple, graph_of
 from gnwarp.sim.systems import System
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 
-__all__ = ["edge_control_values", "GraphBuilder", "GraphTemplate", "graph_builder"]
+__all__ = ["edge_control_index", "edge_control_values", "GraphBuilder", "GraphTemplate", "graph_builder"]
+
+
+def edge_control_index(index: torch.Tensor, graph: torch.Tensor, n_ctrl: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(flat, has): where each edge slot's control sits in the flat [N * n_ctrl] controls, and
+    whether it has one. ``index`` [..., K]: the control index of each of an edge's K slots (-1: no
+    actuator); ``graph``: the graph of each edge, broadcastable to index.shape[:-1]."""
+    return graph[..., None] * n_ctrl + index.clamp(min=0), index >= 0
 
 
 def edge_control_values(ctrl: torch.Tensor, index: torch.Tensor, graph: torch.Tensor) -> torch.Tensor:
     """Controls on edges (torch; ``gnwarp.data.convert.edge_controls`` is the numpy reference).
 
-    ``ctrl`` [N, U]: the controls of N graphs; ``index`` [..., K]: the control index of each of an
-    edge's K slots (-1: no actuator); ``graph``: the graph of each edge, broadcastable to
-    index.shape[:-1]. Returns [..., K] in ctrl's dtype, 0 where no actuator; no host sync.
+    ``ctrl`` [N, U]: the controls of N graphs; ``index``, ``graph`` as ``edge_control_index``.
+    Returns [..., K] in ctrl's dtype, 0 where no actuator; no host sync.
     """
-    flat = graph[..., None] * ctrl.shape[-1] + index.clamp(min=0)
+    flat, has = edge_control_index(index, graph, ctrl.shape[-1])
     c = ctrl.reshape(-1)[flat.reshape(-1)].reshape(flat.shape)
-    return torch.where(index >= 0, c, torch.zeros((), dtype=ctrl.dtype, device=ctrl.device))
+    return torch.where(has, c, torch.zeros((), dtype=ctrl.dtype, device=ctrl.device))
 
 
 class GraphBuilder:
@@ -74,11 +80,10 @@ class GraphBuilder:
             dev = self.s_nodes.device
             B, E = self.s_nodes.shape[1], self.s_edges.shape[1]
             off = torch.arange(N, device=dev)[:, None] * B
-            graph = torch.arange(N, device=dev)[:, None, None]
-            ec = self.edge_ctrl[:1].expand(N, -1, -1)
+            flat, has = edge_control_index(self.edge_ctrl[:1].expand(N, -1, -1), torch.arange(N, device=dev)[:, None], U)
             topo = ((self.senders[:1] + off).reshape(-1), (self.receivers[:1] + off).reshape(-1),
                     torch.full((N,), B, device=dev, dtype=torch.int64), torch.full((N,), E, device=dev, dtype=torch.int64),
-                    (graph * U + ec.clamp(min=0)).reshape(-1), (ec >= 0).reshape(-1))
+                    flat.reshape(-1), has.reshape(-1))
             if len(self._topologies) >= 16:  # bounded; whoever captured a step on them holds them
                 self._topologies.pop(next(iter(self._topologies)))
             self._topologies[(N, U)] = topo
@@ -140,11 +145,17 @@ class GraphTemplate:
         self.ctrl_index = ec.reshape(-1, K) if builder.uniform else ec.reshape(-1, K)[em.nonzero().squeeze(1)]
         self.edge_of = graph_of(self.topology.n_edge, int(self.static_edges.shape[0]))  # graph of each edge
         self.n_nodes = int(self.static_nodes.shape[0])
+        self._ctrl_map: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def graph(self, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
         """Input graphs of the N instances from ``body`` [N, B, 13] and ``ctrl`` [N, U]."""
         dyn = self.nodes(body)
-        c = edge_control_values(ctrl.to(self.dtype), self.ctrl_index, self.edge_of)
+        ctrl = ctrl.to(self.dtype)
+        U = ctrl.shape[-1]
+        if U not in self._ctrl_map:  # where each edge slot reads its control: once per control width
+            self._ctrl_map[U] = edge_control_index(self.ctrl_index, self.edge_of, U)
+        flat, has = self._ctrl_map[U]
+        c = torch.where(has, ctrl.reshape(-1)[flat], 0.0)
         return self.topology._replace(nodes=torch.cat([self.static_nodes, dyn], -1),
                                       edges=torch.cat([self.static_edges, c], -1))
 

@@ -196,12 +196,6 @@ class ForwardModel(nn.Module):
                         ctx.movable_i32, ctx.node_offsets, noisy, centred)
         return noisy, centred
 
-    def _accumulate_input(self, graph: GraphsTuple) -> None:
-        if self.norm_globals is not None:
-            self.norm_globals.accumulate(graph.globals)
-        self.norm_nodes.accumulate(graph.nodes)
-        self.norm_edges.accumulate(graph.edges)
-
     def _with_dynamic(self, graph: GraphsTuple, dyn: torch.Tensor) -> GraphsTuple:
         return graph._replace(nodes=torch.cat([graph.nodes[:, :-DYN_NODE_SIZE], dyn], -1))
 
