@@ -78,6 +78,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="tiny CPU run (< 1 min)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--train-steps", type=int, default=None)
+    ap.add_argument("--seconds", type=float, default=None, help="training cap per model (wall clock)")
     ap.add_argument("--lag", type=float, default=0.2, help="command lag (s) of the simulated arm")
     ap.add_argument("--servo-scale", type=float, default=0.1, help="velocity servo gain, relative to the JACO's")
     ap.add_argument("--backend", default="auto")
@@ -117,8 +118,9 @@ def main():
         model = RecurrentForwardModel(run, data.sizes, data.graphs, data.movable).to(dev)
         t1 = time.perf_counter()
         losses = train_teacher_forcing(model, train, cfg["train_steps"], cfg["batch"], lr=cfg["lr"], seed=args.seed,
-                                       log_every=max(1, cfg["train_steps"] // 5))
-        logs[name] = {"loss_first": losses[0], "loss_last10": float(np.mean(losses[-10:])),
+                                       log_every=max(1, cfg["train_steps"] // 5), max_seconds=args.seconds,
+                                       progress=not args.quick)
+        logs[name] = {"loss_first": losses[0], "loss_last10": float(np.mean(losses[-10:])), "steps": len(losses),
                       "train_seconds": time.perf_counter() - t1}
         with torch.no_grad():
             pred = model.rollout(test.instance, test.obs, test.ctrl, warmup=W)

@@ -110,7 +110,8 @@ def train_config(args, out, ds):
                        batch_size=args.batch, lr=args.lr, lr_decay=0.6, lr_decay_steps=max(1, args.steps // 4),
                        valid_every=args.valid_every, valid_sequences=min(args.valid, len(ds["valid"])),
                        patience=None, checkpoint_every=max(1, args.steps), resume=False, progress=False,
-                       device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup)
+                       device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup,
+                       capture=not args.no_capture)
 
 
 def identifier_config(args):
@@ -363,6 +364,12 @@ def write_summary(out: Path, rows: list[dict], args) -> None:
                   "", "| length factor | condition | sysid | true params |", "|---|---|---|---|"]
         for r in f9:
             lines.append(f"| {r['length']:g} | {r['condition']} | {_g(r['sysid'])} | {_g(r['true params'])} |")
+    tr = {(r["system"], "sysid" if r["model"].startswith("sysid") else r["model"]): r for r in f8 if "steps" in r}
+    if tr:
+        lines += ["", "Training (each model capped at the same steps and wall clock):", "",
+                  "| system | model | steps | seconds |", "|---|---|---|---|"]
+        for (s, k), r in tr.items():
+            lines.append(f"| {s} | {k} | {r['steps']} | {r['train_seconds']} |")
     pr = [r for r in rows if r["part"] == "probe"]
     if pr:
         lines += ["", "## Linear probe: G_ID -> true parameters (R^2 on test instances)", "",
@@ -428,6 +435,8 @@ def main():
     ap.add_argument("--data", default=None, help="dataset folder (cached; default: a temporary one)")
     ap.add_argument("--runs", default=None, help="checkpoint folder (default: a temporary one)")
     ap.add_argument("--out", default=None, help="default: bench/results/sysid_figures (--quick: a temporary folder)")
+    ap.add_argument("--no-capture", action="store_true", help="run the training steps eagerly on CUDA too")
+    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
     args.valid, args.test = args.sequences[1], args.sequences[2]
@@ -441,6 +450,8 @@ def main():
         args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
     out = experiment_out("sysid_figures", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
+    if args.rebuild:
+        args.systems = ""
     from gnwarp import data
     from gnwarp.interop import resolve_device
 
@@ -450,7 +461,7 @@ def main():
         data_dir = Path(args.data or Path(tmp) / "data")
         runs = Path(args.runs or Path(tmp) / "runs")
         data_dir.mkdir(parents=True, exist_ok=True)
-        for system in args.systems.split(","):
+        for system in filter(None, args.systems.split(",")):
             t0 = time.perf_counter()
             path = data_dir / f"{system}-param-{'-'.join(map(str, args.sequences))}x{args.num_steps}-s{args.seed}.h5"
             if not path.exists():

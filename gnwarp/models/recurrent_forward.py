@@ -198,13 +198,21 @@ class RecurrentForwardModel(nn.Module):
 
 def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300, batch: int = 32,
                           window: int = 21, lr: float = 1e-3, seed: int = 0, log_every: int = 0,
-                          normalizer_steps: int | None = None) -> list[float]:
+                          normalizer_steps: int | None = None, max_seconds: float | None = None,
+                          progress: bool = False) -> list[float]:
     """Adam on teacher-forcing losses of random ``window``-observation windows of ``split`` (a
     ``ProprioSplit``). The normalizers accumulate for the first ``normalizer_steps`` steps (default
-    all). Returns the loss of every step."""
+    all). Stops after ``steps`` steps or ``max_seconds`` of wall clock, whichever comes first
+    (``progress``: a bar with rate and ETA). Returns the loss of every step run (read from the
+    device once every ``log_every`` steps and at the end, not every step)."""
+    import time
+
+    from tqdm.auto import tqdm
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    losses = []
+    losses, pending = [], []
+    t0 = time.perf_counter()
+    bar = tqdm(total=steps, desc="teacher forcing", unit="step", disable=not progress)
     for k in range(steps):
         obs, ctrl, inst = split.windows(batch, window, gen)
         acc = normalizer_steps is None or k < normalizer_steps
@@ -212,7 +220,15 @@ def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300,
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        losses.append(float(loss.detach()))
-        if log_every and (k % log_every == 0 or k == steps - 1):
-            print(f"  step {k:5d}  loss {losses[-1]:.4g}")
+        pending.append(loss.detach())
+        bar.update(1)
+        last = k == steps - 1 or (max_seconds is not None and time.perf_counter() - t0 >= max_seconds)
+        if last or (log_every and k % log_every == 0) or len(pending) >= 256:
+            losses += torch.stack(pending).float().cpu().tolist()
+            pending = []
+            if log_every and (k % log_every == 0 or last):
+                bar.write(f"  step {k:5d}  loss {losses[-1]:.4g}")
+        if last:
+            break
+    bar.close()
     return losses

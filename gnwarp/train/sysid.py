@@ -7,8 +7,9 @@ model's loss (Algorithm D.3) at t0 with G_ID as the static graph; ``validate`` i
 the first ``window`` steps of each valid sequence and rolls out the next ``valid_horizon``
 steps with that G_ID; checkpoints hold the whole model (``load_sysid`` reads them).
 
-Steps run uncaptured (the step has no host synchronization once warm, but its capture has not
-been verified on a GPU yet).
+On CUDA the step is replayed from one CUDA graph as the ``Trainer``'s is (window sampling,
+GN_p over the window, the forward model's loss, backward, update: no host synchronization
+inside); ``capture=False`` runs it eagerly, as on the CPU.
 """
 from __future__ import annotations
 
@@ -75,7 +76,7 @@ class SysIDTrainer(Trainer):
             if T < W + 1:
                 raise ValueError(f"dataset {d.system!r} has sequences of {T} steps; system identification needs "
                                  f"more than the {W}-step window (a window and a different step t0)")
-        super().__init__(dataclasses.replace(config, capture=False), datasets, model, callbacks)
+        super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
 
     def _prepare_out(self, model) -> bool:
