@@ -74,6 +74,11 @@ def test_sequence_matches_unrolled_reference():
     # a callable and an explicit hidden state give the same
     outs2, h2 = m.sequence(lambda t: seq[t], hidden=m.initial_hidden(seq[0]), steps=4)
     torch.testing.assert_close(outs2[-1].nodes, outs[-1].nodes)
+    # last_only: the last output alone, the same numbers
+    outs3, h3 = m.sequence(seq, last_only=True)
+    assert len(outs3) == 1
+    torch.testing.assert_close(outs3[0].nodes, outs[-1].nodes, rtol=0, atol=0)
+    torch.testing.assert_close(h3.nodes, h.nodes, rtol=0, atol=0)
     # continuing from a hidden state is the same as one longer sequence
     _, h_a = m.sequence(seq[:2])
     _, h_b = m.sequence(seq[2:], hidden=h_a)

@@ -134,11 +134,12 @@ class RecurrentGNCore(nn.Module):
                 raise ValueError(f"hidden graph {k} must be [{rows[k]}, {self.config.hidden(k)}] (the input "
                                  f"graph's topology), got {got}")
 
-    def step(self, graph: GraphsTuple, hidden: GraphsTuple, index: GraphIndex | None = None
-             ) -> tuple[GraphsTuple, GraphsTuple]:
+    def step(self, graph: GraphsTuple, hidden: GraphsTuple, index: GraphIndex | None = None,
+             output: bool = True) -> tuple[GraphsTuple | None, GraphsTuple]:
         """One step: (output graph, next hidden graph), both of ``graph``'s topology. Output
         fields of kinds without an output size are None. ``index``: ``graph_index(graph)``,
-        shared by all steps of a sequence (built here otherwise)."""
+        shared by all steps of a sequence (built here otherwise). ``output=False``: only the
+        hidden graph (the output is None; its MLPs are not run)."""
         self._check(graph, hidden)
 
         def cat(k):
@@ -147,16 +148,20 @@ class RecurrentGNCore(nn.Module):
             return h if x is None or x.shape[-1] == 0 else torch.cat([x.to(h.dtype), h], -1)
         z = self.gn(graph._replace(**{k: cat(k) for k in KINDS}), index)
         new_h = {k: self.gru[k](getattr(z, k), getattr(hidden, k)) for k in KINDS}
+        if not output:
+            return None, graph._replace(**new_h)
         out = {k: (self.out[k](torch.cat([getattr(z, k), new_h[k]], -1)) if k in self.out else None)
                for k in KINDS}
         return graph._replace(**out), graph._replace(**new_h)
 
     def sequence(self, graphs: Sequence[GraphsTuple] | Callable[[int], GraphsTuple], hidden: GraphsTuple | None = None,
-                 steps: int | None = None, index: GraphIndex | None = None) -> tuple[list[GraphsTuple], GraphsTuple]:
+                 steps: int | None = None, index: GraphIndex | None = None,
+                 last_only: bool = False) -> tuple[list[GraphsTuple], GraphsTuple]:
         """Run ``step`` over a sequence: ``graphs`` a list of graphs of one topology, or a callable
         ``t -> graph`` with ``steps`` steps. ``hidden``: the initial hidden graph (default zeros).
         Returns (the output graph of every step, the final hidden graph). ``index``: the graphs'
-        ``graph_index`` (default: built once, from the first graph)."""
+        ``graph_index`` (default: built once, from the first graph). ``last_only``: compute the
+        output graph of the last step alone (the list holds just it)."""
         if callable(graphs):
             if steps is None:
                 raise ValueError("sequence(callable) needs steps=")
@@ -171,6 +176,7 @@ class RecurrentGNCore(nn.Module):
         h = self.initial_hidden(g) if hidden is None else hidden
         outs = []
         for t in range(n):
-            o, h = self.step(g if t == 0 else get(t), h, index)
-            outs.append(o)
+            o, h = self.step(g if t == 0 else get(t), h, index, output=not last_only or t == n - 1)
+            if o is not None:
+                outs.append(o)
         return outs, h

@@ -201,7 +201,7 @@ class SysIDModel(nn.Module):
             return g._replace(nodes=(dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:],
                               edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
-        outs, _ = self.identifier.sequence(normalized, steps=steps, index=index)
+        outs, _ = self.identifier.sequence(normalized, steps=steps, index=index, last_only=True)
         return outs[-1]
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
