@@ -162,3 +162,33 @@ def test_cli_mpc(model, tmp_path, capsys):
     assert "true return" in out and "+-" in out and video.is_file()
     assert main(args[:4] + ["cheetah-forward"] + args[5:]) == 2
     assert "the model was trained on pendulum, not on cheetah" in capsys.readouterr().err
+
+
+def test_adam_state_is_shifted_with_the_plan(model, pendulum_data):
+    """The plan's buffers are updated in place (a captured iteration reads them): after a step
+    the moments are shifted like the plan and the step count keeps counting."""
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=6, warmup=0))
+    z_buf, x = p.z, x0(pendulum_data, 2)
+    p.iterate(p.check_state(x), 2)
+    m = p._m.clone()
+    p.shift()
+    assert p.z is z_buf and torch.equal(p._m[:, :-1], m[:, 1:]) and int(p._t) == 2
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_captured_planning_iteration_matches_eager(model, pendulum_data):
+    """One planning iteration replayed from a CUDA graph (rollout, reward, adjoint backward, Adam)
+    plans what eager iterations plan, step after step."""
+    m = load_model(model.path, device="cuda")
+    m.set_options(m.config.run.replace(impl="warp", precision="fp32"))
+    plans = {}
+    for capture in (True, False):
+        p = GradientMPC(m, "pendulum-balance", "pendulum", n=4,
+                        config=GradientMPCConfig(horizon=8, iterations=3, warmup=4, capture=capture))
+        assert (p._graph is not None) == capture
+        x, acts = x0(pendulum_data, 4), []
+        for _ in range(4):
+            acts.append(p.step(x).cpu())
+        plans[capture] = (torch.stack(acts), p.actions.cpu())
+    torch.testing.assert_close(plans[True][0], plans[False][0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(plans[True][1], plans[False][1], rtol=1e-4, atol=1e-5)

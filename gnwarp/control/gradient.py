@@ -12,6 +12,12 @@ warm-starts the next state's plan. The first state gets ``warmup`` extra iterati
 the N episodes; the rewards are independent per episode, so one backward of their sum gives each
 episode its own gradient.
 
+The plan, Adam's moments and step count, and the state planned from live in device buffers
+updated in place, so one iteration (rollout, reward, backward through the adjoint loop, Adam
+update) has no host synchronization; on CUDA it is recorded once in a CUDA graph and replayed
+(``capture``), on the CPU it runs eagerly. The host syncs once per control step, to check the
+true state.
+
     >>> planner = GradientMPC(model, "pendulum-balance", systems.make("pendulum"), n=64)
     >>> out = run_episodes(planner, env, planner.task, steps=100, x0=env.reset(qpos, qvel))
     >>> out["returns"]        # [N] true returns of the closed loop
@@ -26,7 +32,8 @@ import torch
 from gnwarp.control.tasks import Task, TaskError, get_task, system_family
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
-from gnwarp.validation import FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
+from gnwarp.interop import Graphed
+from gnwarp.validation import Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
 __all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems"]
 
@@ -40,7 +47,8 @@ class GradientMPCConfig:
     """``horizon``: planning steps (None: the task's). ``iterations``: Adam steps per control step
     (the paper: 3-51). ``warmup``: extra iterations at the first state (None: iterations x
     horizon). ``lr``: Adam's step size on the unconstrained actions z. ``init_std``: the random
-    initial z ~ N(0, init_std^2). ``seed``: of that initial sequence."""
+    initial z ~ N(0, init_std^2). ``seed``: of that initial sequence. ``capture``: replay one
+    planning iteration from a CUDA graph (None: on CUDA; ignored on the CPU)."""
     horizon: PositiveInt | None = None
     iterations: PositiveInt = 5
     warmup: IntRange(0) | None = None
@@ -48,6 +56,7 @@ class GradientMPCConfig:
     init_std: FloatRange(ge=0) = 0.5
     betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
     seed: IntRange(0) = 0
+    capture: Flag | None = None
 
     def __post_init__(self):
         check_fields(self)
@@ -108,11 +117,22 @@ class GradientMPC:
         self.device, self.dtype = dev, dt
         self.B, self.U = self.system.nbody, self.system.nu
         self.mid, self.half = _ctrl_range(self.system, dev, dt)
-        # the planner's actions are in range by construction: the engine need not clamp or check
+        cap = self.config.capture
+        self.capture = dev.type == "cuda" and (cap is None or bool(cap))
+        # the planner's actions are in range by construction: the engine need not clamp or check;
+        # captured, the whole iteration is one graph, so the engine's loops run inside it
         self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), self.horizon, ctrl_policy="none",
-                                           check=False)
+                                           check=False, graphs=not self.capture)
         self.target = None if target is None else self._target(target)
         self._gen = torch.Generator(device="cpu").manual_seed(int(self.config.seed))
+        shape = (n, self.horizon, self.U)
+        # device state, updated in place (a captured iteration reads and writes these tensors)
+        self.z = torch.zeros(shape, device=dev, dtype=dt)
+        self._m, self._v = torch.zeros_like(self.z), torch.zeros_like(self.z)
+        self._t = torch.zeros((), device=dev, dtype=torch.float64)      # Adam's step count
+        self._x = torch.zeros((n, self.B, DYN_NODE_SIZE), device=dev, dtype=dt)
+        self._r = torch.zeros(n, device=dev, dtype=dt)                  # planned reward before the last step
+        self._graph = Graphed(self._iterate_once, warmup=2) if self.capture else None
         self.reset()
 
     # -- the action sequence ------------------------------------------------------------------------
@@ -128,8 +148,10 @@ class GradientMPC:
             self.target = self._target(target)
         shape = (self.n, self.horizon, self.U)
         z = torch.randn(shape, generator=self._gen, dtype=torch.float64) * self.config.init_std
-        self.z = z.to(self.device, self.dtype)
-        self._m, self._v, self._t = torch.zeros_like(self.z), torch.zeros_like(self.z), 0
+        self.z.copy_(z)
+        self._m.zero_()
+        self._v.zero_()
+        self._t.zero_()
         self.started = False
 
     def to_actions(self, z: torch.Tensor) -> torch.Tensor:
@@ -167,27 +189,38 @@ class GradientMPC:
     def iterate(self, x: torch.Tensor, k: int = 1) -> torch.Tensor:
         """``k`` Adam steps on the plan from checked states ``x``; returns the planned reward [N]
         before the last step."""
+        self._x.copy_(x)
+        for _ in range(k):
+            if self._graph is not None:
+                self._graph()
+            else:
+                self._iterate_once()
+        return self._r.clone()
+
+    def _iterate_once(self) -> None:
+        """One planning iteration on the device buffers, in place, no host sync: rollout from
+        ``_x`` under the plan, reward, its gradient w.r.t. z (the engine's adjoint loop), Adam."""
         b1, b2 = self.config.betas
         lr = self.config.lr
-        for _ in range(k):
+        with torch.enable_grad():
             z = self.z.detach().requires_grad_(True)
             u = self.to_actions(z)
-            r = self.task.reward(self.engine.rollout(x, u), u, self.target)
+            r = self.task.reward(self.engine.rollout(self._x, u), u, self.target)
             (g,) = torch.autograd.grad(-r.sum(), z)
-            with torch.no_grad():
-                self._t += 1
-                self._m.mul_(b1).add_(g, alpha=1 - b1)
-                self._v.mul_(b2).addcmul_(g, g, value=1 - b2)
-                m_hat = self._m / (1 - b1 ** self._t)
-                v_hat = self._v / (1 - b2 ** self._t)
-                self.z = self.z - lr * m_hat / (v_hat.sqrt() + 1e-8)
-        return r.detach()
+        with torch.no_grad():
+            self._r.copy_(r.detach())
+            self._t.add_(1)
+            self._m.mul_(b1).add_(g, alpha=1 - b1)
+            self._v.mul_(b2).addcmul_(g, g, value=1 - b2)
+            c1 = (1 - torch.pow(b1, self._t)).to(self.z.dtype)
+            c2 = (1 - torch.pow(b2, self._t)).to(self.z.dtype)
+            step = (self._m / c1) / ((self._v / c2).sqrt() + 1e-8)
+            self.z.sub_(lr * step)
 
     def shift(self) -> None:
-        """Drop the first step of the plan (and of Adam's moments); repeat the last."""
-        for name in ("z", "_m", "_v"):
-            a = getattr(self, name)
-            setattr(self, name, torch.cat([a[:, 1:], a[:, -1:]], 1))
+        """Drop the first step of the plan (and of Adam's moments); repeat the last (in place)."""
+        for a in (self.z, self._m, self._v):
+            a[:, :-1] = a[:, 1:].clone()
 
     def step(self, x) -> torch.Tensor:
         """Plan from the true states ``x`` [N, B, 13]; return the first actions [N, U] and shift."""

@@ -303,7 +303,8 @@ class RolloutEngine:
     launch and the controls clamped to the actuators' ranges (``ctrl_policy``, ``check``: see
     ``ForwardModel.rollout``)."""
 
-    def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True):
+    def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
+                 graphs: bool = True):
         try:
             ok = not isinstance(horizon, bool) and int(horizon) == horizon and horizon >= 1
         except (TypeError, ValueError):
@@ -320,7 +321,9 @@ class RolloutEngine:
         self.template = model.template(torch.as_tensor(instance), builder)
         self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)
         self.horizon = int(horizon)
-        self.cuda = self.template.static_nodes.is_cuda
+        # graphs=False: run the loops eagerly on CUDA too (for a caller that captures a larger
+        # step around the rollout, e.g. a whole planning iteration: graphs do not nest)
+        self.cuda = self.template.static_nodes.is_cuda and bool(graphs)
         self._bufs = None
         self._fwd = self._bwd = None
 
