@@ -171,3 +171,29 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path):
         for k in ("loss", "valid_error"):
             if x.get(k) not in (None, ""):
                 assert float(x[k]) == pytest.approx(float(y[k]), rel=1e-4), (k, x, y)
+
+
+def test_planning_through_an_identified_system(trained, pendulum):
+    """Figure 10's system-ID variant: W random actions on the true env, G_ID from them, then a
+    rollout engine and gradient MPC on the fixed G_ID; the engine rolls out what
+    ``SysIDModel.rollout`` does with that G_ID, and planning raises the planned reward."""
+    from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env, make_env
+    m = trained[0].model.bind(pendulum)
+    env = make_env("pendulum", 3, backend="mujoco")
+    qpos, qvel = np.array([[0.3], [2.0], [-1.0]]), np.zeros((3, 1))
+    fixed, x, window = identify_on_env(m, env, seed=1, qpos0=qpos, qvel0=qvel)
+    assert window["states"].shape == (3, W + 1, 2, 13) and torch.equal(x, window["states"][:, W])
+    torch.testing.assert_close(x, torch.as_tensor(env.body_states()).float())   # the env is where x says
+    u = torch.rand(3, 6, 1) * 2 - 1
+    eng = fixed.rollout_engine(torch.zeros(3, dtype=torch.int64), 6)
+    with torch.no_grad():
+        ref = m.rollout(x, u, fixed.g_id, torch.zeros(3, dtype=torch.int64))
+    torch.testing.assert_close(eng.rollout(x, u), ref)
+    p = GradientMPC(fixed, "pendulum-balance", "pendulum", n=3, config=GradientMPCConfig(horizon=6, lr=0.05))
+    xs = p.check_state(x)
+    before = p.planned_reward(xs)
+    p.iterate(xs, 10)
+    assert p.planned_reward(xs).sum() > before.sum()
+    # a G_ID of other graphs is refused when the engine is made
+    with pytest.raises(GIDError, match="another layout"):
+        fixed.rollout_engine(torch.zeros(2, dtype=torch.int64), 6)

@@ -7,12 +7,12 @@ batched true environment (``env``), sampling MPC (``sampling``) and the iLQG bas
     >>> planner = control.GradientMPC(model, task, systems.make("pendulum"), n=64)
     >>> out = control.run_episodes(planner, env, task, steps=100, x0=env.reset(...))
 """
-from gnwarp.control.episodes import run_episodes
+from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
 from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
 
 __all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
-           "GradientMPCConfig", "PlanningError", "run_episodes", "make_env"]
+           "GradientMPCConfig", "PlanningError", "run_episodes", "identify_on_env", "make_env"]
 
 
 def __getattr__(name):

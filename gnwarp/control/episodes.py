@@ -17,7 +17,7 @@ import torch
 
 from gnwarp.control.tasks import Task, get_task
 
-__all__ = ["run_episodes"]
+__all__ = ["run_episodes", "identify_on_env"]
 
 
 def _sync(device) -> None:
@@ -72,3 +72,21 @@ def run_episodes(planner, env, task, steps: int, x0=None, *, target=None, qpos0=
     states_t, actions_t = torch.stack(states, 1), torch.stack(actions, 1)
     returns = torch.as_tensor(score(states_t, actions_t)).detach().cpu().float()
     return {"returns": returns, "states": states_t, "actions": actions_t, "plan_seconds": np.asarray(secs)}
+
+
+def identify_on_env(model, env, *, seed: int = 0, qpos0=None, qvel0=None, x0=None):
+    """System identification in closed loop (Figure 10's system-ID variant): ``model.window``
+    steps of uniform random actions on the true ``env`` from its current state (or reset to
+    ``qpos0`` / ``qvel0``, or ``x0`` as ``run_episodes``), then G_ID from that window.
+
+    ``model``: a bound ``SysIDModel``. Returns (``model.with_fixed_gid(g_id)``, the model to plan
+    through; the states after the window [N, B, 13], where the env now is; the window's
+    ``run_episodes`` output)."""
+    from gnwarp.control.sampling import RandomPlanner
+    W = int(model.window)
+    planner = RandomPlanner(env.system.model.actuator_ctrlrange, env.n_worlds, seed=seed)
+    window = run_episodes(planner, env, lambda s, a: torch.zeros(s.shape[0]), W, x0, qpos0=qpos0, qvel0=qvel0)
+    n = window["states"].shape[0]
+    with torch.no_grad():
+        g_id = model.identify(window["states"][:, :W], window["actions"][:, :W], torch.zeros(n, dtype=torch.int64))
+    return model.with_fixed_gid(g_id), window["states"][:, W], window

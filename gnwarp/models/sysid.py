@@ -33,11 +33,12 @@ from gnwarp.models.config import ModelConfig
 from gnwarp.models.forward import ForwardModel
 from gnwarp.models.normalizer import Normalizer
 from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
-from gnwarp.models.rollout import RolloutInputError, RolloutInputs, check_instance, float_tensor, source_info
+from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
+                                  source_info)
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.validation import PositiveInt, check_fields, check_keys
 
-__all__ = ["SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
+__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
 
 
 def _identifier_default() -> RecurrentGNConfig:
@@ -269,6 +270,12 @@ class SysIDModel(nn.Module):
             out.append(body)
         return torch.stack(out, 1)
 
+    def with_fixed_gid(self, g_id: GraphsTuple) -> "FixedGIDModel":
+        """This model with ``g_id`` as every rollout's static graph, behind the interface of a
+        ``ForwardModel`` that ``RolloutEngine`` and the planners read (``gnwarp.control``): plan
+        through an identified system (Figure 10's system-ID variant)."""
+        return FixedGIDModel(self, g_id)
+
     def check_gid(self, g_id: GraphsTuple, topology: GraphsTuple) -> None:
         """``GIDError`` unless ``g_id`` has this model's widths and ``topology``'s graphs."""
         if not isinstance(g_id, GraphsTuple):
@@ -285,6 +292,60 @@ class SysIDModel(nn.Module):
                            f"{g_id.n_node.tolist()[:4]}, {g_id.senders.shape[0]} edges) than the rollout's "
                            f"({topology.n_node.shape[0]} graphs, nodes {topology.n_node.tolist()[:4]}, "
                            f"{topology.senders.shape[0]} edges)")
+
+
+class FixedGIDModel:
+    """A ``SysIDModel`` whose static graph is one fixed G_ID (``SysIDModel.with_fixed_gid``):
+    ``template``, ``context``, ``next_nodes``, ``bind`` and ``rollout_engine`` as a
+    ``ForwardModel``'s, so ``RolloutEngine`` (captured forward and adjoint backward) and
+    ``GradientMPC`` run on it. The G_ID's graphs must be the rollouts' (checked when a template
+    is made: ``GIDError``)."""
+
+    def __init__(self, model: SysIDModel, g_id: GraphsTuple):
+        if not isinstance(g_id, GraphsTuple):
+            raise GIDError(f"g_id must be a GraphsTuple (from identify or load_gid), got {type(g_id).__name__}")
+        self.sysid = model
+        dev, dt = model.device, model.dtype
+        self.g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).to(dev, dt)
+                                     for k in KINDS})
+        self.layout = model.layout
+        self.checkpoint_info = getattr(model, "checkpoint_info", None)
+
+    @property
+    def builder(self):
+        return self.sysid.builder
+
+    @property
+    def device(self) -> torch.device:
+        return self.sysid.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.sysid.dtype
+
+    def bind(self, source, strict: bool = True) -> "FixedGIDModel":
+        self.sysid.bind(source, strict)
+        return self
+
+    def template(self, instance, builder=None) -> GraphTemplate:
+        builder = builder if builder is not None else self.sysid.builder
+        if builder is None:
+            raise ValueError("no graphs to read: call model.bind(dataset_or_system) first")
+        tmpl = GraphTemplate(builder, torch.as_tensor(instance))
+        self.sysid.check_gid(self.g_id, tmpl.topology)
+        return tmpl
+
+    def context(self, graph: GraphsTuple, stats: bool = True):
+        return self.sysid.forward_model.context(self.sysid.with_gid(graph, self.g_id), stats)
+
+    def next_nodes(self, graph: GraphsTuple, ctx=None) -> torch.Tensor:
+        return self.sysid.forward_model.next_nodes(self.sysid.with_gid(graph, self.g_id), ctx)
+
+    def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "none", check: bool = True,
+                       graphs: bool = True) -> RolloutEngine:
+        """A ``RolloutEngine`` on the fixed G_ID (controls used as given by default: the model
+        knows no actuator ranges)."""
+        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs)
 
 
 # -- G_ID files -----------------------------------------------------------------------------------
