@@ -200,12 +200,14 @@ def run_episodes(planner, env, task, steps, *, qpos0, qvel0, target=None) -> dic
 def run_gn_mpc(args, model, task, system, qpos, qvel, target, horizon: int) -> dict:
     from gnwarp.control import GradientMPC, GradientMPCConfig, make_env
     n = qpos.shape[0]
-    cfg = GradientMPCConfig(horizon=horizon, iterations=args.iterations, lr=args.lr, seed=args.seed)
+    cfg = GradientMPCConfig(horizon=horizon, iterations=args.iterations, lr=args.lr, seed=args.seed,
+                            warmup=args.warmup)
     planner = GradientMPC(model, task, system, n, cfg, target)
     env = make_env(system, n, backend=args.backend)
     out = run_episodes(planner, env, task, args.steps, qpos0=qpos, qvel0=qvel, target=target)
     env.close()
-    out["note"] = f"{args.iterations} Adam steps/step + {args.iterations * horizon} at the first state, lr {args.lr}"
+    warm = args.iterations * horizon if args.warmup is None else args.warmup
+    out["note"] = f"{args.iterations} Adam steps/step + {warm} at the first state, lr {args.lr}"
     return out
 
 
@@ -413,6 +415,8 @@ def main():
     ap.add_argument("--horizon", type=int, default=None, help="planning horizon of every planner (default: the task's)")
     ap.add_argument("--iterations", type=int, default=5, help="GN-MPC Adam iterations per control step")
     ap.add_argument("--lr", type=float, default=0.1, help="GN-MPC Adam step size")
+    ap.add_argument("--warmup", type=int, default=None,
+                    help="GN-MPC iterations at the first state (default: iterations x horizon, as the paper)")
     ap.add_argument("--samples", type=int, default=256, help="sampling MPC candidates per episode")
     ap.add_argument("--knots", type=int, default=4)
     ap.add_argument("--noise", type=float, default=0.2)
