@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 import torch
 
-from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul, quat_rotate
+from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul
 
 __all__ = ["Task", "TASKS", "get_task", "task_names", "system_family", "upright_angle", "body_index",
            "sample_targets", "TaskError"]
@@ -72,6 +72,20 @@ def upright_angle(quat: torch.Tensor, target: torch.Tensor | None = None) -> tor
     return 2.0 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0].abs())
 
 
+@functools.lru_cache(maxsize=None)
+def _index_tensor(idx: tuple, device: str) -> torch.Tensor:
+    return torch.tensor(idx, device=device)
+
+
+def _bodies(x: torch.Tensor, idx: list[int]) -> torch.Tensor:
+    """``x[:, :, idx]`` without a host-to-device copy once warm (a slice when ``idx`` is a run of
+    consecutive bodies, else an index tensor kept per device), so that a reward can be recorded
+    in a CUDA graph (a captured planning iteration)."""
+    if list(idx) == list(range(idx[0], idx[0] + len(idx))):
+        return x[:, :, idx[0]:idx[0] + len(idx)]
+    return x.index_select(2, _index_tensor(tuple(idx), str(x.device)))
+
+
 def _steps(states: torch.Tensor) -> torch.Tensor:
     """The states after each action, [N, T, B, 13]."""
     return states[:, 1:]
@@ -82,7 +96,7 @@ def _steps(states: torch.Tensor) -> torch.Tensor:
 def _balance(bodies: tuple[str, ...], system: str) -> Reward:
     def reward(states, actions, target=None):
         idx = body_index(system, *bodies)
-        return -upright_angle(_steps(states)[:, :, idx, QUAT]).sum((1, 2))
+        return -upright_angle(_bodies(_steps(states), idx)[..., QUAT]).sum((1, 2))
     return reward
 
 
@@ -111,11 +125,11 @@ def _torso(feature: Callable[[torch.Tensor], torch.Tensor]) -> Reward:
 def _walker_feet_to_head(states, actions, target=None):
     """Sum over both feet of the squared height of the head (top of the torso) above the foot."""
     s = _steps(states)
-    q = s[:, :, 1, QUAT]
-    up = s.new_tensor([0.0, 0.0, _walker_head()]).expand(q.shape[:-1] + (3,))
-    head_z = s[:, :, 1, 2] + quat_rotate(q, up)[..., 2]
+    q = s[:, :, 1, QUAT]                                   # w, x, y, z
+    # z of the torso's axis (0, 0, head) rotated by q: head * (1 - 2 (x^2 + y^2))
+    head_z = s[:, :, 1, 2] + _walker_head() * (1 - 2 * (q[..., 1].square() + q[..., 2].square()))
     feet = body_index("walker", "right_foot", "left_foot")
-    return (head_z[..., None] - s[:, :, feet, 2]).square().sum((1, 2))
+    return (head_z[..., None] - _bodies(s, feet)[..., 2]).square().sum((1, 2))
 
 
 def _pose_loss(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
