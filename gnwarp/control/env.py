@@ -16,6 +16,7 @@ or refused (``"error"``); NaN / Inf in states or controls raise ``EnvInputError`
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from typing import NamedTuple, Sequence
 
@@ -279,6 +280,7 @@ class MujocoWarpEnv(Env):
         self._wp, self._mjw, self._K, self._wdev = wp, mjw, K, wdev
         self._capture = wdev.is_cuda if capture is None else bool(capture)
         self._graph = None
+        self._side = None   # the env's CUDA stream (made on first use)
         m0 = self.system.model
         with wp.ScopedDevice(wdev):
             self._m = put_batched_model([s.model for s in self.systems], wdev)
@@ -290,12 +292,24 @@ class MujocoWarpEnv(Env):
         self._ctrl_t = wp.to_torch(self._d.ctrl)
         self._body_t = wp.to_torch(self._body_w)[:, 0]
 
+    @contextlib.contextmanager
     def _stream(self):
+        """Warp launches of this env on its own CUDA stream, ordered after the caller's torch
+        stream and before whatever the caller runs next (a CUDA graph cannot be captured on the
+        legacy default stream, torch's default); on the CPU, the Warp CPU device."""
         wp = self._wp
         if not self._wdev.is_cuda:
-            return wp.ScopedDevice(self._wdev)
+            with wp.ScopedDevice(self._wdev):
+                yield
+            return
         from gnwarp.interop import warp_stream
-        return wp.ScopedStream(warp_stream(torch.cuda.current_stream(self.device)))
+        if getattr(self, "_side", None) is None:
+            self._side = torch.cuda.Stream(self.device)
+        main = torch.cuda.current_stream(self.device)
+        self._side.wait_stream(main)
+        with torch.cuda.stream(self._side), wp.ScopedStream(warp_stream(self._side)):
+            yield
+        main.wait_stream(self._side)
 
     def _observe(self) -> None:
         """Kinematics of the current state, then its body states into ``_body_w``."""
