@@ -216,7 +216,7 @@ class RandomPlanner:
     """The random-actions baseline: uniform in ``ctrlrange`` [U, 2], independent each step."""
 
     def __init__(self, ctrlrange, n_episodes: int, seed: int = 0, device="cpu"):
-        cr = torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)).reshape(-1, 2).to(device, torch.float32)
+        cr = torch.as_tensor(ctrlrange).detach().to("cpu", torch.float64).reshape(-1, 2).to(device, torch.float32)
         self.lo, self.hi, self.n, self.seed = cr[:, 0], cr[:, 1], int(n_episodes), seed
         self._gen = torch.Generator(device=device)
         self.reset()
