@@ -438,6 +438,8 @@ def main():
     ap.add_argument("--train-seconds", type=float, default=600.0, help="budget of a model trained here")
     ap.add_argument("--train-steps", type=int, default=10**6)
     ap.add_argument("--out", default=None, help="default: bench/results/control (--quick: a temporary folder)")
+    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and the plot from results.jsonl "
+                    "(the newest row of each task and planner)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
     import os
@@ -459,6 +461,15 @@ def main():
         ap.error(f"unknown planners {bad}; choose from {PLANNERS}")
     out = experiment_out("control", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
+    if args.rebuild:
+        every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
+        rows = list({(r["task"], r["planner"]): r for r in every}.values())
+        import re
+        found = [re.match(r"(\d+) processes", r.get("note", "")) for r in rows if r["planner"] == "ilqg"]
+        args.ilqg_workers = next((int(m.group(1)) for m in found if m), args.ilqg_workers)
+        write_table(out, rows, args)
+        plot(out, rows)
+        return
     args.data = args.data or str(out / "data")
     Path(args.data).mkdir(parents=True, exist_ok=True)
     print(f"writing to {out}", flush=True)
