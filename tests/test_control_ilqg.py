@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gnwarp import sim
-from gnwarp.control.ilqg import ILQG, QuadraticCost, body_state_cost, task_cost
+from gnwarp.control.ilqg import ILQG, BodyPointCost, QuadraticCost, body_state_cost, task_cost
 from gnwarp.control.tasks import get_task
 
 # two coupled sliders, a spring and damping, no gravity or contacts, Euler: linear dynamics
@@ -175,3 +175,32 @@ def test_task_cost_wraps_a_task_reward():
     assert cost(d, np.zeros(1)) == pytest.approx(0.3)  # minus the reward: the angle from upright
     with pytest.raises(ValueError, match="displacements"):
         task_cost(sim.make("swimmer6").model, get_task("swimmer-reach"))
+
+
+def test_body_point_cost_derivatives_match_finite_differences():
+    """BodyPointCost's analytic lx equals the generic finite-difference gradient; where the point
+    sits on its reference the Gauss-Newton lxx is the exact Hessian, so it matches FD too."""
+    s = sim.make("swimmer6")
+    m = s.model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(3)
+    d.qpos[:] = m.qpos0 + 0.3 * rng.standard_normal(m.nq)
+    d.qvel[:] = rng.standard_normal(m.nv)
+    mujoco.mj_forward(m, d)
+    W = np.diag([0.7, 0.2, 0.0])
+    il = ILQG(m, 2, lambda dd, u: 0.0, nthread=1)
+    for ref, lin in [(d.xpos[1] + [0.1, -0.2, 0.0], np.array([-0.6, 0.8, 0.0])), (d.xpos[1].copy(), None)]:
+        cost = BodyPointCost(m, 1, ref, lin=lin, W=W, R=0.1 * np.eye(m.nu))
+        u = rng.standard_normal(m.nu)
+        fd = il._cost_derivatives(d, lambda dd, uu: cost(dd, uu), u)   # plain callable: finite differences
+        an = cost.derivatives(d, u)
+        np.testing.assert_allclose(an[0], fd[0], atol=1e-6)          # lx
+        np.testing.assert_allclose(an[1], fd[1], atol=1e-6)          # lu
+        np.testing.assert_allclose(an[3], fd[3], atol=1e-4)          # luu
+        if lin is None:                                               # on the reference: exact Hessian
+            np.testing.assert_allclose(an[2], fd[2], atol=2e-3)
+            assert np.abs(an[2]).max() > 1e-2                        # a Hessian that could be wrong
+        else:
+            assert np.abs(an[0]).max() > 1e-2                        # a gradient that could be wrong
+    with pytest.raises(ValueError, match="body 99"):
+        BodyPointCost(m, 99, np.zeros(3))

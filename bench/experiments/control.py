@@ -103,26 +103,21 @@ def swimmer_costs(model, target, qpos, qvel):
     """swimmer-reach as iLQG costs from the current state (qpos, qvel), exactly the task's reward
     of a plan starting there: its displacement term telescopes to the head's final displacement
     along the direction to the target (a terminal cost); the shaping 0.01 x squared offset from
-    the line is a cost of every state (its state-0 term is zero)."""
+    the line is a cost of every state (its state-0 term is zero). Both are ``BodyPointCost``s of
+    the head (body 1), with analytic (Gauss-Newton) derivatives."""
     import mujoco
 
-    from gnwarp.data.convert import body_states
+    from gnwarp.control.ilqg import BodyPointCost
     d = mujoco.MjData(model)
     d.qpos[:], d.qvel[:] = qpos, qvel
     mujoco.mj_forward(model, d)
-    head0 = body_states(model, d)[1, :2].astype(np.float64)
-    u = np.asarray(target, np.float64)[:2] - head0
+    head0 = d.xpos[1].copy()
+    u = np.zeros(3)
+    u[:2] = np.asarray(target, np.float64)[:2] - head0[:2]
     u /= max(np.linalg.norm(u), 1e-9)
-    perp = np.array([-u[1], u[0]])
-
-    def running(data, ctrl=None):
-        off = (body_states(model, data)[1, :2] - head0) @ perp
-        return 0.01 * float(off) ** 2
-
-    def terminal(data):
-        h = body_states(model, data)[1, :2] - head0
-        return -float(h @ u) + 0.01 * float(h @ perp) ** 2
-    return running, terminal
+    perp = np.array([-u[1], u[0], 0.0])
+    W = 0.01 * np.outer(perp, perp)
+    return BodyPointCost(model, 1, head0, W=W), BodyPointCost(model, 1, head0, lin=-u, W=W)
 
 
 def _ilqg_episode(job: dict) -> dict:

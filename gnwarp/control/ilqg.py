@@ -23,7 +23,7 @@ import numpy as np
 
 from gnwarp.data.convert import body_states
 
-__all__ = ["ILQG", "QuadraticCost", "body_state_cost", "task_cost", "tangent_difference"]
+__all__ = ["ILQG", "BodyPointCost", "QuadraticCost", "body_state_cost", "task_cost", "tangent_difference"]
 
 # running_cost(data, u) and terminal_cost(data): ``data`` holds the state after mj_forward
 RunningCost = Callable[[mujoco.MjData, np.ndarray], float]
@@ -78,6 +78,49 @@ class QuadraticCost:
         R = np.zeros((nu, nu)) if self.R is None or u is None else self.R
         du = np.zeros(nu) if u is None else np.asarray(u) - self.u_ref
         return self.Q @ self._dx(data), R @ du, self.Q, R, np.zeros((nu, nx))
+
+
+class BodyPointCost:
+    """A cost of one body's world position p = xpos[body]: lin' (p - ref) + (p - ref)' W (p - ref),
+    plus 0.5 u' R u with R given and a control u.
+
+    ref [3], lin [3] (default zeros), W [3, 3] (default zeros; symmetric), R [nu, nu] or None.
+    Analytic derivatives from the body's position Jacobian (``mj_jacBody``): lx is exact, lxx the
+    Gauss-Newton 2 J' W J (the Jacobian's own curvature dropped, as MuJoCo MPC does for residual
+    norms), so a knot costs one Jacobian instead of O(nx^2) finite-difference cost evaluations.
+    """
+
+    def __init__(self, model: mujoco.MjModel, body: int, ref, lin=None, W=None, R=None):
+        if not 0 <= int(body) < model.nbody:
+            raise ValueError(f"BodyPointCost: body {body} out of range [0, {model.nbody})")
+        self.model, self.body = model, int(body)
+        self.ref = np.asarray(ref, float).reshape(3)
+        self.lin = np.zeros(3) if lin is None else np.asarray(lin, float).reshape(3)
+        self.W = np.zeros((3, 3)) if W is None else np.asarray(W, float).reshape(3, 3)
+        self.R = None if R is None else np.asarray(R, float).reshape(model.nu, model.nu)
+        self._jacp = np.zeros((3, model.nv))
+
+    def __call__(self, data: mujoco.MjData, u=None) -> float:
+        e = data.xpos[self.body] - self.ref
+        c = self.lin @ e + e @ self.W @ e
+        if self.R is not None and u is not None:
+            c += 0.5 * np.asarray(u, float) @ self.R @ np.asarray(u, float)
+        return float(c)
+
+    def derivatives(self, data: mujoco.MjData, u=None):
+        """(lx [nx], lu [nu], lxx [nx, nx], luu [nu, nu], lux [nu, nx]) at data's state."""
+        m = self.model
+        nv, nu, nx = m.nv, m.nu, 2 * m.nv + m.na
+        mujoco.mj_jacBody(m, data, self._jacp, None, self.body)
+        J = self._jacp
+        e = data.xpos[self.body] - self.ref
+        Ws = self.W + self.W.T
+        lx, lxx = np.zeros(nx), np.zeros((nx, nx))
+        lx[:nv] = J.T @ (self.lin + Ws @ e)
+        lxx[:nv, :nv] = J.T @ Ws @ J
+        R = np.zeros((nu, nu)) if self.R is None or u is None else self.R
+        lu = np.zeros(nu) if u is None else R @ np.asarray(u, float)
+        return lx, lu, lxx, R, np.zeros((nu, nx))
 
 
 def body_state_cost(model: mujoco.MjModel, reward_fn: Callable, scale: float = 1.0) -> Callable:
