@@ -274,6 +274,42 @@ def test_a_failure_between_the_renames_keeps_the_old_checkpoint(tmp_path, traine
     assert (last / "manifest.json").read_text() == before and not list(tmp_path.glob(".last*"))
 
 
+def test_background_writes_hold_the_state_at_submit_and_report_failures(tmp_path, trained, monkeypatch):
+    """The training loop's CheckpointWriter: what is written is the state when submitted, even
+    though training changes the weights and optimizer tensors before the thread writes them; a
+    write that fails raises in the caller's thread, and the previous checkpoint stays."""
+    model = load_model(trained / "last", device="cpu")
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    moment = torch.arange(4.0)
+    gate = __import__("threading").Event()
+    real_write = ck._write
+
+    def slow_write(path, snap):
+        gate.wait(10)          # the write starts only after training has changed everything
+        return real_write(path, snap)
+    monkeypatch.setattr(ck, "_write", slow_write)
+    w = ck.CheckpointWriter()
+    w.submit("a", tmp_path / "a", model, {"optimizer": {"m": moment}, "state": {"step": 7}})
+    assert w.done() == []      # not written yet: nothing reported
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1.0)
+    moment += 5
+    gate.set()
+    assert w.wait() == [("a", tmp_path / "a")]
+    again = load_model(tmp_path / "a", device="cpu")
+    for k, v in again.state_dict().items():
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0)
+    training = torch.load(tmp_path / "a" / "training.pt", weights_only=True)
+    torch.testing.assert_close(training["optimizer"]["m"], torch.arange(4.0))
+    monkeypatch.setattr(ck, "_write", lambda path, snap: (_ for _ in ()).throw(OSError("disk full")))
+    w.submit("b", tmp_path / "a", model)
+    with pytest.raises(OSError, match="disk full"):
+        w.wait()
+    assert load_model(tmp_path / "a", device="cpu") is not None   # the previous one is intact
+    w.close()
+
+
 def test_a_run_killed_between_the_renames_resumes_from_what_it_left(tmp_path, pendulum):
     """The state a kill between the renames leaves (no ``last``, the complete checkpoint under
     ``.last.old-<pid>``), with the debris of other kills: the rerun restores it, removes the

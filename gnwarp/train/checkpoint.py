@@ -40,7 +40,7 @@ from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig, check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
 
-__all__ = ["FORMAT", "VERSION", "CheckpointError", "save_checkpoint", "load_model", "load_checkpoint",
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model", "load_checkpoint",
            "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
            "read_checkpoint", "load_weights"]
 
@@ -81,9 +81,31 @@ def save_checkpoint(path, model: ForwardModel, training: dict | None = None, inf
     """Write ``model`` (and optional training state: tensors and plain values only) as a
     checkpoint folder at ``path``, atomically: into a temporary folder beside it, then renamed
     over any previous one (a kill between the two renames is undone by ``recover_checkpoint``)."""
-    path = Path(path)
+    return _write(Path(path), snapshot(model, training, info))
+
+
+def snapshot(model: ForwardModel, training: dict | None = None, info: dict | None = None) -> dict:
+    """What ``save_checkpoint`` writes, copied now: config text and every tensor on the CPU (copies,
+    so that training on may go on while another thread writes them, ``CheckpointWriter``)."""
     if training is not None:
-        training = _plain(training, "training")
+        training = _cpu_copy(_plain(training, "training"))
+    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __import__("gnwarp").__version__,
+           "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
+    return {"config": json.dumps(cfg, indent=1), "training": training,
+            "model": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}}
+
+
+def _cpu_copy(x):
+    if isinstance(x, torch.Tensor):
+        return x.to("cpu", copy=True)
+    if isinstance(x, dict):
+        return {k: _cpu_copy(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_cpu_copy(v) for v in x)
+    return x
+
+
+def _write(path: Path, snap: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
     old = path.parent / f".{path.name}.old-{os.getpid()}"
@@ -93,12 +115,10 @@ def save_checkpoint(path, model: ForwardModel, training: dict | None = None, inf
     tmp.mkdir()
     moved = False
     try:
-        cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __import__("gnwarp").__version__,
-               "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
-        (tmp / "config.json").write_text(json.dumps(cfg, indent=1))
-        torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, tmp / "model.pt")
-        if training is not None:
-            torch.save(training, tmp / "training.pt")
+        (tmp / "config.json").write_text(snap["config"])
+        torch.save(snap["model"], tmp / "model.pt")
+        if snap["training"] is not None:
+            torch.save(snap["training"], tmp / "training.pt")
         files = sorted(p.name for p in tmp.iterdir())
         (tmp / MANIFEST).write_text(json.dumps({n: sha256_file(tmp / n) for n in files}, indent=1))
         if path.exists():
@@ -115,6 +135,40 @@ def save_checkpoint(path, model: ForwardModel, training: dict | None = None, inf
         raise
     shutil.rmtree(old, ignore_errors=True)
     return path
+
+
+class CheckpointWriter:
+    """Checkpoints written by one background thread, in the order submitted, so that training
+    does not wait on the disk: ``submit`` copies the state to the CPU at once (a consistent
+    snapshot of that step) and returns; ``done()`` gives the (name, path) of the writes finished
+    since the last call and re-raises a write's error; ``wait()`` waits for all of them first.
+    Each write is atomic, as ``save_checkpoint``'s."""
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="gnwarp-checkpoint")
+        self._jobs: list = []
+
+    def submit(self, name: str, path, model: ForwardModel, training: dict | None = None,
+               info: dict | None = None) -> None:
+        snap = snapshot(model, training, info)
+        self._jobs.append((name, self._pool.submit(_write, Path(path), snap)))
+
+    def done(self, wait: bool = False) -> list[tuple[str, Path]]:
+        out = []
+        while self._jobs and (wait or self._jobs[0][1].done()):
+            name, fut = self._jobs.pop(0)
+            out.append((name, fut.result()))   # a failed write raises here, in the caller's thread
+        return out
+
+    def wait(self) -> list[tuple[str, Path]]:
+        return self.done(wait=True)
+
+    def close(self) -> None:
+        try:
+            self.wait()
+        finally:
+            self._pool.shutdown(wait=True)
 
 
 # -- reading -----------------------------------------------------------------------------------

@@ -15,7 +15,9 @@ Its seams, for the stages that reuse it (captured steps, system identification, 
 distributed ranks): ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
 ``step`` (one optimization step), ``validate``, ``checkpoint`` and ``callbacks`` (called as
 ``callback(trainer, event, info)`` for the events "log", "validate", "checkpoint" and "end").
-Override a method in a subclass, or replace ``trainer.sampler``, to change one seam.
+The loop's checkpoints are copied to the CPU at their step and written by a background thread
+(``CheckpointWriter``), so training does not wait on the disk; "checkpoint" comes once the folder
+is in place, and the run's end waits for every write. Override a method in a subclass, or replace ``trainer.sampler``, to change one seam.
 """
 from __future__ import annotations
 
@@ -39,8 +41,8 @@ from gnwarp.interop import Graphed, resolve_device
 from gnwarp.models.config import check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
 from gnwarp.train.capture import capture_problem, default_generator, registers_generators
-from gnwarp.train.checkpoint import (CheckpointError, checkpoint_config, clean_debris, load_checkpoint,
-                                     model_config_changes, recover_checkpoint, save_checkpoint)
+from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
+                                     load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.optim import FlatAdam
 from gnwarp.train.sampler import BatchSampler
@@ -126,6 +128,7 @@ class Trainer:
         self._terms: dict[str, torch.Tensor] = {}     # the last step's loss terms
         self.captured = None
         self._valid_engines: dict = {}
+        self._writer: CheckpointWriter | None = None  # background checkpoint writes
         if config.capture and cuda:
             problem = capture_problem(self.device, self.sampler.static_shapes, self.generator)
             if problem is None:
@@ -240,15 +243,26 @@ class Trainer:
                                                                self.model.graph_builder(ds))
         return self._valid_engines[k]
 
-    def checkpoint(self, name: str) -> Path:
-        """Write ``<out>/<name>`` (model, optimizer, sampler and run state)."""
+    def checkpoint(self, name: str, wait: bool = True) -> Path:
+        """Write ``<out>/<name>`` (model, optimizer, sampler and run state). ``wait=False`` (the
+        training loop's): the state is copied now and written by a background thread while
+        training goes on; the "checkpoint" event comes once the folder is in place."""
         st = self.state
         readable = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in st.items()}
-        path = save_checkpoint(self.out / name, self.model,
-                               {"optimizer": self.optimizer.state_dict(), "state": dict(st),
-                                "generator": self.generator.get_state()}, {**self.info, "state": readable})
-        self.emit("checkpoint", name=name, path=path)
+        path = self.out / name
+        if self._writer is None:
+            self._writer = CheckpointWriter()
+        self._writer.submit(name, path, self.model,
+                            {"optimizer": self.optimizer.state_dict(), "state": dict(st),
+                             "generator": self.generator.get_state()}, {**self.info, "state": readable})
+        self._checkpoints_written(wait)
         return path
+
+    def _checkpoints_written(self, wait: bool = False) -> None:
+        """Emit "checkpoint" for the background writes finished (all, with ``wait``)."""
+        if self._writer is not None:
+            for name, path in self._writer.done(wait):
+                self.emit("checkpoint", name=name, path=path)
 
     def warmup(self) -> None:
         """Normalizer statistics from a few batches before the first gradient step, so the first
@@ -342,7 +356,7 @@ class Trainer:
             row["valid_error"] = err
             if err < st["best_error"]:
                 st.update(best_error=err, best_step=step, bad_validations=0)
-                self.checkpoint("best")
+                self.checkpoint("best", wait=False)
             else:
                 st["bad_validations"] += 1
             bar.set_postfix(loss=row.get("loss", ""), valid=f"{err:.4g}", best=f"{st['best_error']:.4g}")
@@ -351,7 +365,8 @@ class Trainer:
             log(row)
             self.emit("log", row=row)
         if step % c.checkpoint_every == 0:
-            self.checkpoint("last")
+            self.checkpoint("last", wait=False)
+        self._checkpoints_written()
         if c.patience is not None and st["bad_validations"] >= c.patience:
             return "early stopping"
         return "time budget" if timed_out else None
