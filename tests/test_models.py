@@ -363,6 +363,14 @@ def test_rollout_engine_matches_model_rollout(pendulum):
     rollouts and gradients equal ``model.rollout``'s; another batch shape is refused."""
     m, engine, x0, u = _engine_case(pendulum)
     _engine_agrees(m, engine, x0, u)
+    # the engine's backward computes no weight gradients, and leaves the parameters as they were
+    for i, p in enumerate(m.parameters()):
+        p.requires_grad_(i % 3 != 1)
+    flags = [p.requires_grad for p in m.parameters()]
+    xe, ue = x0.clone().requires_grad_(True), u.clone().requires_grad_(True)
+    engine.rollout(xe, ue).sum().backward()
+    assert ue.grad.abs().max() > 0 and all(p.grad is None for p in m.parameters())
+    assert [p.requires_grad for p in m.parameters()] == flags and any(flags)
     with pytest.raises(ValueError, match="rolls out 5 steps"):
         m.rollout_engine([0, 0], 5).rollout(x0, u[:, :4])
     with pytest.raises(ValueError, match="holds x0"):

@@ -14,6 +14,7 @@ launch instead of thousands from Python.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import weakref
 from typing import Callable
@@ -236,6 +237,21 @@ def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool,
     return (g if need_x else None), g_ctrl, g_params
 
 
+@contextlib.contextmanager
+def frozen_parameters(module: torch.nn.Module):
+    """``module``'s parameters with ``requires_grad`` off inside the block, restored after: a
+    backward that wants only input gradients then skips every weight gradient (the GN blocks'
+    backward computes those only for parameters that require them)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
 def forward_loop(step: Callable, x0, ctrl):
     """States [N, T+1, B, 13] of ``step`` applied T times from ``x0`` under ``ctrl`` [N, T, U]."""
     states = [x0]
@@ -358,7 +374,8 @@ class RolloutEngine:
         b = self._bufs
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
-        g_x, g_u, _ = adjoint_loop(self._step(ctx), b["traj"], b["ctrl"], b["g_traj"], True, True)
+        with frozen_parameters(self.model):   # no weight gradients: the GN's backward skips their GEMMs
+            g_x, g_u, _ = adjoint_loop(self._step(ctx), b["traj"], b["ctrl"], b["g_traj"], True, True)
         b["g_x0"].copy_(g_x)
         b["g_ctrl"].copy_(g_u)
 
