@@ -37,6 +37,39 @@ def config(args, tmp, name, precision, optimizer, capture, steps, **kw):
                        optimizer=optimizer, capture=capture, patience=None, progress=False, resume=False, **kw)
 
 
+def profile_steps(args, tmp, ds, name):
+    """Device time per kernel of the Trainer's step (eager, the same kernels a replay runs)."""
+    from torch.profiler import ProfilerActivity, profile
+    path = Path(args.out) / f"train_loop_{name.replace(' ', '_').lower()}_profile.txt"
+    with open(path, "a") as f:
+        for prec in args.precisions.split(","):
+            opt = args.optimizers.split(",")[0]
+            t = Trainer(config(args, tmp, f"prof-{prec}", prec, opt, False, 10 ** 6), [ds])
+            t.warmup()
+            for _ in range(20):
+                t.step()
+            torch.cuda.synchronize()
+            with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                for _ in range(args.profile):
+                    t.step()
+                torch.cuda.synchronize()
+            per = {}
+            for ev in prof.events():
+                if ev.device_type == torch.autograd.DeviceType.CUDA:
+                    k = per.setdefault(ev.name[:90], [0, 0.0])
+                    k[0] += 1
+                    k[1] += ev.device_time_total if hasattr(ev, "device_time_total") else ev.cuda_time_total
+            total = sum(v[1] for v in per.values()) / args.profile
+            calls = sum(v[0] for v in per.values()) / args.profile
+            head = (f"== Trainer step, {prec}, {opt}, batch {args.batch}, {name}: {calls:.0f} kernels / step, "
+                    f"{total:.1f} us device time / step (sum of kernel durations)")
+            print(head, flush=True)
+            f.write(head + "\n")
+            for n, (c, us) in sorted(per.items(), key=lambda kv: -kv[1][1]):
+                f.write(f"{us / args.profile:9.1f} us {c / args.profile:6.1f}x  {n}\n")
+    print(f"wrote {path}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--precisions", default="fp32,tf32,fp16")
@@ -47,6 +80,9 @@ def main(argv=None):
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--out", default=results_dir())
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--profile", type=int, default=0,
+                    help="also profile this many eager steps per precision (torch.profiler: device time per kernel "
+                         "and step), written to <out>/train_loop_<device>_profile.txt")
     args = ap.parse_args(argv)
     if args.quick:
         args.device, args.steps, args.eager_steps, args.batch = "cpu", 30, 20, 16
@@ -75,6 +111,11 @@ def main(argv=None):
                         row["step_ms"] = round(median_ms(t.step, dev, 200, 5), 4)  # the captured step alone
                     rows.append(row)
                     print(json.dumps(row), flush=True)
+        if args.profile and dev.type == "cuda":
+            try:
+                profile_steps(args, tmp, ds, name)
+            except Exception as exc:   # a profiler problem must not lose the loop's numbers
+                print(f"profile failed: {type(exc).__name__}: {exc}", flush=True)
     lines = [f"# The training loop users run, on {name}", "",
              f"`python bench/train_loop.py` ({time.strftime('%Y-%m-%d')}): `gnwarp.train.Trainer` on cheetah, "
              f"{'quick sizes' if args.quick else 'paper core'}, batch {args.batch}, validation every 1000 steps "

@@ -48,8 +48,13 @@ LABELS = {"gn_mpc": "GN-MPC (learned)", "ilqg": "iLQG (true, MuJoCo C)", "sampli
 GOAL_TASKS = ("pendulum-balance", "cartpole-balance", "swimmer-reach")
 
 
-def task_system(task) -> str:
-    """The system a task runs on here: SwimmerN tasks on swimmer6."""
+def task_system(task, override: str | None = None) -> str:
+    """The system a task runs on here: ``override`` (``--system``, e.g. swimmer7 for the zero-shot
+    runs of Figure 11) when it fits the task, else SwimmerN tasks on swimmer6."""
+    if override:
+        if not task.fits(override):
+            raise SystemExit(f"--system {override} does not fit task {task.name} (a {task.system} task)")
+        return override
     return "swimmer6" if task.system == "swimmer" else task.system
 
 
@@ -57,6 +62,8 @@ def task_system(task) -> str:
 
 def model_path(args, system: str, out: Path) -> Path:
     """``<checkpoints>/<system>/best``, or a model trained here (quick: a tiny one)."""
+    if args.model:
+        return Path(args.model)
     if args.checkpoints:
         p = Path(args.checkpoints) / system / "best"
         if p.exists():
@@ -262,12 +269,12 @@ def run_task(args, name: str, out: Path) -> list[dict]:
     from gnwarp.sim import systems
     from gnwarp.train import load_model
     task = get_task(name)
-    system = systems.make(task_system(task))
+    system = systems.make(task_system(task, args.system))
     horizon = args.horizon or task.horizon
     n = args.episodes
     rng = np.random.default_rng(args.seed)
     qpos, qvel = initial_states(system, n, rng)
-    target = sample_targets(task, system, n, args.seed)
+    target = sample_targets(task, system, n, args.seed, distance=args.target_distance)
     model = load_model(model_path(args, system.name, out), device=args.device).bind(system)
     rows = []
     for kind in args.planners:
@@ -295,8 +302,16 @@ def run_task(args, name: str, out: Path) -> list[dict]:
                    plan_ms=1e3 * float(np.mean(_steady(res["plan_seconds"], n, args.steps))),
                    plan_first_ms=1e3 * float(np.asarray(res["plan_seconds"]).reshape(-1)[0]), wall_s=res["wall"],
                    episode_steps_per_s=n * args.steps / res["wall"], note=res["note"])
+        if task.target == "position":   # Figure 11: the head's distance to the target, first and last state
+            head = torch.as_tensor(res["states"]).double()[:, :, 1, :2]
+            dist = torch.linalg.vector_norm(head - target[:, None, :2].double(), dim=-1)
+            row.update(initial_distance=float(dist[:, 0].mean()), final_distance_mean=float(dist[:, -1].mean()),
+                       final_distance_std=float(dist[:, -1].std(unbiased=False)),
+                       distance_curve=dist.mean(0).tolist())
         print(f"  true return {row['return_mean']:.4g} +- {row['return_std']:.3g}; {row['plan_ms']:.1f} ms/plan; "
-              f"{row['episode_steps_per_s']:.1f} episode-steps/s", flush=True)
+              f"{row['episode_steps_per_s']:.1f} episode-steps/s"
+              + (f"; distance to target {row['initial_distance']:.3g} -> {row['final_distance_mean']:.3g} m"
+                 if "final_distance_mean" in row else ""), flush=True)
         if kind == "gn_mpc" and args.video:
             row["video"] = video(args, task, system, res["states"], out)
         rows.append(row)
@@ -372,6 +387,12 @@ def write_table(out: Path, rows: list[dict], args) -> None:
     skipped = [r for r in rows if "skipped" in r]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"{r['planner']} on {r['task']} ({r['skipped']})" for r in skipped)]
+    far = [r for r in rows if "final_distance_mean" in r]
+    if far:
+        lines += ["", "Distance from the head to the target (m), mean over episodes: at the start -> after the last "
+                  "step (+- std):", "", "| task | system | planner | steps | start | end |", "|---|---|---|---|---|---|"]
+        lines += [f"| {r['task']} | {r['system']} | {LABELS[r['planner']]} | {r['steps']} | {r['initial_distance']:.3g} | "
+                  f"{r['final_distance_mean']:.3g} +- {r['final_distance_std']:.2g} |" for r in far]
     vids = [r["video"] for r in rows if r.get("video")]
     if vids:
         lines += ["", "Videos (GN-MPC, true simulator): " + ", ".join(f"`{v}`" for v in vids)]
@@ -405,6 +426,10 @@ def main():
     ap.add_argument("--tasks", default=DEFAULT_TASKS, help=f"comma-separated, or 'all' ({', '.join(TASKS)})")
     ap.add_argument("--planners", default=",".join(PLANNERS))
     ap.add_argument("--checkpoints", default=None, help="folder holding <system>/best forward-model checkpoints")
+    ap.add_argument("--model", default=None, help="one forward-model checkpoint for every task (overrides --checkpoints)")
+    ap.add_argument("--system", default=None, help="run the tasks on this system (e.g. swimmer7; default: the "
+                                                   "task's, swimmer6 for SwimmerN tasks)")
+    ap.add_argument("--target-distance", type=float, default=1.0, help="swimmer targets' distance from the origin (m)")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--steps", type=int, default=100, help="control steps per episode")
     ap.add_argument("--horizon", type=int, default=None, help="planning horizon of every planner (default: the task's)")

@@ -239,10 +239,10 @@ def get_task(name, system: str | None = None) -> Task:
     return task
 
 
-def sample_targets(task: Task, system, n: int, seed: int = 0) -> torch.Tensor | None:
+def sample_targets(task: Task, system, n: int, seed: int = 0, distance: float = 1.0) -> torch.Tensor | None:
     """Per-episode targets of ``task`` for ``system`` (a ``System``), float32, or None.
 
-    Swimmer: positions [n, 3] 1 m from the origin in a random direction. JACO: the body states
+    Swimmer: positions [n, 3] ``distance`` m (default 1) from the origin in a random direction. JACO: the body states
     [n, B, 13] of random joint configurations (``gnwarp.data.initial_states``), reachable poses.
     """
     if task.target is None:
@@ -250,7 +250,7 @@ def sample_targets(task: Task, system, n: int, seed: int = 0) -> torch.Tensor | 
     rng = np.random.default_rng(seed)
     if task.target == "position":
         a = rng.uniform(-np.pi, np.pi, n)
-        return torch.tensor(np.stack([np.cos(a), np.sin(a), np.zeros(n)], -1), dtype=torch.float32)
+        return torch.tensor(distance * np.stack([np.cos(a), np.sin(a), np.zeros(n)], -1), dtype=torch.float32)
     from gnwarp.data.convert import body_states
     from gnwarp.data.generation import initial_states
     qpos, _ = initial_states(system, n, rng)

@@ -56,8 +56,9 @@ class StepContext(NamedTuple):
     n_graph: int
     index: Any                 # the core's graph index (Warp GraphIndex or None)
     stats: dict                # normalizer (mean, std) by name, as of when the context was made
-    movable_i32: Any = None    # [n_nodes] int32 of movable, and [n_graph + 1] int32 first node of
-    node_offsets: Any = None   # each graph: what the Warp kernel of a batch's inputs reads
+    movable_i32: Any = None    # [n_nodes] int32 of movable, [n_graph + 1] int32 first node of
+    node_offsets: Any = None   # each graph and [n_nodes] int32 node_graph: what the Warp kernel
+    node_graph_i32: Any = None  # of a batch's inputs reads
 
 
 class ForwardModel(nn.Module):
@@ -164,7 +165,7 @@ class ForwardModel(nn.Module):
         movable = torch.arange(n_nodes, device=n_node.device) != first[node_graph]
         offsets = torch.cat([first, first.new_full((1,), n_nodes)]).to(torch.int32)
         ctx = StepContext(node_graph, movable, n_graph, self.core.graph_index(graph), {}, movable.to(torch.int32),
-                          offsets)
+                          offsets, node_graph.to(torch.int32))
         snd._gnwarp_contexts = (entries + [(others, sig, ctx)])[-4:]
         return ctx
 
@@ -192,8 +193,8 @@ class ForwardModel(nn.Module):
         nodes = nodes.detach().contiguous()
         noisy, centred = torch.empty_like(dyn), torch.empty_like(dyn)
         kernel = K.noisy_centred_kernel(WP_DTYPE[dyn.dtype], noise, bool(self.config.recenter))
-        Launcher(nodes)(kernel, ctx.n_graph, nodes, nodes.shape[1] - DYN_NODE_SIZE, eps.detach(), float(noise_std),
-                        ctx.movable_i32, ctx.node_offsets, noisy, centred)
+        Launcher(nodes)(kernel, dyn.shape[0], nodes, nodes.shape[1] - DYN_NODE_SIZE, eps.detach(), float(noise_std),
+                        ctx.movable_i32, ctx.node_offsets, ctx.node_graph_i32, noisy, centred)
         return noisy, centred
 
     def _with_dynamic(self, graph: GraphsTuple, dyn: torch.Tensor) -> GraphsTuple:
