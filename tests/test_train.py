@@ -264,6 +264,23 @@ def test_cuda_captured_training_matches_uncaptured(tmp_path, pendulum, optimizer
     assert a._valid_engines and a._valid_engines[0]._fwd.graph is not None
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_captured_training_of_several_systems(tmp_path, pendulum):
+    """Batches mixing two systems are captured too (node offsets known on the host) and train as
+    the uncaptured steps do."""
+    cart = data.generate("cartpole", (10, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)
+    model = ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", deterministic=True))
+    runs = {}
+    for capture in (True, False):
+        t = gnwarp.Trainer(config(tmp_path, f"multi{capture}", capture=capture, steps=8, valid_every=8,
+                                  batch_size=30, device="cuda", optimizer="adam", model=model), [pendulum, cart])
+        t.run()
+        assert (t.captured is not None and t.captured.graph is not None) == capture
+        runs[capture] = t
+    for p, q in zip(runs[True].model.parameters(), runs[False].model.parameters()):
+        assert torch.equal(p, q)
+
+
 def test_mismatched_dataset_gives_a_clear_error(tmp_path, pendulum):
     r = train(config(tmp_path, steps=5, valid_every=5), [pendulum])
     m = load_model(r["best"], device="cpu")
@@ -272,6 +289,28 @@ def test_mismatched_dataset_gives_a_clear_error(tmp_path, pendulum):
         ev.evaluate(m, cart)
     with pytest.raises(LayoutMismatchError), pytest.warns(UserWarning, match="layout differs"):
         train(config(tmp_path, steps=10, valid_every=5), [cart])   # resuming a pendulum run on cartpole data
+
+
+def test_mixed_batches_need_no_host_read(pendulum):
+    """A batch mixing several datasets offsets its edges by node counts known on the host (a
+    device read would break a captured step): the same batch as counting them on the device."""
+    from gnwarp.graphs import batch
+    from gnwarp.models import ForwardModel
+    from gnwarp.train.sampler import BatchSampler
+    cart = data.generate("cartpole", (6, 1, 1), num_steps=6, seed=0, backend="mujoco", progress=False)
+    model = ForwardModel(ModelConfig(gn=GNCoreConfig(**TINY)), merge_layouts([pendulum.layout, cart.layout]))
+    s = BatchSampler([pendulum, cart], model, "cpu")
+    assert s.static_shapes
+    g, target = s.sample(7, torch.Generator().manual_seed(0))
+    gen = torch.Generator().manual_seed(0)
+    parts = [p.sample(n, gen) for p, n in zip(s.parts, (4, 3))]   # the same draws, in the same order
+    ref = batch([q for q, _ in parts])                               # node counts read from n_node
+    for a, b in zip(g, ref):
+        assert torch.equal(a, b)
+    assert torch.equal(target, torch.cat([t for _, t in parts]))
+    assert int(g.senders[-1]) >= 4 * 2                               # cartpole's edges offset past pendulum's nodes
+    with pytest.raises(ValueError, match="node counts"):
+        batch([ref, ref], [1])
 
 
 def test_several_systems_in_one_model(tmp_path, pendulum):
