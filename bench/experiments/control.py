@@ -275,6 +275,9 @@ def run_task(args, name: str, out: Path) -> list[dict]:
     rng = np.random.default_rng(args.seed)
     qpos, qvel = initial_states(system, n, rng)
     target = sample_targets(task, system, n, args.seed, distance=args.target_distance)
+    if args.first:   # the first K of the N episodes' initial states and targets (a slow planner's share)
+        n = min(args.first, n)
+        qpos, qvel, target = qpos[:n], qvel[:n], None if target is None else target[:n]
     model = load_model(model_path(args, system.name, out), device=args.device).bind(system)
     rows = []
     for kind in args.planners:
@@ -306,7 +309,7 @@ def run_task(args, name: str, out: Path) -> list[dict]:
             head = torch.as_tensor(res["states"]).double()[:, :, 1, :2]
             dist = torch.linalg.vector_norm(head - target[:, None, :2].double(), dim=-1)
             row.update(initial_distance=float(dist[:, 0].mean()), final_distance_mean=float(dist[:, -1].mean()),
-                       final_distance_std=float(dist[:, -1].std(unbiased=False)),
+                       final_distance_std=float(dist[:, -1].std(unbiased=False)), final_distances=dist[:, -1].tolist(),
                        distance_curve=dist.mean(0).tolist())
         print(f"  true return {row['return_mean']:.4g} +- {row['return_std']:.3g}; {row['plan_ms']:.1f} ms/plan; "
               f"{row['episode_steps_per_s']:.1f} episode-steps/s"
@@ -349,15 +352,57 @@ def _ratio(gn: dict | None, il: dict | None) -> float | None:
     return None
 
 
+def _sizes(rows: list[dict], args) -> str:
+    """"N episodes of T steps per task", or the sizes per row where they differ."""
+    eps = {r.get("episodes") for r in rows} or {args.episodes}
+    steps = {r.get("steps") for r in rows} or {args.steps}
+    if len(eps) == 1 and len(steps) == 1:
+        return f"{eps.pop()} episodes of {steps.pop()} steps per task"
+    return "episodes and steps per row (" + "; ".join(dict.fromkeys(
+        f"{LABELS[r['planner']]} on {_case(r)}: {r['episodes']} episodes" for r in rows)) + ")"
+
+
+def _case(r: dict) -> str:
+    """A row's task, with its system and episode length where they are not the task's defaults
+    (e.g. "swimmer-reach on swimmer7, 700 steps")."""
+    from gnwarp.control import get_task
+    task = get_task(r["task"])
+    name = r["task"]
+    if r.get("system") and r["system"] != task_system(task):
+        name += f" on {r['system']}"
+    if r.get("steps", 100) != 100:
+        name += f", {r['steps']} steps"
+    return name
+
+
+def plot_distances(out: Path, rows: list[dict]) -> None:
+    """Mean distance from the head to the target over the episode, per (task, system, planner)."""
+    far = [r for r in rows if r.get("distance_curve")]
+    if not far:
+        return
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    for r in far:
+        ax.plot(r["distance_curve"], label=f"{LABELS[r['planner']]}, {r['system']} ({r['episodes']} episodes)")
+    ax.set_xlabel("control step")
+    ax.set_ylabel("distance head - target (m), mean")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "distances.png", dpi=110)
+    plt.close(fig)
+
+
 def write_table(out: Path, rows: list[dict], args) -> None:
-    by = {(r["task"], r["planner"]): r for r in rows}
-    tasks = list(dict.fromkeys(r["task"] for r in rows))
+    by = {(_case(r), r["planner"]): r for r in rows}
+    tasks = list(dict.fromkeys(_case(r) for r in rows))
     dev = next((r["device"] for r in rows if r["planner"] == "gn_mpc"), rows[0]["device"] if rows else "?")
     cell = lambda r: ("skipped" if r and "skipped" in r else "-" if not r  # noqa: E731
                       else f"{r['return_mean']:.4g} +- {r['return_std']:.2g}")
     lines = [f"# Control: true returns in closed loop ({dev}{', QUICK smoke run' if args.quick else ''})", "",
-             f"`python bench/experiments/control.py` ({time.strftime('%Y-%m-%d')}): {args.episodes} episodes of "
-             f"{args.steps} steps per task from the same random initial states (and targets), every action executed "
+             f"`python bench/experiments/control.py` ({time.strftime('%Y-%m-%d')}): {_sizes(rows, args)} "
+             f"from the same random initial states (and targets), every action executed "
              f"on the true simulator ({args.backend}; iLQG on MuJoCo C), returns the task's reward of the true "
              f"trajectory (mean +- std over episodes). GN-MPC: {args.iterations} Adam iterations per step, task "
              f"horizon; sampling: {args.samples} samples, {args.knots} knots; iLQG: {args.ilqg_iterations} "
@@ -390,8 +435,8 @@ def write_table(out: Path, rows: list[dict], args) -> None:
     far = [r for r in rows if "final_distance_mean" in r]
     if far:
         lines += ["", "Distance from the head to the target (m), mean over episodes: at the start -> after the last "
-                  "step (+- std):", "", "| task | system | planner | steps | start | end |", "|---|---|---|---|---|---|"]
-        lines += [f"| {r['task']} | {r['system']} | {LABELS[r['planner']]} | {r['steps']} | {r['initial_distance']:.3g} | "
+                  "step (+- std):", "", "| task | system | planner | episodes | steps | start | end |", "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['task']} | {r['system']} | {LABELS[r['planner']]} | {r['episodes']} | {r['steps']} | {r['initial_distance']:.3g} | "
                   f"{r['final_distance_mean']:.3g} +- {r['final_distance_std']:.2g} |" for r in far]
     vids = [r["video"] for r in rows if r.get("video")]
     if vids:
@@ -403,10 +448,10 @@ def plot(out: Path, rows: list[dict]) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    tasks = list(dict.fromkeys(r["task"] for r in rows))
+    tasks = list(dict.fromkeys(_case(r) for r in rows))
     fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.8), squeeze=False)
     for ax, t in zip(axes[0], tasks):
-        rs = {r["planner"]: r for r in rows if r["task"] == t and "return_mean" in r}
+        rs = {r["planner"]: r for r in rows if _case(r) == t and "return_mean" in r}
         names = [p for p in PLANNERS if p in rs]
         x = np.arange(len(names))
         ax.bar(x, [rs[p]["return_mean"] for p in names], yerr=[rs[p]["return_std"] for p in names], capsize=3,
@@ -429,6 +474,8 @@ def main():
     ap.add_argument("--model", default=None, help="one forward-model checkpoint for every task (overrides --checkpoints)")
     ap.add_argument("--system", default=None, help="run the tasks on this system (e.g. swimmer7; default: the "
                                                    "task's, swimmer6 for SwimmerN tasks)")
+    ap.add_argument("--first", type=int, default=None, help="run only the first K of the --episodes episodes "
+                                                             "(same initial states and targets)")
     ap.add_argument("--target-distance", type=float, default=1.0, help="swimmer targets' distance from the origin (m)")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--steps", type=int, default=100, help="control steps per episode")
@@ -483,7 +530,7 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     if args.rebuild:
         every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
-        rows = list({(r["task"], r["planner"]): r for r in every}.values())
+        rows = list({(r["task"], r.get("system"), r["planner"], r["steps"]): r for r in every}.values())
         import re
         found = [re.match(r"(\d+) processes", r.get("note", "")) for r in rows if r["planner"] == "ilqg"]
         args.ilqg_workers = next((int(m.group(1)) for m in found if m), args.ilqg_workers)
@@ -502,6 +549,7 @@ def main():
                 rows.append(row)
     write_table(out, rows, args)
     plot(out, rows)
+    plot_distances(out, rows)
 
 
 if __name__ == "__main__":
