@@ -197,3 +197,40 @@ def test_planning_through_an_identified_system(trained, pendulum):
     # a G_ID of other graphs is refused when the engine is made
     with pytest.raises(GIDError, match="another layout"):
         fixed.rollout_engine(torch.zeros(2, dtype=torch.int64), 6)
+
+
+def test_planning_with_each_episodes_true_parameters(pendulum):
+    """Figure 10's parameterized variant: a model trained on parameterized data, given each
+    episode's true static graph (a list of Systems, one per episode). The planner's engine rolls
+    out what the model does bound to those instances, which differs from giving every episode
+    the first one's parameters."""
+    from gnwarp.control import GradientMPC, GradientMPCConfig, PlanningError
+    from gnwarp.models import ForwardModel
+    from gnwarp.sim import systems
+    torch.manual_seed(0)
+    m = ForwardModel(ModelConfig(gn=TINY, run=RunOptions(impl="torch")), pendulum.layout).double()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0, 0.3)
+    rng = np.random.default_rng(4)
+    insts = [systems.make("pendulum", systems.sample_params("pendulum", rng)) for _ in range(3)]
+    assert len({s.model.body_mass[1] for s in insts}) == 3 or len({s.model.geom_size[1, 1] for s in insts}) == 3
+    x = torch.as_tensor(np.asarray(pendulum["test"].body[:1, 0]), dtype=torch.float64).repeat(3, 1, 1)
+    x[:, 1, 3:7] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64)
+    cfg = GradientMPCConfig(horizon=5, lr=0.05)
+    p = GradientMPC(m, "pendulum-balance", insts, n=3, config=cfg)
+    u = torch.rand(3, 5, 1, dtype=torch.float64) * 2 - 1
+    with torch.no_grad():
+        got = p.engine.rollout(x, u)
+        ref = ForwardModel.rollout(m.bind(insts), x, u, instance=torch.arange(3))
+        same = ForwardModel.rollout(m.bind(insts[0]), x, u)
+    torch.testing.assert_close(got, ref)
+    assert (got - same).abs().max() > 1e-6          # each episode's parameters reach the model
+    xs = p.check_state(x)
+    before = p.planned_reward(xs)
+    p.iterate(xs, 10)
+    assert p.planned_reward(xs).sum() > before.sum()
+    with pytest.raises(PlanningError, match="one per episode"):
+        GradientMPC(m, "pendulum-balance", insts[:2], n=3, config=cfg)
+    with pytest.raises(PlanningError, match="differs from system 0"):
+        GradientMPC(m, "pendulum-balance", [insts[0], insts[1], systems.make("cartpole")], n=3, config=cfg)

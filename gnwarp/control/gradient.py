@@ -96,6 +96,20 @@ class GradientMPC:
 
     def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, target=None):
         from gnwarp.sim.systems import System, make
+        # a list of n Systems of one topology: episode i plans through instance i's static graph
+        # (a parameterized model given each episode's true parameters, Figure 10)
+        instances = list(system) if isinstance(system, (list, tuple)) else None
+        if instances is not None:
+            if len(instances) != n:
+                raise PlanningError(f"{len(instances)} systems given for {n} episodes: give one per episode")
+            instances = [s if isinstance(s, System) else make(s) for s in instances]
+            system = instances[0]
+            rng = np.asarray(system.model.actuator_ctrlrange)
+            for i, s in enumerate(instances):
+                if s.nbody != system.nbody or s.nu != system.nu or not np.array_equal(
+                        np.asarray(s.model.actuator_ctrlrange), rng):
+                    raise PlanningError(f"system {i} ({s.name}) differs from system 0 in bodies, actuators or "
+                                        "control ranges; per-episode systems must share them")
         self.system = system if isinstance(system, System) else make(system)
         self.task: Task = get_task(task, self.system.name)
         self.config = config if config is not None else GradientMPCConfig()
@@ -107,7 +121,7 @@ class GradientMPC:
             raise PlanningError(f"the model was trained on {', '.join(trained)}, not on {self.system.name} "
                                 f"(task {self.task.name!r})")
         try:
-            model.bind(self.system)
+            model.bind(instances if instances is not None else self.system)
         except LayoutMismatchError as e:
             raise PlanningError(f"the model does not fit {self.system.name} (task {self.task.name!r}): {e}") from None
         self.model, self.n = model, n
@@ -121,7 +135,8 @@ class GradientMPC:
         self.capture = dev.type == "cuda" and (cap is None or bool(cap))
         # the planner's actions are in range by construction: the engine need not clamp or check;
         # captured, the whole iteration is one graph, so the engine's loops run inside it
-        self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), self.horizon, ctrl_policy="none",
+        inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
+        self.engine = model.rollout_engine(inst, self.horizon, ctrl_policy="none",
                                            check=False, graphs=not self.capture)
         self.target = None if target is None else self._target(target)
         self._gen = torch.Generator(device="cpu").manual_seed(int(self.config.seed))

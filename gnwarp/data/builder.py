@@ -173,10 +173,13 @@ class GraphTemplate:
 
 
 def graph_builder(layout: FeatureLayout, source, device=None, dtype=None, strict: bool = True) -> GraphBuilder:
-    """A ``GraphBuilder`` of ``source``'s graphs in ``layout``: source is a ``Dataset`` or a
-    ``gnwarp.sim.systems.System`` (its static graph, for planning without a dataset)."""
+    """A ``GraphBuilder`` of ``source``'s graphs in ``layout``: source is a ``Dataset``, a
+    ``gnwarp.sim.systems.System`` (its static graph, for planning without a dataset) or a list of
+    Systems of one family (instance i is the i-th: per-episode parameters)."""
     if isinstance(source, System):
         static, data_layout, _ = static_arrays([source])
+    elif isinstance(source, (list, tuple)) and source and all(isinstance(s, System) for s in source):
+        static, data_layout, _ = static_arrays(list(source))
     elif all(hasattr(source, a) for a in ("static", "layout", "meta")):  # a Dataset: its module imports this one
         names = tuple(source.meta.get("dynamic_node_names", DYN_NODE_NAMES))
         if names != DYN_NODE_NAMES:

@@ -238,11 +238,11 @@ def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool,
 
 
 @contextlib.contextmanager
-def frozen_parameters(module: torch.nn.Module):
+def frozen_parameters(module):
     """``module``'s parameters with ``requires_grad`` off inside the block, restored after: a
     backward that wants only input gradients then skips every weight gradient (the GN blocks'
     backward computes those only for parameters that require them)."""
-    params = [p for p in module.parameters() if p.requires_grad]
+    params = [p for p in getattr(module, "parameters", lambda: ())() if p.requires_grad]
     for p in params:
         p.requires_grad_(False)
     try:

@@ -327,6 +327,10 @@ class FixedGIDModel:
         self.sysid.bind(source, strict)
         return self
 
+    def parameters(self):
+        """The underlying ``SysIDModel``'s parameters (a rollout engine's backward freezes them)."""
+        return self.sysid.parameters()
+
     def template(self, instance, builder=None) -> GraphTemplate:
         builder = builder if builder is not None else self.sysid.builder
         if builder is None:
