@@ -78,7 +78,7 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     env = make_env(insts, n, backend=args.backend)
     sysid = models["sysid"].bind(base)
     fixed, _, _ = identify_on_env(sysid, env, seed=args.seed, qpos0=qpos, qvel0=qvel)
-    qpos_w, qvel_w = env.qpos.numpy(), env.qvel.numpy()          # where the window left each world
+    qpos_w, qvel_w = env.qpos.cpu().numpy(), env.qvel.cpu().numpy()          # where the window left each world
     cfg = GradientMPCConfig(iterations=args.iterations, warmup=args.warmup, lr=args.lr, seed=args.seed)
     rows = []
     for kind in args.planners:
