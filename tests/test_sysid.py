@@ -234,3 +234,28 @@ def test_planning_with_each_episodes_true_parameters(pendulum):
         GradientMPC(m, "pendulum-balance", insts[:2], n=3, config=cfg)
     with pytest.raises(PlanningError, match="differs from system 0"):
         GradientMPC(m, "pendulum-balance", [insts[0], insts[1], systems.make("cartpole")], n=3, config=cfg)
+
+
+def test_sysid_resume_continues_exactly(pendulum, tmp_path):
+    """A rerun into the same out resumes from <out>/last: 20 + 20 steps give the weights of 40
+    straight; a sysid run refuses a forward-model checkpoint in its folder, and one of another
+    window."""
+    def cfg(name, steps):
+        return TrainConfig(out=str(tmp_path / name), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")),
+                           steps=steps, batch_size=16, lr=3e-3, valid_every=20, valid_sequences=2, log_every=10,
+                           checkpoint_every=20, progress=False, device="cpu", normalizer_warmup=5)
+    full = SysIDTrainer(cfg("full", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
+    SysIDTrainer(cfg("half", 20), SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
+    resumed = SysIDTrainer(cfg("half", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
+    assert resumed.state["step"] == 20
+    r = resumed.run()
+    assert r["steps"] == 40
+    a, b = load_sysid(full["last"]), load_sysid(r["last"])
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    with pytest.raises(CheckpointError, match="model.window"):
+        SysIDTrainer(cfg("half", 60), SysIDConfig(identifier=ID, window=W + 1), datasets=[pendulum])
+    from gnwarp.train import train
+    train(cfg("fwd", 20), [pendulum])
+    with pytest.raises(CheckpointError, match="not a system-identification one"):
+        SysIDTrainer(cfg("fwd", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])

@@ -42,7 +42,7 @@ from gnwarp.models.forward import ForwardModel, input_sizes
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model", "load_checkpoint",
            "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
-           "read_checkpoint", "load_weights"]
+           "read_checkpoint", "load_weights", "load_training"]
 
 FORMAT, VERSION = "gnwarp-model", 1
 MANIFEST = "manifest.json"
@@ -330,8 +330,14 @@ def load_checkpoint(path, device=None) -> tuple[ForwardModel, dict | None, dict]
     """(model, training state or None, config.json) of a checkpoint, for resuming. The training
     state is read with ``weights_only=True``: tensors and plain values, never code."""
     model = load_model(path, device)
-    training = _load_training(Path(path)) if (Path(path) / "training.pt").is_file() else None
-    return model, training, model.checkpoint_info
+    return model, load_training(path), model.checkpoint_info
+
+
+def load_training(path) -> dict | None:
+    """The training state of a checkpoint folder (optimizer, run state, sampler), or None when it
+    has none; read with ``weights_only=True`` and checked (``CheckpointError``)."""
+    path = Path(path)
+    return _load_training(path) if (path / "training.pt").is_file() else None
 
 
 # -- checking ----------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ inside); ``capture=False`` runs it eagerly, as on the CPU.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from typing import NamedTuple
 
@@ -27,7 +28,8 @@ from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
 from gnwarp.models.sysid import SysIDConfig, SysIDModel
 from gnwarp.state import DYN_NODE_SIZE
-from gnwarp.train.checkpoint import CheckpointError, load_weights, read_checkpoint
+from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weights, model_config_changes,
+                                     read_checkpoint)
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
@@ -58,8 +60,9 @@ class SysIDTrainer(Trainer):
     """Trains a ``SysIDModel`` end to end (Algorithm D.4); see the module docstring.
 
     ``sysid``: sizes of GN_p and the window (default ``SysIDConfig()``); the forward model's
-    sizes and run options are ``config.model``'s. Other arguments as ``Trainer``'s. Runs do not
-    resume from ``<out>/last`` yet: a rerun into a folder holding one is refused."""
+    sizes and run options are ``config.model``'s. Other arguments as ``Trainer``'s. A rerun into
+    the same ``out`` resumes from ``<out>/last`` (model, optimizer, sampler and run state), as
+    the ``Trainer``'s do; a checkpoint of another model is refused."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
                  model: SysIDModel | None = None, callbacks=()):
@@ -79,11 +82,21 @@ class SysIDTrainer(Trainer):
         super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
 
-    def _prepare_out(self, model) -> bool:
-        if self.config.resume and (self.out / "last").is_dir():
-            raise CheckpointError(f"{self.out / 'last'} exists and system-identification runs do not resume yet; "
-                                  "choose another out, or remove it")
-        return super()._prepare_out(model)
+    def _load_last(self):
+        """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
+        last = self.out / "last"
+        return load_sysid(last, self.device), load_training(last)
+
+    def _config_changes(self, saved: dict, wanted) -> list[str]:
+        if not isinstance(saved, dict) or "forward" not in saved:
+            return ["model: a forward-model checkpoint, not a system-identification one"]
+        want = wanted.to_dict() if isinstance(wanted, SysIDConfig) else {}
+        changes = model_config_changes(saved["forward"], wanted.forward if isinstance(wanted, SysIDConfig) else wanted)
+        plain = lambda v: json.loads(json.dumps(v))  # noqa: E731 - tuples as the JSON lists saved
+        for key in ("identifier", "window"):
+            if plain(saved.get(key)) != plain(want.get(key)):
+                changes.append(f"model.{key}: {saved.get(key)!r} -> {want.get(key)!r}")
+        return changes
 
     # -- seams ------------------------------------------------------------------------------
     def sample(self) -> tuple[list[SysIDSample]]:

@@ -99,10 +99,7 @@ class Trainer:
         self.datasets = list(datasets)
         training = None
         if self._prepare_out(model):  # with resume: recovers what killed runs left, refuses what it cannot resume
-            model, training, _ = load_checkpoint(self.out / "last", self.device)
-            if merge_layouts([d.layout for d in self.datasets]).to_dict() != model.layout.to_dict():
-                warnings.warn(f"resuming {self.out / 'last'}: the datasets' merged layout differs from the model's; "
-                              "mapping them onto the model's layout")
+            model, training = self._load_last()
         elif model is None:
             model = build_model(config, self.datasets)
         run = config.model.run
@@ -294,7 +291,7 @@ class Trainer:
             wanted = model.config if model is not None else c.model
             saved = checkpoint_config(last)
             try:
-                changes = model_config_changes(saved["model"], wanted)
+                changes = self._config_changes(saved["model"], wanted)
             except (KeyError, TypeError, ValueError) as e:
                 raise CheckpointError(f"{last}: config.json does not describe a model ({e})") from None
             if not changes:
@@ -314,6 +311,19 @@ class Trainer:
         dest = _move_aside(out)
         warnings.warn(f"{problem}: moved it to {dest} and starting a new run (on_config_change='restart')")
         return False
+
+    def _load_last(self):
+        """(model, training state) of ``<out>/last``, to resume from."""
+        model, training, _ = load_checkpoint(self.out / "last", self.device)
+        if merge_layouts([d.layout for d in self.datasets]).to_dict() != model.layout.to_dict():
+            warnings.warn(f"resuming {self.out / 'last'}: the datasets' merged layout differs from the model's; "
+                          "mapping them onto the model's layout")
+        return model, training
+
+    def _config_changes(self, saved: dict, wanted) -> list[str]:
+        """What differs between ``<out>/last``'s model config and the one asked for (see
+        ``model_config_changes``); a subclass with another model kind compares its own."""
+        return model_config_changes(saved, wanted)
 
     def _restore(self, training: dict) -> None:
         try:
