@@ -536,6 +536,7 @@ def main():
         args.ilqg_workers = next((int(m.group(1)) for m in found if m), args.ilqg_workers)
         write_table(out, rows, args)
         plot(out, rows)
+        plot_distances(out, rows)
         return
     args.data = args.data or str(out / "data")
     Path(args.data).mkdir(parents=True, exist_ok=True)
