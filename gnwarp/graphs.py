@@ -166,19 +166,18 @@ def _cat(xs, like):
     return np.concatenate(xs, 0)
 
 
-def batch(graphs: Sequence[GraphsTuple], total_nodes: Sequence[int] | None = None) -> GraphsTuple:
+def batch(graphs: Sequence[GraphsTuple]) -> GraphsTuple:
     """Concatenate graphs (each may itself be a batch) into one GraphsTuple, offsetting indices.
-    ``total_nodes``: each graph's node count when the caller knows it (no device-to-host read of
-    ``n_node``, so that a batch can be built inside a CUDA graph capture)."""
+    A graph's node offset is its node rows (a shape, known on the host) when it has node
+    features, so batching reads nothing back from the device (it may run inside a CUDA graph
+    capture); ``n_node``'s sum otherwise."""
     if len(graphs) == 0:
         raise ValueError("batch() needs at least one graph")
-    if total_nodes is not None and len(total_nodes) != len(graphs):
-        raise ValueError(f"batch(): {len(total_nodes)} node counts for {len(graphs)} graphs")
     like = graphs[0].n_node
     offsets, off = [], 0
-    for i, g in enumerate(graphs):
+    for g in graphs:
         offsets.append(off)
-        off += g.total_nodes if total_nodes is None else int(total_nodes[i])
+        off += int(g.nodes.shape[0]) if g.nodes is not None else g.total_nodes
     snd = [g.senders + o for g, o in zip(graphs, offsets)]
     rcv = [g.receivers + o for g, o in zip(graphs, offsets)]
     return GraphsTuple(

@@ -303,7 +303,7 @@ class MujocoWarpEnv(Env):
                 yield
             return
         from gnwarp.interop import warp_stream
-        if getattr(self, "_side", None) is None:
+        if self._side is None:
             self._side = torch.cuda.Stream(self.device)
         main = torch.cuda.current_stream(self.device)
         self._side.wait_stream(main)

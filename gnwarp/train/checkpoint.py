@@ -40,8 +40,8 @@ from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig, check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
 
-__all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model", "load_checkpoint",
-           "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model",
+           "load_checkpoint", "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
            "read_checkpoint", "load_weights", "load_training"]
 
 FORMAT, VERSION = "gnwarp-model", 1

@@ -55,9 +55,7 @@ class BatchSampler:
         """(graph of ``batch_size`` graphs, target next states [sum(n_node), 13])."""
         k = len(self.parts)
         sizes = [batch_size // k + (1 if i < batch_size % k else 0) for i in range(k)]
-        got = [(p, p.sample(n, gen), n) for p, n in zip(self.parts, sizes) if n > 0]
+        got = [p.sample(n, gen) for p, n in zip(self.parts, sizes) if n > 0]
         if len(got) == 1:
-            return got[0][1]
-        # node counts from the host when every part is of one topology: no sync (capturable)
-        totals = ([n * p.builder.s_nodes.shape[1] for p, _, n in got] if self.static_shapes else None)
-        return batch([g for _, (g, _), _ in got], totals), torch.cat([t for _, (_, t), _ in got], 0)
+            return got[0]
+        return batch([g for g, _ in got]), torch.cat([t for _, t in got], 0)

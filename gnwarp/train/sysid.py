@@ -87,15 +87,13 @@ class SysIDTrainer(Trainer):
         last = self.out / "last"
         return load_sysid(last, self.device), load_training(last)
 
-    def _config_changes(self, saved: dict, wanted) -> list[str]:
+    def _config_changes(self, saved: dict, wanted: SysIDConfig) -> list[str]:
         if not isinstance(saved, dict) or "forward" not in saved:
             return ["model: a forward-model checkpoint, not a system-identification one"]
-        want = wanted.to_dict() if isinstance(wanted, SysIDConfig) else {}
-        changes = model_config_changes(saved["forward"], wanted.forward if isinstance(wanted, SysIDConfig) else wanted)
-        plain = lambda v: json.loads(json.dumps(v))  # noqa: E731 - tuples as the JSON lists saved
-        for key in ("identifier", "window"):
-            if plain(saved.get(key)) != plain(want.get(key)):
-                changes.append(f"model.{key}: {saved.get(key)!r} -> {want.get(key)!r}")
+        changes = model_config_changes(saved["forward"], wanted.forward)
+        want = json.loads(json.dumps(wanted.to_dict()))   # tuples as the JSON lists saved
+        changes += [f"model.{k}: {saved.get(k)!r} -> {want[k]!r}" for k in ("identifier", "window")
+                    if saved.get(k) != want[k]]
         return changes
 
     # -- seams ------------------------------------------------------------------------------

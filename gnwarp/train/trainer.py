@@ -17,7 +17,8 @@ distributed ranks): ``sampler`` (where batches come from), ``loss`` (the objecti
 ``callback(trainer, event, info)`` for the events "log", "validate", "checkpoint" and "end").
 The loop's checkpoints are copied to the CPU at their step and written by a background thread
 (``CheckpointWriter``), so training does not wait on the disk; "checkpoint" comes once the folder
-is in place, and the run's end waits for every write. Override a method in a subclass, or replace ``trainer.sampler``, to change one seam.
+is in place, and the run's end waits for every write. Override a method in a subclass, or replace
+``trainer.sampler``, to change one seam.
 """
 from __future__ import annotations
 
