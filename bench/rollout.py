@@ -7,8 +7,10 @@ states), 100-step rollouts of 256 and 4096 graphs. Per precision, in one process
   its CUDA graph; beside them the captured forward of the model's core alone on one step's
   graphs (what ``bench/gn_block.py`` times), the floor a rollout step can approach;
 - forward + backward of a loss on the states w.r.t. the controls: ``model.rollout`` with the
-  adjoint loop (eager), the engine (captured), and plain autograd (``adjoint=False``) where it
-  fits; time per step and peak memory above what the model and data hold.
+  adjoint loop (eager), the engine (captured; by default its backward replays the GN blocks its
+  forward recorded, ``gnwarp/gn/replay.py``), the engine recomputing them (``store=False``), and
+  plain autograd (``adjoint=False``) where it fits; time per step and peak memory above what the
+  model and data hold (the engine's store, kept between calls, is listed on its own).
 
     python bench/rollout.py [--precisions tf32,fp16] [--batches 256,4096] [--steps 100]
     python bench/rollout.py --quick          # tiny sizes on the CPU: a smoke test of the script
@@ -83,6 +85,7 @@ def main(argv=None):
             inst = np.asarray(sp.instance[idx])
             tmpl = model.template(torch.as_tensor(inst))
             engine = model.rollout_engine(inst, T)
+            recompute = model.rollout_engine(inst, T, store=False)
             row = dict(device=name, precision=prec, graphs=N, steps=T)
 
             def fwd_eager():
@@ -100,12 +103,16 @@ def main(argv=None):
                 return go
             adjoint = loss_grad(lambda uu: model.rollout(x0, uu, template=tmpl))
             engine_bwd = loss_grad(lambda uu: engine.rollout(x0, uu))
+            recompute_bwd = loss_grad(lambda uu: recompute.rollout(x0, uu))
             plain = loss_grad(lambda uu: model.rollout(x0, uu, template=tmpl, adjoint=False))
             for key, fn in (("fwd_eager", fwd_eager), ("fwd_engine", fwd_engine), ("fwdbwd_eager", adjoint),
-                            ("fwdbwd_engine", engine_bwd)):
+                            ("fwdbwd_engine", engine_bwd), ("fwdbwd_recompute", recompute_bwd)):
                 fn()  # compile, record
                 row[f"{key}_ms_per_step"] = round(median_ms(fn, dev, args.reps, 2) / T, 4)
                 row[f"{key}_peak_mb"] = round(peak_mb(fn, dev), 1)
+            st = engine.store
+            row["store_mb"] = round(st.step_bytes(0) * T / 2 ** 20, 1) if st is not None else 0.0
+            del recompute
             if N <= args.plain_max:
                 row["fwdbwd_plain_ms_per_step"] = round(median_ms(plain, dev, args.reps, 1) / T, 4)
                 row["fwdbwd_plain_peak_mb"] = round(peak_mb(plain, dev), 1)
@@ -122,8 +129,9 @@ def main(argv=None):
              f"on cheetah graphs, {T}-step rollouts; ms per rollout step (median of {args.reps}), peak memory above "
              "the model and data; fwd+bwd: a loss on all states, gradients w.r.t. the controls.", "",
              "| precision | graphs | fwd eager | fwd engine (captured) | core fwd alone (captured) | engine / core | "
-             "fwd+bwd eager (adjoint) | fwd+bwd engine | engine fwd+bwd / fwd | fwd+bwd plain autograd | "
-             "peak MB: engine fwd+bwd / adjoint / plain |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "fwd+bwd eager (adjoint) | fwd+bwd engine | engine fwd+bwd / fwd | fwd+bwd engine, recompute | "
+             "recompute / fwd | fwd+bwd plain autograd | peak MB: engine fwd+bwd (+ store) / recompute / adjoint / "
+             "plain |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         core = r.get("core_fwd_ms")
         plain = r.get("fwdbwd_plain_ms_per_step")
@@ -132,8 +140,10 @@ def main(argv=None):
             f"| {r['precision']} | {r['graphs']} | {r['fwd_eager_ms_per_step']} | {r['fwd_engine_ms_per_step']} | "
             f"{core if core else ''} | {over_core} | "
             f"{r['fwdbwd_eager_ms_per_step']} | {r['fwdbwd_engine_ms_per_step']} | "
-            f"{r['fwdbwd_engine_ms_per_step'] / r['fwd_engine_ms_per_step']:.2f} | {plain if plain else 'not run'} | "
-            f"{r['fwdbwd_engine_peak_mb']} / {r['fwdbwd_eager_peak_mb']} / {r.get('fwdbwd_plain_peak_mb', '-')} |")
+            f"{r['fwdbwd_engine_ms_per_step'] / r['fwd_engine_ms_per_step']:.2f} | {r['fwdbwd_recompute_ms_per_step']} | "
+            f"{r['fwdbwd_recompute_ms_per_step'] / r['fwd_engine_ms_per_step']:.2f} | {plain if plain else 'not run'} | "
+            f"{r['fwdbwd_engine_peak_mb']} (+ {r['store_mb']}) / {r['fwdbwd_recompute_peak_mb']} / "
+            f"{r['fwdbwd_eager_peak_mb']} / {r.get('fwdbwd_plain_peak_mb', '-')} |")
     save_results(args.out, "rollout", name, args.quick, rows, lines)
     return 0
 

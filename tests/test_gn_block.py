@@ -845,3 +845,38 @@ def test_cuda_fp16x3():
 def test_emulate_min_checked(bad):
     with pytest.raises(ValueError, match="emulate_min"):
         GraphNetwork(**EMU, precision="fp16x3", emulate_min=bad)
+
+
+@pytest.mark.parametrize("width", [16, 40, 64, 70])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_packed_relu_mask_backward_equals_the_activation_one(width, dtype):
+    """The ReLU backward from a packed 1-bit mask (the rollout's activation store) equals the one
+    from the activation, for widths that fill whole 32-bit words and widths that do not; exact
+    zeros in the activation are masked as ReLU's are."""
+    from gnwarp.gn.mlp import PackedMask, pack_mask, relu_grad
+    from gnwarp.gn.options import RunOptions as RO
+    torch.manual_seed(width)
+    rows = 37
+    act = torch.relu(torch.randn(rows, width, dtype=dtype))
+    act[3, :5] = 0.0
+    g = torch.randn(rows, width, dtype=dtype)
+    run = RO().resolve(dtype, torch.device("cpu"))
+    launch = Launcher(act)
+    mask = pack_mask(launch, act)
+    assert mask.bits.shape == (rows, (width + 31) // 32) and mask.bits.dtype == torch.int32
+    a, b = g.clone(), g.clone()
+    relu_grad(launch, run, act, a, None)
+    relu_grad(launch, run, mask, b, None)
+    assert torch.equal(a, b) and torch.equal(a, torch.where(act > 0, g, torch.zeros_like(g)))
+    # the bit count is the number of positive activations
+    n_set = sum(bin(int(w) & 0xFFFFFFFF).count("1") for w in mask.bits.flatten().tolist())
+    assert n_set == int((act > 0).sum())
+    # into an existing buffer; a wrong buffer or a bias gradient is refused
+    again = pack_mask(launch, act, out=torch.zeros_like(mask.bits))
+    assert torch.equal(again.bits, mask.bits)
+    with pytest.raises(ValueError, match="int32"):
+        pack_mask(launch, act, out=torch.zeros(rows, 1, dtype=torch.int64))
+    with pytest.raises(ValueError, match="bias gradient"):
+        relu_grad(launch, run, mask, g.clone(), torch.zeros(width, dtype=dtype))
+    with pytest.raises(ValueError, match="packed mask"):
+        relu_grad(launch, run, PackedMask(mask.bits, width + 1), g.clone(), None)

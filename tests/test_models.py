@@ -379,6 +379,86 @@ def test_rollout_engine_matches_model_rollout(pendulum):
         assert torch.equal(engine.rollout(x0, u), m.rollout(x0, u))
 
 
+def _store_case(ds, device="cpu", dtype=torch.float64, T=5, N=2, **kw):
+    torch.manual_seed(1)
+    gn = GNCoreConfig(latent=8, edge_hidden=(16, 40), node_hidden=(16,), global_hidden=(16,))
+    m = ForwardModel(ModelConfig(gn=gn, run=RunOptions(impl="warp")), ds.layout).to(device=device, dtype=dtype)
+    m.bind(ds)
+    for p in m.parameters():
+        p.requires_grad_(False)
+    sp = ds["test"]
+    x0 = torch.as_tensor(sp.body[:N, 0], dtype=dtype, device=device)
+    u = torch.as_tensor(sp.ctrl[:N, :T], dtype=dtype, device=device)
+    inst = np.asarray(sp.instance[:N])
+    return m, inst, x0, u
+
+
+def _grads(engine, x0, u, k=0):
+    xa, ua = (x0 * (1 + 0.01 * k)).requires_grad_(), (u * (1 - 0.1 * k)).requires_grad_()
+    traj = engine.rollout(xa, ua)
+    return traj, (xa, ua)
+
+
+def _backward(traj, leaves):
+    (torch.sin(traj) * torch.linspace(-1, 2, traj.numel(), dtype=traj.dtype, device=traj.device)
+     .reshape(traj.shape)).sum().backward()
+    return [x.grad for x in leaves]
+
+
+def test_rollout_engine_store_replays_exactly(pendulum):
+    """An engine that records its forward's GN blocks (packed ReLU masks, GN2's nodes) and replays
+    them in the backward gives the same rollouts and gradients, bit for bit, as one that
+    recomputes the blocks; a backward after another forward, a store over budget and a no-grad
+    forward fall back to recomputing (still exact); a replay with parameters that want gradients
+    is refused."""
+    m, inst, x0, u = _store_case(pendulum)
+    plain = m.rollout_engine(inst, 5, store=False)
+    stored = m.rollout_engine(inst, 5, store=True)
+    assert plain.store is None and stored.store is not None
+    for k in range(2):
+        ta, la = _grads(plain, x0, u, k)
+        tb, lb = _grads(stored, x0, u, k)
+        assert torch.equal(ta, tb)
+        st = stored.store
+        assert st.valid and st.generation == k + 1 and all(len(row) == 2 for row in st.slots)
+        assert not st.slots[0][0].outputs and set(st.slots[0][1].outputs) == {"nodes"}
+        assert [x.width for x in st.slots[0][0].masks["edge"]] == [16, 40]
+        for a, b in zip(_backward(ta, la), _backward(tb, lb)):
+            assert torch.equal(a, b) and a.abs().max() > 0
+    # two forwards, then the first's backward: the store holds the second's, so it recomputes
+    t1, l1 = _grads(stored, x0, u, 3)
+    t2, l2 = _grads(stored, x0, u, 4)
+    tp, lp = _grads(plain, x0, u, 3)
+    for a, b in zip(_backward(t1, l1), _backward(tp, lp)):
+        assert torch.equal(a, b)
+    # no backward can follow a no-grad forward: nothing is recorded
+    gen = stored.store.generation
+    with torch.no_grad():
+        assert torch.equal(stored.rollout(x0, u), plain.rollout(x0, u))
+    assert stored.store.generation == gen
+    # over budget: the store is dropped at the first recording, and the engine recomputes
+    tight = m.rollout_engine(inst, 5, store="auto", store_bytes=0)
+    tt, lt = _grads(tight, x0, u, 0)
+    assert tight.store is None
+    ta, la = _grads(plain, x0, u, 0)
+    for a, b in zip(_backward(tt, lt), _backward(ta, la)):
+        assert torch.equal(a, b)
+    # a replayed block computes no weight gradients
+    step_ctx = m.context(stored.template.graph(x0, u[:, 0]))
+    _grads(stored, x0, u, 0)
+    p = next(m.parameters())
+    p.requires_grad_(True)
+    try:
+        with pytest.raises(RuntimeError, match="must not require grad"), stored.store.replaying(0):
+            stored._step(step_ctx)(x0, u[:, 0])
+    finally:
+        p.requires_grad_(False)
+    with pytest.raises(ValueError, match="store must be"):
+        m.rollout_engine(inst, 5, store="yes")
+    with pytest.raises(ValueError, match="store_bytes"):
+        m.rollout_engine(inst, 5, store_bytes=-1)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
 def test_cuda_rollout_engine_replays(pendulum, dtype, tol):
@@ -386,7 +466,23 @@ def test_cuda_rollout_engine_replays(pendulum, dtype, tol):
     model.rollout, call after call."""
     m, engine, x0, u = _engine_case(pendulum, "cuda", dtype)
     _engine_agrees(m, engine, x0, u, calls=4, tol=tol)
-    assert engine._fwd.graph is not None and engine._bwd.graph is not None
+    assert engine._fwd_rec.graph is not None and engine._bwd_rep.graph is not None
+    assert engine.store.valid and engine.store.generation == 4
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_rollout_engine_store_replays_exactly(pendulum):
+    """On CUDA, recording and replaying (both captured) give the gradients of recomputing."""
+    m, inst, x0, u = _store_case(pendulum, "cuda", torch.float32, T=6, N=3)
+    plain = m.rollout_engine(inst, 6, store=False)
+    stored = m.rollout_engine(inst, 6, store=True)
+    for k in range(4):
+        ta, la = _grads(plain, x0, u, k)
+        tb, lb = _grads(stored, x0, u, k)
+        torch.testing.assert_close(ta, tb, rtol=1e-5, atol=1e-6)
+        for a, b in zip(_backward(ta, la), _backward(tb, lb)):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    assert stored._fwd_rec.graph is not None and stored._bwd_rep.graph is not None and stored._bwd is None
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

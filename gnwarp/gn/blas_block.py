@@ -38,6 +38,7 @@ from gnwarp.gn.fp16x3 import mlp_forward as mlp_forward_emulated
 from gnwarp.gn.index import GraphIndex
 from gnwarp.gn.mlp import gemm, gemm_accumulates, linear, mlp_backward, mlp_forward
 from gnwarp.gn.options import ResolvedRun
+from gnwarp.gn.replay import active_store
 from gnwarp.gn.rules import edge_concat
 from gnwarp.gn.side import SideStreams
 from gnwarp.interop import Launcher
@@ -308,6 +309,51 @@ def _edge_backward(launch, side, plan: BlockPlan, gi, grads: _Grads, s: dict, pe
     return ge
 
 
+def _prepare(launch, plan: BlockPlan, params):
+    """The parameters in the compute dtype and the first layers' weight blocks (``prepare``)."""
+    c = plan.config
+    n_e, n_n = plan.offsets
+    first = [(0, c.edge_layout, not plan.edge_concat), (n_e, c.node_layout, False)]
+    if c.update_globals:
+        first.append((n_n, c.global_layout, False))
+    return prepare(launch, plan.run, params, first)
+
+
+def _save(ctx, plan: BlockPlan, gi: GraphIndex, saved, v, e, u, params) -> None:
+    """What the backward reads besides ``saved`` (the intermediates, or None without a backward)."""
+    ctx.plan, ctx.gi = plan, gi
+    ctx.saved = saved
+    ctx.in_dtypes = tuple(None if x is None else x.dtype for x in (v, e, u))
+    ctx.in_widths = tuple(None if x is None else x.shape[1] for x in (v, e, u))
+    ctx.param_dtypes = [p.dtype for p in params]
+    # FlatAdam's parameters: the backward adds their gradients into ``main_grad`` and
+    # returns None for them
+    ctx.main_params = params if has_main_grad(params) else None
+    ctx.set_materialize_grads(False)
+
+
+def _replay(ctx, plan: BlockPlan, keep: bool, gi: GraphIndex, v, e, u, params, store, slot, k):
+    """The forward of a block that replays (``gnwarp/gn/replay.py``): the stored outputs (zeros
+    for those not kept) and, for the backward, the packed ReLU masks in place of the activations;
+    no GEMM runs."""
+    if any(p.requires_grad for p in params):
+        raise RuntimeError("a replayed GN block computes no weight gradients: its parameters must not require grad "
+                           "(RolloutEngine freezes them in its backward)")
+    c = plan.config
+    n_e, n_n = plan.offsets
+    pc, fls = _prepare(Launcher(params[0]), plan, params)
+    saved = dict(x_e=None, v=None, e=None, u=None, hs_e=store.masks(slot, "edge"), fl_e=fls[0], x_n=None,
+                 hs_n=store.masks(slot, "node"), fl_n=fls[n_e], x_g=None, hs_g=store.masks(slot, "global"),
+                 fl_g=fls[n_n] if c.update_globals else None, pc=pc)
+    like = params[0]
+    outs = (store.output(slot, "nodes", (gi.n_nodes, c.node_out), like),
+            store.output(slot, "edges", (gi.n_edges, c.edge_out), like))
+    if c.update_globals:
+        outs += (store.output(slot, "globals", (gi.n_graphs, c.global_out), like),)
+    _save(ctx, plan, gi, saved if keep else None, v, e, u, params)
+    return outs
+
+
 class BlasBlock(torch.autograd.Function):
     """One GN block on the blas path (see the module docstring). Inputs: (plan, keep, GraphIndex,
     nodes, edges, globals, *params) with params = edge MLP [W0, b0, ...] + node MLP + global MLP;
@@ -321,10 +367,13 @@ class BlasBlock(torch.autograd.Function):
         launch = Launcher(params[0])
         N, B = gi.n_nodes, gi.n_graphs
         n_e, n_n = plan.offsets
-        first = [(0, c.edge_layout, not plan.edge_concat), (n_e, c.node_layout, False)]
-        if c.update_globals:
-            first.append((n_n, c.global_layout, False))
-        pc, fls = prepare(launch, run, params, first)
+        store = active_store()
+        taken = store.take() if store is not None else None
+        if taken is not None and store.mode == "replay":
+            return _replay(ctx, plan, keep, gi, v, e, u, params, store, *taken)
+        record = taken is not None   # a rollout's forward: keep the masks (and outputs) in the store
+        keep_acts = keep or record
+        pc, fls = _prepare(launch, plan, params)
         pe, pn, pg = plan.mlps(pc)
         # scatter-sum destinations (accumulation dtype), one allocation: one memset
         (agg, sum_e, sum_v), _, _ = carve(
@@ -333,7 +382,7 @@ class BlasBlock(torch.autograd.Function):
             zero=not run.deterministic)
 
         with run.matmul():
-            saved, e_out = _edge_forward(launch, plan, gi, v, e, u, pe, fls[0], keep)
+            saved, e_out = _edge_forward(launch, plan, gi, v, e, u, pe, fls[0], keep_acts)
             e_ret = graph_ops.scatter_out(launch, run, e_out, out_dtype,
                                           (agg, gi.receivers, gi.recv_perm, gi.recv_offsets))
             if sum_e is not None:
@@ -344,7 +393,7 @@ class BlasBlock(torch.autograd.Function):
                 else:
                     graph_ops.segment(launch, run, e_out, None, gi.edge_offsets, sum_e)
             del e_out
-            s_n, v_out = _node_forward(launch, plan, gi, v, u, agg, pn, fls[n_e], keep)
+            s_n, v_out = _node_forward(launch, plan, gi, v, u, agg, pn, fls[n_e], keep_acts)
             saved.update(s_n)
             if sum_v is not None:
                 graph_ops.segment(launch, run, v_out, None, gi.node_offsets, sum_v)
@@ -353,20 +402,15 @@ class BlasBlock(torch.autograd.Function):
             u_ret = None
             saved.update(x_g=None, hs_g=None, fl_g=None)
             if c.update_globals:
-                s_g, u_out = _global_forward(launch, plan, gi, u, sum_v, sum_e, pg, fls[n_n], keep)
+                s_g, u_out = _global_forward(launch, plan, gi, u, sum_v, sum_e, pg, fls[n_n], keep_acts)
                 saved.update(s_g)
                 u_ret = u_out.to(out_dtype)
 
-        ctx.plan, ctx.gi = plan, gi
+        if record:
+            store.record(launch, *taken, {"nodes": v_ret, "edges": e_ret, "globals": u_ret},
+                         {"edge": saved["hs_e"] or [], "node": saved["hs_n"] or [], "global": saved["hs_g"] or []})
         # intermediates (not outputs: no reference cycle) for the hand-written backward
-        ctx.saved = dict(saved, pc=pc) if keep else None
-        ctx.in_dtypes = tuple(None if x is None else x.dtype for x in (v, e, u))
-        ctx.in_widths = tuple(None if x is None else x.shape[1] for x in (v, e, u))
-        ctx.param_dtypes = [p.dtype for p in params]
-        # FlatAdam's parameters: the backward adds their gradients into ``main_grad`` and
-        # returns None for them
-        ctx.main_params = params if has_main_grad(params) else None
-        ctx.set_materialize_grads(False)
+        _save(ctx, plan, gi, dict(saved, pc=pc) if keep else None, v, e, u, params)
         return (v_ret, e_ret) + ((u_ret,) if c.update_globals else ())
 
     @staticmethod

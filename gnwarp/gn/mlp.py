@@ -2,12 +2,16 @@
 backward (ReLU masks and bias gradients fused in one Warp pass per layer, ``kernels/gn/mlp.py``)."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from gnwarp.gn import fp16x3
+from gnwarp.interop import WP_DTYPE
 from gnwarp.kernels.gn import mlp as K
 
-__all__ = ["gemm", "linear", "mlp_forward", "relu_grad", "gemm_accumulates", "wgrad", "mlp_backward"]
+__all__ = ["gemm", "linear", "mlp_forward", "relu_grad", "gemm_accumulates", "wgrad", "mlp_backward", "PackedMask",
+           "pack_mask"]
 
 _ZERO_BIAS: dict[tuple, torch.Tensor] = {}
 
@@ -54,10 +58,46 @@ def mlp_forward(h, ws, bs, keep: bool, launch=None, run=None):
     return hs, linear(hs[-1], ws[-1], bs[-1], relu=False)
 
 
+class PackedMask(NamedTuple):
+    """The ReLU mask (act > 0) of a [rows, width] activation, 1 bit per element: int32 ``bits``
+    [rows, ceil(width / 32)] (layout: ``kernels/gn/mlp.py``). Stands in for the activation in
+    ``relu_grad`` when no weight gradient needs the activation itself."""
+    bits: torch.Tensor
+    width: int
+
+    @property
+    def nbytes(self) -> int:
+        return self.bits.numel() * self.bits.element_size()
+
+
+def pack_mask(launch, act: torch.Tensor, out: torch.Tensor | None = None) -> PackedMask:
+    """The packed ReLU mask of ``act`` [rows, width] (written into ``out`` when given)."""
+    rows, W = act.shape
+    nw = K.mask_words(W)
+    if out is None:
+        out = torch.empty(rows, nw, dtype=torch.int32, device=act.device)
+    elif tuple(out.shape) != (rows, nw) or out.dtype != torch.int32:
+        raise ValueError(f"a packed mask of a {rows} x {W} activation is int32 {rows} x {nw}, got "
+                         f"{out.dtype} {tuple(out.shape)}")
+    if rows:
+        launch(K.relu_mask_pack_kernel(W, WP_DTYPE[act.dtype]), rows * nw, act.contiguous(), out)
+    return PackedMask(out, W)
+
+
 def relu_grad(launch, run, act, g, gb) -> None:
     """In place: g = g where act > 0 else 0; ``gb`` (if given) = column sums of the result (the
-    bias gradient), as atomics fused into the same pass, or a torch sum in deterministic mode."""
+    bias gradient), as atomics fused into the same pass, or a torch sum in deterministic mode.
+    ``act`` may be a ``PackedMask`` (then no bias gradient: it is only kept when no parameter
+    wants a gradient)."""
     rows, W = g.shape
+    if isinstance(act, PackedMask):
+        if gb is not None:
+            raise ValueError("a packed ReLU mask gives no bias gradient: the parameters must not require grad")
+        if act.width != W or act.bits.shape[0] != rows:
+            raise ValueError(f"packed mask of {act.bits.shape[0]} x {act.width} for a gradient of {rows} x {W}")
+        if rows:
+            launch(K.relu_grad_bits_kernel(W, run.wp_dtype), rows * K.mask_words(W), act.bits, g, g)
+        return
     fused = gb is not None and not run.deterministic
     chunk = K.relu_chunk_rows(rows, W)
     launch(K.relu_grad_sum_kernel(W, run.wp_dtype, bias_sum=fused), K.relu_grad_dim(rows, W, chunk),

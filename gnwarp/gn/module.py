@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from gnwarp.gn import blas_block, rules, tile_block
+from gnwarp.gn import blas_block, replay, rules, tile_block
 from gnwarp.gn.config import GNBlockConfig
 from gnwarp.gn.index import GraphIndex, check_index, graph_index
 from gnwarp.gn.options import ResolvedRun, RunOptions, check_option_names, renamed_attribute
@@ -112,6 +112,8 @@ class GraphNetwork(TorchGraphNetwork):
             raise ValueError("deterministic GraphNetwork needs a GraphIndex built with deterministic=True")
         auto = run.path == "auto"
         path = rules.choose_path(c, run, device, index.n_edges) if auto else run.path
+        if replay.active_store() is not None:
+            path = "blas"   # a rollout recording or replaying its blocks: every block replays (gn/replay.py)
         v = graph.nodes if c.needs_nodes else None
         e = graph.edges if c.needs_edges else None
         u = graph.globals if c.needs_globals else None

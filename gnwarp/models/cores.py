@@ -52,6 +52,12 @@ class GNCore(nn.Module):
         """Index of ``graph``'s topology, shared by both blocks (None for the torch implementation)."""
         return self.gn1.graph_index(graph) if self.options.impl == "warp" else None
 
+    def replay_outputs(self) -> list[tuple[str, ...]]:
+        """Per block call of ``forward``, the outputs read after it by anything but a later block
+        (``gnwarp/gn/replay.py``): GN2's nodes (GN1's outputs feed only GN2), or GN1's nodes
+        when it is the only block."""
+        return [("nodes",)] if self.gn2 is None else [(), ("nodes",)]
+
     def forward(self, graph: GraphsTuple, index: GraphIndex | None = None) -> torch.Tensor:
         """Normalized input graph -> [sum(n_node), 13] normalized state changes."""
         g1 = self.gn1(graph, index)

@@ -278,13 +278,17 @@ class ForwardModel(nn.Module):
         return torch.stack(out, 1)
 
     def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp",
-                       check: bool = True, graphs: bool = True) -> RolloutEngine:
+                       check: bool = True, graphs: bool = True, store: bool | str = "auto",
+                       store_bytes: int | None = None) -> RolloutEngine:
         """A ``RolloutEngine`` for rollouts of ``horizon`` steps of system instances ``instance``
         [N]: on CUDA its forward and backward (w.r.t. initial states and controls) replay CUDA
         graphs (``graphs=False``: eager, for callers that capture a larger step around it).
         Hold it and call ``engine.rollout(x0, ctrl)`` as often as needed. ``ctrl_policy`` and
-        ``check`` as in ``rollout`` (the checks run on the host once per call, before the replay)."""
-        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs)
+        ``check`` as in ``rollout`` (the checks run on the host once per call, before the replay);
+        ``store`` / ``store_bytes``: whether its backward replays the forward's recorded GN blocks
+        instead of recomputing them (``RolloutEngine``)."""
+        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
+                             store=store, store_bytes=store_bytes)
 
     def predict(self, body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
                 ctrl_policy: str = "clamp", check: bool = True) -> torch.Tensor:

@@ -21,6 +21,7 @@ from typing import Callable
 
 import torch
 
+from gnwarp.gn.replay import ActivationStore
 from gnwarp.interop import Graphed
 from gnwarp.state import DYN_NODE_SIZE
 
@@ -207,10 +208,11 @@ class RolloutInputs:
         return ctrl
 
 
-def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool, params=()):
+def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool, params=(), scope=None):
     """The backward of T steps ``traj[:, t+1] = step(traj[:, t], ctrl[:, t])``, one step at a time
     in reverse, each recomputed with autograd on: (dL/dx0 or None, dL/dctrl or None, [dL/dp for p
-    in params]) for dL/dtraj ``g_traj`` [N, T+1, B, 13]."""
+    in params]) for dL/dtraj ``g_traj`` [N, T+1, B, 13]. ``scope(t)``: a context each step's
+    recomputation runs in (an ``ActivationStore`` replaying step t)."""
     g_params = [torch.zeros_like(p) for p in params]
     g_ctrl = torch.zeros_like(ctrl) if need_u else None
     g = g_traj[:, -1]  # dL/d(state T)
@@ -218,7 +220,8 @@ def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool,
         with torch.enable_grad():
             body = traj[:, t].detach().requires_grad_(need_x or t > 0)
             c = ctrl[:, t].detach().requires_grad_(need_u)
-            nxt = step(body, c)
+            with scope(t) if scope is not None else contextlib.nullcontext():
+                nxt = step(body, c)
             inputs = [x for x in (body, c) if x.requires_grad] + list(params)
             grads = torch.autograd.grad(nxt, inputs, g, allow_unused=True) if inputs else ()
         k = 0
@@ -295,7 +298,8 @@ class _EngineRollout(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, engine, x0, ctrl):
-        traj = engine._forward(x0, ctrl)
+        # a backward may follow: record the blocks for it (when the engine keeps a store)
+        traj, ctx.generation = engine._forward(x0, ctrl, record=any(ctx.needs_input_grad[1:3]))
         ctx.engine = engine
         ctx.save_for_backward(traj, ctrl)
         return traj
@@ -303,7 +307,7 @@ class _EngineRollout(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_traj):
         traj, ctrl = ctx.saved_tensors
-        g_x, g_u = ctx.engine._backward(traj, ctrl, g_traj)
+        g_x, g_u = ctx.engine._backward(traj, ctrl, g_traj, ctx.generation)
         return None, g_x, g_u
 
 
@@ -317,10 +321,17 @@ class RolloutEngine:
     change them in place, not by replacing tensors. Results are fresh tensors (copies).
     ``instance`` is checked against the bound source; every call's inputs are checked before any
     launch and the controls clamped to the actuators' ranges (``ctrl_policy``, ``check``: see
-    ``ForwardModel.rollout``)."""
+    ``ForwardModel.rollout``).
+
+    ``store``: a forward that a backward may follow records each step's GN blocks (their packed
+    ReLU masks and the outputs the model reads: ``gnwarp/gn/replay.py``), so that the backward
+    replays them instead of recomputing the blocks' GEMMs. "auto" (default): when the recording
+    fits ``store_bytes`` (default: half the free CUDA memory at the first recording; 1 GiB on the
+    CPU), else recompute; True: always record; False: always recompute. A backward replays only
+    the recording of its own forward (after another forward, it recomputes)."""
 
     def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
-                 graphs: bool = True):
+                 graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None):
         try:
             ok = not isinstance(horizon, bool) and int(horizon) == horizon and horizon >= 1
         except (TypeError, ValueError):
@@ -340,8 +351,25 @@ class RolloutEngine:
         # graphs=False: run the loops eagerly on CUDA too (for a caller that captures a larger
         # step around the rollout, e.g. a whole planning iteration: graphs do not nest)
         self.cuda = self.template.static_nodes.is_cuda and bool(graphs)
+        if store not in (True, False, "auto"):
+            raise ValueError(f"store must be True, False or 'auto', got {store!r}")
+        if store_bytes is not None and (isinstance(store_bytes, bool) or not isinstance(store_bytes, int)
+                                        or store_bytes < 0):
+            raise ValueError(f"store_bytes must be a non-negative integer (bytes), got {store_bytes!r}")
+        self.store_policy, self.store_bytes = store, store_bytes
+        self._store = None
+        if store is not False:
+            core = getattr(model, "core", None)
+            keep = core.replay_outputs() if hasattr(core, "replay_outputs") else None
+            self._store = ActivationStore(self.horizon, keep)
         self._bufs = None
         self._fwd = self._bwd = None
+        self._fwd_rec = self._bwd_rep = None
+
+    @property
+    def store(self) -> ActivationStore | None:
+        """The activation store (None when the engine recomputes)."""
+        return self._store
 
     def _step(self, ctx):
         tmpl, model = self.template, self.model
@@ -361,48 +389,82 @@ class RolloutEngine:
                              f"{tuple(b['ctrl'].shape)}, got {tuple(x0.shape)} and {tuple(ctrl.shape)}")
         return b
 
-    def _forward_fn(self):
-        b = self._bufs
+    def _forward_fn(self, record: bool = False):
+        b, store = self._bufs, self._store
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
             step, traj = self._step(ctx), b["traj"]
             traj[:, 0] = b["x0"]
             for t in range(self.horizon):
-                traj[:, t + 1] = step(traj[:, t], b["ctrl"][:, t])
+                with store.recording(t) if record else contextlib.nullcontext():
+                    traj[:, t + 1] = step(traj[:, t], b["ctrl"][:, t])
+                if record and t == 0 and not store.sized:
+                    store.sized = True   # once, at the first recording (eager: before any capture)
+                    if not self._store_fits():
+                        store.drop()   # the remaining steps run without recording
 
-    def _backward_fn(self):
-        b = self._bufs
+    def _store_fits(self) -> bool:
+        """After the first step's first recording: whether every step's would fit the budget."""
+        store = self._store
+        need = store.step_bytes(0) * self.horizon
+        if self.store_policy is True:
+            return True
+        budget = self.store_bytes
+        if budget is None:
+            dev = self.template.static_nodes.device
+            budget = torch.cuda.mem_get_info(dev)[0] // 2 if dev.type == "cuda" else 1 << 30
+        return need <= budget
+
+    def _backward_fn(self, replay: bool = False):
+        b, store = self._bufs, self._store
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
         with frozen_parameters(self.model):   # no weight gradients: the GN's backward skips their GEMMs
-            g_x, g_u, _ = adjoint_loop(self._step(ctx), b["traj"], b["ctrl"], b["g_traj"], True, True)
+            g_x, g_u, _ = adjoint_loop(self._step(ctx), b["traj"], b["ctrl"], b["g_traj"], True, True,
+                                       scope=store.replaying if replay else None)
         b["g_x0"].copy_(g_x)
         b["g_ctrl"].copy_(g_u)
 
-    def _forward(self, x0, ctrl):
+    def _forward(self, x0, ctrl, record: bool = False):
+        """(states, the recording's generation or None)."""
         b = self._buffers(x0, ctrl)
         b["x0"].copy_(x0)
         b["ctrl"].copy_(ctrl)
+        store = self._store
+        record = record and store is not None and store.enabled
+        if record:
+            store.valid = False   # until this recording completes
         if not self.cuda:
-            self._forward_fn()
-        else:
-            if self._fwd is None:
-                self._fwd = Graphed(self._forward_fn)
-            self._fwd()
-        return b["traj"].clone()
+            self._forward_fn(record)
+        else:   # the first call of each graph runs eagerly: the first recording allocates the store
+            attr = "_fwd_rec" if record else "_fwd"
+            if getattr(self, attr) is None:
+                setattr(self, attr, Graphed(lambda: self._forward_fn(record)))
+            getattr(self, attr)()
+        gen = None
+        if record and store.enabled:
+            store.generation += 1
+            store.valid = True
+            gen = store.generation
+        elif record:
+            self._store = None   # over budget: recompute from now on
+        return b["traj"].clone(), gen
 
-    def _backward(self, traj, ctrl, g_traj):
+    def _backward(self, traj, ctrl, g_traj, generation=None):
         b = self._bufs
         b["traj"].copy_(traj)
         b["ctrl"].copy_(ctrl)
         b["x0"].copy_(traj[:, 0])
         b["g_traj"].copy_(g_traj)
+        store = self._store
+        replay = (generation is not None and store is not None and store.valid and store.generation == generation)
         if not self.cuda:
-            self._backward_fn()
+            self._backward_fn(replay)
         else:
-            if self._bwd is None:
-                self._bwd = Graphed(self._backward_fn)
-            self._bwd()
+            attr = "_bwd_rep" if replay else "_bwd"
+            if getattr(self, attr) is None:
+                setattr(self, attr, Graphed(lambda: self._backward_fn(replay)))
+            getattr(self, attr)()
         return b["g_x0"].clone(), b["g_ctrl"].clone()
 
     def rollout(self, x0: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,6 @@
 """Warp kernel of the MLP backward on the blas path (launched by ``gnwarp/gn/mlp.py``): ReLU
-backward fused with the bias gradient."""
+backward fused with the bias gradient; ReLU masks packed to bits and the ReLU backward from them
+(the activation store of a rollout's adjoint loop, ``gnwarp/gn/replay.py``)."""
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
 
@@ -7,7 +8,8 @@ import warp as wp
 
 from .common import OPTIONS, ROW_BATCH, acc_dtype, vec
 
-__all__ = ["relu_chunk_rows", "relu_grad_dim", "relu_grad_sum_kernel"]
+__all__ = ["relu_chunk_rows", "relu_grad_dim", "relu_grad_sum_kernel", "MASK_BITS", "mask_words",
+           "relu_mask_pack_kernel", "relu_grad_bits_kernel"]
 
 
 def relu_chunk_rows(rows: int, width: int) -> int:
@@ -79,3 +81,81 @@ def relu_grad_sum_kernel(width: int, dtype, *, bias_sum: bool):
     return relu_grad_sum
 
 
+
+
+# -- packed ReLU masks -----------------------------------------------------------------------------
+# A mask of a [rows, width] activation is int32 [rows, words], words = ceil(width / 32): bit b of
+# word w holds column w + b * words (so at each bit, the threads of a row read consecutive columns:
+# coalesced loads). One thread per (row, word).
+MASK_BITS = 32
+
+
+def mask_words(width: int) -> int:
+    """Words of one row's packed mask."""
+    return (width + MASK_BITS - 1) // MASK_BITS
+
+
+@functools.cache
+def relu_mask_pack_kernel(width: int, dtype):
+    """bits_out[r, w] bit b = act_in[r, w + b * words] > 0: the ReLU mask of a saved activation,
+    1 bit per element (1/32 of an fp32 activation's bytes). Launch rows x ``mask_words(width)``."""
+    NW = mask_words(width)
+    FULL = width % MASK_BITS == 0
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=OPTIONS)
+    def relu_mask_pack(
+        # Data in:
+        act_in: wp.array2d(dtype=T),
+        # Data out:
+        bits_out: wp.array2d(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        r = i // NW
+        w = i - r * NW
+        m = wp.int32(0)
+        for b in range(MASK_BITS):
+            c = w + b * NW
+            if wp.static(FULL) or c < width:
+                if act_in[r, c] > T(0.0):
+                    m = m | (wp.int32(1) << wp.int32(b))
+        bits_out[r, w] = m
+
+    return relu_mask_pack
+
+
+@functools.cache
+def relu_grad_bits_kernel(width: int, dtype):
+    """grad_out[r, c] = grad_in[r, c] where the packed mask's bit of (r, c) is set, else 0: the
+    ReLU backward from a packed mask (may run in place; each thread loads 8 elements, then stores
+    them). Launch rows x ``mask_words(width)``."""
+    NW = mask_words(width)
+    FULL = width % MASK_BITS == 0
+    G = 8
+    T = dtype
+
+    @wp.kernel(module="unique", module_options=OPTIONS)
+    def relu_grad_bits(
+        # Data in:
+        bits_in: wp.array2d(dtype=wp.int32),
+        grad_in: wp.array2d(dtype=T),
+        # Data out:
+        grad_out: wp.array2d(dtype=T),
+    ):
+        i = wp.tid()
+        r = i // NW
+        w = i - r * NW
+        m = bits_in[r, w]
+        for b0 in range(0, MASK_BITS, G):
+            gs = wp.vector(length=G, dtype=T)
+            for k in range(G):
+                c = w + (b0 + k) * NW
+                if wp.static(FULL) or c < width:
+                    x = grad_in[r, c]
+                    gs[k] = wp.where(((m >> wp.int32(b0 + k)) & wp.int32(1)) != wp.int32(0), x, T(0.0))
+            for k in range(G):
+                c = w + (b0 + k) * NW
+                if wp.static(FULL) or c < width:
+                    grad_out[r, c] = gs[k]
+
+    return relu_grad_bits
