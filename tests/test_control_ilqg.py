@@ -204,3 +204,35 @@ def test_body_point_cost_derivatives_match_finite_differences():
             assert np.abs(an[0]).max() > 1e-2                        # a gradient that could be wrong
     with pytest.raises(ValueError, match="body 99"):
         BodyPointCost(m, 99, np.zeros(3))
+
+
+@pytest.mark.parametrize("task_name", ["cheetah-vspeed", "walker-height", "jaco-palm-pose"])
+def test_task_cost_gauss_newton_derivatives_match_finite_differences(task_name):
+    """A task's iLQG cost (``BodyStateCost``): its value is minus the reward, its gradient equals
+    the generic finite-difference one, and where the reward is quadratic in velocities (the
+    cheetah's squared vertical speed) the velocity block of its Gauss-Newton Hessian is exact."""
+    task = get_task(task_name)
+    s = sim.make(task.system if task.system != "swimmer" else "swimmer6")
+    m = s.model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(5)
+    d.qpos[:] = m.qpos0 + 0.2 * rng.standard_normal(m.nq)
+    d.qvel[:] = rng.standard_normal(m.nv)
+    mujoco.mj_forward(m, d)
+    from gnwarp.control.tasks import sample_targets
+    tg = sample_targets(task, s, 1, seed=0)
+    cost = task_cost(m, task, None if tg is None else tg[0].numpy())
+    u = 0.3 * rng.standard_normal(m.nu)
+    il = ILQG(m, 2, lambda dd, uu: 0.0, nthread=1)
+    fd = il._cost_derivatives(d, lambda dd, uu: cost(dd, uu), u)
+    an = cost.derivatives(d, u)
+    scale = max(1.0, np.abs(fd[0]).max())
+    np.testing.assert_allclose(an[0], fd[0], atol=2e-4 * scale)            # lx
+    np.testing.assert_allclose(an[1], fd[1], atol=1e-6)                    # lu (no action terms)
+    assert np.abs(an[0]).max() > 0
+    nx = 2 * m.nv + m.na
+    assert an[2].shape == (nx, nx) and np.allclose(an[2], an[2].T)
+    if task_name == "cheetah-vspeed":
+        nv = m.nv
+        np.testing.assert_allclose(an[2][nv:, nv:], fd[2][nv:, nv:], atol=2e-3 * max(1.0, np.abs(fd[2]).max()))
+        assert np.abs(an[2][nv:, nv:]).max() > 0

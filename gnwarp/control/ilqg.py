@@ -23,7 +23,8 @@ import numpy as np
 
 from gnwarp.data.convert import body_states
 
-__all__ = ["ILQG", "BodyPointCost", "QuadraticCost", "body_state_cost", "task_cost", "tangent_difference"]
+__all__ = ["ILQG", "BodyPointCost", "BodyStateCost", "QuadraticCost", "body_state_cost", "task_cost",
+           "tangent_difference"]
 
 # running_cost(data, u) and terminal_cost(data): ``data`` holds the state after mj_forward
 RunningCost = Callable[[mujoco.MjData, np.ndarray], float]
@@ -137,8 +138,79 @@ def body_state_cost(model: mujoco.MjModel, reward_fn: Callable, scale: float = 1
     return cost
 
 
+class BodyStateCost:
+    """``cost(data, u=None) = -scale * reward(body [nbody, 13], u [nu])`` of the bodies' 13-number
+    states (``gnwarp.data.convert.body_states``, the world body included) for a ``reward`` written
+    in torch (tensors in, a scalar tensor out, differentiable), with Gauss-Newton derivatives as
+    MuJoCo MPC takes them for residual costs: the bodies' states are the residual, their Jacobian
+    J = d body / dx by central differences of the kinematics in tangent space (2 nx ``mj_forward``),
+    the reward's gradient and Hessian with respect to (body, u) by torch autograd; then
+    lx = -s J' g_b, lxx = -s J' H_bb J, lu = -s g_u, luu = -s H_uu, lux = -s H_ub J (the
+    kinematics' own curvature dropped). A knot costs 2 nx kinematics and one small Hessian in place
+    of O((nx + nu)^2) evaluations of the reward. u = None (a terminal cost): zero controls."""
+
+    def __init__(self, model: mujoco.MjModel, reward: Callable, scale: float = 1.0, eps: float = 1e-6):
+        self.model, self.reward, self.scale, self.eps = model, reward, float(scale), float(eps)
+        self._d = mujoco.MjData(model)
+
+    def _reward(self, body, u):
+        import torch
+        with torch.no_grad():
+            r = self.reward(torch.as_tensor(body, dtype=torch.float64), torch.as_tensor(u, dtype=torch.float64))
+        return float(r)
+
+    def __call__(self, data: mujoco.MjData, u=None) -> float:
+        u = np.zeros(self.model.nu) if u is None else np.asarray(u, float)
+        return -self.scale * self._reward(body_states(self.model, data), u)
+
+    def _jacobian(self, data: mujoco.MjData) -> np.ndarray:
+        """d body_states / d x [nbody * 13, nx] at data's state, by central differences."""
+        m, d, h = self.model, self._d, self.eps
+        nv, nx = m.nv, 2 * m.nv + m.na
+        J = np.empty((m.nbody * 13, nx))
+        for i in range(nx):
+            cols = []
+            for sign in (1.0, -1.0):
+                d.qpos[:], d.qvel[:], d.act[:] = data.qpos, data.qvel, data.act
+                if i < nv:
+                    dq = np.zeros(nv)
+                    dq[i] = sign * h
+                    mujoco.mj_integratePos(m, d.qpos, dq, 1.0)
+                elif i < 2 * nv:
+                    d.qvel[i - nv] += sign * h
+                else:
+                    d.act[i - 2 * nv] += sign * h
+                mujoco.mj_forward(m, d)
+                cols.append(body_states(m, d).reshape(-1))
+            J[:, i] = (cols[0] - cols[1]) / (2 * h)
+        return J
+
+    def derivatives(self, data: mujoco.MjData, u=None):
+        """(lx [nx], lu [nu], lxx [nx, nx], luu [nu, nu], lux [nu, nx]) at data's state (after
+        ``mj_forward``)."""
+        import torch
+        m = self.model
+        nu = m.nu
+        body = body_states(m, data)
+        nb = body.size
+        uu = np.zeros(nu) if u is None else np.asarray(u, float)
+        z0 = torch.as_tensor(np.concatenate([body.reshape(-1), uu]), dtype=torch.float64)
+
+        def f(z):
+            return self.reward(z[:nb].reshape(body.shape), z[nb:])
+        g = torch.autograd.functional.jacobian(f, z0).numpy()
+        H = torch.autograd.functional.hessian(f, z0, vectorize=True).numpy()
+        J = self._jacobian(data)
+        s = -self.scale
+        lx = s * (J.T @ g[:nb])
+        lxx = s * (J.T @ H[:nb, :nb] @ J)
+        if u is None:
+            return lx, np.zeros(nu), lxx, np.zeros((nu, nu)), np.zeros((nu, lx.size))
+        return lx, s * g[nb:], lxx, s * H[nb:, nb:], s * (H[nb:, :nb] @ J)
+
+
 def task_cost(model: mujoco.MjModel, task, target=None) -> Callable:
-    """``body_state_cost`` of a ``gnwarp.control.tasks.Task``: minus its reward of the one-step
+    """``BodyStateCost`` of a ``gnwarp.control.tasks.Task``: minus its reward of the one-step
     trajectory [x, x] with action u, i.e. of the state x. Its total over the knots is minus the
     task's return up to a constant (the start state's term) for rewards that add up a function of
     each state: every built-in task but swimmer-reach, whose displacement reward is not one.
@@ -150,10 +222,8 @@ def task_cost(model: mujoco.MjModel, task, target=None) -> Callable:
     tgt = None if target is None else torch.as_tensor(np.asarray(target), dtype=torch.float64)[None]
 
     def reward(body, u):
-        s = torch.from_numpy(np.stack([body, body]))[None]           # [1, 2, B, 13]
-        with torch.no_grad():
-            return task.reward(s, torch.from_numpy(u)[None, None], target=tgt)[0]
-    return body_state_cost(model, reward)
+        return task.reward(torch.stack([body, body])[None], u[None, None], target=tgt)[0]   # [1, 2, B, 13]
+    return BodyStateCost(model, reward)
 
 
 @dataclasses.dataclass
