@@ -38,7 +38,7 @@ import torch  # noqa: E402
 from bench.harness import device_name, experiment_out, results_dir, write_summary  # noqa: E402
 
 TASKS = {"pendulum": "pendulum-balance", "cartpole": "cartpole-balance", "cheetah": "cheetah-forward",
-         "jaco": "jaco-imitate-pose"}
+         "jaco": "jaco-palm-pose"}
 PLANNERS = ("no_params", "true_params", "sysid", "random")
 LABELS = {"no_params": "GN-MPC, no params", "true_params": "GN-MPC, true params", "sysid": "GN-MPC, system ID",
           "random": "random"}
@@ -59,6 +59,7 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env, make_env
     from gnwarp.control.episodes import run_episodes
     from gnwarp.control.sampling import RandomPlanner
+    from gnwarp.control.tasks import get_task, sample_targets
     from gnwarp.data.generation import initial_states
     from gnwarp.sim import systems
 
@@ -79,6 +80,7 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     sysid = models["sysid"].bind(base)
     fixed, _, _ = identify_on_env(sysid, env, seed=args.seed, qpos0=qpos, qvel0=qvel)
     qpos_w, qvel_w = env.qpos.cpu().numpy(), env.qvel.cpu().numpy()          # where the window left each world
+    target = sample_targets(get_task(task), base, n, seed=args.seed)        # None for tasks without targets
     cfg = GradientMPCConfig(iterations=args.iterations, warmup=args.warmup, lr=args.lr, seed=args.seed)
     rows = []
     for kind in args.planners:
@@ -86,13 +88,13 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
         if kind == "random":
             planner = RandomPlanner(env.ctrlrange, n, seed=args.seed, device=env.device)
         elif kind == "no_params":
-            planner = GradientMPC(models["no params"], task, base, n, cfg)
+            planner = GradientMPC(models["no params"], task, base, n, cfg, target)
         elif kind == "true_params":
-            planner = GradientMPC(models["true params"], task, insts, n, cfg)
+            planner = GradientMPC(models["true params"], task, insts, n, cfg, target)
         else:
-            planner = GradientMPC(fixed, task, base, n, cfg)
+            planner = GradientMPC(fixed, task, base, n, cfg, target)
         t1 = time.perf_counter()
-        res = run_episodes(planner, env, task, args.steps, qpos0=qpos_w, qvel0=qvel_w)
+        res = run_episodes(planner, env, task, args.steps, qpos0=qpos_w, qvel0=qvel_w, target=target)
         r = torch.as_tensor(res["returns"]).double()
         row = {"system": system, "task": task, "planner": kind, "episodes": n, "steps": args.steps,
                "window": args.window, "return_mean": float(r.mean()), "return_std": float(r.std(unbiased=False)),
