@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from gnwarp import TrainConfig, data
+from gnwarp.sim import systems
 from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import GNCoreConfig, ModelConfig
@@ -259,3 +260,30 @@ def test_sysid_resume_continues_exactly(pendulum, tmp_path):
     train(cfg("fwd", 20), [pendulum])
     with pytest.raises(CheckpointError, match="not a system-identification one"):
         SysIDTrainer(cfg("fwd", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
+
+
+def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
+    """A system-ID model reads no static feature of the data, but its rollouts (plain and in a
+    rollout engine on a fixed G_ID) clamp controls to the bound source's actuator ranges as
+    ForwardModel's do; "error" refuses controls outside them, "none" uses them as given."""
+    m = trained[0].model.bind(pendulum)
+    body, ctrl, inst = _window(pendulum)
+    sp = pendulum["test"]
+    g_id = m.identify(body, ctrl, inst)
+    x0 = torch.as_tensor(sp.body[:, W])
+    lo, hi = (float(v) for v in systems.make("pendulum").model.actuator_ctrlrange[0])
+    big = torch.full((2, 4, 1), hi + 5.0, dtype=torch.float64)
+    edge = torch.full((2, 4, 1), hi, dtype=torch.float64)
+    with torch.no_grad():
+        a, b = m.rollout(x0, big, g_id, inst), m.rollout(x0, edge, g_id, inst)
+        c = m.rollout(x0, big, g_id, inst, ctrl_policy="none")
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    with pytest.raises(RolloutInputError, match="outside actuator 0's control range"):
+        m.rollout(x0, big, g_id, inst, ctrl_policy="error")
+    fixed = m.with_fixed_gid(g_id)
+    engine = fixed.rollout_engine(inst, 4)
+    with torch.no_grad():
+        assert torch.equal(engine.rollout(x0, big), engine.rollout(x0, edge))
+        torch.testing.assert_close(engine.rollout(x0, big), a)
+    with pytest.raises(ValueError, match="bound source"):
+        fixed.rollout_engine(inst, 4, builder=m.graph_builder(pendulum))

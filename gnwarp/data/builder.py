@@ -129,6 +129,7 @@ class GraphTemplate:
     def __init__(self, builder: GraphBuilder, instance: torch.Tensor):
         dev = builder.s_nodes.device
         instance = instance.to(dev)
+        self.instance = instance                                                  # [N] the source's instances
         N, B = int(instance.shape[0]), int(builder.s_nodes.shape[1])
         self.N, self.B = N, B
         self.dtype = builder.dtype

@@ -346,7 +346,11 @@ class RolloutEngine:
         else:
             n_ctrl = None   # model.template says what is missing
         self.template = model.template(torch.as_tensor(instance), builder)
-        self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)
+        own = getattr(model, "rollout_inputs", None)   # a model that reads the ranges elsewhere (system ID)
+        if own is not None and (builder is None or builder is getattr(model, "builder", None)):
+            self.inputs = own(self.template.instance, n_ctrl, ctrl_policy, check)
+        else:
+            self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)
         self.horizon = int(horizon)
         # graphs=False: run the loops eagerly on CUDA too (for a caller that captures a larger
         # step around the rollout, e.g. a whole planning iteration: graphs do not nest)

@@ -101,6 +101,10 @@ def gid_layout(sizes: dict[str, int], n_ctrl_slots: int) -> FeatureLayout:
                          [f"gid_edge_{i}" for i in range(sizes["edges"])], n_ctrl_slots=n_ctrl_slots)
 
 
+# the static edge features of an actuator's range (read from the bound source for clamping)
+RANGE_COLUMNS = ("act_ctrllimited", "act_ctrlrange_0", "act_ctrlrange_1")
+
+
 class SysIDModel(nn.Module):
     """GN_p (``identifier``, a ``RecurrentGNCore``) + a ``ForwardModel`` (``forward_model``) on G_ID.
 
@@ -171,9 +175,29 @@ class SysIDModel(nn.Module):
         return graph_builder(self.layout, source, self.device, self.dtype, strict)
 
     def bind(self, source, strict: bool = True) -> "SysIDModel":
-        """Read ``source``'s graphs (a Dataset or System) in ``identify`` and ``rollout``."""
+        """Read ``source``'s graphs (a Dataset or System) in ``identify`` and ``rollout``, and its
+        actuators' control ranges (static edge features the model itself does not read) for
+        clamping controls."""
         self.builder = self.graph_builder(source, strict)
+        self._range_layout = FeatureLayout([], [], list(RANGE_COLUMNS), n_ctrl_slots=self.layout.n_ctrl_slots)
+        try:
+            self._range_builder = graph_builder(self._range_layout, source, self.device, self.dtype, strict)
+        except ValueError:   # data without actuator ranges (LayoutMismatchError is one): nothing to clamp to
+            self._range_builder = None
         return self
+
+    def rollout_inputs(self, instance, n_ctrl: int, ctrl_policy: str = "clamp", check: bool = True) -> RolloutInputs:
+        """Input checks and control clamping of rollouts of the bound source's ``instance`` [N]:
+        the actuators' ranges come from the source's static edge features (``ctrl_policy`` as
+        ``ForwardModel.rollout``'s; no ranges in the source: nothing is clamped)."""
+        if self.builder is None:
+            raise ValueError("no graphs to read: call model.bind(dataset_or_system) first")
+        rb = getattr(self, "_range_builder", None)
+        if rb is None:
+            return RolloutInputs(GraphTemplate(self.builder, torch.as_tensor(instance)), None, n_ctrl, ctrl_policy,
+                                 check)
+        return RolloutInputs(GraphTemplate(rb, torch.as_tensor(instance)), self._range_layout, n_ctrl, ctrl_policy,
+                             check)
 
     # -- Algorithm D.2 ------------------------------------------------------------------------
     def with_gid(self, graph: GraphsTuple, g_id: GraphsTuple) -> GraphsTuple:
@@ -245,17 +269,20 @@ class SysIDModel(nn.Module):
                                             f"{[int(i) for i in bad.nonzero()[0]]} of its last {W} steps)")
         return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
 
-    def rollout(self, initial_body, ctrl, g_id: GraphsTuple, instance=None, check: bool = True) -> torch.Tensor:
+    def rollout(self, initial_body, ctrl, g_id: GraphsTuple, instance=None, check: bool = True,
+                ctrl_policy: str = "clamp") -> torch.Tensor:
         """Roll the forward model out from ``initial_body`` [N, B, 13] under ``ctrl`` [N, T, U]
         with G_ID reused at every step (D.6.2) -> states [N, T+1, B, 13]. ``g_id``: from
         ``identify`` (or ``load_gid``) on the same N graphs' topology; ``instance`` as there.
-        Controls are used as given (the model knows no actuator ranges). Differentiable (plain
-        autograd) in ``initial_body``, ``ctrl``, G_ID and the weights."""
+        ``ctrl_policy`` as ``ForwardModel.rollout``'s: "clamp" (default) clamps controls to the
+        bound source's actuator ranges, "error" refuses controls outside them, "none" uses them
+        as given. Differentiable (plain autograd) in ``initial_body``, ``ctrl``, G_ID and the
+        weights."""
         initial_body = float_tensor(initial_body, "initial_body")
         if initial_body.ndim != 3:
             raise RolloutInputError(f"initial_body must be [N, B, 13], got shape {tuple(initial_body.shape)}")
         tmpl, n_ctrl = self._template(instance, initial_body.shape[0])
-        inputs = RolloutInputs(tmpl, None, n_ctrl, "none", check)
+        inputs = self.rollout_inputs(tmpl.instance, n_ctrl, ctrl_policy, check)
         body, ctrl = inputs.shapes(initial_body, ctrl)
         dev, dt = tmpl.static_nodes.device, tmpl.dtype
         body = body.to(dev, dt)
@@ -345,11 +372,20 @@ class FixedGIDModel:
     def next_nodes(self, graph: GraphsTuple, ctx=None) -> torch.Tensor:
         return self.sysid.forward_model.next_nodes(self.sysid.with_gid(graph, self.g_id), ctx)
 
-    def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "none", check: bool = True,
-                       graphs: bool = True) -> RolloutEngine:
-        """A ``RolloutEngine`` on the fixed G_ID (controls used as given by default: the model
-        knows no actuator ranges)."""
-        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs)
+    def rollout_inputs(self, instance, n_ctrl: int, ctrl_policy: str = "clamp", check: bool = True) -> RolloutInputs:
+        """As ``SysIDModel.rollout_inputs`` (``RolloutEngine`` reads the actuator ranges here)."""
+        return self.sysid.rollout_inputs(instance, n_ctrl, ctrl_policy, check)
+
+    def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
+                       graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None) -> RolloutEngine:
+        """A ``RolloutEngine`` on the fixed G_ID; controls clamped to the bound source's actuator
+        ranges (``ctrl_policy``), which are read from the bound source only: another ``builder``
+        needs ``ctrl_policy="none"``."""
+        if builder is not None and builder is not self.builder and ctrl_policy != "none":
+            raise ValueError("the actuator ranges are read from the bound source: bind the model to that source, or "
+                             "pass ctrl_policy='none' with another builder")
+        return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
+                             store=store, store_bytes=store_bytes)
 
 
 # -- G_ID files -----------------------------------------------------------------------------------
