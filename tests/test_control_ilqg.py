@@ -177,16 +177,22 @@ def test_task_cost_wraps_a_task_reward():
         task_cost(sim.make("swimmer6").model, get_task("swimmer-reach"))
 
 
+def _random_state(m, seed: int, spread: float):
+    """MjData at a random state of ``m`` (qpos spread around qpos0, unit-normal qvel), after
+    mj_forward; and the generator, for more draws."""
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(seed)
+    d.qpos[:] = m.qpos0 + spread * rng.standard_normal(m.nq)
+    d.qvel[:] = rng.standard_normal(m.nv)
+    mujoco.mj_forward(m, d)
+    return d, rng
+
+
 def test_body_point_cost_derivatives_match_finite_differences():
     """BodyPointCost's analytic lx equals the generic finite-difference gradient; where the point
     sits on its reference the Gauss-Newton lxx is the exact Hessian, so it matches FD too."""
-    s = sim.make("swimmer6")
-    m = s.model
-    d = mujoco.MjData(m)
-    rng = np.random.default_rng(3)
-    d.qpos[:] = m.qpos0 + 0.3 * rng.standard_normal(m.nq)
-    d.qvel[:] = rng.standard_normal(m.nv)
-    mujoco.mj_forward(m, d)
+    m = sim.make("swimmer6").model
+    d, rng = _random_state(m, 3, 0.3)
     W = np.diag([0.7, 0.2, 0.0])
     il = ILQG(m, 2, lambda dd, u: 0.0, nthread=1)
     for ref, lin in [(d.xpos[1] + [0.1, -0.2, 0.0], np.array([-0.6, 0.8, 0.0])), (d.xpos[1].copy(), None)]:
@@ -214,11 +220,7 @@ def test_task_cost_gauss_newton_derivatives_match_finite_differences(task_name):
     task = get_task(task_name)
     s = sim.make(task.system if task.system != "swimmer" else "swimmer6")
     m = s.model
-    d = mujoco.MjData(m)
-    rng = np.random.default_rng(5)
-    d.qpos[:] = m.qpos0 + 0.2 * rng.standard_normal(m.nq)
-    d.qvel[:] = rng.standard_normal(m.nv)
-    mujoco.mj_forward(m, d)
+    d, rng = _random_state(m, 5, 0.2)
     from gnwarp.control.tasks import sample_targets
     tg = sample_targets(task, s, 1, seed=0)
     cost = task_cost(m, task, None if tg is None else tg[0].numpy())
