@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 
 import torch
 import warp as wp
@@ -74,12 +75,21 @@ def cuda_graph(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream | None = N
         g.replay()
     """
     stream = stream if stream is not None else torch.cuda.Stream()
-    with wp.ScopedStream(warp_stream(stream)), torch.cuda.graph(graph, stream=stream, **kwargs):
-        wp.capture_begin(force_module_load=False, external=True)
-        try:
-            yield
-        finally:
-            wp.capture_end()
+    # No garbage collection inside the capture (torch.cuda.graph collects just before it): a
+    # collection there could run the destructors of earlier graphs or buffers held in reference
+    # cycles, whose CUDA calls are not allowed while a stream captures.
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        with wp.ScopedStream(warp_stream(stream)), torch.cuda.graph(graph, stream=stream, **kwargs):
+            wp.capture_begin(force_module_load=False, external=True)
+            try:
+                yield
+            finally:
+                wp.capture_end()
+    finally:
+        if collecting:
+            gc.enable()
 
 
 class Graphed:
