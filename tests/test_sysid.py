@@ -282,6 +282,7 @@ def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
         m.rollout(x0, big, g_id, inst, ctrl_policy="error")
     fixed = m.with_fixed_gid(g_id)
     engine = fixed.rollout_engine(inst, 4)
+    assert engine.store.keep == [(), ("nodes",)]    # the forward model's core says what to keep
     with torch.no_grad():
         assert torch.equal(engine.rollout(x0, big), engine.rollout(x0, edge))
         torch.testing.assert_close(engine.rollout(x0, big), a)

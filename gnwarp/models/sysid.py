@@ -350,6 +350,11 @@ class FixedGIDModel:
     def dtype(self) -> torch.dtype:
         return self.sysid.dtype
 
+    @property
+    def core(self):
+        """The forward model's core (a ``RolloutEngine`` asks it which block outputs to keep)."""
+        return self.sysid.forward_model.core
+
     def bind(self, source, strict: bool = True) -> "FixedGIDModel":
         self.sysid.bind(source, strict)
         return self
