@@ -11,7 +11,7 @@ from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import GNCoreConfig, ModelConfig
 from gnwarp.models.recurrent import RecurrentGNConfig
-from gnwarp.models.rollout import RolloutInputError
+from gnwarp.models.rollout import RolloutEngine, RolloutInputError
 from gnwarp.models.sysid import GIDError, SysIDConfig, SysIDModel, load_gid, save_gid
 from gnwarp.train.checkpoint import CheckpointError, load_model
 from gnwarp.train.sysid import SysIDTrainer, load_sysid, sysid_rollout_error
@@ -286,5 +286,11 @@ def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
     with torch.no_grad():
         assert torch.equal(engine.rollout(x0, big), engine.rollout(x0, edge))
         torch.testing.assert_close(engine.rollout(x0, big), a)
+    other = m.graph_builder(pendulum)
     with pytest.raises(ValueError, match="bound source"):
-        fixed.rollout_engine(inst, 4, builder=m.graph_builder(pendulum))
+        fixed.rollout_engine(inst, 4, builder=other)
+    with pytest.raises(ValueError, match="bound source"):
+        RolloutEngine(fixed, inst, 4, builder=other)
+    with torch.no_grad():   # another source's builder with the controls as given: no ranges read
+        torch.testing.assert_close(fixed.rollout_engine(inst, 4, builder=other, ctrl_policy="none").rollout(x0, big),
+                                   c)

@@ -342,8 +342,9 @@ def _replay(ctx, plan: BlockPlan, keep: bool, gi: GraphIndex, v, e, u, params, s
     c = plan.config
     n_e, n_n = plan.offsets
     pc, fls = _prepare(Launcher(params[0]), plan, params)
-    saved = dict(x_e=None, v=None, e=None, u=None, hs_e=store.masks(slot, "edge"), fl_e=fls[0], x_n=None,
-                 hs_n=store.masks(slot, "node"), fl_n=fls[n_e], x_g=None, hs_g=store.masks(slot, "global"),
+    masks = slot.masks
+    saved = dict(x_e=None, v=None, e=None, u=None, hs_e=masks.get("edge", []), fl_e=fls[0], x_n=None,
+                 hs_n=masks.get("node", []), fl_n=fls[n_e], x_g=None, hs_g=masks.get("global", []),
                  fl_g=fls[n_n] if c.update_globals else None, pc=pc)
     like = params[0]
     outs = (store.output(slot, "nodes", (gi.n_nodes, c.node_out), like),

@@ -347,7 +347,11 @@ class RolloutEngine:
             n_ctrl = None   # model.template says what is missing
         self.template = model.template(torch.as_tensor(instance), builder)
         own = getattr(model, "rollout_inputs", None)   # a model that reads the ranges elsewhere (system ID)
-        if own is not None and (builder is None or builder is getattr(model, "builder", None)):
+        other = builder is not None and builder is not getattr(model, "builder", None)
+        if own is not None and other and ctrl_policy != "none":
+            raise ValueError("this model reads the actuator ranges from its bound source: bind it to that source, or "
+                             "pass ctrl_policy='none' with another builder")
+        if own is not None and not other:
             self.inputs = own(self.template.instance, n_ctrl, ctrl_policy, check)
         else:
             self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)

@@ -136,6 +136,9 @@ class SysIDModel(nn.Module):
         sizes = {"nodes": DYN_NODE_SIZE, "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
         self.builder = None
+        # the bound source's actuator ranges (``bind``): a builder of just those static columns
+        self._range_layout = FeatureLayout([], [], list(RANGE_COLUMNS), n_ctrl_slots=K)
+        self._range_builder = None
 
     # -- what the Trainer and users read --------------------------------------------------------
     @property
@@ -179,7 +182,6 @@ class SysIDModel(nn.Module):
         actuators' control ranges (static edge features the model itself does not read) for
         clamping controls."""
         self.builder = self.graph_builder(source, strict)
-        self._range_layout = FeatureLayout([], [], list(RANGE_COLUMNS), n_ctrl_slots=self.layout.n_ctrl_slots)
         try:
             self._range_builder = graph_builder(self._range_layout, source, self.device, self.dtype, strict)
         except ValueError:   # data without actuator ranges (LayoutMismatchError is one): nothing to clamp to
@@ -192,7 +194,7 @@ class SysIDModel(nn.Module):
         ``ForwardModel.rollout``'s; no ranges in the source: nothing is clamped)."""
         if self.builder is None:
             raise ValueError("no graphs to read: call model.bind(dataset_or_system) first")
-        rb = getattr(self, "_range_builder", None)
+        rb = self._range_builder
         if rb is None:
             return RolloutInputs(GraphTemplate(self.builder, torch.as_tensor(instance)), None, n_ctrl, ctrl_policy,
                                  check)
@@ -386,9 +388,6 @@ class FixedGIDModel:
         """A ``RolloutEngine`` on the fixed G_ID; controls clamped to the bound source's actuator
         ranges (``ctrl_policy``), which are read from the bound source only: another ``builder``
         needs ``ctrl_policy="none"``."""
-        if builder is not None and builder is not self.builder and ctrl_policy != "none":
-            raise ValueError("the actuator ranges are read from the bound source: bind the model to that source, or "
-                             "pass ctrl_policy='none' with another builder")
         return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
                              store=store, store_bytes=store_bytes)
 
