@@ -68,10 +68,10 @@ class GraphBuilder:
         # a batch's index arrays depend on its size alone, and are made once per size
         same = lambda a: bool((a == a[:1]).all()) if a.shape[0] else True  # noqa: E731
         self.fixed_topology = self.uniform and same(self.senders) and same(self.receivers) and same(self.edge_ctrl)
-        self._n_ctrl = int(self.edge_ctrl.max()) + 1 if self.edge_ctrl.numel() else 0  # controls the edges read
+        self.n_ctrl_read = int(self.edge_ctrl.max()) + 1 if self.edge_ctrl.numel() else 0  # controls the edges read
         self._topologies: dict[tuple[int, int], tuple] = {}
 
-    def _topology(self, N: int, U: int) -> tuple:
+    def topology(self, N: int, U: int) -> tuple:
         """(senders, receivers, n_node, n_edge, control index, has control) of N graphs of the one
         topology with U controls each, made once per (N, U) (the same tensors every call: steps
         and caches keyed on them see one topology)."""
@@ -95,8 +95,8 @@ class GraphBuilder:
         body = body.to(dev, self.dtype)
         ctrl = ctrl.to(dev, self.dtype)
         N = instance.shape[0]
-        if self.fixed_topology and ctrl.shape[-1] >= self._n_ctrl:
-            snd, rcv, n_node, n_edge, cidx, has = self._topology(N, ctrl.shape[-1])
+        if self.fixed_topology and ctrl.shape[-1] >= self.n_ctrl_read:
+            snd, rcv, n_node, n_edge, cidx, has = self.topology(N, ctrl.shape[-1])
             c = torch.where(has, ctrl.reshape(-1)[cidx], 0.0)
             K = self.edge_ctrl.shape[-1]
             nodes = torch.cat([self.s_nodes[instance], body], -1)

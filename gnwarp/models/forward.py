@@ -330,24 +330,78 @@ class ForwardModel(nn.Module):
             ctx = ctx._replace(stats=stats)
         pred_n = self.predict_delta(graph, ctx)
         m, s = ctx.stats["delta"]
-        target_n = (delta - m) / s
-        denom = w.sum().clamp_min(1.0)
-        # squared errors summed per column over movable nodes, then per term (few kernels)
-        col = ((pred_n - target_n).square() * w[:, None]).sum(0)
-        assert (POS, LINVEL, ANGVEL) == (slice(0, 3), slice(7, 10), slice(10, 13))
-        q_pred = quat_normalize(pred_n[:, QUAT] * s[QUAT] + m[QUAT])
-        rot = rotation_loss(delta[:, QUAT], q_pred)
-        if rotation_scale == "normalized":
-            rot = rot / (s[4:7] ** 2).sum()
-        elif rotation_scale != "paper":
+        if rotation_scale not in ("normalized", "paper"):
             raise ValueError(f"rotation_scale must be 'normalized' or 'paper', got {rotation_scale!r}")
-        parts = torch.cat([col[POS].sum()[None], col[7:].view(2, 3).sum(1), (rot * w).sum()[None]]) / denom
-        terms = {name: parts[k] for k, name in enumerate(("pos", "linvel", "angvel", "quat"))}
-        terms["loss"] = parts.sum()
-        return terms
+        if _fused_loss_applies(pred_n, delta, m, s):
+            parts = _FusedLoss.apply(pred_n, delta, m, s, ctx.movable_i32, rotation_scale == "normalized")
+        else:
+            parts = loss_terms(pred_n, delta, m, s, w, rotation_scale)
+        return {name: parts[k] for k, name in enumerate(LOSS_TERMS)}
 
     def extra_repr(self) -> str:
         return f"core={self.config.core!r}, recenter={self.config.recenter}"
+
+
+# the terms ``ForwardModel.loss`` returns, in the order of the fused loss's vector
+LOSS_TERMS = ("pos", "linvel", "angvel", "quat", "loss")
+
+
+def loss_terms(pred_n: torch.Tensor, delta: torch.Tensor, m: torch.Tensor, s: torch.Tensor, w: torch.Tensor,
+               rotation_scale: str = "normalized") -> torch.Tensor:
+    """The loss terms (``LOSS_TERMS``) of normalized predicted changes ``pred_n`` [n, 13] against
+    true changes ``delta`` [n, 13] under the output normalizer's (mean ``m``, std ``s``), over nodes
+    weighted by ``w`` [n] (1 on moving bodies): in torch (the reference of the fused kernels, and
+    the path for dtypes or gradients they do not cover)."""
+    target_n = (delta - m) / s
+    denom = w.sum().clamp_min(1.0)
+    # squared errors summed per column over movable nodes, then per term (few kernels)
+    col = ((pred_n - target_n).square() * w[:, None]).sum(0)
+    assert (POS, LINVEL, ANGVEL) == (slice(0, 3), slice(7, 10), slice(10, 13))
+    q_pred = quat_normalize(pred_n[:, QUAT] * s[QUAT] + m[QUAT])
+    rot = rotation_loss(delta[:, QUAT], q_pred)
+    if rotation_scale == "normalized":
+        rot = rot / (s[4:7] ** 2).sum()
+    parts = torch.cat([col[POS].sum()[None], col[7:].view(2, 3).sum(1), (rot * w).sum()[None]]) / denom
+    return torch.cat([parts, parts.sum()[None]])
+
+
+def _fused_loss_applies(pred_n, delta, m, s) -> bool:
+    """Whether the fused loss kernels compute this loss: the data and statistics in one of float32
+    and float64 (a half-precision prediction is promoted to it, as torch's formulas would), and no
+    gradient wanted but the prediction's (the normalizer statistics and the data need none)."""
+    dt = delta.dtype
+    return (dt in (torch.float32, torch.float64) and m.dtype == dt and s.dtype == dt
+            and pred_n.dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+            and pred_n.dtype.itemsize <= dt.itemsize and not any(t.requires_grad for t in (delta, m, s)))
+
+
+class _FusedLoss(torch.autograd.Function):
+    """``loss_terms`` in three Warp launches and one torch reduction; backward in one launch
+    (``kernels/models/forward.py``)."""
+
+    @staticmethod
+    def forward(ctx, pred, delta, m, s, movable, normalized: bool):
+        ctx.pred_dtype = pred.dtype
+        pred = pred.detach().to(delta.dtype)
+        pred, delta, m, s = (t.detach().contiguous() for t in (pred, delta, m, s))
+        T = WP_DTYPE[pred.dtype]
+        run = Launcher(pred)
+        per_node = torch.empty(pred.shape[0], 5, device=pred.device, dtype=pred.dtype)
+        run(K.loss_terms_kernel(T), pred.shape[0], pred, delta, m, s, movable, per_node)
+        sums = per_node.sum(0)
+        terms = torch.empty(5, device=pred.device, dtype=pred.dtype)
+        run(K.loss_finalize_kernel(T, normalized), 1, sums, s, terms)
+        ctx.save_for_backward(pred, delta, m, s, movable, sums)
+        ctx.normalized = normalized
+        return terms
+
+    @staticmethod
+    def backward(ctx, g_terms):
+        pred, delta, m, s, movable, sums = ctx.saved_tensors
+        g = torch.empty_like(pred)
+        Launcher(pred)(K.loss_grad_kernel(WP_DTYPE[pred.dtype], ctx.normalized), pred.shape[0], pred, delta, m, s,
+                       movable, sums, g_terms.contiguous(), g)
+        return g.to(ctx.pred_dtype), None, None, None, None, None
 
 
 class MLPForwardModel(ForwardModel):
