@@ -294,3 +294,56 @@ def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
     with torch.no_grad():   # another source's builder with the controls as given: no ranges read
         torch.testing.assert_close(fixed.rollout_engine(inst, 4, builder=other, ctrl_policy="none").rollout(x0, big),
                                    c)
+
+
+def test_identification_from_transitions(pendulum, tmp_path):
+    """``SysIDConfig(transitions=True)``: GN_p reads W - 1 (state, controls, normalized change to
+    the next state) steps; it equals running the identifier over those graphs by hand, its
+    gradients w.r.t. the window match finite differences, it trains, and the option is saved."""
+    from gnwarp.state import state_delta
+    torch.manual_seed(0)
+    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
+                      window=4, transitions=True)
+    m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
+    fm = m.forward_model
+    sp = pendulum["train"]
+    body, ctrl = torch.as_tensor(sp.body[:6, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:6, :8], dtype=torch.float64)
+    inst = torch.as_tensor(sp.instance[:6])
+    # gradients through the transitions (two sequences, before any statistics: finite differences
+    # stay accurate where a tiny std would magnify their truncation error)
+    moving = body[:2, :4, 1].clone().requires_grad_()
+
+    def f(mv):
+        g = m.identify(torch.cat([body[:2, :4, :1], mv[:, :, None]], 2), ctrl[:2, :4], inst[:2])
+        return m.rollout(body[:2, 4], ctrl[:2, 4:6], g, inst[:2])[:, 1:, 1].sum(-1)
+    assert torch.autograd.gradcheck(f, (moving,), eps=1e-6, atol=1e-5, rtol=1e-4)
+    with torch.no_grad():   # non-trivial normalizer statistics
+        graph = m.with_gid(m.builder(inst, body[:, 0], ctrl[:, 0]), m.identify(body[:, :4], ctrl[:, :4], inst))
+        fm.loss(graph, body[:, 1].reshape(-1, 13), accumulate=True)
+    assert m.identifier.sizes["nodes"] == 26
+    g_id = m.identify(body[:, :4], ctrl[:, :4], inst)
+    # by hand: 3 transitions, each the normalized state and its normalized change, the controls
+    st = fm.stats(torch.float64)
+    (mn, sn), (me, se), (md, sd) = st["nodes"], st["edges"], st["delta"]
+    graphs = [m.builder(inst, body[:, t], ctrl[:, t]) for t in range(4)]
+    K = graphs[0].edges.shape[1]   # the normalizers' first columns are G_ID's
+    mn, sn, me, se = mn[-13:], sn[-13:], me[-K:], se[-K:]
+    inputs = [g._replace(nodes=torch.cat([(g.nodes - mn) / sn, (state_delta(g.nodes, graphs[t + 1].nodes) - md) / sd], -1),
+                         edges=(g.edges - me) / se) for t, g in enumerate(graphs[:3])]
+    h = m.identifier.initial_hidden(inputs[0])
+    for g in inputs:
+        out, h = m.identifier.step(g, h)
+    for k in ("nodes", "edges", "globals"):
+        torch.testing.assert_close(getattr(g_id, k), getattr(out, k), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="at least 2 steps"):
+        m.identify_graphs(graphs[:1], 1)
+    # trains end to end, the option travels in the checkpoint
+    tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
+                       batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
+                       progress=False, device="cpu", normalizer_warmup=5)
+    rows = []
+    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, transitions=True), datasets=[pendulum],
+                           callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
+    losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
+    assert losses[-1] < losses[0]
+    assert load_sysid(summary["last"]).config.transitions is True

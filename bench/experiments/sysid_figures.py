@@ -138,7 +138,8 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     models["true params"], info["true params"] = load_model(r["best"], device=args.device), r
 
     cfg = train_config(args, runs / system / "sysid", ds)
-    r = SysIDTrainer(cfg, SysIDConfig(identifier=identifier_config(args), window=args.window), datasets=[ds]).run()
+    sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions)
+    r = SysIDTrainer(cfg, sysid, datasets=[ds]).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in models.values():
         m.eval()
@@ -436,6 +437,8 @@ def main():
     ap.add_argument("--runs", default=None, help="checkpoint folder (default: a temporary one)")
     ap.add_argument("--out", default=None, help="default: bench/results/sysid_figures (--quick: a temporary folder)")
     ap.add_argument("--no-capture", action="store_true", help="run the training steps eagerly on CUDA too")
+    ap.add_argument("--transitions", action="store_true",
+                    help="GN_p reads the window's transitions (SysIDConfig.transitions; beyond the paper)")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
@@ -478,7 +481,7 @@ def main():
             if system == "pendulum":
                 rows += fig9(args, models, out)
             for r in rows:
-                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1),
+                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions,
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

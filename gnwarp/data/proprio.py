@@ -114,13 +114,15 @@ class ProprioSplit:
     def windows(self, n: int, length: int, generator: torch.Generator | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``n`` random windows of ``length`` observations: (obs [n, length, B, 3],
-        ctrl [n, length-1, U], instance [n]), each from a random sequence and start."""
+        ctrl [n, length-1, U], instance [n]), each from a random sequence and start, drawn on the
+        generator's device (the CPU without one; a generator on the split's device: no host sync)."""
         S, T1 = self.obs.shape[:2]
         if not 2 <= length <= T1:
             raise ValueError(f"windows of {length} observations from sequences of {T1}")
-        seq = torch.randint(0, S, (n,), generator=generator)
-        start = torch.randint(0, T1 - length + 1, (n,), generator=generator)
-        t = start[:, None] + torch.arange(length)
+        gdev = generator.device if generator is not None else torch.device("cpu")
+        seq = torch.randint(0, S, (n,), generator=generator, device=gdev)
+        start = torch.randint(0, T1 - length + 1, (n,), generator=generator, device=gdev)
+        t = start[:, None] + torch.arange(length, device=gdev)
         dev = self.obs.device
         seq, t = seq.to(dev), t.to(dev)
         return self.obs[seq[:, None], t], self.ctrl[seq[:, None], t[:, :-1]], self.instance[seq]

@@ -89,7 +89,9 @@ class RecurrentForwardModel(nn.Module):
         self.norm_globals = Normalizer(sizes["globals"], f) if sizes["globals"] else None
         self.norm_delta = Normalizer(DELTA_SIZE, f)
         self.core = RecurrentGNCore(config.core_config(), sizes, config.run)
-        self.movable = None if movable is None else torch.as_tensor(movable, dtype=torch.bool)
+        # a buffer (not saved): it follows the model to its device, so no step copies it there
+        self.register_buffer("movable", None if movable is None else torch.as_tensor(movable, dtype=torch.bool),
+                             persistent=False)
 
     @property
     def recurrent(self) -> bool:
@@ -199,28 +201,59 @@ class RecurrentForwardModel(nn.Module):
 def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300, batch: int = 32,
                           window: int = 21, lr: float = 1e-3, seed: int = 0, log_every: int = 0,
                           normalizer_steps: int | None = None, max_seconds: float | None = None,
-                          progress: bool = False) -> list[float]:
+                          progress: bool = False, capture: bool | None = None) -> list[float]:
     """Adam on teacher-forcing losses of random ``window``-observation windows of ``split`` (a
     ``ProprioSplit``). The normalizers accumulate for the first ``normalizer_steps`` steps (default
     all). Stops after ``steps`` steps or ``max_seconds`` of wall clock, whichever comes first
     (``progress``: a bar with rate and ETA). Returns the loss of every step run (read from the
-    device once every ``log_every`` steps and at the end, not every step)."""
+    device once every ``log_every`` steps and at the end, not every step).
+
+    ``capture`` (default: on when the split is on a CUDA device): each step (window sampling on the
+    device, the sequence loop, backward, Adam) is replayed from a CUDA graph once two eager steps
+    have compiled its kernels; one graph with normalizer accumulation, one without. On the CPU the
+    windows are drawn by a CPU generator, as before; on CUDA by a device generator."""
     import time
 
     from tqdm.auto import tqdm
-    gen = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
+
+    from gnwarp.interop import Graphed
+    from gnwarp.train.capture import default_generator, registers_generators
+    dev = split.obs.device
+    cuda = dev.type == "cuda"
+    capture = cuda if capture is None else bool(capture)
+    if capture and not cuda:
+        raise ValueError("capture=True needs the split on a CUDA device")
+    if cuda and model.norm_delta.count.device != dev:
+        raise ValueError(f"the model is on {model.norm_delta.count.device}, the split on {dev}: move one")
+    if not cuda:
+        gen = torch.Generator().manual_seed(seed)
+    else:  # a CUDA graph replays the device's default generator by itself; others need registering
+        gen = torch.Generator(device=dev) if registers_generators() else default_generator(dev)
+        gen.manual_seed(seed)
+    opt = torch.optim.Adam(model.parameters(), lr=lr, capturable=cuda)
+    out: dict[str, torch.Tensor] = {}
+
+    def device_step(accumulate: bool) -> None:
+        obs, ctrl, inst = split.windows(batch, window, gen)
+        loss = model.loss(inst, obs, ctrl, accumulate=accumulate)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        out["loss"] = loss.detach()
+
+    own = gen if cuda and gen is not default_generator(dev) else None
+    replays = ({acc: Graphed(lambda acc=acc: device_step(acc), warmup=2, generator=own) for acc in (True, False)}
+               if capture else {})
     losses, pending = [], []
     t0 = time.perf_counter()
     bar = tqdm(total=steps, desc="teacher forcing", unit="step", disable=not progress)
     for k in range(steps):
-        obs, ctrl, inst = split.windows(batch, window, gen)
         acc = normalizer_steps is None or k < normalizer_steps
-        loss = model.loss(inst, obs, ctrl, accumulate=acc)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        pending.append(loss.detach())
+        if capture:
+            replays[acc]()
+        else:
+            device_step(acc)
+        pending.append(out["loss"].clone() if capture else out["loss"])  # a replay overwrites its output
         bar.update(1)
         last = k == steps - 1 or (max_seconds is not None and time.perf_counter() - t0 >= max_seconds)
         if last or (log_every and k % log_every == 0) or len(pending) >= 256:

@@ -35,7 +35,7 @@ from gnwarp.models.normalizer import Normalizer
 from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
-from gnwarp.state import DYN_NODE_SIZE
+from gnwarp.state import DYN_NODE_SIZE, state_delta
 from gnwarp.validation import PositiveInt, check_fields, check_keys
 
 __all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
@@ -51,10 +51,17 @@ def _identifier_default() -> RecurrentGNConfig:
 class SysIDConfig:
     """A system-identification model: ``forward`` (the forward model's ``ModelConfig``; its run
     options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths)
-    and ``window`` (steps of the identification window, paper: 20)."""
+    and ``window`` (steps of the identification window, paper: 20).
+
+    ``transitions`` (beyond the paper; default off, the paper's GN_p): GN_p reads the window's
+    W - 1 transitions instead of its W states: at each step t < W - 1 the state, the controls and
+    the state change to step t + 1 (``state_delta``, normalized by the forward model's output
+    statistics), so the accelerations the parameters shape are inputs rather than something
+    GN_p's recurrence must difference out of consecutive states."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
+    transitions: bool = False
 
     def __post_init__(self):
         check_fields(self)
@@ -64,7 +71,8 @@ class SysIDConfig:
         return "sysid"   # what a run's progress bar and logs call the model
 
     def to_dict(self) -> dict:
-        return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window}
+        return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
+                "transitions": self.transitions}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -133,7 +141,7 @@ class SysIDModel(nn.Module):
         fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"], f)
         if fm.norm_globals is not None:
             fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
-        sizes = {"nodes": DYN_NODE_SIZE, "edges": K, "globals": 0}
+        sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
         self.builder = None
         # the bound source's actuator ranges (``bind``): a builder of just those static columns
@@ -212,8 +220,9 @@ class SysIDModel(nn.Module):
     def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
         """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable
         t -> graph), normalized with the forward model's input statistics (``stats``: as
-        ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4).
-        No host synchronization once the topology's index exists."""
+        ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4);
+        with ``config.transitions``, the ``steps - 1`` transitions between them. No host
+        synchronization once the topology's index exists."""
         fm = self.forward_model
         get = window if callable(window) else window.__getitem__
         g0 = get(0)
@@ -221,14 +230,21 @@ class SysIDModel(nn.Module):
         stats = stats if stats is not None else fm.stats(g0.nodes.dtype)
         (mn, sn), (me, se) = stats["nodes"], stats["edges"]
         K = g0.edges.shape[-1]
+        transitions = self.sysid.transitions
+        if transitions and steps < 2:
+            raise ValueError("identifying from transitions needs a window of at least 2 steps")
 
         def normalized(t):
             g = get(t)
             dyn, _ = fm._recenter(g.nodes, ctx)
-            return g._replace(nodes=(dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:],
-                              edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
+            nodes = (dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:]
+            if transitions:   # the change to the next step, as the forward model's targets are normalized
+                md, sd = stats["delta"]
+                nodes = torch.cat([nodes, (state_delta(g.nodes, get(t + 1).nodes) - md) / sd], -1)
+            return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
-        outs, _ = self.identifier.sequence(normalized, steps=steps, index=index, last_only=True)
+        n = steps - 1 if transitions else steps
+        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=True)
         return outs[-1]
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:

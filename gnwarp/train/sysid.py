@@ -92,8 +92,9 @@ class SysIDTrainer(Trainer):
             return ["model: a forward-model checkpoint, not a system-identification one"]
         changes = model_config_changes(saved["forward"], wanted.forward)
         want = json.loads(json.dumps(wanted.to_dict()))   # tuples as the JSON lists saved
-        changes += [f"model.{k}: {saved.get(k)!r} -> {want[k]!r}" for k in ("identifier", "window")
-                    if saved.get(k) != want[k]]
+        before = {k: saved.get(k) for k in ("identifier", "window")}
+        before["transitions"] = saved.get("transitions", False)   # checkpoints from before the option
+        changes += [f"model.{k}: {v!r} -> {want[k]!r}" for k, v in before.items() if v != want[k]]
         return changes
 
     # -- seams ------------------------------------------------------------------------------
