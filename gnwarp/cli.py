@@ -161,9 +161,12 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
+    if args.transitions and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions applies to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
+        from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
-        r = SysIDTrainer(cfg).run()
+        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions)).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -404,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sysid", action="store_true",
                    help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
                         "GN infers a latent static graph from a 20-step window; `gnwarp evaluate` reads its checkpoints")
+    t.add_argument("--transitions", action="store_true",
+                   help="with --sysid: the recurrent GN reads the window's transitions (states, controls and the "
+                        "change to the next state; beyond the paper, SysIDConfig.transitions)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

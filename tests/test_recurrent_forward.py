@@ -150,10 +150,13 @@ def test_cuda_captured_teacher_forcing_matches_eager(data, normalizer_steps):
     """The teacher-forcing step replayed from CUDA graphs (windows drawn on the device, the
     sequence loop, backward, Adam; one graph with normalizer accumulation, one without) trains as
     eager steps with the same device generator do: the same losses and parameters."""
-    tr = data.split("train").to("cuda")
+    cuda = proprio.ProprioData(data.dataset, data.system, device="cuda")
+    tr = cuda.split("train")
+    with pytest.raises(ValueError, match="graphs are built on cpu"):   # a model reading CPU graphs
+        train_teacher_forcing(model(data, impl="warp").to("cuda"), tr, steps=1, batch=2, capture=False)
     runs = {}
     for capture in (True, False):
-        m = model(data, impl="warp", seed=0).to("cuda")
+        m = model(cuda, impl="warp", seed=0).to("cuda")
         m.core.set_options(m.core.options.replace(deterministic=True))
         losses = train_teacher_forcing(m, tr, steps=10, batch=8, lr=3e-3, seed=0, normalizer_steps=normalizer_steps,
                                        capture=capture)

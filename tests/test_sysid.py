@@ -146,6 +146,12 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["evaluate", str(tmp_path / "run" / "best"), "--data", str(path), "--horizons", "5"]) == 0
     out = capsys.readouterr().out
     assert "same instance" in out and "another instance" in out
+    assert load_sysid(tmp_path / "run" / "best").config.transitions is False
+    assert main(["train", "--data", str(path), "--sysid", "--transitions", "-o", str(tmp_path / "run-t"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 0
+    assert load_sysid(tmp_path / "run-t" / "best").config.transitions is True
+    with pytest.raises(SystemExit, match="--sysid"):
+        main(["train", "--data", str(path), "--transitions", "-o", str(tmp_path / "run-x"), "-q"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -150,6 +150,10 @@ class RecurrentForwardModel(nn.Module):
         if ctrl.shape[:2] != (N, T):
             raise ValueError(f"ctrl must be [N, T, U] = [{N}, {T}, U] for obs of {T1} steps, got {tuple(ctrl.shape)}")
         graphs = [self.graphs(instance, obs[:, t], ctrl[:, t]) for t in range(T)]
+        if graphs and graphs[0].nodes.device != obs.device:
+            raise ValueError(f"the model's graphs are built on {graphs[0].nodes.device}, its observations are on "
+                             f"{obs.device}: make the ProprioData (whose graphs the model reads) with device="
+                             f"'{obs.device}'")
         delta = observation_delta(obs[:, :-1], obs[:, 1:])                       # [N, T, B, 2]
         w = self._movable(obs).to(obs.dtype).repeat(N)                           # [N*B], rows of a graph batch
         if accumulate:
