@@ -161,12 +161,12 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
-    if args.transitions and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions applies to system identification (--sysid) only")
+    if (args.transitions or args.targets != 1) and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions and --targets apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
-        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions)).run()
+        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions), targets=args.targets).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -410,6 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--transitions", action="store_true",
                    help="with --sysid: the recurrent GN reads the window's transitions (states, controls and the "
                         "change to the next state; beyond the paper, SysIDConfig.transitions)")
+    t.add_argument("--targets", type=int, default=1,
+                   help="with --sysid: one-step losses per identification window (default 1, the paper's)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

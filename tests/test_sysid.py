@@ -353,3 +353,34 @@ def test_identification_from_transitions(pendulum, tmp_path):
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
     assert load_sysid(summary["last"]).config.transitions is True
+
+
+def test_several_targets_per_identification_window(pendulum, tmp_path):
+    """``SysIDTrainer(targets=K)``: K one-step losses per window, at steps outside it, each with
+    the window's G_ID; K=1 draws what the paper's sampling draws; it trains."""
+    cfg = TrainConfig(out=str(tmp_path / "k"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
+                      batch_size=8, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
+                      progress=False, device="cpu", normalizer_warmup=2)
+    with pytest.raises(ValueError, match="targets"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], targets=0)
+    rows = []
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], targets=3,
+                      callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None])
+    (parts,) = tr.sample()
+    p = parts[0]
+    assert p.graph.n_node.shape[0] == 3 * 8 and p.target.shape == (3 * 8 * 2, 13)
+    assert len(p.window) == W and p.window[0].n_node.shape[0] == 8
+    # each target is the state after its input: its window's sequence, one step later, outside the window
+    body = torch.as_tensor(pendulum["train"].body[...])
+    x, y = p.graph.nodes.reshape(3 * 8, 2, -1)[:, :, -13:], p.target.reshape(3 * 8, 2, 13)
+    w0 = p.window[0].nodes.reshape(8, 2, 13)
+    for k in range(3 * 8):
+        hits = [(s, t) for s in range(body.shape[0]) for t in range(body.shape[1] - 1)
+                if torch.equal(body[s, t], x[k].to(body.dtype)) and torch.equal(body[s, t + 1], y[k].to(body.dtype))]
+        assert hits, k
+        s, t = hits[0]
+        start = [u for u in range(body.shape[1]) if torch.equal(body[s, u], w0[k % 8].to(body.dtype))]
+        assert start and not start[0] <= t < start[0] + W     # outside its window
+    tr.run()
+    losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
+    assert losses[-1] < losses[0]

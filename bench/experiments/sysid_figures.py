@@ -139,7 +139,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
 
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions)
-    r = SysIDTrainer(cfg, sysid, datasets=[ds]).run()
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in models.values():
         m.eval()
@@ -439,6 +439,8 @@ def main():
     ap.add_argument("--no-capture", action="store_true", help="run the training steps eagerly on CUDA too")
     ap.add_argument("--transitions", action="store_true",
                     help="GN_p reads the window's transitions (SysIDConfig.transitions; beyond the paper)")
+    ap.add_argument("--targets", type=int, default=1,
+                    help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
@@ -481,7 +483,7 @@ def main():
             if system == "pendulum":
                 rows += fig9(args, models, out)
             for r in rows:
-                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions,
+                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

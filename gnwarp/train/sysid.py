@@ -62,10 +62,16 @@ class SysIDTrainer(Trainer):
     ``sysid``: sizes of GN_p and the window (default ``SysIDConfig()``); the forward model's
     sizes and run options are ``config.model``'s. Other arguments as ``Trainer``'s. A rerun into
     the same ``out`` resumes from ``<out>/last`` (model, optimizer, sampler and run state), as
-    the ``Trainer``'s do; a checkpoint of another model is refused."""
+    the ``Trainer``'s do; a checkpoint of another model is refused. ``targets`` (beyond the
+    paper's 1): one-step losses per identification window, at K different steps outside it, so
+    that each identification (GN_p's whole window, most of a step's work) gets K times the signal."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
-                 model: SysIDModel | None = None, callbacks=()):
+                 model: SysIDModel | None = None, callbacks=(), targets: int = 1):
+        if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
+            raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
+                             f"got {targets!r}")
+        self.targets = targets
         if datasets is None:
             if not config.data:
                 raise ValueError("no training data: set `data` to one or more dataset files")
@@ -81,6 +87,7 @@ class SysIDTrainer(Trainer):
                                  f"more than the {W}-step window (a window and a different step t0)")
         super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
+        self.info["train"]["targets"] = targets
 
     def _load_last(self):
         """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
@@ -100,8 +107,10 @@ class SysIDTrainer(Trainer):
     # -- seams ------------------------------------------------------------------------------
     def sample(self) -> tuple[list[SysIDSample]]:
         """Per dataset, its share of ``batch_size`` sequences: a random window [s0, s0 + W) and a
-        random step t0 outside it (Algorithm D.4). On the device, no host sync."""
-        W, n_all = self.model.window, self.config.batch_size
+        random step t0 outside it (Algorithm D.4); with ``targets`` K > 1, K steps t0 outside the
+        window, drawn independently (the graphs and targets of the K draws one after another). On
+        the device, no host sync."""
+        W, n_all, K = self.model.window, self.config.batch_size, self.targets
         parts = self.sampler.parts
         k = len(parts)
         out = []
@@ -112,13 +121,14 @@ class SysIDTrainer(Trainer):
             dev, gen = p.body.device, self.generator
             seq = torch.randint(p.S, (n,), generator=gen, device=dev)
             s0 = torch.randint(p.T - W + 1, (n,), generator=gen, device=dev)
-            r = torch.randint(p.T - W, (n,), generator=gen, device=dev)
-            t0 = torch.where(r < s0, r, r + W)      # uniform over the steps outside the window
+            r = torch.randint(p.T - W, (K * n,), generator=gen, device=dev)
             inst = p.instance[seq]
             window = [p.builder(inst, p.body[seq, s0 + t], p.ctrl[seq, s0 + t]) for t in range(W)]
-            graph = p.builder(inst, p.body[seq, t0], p.ctrl[seq, t0])
-            nxt = p.body[seq, t0 + 1]
-            target = nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst]]
+            seq_k, inst_k, s0_k = (seq, inst, s0) if K == 1 else (seq.repeat(K), inst.repeat(K), s0.repeat(K))
+            t0 = torch.where(r < s0_k, r, r + W)    # uniform over the steps outside the window
+            graph = p.builder(inst_k, p.body[seq_k, t0], p.ctrl[seq_k, t0])
+            nxt = p.body[seq_k, t0 + 1]
+            target = nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst_k]]
             out.append(SysIDSample(window, graph, target))
         return (out,)
 
@@ -129,6 +139,10 @@ class SysIDTrainer(Trainer):
         graphs = []
         for p in parts:
             g_id = m.identify_graphs(p.window, len(p.window), fm.stats(p.graph.nodes.dtype))
+            if self.targets > 1:   # the same G_ID for each of the window's K one-step targets
+                K = self.targets
+                g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).repeat(K, 1)
+                                        for k in ("nodes", "edges", "globals")})
             graphs.append(m.with_gid(p.graph, g_id))
         graph = graphs[0] if len(graphs) == 1 else batch(graphs)
         target = parts[0].target if len(parts) == 1 else torch.cat([p.target for p in parts], 0)
