@@ -16,6 +16,7 @@ and ``loss_grad`` writes the gradient of the predicted change, one thread per no
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -95,6 +96,21 @@ def noisy_centred_kernel(dtype, noise: bool, recenter: bool):
     return noisy_centred
 
 
+@wp.func
+def _term_start(g: int):
+    """First column of squared-error term g: position 0, linear velocity 7, angular velocity 10."""
+    if g == 0:
+        return 0
+    return 4 + 3 * g
+
+
+@wp.func
+def _error(pred: wp.array2d(dtype=Any), delta: wp.array2d(dtype=Any), mean: wp.array(dtype=Any),
+           std: wp.array(dtype=Any), i: int, j: int):
+    """Normalized prediction minus normalized true change, row i, column j."""
+    return pred[i, j] - (delta[i, j] - mean[j]) / std[j]
+
+
 @functools.cache
 def loss_terms_kernel(dtype):
     """Kernel ``(pred [n, 13], delta [n, 13], mean [13], std [13], movable [n] int32, out [n, 5])``
@@ -112,17 +128,10 @@ def loss_terms_kernel(dtype):
                 out[i, k] = T(0.0)
             return
         for g in range(3):
-            a = 0
-            b = 3
-            if g == 1:
-                a = 7
-                b = 10
-            elif g == 2:
-                a = 10
-                b = 13
+            a = _term_start(g)
             acc = T(0.0)
-            for j in range(a, b):
-                e = pred[i, j] - (delta[i, j] - mean[j]) / std[j]
+            for j in range(a, a + 3):
+                e = _error(pred, delta, mean, std, i, j)
                 acc += e * e
             out[i, g] = acc
         q0 = pred[i, 3] * std[3] + mean[3]
@@ -181,17 +190,10 @@ def loss_grad_kernel(dtype, normalized: bool):
             return
         d = wp.max(sums[4], T(1.0))
         for g in range(3):
-            a = 0
-            b = 3
-            if g == 1:
-                a = 7
-                b = 10
-            elif g == 2:
-                a = 10
-                b = 13
+            a = _term_start(g)
             c = T(2.0) * (g_terms[g] + g_terms[4]) / d
-            for j in range(a, b):
-                g_pred[i, j] = c * (pred[i, j] - (delta[i, j] - mean[j]) / std[j])
+            for j in range(a, a + 3):
+                g_pred[i, j] = c * _error(pred, delta, mean, std, i, j)
         rs = T(1.0)
         if wp.static(NORM == 1):
             rs = T(1.0) / (std[4] * std[4] + std[5] * std[5] + std[6] * std[6])
