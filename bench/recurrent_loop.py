@@ -5,7 +5,9 @@ The proprioceptive JACO of ``bench/experiments/recurrent_jaco.py`` at its full s
 latent 128, hidden graph 20, MLPs 256x256, batch 200 windows of 21 observations: 20 recurrent steps
 a window), ``--sequences`` simulated on MuJoCo C. For each precision: a short run of each mode
 first (kernels compiled, graphs captured), then ``--eager-steps`` eager steps and ``--steps``
-captured ones, steps/s over each run (the loss read back every 256 steps, as the loop does).
+captured ones, steps/s over each run (the loss read back every 256 steps, as the loop does); and
+the model's 100-step rollouts (20 warm-up steps) of every training sequence, eager and captured
+(median of 5, CUDA events).
 
     python bench/recurrent_loop.py [--precisions tf32,fp16] [--steps 400] [--eager-steps 40]
     python bench/recurrent_loop.py --quick          # tiny sizes on the CPU (eager only): a smoke test
@@ -21,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import device_name, results_dir, save_results  # noqa: E402
+from bench.harness import device_name, median_ms, results_dir, save_results  # noqa: E402
 from gnwarp.data import proprio  # noqa: E402
 from gnwarp.models.recurrent import RecurrentGNConfig  # noqa: E402
 from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel,  # noqa: E402
@@ -70,6 +72,10 @@ def main(argv=None):
             s = time.perf_counter() - t
             row = dict(device=name, precision=prec, mode=mode, steps=len(losses), seconds=round(s, 3),
                        steps_per_s=round(len(losses) / s, 1), window=21, batch=args.batch)
+            with torch.no_grad():   # 100-step rollouts (20 warm-up steps) of every training sequence
+                run = lambda: model.rollout(train.instance, train.obs, train.ctrl, warmup=20, capture=capture)  # noqa: E731
+                row["rollout_ms"] = round(median_ms(run, dev, 5 if cuda else 1, 1), 2)
+                row["rollout_sequences"] = len(train)
             rows.append(row)
             print(row, flush=True)
     lines = [f"# The recurrent model's teacher-forcing loop on {name}", "",
@@ -78,12 +84,14 @@ def main(argv=None):
              f"{args.batch} windows of 21 observations (20 recurrent steps each); one process, each mode after a "
              "short run of it that compiled its kernels; a captured run's time includes its two eager warm-up steps and "
              "its capture.", "",
-             "| precision | eager steps/s | captured steps/s | captured / eager |", "|---|---|---|---|"]
+             "| precision | eager steps/s | captured steps/s | captured / eager | 100-step rollout of "
+             f"{len(train)} sequences, eager ms | captured ms |", "|---|---|---|---|---|---|"]
     for prec in args.precisions.split(","):
         e = next(r for r in rows if r["precision"] == prec and r["mode"] == "eager")
         c = next((r for r in rows if r["precision"] == prec and r["mode"] == "captured"), None)
         ratio = f"{c['steps_per_s'] / e['steps_per_s']:.1f}x" if c else "-"
-        lines.append(f"| {prec} | {e['steps_per_s']} | {c['steps_per_s'] if c else '-'} | {ratio} |")
+        lines.append(f"| {prec} | {e['steps_per_s']} | {c['steps_per_s'] if c else '-'} | {ratio} | "
+                     f"{e['rollout_ms']} | {c['rollout_ms'] if c else '-'} |")
     save_results(args.out, "recurrent_loop", name, args.quick, rows, lines)
     return 0
 

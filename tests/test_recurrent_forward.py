@@ -169,3 +169,29 @@ def test_cuda_captured_teacher_forcing_matches_eager(data, normalizer_steps):
         torch.testing.assert_close(p, q, rtol=1e-4, atol=1e-5)
     for n, q in zip(a.buffers(), b.buffers()):
         torch.testing.assert_close(n, q)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_cuda_captured_rollout_matches_eager(data, recurrent):
+    """``rollout`` under no_grad on CUDA replays one CUDA graph per shape: the same states as the
+    eager loop, for new inputs of the same shape and after the weights change in place; with
+    gradients on it runs eagerly."""
+    cuda = proprio.ProprioData(data.dataset, data.system, device="cuda")
+    tr = cuda.split("train")
+    m = model(cuda, recurrent, impl="warp").to("cuda")
+    m.loss(tr.instance[:4], tr.obs[:4, :21], tr.ctrl[:4, :20], accumulate=True)  # non-trivial statistics
+    inst, obs, ctrl = tr.instance[:3], tr.obs[:3], tr.ctrl[:3]
+    with torch.no_grad():
+        got = m.rollout(inst, obs, ctrl, warmup=20)
+        ref = m.rollout(inst, obs, ctrl, warmup=20, capture=False)
+        torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)
+        inst2, obs2, ctrl2 = tr.instance[3:6], tr.obs[3:6], tr.ctrl[3:6]       # same shapes: a replay
+        torch.testing.assert_close(m.rollout(inst2, obs2, ctrl2, warmup=20),
+                                   m.rollout(inst2, obs2, ctrl2, warmup=20, capture=False), rtol=1e-5, atol=1e-6)
+        for p in m.parameters():                                                # in place: read at replay
+            p.mul_(0.9)
+        torch.testing.assert_close(m.rollout(inst, obs, ctrl, warmup=20),
+                                   m.rollout(inst, obs, ctrl, warmup=20, capture=False), rtol=1e-5, atol=1e-6)
+    out = m.rollout(inst, obs, ctrl, warmup=20)                                 # gradients on: eager
+    assert out.requires_grad

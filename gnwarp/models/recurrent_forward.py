@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import weakref
 from dataclasses import dataclass, field
 
 import torch
@@ -175,20 +176,37 @@ class RecurrentForwardModel(nn.Module):
         return total / (w.sum() * T * DELTA_SIZE)
 
     # -- rollouts ---------------------------------------------------------------------------------
-    def rollout(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, warmup: int = 20
-                ) -> torch.Tensor:
+    def rollout(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, warmup: int = 20,
+                capture: bool | None = None) -> torch.Tensor:
         """Warm up on true observations, then feed back predictions.
 
         ``obs`` [N, >= warmup+1, B, 3]: true observations (only the first warmup+1 are read);
         ``ctrl`` [N, T, U] with T > warmup. Inputs at steps t = 0..warmup are the true obs[:, t]
         (teacher forcing: the hidden graph takes them in), later inputs the model's previous
         prediction. Returns [N, T+1, B, 3]: obs[:, :warmup+1] and then the predictions of steps
-        warmup+1..T (the free rollout, horizon h at index warmup+h)."""
+        warmup+1..T (the free rollout, horizon h at index warmup+h).
+
+        ``capture`` (default: on for CUDA tensors while gradients are off): the whole loop replays
+        one CUDA graph, captured on the first call of each shape (N, warmup, T, U) and dtype and
+        re-captured when the weights' storage moves (weights updated in place are read at each
+        replay); the inputs are copied in and the result copied out."""
         N, T = ctrl.shape[:2]
         if not (0 <= warmup < T and obs.shape[1] >= warmup + 1):
             raise ValueError(f"rollout needs 0 <= warmup < T and warmup+1 true observations; got warmup {warmup}, "
                              f"T {T}, {obs.shape[1]} observations")
         instance = instance.to(obs.device)
+        cuda = obs.is_cuda
+        if capture is None:
+            capture = cuda and not torch.is_grad_enabled()
+        if capture:
+            if not cuda:
+                raise ValueError("capture=True needs CUDA observations")
+            with torch.no_grad():
+                return self._captured_rollout(instance, obs[:, :warmup + 1], ctrl, warmup)
+        return self._rollout(instance, obs, ctrl, warmup)
+
+    def _rollout(self, instance: torch.Tensor, obs: torch.Tensor, ctrl: torch.Tensor, warmup: int) -> torch.Tensor:
+        T = ctrl.shape[1]
         g0 = self.graphs(instance, obs[:, 0], ctrl[:, 0])
         stats, index = self.stats(g0.nodes.dtype), self.core.graph_index(g0)
         hidden = self.initial_hidden(g0)
@@ -200,6 +218,37 @@ class RecurrentForwardModel(nn.Module):
             if t >= warmup:
                 out.append(x)
         return torch.stack(out, 1)
+
+    def _captured_rollout(self, instance, obs, ctrl, warmup: int) -> torch.Tensor:
+        from gnwarp.interop import cuda_graph
+        cache = _ROLLOUT_GRAPHS.setdefault(self, {})
+        storage = tuple(t.data_ptr() for t in (*self.parameters(), *self.buffers()) if t is not None)
+        key = (tuple(instance.shape), tuple(obs.shape), tuple(ctrl.shape), obs.dtype, ctrl.dtype, instance.dtype,
+               obs.device, warmup, self.core.options, self.recurrent, storage)
+        entry = cache.get(key)
+        if entry is None:
+            bufs = (instance.clone(), obs.clone(), ctrl.clone())
+            stream = torch.cuda.Stream(obs.device)
+            stream.wait_stream(torch.cuda.current_stream(obs.device))
+            with torch.cuda.stream(stream):
+                self._rollout(*bufs, warmup)      # kernels compiled, the topology validated
+            torch.cuda.current_stream(obs.device).wait_stream(stream)
+            graph = torch.cuda.CUDAGraph()
+            with cuda_graph(graph, stream):
+                result = self._rollout(*bufs, warmup)
+            torch.cuda.current_stream(obs.device).wait_stream(stream)
+            while len(cache) >= 4:                # bounded: each graph holds its own memory
+                cache.pop(next(iter(cache)))
+            entry = cache[key] = (graph, bufs, result)
+        graph, bufs, result = entry
+        for b, x in zip(bufs, (instance, obs, ctrl)):
+            b.copy_(x)
+        graph.replay()
+        return result.clone()
+
+
+# captured recurrent rollouts per model (``RecurrentForwardModel.rollout``), dropped with the model
+_ROLLOUT_GRAPHS: "weakref.WeakKeyDictionary[RecurrentForwardModel, dict]" = weakref.WeakKeyDictionary()
 
 
 def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300, batch: int = 32,
