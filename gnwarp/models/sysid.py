@@ -234,13 +234,21 @@ class SysIDModel(nn.Module):
         if transitions and steps < 2:
             raise ValueError("identifying from transitions needs a window of at least 2 steps")
 
+        built = {0: g0}   # graphs of steps t and t + 1 (a transition reads both; each is built once)
+
+        def graph(t):
+            if t not in built:
+                built[t] = get(t)
+                built.pop(t - 2, None)
+            return built[t]
+
         def normalized(t):
-            g = get(t)
+            g = graph(t)
             dyn, _ = fm._recenter(g.nodes, ctx)
             nodes = (dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:]
             if transitions:   # the change to the next step, as the forward model's targets are normalized
                 md, sd = stats["delta"]
-                nodes = torch.cat([nodes, (state_delta(g.nodes, get(t + 1).nodes) - md) / sd], -1)
+                nodes = torch.cat([nodes, (state_delta(g.nodes, graph(t + 1).nodes) - md) / sd], -1)
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
         n = steps - 1 if transitions else steps
