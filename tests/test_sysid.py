@@ -1,6 +1,8 @@
 """System identification (Algorithms D.2, D.4): end-to-end training lowers the loss, a saved G_ID
 reproduces rollouts, bad identification windows are refused by name, and gradients through the
 window match finite differences."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -150,15 +152,25 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--transitions", "-o", str(tmp_path / "run-t"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-t" / "best").config.transitions is True
-    with pytest.raises(SystemExit, match="--sysid"):
-        main(["train", "--data", str(path), "--transitions", "-o", str(tmp_path / "run-x"), "-q"])
+    assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5", "-o",
+                 str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+    assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
+    import json
+    assert json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]["start_windows"] == 0.5
+    for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"]):
+        with pytest.raises(SystemExit, match="--sysid"):
+            main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path):
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5}],
+                         ids=["paper", "mean-transitions-start"])
+def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
-    bit for bit in deterministic mode with torch's Adam."""
+    bit for bit in deterministic mode with torch's Adam; also with the options beyond the paper."""
+    options = dict(options)
+    start = options.pop("start_windows", 0.0)
     runs = {}
     for capture in (True, False):
         cfg = TrainConfig(out=str(tmp_path / f"cap{capture}"), steps=10, batch_size=16, lr=3e-3, valid_every=5,
@@ -166,7 +178,8 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path):
                           normalizer_warmup=3, capture=capture, optimizer="adam",
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
-        tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+        tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
+                          start_windows=start,
                           callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
@@ -384,3 +397,91 @@ def test_several_targets_per_identification_window(pendulum, tmp_path):
     tr.run()
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
+
+
+def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path):
+    """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window
+    (equal to running the identifier by hand, in float64); gradients through it match finite
+    differences; it trains and the option travels in the checkpoint, which a run of the other
+    readout refuses to resume."""
+    torch.manual_seed(0)
+    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
+                      window=4, readout="mean")
+    m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
+    sp = pendulum["train"]
+    body, ctrl = torch.as_tensor(sp.body[:5, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:5, :8], dtype=torch.float64)
+    inst = torch.as_tensor(sp.instance[:5])
+    g_id = m.identify(body[:, :4], ctrl[:, :4], inst)
+    st = m.forward_model.stats(torch.float64)
+    (mn, sn), (me, se) = st["nodes"], st["edges"]
+    graphs = [m.builder(inst, body[:, t], ctrl[:, t]) for t in range(4)]
+    K = graphs[0].edges.shape[1]
+    h = m.identifier.initial_hidden(graphs[0])
+    outs = []
+    for g in graphs:
+        out, h = m.identifier.step(g._replace(nodes=(g.nodes - mn[-13:]) / sn[-13:], edges=(g.edges - me[-K:]) / se[-K:]), h)
+        outs.append(out)
+    for k in ("nodes", "edges", "globals"):
+        want = torch.stack([getattr(o, k) for o in outs]).mean(0)
+        torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-12, atol=1e-12)
+        assert not torch.allclose(want, getattr(outs[-1], k))   # not the last step's output
+    moving = body[:2, :4, 1].clone().requires_grad_()
+
+    def f(mv):
+        g = m.identify(torch.cat([body[:2, :4, :1], mv[:, :, None]], 2), ctrl[:2, :4], inst[:2])
+        return m.rollout(body[:2, 4], ctrl[:2, 4:6], g, inst[:2])[:, 1:, 1].sum(-1)
+    assert torch.autograd.gradcheck(f, (moving,), eps=1e-6, atol=1e-5, rtol=1e-4)
+    with pytest.raises(Exception, match="readout"):
+        SysIDConfig(readout="max")
+    tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
+                       batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
+                       progress=False, device="cpu", normalizer_warmup=5)
+    rows = []
+    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout="mean"), datasets=[pendulum],
+                           callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
+    losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
+    assert losses[-1] < losses[0]
+    assert load_sysid(summary["last"]).config.readout == "mean"
+    tcfg.steps = 40
+    with pytest.raises(Exception, match="readout"):
+        SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
+
+
+def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
+    """``SysIDTrainer(start_windows=F)``: F = 1 draws every window at its sequence's start, F = 0.5
+    about half of them, F = 0 (the paper's) uniform windows; targets stay outside the window;
+    values outside [0, 1] are refused by name; the fraction is recorded in the run's config."""
+    cfg = TrainConfig(out=str(tmp_path / "s"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=20,
+                      batch_size=64, lr=3e-3, valid_every=20, valid_sequences=2, log_every=10, checkpoint_every=20,
+                      progress=False, device="cpu", normalizer_warmup=2)
+    for bad in (-0.1, 1.5, True, "half"):
+        with pytest.raises(ValueError, match="start_windows"):
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=bad)
+    body = torch.as_tensor(pendulum["train"].body[...])
+
+    def starts(tr, draws=4):
+        out = []
+        for _ in range(draws):
+            (parts,) = tr.sample()
+            p = parts[0]
+            w0 = p.window[0].nodes.reshape(-1, 2, 13).to(body.dtype)
+            x = p.graph.nodes.reshape(-1, 2, p.graph.nodes.shape[-1])[:, :, -13:].to(body.dtype)
+            for k in range(w0.shape[0]):
+                hits = [(s, t) for s in range(body.shape[0]) for t in range(body.shape[1] - W)
+                        if torch.equal(body[s, t], w0[k]) and torch.equal(body[s, t + 1],
+                                                                             p.window[1].nodes.reshape(-1, 2, 13)[k].to(body.dtype))]
+                assert hits, k
+                s, t = hits[0]
+                t0 = [u for u in range(body.shape[1]) if torch.equal(body[s, u], x[k])]
+                assert t0 and not t <= t0[0] < t + W        # the target lies outside the window
+                out.append(t == 0)
+        return np.mean(out)
+    all_start = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=1.0)
+    assert starts(all_start) == 1.0
+    half = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=0.5)
+    assert 0.35 < starts(half) < 0.65
+    uniform = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
+    assert starts(uniform) < 0.2      # 1 in T - W + 1 = 26 windows
+    summary = half.run()
+    import json
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["start_windows"] == 0.5

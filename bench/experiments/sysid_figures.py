@@ -136,13 +136,20 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     cfg = train_config(args, runs / system / "true_params", ds)
     r = Trainer(cfg, datasets=[ds]).run()
     models["true params"], info["true params"] = load_model(r["best"], device=args.device), r
+    # further true-parameter models, identically configured: the reference's run-to-run spread
+    models["true params runs"] = [models["true params"]]
+    for k in range(1, args.reference_runs):
+        r = Trainer(train_config(args, runs / system / f"true_params_{k}", ds), datasets=[ds]).run()
+        models["true params runs"].append(load_model(r["best"], device=args.device))
 
     cfg = train_config(args, runs / system / "sysid", ds)
-    sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions)
-    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets).run()
+    sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
+                        readout=args.readout)
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
-    for m in models.values():
-        m.eval()
+    for m in [*models.values(), *models["true params runs"]]:
+        if not isinstance(m, list):
+            m.eval()
     return models, info
 
 
@@ -187,14 +194,16 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
     W, n = args.window, min(args.test, len(ds["test"]))
     H = ds["test"].num_steps - W
     other = np.roll(np.arange(n), 1)     # sequence i identified from sequence i-1's window: another instance
+    runs = [forward_window_error(m, ds, "test", W, H, n) for m in models["true params runs"]]
     errs = {"no params": forward_window_error(models["no params"], ds, "test", W, H, n),
-            "true params": forward_window_error(models["true params"], ds, "test", W, H, n),
+            "true params": float(np.median(runs)),   # one run's, or the median of --reference-runs
             "sysid same": sysid_rollout_error(models["sysid"], ds, "test", H, n),
             "sysid other": sysid_rollout_error(models["sysid"], ds, "test", H, n, window_from=other)}
     # for reference, the forward models' usual error (rollouts from step 0, ``gnwarp.eval``)
     from_0 = {k: rollout_error(models[k], ds, "test", ds["test"].num_steps, n) for k in ("no params", "true params")}
     return [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
-             "test_sequences": n, "from_step_0": from_0.get(k)} for k, v in errs.items()]
+             "test_sequences": n, "from_step_0": from_0.get(k),
+             **({"runs": runs} if k == "true params" else {})} for k, v in errs.items()]
 
 
 # -- probe ----------------------------------------------------------------------------------------
@@ -441,6 +450,10 @@ def main():
                     help="GN_p reads the window's transitions (SysIDConfig.transitions; beyond the paper)")
     ap.add_argument("--targets", type=int, default=1,
                     help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
+    ap.add_argument("--reference-runs", type=int, default=1,
+                    help="true-parameter models trained identically; Figure 8's reference is their median")
+    ap.add_argument("--readout", default="last", choices=("last", "mean"), help="SysIDConfig.readout")
+    ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
@@ -484,6 +497,7 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
+                         readout=args.readout, start_windows=args.start_windows,
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

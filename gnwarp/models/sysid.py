@@ -21,6 +21,7 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.nn as nn
@@ -57,11 +58,17 @@ class SysIDConfig:
     W - 1 transitions instead of its W states: at each step t < W - 1 the state, the controls and
     the state change to step t + 1 (``state_delta``, normalized by the forward model's output
     statistics), so the accelerations the parameters shape are inputs rather than something
-    GN_p's recurrence must difference out of consecutive states."""
+    GN_p's recurrence must difference out of consecutive states.
+
+    ``readout`` (beyond the paper): "last" (the paper's) takes G_ID as GN_p's output graph at
+    the window's last step; "mean" averages its output graphs over every step, so that each
+    step's evidence about the parameters counts alike (an estimate pooled over the window, as a
+    least-squares fit pools its equations) instead of passing through 19 GRU updates."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
     transitions: bool = False
+    readout: Literal["last", "mean"] = "last"
 
     def __post_init__(self):
         check_fields(self)
@@ -72,7 +79,7 @@ class SysIDConfig:
 
     def to_dict(self) -> dict:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
-                "transitions": self.transitions}
+                "transitions": self.transitions, "readout": self.readout}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -221,7 +228,8 @@ class SysIDModel(nn.Module):
         """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable
         t -> graph), normalized with the forward model's input statistics (``stats``: as
         ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4);
-        with ``config.transitions``, the ``steps - 1`` transitions between them. No host
+        with ``config.transitions``, the ``steps - 1`` transitions between them; with
+        ``config.readout == "mean"``, the mean of GN_p's output graphs over the steps. No host
         synchronization once the topology's index exists."""
         fm = self.forward_model
         get = window if callable(window) else window.__getitem__
@@ -252,8 +260,12 @@ class SysIDModel(nn.Module):
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
         n = steps - 1 if transitions else steps
-        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=True)
-        return outs[-1]
+        mean = self.sysid.readout == "mean"
+        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=not mean)
+        if not mean:
+            return outs[-1]
+        return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
+                                    torch.stack([getattr(o, k) for o in outs]).mean(0) for k in KINDS})
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
         if self.builder is None:

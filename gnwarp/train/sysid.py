@@ -64,14 +64,23 @@ class SysIDTrainer(Trainer):
     the same ``out`` resumes from ``<out>/last`` (model, optimizer, sampler and run state), as
     the ``Trainer``'s do; a checkpoint of another model is refused. ``targets`` (beyond the
     paper's 1): one-step losses per identification window, at K different steps outside it, so
-    that each identification (GN_p's whole window, most of a step's work) gets K times the signal."""
+    that each identification (GN_p's whole window, most of a step's work) gets K times the signal.
+    ``start_windows`` (beyond the paper's 0): the fraction of identification windows drawn at
+    their sequence's start (s0 = 0) rather than uniformly: identification in use (``gnwarp
+    evaluate``, Figure 8, ``control.identify_on_env``) reads an episode's first steps, from the
+    initial-state distribution, which uniform windows reach once in T - W + 1 draws."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
-                 model: SysIDModel | None = None, callbacks=(), targets: int = 1):
+                 model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
+        if isinstance(start_windows, bool) or not isinstance(start_windows, (int, float)) \
+                or not 0.0 <= float(start_windows) <= 1.0:
+            raise ValueError(f"start_windows must be a number from 0 to 1 (the fraction of identification windows "
+                             f"at a sequence's start), got {start_windows!r}")
         self.targets = targets
+        self.start_windows = float(start_windows)
         if datasets is None:
             if not config.data:
                 raise ValueError("no training data: set `data` to one or more dataset files")
@@ -88,6 +97,7 @@ class SysIDTrainer(Trainer):
         super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
         self.info["train"]["targets"] = targets
+        self.info["train"]["start_windows"] = self.start_windows
 
     def _load_last(self):
         """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
@@ -100,7 +110,8 @@ class SysIDTrainer(Trainer):
         changes = model_config_changes(saved["forward"], wanted.forward)
         want = json.loads(json.dumps(wanted.to_dict()))   # tuples as the JSON lists saved
         before = {k: saved.get(k) for k in ("identifier", "window")}
-        before["transitions"] = saved.get("transitions", False)   # checkpoints from before the option
+        before["transitions"] = saved.get("transitions", False)   # checkpoints from before the options
+        before["readout"] = saved.get("readout", "last")
         changes += [f"model.{k}: {v!r} -> {want[k]!r}" for k, v in before.items() if v != want[k]]
         return changes
 
@@ -108,8 +119,8 @@ class SysIDTrainer(Trainer):
     def sample(self) -> tuple[list[SysIDSample]]:
         """Per dataset, its share of ``batch_size`` sequences: a random window [s0, s0 + W) and a
         random step t0 outside it (Algorithm D.4); with ``targets`` K > 1, K steps t0 outside the
-        window, drawn independently (the graphs and targets of the K draws one after another). On
-        the device, no host sync."""
+        window, drawn independently (the graphs and targets of the K draws one after another); a
+        ``start_windows`` fraction of the windows at s0 = 0. On the device, no host sync."""
         W, n_all, K = self.model.window, self.config.batch_size, self.targets
         parts = self.sampler.parts
         k = len(parts)
@@ -121,6 +132,9 @@ class SysIDTrainer(Trainer):
             dev, gen = p.body.device, self.generator
             seq = torch.randint(p.S, (n,), generator=gen, device=dev)
             s0 = torch.randint(p.T - W + 1, (n,), generator=gen, device=dev)
+            if self.start_windows > 0:
+                at_start = torch.rand(n, generator=gen, device=dev) < self.start_windows
+                s0 = torch.where(at_start, torch.zeros_like(s0), s0)
             r = torch.randint(p.T - W, (K * n,), generator=gen, device=dev)
             inst = p.instance[seq]
             window = [p.builder(inst, p.body[seq, s0 + t], p.ctrl[seq, s0 + t]) for t in range(W)]
