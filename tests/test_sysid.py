@@ -485,3 +485,38 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
     summary = half.run()
     import json
     assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["start_windows"] == 0.5
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}], ids=["paper", "mean-transitions"])
+def test_cuda_captured_identification_matches_eager(pendulum, options):
+    """``identify`` on CUDA without gradients replays a captured graph: G_ID equals the eager
+    identification's, for new windows of the same shape, and after an in-place weight change."""
+    torch.manual_seed(0)
+    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)), identifier=ID,
+                      window=W, **options)
+    m = SysIDModel(cfg, pendulum.layout).to("cuda").bind(pendulum)
+    sp = pendulum["train"]
+    body = torch.as_tensor(sp.body[:8], device="cuda")
+    ctrl = torch.as_tensor(sp.ctrl[:8], device="cuda")
+    inst = torch.as_tensor(sp.instance[:8])
+
+    def both(s):
+        with torch.no_grad():
+            a = m.identify(body[:, s:s + W], ctrl[:, s:s + W], inst)
+            b = m.identify(body[:, s:s + W], ctrl[:, s:s + W], inst, capture=False)
+        return a, b
+    from gnwarp.models.sysid import _IDENTIFY_GRAPHS
+    for s in (0, 7, 13):
+        a, b = both(s)
+        for k in ("nodes", "edges", "globals"):
+            torch.testing.assert_close(getattr(a, k), getattr(b, k), rtol=1e-6, atol=1e-6)
+    assert len(_IDENTIFY_GRAPHS[m]) == 1          # one capture served the three windows
+    before = both(0)[0]
+    with torch.no_grad():
+        m.identifier.out["globals"].bias.add_(0.5)   # in place: the replay reads it
+    a, b = both(0)
+    torch.testing.assert_close(a.globals, b.globals, rtol=1e-6, atol=1e-6)
+    assert not torch.allclose(a.globals, before.globals)
+    with pytest.raises(ValueError, match="CUDA"):
+        m.cpu().bind(pendulum).identify(body[:, :W].cpu(), ctrl[:, :W].cpu(), inst, capture=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -274,13 +275,19 @@ class SysIDModel(nn.Module):
         instance = torch.zeros(N, dtype=torch.int64) if instance is None else check_instance(instance, n_inst, N)
         return GraphTemplate(self.builder, instance), n_ctrl
 
-    def identify(self, window_body, window_ctrl, instance=None, check: bool = True) -> GraphsTuple:
+    def identify(self, window_body, window_ctrl, instance=None, check: bool = True,
+                 capture: bool | None = None) -> GraphsTuple:
         """G_ID (a GraphsTuple: nodes [n, G], edges [e, G], globals [N, G] and the topology) of N
         system instances from an identification window: ``window_body`` [N, W, B, 13] (body
         states) and ``window_ctrl`` [N, W, U] (the controls applied at those steps); a longer
         window is cut to its last W = ``config.window`` steps. ``instance`` [N]: the bound
         source's instances (their topology; default 0). Raises ``RolloutInputError`` for a
-        shorter window, shapes of another system's graph layout, and (``check``) NaN or Inf."""
+        shorter window, shapes of another system's graph layout, and (``check``) NaN or Inf.
+
+        ``capture`` (default: on for a CUDA model while gradients are off): GN_p's loop over the
+        window replays one CUDA graph, captured on the first call of each shape, instances and
+        dtype and re-captured when the weights' storage moves (weights updated in place are read
+        at each replay); the window is copied in and G_ID copied out."""
         body, ctrl = float_tensor(window_body, "window_body"), float_tensor(window_ctrl, "window_ctrl")
         W = self.window
         if body.ndim != 4 or ctrl.ndim != 3:
@@ -305,7 +312,47 @@ class SysIDModel(nn.Module):
                 if bool(bad.any()):
                     raise RolloutInputError(f"{name} contains NaN or Inf (first at {name}"
                                             f"{[int(i) for i in bad.nonzero()[0]]} of its last {W} steps)")
+        if capture is None:
+            capture = body.is_cuda and not torch.is_grad_enabled()
+        if capture:
+            if not body.is_cuda:
+                raise ValueError("capture=True needs a model on a CUDA device")
+            with torch.no_grad():
+                return self._captured_identify(tmpl, body, ctrl)
         return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
+
+    def _captured_identify(self, tmpl: GraphTemplate, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
+        from gnwarp.interop import cuda_graph
+        cache = _IDENTIFY_GRAPHS.setdefault(self, {})
+        storage = tuple(t.data_ptr() for t in (*self.parameters(), *self.buffers()) if t is not None)
+        key = (tmpl.instance.cpu().numpy().tobytes(), tuple(body.shape), tuple(ctrl.shape), body.dtype, ctrl.dtype,
+               body.device, id(self.builder), self.options, self.sysid.readout, self.sysid.transitions, storage)
+        entry = cache.get(key)
+        if entry is None:
+            W = body.shape[1]
+            bufs = (body.clone(), ctrl.clone())
+
+            def run():
+                return self.identify_graphs(lambda t: tmpl.graph(bufs[0][:, t], bufs[1][:, t]), W)
+            dev = body.device
+            stream = torch.cuda.Stream(dev)
+            stream.wait_stream(torch.cuda.current_stream(dev))
+            with torch.cuda.stream(stream):
+                run()                               # kernels compiled, the topology's index built
+            torch.cuda.current_stream(dev).wait_stream(stream)
+            graph = torch.cuda.CUDAGraph()
+            with cuda_graph(graph, stream):
+                result = run()
+            torch.cuda.current_stream(dev).wait_stream(stream)
+            while len(cache) >= 4:                  # bounded: each graph holds its own memory
+                cache.pop(next(iter(cache)))
+            # the builder is kept so that its id (in the key) cannot name another one while cached
+            entry = cache[key] = (graph, bufs, result, self.builder)
+        graph, bufs, result, _ = entry
+        bufs[0].copy_(body)
+        bufs[1].copy_(ctrl)
+        graph.replay()
+        return result._replace(**{k: None if getattr(result, k) is None else getattr(result, k).clone() for k in KINDS})
 
     def rollout(self, initial_body, ctrl, g_id: GraphsTuple, instance=None, check: bool = True,
                 ctrl_policy: str = "clamp") -> torch.Tensor:
@@ -426,6 +473,10 @@ class FixedGIDModel:
         needs ``ctrl_policy="none"``."""
         return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
                              store=store, store_bytes=store_bytes)
+
+
+# captured identifications per model (``SysIDModel.identify``), dropped with the model
+_IDENTIFY_GRAPHS: "weakref.WeakKeyDictionary[SysIDModel, dict]" = weakref.WeakKeyDictionary()
 
 
 # -- G_ID files -----------------------------------------------------------------------------------
