@@ -13,7 +13,8 @@ import gc
 import torch
 import warp as wp
 
-__all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Graphed", "Launcher"]
+__all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Graphed", "replay_cached",
+           "Launcher"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -122,6 +123,32 @@ class Graphed:
             torch.cuda.current_stream().wait_stream(self.stream)
             self.graph = graph
         self.graph.replay()
+
+
+def replay_cached(cache: dict, key, inputs: tuple, run, keep=None, limit: int = 4):
+    """``run(*buffers)`` replayed from a CUDA graph kept in ``cache`` under ``key``: on a miss,
+    ``inputs`` (CUDA tensors) are copied into new buffers and ``run`` is warmed up and captured
+    (``Graphed``); each call copies ``inputs`` into the buffers and replays. At most ``limit``
+    graphs stay in ``cache`` (each holds its own memory; the oldest goes first). ``keep``: what
+    the entry holds alive (e.g. an object whose id the key names). Returns the captured run's
+    outputs: the graph's own tensors, which the next replay overwrites (clone what must outlive
+    it)."""
+    entry = cache.get(key)
+    if entry is None:
+        with torch.cuda.device(inputs[0].device):
+            bufs = tuple(x.clone() for x in inputs)
+            out = {}
+            graphed = Graphed(lambda: out.__setitem__("result", run(*bufs)))
+            graphed()                     # warm-up: kernels compiled, one-off tables and indexes made
+        while len(cache) >= limit:
+            cache.pop(next(iter(cache)))
+        entry = cache[key] = (graphed, bufs, out, keep)
+    graphed, bufs, out, _ = entry
+    for b, x in zip(bufs, inputs):
+        b.copy_(x)
+    with torch.cuda.device(bufs[0].device):
+        graphed()
+    return out["result"]
 
 
 _PLACEHOLDERS: dict[tuple, object] = {}

@@ -220,31 +220,12 @@ class RecurrentForwardModel(nn.Module):
         return torch.stack(out, 1)
 
     def _captured_rollout(self, instance, obs, ctrl, warmup: int) -> torch.Tensor:
-        from gnwarp.interop import cuda_graph
-        cache = _ROLLOUT_GRAPHS.setdefault(self, {})
+        from gnwarp.interop import replay_cached
         storage = tuple(t.data_ptr() for t in (*self.parameters(), *self.buffers()) if t is not None)
         key = (tuple(instance.shape), tuple(obs.shape), tuple(ctrl.shape), obs.dtype, ctrl.dtype, instance.dtype,
                obs.device, warmup, self.core.options, self.recurrent, storage)
-        entry = cache.get(key)
-        if entry is None:
-            bufs = (instance.clone(), obs.clone(), ctrl.clone())
-            stream = torch.cuda.Stream(obs.device)
-            stream.wait_stream(torch.cuda.current_stream(obs.device))
-            with torch.cuda.stream(stream):
-                self._rollout(*bufs, warmup)      # kernels compiled, the topology validated
-            torch.cuda.current_stream(obs.device).wait_stream(stream)
-            graph = torch.cuda.CUDAGraph()
-            with cuda_graph(graph, stream):
-                result = self._rollout(*bufs, warmup)
-            torch.cuda.current_stream(obs.device).wait_stream(stream)
-            while len(cache) >= 4:                # bounded: each graph holds its own memory
-                cache.pop(next(iter(cache)))
-            entry = cache[key] = (graph, bufs, result)
-        graph, bufs, result = entry
-        for b, x in zip(bufs, (instance, obs, ctrl)):
-            b.copy_(x)
-        graph.replay()
-        return result.clone()
+        return replay_cached(_ROLLOUT_GRAPHS.setdefault(self, {}), key, (instance, obs, ctrl),
+                             lambda i, o, c: self._rollout(i, o, c, warmup)).clone()
 
 
 # captured recurrent rollouts per model (``RecurrentForwardModel.rollout``), dropped with the model

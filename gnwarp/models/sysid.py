@@ -322,36 +322,15 @@ class SysIDModel(nn.Module):
         return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
 
     def _captured_identify(self, tmpl: GraphTemplate, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
-        from gnwarp.interop import cuda_graph
-        cache = _IDENTIFY_GRAPHS.setdefault(self, {})
+        from gnwarp.interop import replay_cached
         storage = tuple(t.data_ptr() for t in (*self.parameters(), *self.buffers()) if t is not None)
         key = (tmpl.instance.cpu().numpy().tobytes(), tuple(body.shape), tuple(ctrl.shape), body.dtype, ctrl.dtype,
                body.device, id(self.builder), self.options, self.sysid.readout, self.sysid.transitions, storage)
-        entry = cache.get(key)
-        if entry is None:
-            W = body.shape[1]
-            bufs = (body.clone(), ctrl.clone())
+        W = body.shape[1]
 
-            def run():
-                return self.identify_graphs(lambda t: tmpl.graph(bufs[0][:, t], bufs[1][:, t]), W)
-            dev = body.device
-            stream = torch.cuda.Stream(dev)
-            stream.wait_stream(torch.cuda.current_stream(dev))
-            with torch.cuda.stream(stream):
-                run()                               # kernels compiled, the topology's index built
-            torch.cuda.current_stream(dev).wait_stream(stream)
-            graph = torch.cuda.CUDAGraph()
-            with cuda_graph(graph, stream):
-                result = run()
-            torch.cuda.current_stream(dev).wait_stream(stream)
-            while len(cache) >= 4:                  # bounded: each graph holds its own memory
-                cache.pop(next(iter(cache)))
-            # the builder is kept so that its id (in the key) cannot name another one while cached
-            entry = cache[key] = (graph, bufs, result, self.builder)
-        graph, bufs, result, _ = entry
-        bufs[0].copy_(body)
-        bufs[1].copy_(ctrl)
-        graph.replay()
+        def run(b, c):   # the template of the first call with these instances, kept by the graph
+            return self.identify_graphs(lambda t: tmpl.graph(b[:, t], c[:, t]), W)
+        result = replay_cached(_IDENTIFY_GRAPHS.setdefault(self, {}), key, (body, ctrl), run, keep=self.builder)
         return result._replace(**{k: None if getattr(result, k) is None else getattr(result, k).clone() for k in KINDS})
 
     def rollout(self, initial_body, ctrl, g_id: GraphsTuple, instance=None, check: bool = True,
