@@ -163,14 +163,14 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5, "unroll": 3}],
-                         ids=["paper", "mean-transitions-start-unroll"])
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5}],
+                         ids=["paper", "mean-transitions-start"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
     bit for bit in deterministic mode with torch's Adam; also with the options beyond the paper."""
     options = dict(options)
-    start, unroll = options.pop("start_windows", 0.0), options.pop("unroll", 1)
+    start = options.pop("start_windows", 0.0)
     runs = {}
     for capture in (True, False):
         cfg = TrainConfig(out=str(tmp_path / f"cap{capture}"), steps=10, batch_size=16, lr=3e-3, valid_every=5,
@@ -179,7 +179,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
         tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
-                          start_windows=start, unroll=unroll,
+                          start_windows=start,
                           callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
@@ -520,70 +520,3 @@ def test_cuda_captured_identification_matches_eager(pendulum, options):
     assert not torch.allclose(a.globals, before.globals)
     with pytest.raises(ValueError, match="CUDA"):
         m.cpu().bind(pendulum).identify(body[:, :W].cpu(), ctrl[:, :W].cpu(), inst, capture=True)
-
-
-def test_unrolled_loss_steps(pendulum, tmp_path):
-    """``SysIDTrainer(unroll=U)``: U loss steps from t0, all outside the window, each target the
-    true state after it; steps after the first read the model's own prediction (equal to a
-    hand-written rollout of the forward model, float64); it trains; bad values and sequences too
-    short for U are refused by name; U = 1 is the paper's loss."""
-    torch.manual_seed(0)
-    cfg = TrainConfig(out=str(tmp_path / "u"), steps=20, batch_size=8, lr=3e-3, valid_every=20, valid_sequences=2,
-                      log_every=10, checkpoint_every=20, progress=False, device="cpu", normalizer_warmup=2,
-                      model=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")))
-    for bad in (0, 2.5, True):
-        with pytest.raises(ValueError, match="unroll"):
-            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], unroll=bad)
-    with pytest.raises(ValueError, match="unroll=20"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], unroll=20)
-    U = 3
-    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], unroll=U)
-    body = torch.as_tensor(pendulum["train"].body[...])
-    for _ in range(3):
-        (parts,) = tr.sample()
-        p = parts[0]
-        assert len(p.later) == U - 1
-        x = p.graph.nodes.reshape(8, 2, -1)[:, :, -13:].to(body.dtype)
-        w0 = p.window[0].nodes.reshape(8, 2, 13).to(body.dtype)
-        w1 = p.window[1].nodes.reshape(8, 2, 13).to(body.dtype)
-        for k in range(8):
-            hit = [(s, t) for s in range(body.shape[0]) for t in range(body.shape[1] - U)
-                   if torch.equal(body[s, t], x[k]) and torch.equal(body[s, t + 1], p.target.reshape(8, 2, 13)[k].to(body.dtype))]
-            assert hit, k
-            s, t0 = hit[0]
-            start = [u for u in range(body.shape[1] - 1) if torch.equal(body[s, u], w0[k]) and torch.equal(body[s, u + 1], w1[k])]
-            assert start and all(not start[0] <= t0 + u < start[0] + W for u in range(U))
-            for u, (g, tgt) in enumerate(p.later, 1):
-                assert torch.equal(g.nodes.reshape(8, 2, -1)[k, :, -13:].to(body.dtype), body[s, t0 + u])
-                assert torch.equal(tgt.reshape(8, 2, 13)[k].to(body.dtype), body[s, t0 + u + 1])
-    # the loss: the mean of U steps, later ones on the model's own predictions
-    m, fm = tr.model, tr.model.forward_model
-    with torch.no_grad():
-        g_id = m.identify_graphs(p.window, W, fm.stats(torch.float64))
-        got = tr.loss([p], accumulate=False)
-        g = m.with_gid(p.graph, g_id)
-        want = [fm.loss(g, p.target, noise_std=cfg.noise_std, generator=tr.generator)["loss"]]
-        nodes = fm.next_nodes(g)
-        for u, (gu, tgt) in enumerate(p.later, 1):
-            gu = m.with_gid(gu, g_id)
-            gu = gu._replace(nodes=torch.cat([gu.nodes[:, :-13], nodes], -1))
-            want.append(fm.loss(gu, tgt)["loss"])
-            nodes = fm.next_nodes(gu)
-    # step 0's noise draws differ between the two calls: compare without input noise
-    import dataclasses
-    tr.config = dataclasses.replace(cfg, noise_std=0.0)
-    with torch.no_grad():
-        got = tr.loss([p], accumulate=False)
-        want[0] = fm.loss(m.with_gid(p.graph, g_id), p.target)["loss"]
-    torch.testing.assert_close(got["loss"], torch.stack(want).mean(), rtol=1e-10, atol=1e-12)
-    assert not torch.allclose(got["loss"], want[0])       # not the one-step loss alone
-    tr.config = cfg
-    rows = []
-    tr2 = SysIDTrainer(dataclasses.replace(cfg, out=str(tmp_path / "u2"), steps=30),
-                       SysIDConfig(identifier=ID, window=W), datasets=[pendulum], unroll=U,
-                       callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None])
-    summary = tr2.run()
-    losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
-    assert losses[-1] < losses[0]
-    import json
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["unroll"] == U

@@ -145,8 +145,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout)
-    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
-                     unroll=args.unroll).run()
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -455,7 +454,6 @@ def main():
                     help="true-parameter models trained identically; Figure 8's reference is their median")
     ap.add_argument("--readout", default="last", choices=("last", "mean"), help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
-    ap.add_argument("--unroll", type=int, default=1, help="SysIDTrainer.unroll (loss steps from each t0)")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
@@ -499,7 +497,7 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, start_windows=args.start_windows, unroll=args.unroll,
+                         readout=args.readout, start_windows=args.start_windows,
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

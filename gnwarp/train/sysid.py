@@ -42,7 +42,6 @@ class SysIDSample(NamedTuple):
     window: list
     graph: GraphsTuple
     target: torch.Tensor
-    later: tuple = ()   # with ``unroll`` U > 1: (graph, target) of steps t0 + 1 .. t0 + U - 1 (true states)
 
 
 def build_sysid_model(config: TrainConfig, datasets, sysid: SysIDConfig | None = None) -> SysIDModel:
@@ -69,18 +68,10 @@ class SysIDTrainer(Trainer):
     ``start_windows`` (beyond the paper's 0): the fraction of identification windows drawn at
     their sequence's start (s0 = 0) rather than uniformly: identification in use (``gnwarp
     evaluate``, Figure 8, ``control.identify_on_env``) reads an episode's first steps, from the
-    initial-state distribution, which uniform windows reach once in T - W + 1 draws.
-    ``unroll`` (beyond the paper's 1): the loss at t0 and, from the forward model's own
-    predictions, at the U - 1 steps after it (the mean over the U steps; the steps t0 .. t0 + U - 1
-    all outside the window), so that G_ID's errors, which grow along a rollout, weigh in the loss
-    as they do in rollouts."""
+    initial-state distribution, which uniform windows reach once in T - W + 1 draws."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
-                 model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0,
-                 unroll: int = 1):
-        if isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1:
-            raise ValueError(f"unroll must be a positive int (loss steps from each t0), got {unroll!r}")
-        self.unroll = unroll
+                 model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
@@ -103,14 +94,10 @@ class SysIDTrainer(Trainer):
             if T < W + 1:
                 raise ValueError(f"dataset {d.system!r} has sequences of {T} steps; system identification needs "
                                  f"more than the {W}-step window (a window and a different step t0)")
-            if unroll > 1 and T < W + 2 * unroll:
-                raise ValueError(f"dataset {d.system!r} has sequences of {T} steps; unroll={unroll} needs at least "
-                                 f"W + 2 x unroll = {W + 2 * unroll} (U loss steps outside any {W}-step window)")
         super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
         self.info["train"]["targets"] = targets
         self.info["train"]["start_windows"] = self.start_windows
-        self.info["train"]["unroll"] = unroll
 
     def _load_last(self):
         """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
@@ -148,60 +135,33 @@ class SysIDTrainer(Trainer):
             if self.start_windows > 0:
                 at_start = torch.rand(n, generator=gen, device=dev) < self.start_windows
                 s0 = torch.where(at_start, torch.zeros_like(s0), s0)
-            U = self.unroll
-            if U == 1:
-                r = torch.randint(p.T - W, (K * n,), generator=gen, device=dev)
+            r = torch.randint(p.T - W, (K * n,), generator=gen, device=dev)
             inst = p.instance[seq]
             window = [p.builder(inst, p.body[seq, s0 + t], p.ctrl[seq, s0 + t]) for t in range(W)]
             seq_k, inst_k, s0_k = (seq, inst, s0) if K == 1 else (seq.repeat(K), inst.repeat(K), s0.repeat(K))
-            if U == 1:
-                t0 = torch.where(r < s0_k, r, r + W)    # uniform over the steps outside the window
-            else:   # uniform over t0 in [0, s0 - U] or [s0 + W, T - U]: t0 .. t0 + U - 1 outside the window
-                before = (s0_k - U + 1).clamp(min=0)
-                count = before + (p.T - U - s0_k - W + 1).clamp(min=0)
-                r = (torch.rand(K * n, generator=gen, device=dev) * count).long().minimum(count - 1)
-                t0 = torch.where(r < before, r, s0_k + W + r - before)
-
-            def graph_target(t):
-                nxt = p.body[seq_k, t + 1]
-                return (p.builder(inst_k, p.body[seq_k, t], p.ctrl[seq_k, t]),
-                        nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst_k]])
-            graph, target = graph_target(t0)
-            out.append(SysIDSample(window, graph, target, tuple(graph_target(t0 + u) for u in range(1, U))))
+            t0 = torch.where(r < s0_k, r, r + W)    # uniform over the steps outside the window
+            graph = p.builder(inst_k, p.body[seq_k, t0], p.ctrl[seq_k, t0])
+            nxt = p.body[seq_k, t0 + 1]
+            target = nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst_k]]
+            out.append(SysIDSample(window, graph, target))
         return (out,)
 
     def loss(self, parts: list[SysIDSample], accumulate: bool = True) -> dict[str, torch.Tensor]:
         """G_ID of each window, then the forward model's loss at t0 with G_ID as its static graph."""
         m, c = self.model, self.config
         fm = m.forward_model
-        gids = []
+        graphs = []
         for p in parts:
             g_id = m.identify_graphs(p.window, len(p.window), fm.stats(p.graph.nodes.dtype))
             if self.targets > 1:   # the same G_ID for each of the window's K one-step targets
                 K = self.targets
                 g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).repeat(K, 1)
                                         for k in ("nodes", "edges", "globals")})
-            gids.append(g_id)
-
-        def joined(step):   # the batch's input graphs (with G_ID) and targets of loss step ``step``
-            gs = [m.with_gid(p.graph if step == 0 else p.later[step - 1][0], g) for p, g in zip(parts, gids)]
-            ts = [p.target if step == 0 else p.later[step - 1][1] for p in parts]
-            return (gs[0] if len(gs) == 1 else batch(gs)), (ts[0] if len(ts) == 1 else torch.cat(ts, 0))
-        graph, target = joined(0)
-        out = fm.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate, rotation_scale=c.rotation_loss,
-                      generator=self.generator)
-        if self.unroll == 1:
-            return out
-        terms = {k: [v] for k, v in out.items()}
-        nodes = fm.next_nodes(graph)          # the model's own prediction carries the rollout on
-        for u in range(1, self.unroll):
-            g, target = joined(u)
-            g = g._replace(nodes=torch.cat([g.nodes[:, :-DYN_NODE_SIZE], nodes.to(g.nodes.dtype)], -1))
-            for k, v in fm.loss(g, target, rotation_scale=c.rotation_loss).items():
-                terms[k].append(v)
-            if u < self.unroll - 1:
-                nodes = fm.next_nodes(g)
-        return {k: torch.stack(v).mean(0) for k, v in terms.items()}
+            graphs.append(m.with_gid(p.graph, g_id))
+        graph = graphs[0] if len(graphs) == 1 else batch(graphs)
+        target = parts[0].target if len(parts) == 1 else torch.cat([p.target for p in parts], 0)
+        return fm.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate, rotation_scale=c.rotation_loss,
+                       generator=self.generator)
 
     def validate(self) -> float:
         c = self.config
