@@ -287,7 +287,8 @@ class SysIDModel(nn.Module):
         ``capture`` (default: on for a CUDA model while gradients are off): GN_p's loop over the
         window replays one CUDA graph, captured on the first call of each shape, instances and
         dtype and re-captured when the weights' storage moves (weights updated in place are read
-        at each replay); the window is copied in and G_ID copied out."""
+        at each replay); the window is copied in and G_ID copied out. A captured G_ID carries no
+        gradient: differentiate through ``capture=False``."""
         body, ctrl = float_tensor(window_body, "window_body"), float_tensor(window_ctrl, "window_ctrl")
         W = self.window
         if body.ndim != 4 or ctrl.ndim != 3:
