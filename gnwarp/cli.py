@@ -161,14 +161,15 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
-    if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows) and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions, --readout, --targets and --start-windows apply to system "
-                         "identification (--sysid) only")
+    if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows
+            or args.consistency) and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions, --readout, --targets, --start-windows and --consistency apply "
+                         "to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
         r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout), targets=args.targets,
-                         start_windows=args.start_windows).run()
+                         start_windows=args.start_windows, consistency=args.consistency).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -420,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")
+    t.add_argument("--consistency", type=float, default=0.0, metavar="C",
+                   help="with --sysid: weight of a window-consistency term (pairs of windows of one sequence should "
+                        "identify alike; default 0, the paper's; beyond the paper, SysIDTrainer.consistency)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

@@ -1,6 +1,7 @@
 """System identification (Algorithms D.2, D.4): end-to-end training lowers the loss, a saved G_ID
 reproduces rollouts, bad identification windows are refused by name, and gradients through the
 window match finite differences."""
+import math
 from pathlib import Path
 
 import numpy as np
@@ -152,25 +153,27 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--transitions", "-o", str(tmp_path / "run-t"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-t" / "best").config.transitions is True
-    assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5", "-o",
-                 str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+    assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5",
+                 "--consistency", "0.3", "-o", str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
     import json
-    assert json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]["start_windows"] == 0.5
-    for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"]):
+    saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
+    assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
+    for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"]):
         with pytest.raises(SystemExit, match="--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5}],
-                         ids=["paper", "mean-transitions-start"])
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
+                                          "consistency": 0.5}], ids=["paper", "mean-transitions-start-consistency"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
     bit for bit in deterministic mode with torch's Adam; also with the options beyond the paper."""
     options = dict(options)
     start = options.pop("start_windows", 0.0)
+    consistency = options.pop("consistency", 0.0)
     runs = {}
     for capture in (True, False):
         cfg = TrainConfig(out=str(tmp_path / f"cap{capture}"), steps=10, batch_size=16, lr=3e-3, valid_every=5,
@@ -179,7 +182,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
         tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
-                          start_windows=start,
+                          start_windows=start, consistency=consistency,
                           callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
@@ -188,9 +191,10 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
     for p, q in zip(a.model.parameters(), b.model.parameters()):
         assert torch.equal(p, q)
     for x, y in zip(ra, rb):
-        for k in ("loss", "valid_error"):
+        for k in ("loss", "valid_error", "window_spread"):
             if x.get(k) not in (None, ""):
                 assert float(x[k]) == pytest.approx(float(y[k]), rel=1e-4), (k, x, y)
+    assert ("window_spread" in ra[0]) == (consistency > 0)
 
 
 def test_planning_through_an_identified_system(trained, pendulum):
@@ -520,3 +524,80 @@ def test_cuda_captured_identification_matches_eager(pendulum, options):
     assert not torch.allclose(a.globals, before.globals)
     with pytest.raises(ValueError, match="CUDA"):
         m.cpu().bind(pendulum).identify(body[:, :W].cpu(), ctrl[:, :W].cpu(), inst, capture=True)
+
+
+def test_window_spread_against_a_hand_computation():
+    """``window_spread``: within-pair variance over total variance, summed over G_ID's columns;
+    0 for agreeing pairs, about 1 for independent ones; halves of one G_ID or two G_IDs alike."""
+    from gnwarp.graphs import GraphsTuple
+    from gnwarp.train.sysid import window_spread
+    g = torch.Generator().manual_seed(0)
+    a = GraphsTuple(nodes=torch.randn(12, 3, generator=g), edges=torch.randn(8, 3, generator=g),
+                    globals=torch.randn(4, 2, generator=g), senders=None, receivers=None, n_node=None, n_edge=None)
+    b = GraphsTuple(nodes=torch.randn(12, 3, generator=g), edges=torch.randn(8, 3, generator=g),
+                    globals=torch.randn(4, 2, generator=g), senders=None, receivers=None, n_node=None, n_edge=None)
+    within = total = 0.0
+    for x, y in ((a.nodes, b.nodes), (a.edges, b.edges), (a.globals, b.globals)):
+        z = np.concatenate([x.numpy(), y.numpy()]).astype(np.float64)
+        within += ((x.numpy() - y.numpy()) ** 2).mean(0).sum() / 2
+        total += z.var(0).sum()
+    assert float(window_spread(a, b)) == pytest.approx(within / total, rel=1e-5)
+    both = a._replace(nodes=torch.cat([a.nodes, b.nodes]), edges=torch.cat([a.edges, b.edges]),
+                      globals=torch.cat([a.globals, b.globals]))
+    assert float(window_spread(both)) == pytest.approx(within / total, rel=1e-5)
+    assert float(window_spread(a, a)) == 0.0
+    big = GraphsTuple(nodes=torch.randn(4000, 3, generator=g), edges=None, globals=None, senders=None,
+                      receivers=None, n_node=None, n_edge=None)
+    assert 0.9 < float(window_spread(big)) < 1.1           # independent halves
+    with pytest.raises(ValueError, match="nodes"):
+        window_spread(a, a._replace(nodes=a.nodes[:6]))
+
+
+def test_window_consistency_term(pendulum, tmp_path):
+    """``SysIDTrainer(consistency=c)``: a batch's second half re-draws its first half's
+    sequences with new windows; the loss adds c times ``window_spread`` of the batch's G_ID
+    (recomputed here from the sampled windows), whose gradient reaches GN_p only; bad weights
+    and odd shares are refused by name; the weight is recorded in the run's config."""
+    from gnwarp.train.sysid import window_spread
+    cfg = TrainConfig(out=str(tmp_path / "c"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=10,
+                      batch_size=16, lr=3e-3, valid_every=10, valid_sequences=2, log_every=5, checkpoint_every=10,
+                      progress=False, device="cpu", normalizer_warmup=2)
+    for bad in (-0.5, math.nan, True, "1"):
+        with pytest.raises(ValueError, match="consistency"):
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=bad)
+    cfg.batch_size = 15
+    with pytest.raises(ValueError, match="even"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=1.0)
+    cfg.batch_size = 16
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=0.7)
+    body = torch.as_tensor(pendulum["train"].body[...])
+    (parts,) = tr.sample()
+    p = parts[0]
+    w0, w1 = (p.window[t].nodes.reshape(-1, 2, 13).to(body.dtype) for t in (0, 1))
+
+    def sequence(k):   # the sequence a window comes from (each holds one system instance)
+        hits = {s for s in range(body.shape[0]) for t in range(body.shape[1] - 1)
+                if torch.equal(body[s, t], w0[k]) and torch.equal(body[s, t + 1], w1[k])}
+        assert len(hits) == 1, k
+        return hits.pop()
+    seqs = [sequence(k) for k in range(16)]
+    assert seqs[:8] == seqs[8:]
+    terms = tr.loss(parts, accumulate=False)
+    fm = tr.model.forward_model
+    g_id = tr.model.identify_graphs(p.window, W, fm.stats(p.graph.nodes.dtype))
+    val = {k: float(v.detach()) for k, v in terms.items()}
+    assert val["window_spread"] == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
+    plain = sum(val[k] for k in ("pos", "linvel", "angvel", "quat"))
+    assert val["loss"] == pytest.approx(plain + 0.7 * val["window_spread"], rel=1e-5)
+    tr.model.zero_grad()
+    terms["window_spread"].backward()
+    grads = {n: p.grad for n, p in tr.model.named_parameters()}
+    assert any(g is not None and g.abs().sum() > 0 for n, g in grads.items() if n.startswith("identifier."))
+    assert all(g is None or g.abs().sum() == 0 for n, g in grads.items() if n.startswith("forward_model."))
+    summary = tr.run()
+    import json
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["consistency"] == 0.7
+    import csv
+    with open(Path(summary["out"]) / "log.csv", newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["loss"]]
+    assert rows and all(0.0 <= float(r["window_spread"]) < 2.0 for r in rows)

@@ -99,7 +99,7 @@ def fixed_layout(system: str):
 def model_config(args, ds):
     from gnwarp.models import ModelConfig
     from gnwarp.models.config import DEFAULT_RUN
-    run = DEFAULT_RUN.replace(impl=args.impl)
+    run = DEFAULT_RUN.replace(impl=args.impl, **({"precision": args.precision} if args.precision else {}))
     return ModelConfig(gn=gn_sizes(args.latent, args.edge_width, args.node_width), run=run,
                        recenter=bool(ds.meta.get("translation_invariant", False)))
 
@@ -145,7 +145,8 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout)
-    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows).run()
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
+                     consistency=args.consistency).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -204,6 +205,20 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
     return [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
              "test_sequences": n, "from_step_0": from_0.get(k),
              **({"runs": runs} if k == "true params" else {})} for k, v in errs.items()]
+
+
+@torch.no_grad()
+def spread_rows(args, system: str, ds, model) -> list[dict]:
+    """How much G_ID depends on the window rather than the sequence (``window_spread``): G_ID of
+    each test sequence from its first and from its last ``W`` steps."""
+    from gnwarp.train.sysid import window_spread
+    body, ctrl, inst = split_arrays(ds, "test", args.test)
+    W, T = model.window, ctrl.shape[1]
+    model.bind(ds)
+    g = [model.identify(torch.as_tensor(body[:, a:a + W]), torch.as_tensor(ctrl[:, a:a + W]), torch.as_tensor(inst))
+         for a in (0, T - W)]
+    return [{"part": "spread", "system": system, "window_spread": float(window_spread(*g)), "windows": [0, T - W],
+             "test_sequences": int(body.shape[0])}]
 
 
 # -- probe ----------------------------------------------------------------------------------------
@@ -388,6 +403,13 @@ def write_summary(out: Path, rows: list[dict], args) -> None:
                   "|---|---|---|---|"]
         for r in pr:
             lines.append(f"| {r['system']} | {r['param']} | {r['r2']:.3f} | {r['train']} / {r['test']} |")
+    sp = [r for r in rows if r["part"] == "spread"]
+    if sp:
+        lines += ["", "## G_ID across windows", "",
+                  "`window_spread`: the share of G_ID's variance over test sequences that lies between a sequence's "
+                  "first and last window (0: G_ID depends only on the sequence's system).", "",
+                  "| system | window_spread |", "|---|---|"]
+        lines += [f"| {r['system']} | {r['window_spread']:.3f} |" for r in sp]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -454,6 +476,10 @@ def main():
                     help="true-parameter models trained identically; Figure 8's reference is their median")
     ap.add_argument("--readout", default="last", choices=("last", "mean"), help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
+    ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
+    ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),
+                    help="the models' GEMM precision on CUDA (default: the library's, tf32)")
+    ap.add_argument("--label", default=None, help="a `run` label on every row written")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
@@ -493,11 +519,13 @@ def main():
                 key = "sysid" if r["model"].startswith("sysid") else r["model"]
                 r.update(steps=info[key]["steps"], train_seconds=round(info[key]["seconds"], 1))
             rows += probe_rows(args, system, ds, models["sysid"])
+            rows += spread_rows(args, system, ds, models["sysid"])
             if system == "pendulum":
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, start_windows=args.start_windows,
+                         readout=args.readout, start_windows=args.start_windows, consistency=args.consistency,
+                         precision=args.precision or "tf32", **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

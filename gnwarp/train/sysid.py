@@ -33,7 +33,7 @@ from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weight
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
-__all__ = ["SysIDTrainer", "SysIDSample", "build_sysid_model", "load_sysid", "sysid_rollout_error"]
+__all__ = ["SysIDTrainer", "SysIDSample", "build_sysid_model", "load_sysid", "sysid_rollout_error", "window_spread"]
 
 
 class SysIDSample(NamedTuple):
@@ -68,10 +68,19 @@ class SysIDTrainer(Trainer):
     ``start_windows`` (beyond the paper's 0): the fraction of identification windows drawn at
     their sequence's start (s0 = 0) rather than uniformly: identification in use (``gnwarp
     evaluate``, Figure 8, ``control.identify_on_env``) reads an episode's first steps, from the
-    initial-state distribution, which uniform windows reach once in T - W + 1 draws."""
+    initial-state distribution, which uniform windows reach once in T - W + 1 draws.
+    ``consistency`` (beyond the paper's 0): the weight of a window-consistency term. Each
+    batch's sequences come in pairs, two independent windows (and one-step targets) of one
+    sequence, and the loss adds ``consistency`` times the share of G_ID's variance over the
+    batch that lies between the two windows of a pair (``window_spread``: 0 when G_ID depends
+    only on the sequence's system, ~1 when a pair's windows differ as much as any two). Its aim:
+    G_ID that varies from window to window acts on the forward model as noise on its static
+    inputs, which training answers by weakening the parameters' effect. No parameter labels are
+    read; scale-free, so shrinking G_ID does not lower it."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
-                 model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0):
+                 model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0,
+                 consistency: float = 0.0):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
@@ -79,8 +88,13 @@ class SysIDTrainer(Trainer):
                 or not 0.0 <= float(start_windows) <= 1.0:
             raise ValueError(f"start_windows must be a number from 0 to 1 (the fraction of identification windows "
                              f"at a sequence's start), got {start_windows!r}")
+        if isinstance(consistency, bool) or not isinstance(consistency, (int, float)) \
+                or not math.isfinite(consistency) or consistency < 0:
+            raise ValueError(f"consistency must be a finite number >= 0 (the weight of the window-consistency "
+                             f"term), got {consistency!r}")
         self.targets = targets
         self.start_windows = float(start_windows)
+        self.consistency = float(consistency)
         if datasets is None:
             if not config.data:
                 raise ValueError("no training data: set `data` to one or more dataset files")
@@ -94,10 +108,20 @@ class SysIDTrainer(Trainer):
             if T < W + 1:
                 raise ValueError(f"dataset {d.system!r} has sequences of {T} steps; system identification needs "
                                  f"more than the {W}-step window (a window and a different step t0)")
+        if self.consistency > 0:
+            shares = _shares(config.batch_size, len(datasets))
+            if any(n % 2 for n in shares):
+                raise ValueError(f"consistency pairs each batch's sequences: batch_size {config.batch_size} gives "
+                                 f"{len(datasets)} dataset(s) the shares {shares}; each must be even")
         super().__init__(config, datasets, model, callbacks)
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
         self.info["train"]["targets"] = targets
         self.info["train"]["start_windows"] = self.start_windows
+        self.info["train"]["consistency"] = self.consistency
+
+    @property
+    def log_fields(self) -> tuple[str, ...]:
+        return (*super().log_fields, "window_spread") if self.consistency > 0 else super().log_fields
 
     def _load_last(self):
         """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
@@ -120,17 +144,20 @@ class SysIDTrainer(Trainer):
         """Per dataset, its share of ``batch_size`` sequences: a random window [s0, s0 + W) and a
         random step t0 outside it (Algorithm D.4); with ``targets`` K > 1, K steps t0 outside the
         window, drawn independently (the graphs and targets of the K draws one after another); a
-        ``start_windows`` fraction of the windows at s0 = 0. On the device, no host sync."""
-        W, n_all, K = self.model.window, self.config.batch_size, self.targets
+        ``start_windows`` fraction of the windows at s0 = 0; with ``consistency``, the second half
+        of each share the first half's sequences again (in order: a pair's graphs lie half a
+        batch apart). On the device, no host sync."""
+        W, K = self.model.window, self.targets
         parts = self.sampler.parts
-        k = len(parts)
         out = []
-        for i, p in enumerate(parts):
-            n = n_all // k + (1 if i < n_all % k else 0)
+        for p, n in zip(parts, _shares(self.config.batch_size, len(parts))):
             if n == 0:
                 continue
             dev, gen = p.body.device, self.generator
-            seq = torch.randint(p.S, (n,), generator=gen, device=dev)
+            if self.consistency > 0:
+                seq = torch.randint(p.S, (n // 2,), generator=gen, device=dev).repeat(2)
+            else:
+                seq = torch.randint(p.S, (n,), generator=gen, device=dev)
             s0 = torch.randint(p.T - W + 1, (n,), generator=gen, device=dev)
             if self.start_windows > 0:
                 at_start = torch.rand(n, generator=gen, device=dev) < self.start_windows
@@ -150,9 +177,11 @@ class SysIDTrainer(Trainer):
         """G_ID of each window, then the forward model's loss at t0 with G_ID as its static graph."""
         m, c = self.model, self.config
         fm = m.forward_model
-        graphs = []
+        graphs, spread = [], []
         for p in parts:
             g_id = m.identify_graphs(p.window, len(p.window), fm.stats(p.graph.nodes.dtype))
+            if self.consistency > 0:
+                spread.append(window_spread(g_id))
             if self.targets > 1:   # the same G_ID for each of the window's K one-step targets
                 K = self.targets
                 g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).repeat(K, 1)
@@ -160,8 +189,12 @@ class SysIDTrainer(Trainer):
             graphs.append(m.with_gid(p.graph, g_id))
         graph = graphs[0] if len(graphs) == 1 else batch(graphs)
         target = parts[0].target if len(parts) == 1 else torch.cat([p.target for p in parts], 0)
-        return fm.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate, rotation_scale=c.rotation_loss,
-                       generator=self.generator)
+        terms = fm.loss(graph, target, noise_std=c.noise_std, accumulate=accumulate, rotation_scale=c.rotation_loss,
+                        generator=self.generator)
+        if spread:
+            terms["window_spread"] = torch.stack(spread).mean()
+            terms["loss"] = terms["loss"] + self.consistency * terms["window_spread"]
+        return terms
 
     def validate(self) -> float:
         c = self.config
@@ -169,6 +202,35 @@ class SysIDTrainer(Trainer):
         errs = [sysid_rollout_error(self.model, d, "valid", c.valid_horizon, c.valid_sequences) for d in self.valid]
         self.model.train()
         return float(np.mean(errs)) if errs else math.nan
+
+
+def _shares(batch_size: int, k: int) -> list[int]:
+    """Each of k datasets' number of sequences in a batch (the first ones take the remainder)."""
+    return [batch_size // k + (1 if i < batch_size % k else 0) for i in range(k)]
+
+
+def window_spread(g_id: GraphsTuple, other: GraphsTuple | None = None) -> torch.Tensor:
+    """The share of G_ID's variance that lies within pairs of windows of one sequence.
+
+    ``g_id``: G_ID of a batch whose second half repeats its first half's sequences in order (so
+    element j of the first half's nodes, edges and globals pairs with element j of the second
+    half); or, with ``other``, G_ID of the same sequences from other windows (``g_id``'s element
+    j pairs with ``other``'s). Within-pair variance E[(a - b)^2] / 2 over the total variance,
+    summed over every G_ID column: a scalar in [0, ~2], 0 when each pair's G_IDs agree."""
+    within, total = 0.0, 0.0
+    for k in ("nodes", "edges", "globals"):
+        x = getattr(g_id, k)
+        if x is None or x.numel() == 0:
+            continue
+        if other is not None:
+            y = getattr(other, k)
+            if y is None or y.shape != x.shape:
+                raise ValueError(f"window_spread: the two G_IDs' {k} differ in shape")
+            x = torch.cat([x, y])
+        h = x.shape[0] // 2
+        within = within + (x[:h] - x[h:2 * h]).square().mean(0).sum() / 2
+        total = total + x.var(0, unbiased=False).sum()
+    return within / (total + 1e-12)
 
 
 @torch.no_grad()

@@ -262,6 +262,11 @@ class Trainer:
             for name, path in self._writer.done(wait):
                 self.emit("checkpoint", name=name, path=path)
 
+    @property
+    def log_fields(self) -> tuple[str, ...]:
+        """The columns of log.csv: ``LOG_FIELDS`` (a subclass with more loss terms adds them)."""
+        return LOG_FIELDS
+
     def warmup(self) -> None:
         """Normalizer statistics from a few batches before the first gradient step, so the first
         steps do not train against identity transforms."""
@@ -399,8 +404,9 @@ class Trainer:
         bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.model.config.core}", unit="step",
                    disable=not c.progress, dynamic_ncols=True, smoothing=0.05)
         self.model.train()
+        fields = self.log_fields if new_log else _log_header(log_path)   # a resumed log keeps its columns
         with open(log_path, "w" if new_log else "a", newline="") as log_file:
-            writer = csv.DictWriter(log_file, LOG_FIELDS)
+            writer = csv.DictWriter(log_file, fields, extrasaction="ignore")
             if new_log:
                 writer.writeheader()
 
@@ -428,6 +434,12 @@ class Trainer:
                    "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9)}
         self.emit("end", summary=summary)
         return summary
+
+
+def _log_header(path: Path) -> list[str]:
+    """The columns of an existing log.csv (``LOG_FIELDS`` when it has no header)."""
+    with open(path, newline="") as f:
+        return csv.DictReader(f).fieldnames or list(LOG_FIELDS)
 
 
 def _logged_steps(path: Path) -> list[int]:
