@@ -111,7 +111,12 @@ def train_config(args, out, ds):
                        valid_every=args.valid_every, valid_sequences=min(args.valid, len(ds["valid"])),
                        patience=None, checkpoint_every=max(1, args.steps), resume=False, progress=False,
                        device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup,
-                       capture=not args.no_capture)
+                       capture=not args.no_capture, **({} if args.noise is None else {"noise_std": args.noise}))
+
+
+def cfg_noise(args) -> float:
+    from gnwarp.train import TrainConfig
+    return TrainConfig().noise_std if args.noise is None else float(args.noise)
 
 
 def identifier_config(args):
@@ -474,11 +479,13 @@ def main():
                     help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
     ap.add_argument("--reference-runs", type=int, default=1,
                     help="true-parameter models trained identically; Figure 8's reference is their median")
-    ap.add_argument("--readout", default="last", choices=("last", "mean"), help="SysIDConfig.readout")
+    ap.add_argument("--readout", default="last", choices=("last", "mean", "pool"), help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
     ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),
                     help="the models' GEMM precision on CUDA (default: the library's, tf32)")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="TrainConfig.noise_std of every model (default: the library's, 0.003)")
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
@@ -525,7 +532,7 @@ def main():
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
                          readout=args.readout, start_windows=args.start_windows, consistency=args.consistency,
-                         precision=args.precision or "tf32", **({"run": args.label} if args.label else {}),
+                         precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows
