@@ -166,8 +166,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
-                                          "consistency": 0.5}, {"readout": "pool"}],
-                         ids=["paper", "mean-transitions-start-consistency", "pool"])
+                                          "consistency": 0.5}], ids=["paper", "mean-transitions-start-consistency"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -404,15 +403,14 @@ def test_several_targets_per_identification_window(pendulum, tmp_path):
     assert losses[-1] < losses[0]
 
 
-@pytest.mark.parametrize("readout", ["mean", "pool"])
-def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path, readout):
-    """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window;
-    "pool": that mean through the decoder MLPs (each equal to running the identifier by hand, in
-    float64); gradients through it match finite differences; it trains and the option travels in
-    the checkpoint, which a run of the other readout refuses to resume."""
+def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path):
+    """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window
+    (equal to running the identifier by hand, in float64); gradients through it match finite
+    differences; it trains and the option travels in the checkpoint, which a run of the other
+    readout refuses to resume."""
     torch.manual_seed(0)
     cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
-                      window=4, readout=readout, pool_hidden=(12,))
+                      window=4, readout="mean")
     m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
     sp = pendulum["train"]
     body, ctrl = torch.as_tensor(sp.body[:5, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:5, :8], dtype=torch.float64)
@@ -427,12 +425,10 @@ def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path, readout)
     for g in graphs:
         out, h = m.identifier.step(g._replace(nodes=(g.nodes - mn[-13:]) / sn[-13:], edges=(g.edges - me[-K:]) / se[-K:]), h)
         outs.append(out)
-    assert (m.decoder is None) == (readout == "mean")
     for k in ("nodes", "edges", "globals"):
-        mean = torch.stack([getattr(o, k) for o in outs]).mean(0)
-        want = mean if readout == "mean" else m.decoder[k](mean)
+        want = torch.stack([getattr(o, k) for o in outs]).mean(0)
         torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-12, atol=1e-12)
-        assert not torch.allclose(mean, getattr(outs[-1], k))   # not the last step's output
+        assert not torch.allclose(want, getattr(outs[-1], k))   # not the last step's output
     moving = body[:2, :4, 1].clone().requires_grad_()
 
     def f(mv):
@@ -445,13 +441,11 @@ def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path, readout)
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)
     rows = []
-    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, pool_hidden=(12,)),
-                           datasets=[pendulum],
+    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout="mean"), datasets=[pendulum],
                            callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
-    loaded = load_sysid(summary["last"])
-    assert (loaded.config.readout, loaded.config.pool_hidden) == (readout, (12,))
+    assert load_sysid(summary["last"]).config.readout == "mean"
     tcfg.steps = 40
     with pytest.raises(Exception, match="readout"):
         SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
@@ -498,8 +492,7 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}, {"readout": "pool"}],
-                         ids=["paper", "mean-transitions", "pool"])
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}], ids=["paper", "mean-transitions"])
 def test_cuda_captured_identification_matches_eager(pendulum, options):
     """``identify`` on CUDA without gradients replays a captured graph: G_ID equals the eager
     identification's, for new windows of the same shape, and after an in-place weight change."""

@@ -64,17 +64,12 @@ class SysIDConfig:
     ``readout`` (beyond the paper): "last" (the paper's) takes G_ID as GN_p's output graph at
     the window's last step; "mean" averages its output graphs over every step, so that each
     step's evidence about the parameters counts alike (an estimate pooled over the window, as a
-    least-squares fit pools its equations) instead of passing through 19 GRU updates; "pool"
-    passes that mean through a small MLP per node, edge and global (hidden ``pool_hidden``), as
-    a least-squares fit divides its pooled moments: a mean of per-step outputs can carry a
-    window's sums (of products of accelerations, angles and controls), but a parameter is a ratio
-    of such sums, which the mean alone cannot form."""
+    least-squares fit pools its equations) instead of passing through 19 GRU updates."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
     transitions: bool = False
-    readout: Literal["last", "mean", "pool"] = "last"
-    pool_hidden: tuple[PositiveInt, ...] = (128, 128)
+    readout: Literal["last", "mean"] = "last"
 
     def __post_init__(self):
         check_fields(self)
@@ -85,20 +80,11 @@ class SysIDConfig:
 
     def to_dict(self) -> dict:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
-                "transitions": self.transitions, "readout": self.readout, "pool_hidden": list(self.pool_hidden)}
+                "transitions": self.transitions, "readout": self.readout}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
         return cls(**check_keys(cls, d, "sysid config keys"))
-
-
-def _mlp(n_in: int, hidden, n_out: int) -> nn.Sequential:
-    """Linear layers with ReLU between them (the last one linear)."""
-    sizes = [n_in, *hidden, n_out]
-    layers = []
-    for a, b in zip(sizes[:-1], sizes[1:]):
-        layers += [nn.Linear(a, b), nn.ReLU()]
-    return nn.Sequential(*layers[:-1])
 
 
 class LatentColumnsNormalizer(Normalizer):
@@ -165,11 +151,6 @@ class SysIDModel(nn.Module):
             fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
         sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
-        # readout "pool": G_ID = MLP(mean over the window of GN_p's outputs), per node, edge and global
-        self.decoder = nn.ModuleDict({k: _mlp(w, config.pool_hidden, w) for k, w in self.gid_sizes.items() if w > 0}) \
-            if config.readout == "pool" else None
-        if self.decoder is not None:
-            self.decoder.to(config.forward.run.param_dtype)
         self.builder = None
         # the bound source's actuator ranges (``bind``): a builder of just those static columns
         self._range_layout = FeatureLayout([], [], list(RANGE_COLUMNS), n_ctrl_slots=K)
@@ -205,8 +186,6 @@ class SysIDModel(nn.Module):
         self.forward_model.set_options(options, **changes)
         self.identifier.set_options(self.options)
         self.identifier.to(self.options.param_dtype)
-        if self.decoder is not None:
-            self.decoder.to(self.options.param_dtype)
         return self
 
     def graph_builder(self, source, strict: bool = True):
@@ -282,15 +261,12 @@ class SysIDModel(nn.Module):
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
         n = steps - 1 if transitions else steps
-        mean = self.sysid.readout in ("mean", "pool")
+        mean = self.sysid.readout == "mean"
         outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=not mean)
         if not mean:
             return outs[-1]
-        g = outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
-                                 torch.stack([getattr(o, k) for o in outs]).mean(0) for k in KINDS})
-        if self.decoder is None:
-            return g
-        return g._replace(**{k: self.decoder[k](getattr(g, k)) for k in self.decoder if getattr(g, k) is not None})
+        return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
+                                    torch.stack([getattr(o, k) for o in outs]).mean(0) for k in KINDS})
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
         if self.builder is None:

@@ -136,7 +136,6 @@ class SysIDTrainer(Trainer):
         before = {k: saved.get(k) for k in ("identifier", "window")}
         before["transitions"] = saved.get("transitions", False)   # checkpoints from before the options
         before["readout"] = saved.get("readout", "last")
-        before["pool_hidden"] = saved.get("pool_hidden", list(SysIDConfig().pool_hidden))
         changes += [f"model.{k}: {v!r} -> {want[k]!r}" for k, v in before.items() if v != want[k]]
         return changes
 
