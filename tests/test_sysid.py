@@ -166,7 +166,8 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
-                                          "consistency": 0.5}], ids=["paper", "mean-transitions-start-consistency"])
+                                          "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2}],
+                         ids=["paper", "mean-transitions-start-consistency", "ridge"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -403,14 +404,17 @@ def test_several_targets_per_identification_window(pendulum, tmp_path):
     assert losses[-1] < losses[0]
 
 
-def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path):
-    """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window
-    (equal to running the identifier by hand, in float64); gradients through it match finite
-    differences; it trains and the option travels in the checkpoint, which a run of the other
-    readout refuses to resume."""
+@pytest.mark.parametrize("readout", ["mean", "ridge"])
+def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout):
+    """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window;
+    "ridge": per node, edge and global, the ridge solution of the outputs' last columns on their
+    first ``ridge_features`` over the window (each equal to running the identifier by hand and
+    solving the normal equations with ``torch.linalg.solve``, in float64); gradients through it
+    match finite differences; it trains and the option travels in the checkpoint, which a run of
+    the other readout refuses to resume."""
     torch.manual_seed(0)
     cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
-                      window=4, readout="mean")
+                      window=4, readout=readout, ridge_features=2, ridge=0.01)
     m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
     sp = pendulum["train"]
     body, ctrl = torch.as_tensor(sp.body[:5, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:5, :8], dtype=torch.float64)
@@ -426,9 +430,18 @@ def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path):
         out, h = m.identifier.step(g._replace(nodes=(g.nodes - mn[-13:]) / sn[-13:], edges=(g.edges - me[-K:]) / se[-K:]), h)
         outs.append(out)
     for k in ("nodes", "edges", "globals"):
-        want = torch.stack([getattr(o, k) for o in outs]).mean(0)
-        torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-12, atol=1e-12)
-        assert not torch.allclose(want, getattr(outs[-1], k))   # not the last step's output
+        x = torch.stack([getattr(o, k) for o in outs])
+        if readout == "mean":
+            want = x.mean(0)
+        else:   # the normal equations, solved directly
+            phi, psi = x[..., :2], x[..., 2:]
+            S = (phi[..., :, None] * phi[..., None, :]).mean(0)
+            R = (phi[..., :, None] * psi[..., None, :]).mean(0)
+            lam = 0.01 * S.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] + 1e-6
+            want = torch.linalg.solve(S + lam * torch.eye(2, dtype=x.dtype), R).reshape(x.shape[1], -1)
+            assert want.shape[1] == 2 * (ID.out(k) - 2) == m.gid_sizes[k]
+        torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-10, atol=1e-10)
+        assert not torch.allclose(x.mean(0), getattr(outs[-1], k))   # not the last step's output
     moving = body[:2, :4, 1].clone().requires_grad_()
 
     def f(mv):
@@ -437,15 +450,21 @@ def test_mean_readout_pools_the_identifiers_outputs(pendulum, tmp_path):
     assert torch.autograd.gradcheck(f, (moving,), eps=1e-6, atol=1e-5, rtol=1e-4)
     with pytest.raises(Exception, match="readout"):
         SysIDConfig(readout="max")
+    with pytest.raises(ValueError, match="out_"):     # no target columns left
+        SysIDConfig(identifier=ID, readout="ridge", ridge_features=3)
+    with pytest.raises(ValueError, match="ridge"):
+        SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge=0.0)
     tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)
     rows = []
-    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout="mean"), datasets=[pendulum],
+    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2),
+                           datasets=[pendulum],
                            callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
-    assert load_sysid(summary["last"]).config.readout == "mean"
+    loaded = load_sysid(summary["last"])
+    assert loaded.config.readout == readout and (readout != "ridge" or loaded.config.ridge_features == 2)
     tcfg.steps = 40
     with pytest.raises(Exception, match="readout"):
         SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
@@ -492,7 +511,8 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}], ids=["paper", "mean-transitions"])
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}, {"readout": "ridge", "ridge_features": 2}],
+                         ids=["paper", "mean-transitions", "ridge"])
 def test_cuda_captured_identification_matches_eager(pendulum, options):
     """``identify`` on CUDA without gradients replays a captured graph: G_ID equals the eager
     identification's, for new windows of the same shape, and after an in-place weight change."""

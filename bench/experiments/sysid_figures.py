@@ -479,7 +479,7 @@ def main():
                     help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
     ap.add_argument("--reference-runs", type=int, default=1,
                     help="true-parameter models trained identically; Figure 8's reference is their median")
-    ap.add_argument("--readout", default="last", choices=("last", "mean"), help="SysIDConfig.readout")
+    ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge"), help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
     ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),

@@ -64,15 +64,35 @@ class SysIDConfig:
     ``readout`` (beyond the paper): "last" (the paper's) takes G_ID as GN_p's output graph at
     the window's last step; "mean" averages its output graphs over every step, so that each
     step's evidence about the parameters counts alike (an estimate pooled over the window, as a
-    least-squares fit pools its equations) instead of passing through 19 GRU updates."""
+    least-squares fit pools its equations) instead of passing through 19 GRU updates; "ridge"
+    reads each step's output of a node (edge, global) as regressors phi [F] (its first
+    ``ridge_features`` columns) and targets psi (the rest, P of them), and G_ID is the ridge
+    solution B [F, P] of psi ~ B^T phi over the window, flattened (F * P wide): a least-squares fit
+    whose features GN_p learns, the way a classical estimator identifies a system from a window.
+    ``ridge``: the ridge weight, relative to the mean diagonal of the features' second moments."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
     transitions: bool = False
-    readout: Literal["last", "mean"] = "last"
+    readout: Literal["last", "mean", "ridge"] = "last"
+    ridge_features: PositiveInt = 4
+    ridge: float = 1e-3
 
     def __post_init__(self):
         check_fields(self)
+        if self.readout == "ridge":
+            if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
+                raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
+            small = [k for k in KINDS if 0 < self.identifier.out(k) <= self.ridge_features]
+            if small:
+                raise ValueError(f"readout 'ridge' splits GN_p's outputs into {self.ridge_features} features and "
+                                 f"the targets; identifier.out_{small[0]} = {self.identifier.out(small[0])} "
+                                 f"leaves no target")
+
+    def gid_size(self, kind: str) -> int:
+        """G_ID's width per node, edge or global."""
+        w = self.identifier.out(kind)
+        return (w - self.ridge_features) * self.ridge_features if self.readout == "ridge" and w > 0 else w
 
     @property
     def core(self) -> str:
@@ -80,11 +100,28 @@ class SysIDConfig:
 
     def to_dict(self) -> dict:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
-                "transitions": self.transitions, "readout": self.readout}
+                "transitions": self.transitions, "readout": self.readout,
+                **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
         return cls(**check_keys(cls, d, "sysid config keys"))
+
+
+def _ridge_solution(x: torch.Tensor, features: int, ridge: float) -> torch.Tensor:
+    """Per row of ``x`` [T, n, F + P] (T steps): the ridge solution B [F, P] of
+    x[..., F:] ~ B^T x[..., :F] over the T steps, flattened to [n, F * P]. A Cholesky solve
+    without error checks (no host synchronization, so it can be captured)."""
+    phi, psi = x[..., :features], x[..., features:]
+    T = x.shape[0]
+    S = torch.einsum("tnf,tng->nfg", phi, phi) / T
+    R = torch.einsum("tnf,tnp->nfp", phi, psi) / T
+    eye = torch.eye(features, dtype=x.dtype, device=x.device)
+    lam = ridge * S.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] + 1e-6
+    L, _ = torch.linalg.cholesky_ex(S + lam * eye)
+    y = torch.linalg.solve_triangular(L, R, upper=False)
+    B = torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True)
+    return B.reshape(B.shape[0], -1)
 
 
 class LatentColumnsNormalizer(Normalizer):
@@ -139,7 +176,7 @@ class SysIDModel(nn.Module):
             raise ValueError("system identification needs every actuator on a joint edge")
         self.sysid = dataclasses.replace(config)
         c = config.identifier
-        self.gid_sizes = {k: c.out(k) for k in KINDS}
+        self.gid_sizes = {k: config.gid_size(k) for k in KINDS}
         K = int(layout.n_ctrl_slots)
         # what the model reads of the data: its dynamic graph only
         self.layout = FeatureLayout([], [], [], n_ctrl_slots=K)
@@ -261,12 +298,14 @@ class SysIDModel(nn.Module):
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
         n = steps - 1 if transitions else steps
-        mean = self.sysid.readout == "mean"
-        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=not mean)
-        if not mean:
+        readout = self.sysid.readout
+        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=readout == "last")
+        if readout == "last":
             return outs[-1]
+        c = self.sysid
+        pool = (lambda x: _ridge_solution(x, c.ridge_features, c.ridge)) if readout == "ridge" else (lambda x: x.mean(0))
         return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
-                                    torch.stack([getattr(o, k) for o in outs]).mean(0) for k in KINDS})
+                                    pool(torch.stack([getattr(o, k) for o in outs])) for k in KINDS})
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
         if self.builder is None:

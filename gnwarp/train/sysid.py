@@ -136,7 +136,9 @@ class SysIDTrainer(Trainer):
         before = {k: saved.get(k) for k in ("identifier", "window")}
         before["transitions"] = saved.get("transitions", False)   # checkpoints from before the options
         before["readout"] = saved.get("readout", "last")
-        changes += [f"model.{k}: {v!r} -> {want[k]!r}" for k, v in before.items() if v != want[k]]
+        if wanted.readout == "ridge" or "ridge" in saved:
+            before["ridge_features"], before["ridge"] = saved.get("ridge_features"), saved.get("ridge")
+        changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" for k, v in before.items() if v != want.get(k)]
         return changes
 
     # -- seams ------------------------------------------------------------------------------
