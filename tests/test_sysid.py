@@ -150,9 +150,10 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     out = capsys.readouterr().out
     assert "same instance" in out and "another instance" in out
     assert load_sysid(tmp_path / "run" / "best").config.transitions is False
-    assert main(["train", "--data", str(path), "--sysid", "--transitions", "-o", str(tmp_path / "run-t"), "-q"]
-                + [a for kv in sets for a in ("--set", kv)]) == 0
-    assert load_sysid(tmp_path / "run-t" / "best").config.transitions is True
+    assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "ridge", "-o",
+                 str(tmp_path / "run-t"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+    ridge = load_sysid(tmp_path / "run-t" / "best").config
+    assert (ridge.transitions, ridge.readout) == (True, "ridge")
     assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5",
                  "--consistency", "0.3", "-o", str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
