@@ -52,8 +52,9 @@ def _identifier_default() -> RecurrentGNConfig:
 @dataclass
 class SysIDConfig:
     """A system-identification model: ``forward`` (the forward model's ``ModelConfig``; its run
-    options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths)
-    and ``window`` (steps of the identification window, paper: 20).
+    options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths,
+    except under the ridge readout: ``gid_size``) and ``window`` (steps of the identification
+    window, paper: 20).
 
     ``transitions`` (beyond the paper; default off, the paper's GN_p): GN_p reads the window's
     W - 1 transitions instead of its W states: at each step t < W - 1 the state, the controls and
