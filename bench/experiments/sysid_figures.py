@@ -29,6 +29,7 @@ train sequences (first window) and scored by R^2 per parameter on the test seque
     python bench/experiments/sysid_figures.py --quick                       # CPU smoke run (about 1 min)
     python bench/experiments/sysid_figures.py --systems pendulum --seconds 120
     python bench/experiments/sysid_figures.py --systems cartpole --seconds 120    # one system a call
+    python bench/experiments/sysid_figures.py --compare --out DIR   # DIR's --label runs side by side
 
 Each system trains three models (no params, true params, sysid), each capped at ``--seconds``
 of wall clock (and ``--steps`` steps; learning rate x0.6 every quarter of ``--steps``). One
@@ -445,6 +446,52 @@ def plot_fig8(out: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
+def compare_runs(out: Path, rows: list[dict]) -> str:
+    """``compare.md`` and ``compare.png`` from Figure 8 rows labelled with a ``run`` (``--label``): per
+    system, each run's errors and its sysid / true-params ratio, side by side. Returns the table."""
+    f8 = [r for r in rows if r["part"] == "fig8" and r.get("run")]
+    if not f8:
+        raise SystemExit(f"--compare: no Figure 8 row with a run label in {out / 'results.jsonl'}")
+    runs = list(dict.fromkeys(r["run"] for r in f8))
+    systems = list(dict.fromkeys(r["system"] for r in f8))
+    cell = {(r["run"], r["system"], r["model"]): r for r in f8}   # newest row of each wins
+    lines = ["| system | run | steps | no params | true params (runs) | sysid same | sysid other | sysid / true |",
+             "|---|---|---|---|---|---|---|---|"]
+    ratio = {}
+    for s in systems:
+        for run in runs:
+            e = {k: cell.get((run, s, k)) for k in MODELS}
+            if e["sysid same"] is None or e["true params"] is None:
+                continue
+            t = e["true params"]
+            ratio[run, s] = e["sysid same"]["error"] / t["error"]
+            spread = ", ".join(_g(x) for x in t.get("runs", []))
+            lines.append(f"| {s} | {run} | {e['sysid same'].get('steps', '-')} | "
+                         f"{_g(e['no params']['error'] if e['no params'] else None)} | {_g(t['error'])}"
+                         f"{f' ({spread})' if spread else ''} | {_g(e['sysid same']['error'])} | "
+                         f"{_g(e['sysid other']['error'] if e['sysid other'] else None)} | {ratio[run, s]:.2f}x |")
+    table = "\n".join(lines) + "\n"
+    (out / "compare.md").write_text(table)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    x = np.arange(len(systems))
+    w = 0.8 / len(runs)
+    fig, ax = plt.subplots(figsize=(2.2 + 1.8 * len(systems), 3.8))
+    for i, run in enumerate(runs):
+        ax.bar(x + (i - (len(runs) - 1) / 2) * w, [ratio.get((run, s), np.nan) for s in systems], w, label=run)
+    ax.axhline(1.2, color="k", lw=0.8, ls="--", label="goal: 1.2x")
+    ax.set_yscale("log")
+    ax.set_xticks(x, systems)
+    ax.set_ylabel("sysid error / true-params error")
+    ax.set_title("System identification against the true-parameter model", fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "compare.png", dpi=110)
+    plt.close(fig)
+    return table
+
+
 # -- main -----------------------------------------------------------------------------------------
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -488,6 +535,8 @@ def main():
                     help="TrainConfig.noise_std of every model (default: the library's, 0.003)")
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
+    ap.add_argument("--compare", action="store_true",
+                    help="only write compare.md / compare.png: the --label runs in results.jsonl side by side")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     args = ap.parse_args()
     args.valid, args.test = args.sequences[1], args.sequences[2]
@@ -501,6 +550,12 @@ def main():
         args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
     out = experiment_out("sysid_figures", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
+    if args.compare:
+        path = out / "results.jsonl"
+        if not path.is_file():
+            raise SystemExit(f"--compare: {path} does not exist")
+        print(compare_runs(out, [json.loads(line) for line in path.read_text().splitlines() if line.strip()]))
+        return
     if args.rebuild:
         args.systems = ""
     from gnwarp import data
