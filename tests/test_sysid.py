@@ -622,3 +622,13 @@ def test_window_consistency_term(pendulum, tmp_path):
     with open(Path(summary["out"]) / "log.csv", newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["loss"]]
     assert rows and all(0.0 <= float(r["window_spread"]) < 2.0 for r in rows)
+    cfg.steps = 20     # resumed from `last`: the log keeps its columns and gains the new rows
+    logged = []
+    SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=0.7,
+                 callbacks=[lambda t, e, info: logged.append(int(info["row"]["step"])) if e == "log" else None]).run()
+    assert logged == [15, 20]
+    with open(Path(summary["out"]) / "log.csv", newline="") as f:
+        text = f.read()
+    rows = [r for r in csv.DictReader(text.splitlines()) if r["loss"]]
+    assert text.count("window_spread") == 1
+    assert [int(r["step"]) for r in rows] == [5, 10, 15, 20] and all(r["window_spread"] for r in rows)
