@@ -162,14 +162,15 @@ def _cmd_train(args) -> int:
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
     if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows
-            or args.consistency) and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions, --readout, --targets, --start-windows and --consistency apply "
-                         "to system identification (--sysid) only")
+            or args.consistency or args.param_loss) and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions, --readout, --targets, --start-windows, --consistency and "
+                         "--param-loss apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
         r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout), targets=args.targets,
-                         start_windows=args.start_windows, consistency=args.consistency).run()
+                         start_windows=args.start_windows, consistency=args.consistency,
+                         param_loss=args.param_loss).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -425,6 +426,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--consistency", type=float, default=0.0, metavar="C",
                    help="with --sysid: weight of a window-consistency term (pairs of windows of one sequence should "
                         "identify alike; default 0, the paper's; beyond the paper, SysIDTrainer.consistency)")
+    t.add_argument("--param-loss", type=float, default=0.0, metavar="P",
+                   help="with --sysid: weight of supervising G_ID's first global columns with the data's instance "
+                        "parameters (default 0, the paper's: no labels; beyond the paper, SysIDTrainer.param_loss)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

@@ -160,15 +160,22 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     import json
     saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
     assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
-    for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"]):
+    assert main(["train", "--data", str(path), "--sysid", "--param-loss", "2", "-o", str(tmp_path / "run-p"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 0
+    saved = json.loads((tmp_path / "run-p" / "best" / "config.json").read_text())
+    assert saved["train"]["param_loss"] == 2.0 and "param_stats" in saved
+    assert load_sysid(tmp_path / "run-p" / "best").config.readout == "last"
+    for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
+                 ["--param-loss", "1"]):
         with pytest.raises(SystemExit, match="--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
-                                          "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2}],
-                         ids=["paper", "mean-transitions-start-consistency", "ridge"])
+                                          "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2,
+                                                                "param_loss": 1.0}],
+                         ids=["paper", "mean-transitions-start-consistency", "ridge-param_loss"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -176,6 +183,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
     options = dict(options)
     start = options.pop("start_windows", 0.0)
     consistency = options.pop("consistency", 0.0)
+    param_loss = options.pop("param_loss", 0.0)
     runs = {}
     for capture in (True, False):
         cfg = TrainConfig(out=str(tmp_path / f"cap{capture}"), steps=10, batch_size=16, lr=3e-3, valid_every=5,
@@ -184,7 +192,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
         tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
-                          start_windows=start, consistency=consistency,
+                          start_windows=start, consistency=consistency, param_loss=param_loss,
                           callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
@@ -193,10 +201,11 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
     for p, q in zip(a.model.parameters(), b.model.parameters()):
         assert torch.equal(p, q)
     for x, y in zip(ra, rb):
-        for k in ("loss", "valid_error", "window_spread"):
+        for k in ("loss", "valid_error", "window_spread", "param_error"):
             if x.get(k) not in (None, ""):
                 assert float(x[k]) == pytest.approx(float(y[k]), rel=1e-4), (k, x, y)
     assert ("window_spread" in ra[0]) == (consistency > 0)
+    assert ("param_error" in ra[0]) == (param_loss > 0)
 
 
 def test_planning_through_an_identified_system(trained, pendulum):
@@ -574,15 +583,33 @@ def test_window_spread_against_a_hand_computation():
         window_spread(a, a._replace(nodes=a.nodes[:6]))
 
 
+def term_config(out) -> TrainConfig:
+    """A 10-step CPU run of the tiny models, for the tests of extra loss terms."""
+    return TrainConfig(out=str(out), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=10, batch_size=16,
+                       lr=3e-3, valid_every=10, valid_sequences=2, log_every=5, checkpoint_every=10, progress=False,
+                       device="cpu", normalizer_warmup=2)
+
+
+def check_added_term(model, terms, name, weight):
+    """The loss is the forward model's four terms plus ``weight`` times ``terms[name]``, and
+    that term's gradient reaches GN_p (the identifier) only."""
+    val = {k: float(v.detach()) for k, v in terms.items()}
+    plain = sum(val[k] for k in ("pos", "linvel", "angvel", "quat"))
+    assert val["loss"] == pytest.approx(plain + weight * val[name], rel=1e-5)
+    model.zero_grad()
+    terms[name].backward()
+    grads = {n: q.grad for n, q in model.named_parameters()}
+    assert any(g is not None and g.abs().sum() > 0 for n, g in grads.items() if n.startswith("identifier."))
+    assert all(g is None or g.abs().sum() == 0 for n, g in grads.items() if n.startswith("forward_model."))
+
+
 def test_window_consistency_term(pendulum, tmp_path):
     """``SysIDTrainer(consistency=c)``: a batch's second half re-draws its first half's
     sequences with new windows; the loss adds c times ``window_spread`` of the batch's G_ID
     (recomputed here from the sampled windows), whose gradient reaches GN_p only; bad weights
     and odd shares are refused by name; the weight is recorded in the run's config."""
     from gnwarp.train.sysid import window_spread
-    cfg = TrainConfig(out=str(tmp_path / "c"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=10,
-                      batch_size=16, lr=3e-3, valid_every=10, valid_sequences=2, log_every=5, checkpoint_every=10,
-                      progress=False, device="cpu", normalizer_warmup=2)
+    cfg = term_config(tmp_path / "c")
     for bad in (-0.5, math.nan, True, "1"):
         with pytest.raises(ValueError, match="consistency"):
             SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=bad)
@@ -606,15 +633,8 @@ def test_window_consistency_term(pendulum, tmp_path):
     terms = tr.loss(parts, accumulate=False)
     fm = tr.model.forward_model
     g_id = tr.model.identify_graphs(p.window, W, fm.stats(p.graph.nodes.dtype))
-    val = {k: float(v.detach()) for k, v in terms.items()}
-    assert val["window_spread"] == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
-    plain = sum(val[k] for k in ("pos", "linvel", "angvel", "quat"))
-    assert val["loss"] == pytest.approx(plain + 0.7 * val["window_spread"], rel=1e-5)
-    tr.model.zero_grad()
-    terms["window_spread"].backward()
-    grads = {n: p.grad for n, p in tr.model.named_parameters()}
-    assert any(g is not None and g.abs().sum() > 0 for n, g in grads.items() if n.startswith("identifier."))
-    assert all(g is None or g.abs().sum() == 0 for n, g in grads.items() if n.startswith("forward_model."))
+    assert float(terms["window_spread"]) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
+    check_added_term(tr.model, terms, "window_spread", 0.7)
     summary = tr.run()
     import json
     assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["consistency"] == 0.7
@@ -632,3 +652,68 @@ def test_window_consistency_term(pendulum, tmp_path):
     rows = [r for r in csv.DictReader(text.splitlines()) if r["loss"]]
     assert text.count("window_spread") == 1
     assert [int(r["step"]) for r in rows] == [5, 10, 15, 20] and all(r["window_spread"] for r in rows)
+
+
+def test_parameter_supervision(pendulum, tmp_path):
+    """``SysIDTrainer(param_loss=w)``: the loss adds w times the masked mean squared error between
+    G_ID's first P global columns and the instances' standardized parameters (recomputed here
+    in float64 from the dataset), whose gradient reaches GN_p only; training with it makes
+    ``estimate_params`` track the true parameters better than the untrained identifier; bad weights, data without parameters
+    and a G_ID too narrow are refused by name; the weight and statistics land in config.json."""
+    import json
+
+    from gnwarp.train.sysid import estimate_params, param_stats
+    cfg = term_config(tmp_path / "p")
+    for bad in (-1.0, math.inf, True, "1"):
+        with pytest.raises(ValueError, match="param_loss"):
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=bad)
+    narrow = RecurrentGNConfig(latent=8, hidden_edges=4, hidden_nodes=4, hidden_globals=4, edge_mlp=(16,),
+                               node_mlp=(16,), global_mlp=(16,), out_edges=3, out_nodes=3, out_globals=1)
+    with pytest.raises(ValueError, match="2 parameters but G_ID has 1 global"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=narrow, window=W), datasets=[pendulum], param_loss=1.0)
+    fixed = data.generate("pendulum", (4, 1, 1), num_steps=12, seed=0, backend="mujoco", progress=False)
+    with pytest.raises(ValueError, match="no instance parameters"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[fixed], param_loss=1.0)
+
+    st = param_stats(pendulum)
+    raw = np.asarray(pendulum.static["params"], dtype=np.float64)
+    used = raw[np.unique(np.asarray(pendulum["train"].instance[...]))]
+    assert st.names == ["length", "mass"] and st.used.all()
+    np.testing.assert_allclose(st.mean, used.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(st.std, used.std(0), rtol=1e-12)
+
+    Wp = 10   # a window long enough for the tiny identifier to read a length from
+    cfg.lr = 1e-2
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=Wp), datasets=[pendulum], param_loss=5.0)
+    (parts,) = tr.sample()
+    p = parts[0]
+    terms = tr.loss(parts, accumulate=False)
+    g_id = tr.model.identify_graphs(p.window, Wp, tr.model.forward_model.stats(p.graph.nodes.dtype))
+    z = (torch.as_tensor(raw) - torch.as_tensor(st.mean)) / torch.as_tensor(st.std)
+    zs = p.params[0].double()
+    assert all(any(torch.allclose(r, q, atol=1e-6) for q in z) for r in zs)   # rows are instances' parameters
+    want = (g_id.globals[:, :2].double() - zs).square().mean()
+    assert float(terms["param_error"]) == pytest.approx(float(want.detach()), rel=1e-5)
+    check_added_term(tr.model, terms, "param_error", 5.0)
+    tr.model.zero_grad()
+
+    sp = pendulum["train"]
+    body = torch.as_tensor(np.asarray(sp.body[...], dtype=np.float32))
+    ctrl = torch.as_tensor(np.asarray(sp.ctrl[...], dtype=np.float32))
+    inst = np.asarray(sp.instance[...])
+
+    def error():   # rms over the train sequences' first windows and both parameters, in standard deviations
+        tr.model.eval().bind(pendulum)
+        with torch.no_grad():
+            g = tr.model.identify(body[:, :Wp], ctrl[:, :Wp], torch.as_tensor(inst))
+        tr.model.train()
+        return float(np.sqrt(np.mean(((estimate_params(g, st) - raw[inst]) / st.std) ** 2)))
+    before = error()
+    cfg.steps, cfg.log_every = 400, 100
+    summary = tr.run()
+    after = error()
+    assert after < 0.8 * before, (before, after)
+    saved = json.loads((Path(summary["last"]) / "config.json").read_text())
+    assert saved["train"]["param_loss"] == 5.0
+    assert saved["param_stats"]["pendulum"]["names"] == ["length", "mass"]
+    np.testing.assert_allclose(saved["param_stats"]["pendulum"]["std"], st.std)

@@ -123,8 +123,9 @@ def cfg_noise(args) -> float:
 def identifier_config(args):
     from gnwarp.models import RecurrentGNConfig
     g, mlp = args.gid, tuple(args.identifier_mlp)
-    return RecurrentGNConfig(latent=args.identifier_latent, hidden_edges=g, hidden_nodes=g, hidden_globals=g,
-                             out_edges=g, out_nodes=g, out_globals=g, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
+    gg = args.gid_globals or g
+    return RecurrentGNConfig(latent=args.identifier_latent, hidden_edges=g, hidden_nodes=g, hidden_globals=gg,
+                             out_edges=g, out_nodes=g, out_globals=gg, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
 
 
 def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
@@ -152,7 +153,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout)
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
-                     consistency=args.consistency).run()
+                     consistency=args.consistency, param_loss=args.param_loss).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -275,6 +276,30 @@ def probe_rows(args, system: str, ds, model) -> list[dict]:
         r2 = 1.0 - float(np.mean(res ** 2) / np.var(yt[okt]))
         rows.append({"part": "probe", "system": system, "param": name, "r2": r2, "train": int(ok.sum()),
                      "test": int(okt.sum()), "features": int(A.shape[1] - 1)})
+    return rows
+
+
+@torch.no_grad()
+def estimate_rows(args, system: str, ds, model) -> list[dict]:
+    """With ``--param-loss``: the parameters G_ID carries (``estimate_params``) against the test
+    instances' true ones, from each test sequence's first window: the rms error over the
+    parameter's mean magnitude, and R^2."""
+    from gnwarp.train.sysid import estimate_params, param_stats
+    body, ctrl, inst = split_arrays(ds, "test", args.test)
+    model.bind(ds)
+    W = model.window
+    g = model.identify(torch.as_tensor(body[:, :W]), torch.as_tensor(ctrl[:, :W]), torch.as_tensor(inst))
+    st = param_stats(ds)
+    est, true = estimate_params(g, st), np.asarray(ds.static["params"], dtype=np.float64)[inst]
+    rows = []
+    for j, name in enumerate(st.names):
+        ok = np.isfinite(est[:, j]) & np.isfinite(true[:, j])
+        if ok.sum() < 2:
+            continue
+        e, t = est[ok, j], true[ok, j]
+        rows.append({"part": "estimate", "system": system, "param": name,
+                     "rel_rms": float(np.sqrt(np.mean((e - t) ** 2)) / max(np.mean(np.abs(t)), 1e-300)),
+                     "r2": float(1.0 - np.mean((e - t) ** 2) / max(np.var(t), 1e-300)), "test": int(ok.sum())})
     return rows
 
 
@@ -409,6 +434,13 @@ def write_summary(out: Path, rows: list[dict], args) -> None:
                   "|---|---|---|---|"]
         for r in pr:
             lines.append(f"| {r['system']} | {r['param']} | {r['r2']:.3f} | {r['train']} / {r['test']} |")
+    es = [r for r in rows if r["part"] == "estimate"]
+    if es:
+        lines += ["", "## Parameters read from G_ID (`--param-loss`, `estimate_params`)", "",
+                  "From each test sequence's first window; relative error: rms error / mean |parameter|.", "",
+                  "| system | parameter | relative rms error | R^2 |",
+                  "|---|---|---|---|"]
+        lines += [f"| {r['system']} | {r['param']} | {r['rel_rms']:.3g} | {r['r2']:.3f} |" for r in es]
     sp = [r for r in rows if r["part"] == "spread"]
     if sp:
         lines += ["", "## G_ID across windows", "",
@@ -508,6 +540,9 @@ def main():
     ap.add_argument("--edge-width", type=int, default=256)
     ap.add_argument("--node-width", type=int, default=128)
     ap.add_argument("--gid", type=int, default=10, help="G_ID width per node / edge / global (and GN_p's hidden)")
+    ap.add_argument("--gid-globals", type=int, default=None,
+                    help="G_ID's global width (and GN_p's global hidden), default --gid; --param-loss needs one column "
+                         "per parameter (cheetah 20, JACO 18)")
     ap.add_argument("--identifier-latent", type=int, default=128)
     ap.add_argument("--identifier-mlp", type=int, nargs="+", default=(128, 128))
     ap.add_argument("--probe-train", type=int, default=2000, help="train sequences the probe is fitted on")
@@ -529,6 +564,9 @@ def main():
     ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge"), help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
+    ap.add_argument("--param-loss", type=float, default=0.0,
+                    help="SysIDTrainer.param_loss: weight of supervising G_ID's first global columns with the "
+                         "instances' parameters (beyond the paper)")
     ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),
                     help="the models' GEMM precision on CUDA (default: the library's, tf32)")
     ap.add_argument("--noise", type=float, default=None,
@@ -571,8 +609,12 @@ def main():
             t0 = time.perf_counter()
             path = data_dir / f"{system}-param-{'-'.join(map(str, args.sequences))}x{args.num_steps}-s{args.seed}.h5"
             if not path.exists():
-                data.generate(system, tuple(args.sequences), num_steps=args.num_steps, seed=args.seed,
-                              backend=args.backend, parameterized=True, progress=False).save(path)
+                ds = data.generate(system, tuple(args.sequences), num_steps=args.num_steps, seed=args.seed,
+                                   backend=args.backend, parameterized=True, progress=False)
+                try:
+                    ds.save(path)
+                except FileExistsError:   # another run sharing --data wrote it meanwhile (saves are atomic)
+                    pass
             ds = data.load(path, lazy=False)
             t_data = time.perf_counter() - t0
             models, info = train_all(args, ds, system, runs)
@@ -581,12 +623,15 @@ def main():
                 key = "sysid" if r["model"].startswith("sysid") else r["model"]
                 r.update(steps=info[key]["steps"], train_seconds=round(info[key]["seconds"], 1))
             rows += probe_rows(args, system, ds, models["sysid"])
+            if args.param_loss > 0:
+                rows += estimate_rows(args, system, ds, models["sysid"])
             rows += spread_rows(args, system, ds, models["sysid"])
             if system == "pendulum":
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
                          readout=args.readout, start_windows=args.start_windows, consistency=args.consistency,
+                         param_loss=args.param_loss, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)

@@ -33,7 +33,8 @@ from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weight
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
-__all__ = ["SysIDTrainer", "SysIDSample", "build_sysid_model", "load_sysid", "sysid_rollout_error", "window_spread"]
+__all__ = ["SysIDTrainer", "SysIDSample", "ParamStats", "build_sysid_model", "estimate_params", "load_sysid",
+           "param_stats", "sysid_rollout_error", "window_spread"]
 
 
 class SysIDSample(NamedTuple):
@@ -42,6 +43,46 @@ class SysIDSample(NamedTuple):
     window: list
     graph: GraphsTuple
     target: torch.Tensor
+    params: tuple | None = None   # with param_loss: (standardized true parameters [n, P], their mask [n, P])
+
+
+class ParamStats(NamedTuple):
+    """A dataset's parameters as ``param_loss`` standardizes them: ``names`` [P], ``mean`` [P],
+    ``std`` [P] over the train split's instances; ``used`` [P]: parameters that vary there."""
+    names: list
+    mean: np.ndarray
+    std: np.ndarray
+    used: np.ndarray
+
+
+def param_stats(dataset) -> ParamStats:
+    """The statistics of ``dataset``'s instance parameters (``static["params"]``, a parameterized
+    dataset's) over the instances of its train split; a clear error if it has none."""
+    names = list(dataset.meta.get("param_names", []))
+    params = np.asarray(dataset.static["params"], dtype=np.float64)
+    if not names or params.ndim != 2 or params.shape[1] != len(names):
+        raise ValueError(f"dataset {dataset.system!r} has no instance parameters (param_loss needs a parameterized "
+                         f"dataset: gnwarp generate --parameterized)")
+    rows = params[np.unique(np.asarray(dataset["train"].instance[...]))]
+    ok = np.isfinite(rows)
+    n = ok.sum(0)
+    mean = np.where(n > 0, np.where(ok, rows, 0.0).sum(0) / np.maximum(n, 1), 0.0)
+    var = np.where(ok, (rows - mean) ** 2, 0.0).sum(0) / np.maximum(n, 1)
+    std = np.sqrt(var)
+    used = (n > 1) & (std > 1e-12 * np.maximum(1.0, np.abs(mean)))
+    return ParamStats(names, mean, np.where(used, std, 1.0), used)
+
+
+def estimate_params(g_id: GraphsTuple, stats: ParamStats) -> np.ndarray:
+    """The physical parameters [N, P] that G_ID of a model trained with ``param_loss`` carries in
+    its first P global columns (``stats``: ``param_stats`` of its training data); NaN for
+    parameters that did not vary in training."""
+    P = len(stats.names)
+    if g_id.globals is None or g_id.globals.shape[-1] < P:
+        raise ValueError(f"G_ID has {0 if g_id.globals is None else g_id.globals.shape[-1]} global columns; "
+                         f"the {P} parameters need as many")
+    z = g_id.globals[:, :P].detach().double().cpu().numpy()
+    return np.where(stats.used, z * stats.std + stats.mean, np.nan)
 
 
 def build_sysid_model(config: TrainConfig, datasets, sysid: SysIDConfig | None = None) -> SysIDModel:
@@ -76,11 +117,19 @@ class SysIDTrainer(Trainer):
     only on the sequence's system, ~1 when a pair's windows differ as much as any two). Its aim:
     G_ID that varies from window to window acts on the forward model as noise on its static
     inputs, which training answers by weakening the parameters' effect. No parameter labels are
-    read; scale-free, so shrinking G_ID does not lower it."""
+    read; scale-free, so shrinking G_ID does not lower it.
+    ``param_loss`` (beyond the paper's 0, which reads no labels): the weight of a parameter
+    supervision term. Generated parameterized data know each instance's parameters
+    (``static["params"]``); the loss adds ``param_loss`` times the mean squared error between G_ID's
+    first P global columns and the instance's P parameters, standardized over the train split
+    (``param_stats``). G_ID stays the forward model's latent static graph; the term tells GN_p
+    what to identify, at a precision the one-step loss alone rewards too weakly (a 1% error in a
+    pendulum's length changes one step's prediction by ~1e-4 of its noise, a 100-step rollout by
+    far more). ``estimate_params`` reads the parameters back from G_ID."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
                  model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0,
-                 consistency: float = 0.0):
+                 consistency: float = 0.0, param_loss: float = 0.0):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
@@ -92,7 +141,12 @@ class SysIDTrainer(Trainer):
                 or not math.isfinite(consistency) or consistency < 0:
             raise ValueError(f"consistency must be a finite number >= 0 (the weight of the window-consistency "
                              f"term), got {consistency!r}")
+        if isinstance(param_loss, bool) or not isinstance(param_loss, (int, float)) \
+                or not math.isfinite(param_loss) or param_loss < 0:
+            raise ValueError(f"param_loss must be a finite number >= 0 (the weight of the parameter supervision "
+                             f"term), got {param_loss!r}")
         self.targets = targets
+        self.param_loss = float(param_loss)
         self.start_windows = float(start_windows)
         self.consistency = float(consistency)
         if datasets is None:
@@ -113,15 +167,36 @@ class SysIDTrainer(Trainer):
             if any(n % 2 for n in shares):
                 raise ValueError(f"consistency pairs each batch's sequences: batch_size {config.batch_size} gives "
                                  f"{len(datasets)} dataset(s) the shares {shares}; each must be even")
+        if self.param_loss > 0:
+            self.param_stats = [param_stats(d) for d in datasets]
+            width = model.gid_sizes["globals"]
+            for d, st in zip(datasets, self.param_stats):
+                if len(st.names) > width:
+                    raise ValueError(f"param_loss: dataset {d.system!r} has {len(st.names)} parameters but G_ID "
+                                     f"has {width} global columns (widen identifier.out_globals)")
         super().__init__(config, datasets, model, callbacks)
+        if self.param_loss > 0:   # per sampler part: standardized parameters [I, P] and their mask
+            dt = self.model.dtype
+            self._param_z = []
+            for d, st in zip(self.datasets, self.param_stats):
+                raw = np.asarray(d.static["params"], dtype=np.float64)
+                ok = np.isfinite(raw) & st.used
+                z = np.where(ok, (np.nan_to_num(raw) - st.mean) / st.std, 0.0)
+                self._param_z.append((torch.as_tensor(z, device=self.device, dtype=dt),
+                                      torch.as_tensor(ok, device=self.device, dtype=dt)))
+            self.info["param_stats"] = {d.system: {"names": st.names, "mean": st.mean.tolist(), "std": st.std.tolist(),
+                                                   "used": st.used.tolist()}
+                                        for d, st in zip(self.datasets, self.param_stats)}
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
         self.info["train"]["targets"] = targets
         self.info["train"]["start_windows"] = self.start_windows
         self.info["train"]["consistency"] = self.consistency
+        self.info["train"]["param_loss"] = self.param_loss
 
     @property
     def log_fields(self) -> tuple[str, ...]:
-        return (*super().log_fields, "window_spread") if self.consistency > 0 else super().log_fields
+        extra = (("window_spread",) if self.consistency > 0 else ()) + (("param_error",) if self.param_loss > 0 else ())
+        return (*super().log_fields, *extra)
 
     def _load_last(self):
         """Resuming: the SysIDModel of ``<out>/last`` and its training state."""
@@ -152,7 +227,7 @@ class SysIDTrainer(Trainer):
         W, K = self.model.window, self.targets
         parts = self.sampler.parts
         out = []
-        for p, n in zip(parts, _shares(self.config.batch_size, len(parts))):
+        for i, (p, n) in enumerate(zip(parts, _shares(self.config.batch_size, len(parts)))):
             if n == 0:
                 continue
             dev, gen = p.body.device, self.generator
@@ -172,18 +247,23 @@ class SysIDTrainer(Trainer):
             graph = p.builder(inst_k, p.body[seq_k, t0], p.ctrl[seq_k, t0])
             nxt = p.body[seq_k, t0 + 1]
             target = nxt.reshape(-1, DYN_NODE_SIZE) if p.builder.uniform else nxt[p.builder.node_mask[inst_k]]
-            out.append(SysIDSample(window, graph, target))
+            params = None if self.param_loss == 0 else tuple(x[inst] for x in self._param_z[i])
+            out.append(SysIDSample(window, graph, target, params))
         return (out,)
 
     def loss(self, parts: list[SysIDSample], accumulate: bool = True) -> dict[str, torch.Tensor]:
         """G_ID of each window, then the forward model's loss at t0 with G_ID as its static graph."""
         m, c = self.model, self.config
         fm = m.forward_model
-        graphs, spread = [], []
+        graphs, spread, perr = [], [], []
         for p in parts:
             g_id = m.identify_graphs(p.window, len(p.window), fm.stats(p.graph.nodes.dtype))
             if self.consistency > 0:
                 spread.append(window_spread(g_id))
+            if p.params is not None:
+                z, ok = p.params
+                est = g_id.globals[:, :z.shape[1]].to(z.dtype)
+                perr.append(((est - z).square() * ok).sum() / ok.sum().clamp_min(1.0))
             if self.targets > 1:   # the same G_ID for each of the window's K one-step targets
                 K = self.targets
                 g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).repeat(K, 1)
@@ -196,6 +276,9 @@ class SysIDTrainer(Trainer):
         if spread:
             terms["window_spread"] = torch.stack(spread).mean()
             terms["loss"] = terms["loss"] + self.consistency * terms["window_spread"]
+        if perr:
+            terms["param_error"] = torch.stack(perr).mean()
+            terms["loss"] = terms["loss"] + self.param_loss * terms["param_error"]
         return terms
 
     def validate(self) -> float:
