@@ -633,7 +633,7 @@ def test_window_consistency_term(pendulum, tmp_path):
     terms = tr.loss(parts, accumulate=False)
     fm = tr.model.forward_model
     g_id = tr.model.identify_graphs(p.window, W, fm.stats(p.graph.nodes.dtype))
-    assert float(terms["window_spread"]) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
+    assert float(terms["window_spread"].detach()) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
     check_added_term(tr.model, terms, "window_spread", 0.7)
     summary = tr.run()
     import json
@@ -693,7 +693,7 @@ def test_parameter_supervision(pendulum, tmp_path):
     zs = p.params[0].double()
     assert all(any(torch.allclose(r, q, atol=1e-6) for q in z) for r in zs)   # rows are instances' parameters
     want = (g_id.globals[:, :2].double() - zs).square().mean()
-    assert float(terms["param_error"]) == pytest.approx(float(want.detach()), rel=1e-5)
+    assert float(terms["param_error"].detach()) == pytest.approx(float(want.detach()), rel=1e-5)
     check_added_term(tr.model, terms, "param_error", 5.0)
     tr.model.zero_grad()
 
