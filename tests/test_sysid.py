@@ -717,3 +717,35 @@ def test_parameter_supervision(pendulum, tmp_path):
     assert saved["train"]["param_loss"] == 5.0
     assert saved["param_stats"]["pendulum"]["names"] == ["length", "mass"]
     np.testing.assert_allclose(saved["param_stats"]["pendulum"]["std"], st.std)
+
+
+def test_param_stats_masks_missing_and_constant_parameters():
+    """``param_stats`` over the train split's instances leaves NaN out of the statistics and
+    marks parameters seen once or constant as unused; ``standardize`` zeroes and masks them;
+    ``estimate_params`` returns NaN for them and de-standardizes the rest."""
+    from types import SimpleNamespace
+
+    from gnwarp.graphs import GraphsTuple
+    from gnwarp.train.sysid import estimate_params, param_stats
+    params = np.array([[1.0, np.nan, 2.0], [3.0, np.nan, 2.0], [5.0, 7.0, 2.0], [100.0, 1.0, 9.0]])
+
+    class Fake(dict):   # a dataset's three attributes param_stats reads; instance 3 is not in train
+        system, meta, static = "fake", {"param_names": ["a", "b", "c"]}, {"params": params}
+    ds = Fake(train=SimpleNamespace(instance=np.array([0, 1, 2, 2])))
+    st = param_stats(ds)
+    np.testing.assert_allclose(st.mean[0], 3.0)
+    np.testing.assert_allclose(st.std[0], np.std([1.0, 3.0, 5.0]))
+    assert st.used.tolist() == [True, False, False]
+    z, ok = st.standardize(params)
+    np.testing.assert_allclose(z[:, 0], (params[:, 0] - 3.0) / np.std([1.0, 3.0, 5.0]))
+    assert not ok[:, 1:].any() and (z[:, 1:] == 0).all()
+    g = GraphsTuple(nodes=None, edges=None, globals=torch.as_tensor(np.concatenate([z, np.ones((4, 1))], 1)),
+                    senders=None, receivers=None, n_node=None, n_edge=None)
+    est = estimate_params(g, st)
+    np.testing.assert_allclose(est[:, 0], params[:, 0])
+    assert np.isnan(est[:, 1:]).all()
+    with pytest.raises(ValueError, match="3 parameters need"):
+        estimate_params(g._replace(globals=g.globals[:, :2]), st)
+    Fake.meta = {}
+    with pytest.raises(ValueError, match="no instance parameters"):
+        param_stats(ds)

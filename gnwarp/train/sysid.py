@@ -54,22 +54,26 @@ class ParamStats(NamedTuple):
     std: np.ndarray
     used: np.ndarray
 
+    def standardize(self, params) -> tuple[np.ndarray, np.ndarray]:
+        """(z [..., P], ok [..., P]): ``params`` standardized, 0 where ``ok`` is False (a NaN, or a
+        parameter that did not vary in training)."""
+        raw = np.asarray(params, dtype=np.float64)
+        ok = np.isfinite(raw) & self.used
+        return np.where(ok, (np.nan_to_num(raw) - self.mean) / self.std, 0.0), ok
+
 
 def param_stats(dataset) -> ParamStats:
     """The statistics of ``dataset``'s instance parameters (``static["params"]``, a parameterized
-    dataset's) over the instances of its train split; a clear error if it has none."""
+    dataset's) over the instances of its train split, NaN (a parameter an instance lacks) left
+    out; a clear error if it has none."""
     names = list(dataset.meta.get("param_names", []))
     params = np.asarray(dataset.static["params"], dtype=np.float64)
     if not names or params.ndim != 2 or params.shape[1] != len(names):
         raise ValueError(f"dataset {dataset.system!r} has no instance parameters (param_loss needs a parameterized "
                          f"dataset: gnwarp generate --parameterized)")
-    rows = params[np.unique(np.asarray(dataset["train"].instance[...]))]
-    ok = np.isfinite(rows)
-    n = ok.sum(0)
-    mean = np.where(n > 0, np.where(ok, rows, 0.0).sum(0) / np.maximum(n, 1), 0.0)
-    var = np.where(ok, (rows - mean) ** 2, 0.0).sum(0) / np.maximum(n, 1)
-    std = np.sqrt(var)
-    used = (n > 1) & (std > 1e-12 * np.maximum(1.0, np.abs(mean)))
+    rows = np.ma.masked_invalid(params[np.unique(np.asarray(dataset["train"].instance[...]))])
+    mean, std = rows.mean(0).filled(0.0), rows.std(0).filled(0.0)
+    used = (rows.count(0) > 1) & (std > 1e-12 * np.maximum(1.0, np.abs(mean)))
     return ParamStats(names, mean, np.where(used, std, 1.0), used)
 
 
@@ -179,9 +183,7 @@ class SysIDTrainer(Trainer):
             dt = self.model.dtype
             self._param_z = []
             for d, st in zip(self.datasets, self.param_stats):
-                raw = np.asarray(d.static["params"], dtype=np.float64)
-                ok = np.isfinite(raw) & st.used
-                z = np.where(ok, (np.nan_to_num(raw) - st.mean) / st.std, 0.0)
+                z, ok = st.standardize(d.static["params"])
                 self._param_z.append((torch.as_tensor(z, device=self.device, dtype=dt),
                                       torch.as_tensor(ok, device=self.device, dtype=dt)))
             self.info["param_stats"] = {d.system: {"names": st.names, "mean": st.mean.tolist(), "std": st.std.tolist(),
