@@ -416,10 +416,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "change to the next state; beyond the paper, SysIDConfig.transitions)")
     t.add_argument("--targets", type=int, default=1,
                    help="with --sysid: one-step losses per identification window (default 1, the paper's)")
-    t.add_argument("--readout", choices=["last", "mean", "ridge"], default="last",
+    t.add_argument("--readout", choices=["last", "mean", "ridge", "dynamics"], default="last",
                    help="with --sysid: G_ID is the recurrent GN's last output (default, the paper's), the mean of "
-                        "its outputs over the window, or a ridge fit over the window of some output columns on the "
-                        "others (beyond the paper, SysIDConfig.readout)")
+                        "its outputs over the window, a ridge fit over the window of some output columns on the "
+                        "others, or a ridge fit of the window's observed velocity changes on the outputs (beyond the "
+                        "paper, SysIDConfig.readout)")
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")

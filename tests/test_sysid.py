@@ -10,6 +10,7 @@ import torch
 
 from gnwarp import TrainConfig, data
 from gnwarp.sim import systems
+from gnwarp.state import state_delta
 from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import GNCoreConfig, ModelConfig
@@ -157,6 +158,14 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5",
                  "--consistency", "0.3", "-o", str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
+    assert main(["train", "--data", str(path), "--sysid", "--readout", "dynamics", "-o", str(tmp_path / "run-d"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 0
+    dyn = load_sysid(tmp_path / "run-d" / "best")
+    assert (dyn.config.readout, dyn.gid_sizes["nodes"]) == ("dynamics", 6 * SysIDConfig().identifier.out_nodes)
+    capsys.readouterr()
+    assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "dynamics", "-o",
+                 str(tmp_path / "run-dt"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 2
+    assert "transitions=True is refused" in capsys.readouterr().err
     import json
     saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
     assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
@@ -174,8 +183,9 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
                                           "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2,
-                                                                "param_loss": 1.0}],
-                         ids=["paper", "mean-transitions-start-consistency", "ridge-param_loss"])
+                                                                "param_loss": 1.0},
+                                     {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5}],
+                         ids=["paper", "mean-transitions-start-consistency", "ridge-param_loss", "dynamics-teacher"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -184,6 +194,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
     start = options.pop("start_windows", 0.0)
     consistency = options.pop("consistency", 0.0)
     param_loss = options.pop("param_loss", 0.0)
+    teacher = options.pop("param_teacher", 0.0)
     runs = {}
     for capture in (True, False):
         cfg = TrainConfig(out=str(tmp_path / f"cap{capture}"), steps=10, batch_size=16, lr=3e-3, valid_every=5,
@@ -192,7 +203,7 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
         tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
-                          start_windows=start, consistency=consistency, param_loss=param_loss,
+                          start_windows=start, consistency=consistency, param_loss=param_loss, param_teacher=teacher,
                           callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
@@ -414,14 +425,24 @@ def test_several_targets_per_identification_window(pendulum, tmp_path):
     assert losses[-1] < losses[0]
 
 
-@pytest.mark.parametrize("readout", ["mean", "ridge"])
+def _ridge_reference(phi, psi, ridge):
+    """The normal equations of psi ~ B^T phi over the steps, solved directly."""
+    S = (phi[..., :, None] * phi[..., None, :]).mean(0)
+    R = (phi[..., :, None] * psi[..., None, :]).mean(0)
+    lam = ridge * S.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] + 1e-6
+    return torch.linalg.solve(S + lam * torch.eye(phi.shape[-1], dtype=phi.dtype), R).reshape(phi.shape[1], -1)
+
+
+@pytest.mark.parametrize("readout", ["mean", "ridge", "dynamics"])
 def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout):
     """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window;
     "ridge": per node, edge and global, the ridge solution of the outputs' last columns on their
-    first ``ridge_features`` over the window (each equal to running the identifier by hand and
-    solving the normal equations with ``torch.linalg.solve``, in float64); gradients through it
-    match finite differences; it trains and the option travels in the checkpoint, which a run of
-    the other readout refuses to resume."""
+    first ``ridge_features`` over the window; "dynamics": the ridge solution of the observed,
+    normalized velocity changes (an edge's receiver's, a graph's mean over its moving bodies; the
+    fixed world body's zero) on all output columns of the window's first W - 1 steps. Each equals
+    running the identifier by hand and solving the normal equations with ``torch.linalg.solve``,
+    in float64; gradients through it match finite differences; it trains and the option travels
+    in the checkpoint, which a run of the other readout refuses to resume."""
     torch.manual_seed(0)
     cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
                       window=4, readout=readout, ridge_features=2, ridge=0.01)
@@ -436,20 +457,26 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout)
     K = graphs[0].edges.shape[1]
     h = m.identifier.initial_hidden(graphs[0])
     outs = []
-    for g in graphs:
+    for g in graphs[:3] if readout == "dynamics" else graphs:   # "dynamics": the last step is only a target
         out, h = m.identifier.step(g._replace(nodes=(g.nodes - mn[-13:]) / sn[-13:], edges=(g.edges - me[-K:]) / se[-K:]), h)
         outs.append(out)
+    if readout == "dynamics":
+        md, sd = st["delta"]
+        dv = torch.stack([((state_delta(a.nodes, b.nodes) - md) / sd)[:, 7:13] for a, b in zip(graphs, graphs[1:])])
+        dv = dv.reshape(3, 5, 2, 6)
+        dv[:, :, 0] = 0     # each pendulum's world body
+        psi = {"nodes": dv.reshape(3, 10, 6), "edges": dv.reshape(3, 10, 6)[:, graphs[0].receivers.long()],
+               "globals": dv[:, :, 1]}    # one moving body per graph: its own
     for k in ("nodes", "edges", "globals"):
         x = torch.stack([getattr(o, k) for o in outs])
         if readout == "mean":
             want = x.mean(0)
-        else:   # the normal equations, solved directly
-            phi, psi = x[..., :2], x[..., 2:]
-            S = (phi[..., :, None] * phi[..., None, :]).mean(0)
-            R = (phi[..., :, None] * psi[..., None, :]).mean(0)
-            lam = 0.01 * S.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] + 1e-6
-            want = torch.linalg.solve(S + lam * torch.eye(2, dtype=x.dtype), R).reshape(x.shape[1], -1)
+        elif readout == "ridge":
+            want = _ridge_reference(x[..., :2], x[..., 2:], 0.01)
             assert want.shape[1] == 2 * (ID.out(k) - 2) == m.gid_sizes[k]
+        else:
+            want = _ridge_reference(x, psi[k], 0.01)
+            assert want.shape[1] == 6 * ID.out(k) == m.gid_sizes[k]
         torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-10, atol=1e-10)
         assert not torch.allclose(x.mean(0), getattr(outs[-1], k))   # not the last step's output
     moving = body[:2, :4, 1].clone().requires_grad_()
@@ -464,6 +491,12 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout)
         SysIDConfig(identifier=ID, readout="ridge", ridge_features=3)
     with pytest.raises(ValueError, match="ridge"):
         SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge=0.0)
+    with pytest.raises(ValueError, match="transitions"):
+        SysIDConfig(identifier=ID, readout="dynamics", transitions=True)
+    with pytest.raises(ValueError, match="window must be at least 2"):
+        SysIDConfig(identifier=ID, readout="dynamics", window=1)
+    with pytest.raises(ValueError, match="ridge"):
+        SysIDConfig(identifier=ID, readout="dynamics", ridge=float("nan"))
     tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)
@@ -749,3 +782,60 @@ def test_param_stats_masks_missing_and_constant_parameters():
     Fake.meta = {}
     with pytest.raises(ValueError, match="no instance parameters"):
         param_stats(ds)
+
+
+def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
+    """``SysIDTrainer(param_teacher=1)``: the forward model's loss is computed with G_ID's first P
+    global columns set to the instances' standardized parameters (recomputed here in float64),
+    so its gradient leaves GN_p's rows for those columns untouched; bad fractions, and teacher
+    forcing without ``param_loss``, are refused by name; the fraction lands in config.json.
+    ``sysid_rollout_error(oracle=param_stats(ds))`` is the error with those columns replaced by
+    the true parameters, which differs from the identified G_ID's."""
+    import json
+
+    from gnwarp.train.sysid import param_stats
+    cfg = term_config(tmp_path / "q")
+    cfg.noise_std = 0.0
+    for bad in (-0.1, 1.5, True, "1"):
+        with pytest.raises(ValueError, match="param_teacher"):
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=1.0,
+                         param_teacher=bad)
+    with pytest.raises(ValueError, match="needs param_loss"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_teacher=1.0)
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=2.0,
+                      param_teacher=1.0)
+    (parts,) = tr.sample()
+    p = parts[0]
+    terms = tr.loss(parts, accumulate=False)
+    m, fm = tr.model, tr.model.forward_model
+    st = param_stats(pendulum)
+    raw = np.asarray(pendulum.static["params"], dtype=np.float64)
+    z = p.params[0]
+    assert all(any(np.allclose(r, (q - st.mean) / st.std, atol=1e-6) for q in raw) for r in z.double().numpy())
+    g_id = m.identify_graphs(p.window, W, fm.stats(p.graph.nodes.dtype))
+    forced = g_id._replace(globals=torch.cat([z.to(g_id.globals.dtype), g_id.globals[:, 2:]], 1))
+    want = fm.loss(m.with_gid(p.graph, forced), p.target, noise_std=0.0, accumulate=False,
+                   rotation_scale=cfg.rotation_loss)
+    for k in ("pos", "quat", "linvel", "angvel"):
+        assert float(terms[k].detach()) == pytest.approx(float(want[k].detach()), rel=1e-5), k
+    m.zero_grad()
+    (terms["loss"] - 2.0 * terms["param_error"]).backward()
+    w = m.identifier.out["globals"].weight.grad
+    assert w[:2].abs().sum() == 0 and w[2:].abs().sum() > 0     # GN_p's estimate is not what the model read
+    summary = tr.run()
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["param_teacher"] == 1.0
+
+    model = load_sysid(summary["last"]).bind(pendulum)
+    inst = np.asarray(pendulum["valid"].instance[...])
+    orig = model.identify
+
+    def by_hand(*a, **k):    # G_ID with its first two global columns the true standardized parameters
+        g = orig(*a, **k)
+        zz = torch.as_tensor((raw[inst] - st.mean) / st.std, dtype=g.globals.dtype)
+        return g._replace(globals=torch.cat([zz, g.globals[:, 2:]], 1))
+    model.identify = by_hand
+    hand = sysid_rollout_error(model, pendulum, "valid", 10)
+    del model.identify
+    oracle = sysid_rollout_error(model, pendulum, "valid", 10, oracle=st)
+    assert oracle == pytest.approx(hand, rel=1e-6)
+    assert oracle != pytest.approx(sysid_rollout_error(model, pendulum, "valid", 10), rel=1e-3)

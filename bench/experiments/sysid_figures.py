@@ -153,7 +153,8 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout)
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
-                     consistency=args.consistency, param_loss=args.param_loss).run()
+                     consistency=args.consistency, param_loss=args.param_loss,
+                     param_teacher=args.param_teacher).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -209,9 +210,16 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
             "sysid other": sysid_rollout_error(models["sysid"], ds, "test", H, n, window_from=other)}
     # for reference, the forward models' usual error (rollouts from step 0, ``gnwarp.eval``)
     from_0 = {k: rollout_error(models[k], ds, "test", ds["test"].num_steps, n) for k in ("no params", "true params")}
-    return [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
+    rows = [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
              "test_sequences": n, "from_step_0": from_0.get(k),
              **({"runs": runs} if k == "true params" else {})} for k, v in errs.items()]
+    if args.param_loss > 0:   # the sysid forward model with its supervised columns identified perfectly
+        from gnwarp.train.sysid import param_stats
+        e = sysid_rollout_error(models["sysid"], ds, "test", H, n, oracle=param_stats(ds))
+        rows.append({"part": "oracle", "system": system, "model": "sysid, true parameter columns", "error": float(e),
+                     "ratio_to_true": float(e / errs["true params"]) if errs["true params"] else None,
+                     "window": W, "horizon": H, "test_sequences": n})
+    return rows
 
 
 @torch.no_grad()
@@ -561,12 +569,16 @@ def main():
                     help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
     ap.add_argument("--reference-runs", type=int, default=1,
                     help="true-parameter models trained identically; Figure 8's reference is their median")
-    ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge"), help="SysIDConfig.readout")
+    ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge", "dynamics"),
+                    help="SysIDConfig.readout")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
     ap.add_argument("--param-loss", type=float, default=0.0,
                     help="SysIDTrainer.param_loss: weight of supervising G_ID's first global columns with the "
                          "instances' parameters (beyond the paper)")
+    ap.add_argument("--param-teacher", type=float, default=0.0,
+                    help="SysIDTrainer.param_teacher: fraction of windows whose true parameters the forward model "
+                         "reads in G_ID's supervised columns (with --param-loss; beyond the paper)")
     ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),
                     help="the models' GEMM precision on CUDA (default: the library's, tf32)")
     ap.add_argument("--noise", type=float, default=None,
@@ -631,7 +643,7 @@ def main():
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
                          readout=args.readout, start_windows=args.start_windows, consistency=args.consistency,
-                         param_loss=args.param_loss, gid_globals=args.gid_globals or args.gid,
+                         param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)

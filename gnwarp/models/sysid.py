@@ -37,10 +37,16 @@ from gnwarp.models.normalizer import Normalizer
 from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
-from gnwarp.state import DYN_NODE_SIZE, state_delta
+from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
 from gnwarp.validation import PositiveInt, check_fields, check_keys
 
 __all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
+
+
+# the readouts that fit a linear model over the window (``SysIDConfig.readout``)
+FITS = ("ridge", "dynamics")
+# the "dynamics" readout's targets: the velocity columns of ``state_delta`` (6)
+FIT_TARGETS = slice(LINVEL.start, ANGVEL.stop)
 
 
 def _identifier_default() -> RecurrentGNConfig:
@@ -70,20 +76,37 @@ class SysIDConfig:
     ``ridge_features`` columns) and targets psi (the rest, P of them), and G_ID is the ridge
     solution B [F, P] of psi ~ B^T phi over the window, flattened (F * P wide): a least-squares fit
     whose features GN_p learns, the way a classical estimator identifies a system from a window.
+    "dynamics" fixes the ridge fit's targets to what the window observed: each step's output of a
+    node (edge, global) is the regressor phi [F] (all F of its columns) and the target is the
+    body's velocity change to the next step (``state_delta``'s 6 velocity columns, normalized as
+    the forward model's targets; an edge's is its receiver's, a global's the mean over the
+    graph's moving bodies), so G_ID [F * 6] holds the coefficients of a linear model of the
+    window's dynamics over learned features of the states and controls: the fit a classical
+    identifier makes, with regressors GN_p learns. GN_p then reads states, not transitions (a
+    regressor that saw the change it is fitted to would explain it away), and the window's last
+    step is only a target.
     ``ridge``: the ridge weight, relative to the mean diagonal of the features' second moments."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
     transitions: bool = False
-    readout: Literal["last", "mean", "ridge"] = "last"
+    readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
     ridge_features: PositiveInt = 4
     ridge: float = 1e-3
 
     def __post_init__(self):
         check_fields(self)
-        if self.readout == "ridge":
+        if self.readout in FITS:
             if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
                 raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
+        if self.readout == "dynamics":
+            if self.transitions:
+                raise ValueError("readout 'dynamics' fits the window's observed state changes on GN_p's outputs, so "
+                                 "GN_p must not read those changes: transitions=True is refused with it")
+            if self.window < 2:
+                raise ValueError(f"readout 'dynamics' fits state changes between steps: window must be at least 2, "
+                                 f"got {self.window}")
+        if self.readout == "ridge":
             small = [k for k in KINDS if 0 < self.identifier.out(k) <= self.ridge_features]
             if small:
                 raise ValueError(f"readout 'ridge' splits GN_p's outputs into {self.ridge_features} features and "
@@ -93,6 +116,8 @@ class SysIDConfig:
     def gid_size(self, kind: str) -> int:
         """G_ID's width per node, edge or global."""
         w = self.identifier.out(kind)
+        if self.readout == "dynamics":
+            return w * (FIT_TARGETS.stop - FIT_TARGETS.start)
         return (w - self.ridge_features) * self.ridge_features if self.readout == "ridge" and w > 0 else w
 
     @property
@@ -102,22 +127,22 @@ class SysIDConfig:
     def to_dict(self) -> dict:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
                 "transitions": self.transitions, "readout": self.readout,
-                **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {})}
+                **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {}),
+                **({"ridge": self.ridge} if self.readout == "dynamics" else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
         return cls(**check_keys(cls, d, "sysid config keys"))
 
 
-def _ridge_solution(x: torch.Tensor, features: int, ridge: float) -> torch.Tensor:
-    """Per row of ``x`` [T, n, F + P] (T steps): the ridge solution B [F, P] of
-    x[..., F:] ~ B^T x[..., :F] over the T steps, flattened to [n, F * P]. A Cholesky solve
-    without error checks (no host synchronization, so it can be captured)."""
-    phi, psi = x[..., :features], x[..., features:]
-    T = x.shape[0]
+def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch.Tensor:
+    """Per row of the regressors ``phi`` [T, n, F] and targets ``psi`` [T, n, P] (T steps): the
+    ridge solution B [F, P] of psi ~ B^T phi over the T steps, flattened to [n, F * P]. A
+    Cholesky solve without error checks (no host synchronization, so it can be captured)."""
+    features, T = phi.shape[-1], phi.shape[0]
     S = torch.einsum("tnf,tng->nfg", phi, phi) / T
     R = torch.einsum("tnf,tnp->nfp", phi, psi) / T
-    eye = torch.eye(features, dtype=x.dtype, device=x.device)
+    eye = torch.eye(features, dtype=phi.dtype, device=phi.device)
     lam = ridge * S.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] + 1e-6
     L, _ = torch.linalg.cholesky_ex(S + lam * eye)
     y = torch.linalg.solve_triangular(L, R, upper=False)
@@ -268,8 +293,9 @@ class SysIDModel(nn.Module):
         t -> graph), normalized with the forward model's input statistics (``stats``: as
         ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4);
         with ``config.transitions``, the ``steps - 1`` transitions between them; with
-        ``config.readout == "mean"``, the mean of GN_p's output graphs over the steps. No host
-        synchronization once the topology's index exists."""
+        ``config.readout`` "mean", the mean of GN_p's output graphs over the steps, "ridge" or
+        "dynamics" their fits (``SysIDConfig``). No host synchronization once the topology's
+        index exists."""
         fm = self.forward_model
         get = window if callable(window) else window.__getitem__
         g0 = get(0)
@@ -277,9 +303,10 @@ class SysIDModel(nn.Module):
         stats = stats if stats is not None else fm.stats(g0.nodes.dtype)
         (mn, sn), (me, se) = stats["nodes"], stats["edges"]
         K = g0.edges.shape[-1]
-        transitions = self.sysid.transitions
-        if transitions and steps < 2:
-            raise ValueError("identifying from transitions needs a window of at least 2 steps")
+        transitions, readout = self.sysid.transitions, self.sysid.readout
+        if (transitions or readout == "dynamics") and steps < 2:
+            raise ValueError("identifying from transitions or state changes needs a window of at least 2 steps")
+        observed = []   # "dynamics": each step's normalized velocity change to the next [n, 6]
 
         built = {0: g0}   # graphs of steps t and t + 1 (a transition reads both; each is built once)
 
@@ -293,20 +320,41 @@ class SysIDModel(nn.Module):
             g = graph(t)
             dyn, _ = fm._recenter(g.nodes, ctx)
             nodes = (dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:]
-            if transitions:   # the change to the next step, as the forward model's targets are normalized
+            if transitions or readout == "dynamics":   # the change to the next step, normalized as the targets
                 md, sd = stats["delta"]
-                nodes = torch.cat([nodes, (state_delta(g.nodes, graph(t + 1).nodes) - md) / sd], -1)
+                delta = (state_delta(g.nodes, graph(t + 1).nodes) - md) / sd
+                if transitions:
+                    nodes = torch.cat([nodes, delta], -1)
+                else:   # bodies that cannot move have no dynamics to fit
+                    observed.append(delta[:, FIT_TARGETS] * ctx.movable.to(delta.dtype)[:, None])
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
-        n = steps - 1 if transitions else steps
-        readout = self.sysid.readout
+        n = steps - 1 if transitions or readout == "dynamics" else steps
         outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=readout == "last")
         if readout == "last":
             return outs[-1]
         c = self.sysid
-        pool = (lambda x: _ridge_solution(x, c.ridge_features, c.ridge)) if readout == "ridge" else (lambda x: x.mean(0))
-        return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
-                                    pool(torch.stack([getattr(o, k) for o in outs])) for k in KINDS})
+        stacked = {k: None if getattr(outs[-1], k) is None else torch.stack([getattr(o, k) for o in outs]) for k in KINDS}
+        if readout == "mean":
+            pooled = {k: None if x is None else x.mean(0) for k, x in stacked.items()}
+        elif readout == "ridge":
+            F = c.ridge_features
+            pooled = {k: None if x is None else _ridge_solution(x[..., :F], x[..., F:], c.ridge)
+                      for k, x in stacked.items()}
+        else:
+            psi = self._observed_targets(torch.stack(observed), g0, ctx)
+            pooled = {k: None if x is None else _ridge_solution(x, psi[k].to(x.dtype), c.ridge)
+                      for k, x in stacked.items()}
+        return outs[-1]._replace(**pooled)
+
+    @staticmethod
+    def _observed_targets(node: torch.Tensor, graph: GraphsTuple, ctx) -> dict[str, torch.Tensor]:
+        """The "dynamics" readout's targets [T, rows, 6] per kind from the nodes' [T, n, 6]: an
+        edge's are its receiver's, a graph's the mean over its moving bodies."""
+        w = ctx.movable.to(node.dtype)
+        count = node.new_zeros(ctx.n_graph).index_add_(0, ctx.node_graph, w).clamp_min(1.0)
+        glob = node.new_zeros(node.shape[0], ctx.n_graph, node.shape[2]).index_add_(1, ctx.node_graph, node)
+        return {"nodes": node, "edges": node[:, graph.receivers.long()], "globals": glob / count[:, None]}
 
     def _template(self, instance, N: int) -> tuple[GraphTemplate, int]:
         if self.builder is None:
@@ -329,6 +377,20 @@ class SysIDModel(nn.Module):
         dtype and re-captured when the weights' storage moves (weights updated in place are read
         at each replay); the window is copied in and G_ID copied out. A captured G_ID carries no
         gradient: differentiate through ``capture=False``."""
+        body, ctrl, tmpl = self._window(window_body, window_ctrl, instance, check)
+        W = self.window
+        if capture is None:
+            capture = body.is_cuda and not torch.is_grad_enabled()
+        if capture:
+            if not body.is_cuda:
+                raise ValueError("capture=True needs a model on a CUDA device")
+            with torch.no_grad():
+                return self._captured_identify(tmpl, body, ctrl)
+        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
+
+    def _window(self, window_body, window_ctrl, instance, check: bool):
+        """The last W steps of an identification window, checked, on the model's device and
+        dtype: (body [N, W, B, 13], ctrl [N, W, U], template of its instances)."""
         body, ctrl = float_tensor(window_body, "window_body"), float_tensor(window_ctrl, "window_ctrl")
         W = self.window
         if body.ndim != 4 or ctrl.ndim != 3:
@@ -353,14 +415,7 @@ class SysIDModel(nn.Module):
                 if bool(bad.any()):
                     raise RolloutInputError(f"{name} contains NaN or Inf (first at {name}"
                                             f"{[int(i) for i in bad.nonzero()[0]]} of its last {W} steps)")
-        if capture is None:
-            capture = body.is_cuda and not torch.is_grad_enabled()
-        if capture:
-            if not body.is_cuda:
-                raise ValueError("capture=True needs a model on a CUDA device")
-            with torch.no_grad():
-                return self._captured_identify(tmpl, body, ctrl)
-        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
+        return body, ctrl, tmpl
 
     def _captured_identify(self, tmpl: GraphTemplate, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
         from gnwarp.interop import replay_cached

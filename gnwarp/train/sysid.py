@@ -34,7 +34,7 @@ from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
 __all__ = ["SysIDTrainer", "SysIDSample", "ParamStats", "build_sysid_model", "estimate_params", "load_sysid",
-           "param_stats", "sysid_rollout_error", "window_spread"]
+           "param_stats", "sysid_rollout_error", "window_spread", "with_params"]
 
 
 class SysIDSample(NamedTuple):
@@ -60,6 +60,16 @@ class ParamStats(NamedTuple):
         raw = np.asarray(params, dtype=np.float64)
         ok = np.isfinite(raw) & self.used
         return np.where(ok, (np.nan_to_num(raw) - self.mean) / self.std, 0.0), ok
+
+
+def with_params(g_id: GraphsTuple, z, ok) -> GraphsTuple:
+    """G_ID with its first P global columns replaced by standardized parameters ``z`` [N, P]
+    where ``ok`` [N, P] is nonzero (``ParamStats.standardize``'s; arrays or tensors), GN_p's
+    estimate elsewhere."""
+    gl = g_id.globals
+    z, ok = (torch.as_tensor(a, device=gl.device, dtype=gl.dtype) for a in (z, ok))
+    P = z.shape[1]
+    return g_id._replace(globals=torch.cat([torch.where(ok > 0, z, gl[:, :P]), gl[:, P:]], 1))
 
 
 def param_stats(dataset) -> ParamStats:
@@ -129,11 +139,15 @@ class SysIDTrainer(Trainer):
     (``param_stats``). G_ID stays the forward model's latent static graph; the term tells GN_p
     what to identify, at a precision the one-step loss alone rewards too weakly (a 1% error in a
     pendulum's length changes one step's prediction by ~1e-4 of its noise, a 100-step rollout by
-    far more). ``estimate_params`` reads the parameters back from G_ID."""
+    far more). ``estimate_params`` reads the parameters back from G_ID.
+    ``param_teacher`` (with ``param_loss``; default 0): the fraction of windows whose forward
+    model reads the instance's true standardized parameters in those columns instead of GN_p's
+    estimate (teacher forcing), so that it learns the parameters' exact effect; GN_p's columns
+    then learn from ``param_loss`` alone on those windows."""
 
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
                  model: SysIDModel | None = None, callbacks=(), targets: int = 1, start_windows: float = 0.0,
-                 consistency: float = 0.0, param_loss: float = 0.0):
+                 consistency: float = 0.0, param_loss: float = 0.0, param_teacher: float = 0.0):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
@@ -149,8 +163,16 @@ class SysIDTrainer(Trainer):
                 or not math.isfinite(param_loss) or param_loss < 0:
             raise ValueError(f"param_loss must be a finite number >= 0 (the weight of the parameter supervision "
                              f"term), got {param_loss!r}")
+        if isinstance(param_teacher, bool) or not isinstance(param_teacher, (int, float)) \
+                or not 0.0 <= float(param_teacher) <= 1.0:
+            raise ValueError(f"param_teacher must be a number from 0 to 1 (the fraction of windows whose true "
+                             f"parameters the forward model reads), got {param_teacher!r}")
+        if param_teacher > 0 and param_loss == 0:
+            raise ValueError("param_teacher hands the forward model the parameters param_loss supervises: it needs "
+                             "param_loss > 0")
         self.targets = targets
         self.param_loss = float(param_loss)
+        self.param_teacher = float(param_teacher)
         self.start_windows = float(start_windows)
         self.consistency = float(consistency)
         if datasets is None:
@@ -194,6 +216,7 @@ class SysIDTrainer(Trainer):
         self.info["train"]["start_windows"] = self.start_windows
         self.info["train"]["consistency"] = self.consistency
         self.info["train"]["param_loss"] = self.param_loss
+        self.info["train"]["param_teacher"] = self.param_teacher
 
     @property
     def log_fields(self) -> tuple[str, ...]:
@@ -213,8 +236,9 @@ class SysIDTrainer(Trainer):
         before = {k: saved.get(k) for k in ("identifier", "window")}
         before["transitions"] = saved.get("transitions", False)   # checkpoints from before the options
         before["readout"] = saved.get("readout", "last")
-        if wanted.readout == "ridge" or "ridge" in saved:
-            before["ridge_features"], before["ridge"] = saved.get("ridge_features"), saved.get("ridge")
+        for k in ("ridge_features", "ridge"):   # the fitting readouts' own settings
+            if k in want or k in saved:
+                before[k] = saved.get(k)
         changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" for k, v in before.items() if v != want.get(k)]
         return changes
 
@@ -266,6 +290,9 @@ class SysIDTrainer(Trainer):
                 z, ok = p.params
                 est = g_id.globals[:, :z.shape[1]].to(z.dtype)
                 perr.append(((est - z).square() * ok).sum() / ok.sum().clamp_min(1.0))
+                if self.param_teacher > 0:   # these windows hand the forward model the true parameters
+                    u = torch.rand(z.shape[0], 1, generator=self.generator, device=z.device, dtype=z.dtype)
+                    g_id = with_params(g_id, z, ok * (u < self.param_teacher))
             if self.targets > 1:   # the same G_ID for each of the window's K one-step targets
                 K = self.targets
                 g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).repeat(K, 1)
@@ -322,11 +349,14 @@ def window_spread(g_id: GraphsTuple, other: GraphsTuple | None = None) -> torch.
 
 @torch.no_grad()
 def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
-                        sequences: int | None = None, window_from=None) -> float:
+                        sequences: int | None = None, window_from=None, oracle: ParamStats | None = None) -> float:
     """Mean normalized rollout error (as ``gnwarp.eval.rollout_error``) of rollouts from step W of
     each of the first ``sequences`` sequences of ``split``, G_ID identified from its steps
     [0, W) (``window_from`` [S]: the sequences whose windows to use instead, e.g. another
-    instance's, for the paper's Figure 8)."""
+    instance's, for the paper's Figure 8). ``oracle`` (the
+    ``param_stats`` of a model trained with ``param_loss``): G_ID's first P global columns are
+    replaced by the instances' true standardized parameters, the error of its forward model
+    when those columns are identified perfectly."""
     sp = dataset[split]
     n = len(sp) if sequences is None else min(int(sequences), len(sp))
     W = model.window
@@ -341,6 +371,8 @@ def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizo
     old, model.builder = model.builder, builder
     try:
         g_id = model.identify(body[src, :W], ctrl[src, :W], torch.as_tensor(inst[src]))
+        if oracle is not None:
+            g_id = with_params(g_id, *oracle.standardize(np.asarray(dataset.static["params"])[inst[src]]))
         pred = model.rollout(body[:, W], ctrl[:, W:W + H], g_id, torch.as_tensor(inst)).float().cpu().numpy()
     finally:
         model.builder = old
