@@ -839,3 +839,6 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
     oracle = sysid_rollout_error(model, pendulum, "valid", 10, oracle=st)
     assert oracle == pytest.approx(hand, rel=1e-6)
     assert oracle != pytest.approx(sysid_rollout_error(model, pendulum, "valid", 10), rel=1e-3)
+    fixed = data.generate("pendulum", (2, 2, 2), num_steps=12, seed=0, backend="mujoco", progress=False)
+    with pytest.raises(ValueError, match="no instance parameters"):
+        sysid_rollout_error(model, fixed, "valid", 2, oracle=st)

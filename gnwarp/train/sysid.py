@@ -372,7 +372,11 @@ def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizo
     try:
         g_id = model.identify(body[src, :W], ctrl[src, :W], torch.as_tensor(inst[src]))
         if oracle is not None:
-            g_id = with_params(g_id, *oracle.standardize(np.asarray(dataset.static["params"])[inst[src]]))
+            params = dataset.static.get("params") if hasattr(dataset.static, "get") else None
+            if params is None or np.asarray(params).shape[-1:] != oracle.mean.shape:
+                raise ValueError(f"oracle: dataset {dataset.system!r} has no instance parameters of the "
+                                 f"{len(oracle.names)} the statistics describe ({', '.join(oracle.names)})")
+            g_id = with_params(g_id, *oracle.standardize(np.asarray(params)[inst[src]]))
         pred = model.rollout(body[:, W], ctrl[:, W:W + H], g_id, torch.as_tensor(inst)).float().cpu().numpy()
     finally:
         model.builder = old
