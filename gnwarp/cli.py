@@ -182,21 +182,27 @@ def _cmd_train(args) -> int:
 def _evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
     """Rollout errors of system-identification checkpoints: G_ID identified from the first
     window of each sequence of the split (the same instance) and from another instance's window
-    (the sequences rotated by one), then rollouts from the window's end."""
+    (the sequences rotated by one), then rollouts from the window's end. A checkpoint trained
+    with ``--param-loss`` adds a row with G_ID's supervised columns set to the true parameters
+    (what its forward model does when those are identified perfectly)."""
     import math
     from pathlib import Path
 
     import numpy as np
 
-    from gnwarp.train.sysid import load_sysid, sysid_rollout_error
+    from gnwarp.train.sysid import load_sysid, sysid_rollout_error, trained_param_stats
     print("| model | identified from | " + " | ".join(f"{h}-step rollout" for h in horizons) + " |")
     print("|---|---|" + "---|" * len(horizons))
     bad = False
     for path in paths:
         m = load_sysid(path, device=args.device)
         n = len(ds[args.split]) if sequences is None else min(sequences, len(ds[args.split]))
-        for label, src in (("same instance", None), ("another instance", np.roll(np.arange(n), 1))):
-            errs = [sysid_rollout_error(m, ds, args.split, h, n, window_from=src) for h in horizons]
+        rows = [("same instance", None, None), ("another instance", np.roll(np.arange(n), 1), None)]
+        stats = trained_param_stats(m, ds.system)
+        if stats is not None and "params" in ds.static:
+            rows.append(("same instance, true parameter columns", None, stats))
+        for label, src, oracle in rows:
+            errs = [sysid_rollout_error(m, ds, args.split, h, n, window_from=src, oracle=oracle) for h in horizons]
             bad |= not all(math.isfinite(e) for e in errs)
             print(f"| {Path(path).resolve().parent.name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
     if bad:

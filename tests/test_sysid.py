@@ -174,6 +174,11 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     saved = json.loads((tmp_path / "run-p" / "best" / "config.json").read_text())
     assert saved["train"]["param_loss"] == 2.0 and "param_stats" in saved
     assert load_sysid(tmp_path / "run-p" / "best").config.readout == "last"
+    capsys.readouterr()   # a supervised checkpoint's evaluation adds the oracle row; the paper's has none
+    assert main(["evaluate", str(tmp_path / "run-p" / "best"), str(tmp_path / "run" / "best"), "--data", str(path),
+                 "--horizons", "5"]) == 0
+    rows = [r for r in capsys.readouterr().out.splitlines() if "true parameter columns" in r]
+    assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
                  ["--param-loss", "1"]):
         with pytest.raises(SystemExit, match="--sysid"):
@@ -842,3 +847,15 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
     fixed = data.generate("pendulum", (2, 2, 2), num_steps=12, seed=0, backend="mujoco", progress=False)
     with pytest.raises(ValueError, match="no instance parameters"):
         sysid_rollout_error(model, fixed, "valid", 2, oracle=st)
+
+    # the statistics it was trained with, from its checkpoint, checked
+    from gnwarp.train.sysid import ParamStats, trained_param_stats
+    kept = trained_param_stats(model, "pendulum")
+    assert kept.names == st.names and np.allclose(kept.mean, st.mean) and np.allclose(kept.std, st.std)
+    assert trained_param_stats(model, "cartpole") is None
+    good = {"names": ["a", "b"], "mean": [1.0, 2.0], "std": [0.5, 0.0], "used": [True, False]}
+    assert ParamStats.from_dict(good).used.tolist() == [True, False]
+    for bad in ({**good, "std": [0.0, 1.0]}, {**good, "mean": [1.0, math.nan]}, {**good, "used": [1, 0]},
+                {**good, "mean": [1.0]}, {**good, "names": "ab"}, {**good, "mean": ["x", 1]}, {"names": []}):
+        with pytest.raises(ValueError, match="parameter statistics"):
+            ParamStats.from_dict(bad)

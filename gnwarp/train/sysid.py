@@ -34,7 +34,7 @@ from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
 __all__ = ["SysIDTrainer", "SysIDSample", "ParamStats", "build_sysid_model", "estimate_params", "load_sysid",
-           "param_stats", "sysid_rollout_error", "window_spread", "with_params"]
+           "param_stats", "sysid_rollout_error", "trained_param_stats", "window_spread", "with_params"]
 
 
 class SysIDSample(NamedTuple):
@@ -60,6 +60,41 @@ class ParamStats(NamedTuple):
         raw = np.asarray(params, dtype=np.float64)
         ok = np.isfinite(raw) & self.used
         return np.where(ok, (np.nan_to_num(raw) - self.mean) / self.std, 0.0), ok
+
+    @classmethod
+    def from_dict(cls, d) -> "ParamStats":
+        """The statistics a checkpoint's config.json keeps (``param_stats`` per system), checked:
+        P names, P finite means and standard deviations (positive where used), P flags."""
+        if not isinstance(d, dict) or set(d) != {"names", "mean", "std", "used"}:
+            raise ValueError(f"parameter statistics need names, mean, std and used, got {d!r:.80}")
+        names = d["names"]
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError("parameter statistics: names must be a list of strings")
+        try:
+            mean, std = (np.asarray(d[k], dtype=np.float64) for k in ("mean", "std"))
+            used = np.asarray(d["used"])
+        except (TypeError, ValueError):
+            raise ValueError("parameter statistics: mean and std must be lists of numbers") from None
+        P = len(names)
+        if any(a.shape != (P,) for a in (mean, std, used)) or used.dtype != np.bool_:
+            raise ValueError(f"parameter statistics: mean, std and used must each hold {P} values (used: booleans)")
+        if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std[used] > 0).all()):
+            raise ValueError("parameter statistics: mean and std must be finite, std positive for used parameters")
+        return cls(list(names), mean, std, used)
+
+
+def trained_param_stats(model: SysIDModel, system: str) -> ParamStats | None:
+    """The parameter statistics a model loaded with ``load_sysid`` was trained with for
+    ``system`` (``SysIDTrainer(param_loss=...)``); None if it was trained without them.
+    ``CheckpointError`` if its config.json holds malformed ones."""
+    info = getattr(model, "checkpoint_info", None) or {}
+    stats = (info.get("param_stats") or {}).get(system) if isinstance(info.get("param_stats"), dict) else None
+    if stats is None:
+        return None
+    try:
+        return ParamStats.from_dict(stats)
+    except ValueError as e:
+        raise CheckpointError(f"config.json's param_stats[{system!r}]: {e}") from None
 
 
 def with_params(g_id: GraphsTuple, z, ok) -> GraphsTuple:
@@ -398,6 +433,7 @@ def load_sysid(path, device=None) -> SysIDModel:
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: config.json does not describe a system-identification model ({e})") from None
     model = SysIDModel(config, layout)
+    model.checkpoint_info = cfg
     try:
         model.load_state_dict(load_weights(path))
     except Exception as e:  # noqa: BLE001 - weights of another architecture
