@@ -214,8 +214,8 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
              "test_sequences": n, "from_step_0": from_0.get(k),
              **({"runs": runs} if k == "true params" else {})} for k, v in errs.items()]
     if args.param_loss > 0:   # the sysid forward model with its supervised columns identified perfectly
-        from gnwarp.train.sysid import param_stats
-        e = sysid_rollout_error(models["sysid"], ds, "test", H, n, oracle=param_stats(ds))
+        from gnwarp.train.sysid import trained_param_stats
+        e = sysid_rollout_error(models["sysid"], ds, "test", H, n, oracle=trained_param_stats(models["sysid"], system))
         rows.append({"part": "oracle", "system": system, "model": "sysid, true parameter columns", "error": float(e),
                      "ratio_to_true": float(e / errs["true params"]) if errs["true params"] else None,
                      "window": W, "horizon": H, "test_sequences": n})
@@ -292,12 +292,12 @@ def estimate_rows(args, system: str, ds, model) -> list[dict]:
     """With ``--param-loss``: the parameters G_ID carries (``estimate_params``) against the test
     instances' true ones, from each test sequence's first window: the rms error over the
     parameter's mean magnitude, and R^2."""
-    from gnwarp.train.sysid import estimate_params, param_stats
+    from gnwarp.train.sysid import estimate_params, trained_param_stats
     body, ctrl, inst = split_arrays(ds, "test", args.test)
     model.bind(ds)
     W = model.window
     g = model.identify(torch.as_tensor(body[:, :W]), torch.as_tensor(ctrl[:, :W]), torch.as_tensor(inst))
-    st = param_stats(ds)
+    st = trained_param_stats(model, system)    # the statistics it was trained with (its config.json)
     est, true = estimate_params(g, st), np.asarray(ds.static["params"], dtype=np.float64)[inst]
     rows = []
     for j, name in enumerate(st.names):

@@ -334,18 +334,16 @@ class SysIDModel(nn.Module):
         if readout == "last":
             return outs[-1]
         c = self.sysid
-        stacked = {k: None if getattr(outs[-1], k) is None else torch.stack([getattr(o, k) for o in outs]) for k in KINDS}
-        if readout == "mean":
-            pooled = {k: None if x is None else x.mean(0) for k, x in stacked.items()}
-        elif readout == "ridge":
-            F = c.ridge_features
-            pooled = {k: None if x is None else _ridge_solution(x[..., :F], x[..., F:], c.ridge)
-                      for k, x in stacked.items()}
-        else:
-            psi = self._observed_targets(torch.stack(observed), g0, ctx)
-            pooled = {k: None if x is None else _ridge_solution(x, psi[k].to(x.dtype), c.ridge)
-                      for k, x in stacked.items()}
-        return outs[-1]._replace(**pooled)
+        psi = self._observed_targets(torch.stack(observed), g0, ctx) if readout == "dynamics" else None
+
+        def pool(k, x):   # x [T, rows, width]: GN_p's outputs of kind k over the steps
+            if readout == "mean":
+                return x.mean(0)
+            if readout == "ridge":   # regressors and targets both GN_p's
+                return _ridge_solution(x[..., :c.ridge_features], x[..., c.ridge_features:], c.ridge)
+            return _ridge_solution(x, psi[k].to(x.dtype), c.ridge)     # "dynamics": observed targets
+        return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
+                                    pool(k, torch.stack([getattr(o, k) for o in outs])) for k in KINDS})
 
     @staticmethod
     def _observed_targets(node: torch.Tensor, graph: GraphsTuple, ctx) -> dict[str, torch.Tensor]:
@@ -377,20 +375,6 @@ class SysIDModel(nn.Module):
         dtype and re-captured when the weights' storage moves (weights updated in place are read
         at each replay); the window is copied in and G_ID copied out. A captured G_ID carries no
         gradient: differentiate through ``capture=False``."""
-        body, ctrl, tmpl = self._window(window_body, window_ctrl, instance, check)
-        W = self.window
-        if capture is None:
-            capture = body.is_cuda and not torch.is_grad_enabled()
-        if capture:
-            if not body.is_cuda:
-                raise ValueError("capture=True needs a model on a CUDA device")
-            with torch.no_grad():
-                return self._captured_identify(tmpl, body, ctrl)
-        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
-
-    def _window(self, window_body, window_ctrl, instance, check: bool):
-        """The last W steps of an identification window, checked, on the model's device and
-        dtype: (body [N, W, B, 13], ctrl [N, W, U], template of its instances)."""
         body, ctrl = float_tensor(window_body, "window_body"), float_tensor(window_ctrl, "window_ctrl")
         W = self.window
         if body.ndim != 4 or ctrl.ndim != 3:
@@ -415,7 +399,14 @@ class SysIDModel(nn.Module):
                 if bool(bad.any()):
                     raise RolloutInputError(f"{name} contains NaN or Inf (first at {name}"
                                             f"{[int(i) for i in bad.nonzero()[0]]} of its last {W} steps)")
-        return body, ctrl, tmpl
+        if capture is None:
+            capture = body.is_cuda and not torch.is_grad_enabled()
+        if capture:
+            if not body.is_cuda:
+                raise ValueError("capture=True needs a model on a CUDA device")
+            with torch.no_grad():
+                return self._captured_identify(tmpl, body, ctrl)
+        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
 
     def _captured_identify(self, tmpl: GraphTemplate, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
         from gnwarp.interop import replay_cached

@@ -61,6 +61,11 @@ class ParamStats(NamedTuple):
         ok = np.isfinite(raw) & self.used
         return np.where(ok, (np.nan_to_num(raw) - self.mean) / self.std, 0.0), ok
 
+    def to_dict(self) -> dict:
+        """As a checkpoint's config.json keeps it (``from_dict`` reads it back)."""
+        return {"names": list(self.names), "mean": self.mean.tolist(), "std": self.std.tolist(),
+                "used": self.used.tolist()}
+
     @classmethod
     def from_dict(cls, d) -> "ParamStats":
         """The statistics a checkpoint's config.json keeps (``param_stats`` per system), checked:
@@ -87,8 +92,8 @@ def trained_param_stats(model: SysIDModel, system: str) -> ParamStats | None:
     """The parameter statistics a model loaded with ``load_sysid`` was trained with for
     ``system`` (``SysIDTrainer(param_loss=...)``); None if it was trained without them.
     ``CheckpointError`` if its config.json holds malformed ones."""
-    info = getattr(model, "checkpoint_info", None) or {}
-    stats = (info.get("param_stats") or {}).get(system) if isinstance(info.get("param_stats"), dict) else None
+    kept = (getattr(model, "checkpoint_info", None) or {}).get("param_stats")
+    stats = kept.get(system) if isinstance(kept, dict) else None
     if stats is None:
         return None
     try:
@@ -186,30 +191,18 @@ class SysIDTrainer(Trainer):
         if isinstance(targets, bool) or not isinstance(targets, int) or targets < 1:
             raise ValueError(f"targets must be a positive int (one-step losses per identification window), "
                              f"got {targets!r}")
-        if isinstance(start_windows, bool) or not isinstance(start_windows, (int, float)) \
-                or not 0.0 <= float(start_windows) <= 1.0:
-            raise ValueError(f"start_windows must be a number from 0 to 1 (the fraction of identification windows "
-                             f"at a sequence's start), got {start_windows!r}")
-        if isinstance(consistency, bool) or not isinstance(consistency, (int, float)) \
-                or not math.isfinite(consistency) or consistency < 0:
-            raise ValueError(f"consistency must be a finite number >= 0 (the weight of the window-consistency "
-                             f"term), got {consistency!r}")
-        if isinstance(param_loss, bool) or not isinstance(param_loss, (int, float)) \
-                or not math.isfinite(param_loss) or param_loss < 0:
-            raise ValueError(f"param_loss must be a finite number >= 0 (the weight of the parameter supervision "
-                             f"term), got {param_loss!r}")
-        if isinstance(param_teacher, bool) or not isinstance(param_teacher, (int, float)) \
-                or not 0.0 <= float(param_teacher) <= 1.0:
-            raise ValueError(f"param_teacher must be a number from 0 to 1 (the fraction of windows whose true "
-                             f"parameters the forward model reads), got {param_teacher!r}")
+        start_windows = _number("start_windows", start_windows, "the fraction of identification windows at a "
+                                "sequence's start", most=1.0)
+        consistency = _number("consistency", consistency, "the weight of the window-consistency term")
+        param_loss = _number("param_loss", param_loss, "the weight of the parameter supervision term")
+        param_teacher = _number("param_teacher", param_teacher, "the fraction of windows whose true parameters the "
+                                "forward model reads", most=1.0)
         if param_teacher > 0 and param_loss == 0:
             raise ValueError("param_teacher hands the forward model the parameters param_loss supervises: it needs "
                              "param_loss > 0")
         self.targets = targets
-        self.param_loss = float(param_loss)
-        self.param_teacher = float(param_teacher)
-        self.start_windows = float(start_windows)
-        self.consistency = float(consistency)
+        self.param_loss, self.param_teacher = param_loss, param_teacher
+        self.start_windows, self.consistency = start_windows, consistency
         if datasets is None:
             if not config.data:
                 raise ValueError("no training data: set `data` to one or more dataset files")
@@ -243,9 +236,7 @@ class SysIDTrainer(Trainer):
                 z, ok = st.standardize(d.static["params"])
                 self._param_z.append((torch.as_tensor(z, device=self.device, dtype=dt),
                                       torch.as_tensor(ok, device=self.device, dtype=dt)))
-            self.info["param_stats"] = {d.system: {"names": st.names, "mean": st.mean.tolist(), "std": st.std.tolist(),
-                                                   "used": st.used.tolist()}
-                                        for d, st in zip(self.datasets, self.param_stats)}
+            self.info["param_stats"] = {d.system: st.to_dict() for d, st in zip(self.datasets, self.param_stats)}
         self.info["kind"] = "sysid"   # in config.json: load_sysid reads it, load_model refuses it
         self.info["train"]["targets"] = targets
         self.info["train"]["start_windows"] = self.start_windows
@@ -353,6 +344,16 @@ class SysIDTrainer(Trainer):
         return float(np.mean(errs)) if errs else math.nan
 
 
+def _number(name: str, value, what: str, most: float | None = None) -> float:
+    """``value`` as a float if it is a finite number >= 0 (and <= ``most``); ValueError naming
+    ``name`` and ``what`` it is otherwise (a bool or a string is not a number here)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0 \
+            or (most is not None and value > most):
+        allowed = f"a number from 0 to {most:g}" if most is not None else "a finite number >= 0"
+        raise ValueError(f"{name} must be {allowed} ({what}), got {value!r}")
+    return float(value)
+
+
 def _shares(batch_size: int, k: int) -> list[int]:
     """Each of k datasets' number of sequences in a batch (the first ones take the remainder)."""
     return [batch_size // k + (1 if i < batch_size % k else 0) for i in range(k)]
@@ -407,7 +408,7 @@ def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizo
     try:
         g_id = model.identify(body[src, :W], ctrl[src, :W], torch.as_tensor(inst[src]))
         if oracle is not None:
-            params = dataset.static.get("params") if hasattr(dataset.static, "get") else None
+            params = dataset.static.get("params")
             if params is None or np.asarray(params).shape[-1:] != oracle.mean.shape:
                 raise ValueError(f"oracle: dataset {dataset.system!r} has no instance parameters of the "
                                  f"{len(oracle.names)} the statistics describe ({', '.join(oracle.names)})")
