@@ -162,13 +162,14 @@ def _cmd_train(args) -> int:
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
     if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows
-            or args.consistency or args.param_loss) and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions, --readout, --targets, --start-windows, --consistency and "
-                         "--param-loss apply to system identification (--sysid) only")
+            or args.consistency or args.param_loss or args.ridge_head) and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions, --readout, --ridge-head, --targets, --start-windows, "
+                         "--consistency and --param-loss apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
-        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout), targets=args.targets,
+        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout,
+                                                ridge_head=args.ridge_head), targets=args.targets,
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss).run()
     else:
@@ -427,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "its outputs over the window, a ridge fit over the window of some output columns on the "
                         "others, or a ridge fit of the window's observed velocity changes on the outputs (beyond the "
                         "paper, SysIDConfig.readout)")
+    t.add_argument("--ridge-head", type=int, default=0, metavar="H",
+                   help="with --readout ridge or dynamics: an MLP of width H maps the fit's coefficients to G_ID "
+                        "(beyond the paper, SysIDConfig.ridge_head; 0: none, G_ID is the coefficients)")
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")

@@ -151,10 +151,10 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     out = capsys.readouterr().out
     assert "same instance" in out and "another instance" in out
     assert load_sysid(tmp_path / "run" / "best").config.transitions is False
-    assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "ridge", "-o",
-                 str(tmp_path / "run-t"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+    assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "ridge", "--ridge-head", "8",
+                 "-o", str(tmp_path / "run-t"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     ridge = load_sysid(tmp_path / "run-t" / "best").config
-    assert (ridge.transitions, ridge.readout) == (True, "ridge")
+    assert (ridge.transitions, ridge.readout, ridge.ridge_head) == (True, "ridge", 8)
     assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5",
                  "--consistency", "0.3", "-o", str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
@@ -166,6 +166,9 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "dynamics", "-o",
                  str(tmp_path / "run-dt"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 2
     assert "transitions=True is refused" in capsys.readouterr().err
+    assert main(["train", "--data", str(path), "--sysid", "--ridge-head", "8", "-o", str(tmp_path / "run-h"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 2
+    assert "ridge_head" in capsys.readouterr().err and not (tmp_path / "run-h" / "best").exists()
     import json
     saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
     assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
@@ -180,7 +183,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     rows = [r for r in capsys.readouterr().out.splitlines() if "true parameter columns" in r]
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
-                 ["--param-loss", "1"]):
+                 ["--param-loss", "1"], ["--ridge-head", "8"]):
         with pytest.raises(SystemExit, match="--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
@@ -188,9 +191,9 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
                                           "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2,
-                                                                "param_loss": 1.0},
+                                                                "param_loss": 1.0, "ridge_head": 8},
                                      {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5}],
-                         ids=["paper", "mean-transitions-start-consistency", "ridge-param_loss", "dynamics-teacher"])
+                         ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -438,19 +441,21 @@ def _ridge_reference(phi, psi, ridge):
     return torch.linalg.solve(S + lam * torch.eye(phi.shape[-1], dtype=phi.dtype), R).reshape(phi.shape[1], -1)
 
 
-@pytest.mark.parametrize("readout", ["mean", "ridge", "dynamics"])
-def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout):
+@pytest.mark.parametrize("readout,head", [("mean", 0), ("ridge", 0), ("dynamics", 0), ("ridge", 5), ("dynamics", 5)],
+                         ids=["mean", "ridge", "dynamics", "ridge-head", "dynamics-head"])
+def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout, head):
     """``SysIDConfig(readout="mean")``: G_ID is the mean of GN_p's output graphs over the window;
     "ridge": per node, edge and global, the ridge solution of the outputs' last columns on their
     first ``ridge_features`` over the window; "dynamics": the ridge solution of the observed,
     normalized velocity changes (an edge's receiver's, a graph's mean over its moving bodies; the
     fixed world body's zero) on all output columns of the window's first W - 1 steps. Each equals
     running the identifier by hand and solving the normal equations with ``torch.linalg.solve``,
-    in float64; gradients through it match finite differences; it trains and the option travels
-    in the checkpoint, which a run of the other readout refuses to resume."""
+    in float64. With ``ridge_head``, G_ID is the head MLP of that solution, the identifier's
+    output width wide. Gradients through it match finite differences; it trains and the options
+    travel in the checkpoint, which a run of the other readout (or head) refuses to resume."""
     torch.manual_seed(0)
     cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
-                      window=4, readout=readout, ridge_features=2, ridge=0.01)
+                      window=4, readout=readout, ridge_features=2, ridge=0.01, ridge_head=head)
     m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
     sp = pendulum["train"]
     body, ctrl = torch.as_tensor(sp.body[:5, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:5, :8], dtype=torch.float64)
@@ -478,10 +483,16 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout)
             want = x.mean(0)
         elif readout == "ridge":
             want = _ridge_reference(x[..., :2], x[..., 2:], 0.01)
-            assert want.shape[1] == 2 * (ID.out(k) - 2) == m.gid_sizes[k]
+            assert want.shape[1] == 2 * (ID.out(k) - 2) == m.sysid.fit_size(k)
         else:
             want = _ridge_reference(x, psi[k], 0.01)
-            assert want.shape[1] == 6 * ID.out(k) == m.gid_sizes[k]
+            assert want.shape[1] == 6 * ID.out(k) == m.sysid.fit_size(k)
+        if head:   # two SiLU layers of width 5, by hand
+            a, _, b, _, c = m.heads[k]
+            silu = lambda v: v * torch.sigmoid(v)  # noqa: E731
+            want = silu(silu(want @ a.weight.T + a.bias) @ b.weight.T + b.bias) @ c.weight.T + c.bias
+            assert a.out_features == 5
+        assert want.shape[1] == m.gid_sizes[k] == (ID.out(k) if head or readout == "mean" else m.sysid.fit_size(k))
         torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-10, atol=1e-10)
         assert not torch.allclose(x.mean(0), getattr(outs[-1], k))   # not the last step's output
     moving = body[:2, :4, 1].clone().requires_grad_()
@@ -502,18 +513,33 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout)
         SysIDConfig(identifier=ID, readout="dynamics", window=1)
     with pytest.raises(ValueError, match="ridge"):
         SysIDConfig(identifier=ID, readout="dynamics", ridge=float("nan"))
+    for other in ("last", "mean"):
+        with pytest.raises(ValueError, match="ridge_head .* needs readout"):
+            SysIDConfig(identifier=ID, readout=other, ridge_head=4)
+    with pytest.raises(ValueError, match="ridge_head"):
+        SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge_head=-1)
     tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)
     rows = []
-    summary = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2),
-                           datasets=[pendulum],
-                           callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
+    tr = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2, ridge_head=head),
+                      datasets=[pendulum], callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None])
+    summary = tr.run()
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
     loaded = load_sysid(summary["last"])
     assert loaded.config.readout == readout and (readout != "ridge" or loaded.config.ridge_features == 2)
+    assert loaded.config.ridge_head == head
+    window = (torch.as_tensor(sp.body[:3, :W]), torch.as_tensor(sp.ctrl[:3, :W]), torch.as_tensor(sp.instance[:3]))
+    tr.model.eval()   # the loaded model (its head included) identifies as the trained one did
+    got, want = loaded.bind(pendulum).identify(*window), tr.model.bind(pendulum).identify(*window)
+    for k in ("nodes", "edges", "globals"):
+        torch.testing.assert_close(getattr(got, k), getattr(want, k), rtol=0, atol=0)
     tcfg.steps = 40
+    if readout != "mean":   # the other head setting is refused by name
+        with pytest.raises(Exception, match="ridge_head"):
+            SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2,
+                                           ridge_head=0 if head else 5), datasets=[pendulum]).run()
     with pytest.raises(Exception, match="readout"):
         SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
 

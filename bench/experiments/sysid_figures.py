@@ -151,7 +151,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
 
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
-                        readout=args.readout)
+                        readout=args.readout, ridge_head=args.ridge_head)
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
                      consistency=args.consistency, param_loss=args.param_loss,
                      param_teacher=args.param_teacher).run()
@@ -571,6 +571,7 @@ def main():
                     help="true-parameter models trained identically; Figure 8's reference is their median")
     ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge", "dynamics"),
                     help="SysIDConfig.readout")
+    ap.add_argument("--ridge-head", type=int, default=0, help="SysIDConfig.ridge_head (with a fitting readout)")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
     ap.add_argument("--param-loss", type=float, default=0.0,
@@ -595,7 +596,7 @@ def main():
         args.sequences, args.num_steps, args.window, args.seconds, args.steps = (32, 4, 8), 24, 8, 5.0, 40
         args.valid, args.test, args.batch, args.valid_every, args.normalizer_warmup = 4, 8, 16, 1000, 2
         args.latent, args.edge_width, args.node_width = 16, 32, 16
-        args.gid, args.identifier_latent, args.identifier_mlp = 4, 16, (16,)
+        args.gid, args.identifier_latent, args.identifier_mlp = 6 if args.readout == "ridge" else 4, 16, (16,)
         args.probe_train, args.fig9_sequences, args.fig9_lengths = 32, 3, (0.4, 0.9)
         args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
     out = experiment_out("sysid_figures", args.out, args.quick)
@@ -642,7 +643,7 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, start_windows=args.start_windows, consistency=args.consistency,
+                         readout=args.readout, ridge_head=args.ridge_head, start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))

@@ -38,7 +38,7 @@ from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
 from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import PositiveInt, check_fields, check_keys
+from gnwarp.validation import Count, PositiveInt, check_fields, check_keys
 
 __all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
 
@@ -85,7 +85,13 @@ class SysIDConfig:
     identifier makes, with regressors GN_p learns. GN_p then reads states, not transitions (a
     regressor that saw the change it is fitted to would explain it away), and the window's last
     step is only a target.
-    ``ridge``: the ridge weight, relative to the mean diagonal of the features' second moments."""
+    ``ridge``: the ridge weight, relative to the mean diagonal of the features' second moments.
+    ``ridge_head`` (with a fitting readout; default 0, none): the width of a two-layer MLP (SiLU)
+    per node, edge and global that maps the fit's coefficients to G_ID, which is then the
+    identifier's ``out_*`` sizes wide. A fit's coefficients are the window's dynamics (for a
+    pendulum, the velocity change per sin(angle) and per control), which the parameters shape
+    nonlinearly (a length is a ratio of two of them); the head learns that map, so that G_ID can
+    hold the parameters themselves (what ``SysIDTrainer(param_loss=...)`` asks of it)."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
@@ -93,12 +99,16 @@ class SysIDConfig:
     readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
     ridge_features: PositiveInt = 4
     ridge: float = 1e-3
+    ridge_head: Count = 0
 
     def __post_init__(self):
         check_fields(self)
         if self.readout in FITS:
             if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
                 raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
+        if self.ridge_head and self.readout not in FITS:
+            raise ValueError(f"ridge_head maps a fit's coefficients to G_ID: it needs readout 'ridge' or 'dynamics', "
+                             f"got {self.readout!r}")
         if self.readout == "dynamics":
             if self.transitions:
                 raise ValueError("readout 'dynamics' fits the window's observed state changes on GN_p's outputs, so "
@@ -116,6 +126,14 @@ class SysIDConfig:
     def gid_size(self, kind: str) -> int:
         """G_ID's width per node, edge or global."""
         w = self.identifier.out(kind)
+        if self.ridge_head:
+            return w
+        return self.fit_size(kind)
+
+    def fit_size(self, kind: str) -> int:
+        """The width of the fit's flattened coefficients per node, edge or global (the identifier's
+        output width when the readout fits nothing)."""
+        w = self.identifier.out(kind)
         if self.readout == "dynamics":
             return w * (FIT_TARGETS.stop - FIT_TARGETS.start)
         return (w - self.ridge_features) * self.ridge_features if self.readout == "ridge" and w > 0 else w
@@ -128,7 +146,8 @@ class SysIDConfig:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
                 "transitions": self.transitions, "readout": self.readout,
                 **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {}),
-                **({"ridge": self.ridge} if self.readout == "dynamics" else {})}
+                **({"ridge": self.ridge} if self.readout == "dynamics" else {}),
+                **({"ridge_head": self.ridge_head} if self.ridge_head else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -214,6 +233,10 @@ class SysIDModel(nn.Module):
             fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
         sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
+        h = config.ridge_head   # the fit's coefficients -> G_ID (SysIDConfig.ridge_head)
+        self.heads = nn.ModuleDict({k: nn.Sequential(nn.Linear(config.fit_size(k), h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
+                                                     nn.Linear(h, self.gid_sizes[k]))
+                                    for k in KINDS if h and self.gid_sizes[k]}).to(config.forward.run.param_dtype)
         self.builder = None
         # the bound source's actuator ranges (``bind``): a builder of just those static columns
         self._range_layout = FeatureLayout([], [], list(RANGE_COLUMNS), n_ctrl_slots=K)
@@ -249,6 +272,7 @@ class SysIDModel(nn.Module):
         self.forward_model.set_options(options, **changes)
         self.identifier.set_options(self.options)
         self.identifier.to(self.options.param_dtype)
+        self.heads.to(self.options.param_dtype)
         return self
 
     def graph_builder(self, source, strict: bool = True):
@@ -340,8 +364,10 @@ class SysIDModel(nn.Module):
             if readout == "mean":
                 return x.mean(0)
             if readout == "ridge":   # regressors and targets both GN_p's
-                return _ridge_solution(x[..., :c.ridge_features], x[..., c.ridge_features:], c.ridge)
-            return _ridge_solution(x, psi[k].to(x.dtype), c.ridge)     # "dynamics": observed targets
+                b = _ridge_solution(x[..., :c.ridge_features], x[..., c.ridge_features:], c.ridge)
+            else:    # "dynamics": observed targets
+                b = _ridge_solution(x, psi[k].to(x.dtype), c.ridge)
+            return self.heads[k](b.to(self.options.param_dtype)).to(b.dtype) if k in self.heads else b
         return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
                                     pool(k, torch.stack([getattr(o, k) for o in outs])) for k in KINDS})
 

@@ -265,6 +265,8 @@ class SysIDTrainer(Trainer):
         for k in ("ridge_features", "ridge"):   # the fitting readouts' own settings
             if k in want or k in saved:
                 before[k] = saved.get(k)
+        before["ridge_head"] = saved.get("ridge_head", 0)
+        want.setdefault("ridge_head", 0)
         changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" for k, v in before.items() if v != want.get(k)]
         return changes
 
