@@ -1,6 +1,7 @@
 """System identification (Algorithms D.2, D.4): end-to-end training lowers the loss, a saved G_ID
 reproduces rollouts, bad identification windows are refused by name, and gradients through the
 window match finite differences."""
+import dataclasses
 import math
 from pathlib import Path
 
@@ -495,6 +496,12 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
         assert want.shape[1] == m.gid_sizes[k] == (ID.out(k) if head or readout == "mean" else m.sysid.fit_size(k))
         torch.testing.assert_close(getattr(g_id, k), want, rtol=1e-10, atol=1e-10)
         assert not torch.allclose(x.mean(0), getattr(outs[-1], k))   # not the last step's output
+    if head:   # the head follows the model's dtype when its options change
+        m32 = SysIDModel(dataclasses.replace(cfg, forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch"))),
+                         pendulum.layout).bind(pendulum)
+        assert m32.identify(body[:, :4].float(), ctrl[:, :4].float(), inst).globals.dtype == torch.float32
+        m32.set_options(precision="fp64")
+        assert m32.identify(body[:, :4], ctrl[:, :4], inst).globals.dtype == torch.float64
     moving = body[:2, :4, 1].clone().requires_grad_()
 
     def f(mv):
@@ -516,8 +523,9 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
     for other in ("last", "mean"):
         with pytest.raises(ValueError, match="ridge_head .* needs readout"):
             SysIDConfig(identifier=ID, readout=other, ridge_head=4)
-    with pytest.raises(ValueError, match="ridge_head"):
-        SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge_head=-1)
+    for bad in (-1, True, 1 << 17, 2.5):
+        with pytest.raises(ValueError, match="ridge_head"):
+            SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge_head=bad)
     tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)

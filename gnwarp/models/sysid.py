@@ -38,7 +38,7 @@ from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
 from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import Count, PositiveInt, check_fields, check_keys
+from gnwarp.validation import MAX_WIDTH, IntRange, PositiveInt, check_fields, check_keys
 
 __all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
 
@@ -59,7 +59,7 @@ def _identifier_default() -> RecurrentGNConfig:
 class SysIDConfig:
     """A system-identification model: ``forward`` (the forward model's ``ModelConfig``; its run
     options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths,
-    except under the ridge readout: ``gid_size``) and ``window`` (steps of the identification
+    except under a fitting readout without a head: ``gid_size``) and ``window`` (steps of the identification
     window, paper: 20).
 
     ``transitions`` (beyond the paper; default off, the paper's GN_p): GN_p reads the window's
@@ -74,7 +74,8 @@ class SysIDConfig:
     least-squares fit pools its equations) instead of passing through 19 GRU updates; "ridge"
     reads each step's output of a node (edge, global) as regressors phi [F] (its first
     ``ridge_features`` columns) and targets psi (the rest, P of them), and G_ID is the ridge
-    solution B [F, P] of psi ~ B^T phi over the window, flattened (F * P wide): a least-squares fit
+    solution B [F, P] of psi ~ B^T phi over the window, flattened (F * P wide; with ``ridge_head``,
+    the head's map of it): a least-squares fit
     whose features GN_p learns, the way a classical estimator identifies a system from a window.
     "dynamics" fixes the ridge fit's targets to what the window observed: each step's output of a
     node (edge, global) is the regressor phi [F] (all F of its columns) and the target is the
@@ -91,7 +92,9 @@ class SysIDConfig:
     identifier's ``out_*`` sizes wide. A fit's coefficients are the window's dynamics (for a
     pendulum, the velocity change per sin(angle) and per control), which the parameters shape
     nonlinearly (a length is a ratio of two of them); the head learns that map, so that G_ID can
-    hold the parameters themselves (what ``SysIDTrainer(param_loss=...)`` asks of it)."""
+    hold the parameters themselves (what ``SysIDTrainer(param_loss=...)`` asks of it). The head
+    is plain torch layers in the parameter dtype, whatever ``RunOptions.impl``: a few small GEMMs
+    once per window."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
@@ -99,7 +102,7 @@ class SysIDConfig:
     readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
     ridge_features: PositiveInt = 4
     ridge: float = 1e-3
-    ridge_head: Count = 0
+    ridge_head: IntRange(0, MAX_WIDTH) = 0
 
     def __post_init__(self):
         check_fields(self)
@@ -318,7 +321,7 @@ class SysIDModel(nn.Module):
         ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4);
         with ``config.transitions``, the ``steps - 1`` transitions between them; with
         ``config.readout`` "mean", the mean of GN_p's output graphs over the steps, "ridge" or
-        "dynamics" their fits (``SysIDConfig``). No host synchronization once the topology's
+        "dynamics" their fits (through ``config.ridge_head``'s MLP where it has one; ``SysIDConfig``). No host synchronization once the topology's
         index exists."""
         fm = self.forward_model
         get = window if callable(window) else window.__getitem__
