@@ -34,9 +34,10 @@ train sequences (first window) and scored by R^2 per parameter on the test seque
 Each system trains three models (no params, true params, sysid), each capped at ``--seconds``
 of wall clock (and ``--steps`` steps; learning rate x0.6 every quarter of ``--steps``). One
 system per call fits a 10-minute command at ``--seconds 120``. Rows are appended to
-``results.jsonl``; ``summary.md``, ``fig8.png`` (and ``fig9.png`` when Pendulum ran) are rebuilt
-from all rows there (the newest row of each system / model), so systems can run in separate
-calls. Datasets are cached under ``--data`` (default: a temporary folder), checkpoints under
+``results.jsonl``; ``summary.md`` and ``fig8.png`` are rebuilt from all rows there (the newest
+row of each system / model), so systems can run in separate calls. A pendulum run also draws
+``fig9.png`` (``fig9_<label>.png`` with ``--label``, so that labelled runs sharing ``--out`` keep
+their own). Datasets are cached under ``--data`` (default: a temporary folder), checkpoints under
 ``--runs`` (default: a temporary folder).
 """
 from __future__ import annotations
@@ -343,7 +344,7 @@ def fig9(args, models: dict, out: Path) -> list[dict]:
                          "sysid": window_error(pred, true, mask), "true params": window_error(ref, true, mask),
                          "fig9_sequences": n, "window": W, "horizon": H})
             traces[(float(L), cond)] = (body[0], pred[0], ref[0], uu[0])
-    plot_fig9(traces, args.fig9_lengths, W, out / "fig9.png")
+    plot_fig9(traces, args.fig9_lengths, W, out / (f"fig9_{args.label}.png" if args.label else "fig9.png"))
     return rows
 
 
