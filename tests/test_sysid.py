@@ -489,7 +489,7 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
             want = _ridge_reference(x, psi[k], 0.01)
             assert want.shape[1] == 6 * ID.out(k) == m.sysid.fit_size(k)
         if head:   # two SiLU layers of width 5, by hand
-            a, _, b, _, c = m.heads[k]
+            a, b, c = m.heads[k].layers
             silu = lambda v: v * torch.sigmoid(v)  # noqa: E731
             want = silu(silu(want @ a.weight.T + a.bias) @ b.weight.T + b.bias) @ c.weight.T + c.bias
             assert a.out_features == 5

@@ -18,18 +18,20 @@ __all__ = ["MLP", "TorchGraphNetwork", "check_graph"]
 
 
 class MLP(nn.Module):
-    """ReLU hidden layers, linear output: ``layers`` is a list of nn.Linear."""
+    """Hidden layers with ``activation`` (ReLU, the GN kernels' and the paper's), linear output:
+    ``layers`` is a list of nn.Linear."""
 
-    def __init__(self, in_size: int, hidden: Sequence[int], out_size: int):
+    def __init__(self, in_size: int, hidden: Sequence[int], out_size: int, activation=torch.relu):
         super().__init__()
         sizes = [in_size, *hidden, out_size]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.activation = activation
 
     def forward(self, x):
         for k, layer in enumerate(self.layers):
             x = layer(x)
             if k < len(self.layers) - 1:
-                x = torch.relu(x)
+                x = self.activation(x)
         return x
 
     def flat_parameters(self) -> list[torch.Tensor]:

@@ -26,10 +26,12 @@ from typing import Literal
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from gnwarp.data.builder import GraphTemplate, graph_builder
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.gn.options import RunOptions
+from gnwarp.gn.reference import MLP
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.config import ModelConfig
 from gnwarp.models.forward import ForwardModel
@@ -237,8 +239,7 @@ class SysIDModel(nn.Module):
         sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
         h = config.ridge_head   # the fit's coefficients -> G_ID (SysIDConfig.ridge_head)
-        self.heads = nn.ModuleDict({k: nn.Sequential(nn.Linear(config.fit_size(k), h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
-                                                     nn.Linear(h, self.gid_sizes[k]))
+        self.heads = nn.ModuleDict({k: MLP(config.fit_size(k), (h, h), self.gid_sizes[k], activation=F.silu)
                                     for k in KINDS if h and self.gid_sizes[k]}).to(config.forward.run.param_dtype)
         self.builder = None
         # the bound source's actuator ranges (``bind``): a builder of just those static columns
