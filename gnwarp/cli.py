@@ -162,16 +162,22 @@ def _cmd_train(args) -> int:
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
     if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows
-            or args.consistency or args.param_loss or args.ridge_head) and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions, --readout, --ridge-head, --targets, --start-windows, "
-                         "--consistency and --param-loss apply to system identification (--sysid) only")
+            or args.consistency or args.param_loss or args.param_teacher or args.ridge_head
+            or args.ridge_features is not None) and not args.sysid:
+        raise SystemExit("gnwarp train: --transitions, --readout, --ridge-head, --ridge-features, --targets, "
+                         "--start-windows, --consistency, --param-loss and --param-teacher apply to system "
+                         "identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
+        if args.ridge_features is not None and args.readout != "ridge":
+            raise SystemExit(f"gnwarp train: --ridge-features sets the regressors of --readout ridge's fit, got "
+                             f"--readout {args.readout}")
+        fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
         r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout,
-                                                ridge_head=args.ridge_head), targets=args.targets,
+                                          ridge_head=args.ridge_head, **fit), targets=args.targets,
                          start_windows=args.start_windows, consistency=args.consistency,
-                         param_loss=args.param_loss).run()
+                         param_loss=args.param_loss, param_teacher=args.param_teacher).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -431,6 +437,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--ridge-head", type=int, default=0, metavar="H",
                    help="with --readout ridge or dynamics: an MLP of width H maps the fit's coefficients to G_ID "
                         "(beyond the paper, SysIDConfig.ridge_head; 0: none, G_ID is the coefficients)")
+    t.add_argument("--ridge-features", type=int, default=None, metavar="F",
+                   help="with --readout ridge: regressors per fit, the rest of the recurrent GN's outputs being its "
+                        "targets (default 4; SysIDConfig.ridge_features)")
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")
@@ -440,6 +449,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--param-loss", type=float, default=0.0, metavar="P",
                    help="with --sysid: weight of supervising G_ID's first global columns with the data's instance "
                         "parameters (default 0, the paper's: no labels; beyond the paper, SysIDTrainer.param_loss)")
+    t.add_argument("--param-teacher", type=float, default=0.0, metavar="Q",
+                   help="with --param-loss: the fraction of windows whose forward model reads the true parameters "
+                        "in G_ID's supervised columns (teacher forcing; default 0; 1: the forward model trains as a "
+                        "true-parameter model and the identifier on --param-loss alone; SysIDTrainer.param_teacher)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

@@ -2,6 +2,7 @@
 reproduces rollouts, bad identification windows are refused by name, and gradients through the
 window match finite differences."""
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -153,9 +154,17 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert "same instance" in out and "another instance" in out
     assert load_sysid(tmp_path / "run" / "best").config.transitions is False
     assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "ridge", "--ridge-head", "8",
-                 "-o", str(tmp_path / "run-t"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+                 "--ridge-features", "3", "--param-loss", "1", "--param-teacher", "1", "-o", str(tmp_path / "run-t"),
+                 "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     ridge = load_sysid(tmp_path / "run-t" / "best").config
-    assert (ridge.transitions, ridge.readout, ridge.ridge_head) == (True, "ridge", 8)
+    assert (ridge.transitions, ridge.readout, ridge.ridge_head, ridge.ridge_features) == (True, "ridge", 8, 3)
+    saved = json.loads((tmp_path / "run-t" / "best" / "config.json").read_text())["train"]
+    assert (saved["param_loss"], saved["param_teacher"]) == (1.0, 1.0)
+    with pytest.raises(SystemExit, match="--readout ridge"):
+        main(["train", "--data", str(path), "--sysid", "--ridge-features", "3", "-o", str(tmp_path / "run-f"), "-q"])
+    assert main(["train", "--data", str(path), "--sysid", "--param-teacher", "0.5", "-o", str(tmp_path / "run-q"),
+                 "-q"] + [a for kv in sets for a in ("--set", kv)]) == 2
+    assert "needs param_loss" in capsys.readouterr().err and not (tmp_path / "run-q" / "best").exists()
     assert main(["train", "--data", str(path), "--sysid", "--readout", "mean", "--start-windows", "0.5",
                  "--consistency", "0.3", "-o", str(tmp_path / "run-m"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     assert load_sysid(tmp_path / "run-m" / "best").config.readout == "mean"
@@ -170,7 +179,6 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--ridge-head", "8", "-o", str(tmp_path / "run-h"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 2
     assert "ridge_head" in capsys.readouterr().err and not (tmp_path / "run-h" / "best").exists()
-    import json
     saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
     assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
     assert main(["train", "--data", str(path), "--sysid", "--param-loss", "2", "-o", str(tmp_path / "run-p"), "-q"]
@@ -184,7 +192,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     rows = [r for r in capsys.readouterr().out.splitlines() if "true parameter columns" in r]
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
-                 ["--param-loss", "1"], ["--ridge-head", "8"]):
+                 ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"]):
         with pytest.raises(SystemExit, match="--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
@@ -588,7 +596,6 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
     uniform = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
     assert starts(uniform) < 0.2      # 1 in T - W + 1 = 26 windows
     summary = half.run()
-    import json
     assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["start_windows"] == 0.5
 
 
@@ -708,7 +715,6 @@ def test_window_consistency_term(pendulum, tmp_path):
     assert float(terms["window_spread"].detach()) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
     check_added_term(tr.model, terms, "window_spread", 0.7)
     summary = tr.run()
-    import json
     assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["consistency"] == 0.7
     import csv
     with open(Path(summary["out"]) / "log.csv", newline="") as f:
@@ -732,7 +738,6 @@ def test_parameter_supervision(pendulum, tmp_path):
     in float64 from the dataset), whose gradient reaches GN_p only; training with it makes
     ``estimate_params`` track the true parameters better than the untrained identifier; bad weights, data without parameters
     and a G_ID too narrow are refused by name; the weight and statistics land in config.json."""
-    import json
 
     from gnwarp.train.sysid import estimate_params, param_stats
     cfg = term_config(tmp_path / "p")
@@ -830,7 +835,6 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
     forcing without ``param_loss``, are refused by name; the fraction lands in config.json.
     ``sysid_rollout_error(oracle=param_stats(ds))`` is the error with those columns replaced by
     the true parameters, which differs from the identified G_ID's."""
-    import json
 
     from gnwarp.train.sysid import param_stats
     cfg = term_config(tmp_path / "q")

@@ -152,7 +152,8 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
 
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
-                        readout=args.readout, ridge_head=args.ridge_head)
+                        readout=args.readout, ridge_head=args.ridge_head,
+                        **({"ridge_features": args.ridge_features} if args.ridge_features else {}))
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
                      consistency=args.consistency, param_loss=args.param_loss,
                      param_teacher=args.param_teacher).run()
@@ -573,6 +574,8 @@ def main():
     ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge", "dynamics"),
                     help="SysIDConfig.readout")
     ap.add_argument("--ridge-head", type=int, default=0, help="SysIDConfig.ridge_head (with a fitting readout)")
+    ap.add_argument("--ridge-features", type=int, default=None,
+                    help="SysIDConfig.ridge_features (readout ridge; default the config's 4): regressors per fit")
     ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
     ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
     ap.add_argument("--param-loss", type=float, default=0.0,
@@ -644,7 +647,9 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, ridge_head=args.ridge_head, start_windows=args.start_windows, consistency=args.consistency,
+                         readout=args.readout, ridge_head=args.ridge_head,
+                         **({"ridge_features": args.ridge_features} if args.ridge_features else {}),
+                         start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
