@@ -161,12 +161,13 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
-    if (args.transitions or args.targets != 1 or args.readout != "last" or args.start_windows
-            or args.consistency or args.param_loss or args.param_teacher or args.ridge_head
-            or args.ridge_features is not None) and not args.sysid:
-        raise SystemExit("gnwarp train: --transitions, --readout, --ridge-head, --ridge-features, --targets, "
-                         "--start-windows, --consistency, --param-loss and --param-teacher apply to system "
-                         "identification (--sysid) only")
+    sysid_only = {"--transitions": args.transitions, "--targets": args.targets != 1, "--readout": args.readout != "last",
+                  "--ridge-head": args.ridge_head, "--ridge-features": args.ridge_features is not None,
+                  "--start-windows": args.start_windows, "--consistency": args.consistency,
+                  "--param-loss": args.param_loss, "--param-teacher": args.param_teacher}
+    given = [flag for flag, on in sysid_only.items() if on]
+    if given and not args.sysid:
+        raise SystemExit(f"gnwarp train: {', '.join(given)} apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer

@@ -193,7 +193,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
                  ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"]):
-        with pytest.raises(SystemExit, match="--sysid"):
+        with pytest.raises(SystemExit, match=f"train: {flag[0]} apply to .*--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
 

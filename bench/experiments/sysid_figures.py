@@ -129,6 +129,15 @@ def identifier_config(args):
                              out_edges=g, out_nodes=g, out_globals=gg, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
 
 
+def fit_options(args) -> dict:
+    """``--ridge-features`` as ``SysIDConfig`` takes it (and as result rows record it): {} when not given."""
+    if args.ridge_features is None:
+        return {}
+    if args.readout != "ridge":
+        raise SystemExit(f"--ridge-features sets the regressors of --readout ridge's fit, got --readout {args.readout}")
+    return {"ridge_features": args.ridge_features}
+
+
 def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     """The three models of one system, trained on ``ds``: ({label: model}, {label: train summary})."""
     from gnwarp.models import ForwardModel, SysIDConfig
@@ -152,8 +161,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
 
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
-                        readout=args.readout, ridge_head=args.ridge_head,
-                        **({"ridge_features": args.ridge_features} if args.ridge_features else {}))
+                        readout=args.readout, ridge_head=args.ridge_head, **fit_options(args))
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
                      consistency=args.consistency, param_loss=args.param_loss,
                      param_teacher=args.param_teacher).run()
@@ -603,6 +611,7 @@ def main():
         args.gid, args.identifier_latent, args.identifier_mlp = 6 if args.readout == "ridge" else 4, 16, (16,)
         args.probe_train, args.fig9_sequences, args.fig9_lengths = 32, 3, (0.4, 0.9)
         args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
+    fit_options(args)   # a bad --ridge-features is refused before any data is made
     out = experiment_out("sysid_figures", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
     if args.compare:
@@ -647,8 +656,7 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, ridge_head=args.ridge_head,
-                         **({"ridge_features": args.ridge_features} if args.ridge_features else {}),
+                         readout=args.readout, ridge_head=args.ridge_head, **fit_options(args),
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
