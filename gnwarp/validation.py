@@ -71,10 +71,15 @@ def IntRange(lo: int, hi: int | None = None):
     return Annotated[int, BeforeValidator(_no_bool), Field(ge=lo, le=hi), Allowed(f"an integer {_bounds(lo, hi)}")]
 
 
-def FloatRange(gt: float | None = None, ge: float | None = None, le: float | None = None):
-    """A finite number type: > ``gt`` (or >= ``ge``), <= ``le``."""
-    text = f"a finite number {_bounds(ge, le, gt)}" if (gt is not None or ge is not None) else "a finite number"
-    return Annotated[float, BeforeValidator(_no_bool), Field(gt=gt, ge=ge, le=le, allow_inf_nan=False), Allowed(text)]
+def FloatRange(gt: float | None = None, ge: float | None = None, le: float | None = None,
+               lt: float | None = None):
+    """A finite number type: > ``gt`` (or >= ``ge``), <= ``le`` (or < ``lt``)."""
+    if gt is None and ge is None:
+        text = "a finite number"
+    else:
+        text = f"a finite number {_bounds(ge, le, gt)}" + (f" and < {lt:g}" if lt is not None else "")
+    return Annotated[float, BeforeValidator(_no_bool), Field(gt=gt, ge=ge, le=le, lt=lt, allow_inf_nan=False),
+                     Allowed(text)]
 
 
 MAX_WIDTH = 1 << 16    # widest layer a config may ask for (a 65536 x 65536 layer is 16 GiB in float32)

@@ -283,3 +283,70 @@ def test_flatten_parameters_keeps_outputs_and_casts_one_span(mode, sizes):
         flatten_parameters([a.edge_mlp.layers[0].weight] * 2)
     with pytest.raises(ValueError, match="no parameters"):
         flatten_parameters([])
+
+
+# -- WeightAverage ------------------------------------------------------------------------------
+def test_weight_average_follows_its_formula_and_swaps_back():
+    """After each update the average is a reference loop's (d_t = min(decay, (1+t)/(10+t)));
+    applied() puts it in the tensors' place and the weights back; a state taken inside applied()
+    resumes another average exactly."""
+    from gnwarp.train import WeightAverage
+    g = torch.Generator().manual_seed(0)
+    w = [torch.randn(4, 3, dtype=torch.float64, generator=g), torch.randn(5, dtype=torch.float64, generator=g)]
+    avg = WeightAverage(w, 0.6)
+    ref = [x.clone() for x in w]
+    for t in range(1, 16):
+        for x in w:
+            x.add_(torch.randn(x.shape, dtype=x.dtype, generator=g))
+        avg.update()
+        d = min(0.6, (1 + t) / (10 + t))
+        ref = [d * r + (1 - d) * x for r, x in zip(ref, w)]
+        for a, r in zip(avg.average, ref):
+            torch.testing.assert_close(a, r, rtol=1e-12, atol=1e-12)
+    assert d == 0.6   # the cap was reached, not only the warm-up
+    live = [x.clone() for x in w]
+    with avg.applied():
+        for x, r in zip(w, ref):
+            torch.testing.assert_close(x, r, rtol=1e-12, atol=1e-12)
+        state = avg.state_dict()
+        saved = [x.clone() for x in w]            # what a checkpoint's model.pt holds
+        with pytest.raises(RuntimeError, match="inside applied"):
+            avg.update()
+    for x, y in zip(w, live):
+        assert torch.equal(x, y)
+    with pytest.raises(RuntimeError, match="outside applied"):
+        avg.state_dict()
+    # resume: tensors holding the averages + the state -> the live weights and the same averages
+    w2 = [x.clone() for x in saved]
+    avg2 = WeightAverage(w2, 0.6)
+    avg2.load_state_dict(state)
+    assert all(torch.equal(x, y) for x, y in zip(w2, live))
+    assert all(torch.equal(a, b) for a, b in zip(avg2.average, avg.average)) and int(avg2.count) == 15
+    for x in w:
+        x.mul_(1.5)
+    for x in w2:
+        x.mul_(1.5)
+    avg.update()
+    avg2.update()
+    assert all(torch.equal(a, b) for a, b in zip(avg2.average, avg.average))
+
+
+def test_weight_average_refuses_bad_decays_and_states():
+    from gnwarp.train import WeightAverage
+    w = [torch.zeros(3)]
+    for bad in (0.0, 1.0, -0.5, True, float("nan"), "0.9"):
+        with pytest.raises(ValueError, match="decay must be a number in"):
+            WeightAverage(w, bad)
+    avg = WeightAverage(w, 0.9)
+    good = {"format": WeightAverage.FORMAT, "count": 3, "weights": [torch.ones(3)]}
+    for state, match in [({"format": "x"}, "not a WeightAverage state"),
+                         ({**good, "count": -1}, "count must be an integer"),
+                         ({**good, "count": 2.5}, "count must be an integer"),
+                         ({**good, "weights": []}, "holds 0 weight tensors, this model 1"),
+                         ({**good, "weights": [torch.ones(4)]}, r"weights\[0\] should have shape \(3,\)"),
+                         ({**good, "weights": [torch.tensor([1.0, float("nan"), 0.0])]}, "NaN or Inf")]:
+        with pytest.raises(ValueError, match=match):
+            avg.load_state_dict(state)
+    assert torch.equal(w[0], torch.zeros(3))   # a refused state changed nothing
+    avg.load_state_dict(good)
+    assert torch.equal(w[0], torch.ones(3)) and int(avg.count) == 3

@@ -299,14 +299,15 @@ def test_planning_with_each_episodes_true_parameters(pendulum):
         GradientMPC(m, "pendulum-balance", [insts[0], insts[1], systems.make("cartpole")], n=3, config=cfg)
 
 
-def test_sysid_resume_continues_exactly(pendulum, tmp_path):
+@pytest.mark.parametrize("ema", [0.0, 0.9])
+def test_sysid_resume_continues_exactly(pendulum, tmp_path, ema):
     """A rerun into the same out resumes from <out>/last: 20 + 20 steps give the weights of 40
-    straight; a sysid run refuses a forward-model checkpoint in its folder, and one of another
-    window."""
+    straight (with ``ema``: the averages saved and the live weights trained on); a sysid run
+    refuses a forward-model checkpoint in its folder, and one of another window."""
     def cfg(name, steps):
         return TrainConfig(out=str(tmp_path / name), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")),
                            steps=steps, batch_size=16, lr=3e-3, valid_every=20, valid_sequences=2, log_every=10,
-                           checkpoint_every=20, progress=False, device="cpu", normalizer_warmup=5)
+                           checkpoint_every=20, progress=False, device="cpu", normalizer_warmup=5, ema=ema)
     full = SysIDTrainer(cfg("full", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
     SysIDTrainer(cfg("half", 20), SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
     resumed = SysIDTrainer(cfg("half", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
@@ -316,6 +317,11 @@ def test_sysid_resume_continues_exactly(pendulum, tmp_path):
     a, b = load_sysid(full["last"]), load_sysid(r["last"])
     for k, v in a.state_dict().items():
         torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    if ema:   # the checkpoint holds the averages (GN_p's, the head's and the forward model's), not the live weights
+        assert len(resumed.average.average) == len(list(b.parameters()))
+        for p, avg in zip(b.parameters(), resumed.average.average):
+            torch.testing.assert_close(p, avg, rtol=1e-6, atol=1e-7)
+        assert any(not torch.allclose(p, q, atol=1e-4) for p, q in zip(b.parameters(), resumed.model.parameters()))
     with pytest.raises(CheckpointError, match="model.window"):
         SysIDTrainer(cfg("half", 60), SysIDConfig(identifier=ID, window=W + 1), datasets=[pendulum])
     from gnwarp.train import train

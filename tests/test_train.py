@@ -234,8 +234,8 @@ def test_trainer_runs_a_given_model_as_its_config_says(tmp_path, pendulum):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("optimizer", ["adam", "flat_adam"])
-def test_cuda_captured_training_matches_uncaptured(tmp_path, pendulum, optimizer):
+@pytest.mark.parametrize("optimizer,ema", [("adam", 0.0), ("flat_adam", 0.0), ("adam", 0.9), ("flat_adam", 0.9)])
+def test_cuda_captured_training_matches_uncaptured(tmp_path, pendulum, optimizer, ema):
     """The training step replayed from one CUDA graph (sampling, noise, normalizers, loss,
     backward, clipping, update, running sums) after two eager steps, and the validation rollouts
     replayed too, give what uncaptured steps give: the same parameters bit for bit in
@@ -243,7 +243,7 @@ def test_cuda_captured_training_matches_uncaptured(tmp_path, pendulum, optimizer
     float tolerance), the same losses and validation errors."""
     model = ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", deterministic=True))
     kw = dict(steps=12, valid_every=6, log_every=3, checkpoint_every=12, device="cuda", optimizer=optimizer,
-              model=model)
+              model=model, ema=ema)
     runs = {}
     for capture in (True, False):
         t = gnwarp.Trainer(config(tmp_path, f"cap{capture}", capture=capture, **kw), [pendulum])
@@ -382,15 +382,18 @@ def test_cli_train_and_evaluate(tmp_path, pendulum, capsys):
         'node_hidden = [16]\nglobal_hidden = [16]\n')
     out = tmp_path / "cli"
     assert main(["train", str(tmp_path / "cfg.toml"), "--data", str(path), "--out", str(out),
-                 "--set", "model.run.impl=torch", "--set", "lr=0.002"]) == 0
+                 "--set", "model.run.impl=torch", "--set", "lr=0.002", "--set", "ema=0.99"]) == 0
     saved = json.loads((out / "best" / "config.json").read_text())
-    assert saved["train"]["lr"] == 0.002 and saved["model"]["run"]["impl"] == "torch"
+    assert saved["train"]["lr"] == 0.002 and saved["model"]["run"]["impl"] == "torch" and saved["train"]["ema"] == 0.99
+    assert "average" in torch.load(out / "last" / "training.pt", weights_only=True)
     assert main(["evaluate", str(out / "best"), "--data", str(path), "--horizons", "5", "10",
                  "--out", str(tmp_path / "ev")]) == 0
     assert "| cli |" in capsys.readouterr().out
     for f in ("errors.md", "errors.png", "states.png", "rollouts.gif", "results.json"):
         assert (tmp_path / "ev" / f).is_file(), f
     assert main(["train", "--set", "nosuchkey=1", "--data", str(path)]) == 2   # a clear error, not a traceback
+    assert main(["train", "--set", "ema=1", "--data", str(path)]) == 2
+    assert "ema: must be a finite number >= 0 and < 1" in capsys.readouterr().err
 
 
 def test_demo_end_to_end_tiny(tmp_path):
@@ -436,6 +439,89 @@ def test_auto_optimizer_is_adam_on_cpu_and_resumes_the_saved_kind(tmp_path, pend
     resumed = Trainer(config(tmp_path, "flat", steps=8, valid_every=4, checkpoint_every=4), [pendulum])
     assert isinstance(resumed.optimizer, FlatAdam) and resumed.state["step"] == 4
     assert resumed.run()["steps"] == 8
+
+
+class _Recording(Trainer):
+    """A Trainer that keeps the live weights after every step (``history[0]``: the initial ones)."""
+
+    def step(self):
+        if not hasattr(self, "history"):
+            self.history = [[p.detach().clone() for p in self.model.parameters()]]
+        terms = super().step()
+        self.history.append([p.detach().clone() for p in self.model.parameters()])
+        return terms
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "flat_adam"])
+def test_ema_validates_and_saves_the_averaged_weights(tmp_path, pendulum, optimizer):
+    """ema=0.9: the checkpoints' model is the moving average of the live weights of every step
+    (a reference loop over them), the logged validation error is the averaged model's, and the
+    live weights (what the optimizer steps) are the last step's, as without averaging."""
+    cfg = config(tmp_path, "ema", steps=20, valid_every=20, checkpoint_every=20, ema=0.9, optimizer=optimizer)
+    t = _Recording(cfg, [pendulum])
+    t.run()
+    ref = t.history[0]
+    for k, w in enumerate(t.history[1:], 1):
+        d = min(0.9, (1 + k) / (10 + k))
+        ref = [d * r + (1 - d) * x for r, x in zip(ref, w)]
+    saved = load_model(t.out / "last", device="cpu")
+    for p, r in zip(saved.parameters(), ref):
+        torch.testing.assert_close(p, r, rtol=1e-5, atol=1e-6)
+    assert all(torch.equal(p, x) for p, x in zip(t.model.parameters(), t.history[-1]))
+    assert any(not torch.allclose(p, r, atol=1e-4) for p, r in zip(t.model.parameters(), ref))  # not vacuous
+    valid = [float(x["valid_error"]) for x in read_log(t.out / "log.csv") if x["valid_error"]]
+    best = load_model(t.out / "best", device="cpu").bind(pendulum)
+    assert math.isclose(valid[-1], ev.rollout_error(best, pendulum, "valid", cfg.valid_horizon, cfg.valid_sequences),
+                        rel_tol=1e-5)
+    live = load_model(t.out / "best", device="cpu").bind(pendulum)
+    with torch.no_grad():
+        for p, x in zip(live.parameters(), t.history[-1]):
+            p.copy_(x)
+    assert not math.isclose(valid[-1], ev.rollout_error(live, pendulum, "valid", cfg.valid_horizon,
+                                                          cfg.valid_sequences), rel_tol=1e-5)
+
+
+def test_ema_resume_continues_exactly(tmp_path, pendulum):
+    """A run with ema resumed from its checkpoint ends where an uninterrupted one does (averages
+    and live weights); resumed with ema=0 it continues from the live weights, not the averages
+    its checkpoint's model holds."""
+    kw = dict(valid_every=20, checkpoint_every=20)
+    full = _Recording(config(tmp_path, "full", steps=40, ema=0.9, **kw), [pendulum])
+    full.run()
+    train(config(tmp_path, "half", steps=20, ema=0.9, **kw), [pendulum])
+    resumed = _Recording(config(tmp_path, "half", steps=40, ema=0.9, **kw), [pendulum])
+    assert resumed.state["step"] == 20
+    for p, x in zip(resumed.model.parameters(), full.history[20]):   # the live weights came back
+        torch.testing.assert_close(p, x, rtol=1e-6, atol=1e-7)
+    resumed.run()
+    a, b = load_model(full.out / "last", device="cpu"), load_model(resumed.out / "last", device="cpu")
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    for p, q in zip(full.model.parameters(), resumed.model.parameters()):
+        torch.testing.assert_close(p, q, rtol=1e-6, atol=1e-7)
+    # the same run resumed without averaging: the live weights of step 20 go on
+    train(config(tmp_path, "off", steps=20, ema=0.9, **kw), [pendulum])
+    off = Trainer(config(tmp_path, "off", steps=40, **kw), [pendulum])
+    assert off.average is None
+    for p, x in zip(off.model.parameters(), full.history[20]):
+        torch.testing.assert_close(p, x, rtol=1e-6, atol=1e-7)
+
+
+def test_ema_checkpoint_with_a_bad_average_state_is_refused(tmp_path, pendulum):
+    """A training state whose average does not fit the model: a CheckpointError naming it."""
+    from gnwarp.files import sha256_file
+    from gnwarp.train.checkpoint import MANIFEST, load_training
+    kw = dict(valid_every=10, checkpoint_every=10, ema=0.9)
+    train(config(tmp_path, "bad", steps=10, **kw), [pendulum])
+    last = tmp_path / "bad" / "last"
+    training = load_training(last)
+    training["average"]["weights"] = training["average"]["weights"][:-1]
+    torch.save(training, last / "training.pt")
+    manifest = json.loads((last / MANIFEST).read_text())
+    manifest["training.pt"] = sha256_file(last / "training.pt")   # a consistent file: its content is what is wrong
+    (last / MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CheckpointError, match="WeightAverage state holds"):
+        Trainer(config(tmp_path, "bad", steps=20, **kw), [pendulum])
 
 
 def _fresh_params(tmp_path, pendulum, impl):

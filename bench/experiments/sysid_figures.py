@@ -113,7 +113,8 @@ def train_config(args, out, ds):
                        valid_every=args.valid_every, valid_sequences=min(args.valid, len(ds["valid"])),
                        patience=None, checkpoint_every=max(1, args.steps), resume=False, progress=False,
                        device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup,
-                       capture=not args.no_capture, **({} if args.noise is None else {"noise_std": args.noise}))
+                       capture=not args.no_capture, ema=args.ema,
+                       **({} if args.noise is None else {"noise_std": args.noise}))
 
 
 def cfg_noise(args) -> float:
@@ -596,6 +597,8 @@ def main():
                     help="the models' GEMM precision on CUDA (default: the library's, tf32)")
     ap.add_argument("--noise", type=float, default=None,
                     help="TrainConfig.noise_std of every model (default: the library's, 0.003)")
+    ap.add_argument("--ema", type=float, default=0.0,
+                    help="TrainConfig.ema of every model: validate and keep a moving average of the weights (default 0: off)")
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--compare", action="store_true",
@@ -659,7 +662,8 @@ def main():
                          readout=args.readout, ridge_head=args.ridge_head, **fit_options(args),
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
-                         precision=args.precision or "tf32", noise_std=cfg_noise(args), **({"run": args.label} if args.label else {}),
+                         precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema,
+                         **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
             new += rows

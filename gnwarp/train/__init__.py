@@ -1,13 +1,13 @@
 """Training of forward models (D.7, D.8): ``Trainer`` / ``train``, ``TrainConfig``, the checkpoint
-format (``save_checkpoint``, ``load_model``), the batch sampler and ``FlatAdam``; system identification
-trained end to end (``SysIDTrainer``, D.7.2)."""
+format (``save_checkpoint``, ``load_model``), the batch sampler, ``FlatAdam`` and ``WeightAverage``;
+system identification trained end to end (``SysIDTrainer``, D.7.2)."""
 from gnwarp.train.checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
 from gnwarp.train.config import SCHEDULES, TrainConfig
-from gnwarp.train.optim import FlatAdam
+from gnwarp.train.optim import FlatAdam, WeightAverage
 from gnwarp.train.sampler import BatchSampler
 from gnwarp.train.trainer import Trainer, build_model, train
 from gnwarp.train.sysid import SysIDTrainer, load_sysid
 
 __all__ = ["Trainer", "train", "build_model", "TrainConfig", "SCHEDULES", "save_checkpoint", "load_model",
-           "load_checkpoint", "CheckpointError", "FlatAdam", "BatchSampler",
+           "load_checkpoint", "CheckpointError", "FlatAdam", "WeightAverage", "BatchSampler",
            "SysIDTrainer", "load_sysid"]

@@ -284,7 +284,7 @@ def _load_training(path: Path) -> dict:
     t = _safe_load(path, "training.pt")
     if not isinstance(t, dict):
         raise CheckpointError(f"{path}: training.pt is not a training state (a dict)")
-    for key, kind in (("optimizer", dict), ("state", dict), ("generator", torch.Tensor)):
+    for key, kind in (("optimizer", dict), ("state", dict), ("generator", torch.Tensor), ("average", dict)):
         if key in t and not isinstance(t[key], kind):
             raise CheckpointError(f"{path}: training.pt's {key!r} is a {type(t[key]).__name__}, not a {kind.__name__}")
     state = t.get("state", {})

@@ -24,6 +24,7 @@ DecaySteps = Annotated[Union[PositiveInt, Literal["fast", "slow"]],
 Paths = Annotated[list[str], Allowed("a list of file paths (strings)")]
 Decay = FloatRange(gt=0, le=1)
 NonNegativeFloat = FloatRange(ge=0)
+Decay01 = FloatRange(ge=0, lt=1)
 Device = Annotated[str, Field(pattern=r"^(auto|cpu|cuda(:[0-9]+)?)$"), Allowed("'auto', 'cpu', 'cuda' or 'cuda:N'")]
 
 
@@ -51,6 +52,10 @@ class TrainConfig:
     log.csv records progress but no checkpoint is left), "error" refuses, naming what differs;
     "restart" moves the old run's files to ``out/replaced-<n>/`` and starts a new run.
     ``grad_clip``: the gradients' global norm is clipped to it (> 0; None: no clipping).
+    ``ema`` (beyond the paper; default 0, off): the decay of an exponential moving average of the
+    weights (Polyak averaging, ``gnwarp.train.WeightAverage``; e.g. 0.999, about the last 1000
+    steps), updated after every step. Validation and every checkpoint's model use the averages
+    (``last`` also keeps the live weights, to resume from); the optimizer steps the live weights.
     ``lr_decay``: in (0, 1]. Every value is validated against its field's type (above): a wrong
     type, a zero or negative interval or an impossible size raises one ``ConfigError`` naming the
     key path (``model.gn.latent``) and the allowed values, from Python, a config file or ``--set``.
@@ -65,6 +70,7 @@ class TrainConfig:
     lr_decay: Decay = 0.975
     lr_decay_steps: DecaySteps = "fast"
     grad_clip: PositiveFloat | None = 1.0
+    ema: Decay01 = 0.0
     noise_std: NonNegativeFloat = 0.003
     rotation_loss: Literal["normalized", "paper"] = "normalized"
     normalizer_warmup: Count = 20

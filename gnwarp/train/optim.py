@@ -21,10 +21,15 @@ replace the views). ``torch.nn.utils.clip_grad_norm_`` does not see ``main_grad`
 graph of a training step replays correct bias corrections; after changing ``lr`` (by hand or
 by an LR scheduler) outside ``step()``'s own check, i.e. with a captured graph, call
 ``sync_lr()`` before the next replay.
+
+``WeightAverage``: an exponential moving average of the weights (Polyak averaging), updated
+after each step on the device (capturable), applied in the weights' place for validation and
+checkpoints (``TrainConfig.ema``).
 """
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 
 import torch
 
@@ -32,7 +37,7 @@ from gnwarp.gn.flat import flatten_parameters
 from gnwarp.interop import WP_DTYPE, Launcher
 from gnwarp.kernels.train import optim as K
 
-__all__ = ["FlatAdam"]
+__all__ = ["FlatAdam", "WeightAverage"]
 
 
 class FlatAdam(torch.optim.Optimizer):
@@ -188,3 +193,93 @@ class FlatAdam(torch.optim.Optimizer):
         self.decoupled = bool(state.get("decoupled_weight_decay", self.decoupled))
         self.max_grad_norm = state.get("max_grad_norm", self.max_grad_norm)
         self.sync_lr()
+
+
+class WeightAverage:
+    """An exponential moving average of ``tensors`` (a model's parameters, or FlatAdam's one flat
+    buffer): after the t-th ``update()``, ``average += (1 - d_t) * (tensor - average)`` with
+    ``d_t = min(decay, (1 + t) / (10 + t))``, so that early averages follow the weights instead of
+    remembering their initial values. The count lives on the device and ``update`` never syncs
+    with the host, so a captured CUDA graph of a training step replays it.
+
+    ``applied()`` puts the averages in the tensors' place (the weights back on exit): validate and
+    save inside it. ``state_dict()``, taken inside ``applied()``, holds the live weights and the
+    count; ``load_state_dict`` expects the tensors to hold the averages (a checkpoint's weights)
+    and puts the live weights back.
+    """
+
+    FORMAT = "gnwarp.WeightAverage/1"
+
+    def __init__(self, tensors, decay: float):
+        if isinstance(decay, bool) or not (isinstance(decay, float | int) and 0 < decay < 1):
+            raise ValueError(f"decay must be a number in (0, 1), got {decay!r}")
+        self.tensors = list(tensors)
+        if not self.tensors:
+            raise ValueError("WeightAverage needs at least one tensor")
+        self.decay = float(decay)
+        t0 = self.tensors[0]
+        with torch.no_grad():
+            self.average = [t.detach().clone() for t in self.tensors]
+            self.count = torch.zeros((), dtype=t0.dtype, device=t0.device)
+        self._live: list[torch.Tensor] | None = None   # the weights while the averages are applied
+
+    @torch.no_grad()
+    def update(self) -> None:
+        """Move the averages toward the tensors' current values (no host synchronization)."""
+        if self._live is not None:
+            raise RuntimeError("WeightAverage.update inside applied(): the tensors hold the averages")
+        self.count.add_(1)
+        w = 1 - torch.clamp((1 + self.count) / (10 + self.count), max=self.decay)
+        for a, t in zip(self.average, self.tensors):
+            a.lerp_(t, w.to(a.dtype))
+
+    @contextmanager
+    def applied(self):
+        """The averages in the tensors' place, the weights put back on exit (nests as one)."""
+        if self._live is not None:
+            yield self
+            return
+        with torch.no_grad():
+            self._live = [t.detach().clone() for t in self.tensors]
+            for t, a in zip(self.tensors, self.average):
+                t.copy_(a)
+        try:
+            yield self
+        finally:
+            with torch.no_grad():
+                for t, w in zip(self.tensors, self._live):
+                    t.copy_(w)
+            self._live = None
+
+    def state_dict(self) -> dict:
+        """The count and the live weights (on the CPU), for a checkpoint whose model holds the
+        averages: take it inside ``applied()``."""
+        if self._live is None:
+            raise RuntimeError("WeightAverage.state_dict outside applied(): the checkpoint's weights must be the "
+                               "averages")
+        return {"format": self.FORMAT, "count": int(self.count.item()),
+                "weights": [w.detach().cpu().clone() for w in self._live]}
+
+    @torch.no_grad()
+    def load_state_dict(self, state: dict) -> None:
+        """Resume: the tensors hold the averages (a checkpoint's weights); ``state`` (from
+        ``state_dict``) brings back the live weights and the count. ``ValueError`` naming what
+        does not fit."""
+        if not isinstance(state, dict) or state.get("format") != self.FORMAT:
+            raise ValueError(f"not a WeightAverage state (expected format {self.FORMAT!r})")
+        count, weights = state.get("count"), state.get("weights")
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise ValueError(f"WeightAverage state: count must be an integer >= 0, got {count!r}")
+        if not isinstance(weights, list) or len(weights) != len(self.tensors):
+            raise ValueError(f"WeightAverage state holds {len(weights) if isinstance(weights, list) else 'no'} "
+                             f"weight tensors, this model {len(self.tensors)}")
+        for k, (w, t) in enumerate(zip(weights, self.tensors)):
+            if not isinstance(w, torch.Tensor) or w.shape != t.shape:
+                raise ValueError(f"WeightAverage state: weights[{k}] should have shape {tuple(t.shape)}, got "
+                                 f"{tuple(w.shape) if isinstance(w, torch.Tensor) else type(w).__name__}")
+            if not torch.isfinite(w).all():
+                raise ValueError(f"WeightAverage state: weights[{k}] contains NaN or Inf")
+        for a, t, w in zip(self.average, self.tensors, weights):
+            a.copy_(t)
+            t.copy_(w)
+        self.count.fill_(count)

@@ -22,6 +22,7 @@ is in place, and the run's end waits for every write. Override a method in a sub
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import math
@@ -45,7 +46,7 @@ from gnwarp.train.capture import capture_problem, default_generator, registers_g
 from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
                                      load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
-from gnwarp.train.optim import FlatAdam
+from gnwarp.train.optim import FlatAdam, WeightAverage
 from gnwarp.train.sampler import BatchSampler
 
 __all__ = ["Trainer", "train", "build_model", "LOG_FIELDS"]
@@ -113,6 +114,8 @@ class Trainer:
                           else torch.Generator(device=self.device))
         self.generator.manual_seed(config.seed)
         self.optimizer = self.make_optimizer(self._optimizer_kind(training))
+        # ``config.ema``: the weights' moving average, which validation and checkpoints use
+        self.average = WeightAverage(self.average_tensors(), config.ema) if config.ema > 0 else None
         self.state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
         if training is not None:
             self._restore(training)
@@ -158,6 +161,10 @@ class Trainer:
             return torch.optim.Adam(self.model.parameters(), lr=torch.tensor(c.lr, device=self.device),
                                     capturable=True, foreach=True)
         return torch.optim.Adam(self.model.parameters(), lr=c.lr)
+
+    def average_tensors(self) -> list[torch.Tensor]:
+        """What ``config.ema`` averages: FlatAdam's one flat buffer, else the model's parameters."""
+        return [self.optimizer.flat] if isinstance(self.optimizer, FlatAdam) else list(self.model.parameters())
 
     def sample(self) -> tuple[GraphsTuple, torch.Tensor]:
         """One training batch: (input graphs, true next states [sum(n_node), 13])."""
@@ -210,6 +217,8 @@ class Trainer:
         if not isinstance(self.optimizer, FlatAdam) and self.config.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         self.optimizer.step()
+        if self.average is not None:
+            self.average.update()
         # summed on the device, in place, into one vector (``_running`` holds views of its
         # entries by name); read once per log line
         vec = torch.stack([v.detach() for v in terms.values()])
@@ -218,6 +227,11 @@ class Trainer:
             self._running = {k: self._running_sum[i] for i, k in enumerate(terms)}
         self._running_sum.add_(vec)
         self._terms = terms
+
+    def averaged(self):
+        """A context with the weights' moving average in their place (``config.ema``; without
+        it, the weights as they are)."""
+        return self.average.applied() if self.average is not None else contextlib.nullcontext()
 
     def validate(self) -> float:
         """Mean normalized ``valid_horizon``-step rollout error over the datasets with a valid
@@ -250,9 +264,12 @@ class Trainer:
         path = self.out / name
         if self._writer is None:
             self._writer = CheckpointWriter()
-        self._writer.submit(name, path, self.model,
-                            {"optimizer": self.optimizer.state_dict(), "state": dict(st),
-                             "generator": self.generator.get_state()}, {**self.info, "state": readable})
+        with self.averaged():   # the model saved is the averaged one; the live weights go with the training state
+            training = {"optimizer": self.optimizer.state_dict(), "state": dict(st),
+                        "generator": self.generator.get_state()}
+            if self.average is not None:
+                training["average"] = self.average.state_dict()
+            self._writer.submit(name, path, self.model, training, {**self.info, "state": readable})
         self._checkpoints_written(wait)
         return path
 
@@ -338,6 +355,13 @@ class Trainer:
             raise CheckpointError(f"{self.out / 'last'}: its optimizer state does not fit optimizer="
                                   f"{self.config.optimizer!r} ({exc}); resume with the optimizer the run started "
                                   "with, or set resume=False") from exc
+        saved = training.get("average")
+        if saved is not None:   # the model loaded holds the averages; the live weights come back from here
+            average = self.average or WeightAverage(self.average_tensors(), 0.5)
+            try:
+                average.load_state_dict(saved)
+            except ValueError as exc:
+                raise CheckpointError(f"{self.out / 'last'}: {exc}") from exc
         self.state.update(training["state"])
         self._lr = None  # the loaded optimizer state brought its own learning rate
         try:
@@ -367,7 +391,8 @@ class Trainer:
             bar.set_postfix(loss=f"{vals['loss']:.4g}", best=f"{st['best_error']:.4g}")
         timed_out = c.max_seconds is not None and st["seconds"] >= c.max_seconds
         if self.valid and (step % c.valid_every == 0 or step == c.steps or timed_out):
-            err = self.validate()
+            with self.averaged():
+                err = self.validate()
             row = row or {"step": step, "seconds": round(st["seconds"], 3), "lr": lr}
             row["valid_error"] = err
             if err < st["best_error"]:
