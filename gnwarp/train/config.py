@@ -24,7 +24,7 @@ DecaySteps = Annotated[Union[PositiveInt, Literal["fast", "slow"]],
 Paths = Annotated[list[str], Allowed("a list of file paths (strings)")]
 Decay = FloatRange(gt=0, le=1)
 NonNegativeFloat = FloatRange(ge=0)
-Decay01 = FloatRange(ge=0, lt=1)
+AverageDecay = FloatRange(ge=0, lt=1)   # ema: 0 (off) or a decay below 1
 Device = Annotated[str, Field(pattern=r"^(auto|cpu|cuda(:[0-9]+)?)$"), Allowed("'auto', 'cpu', 'cuda' or 'cuda:N'")]
 
 
@@ -70,7 +70,7 @@ class TrainConfig:
     lr_decay: Decay = 0.975
     lr_decay_steps: DecaySteps = "fast"
     grad_clip: PositiveFloat | None = 1.0
-    ema: Decay01 = 0.0
+    ema: AverageDecay = 0.0
     noise_std: NonNegativeFloat = 0.003
     rotation_loss: Literal["normalized", "paper"] = "normalized"
     normalizer_warmup: Count = 20

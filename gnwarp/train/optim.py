@@ -265,21 +265,33 @@ class WeightAverage:
         """Resume: the tensors hold the averages (a checkpoint's weights); ``state`` (from
         ``state_dict``) brings back the live weights and the count. ``ValueError`` naming what
         does not fit."""
-        if not isinstance(state, dict) or state.get("format") != self.FORMAT:
-            raise ValueError(f"not a WeightAverage state (expected format {self.FORMAT!r})")
+        count = self.restore_live(self.tensors, state, keep=self.average)
+        self.count.fill_(count)
+
+    @classmethod
+    @torch.no_grad()
+    def restore_live(cls, tensors, state: dict, keep=None) -> int:
+        """Check ``state`` (``state_dict``'s) against ``tensors`` and copy its live weights into
+        them, first copying the tensors' values (the averages a checkpoint's model holds) into
+        ``keep`` when given; returns the state's count. A run resumed without averaging calls it
+        alone. ``ValueError`` naming what does not fit; nothing is changed then."""
+        tensors = list(tensors)
+        if not isinstance(state, dict) or state.get("format") != cls.FORMAT:
+            raise ValueError(f"not a WeightAverage state (expected format {cls.FORMAT!r})")
         count, weights = state.get("count"), state.get("weights")
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ValueError(f"WeightAverage state: count must be an integer >= 0, got {count!r}")
-        if not isinstance(weights, list) or len(weights) != len(self.tensors):
+        if not isinstance(weights, list) or len(weights) != len(tensors):
             raise ValueError(f"WeightAverage state holds {len(weights) if isinstance(weights, list) else 'no'} "
-                             f"weight tensors, this model {len(self.tensors)}")
-        for k, (w, t) in enumerate(zip(weights, self.tensors)):
+                             f"weight tensors, this model {len(tensors)}")
+        for k, (w, t) in enumerate(zip(weights, tensors)):
             if not isinstance(w, torch.Tensor) or w.shape != t.shape:
                 raise ValueError(f"WeightAverage state: weights[{k}] should have shape {tuple(t.shape)}, got "
                                  f"{tuple(w.shape) if isinstance(w, torch.Tensor) else type(w).__name__}")
             if not torch.isfinite(w).all():
                 raise ValueError(f"WeightAverage state: weights[{k}] contains NaN or Inf")
-        for a, t, w in zip(self.average, self.tensors, weights):
+        for a, t in zip(keep or (), tensors):
             a.copy_(t)
+        for t, w in zip(tensors, weights):
             t.copy_(w)
-        self.count.fill_(count)
+        return count

@@ -357,9 +357,11 @@ class Trainer:
                                   "with, or set resume=False") from exc
         saved = training.get("average")
         if saved is not None:   # the model loaded holds the averages; the live weights come back from here
-            average = self.average or WeightAverage(self.average_tensors(), 0.5)
             try:
-                average.load_state_dict(saved)
+                if self.average is not None:
+                    self.average.load_state_dict(saved)
+                else:   # resumed without averaging: only the live weights go on
+                    WeightAverage.restore_live(self.average_tensors(), saved)
             except ValueError as exc:
                 raise CheckpointError(f"{self.out / 'last'}: {exc}") from exc
         self.state.update(training["state"])
