@@ -185,6 +185,14 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     saved = json.loads((tmp_path / "run-p" / "best" / "config.json").read_text())
     assert saved["train"]["param_loss"] == 2.0 and "param_stats" in saved
+    assert main(["train", "--data", str(path), "--sysid", "--param-loss", "1", "--local-params", "-o",
+                 str(tmp_path / "run-l"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
+    local = load_sysid(tmp_path / "run-l" / "best").config
+    assert local.local_params and local.param_places == (("nodes", (1,)), ("nodes", (1,)))
+    capsys.readouterr()
+    assert main(["train", "--data", str(path), "--sysid", "--local-params", "-o", str(tmp_path / "run-l0"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 2
+    assert "needs param_loss" in capsys.readouterr().err
     assert load_sysid(tmp_path / "run-p" / "best").config.readout == "last"
     capsys.readouterr()   # a supervised checkpoint's evaluation adds the oracle row; the paper's has none
     assert main(["evaluate", str(tmp_path / "run-p" / "best"), str(tmp_path / "run" / "best"), "--data", str(path),
@@ -192,7 +200,8 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     rows = [r for r in capsys.readouterr().out.splitlines() if "true parameter columns" in r]
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
-                 ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"]):
+                 ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"],
+                 ["--local-params"]):
         with pytest.raises(SystemExit, match=f"train: {flag[0]} apply to .*--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
@@ -201,8 +210,11 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
 @pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True, "start_windows": 0.5,
                                           "consistency": 0.5}, {"readout": "ridge", "ridge_features": 2,
                                                                 "param_loss": 1.0, "ridge_head": 8},
-                                     {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5}],
-                         ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher"])
+                                     {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5},
+                                     {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
+                                      "param_teacher": 0.5, "local_params": True}],
+                         ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher",
+                              "local-params"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -903,3 +915,118 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
                 {**good, "mean": [1.0]}, {**good, "names": "ab"}, {**good, "mean": ["x", 1]}, {"names": []}):
         with pytest.raises(ValueError, match="parameter statistics"):
             ParamStats.from_dict(bad)
+
+
+@pytest.mark.parametrize("name", ["pendulum", "cartpole", "swimmer4", "cheetah", "jaco"])
+def test_param_places_name_the_graph_element_each_parameter_changes(name):
+    """``gnwarp.sim.param_places``: changing one parameter alone changes the static features of
+    the node (edges) it is placed at; a mass or a gear changes nothing else."""
+    from gnwarp.data.convert import static_graph
+    base_sys = systems.make(name, seed=3)
+    base = static_graph(base_sys.model)
+    places = systems.param_places(base_sys)
+    assert len(places) == len(base_sys.params)
+    for (key, value), (kind, i) in zip(base_sys.params.items(), places):
+        if key == "n_links":
+            assert kind == "globals"
+            continue
+        lo, hi = systems.param_ranges(name)[key]
+        step = 0.05 * (hi - lo) * (1 if value < (lo + hi) / 2 else -1)   # inside the range
+        moved = static_graph(systems.make(name, params={**base_sys.params, key: value + step}).model)
+        changed = {k: np.flatnonzero(np.abs(getattr(moved, k) - getattr(base, k)).max(-1) > 1e-9)
+                   for k in ("nodes", "edges")}
+        if kind == "nodes":
+            assert i in changed["nodes"], (key, i, changed)
+        else:
+            rows = np.flatnonzero(base.topology.edge_ctrl[:, 0] == i)
+            assert len(rows) == 2 and set(changed["edges"]) == set(rows), (key, rows, changed)
+        if key.startswith(("mass_", "gear_")):   # JACO: nothing but its own element changes
+            assert set(changed["nodes"]) == ({i} if kind == "nodes" else set()), (key, changed)
+
+
+@pytest.fixture(scope="module")
+def jaco():
+    return data.generate("jaco", (6, 2, 2), num_steps=8, seed=0, backend="mujoco", parameterized=True,
+                         progress=False)
+
+
+def test_local_params_hand_each_parameter_to_its_node_and_edges(jaco, pendulum, tmp_path):
+    """``SysIDConfig(local_params=True)``: the forward model's input holds G_ID's parameter columns
+    (its first P globals) on the node of each link mass and on both edges of each gear's joint,
+    zero elsewhere; teacher forcing puts the true parameters there; the placement is saved and
+    checked against the data bound; misuse is refused by name."""
+    from gnwarp.models.sysid import source_places
+    from gnwarp.train.sysid import with_params
+    idg = dataclasses.replace(ID, out_globals=18, hidden_globals=18)
+    cfg = TrainConfig(out=str(tmp_path / "l"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=2,
+                      batch_size=4, lr=1e-3, valid_every=2, valid_sequences=2, valid_horizon=2, checkpoint_every=2,
+                      progress=False, device="cpu", normalizer_warmup=1)
+    sc = SysIDConfig(identifier=idg, window=3, local_params=True)
+    tr = SysIDTrainer(cfg, sc, datasets=[jaco], param_loss=1.0, param_teacher=1.0)
+    m = tr.model
+    names = jaco.meta["param_names"]
+    places = dict(zip(names, m.sysid.param_places))
+    assert places["mass_arm"] == ("nodes", (2,)) and places["gear_joint_1"] == ("edges", (0, 9))
+    assert m.sysid.param_places == source_places(jaco)
+    (parts,) = tr.sample()
+    p = parts[0]
+    g_id = m.identify_graphs(p.window, 3, m.forward_model.stats(p.graph.nodes.dtype))
+    g_id = g_id._replace(globals=torch.randn_like(g_id.globals))
+    graph = m.with_gid(p.graph, g_id)
+    N, B, E, gn, ge = 4, jaco.meta["max_bodies"], jaco.meta["max_edges"], ID.out_nodes, ID.out_edges
+    nodes, edges = graph.nodes[:, gn].reshape(N, B), graph.edges[:, ge].reshape(N, E)
+    assert graph.nodes.shape[1] == gn + 1 + 13 and graph.edges.shape[1] == ge + 1 + p.graph.edges.shape[1]
+    for j, name in enumerate(names):
+        kind, rows = places[name]
+        got = (nodes if kind == "nodes" else edges)[:, list(rows)]
+        assert torch.equal(got, g_id.globals[:, j:j + 1].expand_as(got)), name
+    assert torch.equal(nodes[:, 0], torch.zeros(N))          # the world holds no parameter
+    z, ok = p.params
+    taught = m.with_gid(p.graph, with_params(g_id, z, ok))
+    j = names.index("gear_joint_3")
+    assert torch.allclose(taught.edges[:, ge].reshape(N, E)[:, list(places["gear_joint_3"][1])],
+                          z[:, j:j + 1].expand(N, 2).to(taught.edges.dtype))
+
+    summary = tr.run()
+    back = load_sysid(summary["last"]).bind(jaco)
+    assert back.sysid.param_places == m.sysid.param_places
+    body, ctrl = torch.as_tensor(jaco["test"].body[:, :3]), torch.as_tensor(jaco["test"].ctrl[:, :3])
+    inst = torch.as_tensor(jaco["test"].instance[:])
+    with torch.no_grad():
+        gid = back.identify(body, ctrl, inst)
+        roll = back.rollout(body[:, 2], torch.as_tensor(jaco["test"].ctrl[:, 3:6]), gid, inst)
+    assert torch.isfinite(roll).all()
+    with pytest.raises(ValueError, match="holds them elsewhere"):
+        back.bind(pendulum)
+    with pytest.raises(ValueError, match="needs param_loss"):
+        SysIDTrainer(cfg, sc, datasets=[jaco])
+    with pytest.raises(ValueError, match="widen identifier.out_globals"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=3, local_params=True), datasets=[jaco], param_loss=1.0)
+    with pytest.raises(ValueError, match="set local_params=True"):
+        SysIDConfig(param_places=(("nodes", (1,)),))
+    with pytest.raises(ValueError, match="a node parameter has one row"):
+        SysIDConfig(local_params=True, param_places=(("nodes", (1, 2)),))
+    old = data.Dataset({**jaco.meta}, jaco.static, {k: jaco[k] for k in ("train", "valid", "test")})
+    del old.meta["param_places"]
+    with pytest.raises(ValueError, match="no param_places in its metadata"):
+        source_places(old)
+    with pytest.raises(ValueError, match="no instance parameters"):
+        source_places(systems.make("pendulum"))
+    renamed = dataclasses.replace(systems.make("jaco", seed=1), name="my_arm")   # not the registry's: all global
+    assert set(systems.param_places(renamed)) == {("globals", 0)}
+
+
+def test_datasets_with_malformed_param_places_are_refused(pendulum, tmp_path):
+    import h5py
+    path = tmp_path / "p.h5"
+    pendulum.save(path)
+    assert data.load(path).meta["param_places"] == [["nodes", 1], ["nodes", 1]]
+    for bad in ([["nodes", 0], ["nodes", 1]], [["nodes", 1]], [["edges", 5], ["nodes", 1]], [["bodies", 1], ["nodes", 1]]):
+        p2 = tmp_path / f"bad{len(str(bad))}.h5"
+        p2.write_bytes(path.read_bytes())
+        with h5py.File(p2, "r+") as f:
+            meta = json.loads(f.attrs["meta"])
+            meta["param_places"] = bad
+            f.attrs["meta"] = json.dumps(meta)
+        with pytest.raises(data.DatasetError, match="param_places"):
+            data.load(p2)

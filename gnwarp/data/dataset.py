@@ -463,6 +463,25 @@ def _first(mask):
     return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
+def _check_places(meta: dict, B: int, nu) -> list[str]:
+    """Problems of the metadata's ``param_places`` (optional; ``gnwarp.sim.param_places``): one
+    [kind, id] per parameter, a body id below B (not the world), an actuator id below nu, or
+    ["globals", 0]."""
+    if "param_places" not in meta:
+        return []
+    places, names = meta["param_places"], meta.get("param_names", [])
+    if not isinstance(places, list) or len(places) != len(names):
+        return [f"metadata's param_places must list one [kind, id] per parameter ({len(names)}), got {places!r:.80}"]
+    hi = {"nodes": B, "edges": nu if isinstance(nu, int) else 0, "globals": 1}
+    for name, pl in zip(names, places):
+        ok = (isinstance(pl, list) and len(pl) == 2 and pl[0] in hi and isinstance(pl[1], int)
+              and not isinstance(pl[1], bool) and int(pl[0] == "nodes") <= pl[1] < hi[pl[0]])
+        if not ok:
+            return [f"metadata's param_places: parameter {name!r} is placed at {pl!r:.60}; expected [\"nodes\", a body "
+                    f"1..{B - 1}], [\"edges\", an actuator 0..{hi['edges'] - 1}] or [\"globals\", 0]"]
+    return []
+
+
 def _check_static(static: dict, meta: dict, n_ctrl: int | None) -> list[str]:
     """Problems of the static arrays (dtypes, shapes, values, index ranges, counts): [] when valid.
     ``n_ctrl``: the controls per sequence (U), or None when unknown."""
@@ -518,6 +537,7 @@ def _check_static(static: dict, meta: dict, n_ctrl: int | None) -> list[str]:
         p.append(f"/static/params holds {_describe(par[_first(~(np.isnan(par) | (np.abs(par) <= STATIC_MAX_ABS)))])} "
                  f"at instance {_first(~(np.isnan(par) | (np.abs(par) <= STATIC_MAX_ABS)))[0]} (NaN marks a missing "
                  f"parameter; infinite or absurd values are not parameters)")
+    p += _check_places(meta, B, meta.get("nu"))
     n_node, n_edge = st["n_node"].astype(np.int64), st["n_edge"].astype(np.int64)
     for k, a, lo, hi in (("n_node", n_node, 1, B), ("n_edge", n_edge, 0, E)):
         bad = (a < lo) | (a > hi)

@@ -18,7 +18,7 @@ from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
 from gnwarp.sim.common import topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import resolve_backend, simulate
-from gnwarp.sim.systems import check_model, make
+from gnwarp.sim.systems import check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 
 __all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate", "memory_estimate"]
@@ -238,6 +238,8 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     param_names = sorted({k for s in instances for k in s.params})
     static["params"] = np.array([[float(s.params.get(k, np.nan)) for k in param_names] for s in instances],
                                 dtype=np.float64).reshape(len(instances), len(param_names))
+    # where each parameter lives in the graph (gnwarp.sim.param_places), from an instance that has it
+    places = [list(param_places(next(s for s in instances if k in s.params), [k])[0]) for k in param_names]
 
     # splits: consecutive blocks of the (already random) sequences
     splits, start = {}, 0
@@ -251,7 +253,7 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         "system": name, "parameterized": bool(parameterized), "dt": float(base_sys.dt),
         "physics_timestep": float(base_sys.model.opt.timestep), "substeps": int(base_sys.substeps),
         "num_steps": int(num_steps), "seed": int(seed), "backend": backend, "splits": sizes,
-        "param_names": param_names, "translation_invariant": bool(base_sys.translation_invariant),
+        "param_names": param_names, "param_places": places, "translation_invariant": bool(base_sys.translation_invariant),
         "layout": layout.to_dict(), "max_bodies": int(B), "max_edges": int(static["senders"].shape[1]),
         "nq": int(nq), "nv": int(nv), "nu": int(nu), "graph": graph_meta,
         "dynamic_node_names": list(DYN_NODE_NAMES),

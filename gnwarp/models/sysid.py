@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -40,9 +41,9 @@ from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
 from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import MAX_WIDTH, IntRange, PositiveInt, check_fields, check_keys
+from gnwarp.validation import MAX_WIDTH, Count, Flag, IntRange, PositiveInt, check_fields, check_keys
 
-__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid"]
+__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid", "source_places"]
 
 
 # the readouts that fit a linear model over the window (``SysIDConfig.readout``)
@@ -96,7 +97,16 @@ class SysIDConfig:
     nonlinearly (a length is a ratio of two of them); the head learns that map, so that G_ID can
     hold the parameters themselves (what ``SysIDTrainer(param_loss=...)`` asks of it). The head
     is plain torch layers in the parameter dtype, whatever ``RunOptions.impl``: a few small GEMMs
-    once per window."""
+    once per window.
+
+    ``local_params`` (beyond the paper; default off): G_ID's first P global columns (the
+    parameters ``SysIDTrainer(param_loss=...)`` supervises) are also handed to the forward model
+    where each parameter lives, as a true static graph holds it: a body's length or mass as a
+    column of its node, an actuator's gear as a column of its joint's edges (``param_places``,
+    one ``(kind, rows)`` per parameter: ("nodes", (body,)), ("edges", (edge, ...)) with edge
+    rows within a graph, ("globals", ()); filled from the training data's
+    ``gnwarp.sim.param_places`` by ``build_sysid_model``). The forward model then reads the
+    mass of a JACO link on that link's node rather than picking it out of 18 globals."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
@@ -105,9 +115,18 @@ class SysIDConfig:
     ridge_features: PositiveInt = 4
     ridge: float = 1e-3
     ridge_head: IntRange(0, MAX_WIDTH) = 0
+    local_params: Flag = False
+    param_places: tuple[tuple[Literal["nodes", "edges", "globals"], tuple[Count, ...]], ...] | None = None
 
     def __post_init__(self):
         check_fields(self)
+        if self.param_places is not None:
+            if not self.local_params:
+                raise ValueError("param_places places the parameters for local_params: set local_params=True")
+            for i, (kind, rows) in enumerate(self.param_places):
+                if (kind == "globals") != (len(rows) == 0) or (kind == "nodes" and len(rows) != 1):
+                    raise ValueError(f"param_places[{i}] = {(kind, rows)}: a node parameter has one row, an edge "
+                                     f"parameter one or more, a global one none")
         if self.readout in FITS:
             if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
                 raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
@@ -135,6 +154,18 @@ class SysIDConfig:
             return w
         return self.fit_size(kind)
 
+    def param_slots(self, kind: str) -> int:
+        """Columns of placed parameters per node or edge (``local_params``): the most parameters
+        any one node (edge) holds; 0 without ``param_places``."""
+        if not self.param_places or kind == "globals":
+            return 0
+        counts: dict[int, int] = {}
+        for k, rows in self.param_places:
+            if k == kind:
+                for r in rows:
+                    counts[r] = counts.get(r, 0) + 1
+        return max(counts.values(), default=0)
+
     def fit_size(self, kind: str) -> int:
         """The width of the fit's flattened coefficients per node, edge or global (the identifier's
         output width when the readout fits nothing)."""
@@ -152,7 +183,9 @@ class SysIDConfig:
                 "transitions": self.transitions, "readout": self.readout,
                 **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {}),
                 **({"ridge": self.ridge} if self.readout == "dynamics" else {}),
-                **({"ridge_head": self.ridge_head} if self.ridge_head else {})}
+                **({"ridge_head": self.ridge_head} if self.ridge_head else {}),
+                **({"local_params": True, "param_places": [[k, list(r)] for k, r in self.param_places or ()]}
+                   if self.local_params else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -172,6 +205,38 @@ def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch
     y = torch.linalg.solve_triangular(L, R, upper=False)
     B = torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True)
     return B.reshape(B.shape[0], -1)
+
+
+def source_places(source) -> tuple:
+    """``SysIDConfig.param_places`` of a parameterized Dataset or System: each parameter's node
+    row, edge rows (its actuator's edges within a graph, the same in every instance) or none
+    (a global), from the dataset's ``param_places`` metadata or ``gnwarp.sim.param_places``."""
+    from gnwarp.data.convert import static_arrays
+    from gnwarp.sim.systems import System, param_places
+    if isinstance(source, System):
+        names, places = list(source.params), [list(p) for p in param_places(source)]
+        static = static_arrays([source])[0]
+    else:
+        names, places, static = source.meta.get("param_names", []), source.meta.get("param_places"), source.static
+        if names and places is None:
+            raise ValueError(f"dataset {source.system!r} does not say where its parameters live (no param_places in "
+                             f"its metadata: generated before them); regenerate it for local_params")
+    if not names:
+        raise ValueError(f"{getattr(source, 'system', getattr(source, 'name', source))!r} has no instance parameters: "
+                         f"local_params places the parameters of a parameterized system")
+    ec = np.asarray(static["edge_ctrl"])[..., 0]
+    ne = np.asarray(static["n_edge"])
+    out = []
+    for name, (kind, i) in zip(names, places):
+        if kind != "edges":
+            out.append((kind, (i,) if kind == "nodes" else ()))
+            continue
+        rows = [tuple(int(e) for e in np.flatnonzero(ec[j, :ne[j]] == i)) for j in range(ec.shape[0])]
+        if not rows[0] or any(r != rows[0] for r in rows):
+            raise ValueError(f"parameter {name!r} of actuator {i}: its edges differ between the instances (or it "
+                             f"drives none); local_params needs them at the same rows in every graph")
+        out.append(("edges", rows[0]))
+    return tuple(out)
 
 
 class LatentColumnsNormalizer(Normalizer):
@@ -197,11 +262,35 @@ class GIDError(ValueError):
     """A G_ID file that is missing, corrupt or not a G_ID; or a G_ID that does not fit a rollout."""
 
 
-def gid_layout(sizes: dict[str, int], n_ctrl_slots: int) -> FeatureLayout:
-    """The forward model's layout: G_ID's latents as its static columns."""
+def gid_layout(sizes: dict[str, int], n_ctrl_slots: int, slots: dict[str, int] | None = None) -> FeatureLayout:
+    """The forward model's layout: G_ID's latents as its static columns, then ``slots`` columns
+    of placed parameters per node and edge (``SysIDConfig.local_params``)."""
+    slots = slots or {}
     return FeatureLayout([f"gid_global_{i}" for i in range(sizes["globals"])],
-                         [f"gid_node_{i}" for i in range(sizes["nodes"])],
-                         [f"gid_edge_{i}" for i in range(sizes["edges"])], n_ctrl_slots=n_ctrl_slots)
+                         [f"gid_node_{i}" for i in range(sizes["nodes"])]
+                         + [f"param_node_{i}" for i in range(slots.get("nodes", 0))],
+                         [f"gid_edge_{i}" for i in range(sizes["edges"])]
+                         + [f"param_edge_{i}" for i in range(slots.get("edges", 0))], n_ctrl_slots=n_ctrl_slots)
+
+
+def place_tables(places) -> dict[str, torch.Tensor]:
+    """Per kind ("nodes", "edges"): a table [rows + 1, slots] (int64) of the parameter in each
+    slot of each node (edge) row within a graph, -1 where none; its last row is all -1 (for rows
+    beyond the placed ones)."""
+    out = {}
+    for kind in ("nodes", "edges"):
+        per_row: dict[int, list[int]] = {}
+        for p, (k, rows) in enumerate(places):
+            if k == kind:
+                for r in rows:
+                    per_row.setdefault(r, []).append(p)
+        n = max(per_row, default=-1) + 1
+        width = max((len(v) for v in per_row.values()), default=0)
+        t = torch.full((n + 1, width), -1, dtype=torch.int64)
+        for r, ps in per_row.items():
+            t[r, :len(ps)] = torch.tensor(ps)
+        out[kind] = t
+    return out
 
 
 # the static edge features of an actuator's range (read from the bound source for clamping)
@@ -230,10 +319,22 @@ class SysIDModel(nn.Module):
         K = int(layout.n_ctrl_slots)
         # what the model reads of the data: its dynamic graph only
         self.layout = FeatureLayout([], [], [], n_ctrl_slots=K)
-        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K))
+        slots = {k: config.param_slots(k) for k in ("nodes", "edges")}
+        if config.local_params and config.param_places is None:
+            raise ValueError("local_params needs param_places (where each parameter lives): build the model with "
+                             "gnwarp.train.build_sysid_model from a parameterized dataset")
+        self._tables = None
+        if config.param_places:   # buffers: on the model's device (a captured step copies nothing from the host)
+            for kind, t in place_tables(config.param_places).items():
+                self.register_buffer(f"place_{kind}", t, persistent=False)
+            self._tables = ("nodes", "edges")
+        if config.param_places and len(config.param_places) > self.gid_sizes["globals"]:
+            raise ValueError(f"local_params places {len(config.param_places)} parameters from G_ID's first global "
+                             f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals)")
+        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K, slots))
         fm, f = self.forward_model, config.forward.std_floor
-        fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, self.gid_sizes["nodes"], f)
-        fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"], f)
+        fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, self.gid_sizes["nodes"] + slots["nodes"], f)
+        fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"] + slots["edges"], f)
         if fm.norm_globals is not None:
             fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
         sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
@@ -288,6 +389,10 @@ class SysIDModel(nn.Module):
         """Read ``source``'s graphs (a Dataset or System) in ``identify`` and ``rollout``, and its
         actuators' control ranges (static edge features the model itself does not read) for
         clamping controls."""
+        if self.sysid.local_params and source_places(source) != self.sysid.param_places:
+            raise ValueError(f"this model places its parameters as {self.sysid.param_places!r:.120}, and "
+                             f"{getattr(source, 'system', getattr(source, 'name', 'the source'))!r} holds them "
+                             f"elsewhere (another system, or other parameters)")
         self.builder = self.graph_builder(source, strict)
         try:
             self._range_builder = graph_builder(self._range_layout, source, self.device, self.dtype, strict)
@@ -310,11 +415,36 @@ class SysIDModel(nn.Module):
 
     # -- Algorithm D.2 ------------------------------------------------------------------------
     def with_gid(self, graph: GraphsTuple, g_id: GraphsTuple) -> GraphsTuple:
-        """The forward model's input graph: G_ID's latents concatenated with a dynamic graph."""
+        """The forward model's input graph: G_ID's latents concatenated with a dynamic graph;
+        with ``local_params``, the parameters in G_ID's first global columns also on the nodes and
+        edges they describe (``placed``)."""
+        extra = self.placed(graph, g_id) if self._tables is not None else {}
+
         def cat(k):
             x, z = getattr(graph, k), getattr(g_id, k)
-            return x if z is None else torch.cat([z.to(x.dtype), x], -1)
+            parts = ([] if z is None else [z.to(x.dtype)]) + ([extra[k].to(x.dtype)] if k in extra else [])
+            return torch.cat([*parts, x], -1) if parts else x
         return graph._replace(**{k: cat(k) for k in KINDS})
+
+    def placed(self, graph: GraphsTuple, g_id: GraphsTuple) -> dict[str, torch.Tensor]:
+        """``local_params``: per kind ("nodes", "edges"), [rows, slots] of G_ID's parameter columns
+        (its first P globals) at the nodes and edges they describe (``SysIDConfig.param_places``),
+        0 in slots no parameter fills. Device gathers only: no host synchronization."""
+        gl = g_id.globals
+        out = {}
+        for kind, count in (("nodes", graph.n_node), ("edges", graph.n_edge)):
+            table = getattr(self, f"place_{kind}")
+            rows = getattr(graph, kind).shape[0]
+            if table.shape[1] == 0:
+                continue
+            of_graph = torch.repeat_interleave(torch.arange(count.shape[0], device=gl.device), count.to(gl.device),
+                                               output_size=rows)
+            first = torch.cumsum(count.to(gl.device), 0) - count.to(gl.device)
+            local = (torch.arange(rows, device=gl.device) - first[of_graph]).clamp(max=table.shape[0] - 1)
+            which = table[local]                                  # [rows, slots] parameter index or -1
+            vals = gl[of_graph[:, None], which.clamp(min=0)]
+            out[kind] = torch.where(which >= 0, vals, torch.zeros_like(vals))
+        return out
 
     def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
         """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable

@@ -15,7 +15,7 @@ Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``exci
 from gnwarp.sim.common import Trajectories
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import BACKENDS, resolve_backend, simulate
-from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_ranges, sample_params
+from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_ranges, param_places, sample_params
 
-__all__ = ["System", "names", "make", "param_ranges", "sample_params", "from_mjcf", "describe", "simulate",
+__all__ = ["System", "names", "make", "param_ranges", "param_places", "sample_params", "from_mjcf", "describe", "simulate",
            "Trajectories", "BACKENDS", "resolve_backend", "random_spline_controls", "control_range"]

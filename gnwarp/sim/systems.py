@@ -36,6 +36,7 @@ __all__ = [
     "names",
     "make",
     "param_ranges",
+    "param_places",
     "sample_params",
     "from_mjcf",
     "check_model",
@@ -210,6 +211,51 @@ def param_ranges(name: str) -> dict[str, tuple[float, float]]:
     """
     family, n = _parse(name)
     return {key: rng for key, _, rng in _ranges(family, n)}
+
+
+def _element(family: str, key: str) -> tuple[int, str] | None:
+    """The element a parameter describes: (mujoco.mjtObj body or actuator, its name), or None
+    for a parameter of the whole system (the swimmer's number of links)."""
+    body, act = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_ACTUATOR
+    if family == "pendulum":
+        return body, "pole"
+    if family == "cartpole":
+        return body, "cart" if key == "cart_mass" else "pole_1"
+    if family == "swimmer":
+        if key == "n_links":
+            return None
+        i = int(key.rsplit("_", 1)[1])
+        return body, "head" if i == 0 else f"segment_{i - 1}"
+    if family == "cheetah":
+        return body, key.split("_", 1)[1].removeprefix("angle_")
+    if family == "jaco":
+        kind, name = key.split("_", 1)
+        return (act if kind == "gear" else body), name
+    return None
+
+
+def param_places(system: "System", names=None) -> list[tuple[str, int]]:
+    """Where each parameter of a parameterized ``system`` lives in its graph: ("nodes", body id)
+    for a body's (a length, thickness, mass or base angle), ("edges", actuator id) for an
+    actuator's (a gear: the edges of its joint, both directions), ("globals", 0) for the whole
+    system's (every parameter of a system that is not one of the registry's, e.g. a variant
+    renamed by its maker). ``names``: the parameters, in order (default: ``system.params``'s)."""
+    try:
+        family, _ = _parse(system.name)
+    except ValueError:
+        family = None
+    names = list(system.params) if names is None else list(names)
+    out = []
+    for key in names:
+        el = _element(family, key)
+        if el is None:
+            out.append(("globals", 0))
+            continue
+        i = mujoco.mj_name2id(system.model, el[0], el[1])
+        if i < 0:
+            raise ValueError(f"{system.name}: parameter {key!r} describes {el[1]!r}, which the model lacks")
+        out.append(("nodes" if el[0] == mujoco.mjtObj.mjOBJ_BODY else "edges", int(i)))
+    return out
 
 
 def _defaults(family: str, n: int | None) -> dict[str, float]:

@@ -26,7 +26,7 @@ from gnwarp.data.layout import FeatureLayout, merge_layouts
 from gnwarp.eval.metrics import movable_mask, normalized_errors
 from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
-from gnwarp.models.sysid import SysIDConfig, SysIDModel
+from gnwarp.models.sysid import SysIDConfig, SysIDModel, source_places
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weights, model_config_changes,
                                      read_checkpoint)
@@ -148,6 +148,11 @@ def build_sysid_model(config: TrainConfig, datasets, sysid: SysIDConfig | None =
         mcfg.recenter = len(datasets) == 1 and bool(datasets[0].meta.get("translation_invariant", False))
     if mcfg.core != "gn":
         raise ValueError("system identification trains the GN forward model (model.core = 'gn')")
+    if sysid.local_params and sysid.param_places is None:   # where the data's parameters live
+        places = {source_places(d) for d in datasets}
+        if len(places) > 1:
+            raise ValueError("local_params: the datasets place their parameters differently (train one system)")
+        sysid = dataclasses.replace(sysid, param_places=places.pop())
     return SysIDModel(dataclasses.replace(sysid, forward=mcfg), merge_layouts([d.layout for d in datasets]))
 
 
@@ -197,6 +202,10 @@ class SysIDTrainer(Trainer):
         param_loss = _number("param_loss", param_loss, "the weight of the parameter supervision term")
         param_teacher = _number("param_teacher", param_teacher, "the fraction of windows whose true parameters the "
                                 "forward model reads", most=1.0)
+        local = (sysid if sysid is not None else model.sysid if model is not None else SysIDConfig()).local_params
+        if local and param_loss == 0:
+            raise ValueError("local_params hands the forward model the parameters param_loss teaches G_ID: it needs "
+                             "param_loss > 0")
         if param_teacher > 0 and param_loss == 0:
             raise ValueError("param_teacher hands the forward model the parameters param_loss supervises: it needs "
                              "param_loss > 0")
@@ -267,6 +276,9 @@ class SysIDTrainer(Trainer):
                 before[k] = saved.get(k)
         before["ridge_head"] = saved.get("ridge_head", 0)
         want.setdefault("ridge_head", 0)
+        for k, none in (("local_params", False), ("param_places", None)):
+            before[k] = saved.get(k, none)
+            want.setdefault(k, none)
         changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" for k, v in before.items() if v != want.get(k)]
         return changes
 
