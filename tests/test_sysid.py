@@ -994,7 +994,14 @@ def test_local_params_hand_each_parameter_to_its_node_and_edges(jaco, pendulum, 
     inst = torch.as_tensor(jaco["test"].instance[:])
     with torch.no_grad():
         gid = back.identify(body, ctrl, inst)
-        roll = back.rollout(body[:, 2], torch.as_tensor(jaco["test"].ctrl[:, 3:6]), gid, inst)
+        u = torch.as_tensor(jaco["test"].ctrl[:, 3:6])
+        roll = back.rollout(body[:, 2], u, gid, inst)
+        # by hand: the placed columns recomputed at every step give the rollout's states
+        tmpl, fm, x = back._template(inst, inst.shape[0])[0], back.forward_model, body[:, 2]
+        ctx = fm.context(back.with_gid(tmpl.graph(x, u[:, 0]), gid))
+        for t in range(3):
+            x = tmpl.to_body(fm.next_nodes(back.with_gid(tmpl.graph(x, u[:, t]), gid), ctx), x)
+            assert torch.allclose(roll[:, t + 1], x, atol=1e-6), t
     assert torch.isfinite(roll).all()
     with pytest.raises(ValueError, match="holds them elsewhere"):
         back.bind(pendulum)
@@ -1021,8 +1028,9 @@ def test_datasets_with_malformed_param_places_are_refused(pendulum, tmp_path):
     path = tmp_path / "p.h5"
     pendulum.save(path)
     assert data.load(path).meta["param_places"] == [["nodes", 1], ["nodes", 1]]
-    for bad in ([["nodes", 0], ["nodes", 1]], [["nodes", 1]], [["edges", 5], ["nodes", 1]], [["bodies", 1], ["nodes", 1]]):
-        p2 = tmp_path / f"bad{len(str(bad))}.h5"
+    for i, bad in enumerate(([["nodes", 0], ["nodes", 1]], [["nodes", 1]], [["edges", 5], ["nodes", 1]],
+                             [["bodies", 1], ["nodes", 1]])):
+        p2 = tmp_path / f"bad{i}.h5"
         p2.write_bytes(path.read_bytes())
         with h5py.File(p2, "r+") as f:
             meta = json.loads(f.attrs["meta"])

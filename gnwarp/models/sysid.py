@@ -154,18 +154,6 @@ class SysIDConfig:
             return w
         return self.fit_size(kind)
 
-    def param_slots(self, kind: str) -> int:
-        """Columns of placed parameters per node or edge (``local_params``): the most parameters
-        any one node (edge) holds; 0 without ``param_places``."""
-        if not self.param_places or kind == "globals":
-            return 0
-        counts: dict[int, int] = {}
-        for k, rows in self.param_places:
-            if k == kind:
-                for r in rows:
-                    counts[r] = counts.get(r, 0) + 1
-        return max(counts.values(), default=0)
-
     def fit_size(self, kind: str) -> int:
         """The width of the fit's flattened coefficients per node, edge or global (the identifier's
         output width when the readout fits nothing)."""
@@ -319,15 +307,15 @@ class SysIDModel(nn.Module):
         K = int(layout.n_ctrl_slots)
         # what the model reads of the data: its dynamic graph only
         self.layout = FeatureLayout([], [], [], n_ctrl_slots=K)
-        slots = {k: config.param_slots(k) for k in ("nodes", "edges")}
         if config.local_params and config.param_places is None:
             raise ValueError("local_params needs param_places (where each parameter lives): build the model with "
                              "gnwarp.train.build_sysid_model from a parameterized dataset")
-        self._tables = None
-        if config.param_places:   # buffers: on the model's device (a captured step copies nothing from the host)
-            for kind, t in place_tables(config.param_places).items():
-                self.register_buffer(f"place_{kind}", t, persistent=False)
-            self._tables = ("nodes", "edges")
+        # local_params: per node (edge) row of a graph, the parameter of each slot; buffers, so that they live on
+        # the model's device (a captured step copies nothing from the host)
+        tables = place_tables(config.param_places or ())
+        for kind, t in tables.items():
+            self.register_buffer(f"place_{kind}", t, persistent=False)
+        slots = {k: t.shape[1] for k, t in tables.items()}
         if config.param_places and len(config.param_places) > self.gid_sizes["globals"]:
             raise ValueError(f"local_params places {len(config.param_places)} parameters from G_ID's first global "
                              f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals)")
@@ -415,35 +403,37 @@ class SysIDModel(nn.Module):
 
     # -- Algorithm D.2 ------------------------------------------------------------------------
     def with_gid(self, graph: GraphsTuple, g_id: GraphsTuple) -> GraphsTuple:
-        """The forward model's input graph: G_ID's latents concatenated with a dynamic graph;
-        with ``local_params``, the parameters in G_ID's first global columns also on the nodes and
-        edges they describe (``placed``)."""
-        extra = self.placed(graph, g_id) if self._tables is not None else {}
+        """The forward model's input graph: G_ID's columns (``gid_columns``) concatenated with a
+        dynamic graph."""
+        return self.with_columns(graph, self.gid_columns(graph, g_id))
 
+    @staticmethod
+    def with_columns(graph: GraphsTuple, columns: dict) -> GraphsTuple:
+        """``graph`` with ``columns`` (``gid_columns``' of its topology) before its own features."""
         def cat(k):
-            x, z = getattr(graph, k), getattr(g_id, k)
-            parts = ([] if z is None else [z.to(x.dtype)]) + ([extra[k].to(x.dtype)] if k in extra else [])
-            return torch.cat([*parts, x], -1) if parts else x
+            x, z = getattr(graph, k), columns[k]
+            return x if z is None else torch.cat([z.to(x.dtype), x], -1)
         return graph._replace(**{k: cat(k) for k in KINDS})
 
-    def placed(self, graph: GraphsTuple, g_id: GraphsTuple) -> dict[str, torch.Tensor]:
-        """``local_params``: per kind ("nodes", "edges"), [rows, slots] of G_ID's parameter columns
-        (its first P globals) at the nodes and edges they describe (``SysIDConfig.param_places``),
-        0 in slots no parameter fills. Device gathers only: no host synchronization."""
-        gl = g_id.globals
-        out = {}
+    def gid_columns(self, graph: GraphsTuple, g_id: GraphsTuple) -> dict:
+        """The static columns the forward model reads per kind (None: none) on ``graph``'s
+        topology: G_ID's latents, and with ``local_params`` the parameters in G_ID's first global
+        columns also at the nodes and edges they describe (``SysIDConfig.param_places``; 0 in
+        slots no parameter fills). A rollout computes them once and reuses them every step. Device
+        gathers only: no host synchronization."""
+        gl, out = g_id.globals, {k: getattr(g_id, k) for k in KINDS}
         for kind, count in (("nodes", graph.n_node), ("edges", graph.n_edge)):
             table = getattr(self, f"place_{kind}")
-            rows = getattr(graph, kind).shape[0]
             if table.shape[1] == 0:
                 continue
-            of_graph = torch.repeat_interleave(torch.arange(count.shape[0], device=gl.device), count.to(gl.device),
+            rows, count = getattr(graph, kind).shape[0], count.to(gl.device)
+            of_graph = torch.repeat_interleave(torch.arange(count.shape[0], device=gl.device), count,
                                                output_size=rows)
-            first = torch.cumsum(count.to(gl.device), 0) - count.to(gl.device)
-            local = (torch.arange(rows, device=gl.device) - first[of_graph]).clamp(max=table.shape[0] - 1)
-            which = table[local]                                  # [rows, slots] parameter index or -1
+            local = (torch.arange(rows, device=gl.device) - (torch.cumsum(count, 0) - count)[of_graph])
+            which = table[local.clamp(max=table.shape[0] - 1)]     # [rows, slots] parameter index or -1
             vals = gl[of_graph[:, None], which.clamp(min=0)]
-            out[kind] = torch.where(which >= 0, vals, torch.zeros_like(vals))
+            placed = torch.where(which >= 0, vals, torch.zeros_like(vals))
+            out[kind] = placed if out[kind] is None else torch.cat([out[kind], placed.to(out[kind].dtype)], -1)
         return out
 
     def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
@@ -601,10 +591,12 @@ class SysIDModel(nn.Module):
         self.check_gid(g_id, tmpl.topology)
         g_id = g_id._replace(**{k: None if getattr(g_id, k) is None else getattr(g_id, k).to(dev, dt) for k in KINDS})
         fm = self.forward_model
-        ctx = fm.context(self.with_gid(tmpl.graph(body, ctrl[:, 0]), g_id))
+        first = tmpl.graph(body, ctrl[:, 0])
+        columns = self.gid_columns(first, g_id)      # the same every step: G_ID and the topology are fixed
+        ctx = fm.context(self.with_columns(first, columns))
         out = [body]
         for t in range(ctrl.shape[1]):
-            body = tmpl.to_body(fm.next_nodes(self.with_gid(tmpl.graph(body, ctrl[:, t]), g_id), ctx), body)
+            body = tmpl.to_body(fm.next_nodes(self.with_columns(tmpl.graph(body, ctrl[:, t]), columns), ctx), body)
             out.append(body)
         return torch.stack(out, 1)
 
