@@ -189,6 +189,10 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                  str(tmp_path / "run-l"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     local = load_sysid(tmp_path / "run-l" / "best").config
     assert local.local_params and local.param_places == (("nodes", (1,)), ("nodes", (1,)))
+    assert main(["train", "--data", str(path), "--sysid", "--nominal-static", "-o", str(tmp_path / "run-n"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 0
+    nominal = load_sysid(tmp_path / "run-n" / "best").config
+    assert nominal.nominal_static and nominal.nominal.node_names == tuple(data.load(path).layout.node_names)
     capsys.readouterr()
     assert main(["train", "--data", str(path), "--sysid", "--local-params", "-o", str(tmp_path / "run-l0"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 2
@@ -201,7 +205,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
                  ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"],
-                 ["--local-params"]):
+                 ["--local-params"], ["--nominal-static"]):
         with pytest.raises(SystemExit, match=f"train: {flag[0]} apply to .*--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
@@ -212,9 +216,9 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                                                                 "param_loss": 1.0, "ridge_head": 8},
                                      {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5},
                                      {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
-                                      "param_teacher": 0.5, "local_params": True}],
+                                      "param_teacher": 0.5, "local_params": True, "nominal_static": True}],
                          ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher",
-                              "local-params"])
+                              "local-params-nominal"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -1038,3 +1042,73 @@ def test_datasets_with_malformed_param_places_are_refused(pendulum, tmp_path):
             f.attrs["meta"] = json.dumps(meta)
         with pytest.raises(data.DatasetError, match="param_places"):
             data.load(p2)
+
+
+def test_nominal_static_reads_the_system_as_designed(jaco, pendulum, tmp_path):
+    """``SysIDConfig(nominal_static=True)``: the forward model's input holds, after G_ID's columns,
+    the training data's static graph at its mean over the train split's instances, the same in
+    every graph and normalized as static features are; the nominal graph is saved in the
+    checkpoint and validated; another topology, a run resumed on other data and misuse are
+    refused by name."""
+    from gnwarp.models.sysid import NominalGraph, nominal_graph
+    from gnwarp.validation import ConfigError
+    nom = nominal_graph(jaco)
+    layout, train = jaco.layout, np.unique(jaco["train"].instance[:])
+    assert (nom.node_names, nom.edge_names) == (tuple(layout.node_names), tuple(layout.edge_names))
+    for k in ("nodes", "edges"):
+        mean = np.asarray(jaco.static[k], dtype=np.float64)[train].mean(0)
+        assert np.array_equal(nom.tensors()[k].numpy(), mean[:len(getattr(nom, k))]), k
+    assert nom.senders == tuple(jaco.static["senders"][0]) and len(nom.nodes) == jaco.static["n_node"][0]
+    assert train.size < jaco.static["n_node"].shape[0]          # the test instances' values are not averaged in
+    cfg = TrainConfig(out=str(tmp_path / "n"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=2,
+                      batch_size=4, lr=1e-3, valid_every=2, valid_sequences=2, valid_horizon=2, checkpoint_every=2,
+                      progress=False, device="cpu", normalizer_warmup=1)
+    sc = SysIDConfig(identifier=ID, window=3, nominal_static=True)
+    tr = SysIDTrainer(cfg, sc, datasets=[jaco])
+    m = tr.model
+    assert m.sysid.nominal == nom
+    (parts,) = tr.sample()
+    p = parts[0]
+    g_id = m.identify_graphs(p.window, 3, m.forward_model.stats(p.graph.nodes.dtype))
+    graph = m.with_gid(p.graph, g_id)
+    gn, ge, Fn, Fe = ID.out_nodes, ID.out_edges, len(nom.node_names), len(nom.edge_names)
+    N = p.graph.n_node.shape[0]
+    want = nom.tensors()
+    assert graph.nodes.shape[1] == gn + Fn + 13 and graph.edges.shape[1] == ge + Fe + p.graph.edges.shape[1]
+    assert torch.equal(graph.nodes[:, gn:gn + Fn], want["nodes"].float().repeat(N, 1))
+    assert torch.equal(graph.edges[:, ge:ge + Fe], want["edges"].float().repeat(N, 1))
+    assert torch.equal(graph.nodes[:, :gn], g_id.nodes)
+    # G_ID's columns pass the normalizer as they are (D.3); the nominal ones are normalized
+    assert m.forward_model.norm_nodes.skip == gn and m.forward_model.norm_edges.skip == ge
+
+    summary = tr.run()
+    back = load_sysid(summary["last"]).bind(jaco)
+    assert back.sysid.nominal == nom
+    assert sysid_rollout_error(back, jaco, "test", 3) == pytest.approx(sysid_rollout_error(m, jaco, "test", 3),
+                                                                       rel=1e-6)
+    assert SysIDConfig.from_dict(json.loads(json.dumps(back.sysid.to_dict()))) == back.sysid
+    with pytest.raises(ValueError, match="another topology"):
+        back.bind(pendulum)
+    moved = {**jaco.static, "nodes": np.asarray(jaco.static["nodes"]) * 1.5}     # the same arm, other bodies
+    other = data.Dataset({**jaco.meta}, moved, {k: jaco[k] for k in ("train", "valid", "test")})
+    with pytest.raises(CheckpointError, match="another nominal static graph"):
+        SysIDTrainer(dataclasses.replace(cfg, steps=4), sc, datasets=[other])
+    varied = {**jaco.static, "n_node": np.asarray(jaco.static["n_node"]).copy()}
+    varied["n_node"][-1] -= 1
+    with pytest.raises(ValueError, match="differ in topology"):
+        nominal_graph(data.Dataset({**jaco.meta}, varied, {k: jaco[k] for k in ("train", "valid", "test")}))
+    with pytest.raises(ValueError, match="train on one"):
+        SysIDTrainer(dataclasses.replace(cfg, out=str(tmp_path / "two")), sc, datasets=[jaco, jaco])
+    with pytest.raises(ValueError, match="set nominal_static=True"):
+        SysIDConfig(nominal=nom)
+    with pytest.raises(ValueError, match="build the model with"):
+        SysIDModel(sc, jaco.layout)
+    good = nom.to_dict()
+    assert NominalGraph.from_dict(good) == nom
+    for key, bad, match in (("nodes", [r[:-1] for r in good["nodes"]], "nodes: row 0 has"),
+                            ("edges", [[math.nan] * Fe] + good["edges"][1:], "edges"),
+                            ("senders", good["senders"][:-1], "senders"),
+                            ("receivers", [99] * len(good["receivers"]), "beyond the graph's 10 nodes"),
+                            ("globals", [1.0], "globals: row 0 has 1 values")):
+        with pytest.raises(ConfigError, match=match):
+            NominalGraph.from_dict({**good, key: bad})

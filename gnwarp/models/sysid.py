@@ -41,15 +41,104 @@ from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
 from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import MAX_WIDTH, Count, Flag, IntRange, PositiveInt, check_fields, check_keys
+from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, IntRange, PositiveInt,
+                               check_fields, check_keys)
 
-__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "save_gid", "load_gid", "source_places"]
+__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "NominalGraph", "save_gid", "load_gid",
+           "source_places", "nominal_graph"]
 
 
 # the readouts that fit a linear model over the window (``SysIDConfig.readout``)
 FITS = ("ridge", "dynamics")
 # the "dynamics" readout's targets: the velocity columns of ``state_delta`` (6)
 FIT_TARGETS = slice(LINVEL.start, ANGVEL.stop)
+
+
+Finite = FloatRange()
+
+
+@dataclass
+class NominalGraph:
+    """One graph's static features as ``SysIDConfig.nominal_static`` reads them: the kept static
+    columns of the training data (``*_names``; the data's ``FeatureLayout``), each element at its
+    mean over the train split's instances (``globals`` [F_g], ``nodes`` [n][F_v], ``edges``
+    [e][F_e]), and the graph's topology (``senders``, ``receivers`` [e]). Built by
+    ``nominal_graph``; validated when made, so a checkpoint's is checked as it loads."""
+    global_names: tuple[str, ...]
+    node_names: tuple[str, ...]
+    edge_names: tuple[str, ...]
+    globals: tuple[Finite, ...]
+    nodes: tuple[tuple[Finite, ...], ...]
+    edges: tuple[tuple[Finite, ...], ...]
+    senders: tuple[Count, ...]
+    receivers: tuple[Count, ...]
+
+    def __post_init__(self):
+        check_fields(self)
+        rows = {"globals": [self.globals], "nodes": self.nodes, "edges": self.edges}
+        for kind, names in (("globals", self.global_names), ("nodes", self.node_names), ("edges", self.edge_names)):
+            bad = [i for i, r in enumerate(rows[kind]) if len(r) != len(names)]
+            if bad:
+                raise ConfigError(kind, f"row {bad[0]} has {len(rows[kind][bad[0]])} values for "
+                                        f"{len(names)} {kind[:-1]} columns")
+        if not self.nodes:
+            raise ConfigError("nodes", "a nominal graph has at least one node")
+        if not (len(self.senders) == len(self.receivers) == len(self.edges)):
+            raise ConfigError("senders", f"{len(self.senders)} senders and {len(self.receivers)} receivers for "
+                                         f"{len(self.edges)} edges")
+        if any(i >= len(self.nodes) for i in (*self.senders, *self.receivers)):
+            raise ConfigError("senders", f"an edge's node index is beyond the graph's {len(self.nodes)} nodes")
+
+    def to_dict(self) -> dict:
+        return {f.name: [list(r) for r in v] if f.name in ("nodes", "edges") else list(v)
+                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "NominalGraph":
+        return cls(**check_keys(cls, d, "nominal graph keys"))
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """{"globals" [F_g], "nodes" [n, F_v], "edges" [e, F_e]} float64."""
+        return {"globals": torch.tensor(self.globals, dtype=torch.float64),
+                "nodes": torch.tensor(self.nodes, dtype=torch.float64).reshape(len(self.nodes), len(self.node_names)),
+                "edges": torch.tensor(self.edges, dtype=torch.float64).reshape(len(self.edges), len(self.edge_names))}
+
+
+def _source_static(source) -> dict:
+    """A Dataset's or a System's static arrays (``gnwarp.data.static_arrays``' layout)."""
+    from gnwarp.data.convert import static_arrays
+    from gnwarp.sim.systems import System
+    return static_arrays([source])[0] if isinstance(source, System) else source.static
+
+
+def _source_name(source) -> str:
+    return repr(getattr(source, "system", getattr(source, "name", type(source).__name__)))
+
+
+def _topology(static: dict) -> list[tuple]:
+    """Per instance: (n_node, senders, receivers) of its static arrays."""
+    ne, nn_ = np.asarray(static["n_edge"]), np.asarray(static["n_node"])
+    s, r = np.asarray(static["senders"]), np.asarray(static["receivers"])
+    return [(int(nn_[i]), tuple(int(x) for x in s[i, :ne[i]]), tuple(int(x) for x in r[i, :ne[i]]))
+            for i in range(nn_.shape[0])]
+
+
+def nominal_graph(dataset) -> NominalGraph:
+    """``dataset``'s nominal static graph (``SysIDConfig.nominal_static``): its kept static
+    columns, each element's mean over the instances of its train split. Raises ``ValueError``
+    when the instances differ in topology (a swimmer with varied links)."""
+    static, layout = dataset.static, dataset.layout
+    used = np.unique(np.asarray(dataset["train"].instance[...]))
+    topo = _topology(static)
+    if any(topo[i] != topo[used[0]] for i in range(len(topo))):
+        raise ValueError(f"nominal_static: the instances of {_source_name(dataset)} differ in topology (bodies or "
+                         f"joints); a nominal static graph needs one")
+    n, senders, receivers = topo[used[0]]
+    mean = {k: np.asarray(static[k], dtype=np.float64)[used].mean(0) for k in KINDS}
+    return NominalGraph(tuple(layout.global_names), tuple(layout.node_names), tuple(layout.edge_names),
+                        tuple(float(v) for v in mean["globals"]),
+                        tuple(tuple(float(v) for v in r) for r in mean["nodes"][:n]),
+                        tuple(tuple(float(v) for v in r) for r in mean["edges"][:len(senders)]), senders, receivers)
 
 
 def _identifier_default() -> RecurrentGNConfig:
@@ -106,7 +195,15 @@ class SysIDConfig:
     one ``(kind, rows)`` per parameter: ("nodes", (body,)), ("edges", (edge, ...)) with edge
     rows within a graph, ("globals", ()); filled from the training data's
     ``gnwarp.sim.param_places`` by ``build_sysid_model``). The forward model then reads the
-    mass of a JACO link on that link's node rather than picking it out of 18 globals."""
+    mass of a JACO link on that link's node rather than picking it out of 18 globals.
+
+    ``nominal_static`` (beyond the paper; default off): the forward model also reads the training
+    data's static graph with each element at its mean over the train split's instances
+    (``nominal``, a ``NominalGraph`` filled by ``build_sysid_model``): the system as designed, its
+    bodies' geometry and its joints' ranges, the same for every instance, so that it carries no
+    parameter while G_ID says only how an instance differs from it. The paper's G_ID replaces the
+    whole static graph, so the forward model must also learn from GN_p what is fixed (which JACO
+    link is which). Needs every instance of one topology; binding a source of another is refused."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
@@ -117,9 +214,13 @@ class SysIDConfig:
     ridge_head: IntRange(0, MAX_WIDTH) = 0
     local_params: Flag = False
     param_places: tuple[tuple[Literal["nodes", "edges", "globals"], tuple[Count, ...]], ...] | None = None
+    nominal_static: Flag = False
+    nominal: NominalGraph | None = None
 
     def __post_init__(self):
         check_fields(self)
+        if self.nominal is not None and not self.nominal_static:
+            raise ValueError("nominal is the static graph nominal_static reads: set nominal_static=True")
         if self.param_places is not None:
             if not self.local_params:
                 raise ValueError("param_places places the parameters for local_params: set local_params=True")
@@ -173,7 +274,9 @@ class SysIDConfig:
                 **({"ridge": self.ridge} if self.readout == "dynamics" else {}),
                 **({"ridge_head": self.ridge_head} if self.ridge_head else {}),
                 **({"local_params": True, "param_places": [[k, list(r)] for k, r in self.param_places or ()]}
-                   if self.local_params else {})}
+                   if self.local_params else {}),
+                **({"nominal_static": True, "nominal": None if self.nominal is None else self.nominal.to_dict()}
+                   if self.nominal_static else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -199,18 +302,17 @@ def source_places(source) -> tuple:
     """``SysIDConfig.param_places`` of a parameterized Dataset or System: each parameter's node
     row, edge rows (its actuator's edges within a graph, the same in every instance) or none
     (a global), from the dataset's ``param_places`` metadata or ``gnwarp.sim.param_places``."""
-    from gnwarp.data.convert import static_arrays
     from gnwarp.sim.systems import System, param_places
+    static = _source_static(source)
     if isinstance(source, System):
         names, places = list(source.params), [list(p) for p in param_places(source)]
-        static = static_arrays([source])[0]
     else:
-        names, places, static = source.meta.get("param_names", []), source.meta.get("param_places"), source.static
+        names, places = source.meta.get("param_names", []), source.meta.get("param_places")
         if names and places is None:
             raise ValueError(f"dataset {source.system!r} does not say where its parameters live (no param_places in "
                              f"its metadata: generated before them); regenerate it for local_params")
     if not names:
-        raise ValueError(f"{getattr(source, 'system', getattr(source, 'name', source))!r} has no instance parameters: "
+        raise ValueError(f"{_source_name(source)} has no instance parameters: "
                          f"local_params places the parameters of a parameterized system")
     ec = np.asarray(static["edge_ctrl"])[..., 0]
     ne = np.asarray(static["n_edge"])
@@ -250,15 +352,21 @@ class GIDError(ValueError):
     """A G_ID file that is missing, corrupt or not a G_ID; or a G_ID that does not fit a rollout."""
 
 
-def gid_layout(sizes: dict[str, int], n_ctrl_slots: int, slots: dict[str, int] | None = None) -> FeatureLayout:
+def gid_layout(sizes: dict[str, int], n_ctrl_slots: int, slots: dict[str, int] | None = None,
+               nominal: NominalGraph | None = None) -> FeatureLayout:
     """The forward model's layout: G_ID's latents as its static columns, then ``slots`` columns
-    of placed parameters per node and edge (``SysIDConfig.local_params``)."""
+    of placed parameters per node and edge (``SysIDConfig.local_params``), then the nominal
+    static graph's columns (``SysIDConfig.nominal_static``)."""
     slots = slots or {}
-    return FeatureLayout([f"gid_global_{i}" for i in range(sizes["globals"])],
-                         [f"gid_node_{i}" for i in range(sizes["nodes"])]
-                         + [f"param_node_{i}" for i in range(slots.get("nodes", 0))],
-                         [f"gid_edge_{i}" for i in range(sizes["edges"])]
-                         + [f"param_edge_{i}" for i in range(slots.get("edges", 0))], n_ctrl_slots=n_ctrl_slots)
+    names = {"globals": [f"gid_global_{i}" for i in range(sizes["globals"])],
+             "nodes": [f"gid_node_{i}" for i in range(sizes["nodes"])]
+             + [f"param_node_{i}" for i in range(slots.get("nodes", 0))],
+             "edges": [f"gid_edge_{i}" for i in range(sizes["edges"])]
+             + [f"param_edge_{i}" for i in range(slots.get("edges", 0))]}
+    if nominal is not None:
+        for k in KINDS:
+            names[k] += [f"nominal_{n}" for n in getattr(nominal, f"{k[:-1] if k != 'globals' else 'global'}_names")]
+    return FeatureLayout(names["globals"], names["nodes"], names["edges"], n_ctrl_slots=n_ctrl_slots)
 
 
 def place_tables(places) -> dict[str, torch.Tensor]:
@@ -319,7 +427,13 @@ class SysIDModel(nn.Module):
         if config.param_places and len(config.param_places) > self.gid_sizes["globals"]:
             raise ValueError(f"local_params places {len(config.param_places)} parameters from G_ID's first global "
                              f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals)")
-        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K, slots))
+        if config.nominal_static and config.nominal is None:
+            raise ValueError("nominal_static needs the nominal static graph (nominal): build the model with "
+                             "gnwarp.train.build_sysid_model from a dataset")
+        # nominal_static: the nominal graph's columns per kind (None: none), float64 buffers on the model's device
+        for kind, t in (config.nominal.tensors() if config.nominal else {}).items():
+            self.register_buffer(f"nominal_{kind}", t if t.shape[-1] else None, persistent=False)
+        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K, slots, config.nominal))
         fm, f = self.forward_model, config.forward.std_floor
         fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, self.gid_sizes["nodes"] + slots["nodes"], f)
         fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"] + slots["edges"], f)
@@ -379,8 +493,15 @@ class SysIDModel(nn.Module):
         clamping controls."""
         if self.sysid.local_params and source_places(source) != self.sysid.param_places:
             raise ValueError(f"this model places its parameters as {self.sysid.param_places!r:.120}, and "
-                             f"{getattr(source, 'system', getattr(source, 'name', 'the source'))!r} holds them "
-                             f"elsewhere (another system, or other parameters)")
+                             f"{_source_name(source)} holds them elsewhere (another system, or other parameters)")
+        nom = self.sysid.nominal
+        if nom is not None:
+            want = (len(nom.nodes), nom.senders, nom.receivers)
+            other = [t for t in _topology(_source_static(source)) if t != want]
+            if other:
+                raise ValueError(f"this model reads a nominal static graph of {want[0]} bodies and "
+                                 f"{len(nom.senders)} edges; {_source_name(source)} has instances of another "
+                                 f"topology ({other[0][0]} bodies, {len(other[0][1])} edges, or other joints)")
         self.builder = self.graph_builder(source, strict)
         try:
             self._range_builder = graph_builder(self._range_layout, source, self.device, self.dtype, strict)
@@ -417,24 +538,31 @@ class SysIDModel(nn.Module):
 
     def gid_columns(self, graph: GraphsTuple, g_id: GraphsTuple) -> dict:
         """The static columns the forward model reads per kind (None: none) on ``graph``'s
-        topology: G_ID's latents, and with ``local_params`` the parameters in G_ID's first global
+        topology: G_ID's latents; with ``local_params`` the parameters in G_ID's first global
         columns also at the nodes and edges they describe (``SysIDConfig.param_places``; 0 in
-        slots no parameter fills). A rollout computes them once and reuses them every step. Device
-        gathers only: no host synchronization."""
-        gl, out = g_id.globals, {k: getattr(g_id, k) for k in KINDS}
+        slots no parameter fills); with ``nominal_static`` the nominal static graph's columns.
+        A rollout computes them once and reuses them every step. Device gathers only: no host
+        synchronization."""
+        gl, dev = g_id.globals, graph.nodes.device
+        dt = next((x.dtype for x in (g_id.nodes, g_id.edges, gl) if x is not None), graph.nodes.dtype)
+        out = {k: [] if getattr(g_id, k) is None else [getattr(g_id, k)] for k in KINDS}
         for kind, count in (("nodes", graph.n_node), ("edges", graph.n_edge)):
-            table = getattr(self, f"place_{kind}")
-            if table.shape[1] == 0:
+            table, nominal = getattr(self, f"place_{kind}"), getattr(self, f"nominal_{kind}", None)
+            if table.shape[1] == 0 and nominal is None:
                 continue
-            rows, count = getattr(graph, kind).shape[0], count.to(gl.device)
-            of_graph = torch.repeat_interleave(torch.arange(count.shape[0], device=gl.device), count,
-                                               output_size=rows)
-            local = (torch.arange(rows, device=gl.device) - (torch.cumsum(count, 0) - count)[of_graph])
-            which = table[local.clamp(max=table.shape[0] - 1)]     # [rows, slots] parameter index or -1
-            vals = gl[of_graph[:, None], which.clamp(min=0)]
-            placed = torch.where(which >= 0, vals, torch.zeros_like(vals))
-            out[kind] = placed if out[kind] is None else torch.cat([out[kind], placed.to(out[kind].dtype)], -1)
-        return out
+            rows, count = getattr(graph, kind).shape[0], count.to(dev)
+            of_graph = torch.repeat_interleave(torch.arange(count.shape[0], device=dev), count, output_size=rows)
+            local = (torch.arange(rows, device=dev) - (torch.cumsum(count, 0) - count)[of_graph])   # row in its graph
+            if table.shape[1]:
+                which = table[local.clamp(max=table.shape[0] - 1)]     # [rows, slots] parameter index or -1
+                vals = gl[of_graph[:, None], which.clamp(min=0)]
+                out[kind].append(torch.where(which >= 0, vals, torch.zeros_like(vals)).to(dt))
+            if nominal is not None:   # bind checked that every graph has the nominal's rows
+                out[kind].append(nominal[local].to(dt))
+        nominal = getattr(self, "nominal_globals", None)
+        if nominal is not None:
+            out["globals"].append(nominal.to(dt).expand(graph.n_node.shape[0], -1))
+        return {k: None if not v else v[0] if len(v) == 1 else torch.cat(v, -1) for k, v in out.items()}
 
     def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
         """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable

@@ -26,7 +26,7 @@ from gnwarp.data.layout import FeatureLayout, merge_layouts
 from gnwarp.eval.metrics import movable_mask, normalized_errors
 from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
-from gnwarp.models.sysid import SysIDConfig, SysIDModel, source_places
+from gnwarp.models.sysid import SysIDConfig, SysIDModel, nominal_graph, source_places
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weights, model_config_changes,
                                      read_checkpoint)
@@ -153,6 +153,11 @@ def build_sysid_model(config: TrainConfig, datasets, sysid: SysIDConfig | None =
         if len(places) > 1:
             raise ValueError("local_params: the datasets place their parameters differently (train one system)")
         sysid = dataclasses.replace(sysid, param_places=places.pop())
+    if sysid.nominal_static and sysid.nominal is None:   # the training data's system as designed
+        if len(datasets) != 1:
+            raise ValueError(f"nominal_static reads one dataset's nominal static graph; got {len(datasets)} datasets "
+                             f"(train on one)")
+        sysid = dataclasses.replace(sysid, nominal=nominal_graph(datasets[0]))
     return SysIDModel(dataclasses.replace(sysid, forward=mcfg), merge_layouts([d.layout for d in datasets]))
 
 
@@ -276,10 +281,12 @@ class SysIDTrainer(Trainer):
                 before[k] = saved.get(k)
         before["ridge_head"] = saved.get("ridge_head", 0)
         want.setdefault("ridge_head", 0)
-        for k, none in (("local_params", False), ("param_places", None)):
+        for k, none in (("local_params", False), ("param_places", None), ("nominal_static", False), ("nominal", None)):
             before[k] = saved.get(k, none)
             want.setdefault(k, none)
-        changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" for k, v in before.items() if v != want.get(k)]
+        changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" if k != "nominal" else
+                    "model.nominal: another nominal static graph (the training data's system differs)"
+                    for k, v in before.items() if v != want.get(k)]
         return changes
 
     # -- seams ------------------------------------------------------------------------------
