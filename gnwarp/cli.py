@@ -165,7 +165,8 @@ def _cmd_train(args) -> int:
                   "--ridge-head": args.ridge_head, "--ridge-features": args.ridge_features is not None,
                   "--start-windows": args.start_windows, "--consistency": args.consistency,
                   "--param-loss": args.param_loss, "--param-teacher": args.param_teacher,
-                  "--local-params": args.local_params, "--nominal-static": args.nominal_static}
+                  "--local-params": args.local_params, "--nominal-static": args.nominal_static,
+                  "--no-gid-latents": args.no_gid_latents}
     given = [flag for flag, on in sysid_only.items() if on]
     if given and not args.sysid:
         raise SystemExit(f"gnwarp train: {', '.join(given)} apply to system identification (--sysid) only")
@@ -178,7 +179,8 @@ def _cmd_train(args) -> int:
         fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
         r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout,
                                           ridge_head=args.ridge_head, local_params=args.local_params,
-                                          nominal_static=args.nominal_static, **fit),
+                                          nominal_static=args.nominal_static,
+                                          gid_latents=not args.no_gid_latents, **fit),
                          targets=args.targets,
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher).run()
@@ -452,6 +454,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --sysid: the forward model also reads the training data's static graph at its mean "
                         "over the instances (the system as designed; G_ID says how an instance differs; beyond the "
                         "paper, SysIDConfig.nominal_static)")
+    t.add_argument("--no-gid-latents", action="store_true",
+                   help="with --local-params: the forward model reads only G_ID's parameter columns, none of its "
+                        "learned latents (identify, then predict with the parameters; beyond the paper, "
+                        "SysIDConfig.gid_latents)")
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")

@@ -163,7 +163,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout, ridge_head=args.ridge_head, local_params=args.local_params,
-                        nominal_static=args.nominal_static,
+                        nominal_static=args.nominal_static, gid_latents=not args.no_gid_latents,
                         **fit_options(args))
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
                      consistency=args.consistency, param_loss=args.param_loss,
@@ -605,6 +605,9 @@ def main():
     ap.add_argument("--nominal-static", action="store_true",
                     help="SysIDConfig.nominal_static: the forward model also reads the data's static graph at its "
                          "mean over the instances")
+    ap.add_argument("--no-gid-latents", action="store_true",
+                    help="SysIDConfig.gid_latents=False: the forward model reads G_ID's parameter columns only "
+                         "(needs --local-params)")
     ap.add_argument("--ema", type=float, default=0.0,
                     help="TrainConfig.ema of every model: validate and keep a moving average of the weights (default 0: off)")
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
@@ -671,7 +674,7 @@ def main():
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema, local_params=args.local_params,
-                         nominal_static=args.nominal_static,
+                         nominal_static=args.nominal_static, gid_latents=not args.no_gid_latents,
                          **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)
