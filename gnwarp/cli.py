@@ -166,7 +166,7 @@ def _cmd_train(args) -> int:
                   "--start-windows": args.start_windows, "--consistency": args.consistency,
                   "--param-loss": args.param_loss, "--param-teacher": args.param_teacher,
                   "--local-params": args.local_params, "--nominal-static": args.nominal_static,
-                  "--no-gid-latents": args.no_gid_latents}
+                  "--gid-globals": args.gid_globals is not None}
     given = [flag for flag, on in sysid_only.items() if on]
     if given and not args.sysid:
         raise SystemExit(f"gnwarp train: {', '.join(given)} apply to system identification (--sysid) only")
@@ -177,10 +177,17 @@ def _cmd_train(args) -> int:
             raise SystemExit(f"gnwarp train: --ridge-features sets the regressors of --readout ridge's fit, got "
                              f"--readout {args.readout}")
         fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
+        if args.gid_globals is not None:   # G_ID's global width (and GN_p's hidden globals)
+            import dataclasses
+            ident = SysIDConfig().identifier
+            try:
+                fit["identifier"] = dataclasses.replace(ident, hidden_globals=args.gid_globals,
+                                                        out_globals=args.gid_globals)
+            except ConfigError as e:
+                raise SystemExit(f"gnwarp train: --gid-globals {args.gid_globals}: {e.reason}") from None
         r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout,
                                           ridge_head=args.ridge_head, local_params=args.local_params,
-                                          nominal_static=args.nominal_static,
-                                          gid_latents=not args.no_gid_latents, **fit),
+                                          nominal_static=args.nominal_static, **fit),
                          targets=args.targets,
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher).run()
@@ -450,14 +457,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --param-loss: the forward model also reads each supervised parameter on the node or "
                         "edges it describes (a link's mass on its node, a gear on its joint's edges), as a true "
                         "static graph holds it (beyond the paper, SysIDConfig.local_params)")
+    t.add_argument("--gid-globals", type=int, default=None, metavar="G",
+                   help="with --sysid: G_ID's global width, and GN_p's hidden globals (default 10); with "
+                        "--param-loss at least the system's parameter count (cheetah 20, JACO 18; "
+                        "RecurrentGNConfig.out_globals)")
     t.add_argument("--nominal-static", action="store_true",
                    help="with --sysid: the forward model also reads the training data's static graph at its mean "
                         "over the instances (the system as designed; G_ID says how an instance differs; beyond the "
                         "paper, SysIDConfig.nominal_static)")
-    t.add_argument("--no-gid-latents", action="store_true",
-                   help="with --local-params: the forward model reads only G_ID's parameter columns, none of its "
-                        "learned latents (identify, then predict with the parameters; beyond the paper, "
-                        "SysIDConfig.gid_latents)")
     t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
                    help="with --sysid: fraction of identification windows at their sequence's start, where "
                         "identification reads in use (default 0: uniform windows, the paper's)")

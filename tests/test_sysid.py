@@ -193,6 +193,12 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     nominal = load_sysid(tmp_path / "run-n" / "best").config
     assert nominal.nominal_static and nominal.nominal.node_names == tuple(data.load(path).layout.node_names)
+    assert main(["train", "--data", str(path), "--sysid", "--gid-globals", "6", "-o", str(tmp_path / "run-g"), "-q"]
+                + [a for kv in sets for a in ("--set", kv)]) == 0
+    ident = load_sysid(tmp_path / "run-g" / "best").config.identifier
+    assert (ident.out_globals, ident.hidden_globals, ident.out_nodes) == (6, 6, SysIDConfig().identifier.out_nodes)
+    with pytest.raises(SystemExit, match="--gid-globals 0"):
+        main(["train", "--data", str(path), "--sysid", "--gid-globals", "0", "-o", str(tmp_path / "run-g0"), "-q"])
     capsys.readouterr()
     assert main(["train", "--data", str(path), "--sysid", "--local-params", "-o", str(tmp_path / "run-l0"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 2
@@ -205,7 +211,7 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert len(rows) == 1 and rows[0].startswith("| run-p |")
     for flag in (["--transitions"], ["--readout", "mean"], ["--start-windows", "0.5"], ["--consistency", "1"],
                  ["--param-loss", "1"], ["--ridge-head", "8"], ["--param-teacher", "0.5"], ["--ridge-features", "3"],
-                 ["--local-params"], ["--nominal-static"], ["--no-gid-latents"]):
+                 ["--local-params"], ["--nominal-static"], ["--gid-globals", "18"]):
         with pytest.raises(SystemExit, match=f"train: {flag[0]} apply to .*--sysid"):
             main(["train", "--data", str(path), *flag, "-o", str(tmp_path / "run-x"), "-q"])
 
@@ -216,11 +222,9 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                                                                 "param_loss": 1.0, "ridge_head": 8},
                                      {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5},
                                      {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
-                                      "param_teacher": 0.5, "local_params": True, "nominal_static": True},
-                                     {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
-                                      "param_teacher": 0.5, "local_params": True, "gid_latents": False}],
+                                      "param_teacher": 0.5, "local_params": True, "nominal_static": True}],
                          ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher",
-                              "local-params-nominal", "no-gid-latents"])
+                              "local-params-nominal"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -1114,35 +1118,3 @@ def test_nominal_static_reads_the_system_as_designed(jaco, pendulum, tmp_path):
                             ("globals", [1.0], "globals: row 0 has 1 values")):
         with pytest.raises(ConfigError, match=match):
             NominalGraph.from_dict({**good, key: bad})
-
-
-def test_without_gid_latents_the_forward_model_reads_only_the_parameters(pendulum, tmp_path):
-    """``SysIDConfig(gid_latents=False)``: the forward model reads G_ID's P parameter columns (in
-    the globals and on the node each parameter describes) and the nominal graph, and nothing else
-    of G_ID: changing G_ID's latents changes no prediction, changing a parameter column does."""
-    cfg = TrainConfig(out=str(tmp_path / "p"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=2,
-                      batch_size=4, lr=1e-3, valid_every=2, valid_sequences=2, valid_horizon=2, checkpoint_every=2,
-                      progress=False, device="cpu", normalizer_warmup=1)
-    sc = SysIDConfig(identifier=ID, window=3, local_params=True, nominal_static=True, gid_latents=False)
-    tr = SysIDTrainer(cfg, sc, datasets=[pendulum], param_loss=1.0)
-    m = tr.model
-    fm = m.forward_model
-    assert fm.layout.global_names == ["gid_global_0", "gid_global_1"]
-    assert fm.layout.node_names[:2] == ["param_node_0", "param_node_1"]
-    assert not any(n.startswith(("gid_node", "gid_edge")) for n in fm.layout.node_names + fm.layout.edge_names)
-    (parts,) = tr.sample()
-    p = parts[0]
-    g_id = m.identify_graphs(p.window, 3, fm.stats(p.graph.nodes.dtype))
-    with torch.no_grad():
-        base = fm.next_nodes(m.with_gid(p.graph, g_id))
-        noisy = g_id._replace(nodes=torch.randn_like(g_id.nodes), edges=torch.randn_like(g_id.edges),
-                              globals=torch.cat([g_id.globals[:, :2], torch.randn_like(g_id.globals[:, 2:])], 1))
-        assert torch.equal(fm.next_nodes(m.with_gid(p.graph, noisy)), base)
-        moved = g_id._replace(globals=g_id.globals + torch.tensor([0.5, 0.0, 0.0]))
-        assert not torch.allclose(fm.next_nodes(m.with_gid(p.graph, moved)), base)
-    summary = tr.run()
-    back = load_sysid(summary["last"])
-    assert back.sysid.gid_latents is False and back.read_sizes == m.read_sizes
-    assert SysIDConfig.from_dict(json.loads(json.dumps(back.sysid.to_dict()))) == back.sysid
-    with pytest.raises(ValueError, match="needs local_params=True"):
-        SysIDConfig(gid_latents=False)

@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import tempfile
 import time
@@ -163,7 +164,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
                         readout=args.readout, ridge_head=args.ridge_head, local_params=args.local_params,
-                        nominal_static=args.nominal_static, gid_latents=not args.no_gid_latents,
+                        nominal_static=args.nominal_static,
                         **fit_options(args))
     r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
                      consistency=args.consistency, param_loss=args.param_loss,
@@ -528,11 +529,23 @@ def compare_runs(out: Path, rows: list[dict]) -> str:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    x = np.arange(len(systems))
-    w = 0.8 / len(runs)
+    # runs whose labels differ only in a leading seed ("s2-...") are one setting: a bar at their median
+    # ratio, a dot per run; each system shows only the settings it ran
+    setting = {run: re.sub(r"^s\d+-", "", run) for run in runs}
+    groups = list(dict.fromkeys(setting.values()))
+    color = {g: plt.get_cmap("tab20")(i % 20) for i, g in enumerate(groups)}
     fig, ax = plt.subplots(figsize=(2.2 + 1.8 * len(systems), 3.8))
-    for i, run in enumerate(runs):
-        ax.bar(x + (i - (len(runs) - 1) / 2) * w, [ratio.get((run, s), np.nan) for s in systems], w, label=run)
+    shown = set()
+    for xs, s in enumerate(systems):
+        here = [g for g in groups if any((run, s) in ratio and setting[run] == g for run in runs)]
+        w = 0.8 / max(1, len(here))
+        for i, g in enumerate(here):
+            vals = [ratio[run, s] for run in runs if setting[run] == g and (run, s) in ratio]
+            at = xs + (i - (len(here) - 1) / 2) * w
+            ax.bar(at, float(np.median(vals)), w, color=color[g], label=None if g in shown else g)
+            ax.plot([at] * len(vals), vals, "k.", ms=4)
+            shown.add(g)
+    x = np.arange(len(systems))
     ax.axhline(1.2, color="k", lw=0.8, ls="--", label="goal: 1.2x")
     ax.set_yscale("log")
     ax.set_xticks(x, systems)
@@ -605,9 +618,6 @@ def main():
     ap.add_argument("--nominal-static", action="store_true",
                     help="SysIDConfig.nominal_static: the forward model also reads the data's static graph at its "
                          "mean over the instances")
-    ap.add_argument("--no-gid-latents", action="store_true",
-                    help="SysIDConfig.gid_latents=False: the forward model reads G_ID's parameter columns only "
-                         "(needs --local-params)")
     ap.add_argument("--ema", type=float, default=0.0,
                     help="TrainConfig.ema of every model: validate and keep a moving average of the weights (default 0: off)")
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
@@ -674,7 +684,7 @@ def main():
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema, local_params=args.local_params,
-                         nominal_static=args.nominal_static, gid_latents=not args.no_gid_latents,
+                         nominal_static=args.nominal_static,
                          **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)

@@ -203,14 +203,7 @@ class SysIDConfig:
     bodies' geometry and its joints' ranges, the same for every instance, so that it carries no
     parameter while G_ID says only how an instance differs from it. The paper's G_ID replaces the
     whole static graph, so the forward model must also learn from GN_p what is fixed (which JACO
-    link is which). Needs every instance of one topology; binding a source of another is refused.
-
-    ``gid_latents`` (default on, the paper's): the forward model reads G_ID's learned latents.
-    Off (beyond the paper; with ``local_params``): it reads only G_ID's P parameter columns (in
-    the globals and where each parameter lives) and, with ``nominal_static``, the nominal graph:
-    a parameterized forward model fed the identified parameters, a classical identify-then-predict
-    pipeline. Its inputs then no longer shift as GN_p trains, and under teacher forcing it learns
-    what the true-parameter model learns."""
+    link is which). Needs every instance of one topology; binding a source of another is refused."""
     forward: ModelConfig = field(default_factory=ModelConfig)
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
@@ -223,13 +216,9 @@ class SysIDConfig:
     param_places: tuple[tuple[Literal["nodes", "edges", "globals"], tuple[Count, ...]], ...] | None = None
     nominal_static: Flag = False
     nominal: NominalGraph | None = None
-    gid_latents: Flag = True
 
     def __post_init__(self):
         check_fields(self)
-        if not self.gid_latents and not self.local_params:
-            raise ValueError("gid_latents=False keeps only G_ID's parameter columns: it needs local_params=True "
-                             "(whose param_places say which they are)")
         if self.nominal is not None and not self.nominal_static:
             raise ValueError("nominal is the static graph nominal_static reads: set nominal_static=True")
         if self.param_places is not None:
@@ -287,8 +276,7 @@ class SysIDConfig:
                 **({"local_params": True, "param_places": [[k, list(r)] for k, r in self.param_places or ()]}
                    if self.local_params else {}),
                 **({"nominal_static": True, "nominal": None if self.nominal is None else self.nominal.to_dict()}
-                   if self.nominal_static else {}),
-                **({} if self.gid_latents else {"gid_latents": False})}
+                   if self.nominal_static else {})}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SysIDConfig":
@@ -438,22 +426,20 @@ class SysIDModel(nn.Module):
         slots = {k: t.shape[1] for k, t in tables.items()}
         if config.param_places and len(config.param_places) > self.gid_sizes["globals"]:
             raise ValueError(f"local_params places {len(config.param_places)} parameters from G_ID's first global "
-                             f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals)")
+                             f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals; "
+                             f"gnwarp train: --gid-globals)")
         if config.nominal_static and config.nominal is None:
             raise ValueError("nominal_static needs the nominal static graph (nominal): build the model with "
                              "gnwarp.train.build_sysid_model from a dataset")
         # nominal_static: the nominal graph's columns per kind (None: none), float64 buffers on the model's device
         for kind, t in (config.nominal.tensors() if config.nominal else {}).items():
             self.register_buffer(f"nominal_{kind}", t if t.shape[-1] else None, persistent=False)
-        # the G_ID columns the forward model reads: all, or (gid_latents=False) the P parameter globals only
-        self.read_sizes = dict(self.gid_sizes) if config.gid_latents else \
-            {"globals": len(config.param_places or ()), "nodes": 0, "edges": 0}
-        self.forward_model = ForwardModel(config.forward, gid_layout(self.read_sizes, K, slots, config.nominal))
-        fm, f, r = self.forward_model, config.forward.std_floor, self.read_sizes
-        fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, r["nodes"] + slots["nodes"], f)
-        fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, r["edges"] + slots["edges"], f)
+        self.forward_model = ForwardModel(config.forward, gid_layout(self.gid_sizes, K, slots, config.nominal))
+        fm, f = self.forward_model, config.forward.std_floor
+        fm.norm_nodes = LatentColumnsNormalizer(fm.norm_nodes.size, self.gid_sizes["nodes"] + slots["nodes"], f)
+        fm.norm_edges = LatentColumnsNormalizer(fm.norm_edges.size, self.gid_sizes["edges"] + slots["edges"], f)
         if fm.norm_globals is not None:
-            fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, r["globals"], f)
+            fm.norm_globals = LatentColumnsNormalizer(fm.norm_globals.size, self.gid_sizes["globals"], f)
         sizes = {"nodes": DYN_NODE_SIZE * (2 if config.transitions else 1), "edges": K, "globals": 0}
         self.identifier = RecurrentGNCore(c, sizes, config.forward.run).to(config.forward.run.param_dtype)
         h = config.ridge_head   # the fit's coefficients -> G_ID (SysIDConfig.ridge_head)
@@ -560,9 +546,7 @@ class SysIDModel(nn.Module):
         synchronization."""
         gl, dev = g_id.globals, graph.nodes.device
         dt = next((x.dtype for x in (g_id.nodes, g_id.edges, gl) if x is not None), graph.nodes.dtype)
-        out = {k: [] if getattr(g_id, k) is None or not self.read_sizes[k] else [getattr(g_id, k)] for k in KINDS}
-        if out["globals"] and self.read_sizes["globals"] < self.gid_sizes["globals"]:   # gid_latents=False
-            out["globals"] = [gl[:, :self.read_sizes["globals"]]]
+        out = {k: [] if getattr(g_id, k) is None else [getattr(g_id, k)] for k in KINDS}
         for kind, count in (("nodes", graph.n_node), ("edges", graph.n_edge)):
             table, nominal = getattr(self, f"place_{kind}"), getattr(self, f"nominal_{kind}", None)
             if table.shape[1] == 0 and nominal is None:

@@ -241,7 +241,8 @@ class SysIDTrainer(Trainer):
             for d, st in zip(datasets, self.param_stats):
                 if len(st.names) > width:
                     raise ValueError(f"param_loss: dataset {d.system!r} has {len(st.names)} parameters but G_ID "
-                                     f"has {width} global columns (widen identifier.out_globals)")
+                                     f"has {width} global columns (widen identifier.out_globals; gnwarp train: "
+                                     f"--gid-globals)")
         super().__init__(config, datasets, model, callbacks)
         if self.param_loss > 0:   # per sampler part: standardized parameters [I, P] and their mask
             dt = self.model.dtype
@@ -281,8 +282,7 @@ class SysIDTrainer(Trainer):
                 before[k] = saved.get(k)
         before["ridge_head"] = saved.get("ridge_head", 0)
         want.setdefault("ridge_head", 0)
-        for k, none in (("local_params", False), ("param_places", None), ("nominal_static", False), ("nominal", None),
-                        ("gid_latents", True)):
+        for k, none in (("local_params", False), ("param_places", None), ("nominal_static", False), ("nominal", None)):
             before[k] = saved.get(k, none)
             want.setdefault(k, none)
         changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" if k != "nominal" else
