@@ -365,7 +365,7 @@ def gid_layout(sizes: dict[str, int], n_ctrl_slots: int, slots: dict[str, int] |
              + [f"param_edge_{i}" for i in range(slots.get("edges", 0))]}
     if nominal is not None:
         for k in KINDS:
-            names[k] += [f"nominal_{n}" for n in getattr(nominal, f"{k[:-1] if k != 'globals' else 'global'}_names")]
+            names[k] += [f"nominal_{n}" for n in getattr(nominal, f"{k[:-1]}_names")]   # global_names, ...
     return FeatureLayout(names["globals"], names["nodes"], names["edges"], n_ctrl_slots=n_ctrl_slots)
 
 
