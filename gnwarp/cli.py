@@ -161,36 +161,16 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
-    sysid_only = {"--transitions": args.transitions, "--targets": args.targets != 1, "--readout": args.readout != "last",
-                  "--ridge-head": args.ridge_head, "--ridge-features": args.ridge_features is not None,
-                  "--start-windows": args.start_windows, "--consistency": args.consistency,
-                  "--param-loss": args.param_loss, "--param-teacher": args.param_teacher,
-                  "--local-params": args.local_params, "--nominal-static": args.nominal_static,
-                  "--gid-globals": args.gid_globals is not None}
-    given = [flag for flag, on in sysid_only.items() if on]
+    given = sysid_flags_given(args)
     if given and not args.sysid:
         raise SystemExit(f"gnwarp train: {', '.join(given)} apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
-        from gnwarp.models.sysid import SysIDConfig
         from gnwarp.train.sysid import SysIDTrainer
-        if args.ridge_features is not None and args.readout != "ridge":
-            raise SystemExit(f"gnwarp train: --ridge-features sets the regressors of --readout ridge's fit, got "
-                             f"--readout {args.readout}")
-        fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
-        if args.gid_globals is not None:   # G_ID's global width (and GN_p's hidden globals)
-            import dataclasses
-            ident = SysIDConfig().identifier
-            try:
-                fit["identifier"] = dataclasses.replace(ident, hidden_globals=args.gid_globals,
-                                                        out_globals=args.gid_globals)
-            except ConfigError as e:
-                raise SystemExit(f"gnwarp train: --gid-globals {args.gid_globals}: {e.reason}") from None
-        r = SysIDTrainer(cfg, SysIDConfig(transitions=args.transitions, readout=args.readout,
-                                          ridge_head=args.ridge_head, local_params=args.local_params,
-                                          nominal_static=args.nominal_static, **fit),
-                         targets=args.targets,
-                         start_windows=args.start_windows, consistency=args.consistency,
-                         param_loss=args.param_loss, param_teacher=args.param_teacher).run()
+        try:
+            sysid, options = sysid_settings(args)
+        except SystemExit as e:
+            raise SystemExit(f"gnwarp train: {e}") from None
+        r = SysIDTrainer(cfg, sysid, **options).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -396,6 +376,88 @@ def _cmd_mpc(args) -> int:
     return 0
 
 
+# -- system identification's flags (``gnwarp train --sysid`` and bench/experiments/sysid_figures.py) ----
+def add_sysid_arguments(parser) -> None:
+    """System identification's training options (``SysIDConfig``, ``SysIDTrainer``) as
+    flags on ``parser`` (a parser or an argument group), each defaulting to the paper's model;
+    ``sysid_settings`` reads them, ``sysid_flags_given`` names the ones set."""
+    a = parser.add_argument
+    a("--transitions", action="store_true",
+      help="the recurrent GN reads the window's transitions (states, controls and the "
+           "change to the next state; beyond the paper, SysIDConfig.transitions)")
+    a("--targets", type=int, default=1,
+      help="one-step losses per identification window (default 1, the paper's)")
+    a("--readout", choices=["last", "mean", "ridge", "dynamics"], default="last",
+      help="G_ID is the recurrent GN's last output (default, the paper's), the mean of "
+           "its outputs over the window, a ridge fit over the window of some output columns on the "
+           "others, or a ridge fit of the window's observed velocity changes on the outputs (beyond the "
+           "paper, SysIDConfig.readout)")
+    a("--ridge-head", type=int, default=0, metavar="H",
+      help="with --readout ridge or dynamics: an MLP of width H maps the fit's coefficients to G_ID "
+           "(beyond the paper, SysIDConfig.ridge_head; 0: none, G_ID is the coefficients)")
+    a("--ridge-features", type=int, default=None, metavar="F",
+      help="with --readout ridge: regressors per fit, the rest of the recurrent GN's outputs being its "
+           "targets (default 4; SysIDConfig.ridge_features)")
+    a("--local-params", action="store_true",
+      help="with --param-loss: the forward model also reads each supervised parameter on the node or "
+           "edges it describes (a link's mass on its node, a gear on its joint's edges), as a true "
+           "static graph holds it (beyond the paper, SysIDConfig.local_params)")
+    a("--gid-globals", type=int, default=None, metavar="G",
+      help="G_ID's global width, and GN_p's hidden globals (default: the identifier's, 10); with "
+           "--param-loss at least the system's parameter count (cheetah 20, JACO 18; "
+           "RecurrentGNConfig.out_globals)")
+    a("--nominal-static", action="store_true",
+      help="the forward model also reads the training data's static graph at its mean "
+           "over the instances (the system as designed; G_ID says how an instance differs; beyond the "
+           "paper, SysIDConfig.nominal_static)")
+    a("--start-windows", type=float, default=0.0, metavar="F",
+      help="fraction of identification windows at their sequence's start, where "
+           "identification reads in use (default 0: uniform windows, the paper's)")
+    a("--consistency", type=float, default=0.0, metavar="C",
+      help="weight of a window-consistency term (pairs of windows of one sequence should "
+           "identify alike; default 0, the paper's; beyond the paper, SysIDTrainer.consistency)")
+    a("--param-loss", type=float, default=0.0, metavar="P",
+      help="weight of supervising G_ID's first global columns with the data's instance "
+           "parameters (default 0, the paper's: no labels; beyond the paper, SysIDTrainer.param_loss)")
+    a("--param-teacher", type=float, default=0.0, metavar="Q",
+      help="with --param-loss: the fraction of windows whose forward model reads the true parameters "
+           "in G_ID's supervised columns (teacher forcing; default 0; 1: the forward model trains as a "
+           "true-parameter model and the identifier on --param-loss alone; SysIDTrainer.param_teacher)")
+
+
+def sysid_flags_given(args) -> list[str]:
+    """The flags of ``add_sysid_arguments`` that ``args`` sets to other than their defaults."""
+    p = argparse.ArgumentParser(add_help=False)
+    add_sysid_arguments(p)
+    defaults = vars(p.parse_args([]))
+    return [a.option_strings[0] for a in p._actions if getattr(args, a.dest) != defaults[a.dest]]
+
+
+def sysid_settings(args, identifier=None, **config):
+    """(``SysIDConfig``, ``SysIDTrainer`` keyword arguments) from ``add_sysid_arguments``' flags in
+    ``args``; ``identifier``: GN_p's sizes before ``--gid-globals`` (default ``SysIDConfig``'s);
+    ``config``: further ``SysIDConfig`` fields (``window``). A flag that does not fit raises
+    ``SystemExit`` naming it; a refused combination the config's ``ValueError``."""
+    import dataclasses
+
+    from gnwarp.models.sysid import SysIDConfig
+    from gnwarp.validation import ConfigError
+    if args.ridge_features is not None and args.readout != "ridge":
+        raise SystemExit(f"--ridge-features sets the regressors of --readout ridge's fit, got --readout {args.readout}")
+    identifier = identifier if identifier is not None else SysIDConfig().identifier
+    if args.gid_globals is not None:   # G_ID's global width (and GN_p's hidden globals)
+        try:
+            identifier = dataclasses.replace(identifier, hidden_globals=args.gid_globals, out_globals=args.gid_globals)
+        except ConfigError as e:
+            raise SystemExit(f"--gid-globals {args.gid_globals}: {e.reason}") from None
+    fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
+    sysid = SysIDConfig(identifier=identifier, transitions=args.transitions, readout=args.readout,
+                        ridge_head=args.ridge_head, local_params=args.local_params,
+                        nominal_static=args.nominal_static, **fit, **config)
+    return sysid, {"targets": args.targets, "start_windows": args.start_windows, "consistency": args.consistency,
+                   "param_loss": args.param_loss, "param_teacher": args.param_teacher}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -437,47 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sysid", action="store_true",
                    help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
                         "GN infers a latent static graph from a 20-step window; `gnwarp evaluate` reads its checkpoints")
-    t.add_argument("--transitions", action="store_true",
-                   help="with --sysid: the recurrent GN reads the window's transitions (states, controls and the "
-                        "change to the next state; beyond the paper, SysIDConfig.transitions)")
-    t.add_argument("--targets", type=int, default=1,
-                   help="with --sysid: one-step losses per identification window (default 1, the paper's)")
-    t.add_argument("--readout", choices=["last", "mean", "ridge", "dynamics"], default="last",
-                   help="with --sysid: G_ID is the recurrent GN's last output (default, the paper's), the mean of "
-                        "its outputs over the window, a ridge fit over the window of some output columns on the "
-                        "others, or a ridge fit of the window's observed velocity changes on the outputs (beyond the "
-                        "paper, SysIDConfig.readout)")
-    t.add_argument("--ridge-head", type=int, default=0, metavar="H",
-                   help="with --readout ridge or dynamics: an MLP of width H maps the fit's coefficients to G_ID "
-                        "(beyond the paper, SysIDConfig.ridge_head; 0: none, G_ID is the coefficients)")
-    t.add_argument("--ridge-features", type=int, default=None, metavar="F",
-                   help="with --readout ridge: regressors per fit, the rest of the recurrent GN's outputs being its "
-                        "targets (default 4; SysIDConfig.ridge_features)")
-    t.add_argument("--local-params", action="store_true",
-                   help="with --param-loss: the forward model also reads each supervised parameter on the node or "
-                        "edges it describes (a link's mass on its node, a gear on its joint's edges), as a true "
-                        "static graph holds it (beyond the paper, SysIDConfig.local_params)")
-    t.add_argument("--gid-globals", type=int, default=None, metavar="G",
-                   help="with --sysid: G_ID's global width, and GN_p's hidden globals (default 10); with "
-                        "--param-loss at least the system's parameter count (cheetah 20, JACO 18; "
-                        "RecurrentGNConfig.out_globals)")
-    t.add_argument("--nominal-static", action="store_true",
-                   help="with --sysid: the forward model also reads the training data's static graph at its mean "
-                        "over the instances (the system as designed; G_ID says how an instance differs; beyond the "
-                        "paper, SysIDConfig.nominal_static)")
-    t.add_argument("--start-windows", type=float, default=0.0, metavar="F",
-                   help="with --sysid: fraction of identification windows at their sequence's start, where "
-                        "identification reads in use (default 0: uniform windows, the paper's)")
-    t.add_argument("--consistency", type=float, default=0.0, metavar="C",
-                   help="with --sysid: weight of a window-consistency term (pairs of windows of one sequence should "
-                        "identify alike; default 0, the paper's; beyond the paper, SysIDTrainer.consistency)")
-    t.add_argument("--param-loss", type=float, default=0.0, metavar="P",
-                   help="with --sysid: weight of supervising G_ID's first global columns with the data's instance "
-                        "parameters (default 0, the paper's: no labels; beyond the paper, SysIDTrainer.param_loss)")
-    t.add_argument("--param-teacher", type=float, default=0.0, metavar="Q",
-                   help="with --param-loss: the fraction of windows whose forward model reads the true parameters "
-                        "in G_ID's supervised columns (teacher forcing; default 0; 1: the forward model trains as a "
-                        "true-parameter model and the identifier on --param-loss alone; SysIDTrainer.param_teacher)")
+    add_sysid_arguments(t.add_argument_group("system identification (with --sysid)"))
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

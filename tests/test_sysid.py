@@ -1118,3 +1118,31 @@ def test_nominal_static_reads_the_system_as_designed(jaco, pendulum, tmp_path):
                             ("globals", [1.0], "globals: row 0 has 1 values")):
         with pytest.raises(ConfigError, match=match):
             NominalGraph.from_dict({**good, key: bad})
+
+
+def test_sysid_flags_map_to_the_config_and_trainer_options():
+    """``gnwarp.cli.add_sysid_arguments`` / ``sysid_settings`` (shared by ``gnwarp train --sysid``
+    and the figures script): each flag reaches its ``SysIDConfig`` field or ``SysIDTrainer``
+    option, ``sysid_flags_given`` names every flag set, and a misfit flag is refused by name."""
+    import argparse
+    from gnwarp.cli import add_sysid_arguments, sysid_flags_given, sysid_settings
+    ap = argparse.ArgumentParser()
+    add_sysid_arguments(ap)
+    args = ap.parse_args(["--transitions", "--targets", "3", "--readout", "ridge", "--ridge-head", "8",
+                          "--ridge-features", "2", "--local-params", "--gid-globals", "7", "--nominal-static",
+                          "--start-windows", "0.25", "--consistency", "0.5", "--param-loss", "2",
+                          "--param-teacher", "0.75"])
+    sysid, options = sysid_settings(args, ID, window=4)
+    assert (sysid.transitions, sysid.readout, sysid.ridge_head, sysid.ridge_features, sysid.local_params,
+            sysid.nominal_static, sysid.window) == (True, "ridge", 8, 2, True, True, 4)
+    assert (sysid.identifier.out_globals, sysid.identifier.hidden_globals) == (7, 7)
+    assert dataclasses.replace(sysid.identifier, out_globals=ID.out_globals, hidden_globals=ID.hidden_globals) == ID
+    assert options == {"targets": 3, "start_windows": 0.25, "consistency": 0.5, "param_loss": 2.0,
+                       "param_teacher": 0.75}
+    every = {a.option_strings[0] for a in ap._actions if a.option_strings[0] != "-h"}
+    assert set(sysid_flags_given(args)) == every and len(every) == 12 and sysid_flags_given(ap.parse_args([])) == []
+    plain, opts = sysid_settings(ap.parse_args([]))
+    assert plain == SysIDConfig() and opts == {"targets": 1, "start_windows": 0.0, "consistency": 0.0,
+                                               "param_loss": 0.0, "param_teacher": 0.0}
+    with pytest.raises(SystemExit, match="--ridge-features sets"):
+        sysid_settings(ap.parse_args(["--ridge-features", "2"]))

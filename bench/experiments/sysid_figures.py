@@ -57,6 +57,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import device_name, experiment_out, gn_sizes  # noqa: E402
+from gnwarp.cli import add_sysid_arguments, sysid_settings  # noqa: E402
 
 SYSTEMS = ["pendulum", "cartpole", "cheetah", "jaco"]
 MODELS = ("no params", "true params", "sysid same", "sysid other")
@@ -124,25 +125,21 @@ def cfg_noise(args) -> float:
 
 
 def identifier_config(args):
+    """GN_p's sizes from --gid and --identifier-*; ``sysid_settings`` applies --gid-globals."""
     from gnwarp.models import RecurrentGNConfig
     g, mlp = args.gid, tuple(args.identifier_mlp)
-    gg = args.gid_globals or g
-    return RecurrentGNConfig(latent=args.identifier_latent, hidden_edges=g, hidden_nodes=g, hidden_globals=gg,
-                             out_edges=g, out_nodes=g, out_globals=gg, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
+    return RecurrentGNConfig(latent=args.identifier_latent, hidden_edges=g, hidden_nodes=g, hidden_globals=g,
+                             out_edges=g, out_nodes=g, out_globals=g, edge_mlp=mlp, node_mlp=mlp, global_mlp=mlp)
 
 
-def fit_options(args) -> dict:
-    """``--ridge-features`` as ``SysIDConfig`` takes it (and as result rows record it): {} when not given."""
-    if args.ridge_features is None:
-        return {}
-    if args.readout != "ridge":
-        raise SystemExit(f"--ridge-features sets the regressors of --readout ridge's fit, got --readout {args.readout}")
-    return {"ridge_features": args.ridge_features}
+def sysid_config(args):
+    """(``SysIDConfig``, ``SysIDTrainer`` options) of the sysid model from the shared flags."""
+    return sysid_settings(args, identifier_config(args), window=args.window)
 
 
 def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
     """The three models of one system, trained on ``ds``: ({label: model}, {label: train summary})."""
-    from gnwarp.models import ForwardModel, SysIDConfig
+    from gnwarp.models import ForwardModel
     from gnwarp.train import Trainer, load_model
     from gnwarp.train.sysid import SysIDTrainer, load_sysid
 
@@ -162,13 +159,8 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
         models["true params runs"].append(load_model(r["best"], device=args.device))
 
     cfg = train_config(args, runs / system / "sysid", ds)
-    sysid = SysIDConfig(identifier=identifier_config(args), window=args.window, transitions=args.transitions,
-                        readout=args.readout, ridge_head=args.ridge_head, local_params=args.local_params,
-                        nominal_static=args.nominal_static,
-                        **fit_options(args))
-    r = SysIDTrainer(cfg, sysid, datasets=[ds], targets=args.targets, start_windows=args.start_windows,
-                     consistency=args.consistency, param_loss=args.param_loss,
-                     param_teacher=args.param_teacher).run()
+    sysid, options = sysid_config(args)
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], **options).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -574,9 +566,6 @@ def main():
     ap.add_argument("--edge-width", type=int, default=256)
     ap.add_argument("--node-width", type=int, default=128)
     ap.add_argument("--gid", type=int, default=10, help="G_ID width per node / edge / global (and GN_p's hidden)")
-    ap.add_argument("--gid-globals", type=int, default=None,
-                    help="G_ID's global width (and GN_p's global hidden), default --gid; --param-loss needs one column "
-                         "per parameter (cheetah 20, JACO 18)")
     ap.add_argument("--identifier-latent", type=int, default=128)
     ap.add_argument("--identifier-mlp", type=int, nargs="+", default=(128, 128))
     ap.add_argument("--probe-train", type=int, default=2000, help="train sequences the probe is fitted on")
@@ -589,37 +578,15 @@ def main():
     ap.add_argument("--runs", default=None, help="checkpoint folder (default: a temporary one)")
     ap.add_argument("--out", default=None, help="default: bench/results/sysid_figures (--quick: a temporary folder)")
     ap.add_argument("--no-capture", action="store_true", help="run the training steps eagerly on CUDA too")
-    ap.add_argument("--transitions", action="store_true",
-                    help="GN_p reads the window's transitions (SysIDConfig.transitions; beyond the paper)")
-    ap.add_argument("--targets", type=int, default=1,
-                    help="one-step losses per identification window in sysid training (SysIDTrainer; paper: 1)")
     ap.add_argument("--reference-runs", type=int, default=1,
                     help="true-parameter models trained identically; Figure 8's reference is their median")
-    ap.add_argument("--readout", default="last", choices=("last", "mean", "ridge", "dynamics"),
-                    help="SysIDConfig.readout")
-    ap.add_argument("--ridge-head", type=int, default=0, help="SysIDConfig.ridge_head (with a fitting readout)")
-    ap.add_argument("--ridge-features", type=int, default=None,
-                    help="SysIDConfig.ridge_features (readout ridge; default the config's 4): regressors per fit")
-    ap.add_argument("--start-windows", type=float, default=0.0, help="SysIDTrainer.start_windows")
-    ap.add_argument("--consistency", type=float, default=0.0, help="SysIDTrainer.consistency (beyond the paper)")
-    ap.add_argument("--param-loss", type=float, default=0.0,
-                    help="SysIDTrainer.param_loss: weight of supervising G_ID's first global columns with the "
-                         "instances' parameters (beyond the paper)")
-    ap.add_argument("--param-teacher", type=float, default=0.0,
-                    help="SysIDTrainer.param_teacher: fraction of windows whose true parameters the forward model "
-                         "reads in G_ID's supervised columns (with --param-loss; beyond the paper)")
     ap.add_argument("--precision", default=None, choices=("fp32", "tf32"),
                     help="the models' GEMM precision on CUDA (default: the library's, tf32)")
     ap.add_argument("--noise", type=float, default=None,
                     help="TrainConfig.noise_std of every model (default: the library's, 0.003)")
-    ap.add_argument("--local-params", action="store_true",
-                    help="SysIDConfig.local_params: the forward model reads each parameter on its node or edges "
-                         "(needs --param-loss)")
-    ap.add_argument("--nominal-static", action="store_true",
-                    help="SysIDConfig.nominal_static: the forward model also reads the data's static graph at its "
-                         "mean over the instances")
     ap.add_argument("--ema", type=float, default=0.0,
                     help="TrainConfig.ema of every model: validate and keep a moving average of the weights (default 0: off)")
+    add_sysid_arguments(ap.add_argument_group("system identification (gnwarp train --sysid's flags)"))
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
     ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
     ap.add_argument("--compare", action="store_true",
@@ -635,7 +602,7 @@ def main():
         args.gid, args.identifier_latent, args.identifier_mlp = 6 if args.readout == "ridge" else 4, 16, (16,)
         args.probe_train, args.fig9_sequences, args.fig9_lengths = 32, 3, (0.4, 0.9)
         args.impl, args.device, args.backend = "torch", "cpu", "mujoco"
-    fit_options(args)   # a bad --ridge-features is refused before any data is made
+    sysid_config(args)   # a bad sysid flag is refused before any data is made
     out = experiment_out("sysid_figures", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
     if args.compare:
@@ -680,7 +647,8 @@ def main():
                 rows += fig9(args, models, out)
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
-                         readout=args.readout, ridge_head=args.ridge_head, **fit_options(args),
+                         readout=args.readout, ridge_head=args.ridge_head,
+                         **({} if args.ridge_features is None else {"ridge_features": args.ridge_features}),
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema, local_params=args.local_params,
