@@ -108,6 +108,32 @@ def median_ms(fn, device: torch.device, reps: int, warmup: int) -> float:
     return statistics.median(ts)
 
 
+def profile_kernels(step, steps: int, path: Path, title: str, top: int | None = None) -> tuple[float, float]:
+    """Kernels per call and device time per call (us, the sum of kernel durations) of ``step()``
+    on CUDA, over ``steps`` calls under torch.profiler after five warm-up calls; the heading
+    ``title`` and the kernels by time (the first ``top``) appended to ``path``."""
+    from torch.profiler import ProfilerActivity, profile  # noqa: PLC0415
+    for _ in range(5):
+        step()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            step()
+        torch.cuda.synchronize()
+    per = {}
+    for ev in prof.events():
+        if ev.device_type == torch.autograd.DeviceType.CUDA:
+            k = per.setdefault(ev.name[:90], [0, 0.0])
+            k[0] += 1
+            k[1] += ev.device_time_total
+    calls, us = (sum(v[i] for v in per.values()) / steps for i in (0, 1))
+    with open(path, "a") as f:
+        f.write(f"== {title}: {calls:.0f} kernels / step, {us:.1f} us device time / step (sum of kernel durations)\n")
+        for n, (c, u) in sorted(per.items(), key=lambda kv: -kv[1][1])[:top]:
+            f.write(f"{u / steps:9.1f} us {c / steps:6.1f}x  {n}\n")
+    return calls, us
+
+
 def capture(step, warmup: int = 3, repeat: int = 1):
     """``repeat`` calls of ``step`` as one CUDA graph (gnwarp's Warp launches recorded on torch's
     capture stream); returns its ``replay``. ``warmup`` calls before, on the capture stream,

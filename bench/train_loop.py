@@ -24,7 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import PAPER, QUICK, device_name, median_ms, results_dir, save_results  # noqa: E402
+from bench.harness import (PAPER, QUICK, device_name, median_ms, profile_kernels, results_dir,  # noqa: E402
+                           save_results)
 from gnwarp import data  # noqa: E402
 from gnwarp.gn import RunOptions  # noqa: E402
 from gnwarp.models import ModelConfig  # noqa: E402
@@ -39,34 +40,15 @@ def config(args, tmp, name, precision, optimizer, capture, steps, **kw):
 
 def profile_steps(args, tmp, ds, name):
     """Device time per kernel of the Trainer's step (eager, the same kernels a replay runs)."""
-    from torch.profiler import ProfilerActivity, profile
     path = Path(args.out) / f"train_loop_{name.replace(' ', '_').lower()}_profile.txt"
-    with open(path, "a") as f:
-        for prec in args.precisions.split(","):
-            opt = args.optimizers.split(",")[0]
-            t = Trainer(config(args, tmp, f"prof-{prec}", prec, opt, False, 10 ** 6), [ds])
-            t.warmup()
-            for _ in range(20):
-                t.step()
-            torch.cuda.synchronize()
-            with profile(activities=[ProfilerActivity.CUDA]) as prof:
-                for _ in range(args.profile):
-                    t.step()
-                torch.cuda.synchronize()
-            per = {}
-            for ev in prof.events():
-                if ev.device_type == torch.autograd.DeviceType.CUDA:
-                    k = per.setdefault(ev.name[:90], [0, 0.0])
-                    k[0] += 1
-                    k[1] += ev.device_time_total if hasattr(ev, "device_time_total") else ev.cuda_time_total
-            total = sum(v[1] for v in per.values()) / args.profile
-            calls = sum(v[0] for v in per.values()) / args.profile
-            head = (f"== Trainer step, {prec}, {opt}, batch {args.batch}, {name}: {calls:.0f} kernels / step, "
-                    f"{total:.1f} us device time / step (sum of kernel durations)")
-            print(head, flush=True)
-            f.write(head + "\n")
-            for n, (c, us) in sorted(per.items(), key=lambda kv: -kv[1][1]):
-                f.write(f"{us / args.profile:9.1f} us {c / args.profile:6.1f}x  {n}\n")
+    for prec in args.precisions.split(","):
+        opt = args.optimizers.split(",")[0]
+        t = Trainer(config(args, tmp, f"prof-{prec}", prec, opt, False, 10 ** 6), [ds])
+        t.warmup()
+        for _ in range(15):
+            t.step()
+        calls, total = profile_kernels(t.step, args.profile, path, f"Trainer step, {prec}, {opt}, batch {args.batch}, {name}")
+        print(f"== Trainer step, {prec}, {opt}: {calls:.0f} kernels / step, {total:.1f} us device time / step", flush=True)
     print(f"wrote {path}", flush=True)
 
 

@@ -385,6 +385,10 @@ def add_sysid_arguments(parser) -> None:
     a("--transitions", action="store_true",
       help="the recurrent GN reads the window's transitions (states, controls and the "
            "change to the next state; beyond the paper, SysIDConfig.transitions)")
+    a("--stateless", action="store_true",
+      help="the identifier GN carries no state between the window's steps: it reads each step on its own "
+           "and runs them all as one batch (needs --readout mean, ridge or dynamics; beyond the paper, "
+           "SysIDConfig.stateless)")
     a("--targets", type=int, default=1,
       help="one-step losses per identification window (default 1, the paper's)")
     a("--readout", choices=["last", "mean", "ridge", "dynamics"], default="last",
@@ -451,7 +455,8 @@ def sysid_settings(args, identifier=None, **config):
         except ConfigError as e:
             raise SystemExit(f"--gid-globals {args.gid_globals}: {e.reason}") from None
     fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
-    sysid = SysIDConfig(identifier=identifier, transitions=args.transitions, readout=args.readout,
+    sysid = SysIDConfig(identifier=identifier, transitions=args.transitions, stateless=args.stateless,
+                        readout=args.readout,
                         ridge_head=args.ridge_head, local_params=args.local_params,
                         nominal_static=args.nominal_static, **fit, **config)
     return sysid, {"targets": args.targets, "start_windows": args.start_windows, "consistency": args.consistency,

@@ -222,9 +222,11 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                                                                 "param_loss": 1.0, "ridge_head": 8},
                                      {"readout": "dynamics", "param_loss": 1.0, "param_teacher": 0.5},
                                      {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
-                                      "param_teacher": 0.5, "local_params": True, "nominal_static": True}],
+                                      "param_teacher": 0.5, "local_params": True, "nominal_static": True},
+                                     {"readout": "ridge", "ridge_features": 2, "ridge_head": 8, "param_loss": 1.0,
+                                      "transitions": True, "stateless": True}],
                          ids=["paper", "mean-transitions-start-consistency", "ridge-head-param_loss", "dynamics-teacher",
-                              "local-params-nominal"])
+                              "local-params-nominal", "stateless"])
 def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, options):
     """The system-identification step (window sampling, GN_p over the window, the forward loss,
     backward, update) replayed from one CUDA graph gives the parameters and losses of eager steps:
@@ -386,32 +388,25 @@ def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
                                    c)
 
 
-def test_identification_from_transitions(pendulum, tmp_path):
-    """``SysIDConfig(transitions=True)``: GN_p reads W - 1 (state, controls, normalized change to
-    the next state) steps; it equals running the identifier over those graphs by hand, its
-    gradients w.r.t. the window match finite differences, it trains, and the option is saved."""
-    from gnwarp.state import state_delta
-    torch.manual_seed(0)
-    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
-                      window=4, transitions=True)
+def _identified_transitions(pendulum, cfg):
+    """A model of ``cfg`` (4-step windows of transitions, float64) on pendulum windows: its
+    gradients through the window checked against finite differences (before any statistics, where
+    finite differences stay accurate), then non-trivial normalizer statistics accumulated. Returns
+    (model, its 3 normalized transition graphs built by hand, its G_ID of the windows)."""
     m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
     fm = m.forward_model
     sp = pendulum["train"]
     body, ctrl = torch.as_tensor(sp.body[:6, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:6, :8], dtype=torch.float64)
     inst = torch.as_tensor(sp.instance[:6])
-    # gradients through the transitions (two sequences, before any statistics: finite differences
-    # stay accurate where a tiny std would magnify their truncation error)
     moving = body[:2, :4, 1].clone().requires_grad_()
 
     def f(mv):
         g = m.identify(torch.cat([body[:2, :4, :1], mv[:, :, None]], 2), ctrl[:2, :4], inst[:2])
         return m.rollout(body[:2, 4], ctrl[:2, 4:6], g, inst[:2])[:, 1:, 1].sum(-1)
     assert torch.autograd.gradcheck(f, (moving,), eps=1e-6, atol=1e-5, rtol=1e-4)
-    with torch.no_grad():   # non-trivial normalizer statistics
+    with torch.no_grad():
         graph = m.with_gid(m.builder(inst, body[:, 0], ctrl[:, 0]), m.identify(body[:, :4], ctrl[:, :4], inst))
         fm.loss(graph, body[:, 1].reshape(-1, 13), accumulate=True)
-    assert m.identifier.sizes["nodes"] == 26
-    g_id = m.identify(body[:, :4], ctrl[:, :4], inst)
     # by hand: 3 transitions, each the normalized state and its normalized change, the controls
     st = fm.stats(torch.float64)
     (mn, sn), (me, se), (md, sd) = st["nodes"], st["edges"], st["delta"]
@@ -420,13 +415,25 @@ def test_identification_from_transitions(pendulum, tmp_path):
     mn, sn, me, se = mn[-13:], sn[-13:], me[-K:], se[-K:]
     inputs = [g._replace(nodes=torch.cat([(g.nodes - mn) / sn, (state_delta(g.nodes, graphs[t + 1].nodes) - md) / sd], -1),
                          edges=(g.edges - me) / se) for t, g in enumerate(graphs[:3])]
+    return m, inputs, m.identify(body[:, :4], ctrl[:, :4], inst)
+
+
+def test_identification_from_transitions(pendulum, tmp_path):
+    """``SysIDConfig(transitions=True)``: GN_p reads W - 1 (state, controls, normalized change to
+    the next state) steps; it equals running the identifier over those graphs by hand, its
+    gradients w.r.t. the window match finite differences, it trains, and the option is saved."""
+    torch.manual_seed(0)
+    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
+                      window=4, transitions=True)
+    m, inputs, g_id = _identified_transitions(pendulum, cfg)
+    assert m.identifier.sizes["nodes"] == 26
     h = m.identifier.initial_hidden(inputs[0])
     for g in inputs:
         out, h = m.identifier.step(g, h)
     for k in ("nodes", "edges", "globals"):
         torch.testing.assert_close(getattr(g_id, k), getattr(out, k), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="at least 2 steps"):
-        m.identify_graphs(graphs[:1], 1)
+        m.identify_graphs([m.builder(torch.zeros(1, dtype=torch.int64), torch.zeros(1, 2, 13), torch.zeros(1, 1))], 1)
     # trains end to end, the option travels in the checkpoint
     tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
@@ -437,6 +444,49 @@ def test_identification_from_transitions(pendulum, tmp_path):
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
     assert load_sysid(summary["last"]).config.transitions is True
+
+
+@pytest.mark.parametrize("impl", ["torch", "warp"])
+def test_stateless_identifier_reads_each_step_on_its_own(pendulum, tmp_path, impl):
+    """``SysIDConfig(stateless=True)``: GN_p reads every step of the window from the empty hidden
+    graph, all steps as one batch. G_ID equals running ``RecurrentGNCore.step`` by hand on each
+    transition from zero hidden state and solving the ridge fit over them (Warp kernels and torch
+    alike); it differs from the recurrent identifier's with the same weights; gradients through
+    the window match finite differences; it trains, the option travels in the checkpoint, a
+    recurrent run refuses to resume it, and the paper's "last" readout is refused with it."""
+    torch.manual_seed(0)
+    opts = RunOptions(impl=impl, precision="fp64")
+    cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=opts), identifier=ID, window=4, transitions=True,
+                      readout="ridge", ridge_features=2, ridge=0.01, stateless=True)
+    m, inputs, g_id = _identified_transitions(pendulum, cfg)
+    outs = [m.identifier.step(g, m.identifier.initial_hidden(g))[0] for g in inputs]   # each from zero state
+    h, recurrent = m.identifier.initial_hidden(inputs[0]), []
+    for g in inputs:
+        o, h = m.identifier.step(g, h)
+        recurrent.append(o)
+    for k in ("nodes", "edges", "globals"):
+        x = torch.stack([getattr(o, k) for o in outs])
+        torch.testing.assert_close(getattr(g_id, k), _ridge_reference(x[..., :2], x[..., 2:], 0.01),
+                                   rtol=1e-10, atol=1e-10)
+        xr = torch.stack([getattr(o, k) for o in recurrent])
+        assert not torch.allclose(getattr(g_id, k), _ridge_reference(xr[..., :2], xr[..., 2:], 0.01))
+    with pytest.raises(ValueError, match="stateless .* needs readout 'mean', 'ridge' or 'dynamics', got 'last'"):
+        SysIDConfig(identifier=ID, stateless=True)
+    if impl == "warp":
+        return
+    tcfg = TrainConfig(out=str(tmp_path / "tr"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
+                       batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
+                       progress=False, device="cpu", normalizer_warmup=5)
+    rows = []
+    sysid = SysIDConfig(identifier=ID, window=W, transitions=True, readout="mean", stateless=True)
+    summary = SysIDTrainer(tcfg, sysid, datasets=[pendulum],
+                           callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None]).run()
+    losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
+    assert losses[-1] < losses[0]
+    assert load_sysid(summary["last"]).config.stateless is True
+    tcfg.steps = 40
+    with pytest.raises(Exception, match="stateless"):
+        SysIDTrainer(tcfg, dataclasses.replace(sysid, stateless=False), datasets=[pendulum]).run()
 
 
 def test_several_targets_per_identification_window(pendulum, tmp_path):
@@ -628,8 +678,9 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}, {"readout": "ridge", "ridge_features": 2}],
-                         ids=["paper", "mean-transitions", "ridge"])
+@pytest.mark.parametrize("options", [{}, {"readout": "mean", "transitions": True}, {"readout": "ridge", "ridge_features": 2},
+                                     {"readout": "ridge", "ridge_features": 2, "transitions": True, "stateless": True}],
+                         ids=["paper", "mean-transitions", "ridge", "stateless"])
 def test_cuda_captured_identification_matches_eager(pendulum, options):
     """``identify`` on CUDA without gradients replays a captured graph: G_ID equals the eager
     identification's, for new windows of the same shape, and after an in-place weight change."""
@@ -1128,19 +1179,19 @@ def test_sysid_flags_map_to_the_config_and_trainer_options():
     from gnwarp.cli import add_sysid_arguments, sysid_flags_given, sysid_settings
     ap = argparse.ArgumentParser()
     add_sysid_arguments(ap)
-    args = ap.parse_args(["--transitions", "--targets", "3", "--readout", "ridge", "--ridge-head", "8",
+    args = ap.parse_args(["--transitions", "--stateless", "--targets", "3", "--readout", "ridge", "--ridge-head", "8",
                           "--ridge-features", "2", "--local-params", "--gid-globals", "7", "--nominal-static",
                           "--start-windows", "0.25", "--consistency", "0.5", "--param-loss", "2",
                           "--param-teacher", "0.75"])
     sysid, options = sysid_settings(args, ID, window=4)
-    assert (sysid.transitions, sysid.readout, sysid.ridge_head, sysid.ridge_features, sysid.local_params,
-            sysid.nominal_static, sysid.window) == (True, "ridge", 8, 2, True, True, 4)
+    assert (sysid.transitions, sysid.stateless, sysid.readout, sysid.ridge_head, sysid.ridge_features,
+            sysid.local_params, sysid.nominal_static, sysid.window) == (True, True, "ridge", 8, 2, True, True, 4)
     assert (sysid.identifier.out_globals, sysid.identifier.hidden_globals) == (7, 7)
     assert dataclasses.replace(sysid.identifier, out_globals=ID.out_globals, hidden_globals=ID.hidden_globals) == ID
     assert options == {"targets": 3, "start_windows": 0.25, "consistency": 0.5, "param_loss": 2.0,
                        "param_teacher": 0.75}
     every = {a.option_strings[0] for a in ap._actions if a.option_strings[0] != "-h"}
-    assert set(sysid_flags_given(args)) == every and len(every) == 12 and sysid_flags_given(ap.parse_args([])) == []
+    assert set(sysid_flags_given(args)) == every and len(every) == 13 and sysid_flags_given(ap.parse_args([])) == []
     plain, opts = sysid_settings(ap.parse_args([]))
     assert plain == SysIDConfig() and opts == {"targets": 1, "start_windows": 0.0, "consistency": 0.0,
                                                "param_loss": 0.0, "param_teacher": 0.0}

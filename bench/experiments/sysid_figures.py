@@ -646,7 +646,7 @@ def main():
             if system == "pendulum":
                 rows += fig9(args, models, out)
             for r in rows:
-                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, targets=args.targets,
+                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, stateless=args.stateless, targets=args.targets,
                          readout=args.readout, ridge_head=args.ridge_head,
                          **({} if args.ridge_features is None else {"ridge_features": args.ridge_features}),
                          start_windows=args.start_windows, consistency=args.consistency,

@@ -7,6 +7,9 @@ One step, for input graph G_t and hidden graph H_{t-1} of the same topology::
     H_t = GRU_k(Z.k, H_{t-1}.k)   for k in edges, nodes, globals (one GRU cell per kind)
     O_t = Linear_k(concat(Z.k, H_t.k))  for each kind with an output size > 0
 
+``first_steps`` runs the step from H = 0 on a batch that stacks many steps' graphs: the same
+weights read as a feed-forward GN, each step on its own.
+
 The GN block runs on the Warp kernels (``impl="warp"``) or the torch reference
 (``impl="torch"``), as ``RunOptions`` say; the GRU cells and output layers are torch. Hidden
 sizes: 20 for the paper's recurrent forward model, 10 for the inferred static graph (D.2). A step
@@ -153,6 +156,13 @@ class RecurrentGNCore(nn.Module):
         out = {k: (self.out[k](torch.cat([getattr(z, k), new_h[k]], -1)) if k in self.out else None)
                for k in KINDS}
         return graph._replace(**out), graph._replace(**new_h)
+
+    def first_steps(self, graph: GraphsTuple, index: GraphIndex | None = None) -> GraphsTuple:
+        """The output graph of ``step`` from the empty hidden graph, for every graph of ``graph``:
+        a batch that stacks the graphs of many steps (``gnwarp.graphs.batch``) runs them all in one
+        block, with no state carried from one step to the next (``SysIDConfig.stateless``)."""
+        out, _ = self.step(graph, self.initial_hidden(graph), index)
+        return out
 
     def sequence(self, graphs: Sequence[GraphsTuple] | Callable[[int], GraphsTuple], hidden: GraphsTuple | None = None,
                  steps: int | None = None, index: GraphIndex | None = None,

@@ -33,7 +33,8 @@ from gnwarp.data.builder import GraphTemplate, graph_builder
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.gn.options import RunOptions
 from gnwarp.gn.reference import MLP
-from gnwarp.graphs import GraphsTuple
+from gnwarp.gn.index import graph_index
+from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.models.config import ModelConfig
 from gnwarp.models.forward import ForwardModel
 from gnwarp.models.normalizer import Normalizer
@@ -188,6 +189,14 @@ class SysIDConfig:
     is plain torch layers in the parameter dtype, whatever ``RunOptions.impl``: a few small GEMMs
     once per window.
 
+    ``stateless`` (beyond the paper; default off, the paper's recurrent GN_p): GN_p carries no
+    hidden state from one step of the window to the next. Each step is read on its own, from the
+    empty hidden graph (``RecurrentGNCore.first_steps``), and all of the window's steps run as
+    one batch: one GN block instead of W - 1 in sequence, forward and backward. A pooling readout
+    ("mean", "ridge", "dynamics") then combines the steps, as a least-squares fit combines its
+    equations; needs one ("last" would read only the last step). With ``transitions`` each step
+    holds what a fit needs (the state, the controls, the change they caused).
+
     ``local_params`` (beyond the paper; default off): G_ID's first P global columns (the
     parameters ``SysIDTrainer(param_loss=...)`` supervises) are also handed to the forward model
     where each parameter lives, as a true static graph holds it: a body's length or mass as a
@@ -208,6 +217,7 @@ class SysIDConfig:
     identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
     window: PositiveInt = 20
     transitions: bool = False
+    stateless: Flag = False
     readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
     ridge_features: PositiveInt = 4
     ridge: float = 1e-3
@@ -231,6 +241,9 @@ class SysIDConfig:
         if self.readout in FITS:
             if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
                 raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
+        if self.stateless and self.readout == "last":
+            raise ValueError("stateless reads each step of the window on its own, so G_ID must pool the steps: it "
+                             "needs readout 'mean', 'ridge' or 'dynamics', got 'last'")
         if self.ridge_head and self.readout not in FITS:
             raise ValueError(f"ridge_head maps a fit's coefficients to G_ID: it needs readout 'ridge' or 'dynamics', "
                              f"got {self.readout!r}")
@@ -269,7 +282,8 @@ class SysIDConfig:
 
     def to_dict(self) -> dict:
         return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
-                "transitions": self.transitions, "readout": self.readout,
+                "transitions": self.transitions, **({"stateless": True} if self.stateless else {}),
+                "readout": self.readout,
                 **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {}),
                 **({"ridge": self.ridge} if self.readout == "dynamics" else {}),
                 **({"ridge_head": self.ridge_head} if self.ridge_head else {}),
@@ -605,11 +619,22 @@ class SysIDModel(nn.Module):
                 else:   # bodies that cannot move have no dynamics to fit
                     observed.append(delta[:, FIT_TARGETS] * ctx.movable.to(delta.dtype)[:, None])
             return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
-        index = ctx.index if self.options.impl == "warp" and ctx.index is not None else None
+        warp = self.options.impl == "warp" and ctx.index is not None
         n = steps - 1 if transitions or readout == "dynamics" else steps
-        outs, _ = self.identifier.sequence(normalized, steps=n, index=index, last_only=readout == "last")
-        if readout == "last":
-            return outs[-1]
+        if self.sysid.stateless:   # every step at once: the window's n graphs as one batch
+            stacked = batch([normalized(t) for t in range(n)])
+            index = graph_index(stacked, self.options.deterministic, validate=False) if warp else None  # ctx validated
+            out, last = self.identifier.first_steps(stacked, index), g0   # g0: the topology of G_ID
+            per_step = {k: None if x is None else x.reshape(n, -1, x.shape[-1])
+                        for k, x in ((k, getattr(out, k)) for k in KINDS)}
+        else:
+            outs, _ = self.identifier.sequence(normalized, steps=n, index=ctx.index if warp else None,
+                                               last_only=readout == "last")
+            if readout == "last":
+                return outs[-1]
+            last = outs[-1]
+            per_step = {k: None if getattr(last, k) is None else torch.stack([getattr(o, k) for o in outs])
+                        for k in KINDS}
         c = self.sysid
         psi = self._observed_targets(torch.stack(observed), g0, ctx) if readout == "dynamics" else None
 
@@ -621,8 +646,7 @@ class SysIDModel(nn.Module):
             else:    # "dynamics": observed targets
                 b = _ridge_solution(x, psi[k].to(x.dtype), c.ridge)
             return self.heads[k](b.to(self.options.param_dtype)).to(b.dtype) if k in self.heads else b
-        return outs[-1]._replace(**{k: None if getattr(outs[-1], k) is None else
-                                    pool(k, torch.stack([getattr(o, k) for o in outs])) for k in KINDS})
+        return last._replace(**{k: None if per_step[k] is None else pool(k, per_step[k]) for k in KINDS})
 
     @staticmethod
     def _observed_targets(node: torch.Tensor, graph: GraphsTuple, ctx) -> dict[str, torch.Tensor]:

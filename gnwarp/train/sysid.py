@@ -282,7 +282,8 @@ class SysIDTrainer(Trainer):
                 before[k] = saved.get(k)
         before["ridge_head"] = saved.get("ridge_head", 0)
         want.setdefault("ridge_head", 0)
-        for k, none in (("local_params", False), ("param_places", None), ("nominal_static", False), ("nominal", None)):
+        for k, none in (("stateless", False), ("local_params", False), ("param_places", None), ("nominal_static", False),
+                        ("nominal", None)):
             before[k] = saved.get(k, none)
             want.setdefault(k, none)
         changes += [f"model.{k}: {v!r} -> {want.get(k)!r}" if k != "nominal" else
