@@ -17,6 +17,7 @@ from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import GNCoreConfig, ModelConfig
 from gnwarp.models.recurrent import RecurrentGNConfig
+from gnwarp.graphs import GraphsTuple
 from gnwarp.models.rollout import RolloutEngine, RolloutInputError
 from gnwarp.models.sysid import GIDError, SysIDConfig, SysIDModel, load_gid, save_gid
 from gnwarp.train.checkpoint import CheckpointError, load_model
@@ -444,6 +445,35 @@ def test_identification_from_transitions(pendulum, tmp_path):
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
     assert losses[-1] < losses[0]
     assert load_sysid(summary["last"]).config.transitions is True
+
+
+@pytest.mark.parametrize("system", ["pendulum", "swimmer"])
+def test_stacked_window_holds_each_steps_graph(pendulum, system):
+    """``StackedWindow.build``: W steps of N instances in one builder call; step t is the graph the
+    builder makes of that step alone (features and topology), ``head(k)`` the first k steps as
+    ``gnwarp.graphs.batch`` lays them out; one topology for every instance (the pendulum) gives the
+    builder's shared topology tensors, instances of varied link counts (the swimmer) their own."""
+    from gnwarp.data import FeatureLayout, graph_builder
+    from gnwarp.graphs import batch
+    from gnwarp.models.sysid import StackedWindow
+    ds = pendulum if system == "pendulum" else data.generate("swimmer", (6, 1, 1), num_steps=8, seed=0,
+                                                              backend="mujoco", parameterized=True, progress=False)
+    b = graph_builder(FeatureLayout([], [], [], n_ctrl_slots=ds.layout.n_ctrl_slots), ds)
+    sp = ds["train"]
+    inst = torch.as_tensor(sp.instance[:4])
+    body = torch.as_tensor(sp.body[:4, 2:7]).transpose(0, 1)     # [W=5, N=4, B, 13]
+    ctrl = torch.as_tensor(sp.ctrl[:4, 2:7]).transpose(0, 1)
+    w = StackedWindow.build(b, inst, body, ctrl)
+    steps = [b(inst, body[t], ctrl[t]) for t in range(5)]
+    assert len(w) == 5 and w.graph.n_node.shape[0] == 20
+    assert (w.topology.senders is b.topology(4, ctrl.shape[-1])[0]) == (system == "pendulum")
+    for t in (0, 3, -1):
+        for f in ("nodes", "edges", "globals", "senders", "receivers", "n_node", "n_edge"):
+            torch.testing.assert_close(getattr(w[t], f), getattr(steps[t], f), rtol=0, atol=0)
+    for f in GraphsTuple._fields:
+        torch.testing.assert_close(getattr(w.head(3), f), getattr(batch(steps[:3]), f), rtol=0, atol=0)
+    with pytest.raises(IndexError, match="step 5 of a 5-step window"):
+        w[5]
 
 
 @pytest.mark.parametrize("impl", ["torch", "warp"])

@@ -89,6 +89,16 @@ class GraphBuilder:
             self._topologies[(N, U)] = topo
         return topo
 
+    def shared_topology(self, N: int, U: int) -> GraphsTuple | None:
+        """The senders, receivers and counts (no features) that every call on N instances with U
+        controls returns, when they are made once per size (one topology for every instance:
+        ``topology``); None when each call makes its own."""
+        if not (self.fixed_topology and U >= self.n_ctrl_read):
+            return None
+        snd, rcv, n_node, n_edge, _, _ = self.topology(N, U)
+        return GraphsTuple(nodes=None, edges=None, receivers=rcv, senders=snd, globals=None, n_node=n_node,
+                           n_edge=n_edge)
+
     def __call__(self, instance, body, ctrl) -> GraphsTuple:
         dev = self.s_nodes.device
         instance = instance.to(dev)

@@ -172,14 +172,17 @@ class ForwardModel(nn.Module):
     # -- the pieces of Algorithm D.1 ------------------------------------------------------------
     def _recenter(self, dyn: torch.Tensor, ctx: StepContext) -> tuple[torch.Tensor, torch.Tensor | None]:
         """D.4: subtract each graph's mean (x, y) body position (world excluded); returns
-        (centred states, per-node offset [n, 13] to add back) or (dyn, None)."""
+        (centred states, per-node offset [..., n, 13] to add back) or (dyn, None). ``dyn``
+        [..., n, 13]: leading dimensions are further batches of ``ctx``'s topology (the steps of
+        a window), each centred on its own."""
         if not self.config.recenter:
             return dyn, None
         w = ctx.movable.to(dyn.dtype)[:, None]
-        s = dyn.new_zeros(ctx.n_graph, 2).index_add_(0, ctx.node_graph, dyn[:, :2] * w)
+        lead, d = dyn.shape[:-2], dyn.dim() - 2
+        s = dyn.new_zeros(*lead, ctx.n_graph, 2).index_add_(d, ctx.node_graph, dyn[..., :2] * w)
         c = dyn.new_zeros(ctx.n_graph, 1).index_add_(0, ctx.node_graph, w)
-        off = (s / c.clamp_min(1.0))[ctx.node_graph] * w
-        off = torch.cat([off, off.new_zeros(off.shape[0], DYN_NODE_SIZE - 2)], -1)
+        off = (s / c.clamp_min(1.0))[..., ctx.node_graph, :] * w
+        off = torch.cat([off, off.new_zeros(*off.shape[:-1], DYN_NODE_SIZE - 2)], -1)
         return dyn - off, off
 
     def _noisy_centred(self, nodes: torch.Tensor, noise_std: float, ctx: StepContext,

@@ -22,7 +22,7 @@ import os
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -45,8 +45,8 @@ from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
 from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, IntRange, PositiveInt,
                                check_fields, check_keys)
 
-__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "NominalGraph", "save_gid", "load_gid",
-           "source_places", "nominal_graph"]
+__all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "NominalGraph", "StackedWindow", "save_gid",
+           "load_gid", "source_places", "nominal_graph"]
 
 
 # the readouts that fit a linear model over the window (``SysIDConfig.readout``)
@@ -407,6 +407,52 @@ def place_tables(places) -> dict[str, torch.Tensor]:
 RANGE_COLUMNS = ("act_ctrllimited", "act_ctrlrange_0", "act_ctrlrange_1")
 
 
+class StackedWindow(NamedTuple):
+    """An identification window's ``steps`` dynamic graphs, built as one batch: ``graph`` holds
+    steps x N graphs, step by step (step t's N graphs are the t-th block of rows, as
+    ``gnwarp.graphs.batch`` of the steps lays them out), and ``topology`` one step's senders,
+    receivers and counts, which every step shares (no features). ``window[t]`` is step t's graph
+    (views), ``len(window)`` the steps, ``head(k)`` the first k steps as one batch."""
+    graph: GraphsTuple
+    steps: int
+    topology: GraphsTuple
+
+    @classmethod
+    def of(cls, graphs: list) -> "StackedWindow":
+        """The window of ``graphs`` (one step each, of one topology)."""
+        g0 = graphs[0]
+        return cls(batch(graphs), len(graphs), g0._replace(nodes=None, edges=None, globals=None))
+
+    @classmethod
+    def build(cls, builder, instance: torch.Tensor, body: torch.Tensor, ctrl: torch.Tensor) -> "StackedWindow":
+        """The window of N ``instance``s of ``builder``'s source from ``body`` [W, N, B, 13] and
+        ``ctrl`` [W, N, U] (step first), in one call of the builder."""
+        W, N = body.shape[:2]
+        graph = builder(instance.repeat(W), body.reshape(W * N, *body.shape[2:]), ctrl.reshape(W * N, ctrl.shape[-1]))
+        topology = builder.shared_topology(N, ctrl.shape[-1])
+        return cls(graph, W, topology if topology is not None else cls._first(graph, W))
+
+    @staticmethod
+    def _first(graph: GraphsTuple, steps: int) -> GraphsTuple:
+        """The first step's topology of a stacked ``graph`` (views)."""
+        return StackedWindow(graph, steps, graph).head(1)._replace(nodes=None, edges=None, globals=None)
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __getitem__(self, t: int) -> GraphsTuple:
+        if not -self.steps <= t < self.steps:
+            raise IndexError(f"step {t} of a {self.steps}-step window")
+        t %= self.steps
+        block = lambda x: None if x is None else x[x.shape[0] // self.steps * t:x.shape[0] // self.steps * (t + 1)]  # noqa: E731
+        return self.topology._replace(**{k: block(getattr(self.graph, k)) for k in KINDS})
+
+    def head(self, k: int) -> GraphsTuple:
+        """The first ``k`` steps as one batch of k x N graphs (views)."""
+        rows = lambda x: None if x is None else x[:x.shape[0] // self.steps * k]  # noqa: E731
+        return GraphsTuple(**{f: rows(getattr(self.graph, f)) for f in GraphsTuple._fields})
+
+
 class SysIDModel(nn.Module):
     """GN_p (``identifier``, a ``RecurrentGNCore``) + a ``ForwardModel`` (``forward_model``) on G_ID.
 
@@ -580,63 +626,56 @@ class SysIDModel(nn.Module):
         return {k: None if not v else v[0] if len(v) == 1 else torch.cat(v, -1) for k, v in out.items()}
 
     def identify_graphs(self, window, steps: int, stats: dict | None = None) -> GraphsTuple:
-        """G_ID from ``steps`` dynamic graphs of one topology (``window``: a list, or a callable
-        t -> graph), normalized with the forward model's input statistics (``stats``: as
-        ``ForwardModel.stats``; default its current ones) and re-centred as it re-centres (D.4);
-        with ``config.transitions``, the ``steps - 1`` transitions between them; with
+        """G_ID from ``steps`` dynamic graphs of one topology: ``window`` a ``StackedWindow`` (the
+        steps built as one batch), a list, or a callable t -> graph. They are normalized with the
+        forward model's input statistics (``stats``: as ``ForwardModel.stats``; default its
+        current ones) and re-centred as it re-centres (D.4), all steps at once; with
+        ``config.transitions``, the ``steps - 1`` transitions between them; with
         ``config.readout`` "mean", the mean of GN_p's output graphs over the steps, "ridge" or
-        "dynamics" their fits (through ``config.ridge_head``'s MLP where it has one; ``SysIDConfig``). No host synchronization once the topology's
-        index exists."""
-        fm = self.forward_model
-        get = window if callable(window) else window.__getitem__
-        g0 = get(0)
+        "dynamics" their fits (through ``config.ridge_head``'s MLP where it has one;
+        ``SysIDConfig``). No host synchronization once the topology's index exists."""
+        fm, c = self.forward_model, self.sysid
+        if not isinstance(window, StackedWindow):
+            get = window if callable(window) else window.__getitem__
+            window = StackedWindow.of([get(t) for t in range(steps)])
+        g0, W = window[0], window.steps
         ctx = fm.context(g0, stats=False)      # the topology's index, shared with the forward model
         stats = stats if stats is not None else fm.stats(g0.nodes.dtype)
         (mn, sn), (me, se) = stats["nodes"], stats["edges"]
         K = g0.edges.shape[-1]
-        transitions, readout = self.sysid.transitions, self.sysid.readout
-        if (transitions or readout == "dynamics") and steps < 2:
+        transitions, readout = c.transitions, c.readout
+        if (transitions or readout == "dynamics") and W < 2:
             raise ValueError("identifying from transitions or state changes needs a window of at least 2 steps")
-        observed = []   # "dynamics": each step's normalized velocity change to the next [n, 6]
-
-        built = {0: g0}   # graphs of steps t and t + 1 (a transition reads both; each is built once)
-
-        def graph(t):
-            if t not in built:
-                built[t] = get(t)
-                built.pop(t - 2, None)
-            return built[t]
-
-        def normalized(t):
-            g = graph(t)
-            dyn, _ = fm._recenter(g.nodes, ctx)
-            nodes = (dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:]
-            if transitions or readout == "dynamics":   # the change to the next step, normalized as the targets
-                md, sd = stats["delta"]
-                delta = (state_delta(g.nodes, graph(t + 1).nodes) - md) / sd
-                if transitions:
-                    nodes = torch.cat([nodes, delta], -1)
-                else:   # bodies that cannot move have no dynamics to fit
-                    observed.append(delta[:, FIT_TARGETS] * ctx.movable.to(delta.dtype)[:, None])
-            return g._replace(nodes=nodes, edges=(g.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
+        n = W - 1 if transitions or readout == "dynamics" else W      # GN_p's steps
+        x = window.graph.nodes.reshape(W, -1, DYN_NODE_SIZE)          # [W, rows, 13]: every step at once
+        dyn, _ = fm._recenter(x[:n], ctx)
+        nodes = (dyn - mn[-DYN_NODE_SIZE:]) / sn[-DYN_NODE_SIZE:]
+        psi = None
+        if n < W:   # the change to the next step, normalized as the targets
+            md, sd = stats["delta"]
+            delta = (state_delta(x[:-1], x[1:]) - md) / sd
+            if transitions:
+                nodes = torch.cat([nodes, delta], -1)
+            else:   # "dynamics": its targets; bodies that cannot move have no dynamics to fit
+                psi = self._observed_targets(delta[..., FIT_TARGETS] * ctx.movable.to(delta.dtype)[:, None], g0, ctx)
+        inputs = window.head(n)
+        inputs = inputs._replace(nodes=nodes.reshape(-1, nodes.shape[-1]),
+                                 edges=(inputs.edges - me[me.shape[0] - K:]) / se[se.shape[0] - K:])
         warp = self.options.impl == "warp" and ctx.index is not None
-        n = steps - 1 if transitions or readout == "dynamics" else steps
-        if self.sysid.stateless:   # every step at once: the window's n graphs as one batch
-            stacked = batch([normalized(t) for t in range(n)])
-            index = graph_index(stacked, self.options.deterministic, validate=False) if warp else None  # ctx validated
-            out, last = self.identifier.first_steps(stacked, index), g0   # g0: the topology of G_ID
-            per_step = {k: None if x is None else x.reshape(n, -1, x.shape[-1])
-                        for k, x in ((k, getattr(out, k)) for k in KINDS)}
+        if c.stateless:   # every step at once: the window's n graphs as one batch
+            index = graph_index(inputs, self.options.deterministic, validate=False) if warp else None  # ctx validated
+            out, last = self.identifier.first_steps(inputs, index), g0   # g0: the topology of G_ID
+            per_step = {k: None if v is None else v.reshape(n, v.shape[0] // n, v.shape[-1])
+                        for k, v in ((k, getattr(out, k)) for k in KINDS)}
         else:
-            outs, _ = self.identifier.sequence(normalized, steps=n, index=ctx.index if warp else None,
+            step = StackedWindow(inputs, n, window.topology)
+            outs, _ = self.identifier.sequence(step.__getitem__, steps=n, index=ctx.index if warp else None,
                                                last_only=readout == "last")
             if readout == "last":
                 return outs[-1]
             last = outs[-1]
             per_step = {k: None if getattr(last, k) is None else torch.stack([getattr(o, k) for o in outs])
                         for k in KINDS}
-        c = self.sysid
-        psi = self._observed_targets(torch.stack(observed), g0, ctx) if readout == "dynamics" else None
 
         def pool(k, x):   # x [T, rows, width]: GN_p's outputs of kind k over the steps
             if readout == "mean":
@@ -709,7 +748,17 @@ class SysIDModel(nn.Module):
                 raise ValueError("capture=True needs a model on a CUDA device")
             with torch.no_grad():
                 return self._captured_identify(tmpl, body, ctrl)
-        return self.identify_graphs(lambda t: tmpl.graph(body[:, t], ctrl[:, t]), W)
+        return self.identify_graphs(self._window(tmpl, {}, body, ctrl), W)
+
+    def _window(self, tmpl: GraphTemplate, made: dict, body: torch.Tensor, ctrl: torch.Tensor) -> StackedWindow:
+        """The ``StackedWindow`` of ``body`` [N, W, B, 13] and ``ctrl`` [N, W, U] on one step's
+        template (``tmpl``) and one of all W steps, kept in ``made`` (made on the first call:
+        outside any capture, as a template syncs with the host)."""
+        W = body.shape[1]
+        if W not in made:
+            made[W] = GraphTemplate(self.builder, tmpl.instance.repeat(W))
+        b, c = body.transpose(0, 1).reshape(-1, *body.shape[2:]), ctrl.transpose(0, 1).reshape(-1, ctrl.shape[-1])
+        return StackedWindow(made[W].graph(b, c), W, tmpl.topology)
 
     def _captured_identify(self, tmpl: GraphTemplate, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
         from gnwarp.interop import replay_cached
@@ -718,8 +767,10 @@ class SysIDModel(nn.Module):
                body.device, id(self.builder), self.options, self.sysid.readout, self.sysid.transitions, storage)
         W = body.shape[1]
 
-        def run(b, c):   # the template of the first call with these instances, kept by the graph
-            return self.identify_graphs(lambda t: tmpl.graph(b[:, t], c[:, t]), W)
+        made = {}
+
+        def run(b, c):   # the templates of the first call with these instances (its warm-up), kept by the graph
+            return self.identify_graphs(self._window(tmpl, made, b, c), W)
         result = replay_cached(_IDENTIFY_GRAPHS.setdefault(self, {}), key, (body, ctrl), run, keep=self.builder)
         return result._replace(**{k: None if getattr(result, k) is None else getattr(result, k).clone() for k in KINDS})
 

@@ -26,7 +26,7 @@ from gnwarp.data.layout import FeatureLayout, merge_layouts
 from gnwarp.eval.metrics import movable_mask, normalized_errors
 from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
-from gnwarp.models.sysid import SysIDConfig, SysIDModel, nominal_graph, source_places
+from gnwarp.models.sysid import StackedWindow, SysIDConfig, SysIDModel, nominal_graph, source_places
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weights, model_config_changes,
                                      read_checkpoint)
@@ -38,9 +38,9 @@ __all__ = ["SysIDTrainer", "SysIDSample", "ParamStats", "build_sysid_model", "es
 
 
 class SysIDSample(NamedTuple):
-    """One dataset's part of a batch: the identification window's dynamic graphs, the dynamic
-    graph at t0 and the true next states [sum(n_node), 13]."""
-    window: list
+    """One dataset's part of a batch: the identification window's dynamic graphs (built as one
+    batch), the dynamic graph at t0 and the true next states [sum(n_node), 13]."""
+    window: StackedWindow
     graph: GraphsTuple
     target: torch.Tensor
     params: tuple | None = None   # with param_loss: (standardized true parameters [n, P], their mask [n, P])
@@ -316,7 +316,9 @@ class SysIDTrainer(Trainer):
                 s0 = torch.where(at_start, torch.zeros_like(s0), s0)
             r = torch.randint(p.T - W, (K * n,), generator=gen, device=dev)
             inst = p.instance[seq]
-            window = [p.builder(inst, p.body[seq, s0 + t], p.ctrl[seq, s0 + t]) for t in range(W)]
+            steps = s0[None] + torch.arange(W, device=dev)[:, None]          # [W, n]: the window, step by step
+            body_w, ctrl_w = p.body[seq[None], steps], p.ctrl[seq[None], steps]
+            window = StackedWindow.build(p.builder, inst, body_w, ctrl_w)
             seq_k, inst_k, s0_k = (seq, inst, s0) if K == 1 else (seq.repeat(K), inst.repeat(K), s0.repeat(K))
             t0 = torch.where(r < s0_k, r, r + W)    # uniform over the steps outside the window
             graph = p.builder(inst_k, p.body[seq_k, t0], p.ctrl[seq_k, t0])
