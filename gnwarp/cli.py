@@ -402,6 +402,9 @@ def add_sysid_arguments(parser) -> None:
     a("--ridge-features", type=int, default=None, metavar="F",
       help="with --readout ridge: regressors per fit, the rest of the recurrent GN's outputs being its "
            "targets (default 4; SysIDConfig.ridge_features)")
+    a("--ridge", type=float, default=None, metavar="L",
+      help="with --readout ridge or dynamics: the fit's ridge weight, relative to the mean diagonal of "
+           "its regressors' second moments (default 1e-3; SysIDConfig.ridge)")
     a("--local-params", action="store_true",
       help="with --param-loss: the forward model also reads each supervised parameter on the node or "
            "edges it describes (a link's mass on its node, a gear on its joint's edges), as a true "
@@ -454,7 +457,10 @@ def sysid_settings(args, identifier=None, **config):
             identifier = dataclasses.replace(identifier, hidden_globals=args.gid_globals, out_globals=args.gid_globals)
         except ConfigError as e:
             raise SystemExit(f"--gid-globals {args.gid_globals}: {e.reason}") from None
+    if args.ridge is not None and args.readout not in ("ridge", "dynamics"):
+        raise SystemExit(f"--ridge weights the fit of --readout ridge or dynamics, got --readout {args.readout}")
     fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
+    fit.update({} if args.ridge is None else {"ridge": args.ridge})
     sysid = SysIDConfig(identifier=identifier, transitions=args.transitions, stateless=args.stateless,
                         readout=args.readout,
                         ridge_head=args.ridge_head, local_params=args.local_params,

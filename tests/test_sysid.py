@@ -558,6 +558,23 @@ def _ridge_reference(phi, psi, ridge):
     return torch.linalg.solve(S + lam * torch.eye(phi.shape[-1], dtype=phi.dtype), R).reshape(phi.shape[1], -1)
 
 
+def test_ridge_fit_is_solved_in_float64():
+    """``_ridge_solution`` of float32 regressors solves in float64 and returns float32: with nearly
+    collinear regressors and a tiny ridge (condition ~1e8), it recovers the coefficients a float64
+    solve gives, where a float32 Cholesky would lose them."""
+    from gnwarp.models.sysid import _ridge_solution
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, 19, dtype=torch.float64)[:, None, None]
+    phi = torch.cat([torch.ones_like(t), 1 - 1e-4 * t ** 2, torch.sin(0.3 * t)], -1).expand(19, 5, 3).clone()
+    phi[..., 2] += 0.01 * torch.randn(19, 5, generator=g, dtype=torch.float64)
+    coef = torch.randn(5, 3, 2, generator=g, dtype=torch.float64)
+    psi = torch.einsum("tnf,nfp->tnp", phi, coef)
+    got = _ridge_solution(phi.float(), psi.float(), 1e-12)
+    assert got.dtype == torch.float32
+    want = _ridge_reference(phi.float().double(), psi.float().double(), 1e-12)
+    torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-4)
+
+
 @pytest.mark.parametrize("readout,head", [("mean", 0), ("ridge", 0), ("dynamics", 0), ("ridge", 5), ("dynamics", 5)],
                          ids=["mean", "ridge", "dynamics", "ridge-head", "dynamics-head"])
 def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout, head):
@@ -1210,20 +1227,24 @@ def test_sysid_flags_map_to_the_config_and_trainer_options():
     ap = argparse.ArgumentParser()
     add_sysid_arguments(ap)
     args = ap.parse_args(["--transitions", "--stateless", "--targets", "3", "--readout", "ridge", "--ridge-head", "8",
-                          "--ridge-features", "2", "--local-params", "--gid-globals", "7", "--nominal-static",
+                          "--ridge-features", "2", "--ridge", "1e-5", "--local-params", "--gid-globals", "7",
+                          "--nominal-static",
                           "--start-windows", "0.25", "--consistency", "0.5", "--param-loss", "2",
                           "--param-teacher", "0.75"])
     sysid, options = sysid_settings(args, ID, window=4)
-    assert (sysid.transitions, sysid.stateless, sysid.readout, sysid.ridge_head, sysid.ridge_features,
-            sysid.local_params, sysid.nominal_static, sysid.window) == (True, True, "ridge", 8, 2, True, True, 4)
+    assert (sysid.transitions, sysid.stateless, sysid.readout, sysid.ridge_head, sysid.ridge_features, sysid.ridge,
+            sysid.local_params, sysid.nominal_static, sysid.window) == (True, True, "ridge", 8, 2, 1e-5, True, True, 4)
     assert (sysid.identifier.out_globals, sysid.identifier.hidden_globals) == (7, 7)
     assert dataclasses.replace(sysid.identifier, out_globals=ID.out_globals, hidden_globals=ID.hidden_globals) == ID
     assert options == {"targets": 3, "start_windows": 0.25, "consistency": 0.5, "param_loss": 2.0,
                        "param_teacher": 0.75}
     every = {a.option_strings[0] for a in ap._actions if a.option_strings[0] != "-h"}
-    assert set(sysid_flags_given(args)) == every and len(every) == 13 and sysid_flags_given(ap.parse_args([])) == []
+    assert set(sysid_flags_given(args)) == every and len(every) == 14 and sysid_flags_given(ap.parse_args([])) == []
     plain, opts = sysid_settings(ap.parse_args([]))
     assert plain == SysIDConfig() and opts == {"targets": 1, "start_windows": 0.0, "consistency": 0.0,
                                                "param_loss": 0.0, "param_teacher": 0.0}
     with pytest.raises(SystemExit, match="--ridge-features sets"):
         sysid_settings(ap.parse_args(["--ridge-features", "2"]))
+    with pytest.raises(SystemExit, match="--ridge weights the fit of --readout ridge or dynamics"):
+        sysid_settings(ap.parse_args(["--ridge", "1e-5"]))
+    assert sysid_settings(ap.parse_args(["--readout", "dynamics", "--ridge", "1e-4"]))[0].ridge == 1e-4

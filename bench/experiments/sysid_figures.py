@@ -649,6 +649,7 @@ def main():
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, stateless=args.stateless, targets=args.targets,
                          readout=args.readout, ridge_head=args.ridge_head,
                          **({} if args.ridge_features is None else {"ridge_features": args.ridge_features}),
+                         **({} if args.ridge is None else {"ridge": args.ridge}),
                          start_windows=args.start_windows, consistency=args.consistency,
                          param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema, local_params=args.local_params,

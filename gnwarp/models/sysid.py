@@ -299,8 +299,10 @@ class SysIDConfig:
 
 def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch.Tensor:
     """Per row of the regressors ``phi`` [T, n, F] and targets ``psi`` [T, n, P] (T steps): the
-    ridge solution B [F, P] of psi ~ B^T phi over the T steps, flattened to [n, F * P]. A
-    Cholesky solve without error checks (no host synchronization, so it can be captured)."""
+    ridge solution B [F, P] of psi ~ B^T phi over the T steps, flattened to [n, F * P], in
+    ``phi``'s dtype. Solved in float64, so that a small ``ridge`` stays exact: a Cholesky solve
+    without error checks (no host synchronization, so it can be captured)."""
+    dtype, phi, psi = phi.dtype, phi.double(), psi.double()
     features, T = phi.shape[-1], phi.shape[0]
     S = torch.einsum("tnf,tng->nfg", phi, phi) / T
     R = torch.einsum("tnf,tnp->nfp", phi, psi) / T
@@ -309,7 +311,7 @@ def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch
     L, _ = torch.linalg.cholesky_ex(S + lam * eye)
     y = torch.linalg.solve_triangular(L, R, upper=False)
     B = torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True)
-    return B.reshape(B.shape[0], -1)
+    return B.reshape(B.shape[0], -1).to(dtype)
 
 
 def source_places(source) -> tuple:
