@@ -182,7 +182,7 @@ def _cmd_train(args) -> int:
 def _evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
     """Rollout errors of system-identification checkpoints: G_ID identified from the first
     window of each sequence of the split (the same instance) and from another instance's window
-    (the sequences rotated by one), then rollouts from the window's end. A checkpoint trained
+    (of the same graph topology: ``other_instance_windows``), then rollouts from the window's end. A checkpoint trained
     with ``--param-loss`` adds a row with G_ID's supervised columns set to the true parameters
     (what its forward model does when those are identified perfectly)."""
     import math
@@ -190,14 +190,14 @@ def _evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
 
     import numpy as np
 
-    from gnwarp.train.sysid import load_sysid, sysid_rollout_error, trained_param_stats
+    from gnwarp.train.sysid import load_sysid, other_instance_windows, sysid_rollout_error, trained_param_stats
     print("| model | identified from | " + " | ".join(f"{h}-step rollout" for h in horizons) + " |")
     print("|---|---|" + "---|" * len(horizons))
     bad = False
     for path in paths:
         m = load_sysid(path, device=args.device)
         n = len(ds[args.split]) if sequences is None else min(sequences, len(ds[args.split]))
-        rows = [("same instance", None, None), ("another instance", np.roll(np.arange(n), 1), None)]
+        rows = [("same instance", None, None), ("another instance", other_instance_windows(ds, args.split, n), None)]
         stats = trained_param_stats(m, ds.system)
         if stats is not None and "params" in ds.static:
             rows.append(("same instance, true parameter columns", None, stats))

@@ -476,6 +476,33 @@ def test_stacked_window_holds_each_steps_graph(pendulum, system):
         w[5]
 
 
+def test_another_instances_window_shares_the_graph_topology(pendulum, tmp_path, capsys):
+    """``other_instance_windows``: with one topology, each sequence is identified from the one
+    before it (the paper's "another instance"); with instances of varied link counts (the
+    parameterized swimmer) from the previous sequence of its own topology, so that ``gnwarp
+    evaluate`` reports the row instead of refusing a G_ID of another graph layout."""
+    from gnwarp.cli import main
+    from gnwarp.train.sysid import other_instance_windows
+    np.testing.assert_array_equal(other_instance_windows(pendulum, "train", 7), np.roll(np.arange(7), 1))
+    ds = data.generate("swimmer", (12, 1, 8), num_steps=26, seed=0, backend="mujoco", parameterized=True,
+                       progress=False)
+    src = other_instance_windows(ds, "test", 8)
+    inst = np.asarray(ds["test"].instance[:8])
+    links = np.asarray(ds.static["n_node"])[inst]
+    assert len(set(links.tolist())) > 1                       # the fixture has varied topologies
+    np.testing.assert_array_equal(links[src], links)          # each window from its own topology
+    shared = np.array([(links == x).sum() > 1 for x in links])
+    assert (src != np.arange(8))[shared].all() and (src == np.arange(8))[~shared].all()
+    path = tmp_path / "swim.h5"
+    ds.save(path)
+    assert main(["train", "--data", str(path), "--sysid", "--set", "steps=2", "--set", "batch_size=4",
+                 "--set", "valid_every=2", "--set", "valid_sequences=1", "--set", "device=cpu",
+                 "-o", str(tmp_path / "run"), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "run" / "best"), "--data", str(path), "--split", "test"]) == 0
+    assert "| another instance |" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("impl", ["torch", "warp"])
 def test_stateless_identifier_reads_each_step_on_its_own(pendulum, tmp_path, impl):
     """``SysIDConfig(stateless=True)``: GN_p reads every step of the window from the empty hidden

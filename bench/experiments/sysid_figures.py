@@ -205,10 +205,10 @@ def forward_window_error(model, ds, split: str, W: int, horizon: int, n: int | N
 
 def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
     from gnwarp.eval.metrics import rollout_error
-    from gnwarp.train.sysid import sysid_rollout_error
+    from gnwarp.train.sysid import other_instance_windows, sysid_rollout_error
     W, n = args.window, min(args.test, len(ds["test"]))
     H = ds["test"].num_steps - W
-    other = np.roll(np.arange(n), 1)     # sequence i identified from sequence i-1's window: another instance
+    other = other_instance_windows(ds, "test", n)   # sequence i from sequence i-1's window: another instance
     runs = [forward_window_error(m, ds, "test", W, H, n) for m in models["true params runs"]]
     errs = {"no params": forward_window_error(models["no params"], ds, "test", W, H, n),
             "true params": float(np.median(runs)),   # one run's, or the median of --reference-runs

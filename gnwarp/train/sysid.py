@@ -408,6 +408,27 @@ def window_spread(g_id: GraphsTuple, other: GraphsTuple | None = None) -> torch.
     return within / (total + 1e-12)
 
 
+def other_instance_windows(dataset, split: str, n: int) -> np.ndarray:
+    """For each of the first ``n`` sequences of ``split``, the sequence whose window identifies it
+    in the paper's "another instance" test (``sysid_rollout_error(window_from=...)``): the previous
+    one among the sequences whose instances share its graph topology (a G_ID has rows per node and
+    edge, so it applies only to graphs of its own layout), cyclically. With one topology, as every
+    system but the parameterized swimmer has, that is sequence i - 1. A sequence whose topology no
+    other shares keeps its own window."""
+    inst = np.asarray(dataset[split].instance[:n])
+    st = dataset.static
+    n_node, n_edge = np.asarray(st["n_node"]), np.asarray(st["n_edge"])
+    snd, rcv = np.asarray(st["senders"]), np.asarray(st["receivers"])
+    groups: dict[tuple, list[int]] = {}
+    for i, k in enumerate(inst):
+        e = int(n_edge[k])
+        groups.setdefault((int(n_node[k]), e, snd[k, :e].tobytes(), rcv[k, :e].tobytes()), []).append(i)
+    src = np.arange(n)
+    for rows in groups.values():
+        src[rows] = np.roll(rows, 1)
+    return src
+
+
 @torch.no_grad()
 def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
                         sequences: int | None = None, window_from=None, oracle: ParamStats | None = None) -> float:
