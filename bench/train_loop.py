@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from bench.harness import (PAPER, QUICK, device_name, median_ms, profile_kernels, results_dir,  # noqa: E402
-                           save_results)
+                           save_results, slug)
 from gnwarp import data  # noqa: E402
 from gnwarp.gn import RunOptions  # noqa: E402
 from gnwarp.models import ModelConfig  # noqa: E402
@@ -40,7 +40,7 @@ def config(args, tmp, name, precision, optimizer, capture, steps, **kw):
 
 def profile_steps(args, tmp, ds, name):
     """Device time per kernel of the Trainer's step (eager, the same kernels a replay runs)."""
-    path = Path(args.out) / f"train_loop_{name.replace(' ', '_').lower()}_profile.txt"
+    path = Path(args.out) / f"train_loop_{slug(name)}_profile.txt"
     for prec in args.precisions.split(","):
         opt = args.optimizers.split(",")[0]
         t = Trainer(config(args, tmp, f"prof-{prec}", prec, opt, False, 10 ** 6), [ds])

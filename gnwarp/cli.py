@@ -432,12 +432,22 @@ def add_sysid_arguments(parser) -> None:
            "true-parameter model and the identifier on --param-loss alone; SysIDTrainer.param_teacher)")
 
 
-def sysid_flags_given(args) -> list[str]:
-    """The flags of ``add_sysid_arguments`` that ``args`` sets to other than their defaults."""
+def _sysid_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     add_sysid_arguments(p)
+    return p
+
+
+def sysid_flags_given(args) -> list[str]:
+    """The flags of ``add_sysid_arguments`` that ``args`` sets to other than their defaults."""
+    p = _sysid_parser()
     defaults = vars(p.parse_args([]))
     return [a.option_strings[0] for a in p._actions if getattr(args, a.dest) != defaults[a.dest]]
+
+
+def sysid_flag_values(args) -> dict:
+    """{name: value} of every flag of ``add_sysid_arguments`` in ``args`` (what a run records)."""
+    return {a.dest: getattr(args, a.dest) for a in _sysid_parser()._actions}
 
 
 def sysid_settings(args, identifier=None, **config):

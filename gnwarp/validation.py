@@ -74,10 +74,8 @@ def IntRange(lo: int, hi: int | None = None):
 def FloatRange(gt: float | None = None, ge: float | None = None, le: float | None = None,
                lt: float | None = None):
     """A finite number type: > ``gt`` (or >= ``ge``), <= ``le`` (or < ``lt``)."""
-    bounds = [f"> {gt:g}" if gt is not None else None, f">= {ge:g}" if ge is not None else None,
-              f"<= {le:g}" if le is not None else None, f"< {lt:g}" if lt is not None else None]
-    text = " and ".join(["a finite number " + b if i == 0 else b for i, b in enumerate(x for x in bounds if x)]) \
-        or "a finite number"
+    bounds = [f"{op} {v:g}" for op, v in ((">", gt), (">=", ge), ("<=", le), ("<", lt)) if v is not None]
+    text = " ".join(["a finite number", " and ".join(bounds)]).strip()
     return Annotated[float, BeforeValidator(_no_bool), Field(gt=gt, ge=ge, le=le, lt=lt, allow_inf_nan=False),
                      Allowed(text)]
 

@@ -57,7 +57,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import device_name, experiment_out, gn_sizes  # noqa: E402
-from gnwarp.cli import add_sysid_arguments, sysid_settings  # noqa: E402
+from gnwarp.cli import add_sysid_arguments, sysid_flag_values, sysid_settings  # noqa: E402
 
 SYSTEMS = ["pendulum", "cartpole", "cheetah", "jaco"]
 MODELS = ("no params", "true params", "sysid same", "sysid other")
@@ -645,15 +645,12 @@ def main():
             rows += spread_rows(args, system, ds, models["sysid"])
             if system == "pendulum":
                 rows += fig9(args, models, out)
+            # the sysid flags as set (a flag left at None, its config's default, is not recorded)
+            flags = {k: v for k, v in sysid_flag_values(args).items() if v is not None}
+            flags["gid_globals"] = args.gid_globals or args.gid
             for r in rows:
-                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), transitions=args.transitions, stateless=args.stateless, targets=args.targets,
-                         readout=args.readout, ridge_head=args.ridge_head,
-                         **({} if args.ridge_features is None else {"ridge_features": args.ridge_features}),
-                         **({} if args.ridge is None else {"ridge": args.ridge}),
-                         start_windows=args.start_windows, consistency=args.consistency,
-                         param_loss=args.param_loss, param_teacher=args.param_teacher, gid_globals=args.gid_globals or args.gid,
-                         precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema, local_params=args.local_params,
-                         nominal_static=args.nominal_static,
+                r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), **flags,
+                         precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema,
                          **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
                 print(json.dumps(r), flush=True)

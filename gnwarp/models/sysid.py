@@ -46,7 +46,7 @@ from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, 
                                check_fields, check_keys)
 
 __all__ = ["FixedGIDModel", "SysIDConfig", "SysIDModel", "GIDError", "NominalGraph", "StackedWindow", "save_gid",
-           "load_gid", "source_places", "nominal_graph"]
+           "load_gid", "source_places", "nominal_graph", "instance_topologies"]
 
 
 # the readouts that fit a linear model over the window (``SysIDConfig.readout``)
@@ -116,8 +116,9 @@ def _source_name(source) -> str:
     return repr(getattr(source, "system", getattr(source, "name", type(source).__name__)))
 
 
-def _topology(static: dict) -> list[tuple]:
-    """Per instance: (n_node, senders, receivers) of its static arrays."""
+def instance_topologies(static: dict) -> list[tuple]:
+    """Per instance of static arrays (``gnwarp.data.static_arrays``' layout): its graph layout
+    (n_node, senders, receivers), equal for instances whose graphs a G_ID fits alike."""
     ne, nn_ = np.asarray(static["n_edge"]), np.asarray(static["n_node"])
     s, r = np.asarray(static["senders"]), np.asarray(static["receivers"])
     return [(int(nn_[i]), tuple(int(x) for x in s[i, :ne[i]]), tuple(int(x) for x in r[i, :ne[i]]))
@@ -130,7 +131,7 @@ def nominal_graph(dataset) -> NominalGraph:
     when the instances differ in topology (a swimmer with varied links)."""
     static, layout = dataset.static, dataset.layout
     used = np.unique(np.asarray(dataset["train"].instance[...]))
-    topo = _topology(static)
+    topo = instance_topologies(static)
     if any(topo[i] != topo[used[0]] for i in range(len(topo))):
         raise ValueError(f"nominal_static: the instances of {_source_name(dataset)} differ in topology (bodies or "
                          f"joints); a nominal static graph needs one")
@@ -434,10 +435,10 @@ class StackedWindow(NamedTuple):
         topology = builder.shared_topology(N, ctrl.shape[-1])
         return cls(graph, W, topology if topology is not None else cls._first(graph, W))
 
-    @staticmethod
-    def _first(graph: GraphsTuple, steps: int) -> GraphsTuple:
+    @classmethod
+    def _first(cls, graph: GraphsTuple, steps: int) -> GraphsTuple:
         """The first step's topology of a stacked ``graph`` (views)."""
-        return StackedWindow(graph, steps, graph).head(1)._replace(nodes=None, edges=None, globals=None)
+        return cls(graph, steps, None).head(1)._replace(nodes=None, edges=None, globals=None)
 
     def __len__(self) -> int:
         return self.steps
@@ -446,13 +447,17 @@ class StackedWindow(NamedTuple):
         if not -self.steps <= t < self.steps:
             raise IndexError(f"step {t} of a {self.steps}-step window")
         t %= self.steps
-        block = lambda x: None if x is None else x[x.shape[0] // self.steps * t:x.shape[0] // self.steps * (t + 1)]  # noqa: E731
-        return self.topology._replace(**{k: block(getattr(self.graph, k)) for k in KINDS})
+        return self.topology._replace(**{k: self._rows(k, t, t + 1) for k in KINDS})
 
     def head(self, k: int) -> GraphsTuple:
         """The first ``k`` steps as one batch of k x N graphs (views)."""
-        rows = lambda x: None if x is None else x[:x.shape[0] // self.steps * k]  # noqa: E731
-        return GraphsTuple(**{f: rows(getattr(self.graph, f)) for f in GraphsTuple._fields})
+        return GraphsTuple(**{f: self._rows(f, 0, k) for f in GraphsTuple._fields})
+
+    def _rows(self, field: str, a: int, b: int):
+        """The rows of ``graph``'s ``field`` that steps [a, b) hold (every field has the same
+        number of rows per step)."""
+        x = getattr(self.graph, field)
+        return None if x is None else x[x.shape[0] // self.steps * a:x.shape[0] // self.steps * b]
 
 
 class SysIDModel(nn.Module):
@@ -560,7 +565,7 @@ class SysIDModel(nn.Module):
         nom = self.sysid.nominal
         if nom is not None:
             want = (len(nom.nodes), nom.senders, nom.receivers)
-            other = [t for t in _topology(_source_static(source)) if t != want]
+            other = [t for t in instance_topologies(_source_static(source)) if t != want]
             if other:
                 raise ValueError(f"this model reads a nominal static graph of {want[0]} bodies and "
                                  f"{len(nom.senders)} edges; {_source_name(source)} has instances of another "

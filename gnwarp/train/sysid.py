@@ -26,7 +26,8 @@ from gnwarp.data.layout import FeatureLayout, merge_layouts
 from gnwarp.eval.metrics import movable_mask, normalized_errors
 from gnwarp.graphs import GraphsTuple, batch
 from gnwarp.interop import resolve_device
-from gnwarp.models.sysid import StackedWindow, SysIDConfig, SysIDModel, nominal_graph, source_places
+from gnwarp.models.sysid import (StackedWindow, SysIDConfig, SysIDModel, instance_topologies, nominal_graph,
+                                 source_places)
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.train.checkpoint import (CheckpointError, load_training, load_weights, model_config_changes,
                                      read_checkpoint)
@@ -415,14 +416,10 @@ def other_instance_windows(dataset, split: str, n: int) -> np.ndarray:
     edge, so it applies only to graphs of its own layout), cyclically. With one topology, as every
     system but the parameterized swimmer has, that is sequence i - 1. A sequence whose topology no
     other shares keeps its own window."""
-    inst = np.asarray(dataset[split].instance[:n])
-    st = dataset.static
-    n_node, n_edge = np.asarray(st["n_node"]), np.asarray(st["n_edge"])
-    snd, rcv = np.asarray(st["senders"]), np.asarray(st["receivers"])
+    topology = instance_topologies(dataset.static)
     groups: dict[tuple, list[int]] = {}
-    for i, k in enumerate(inst):
-        e = int(n_edge[k])
-        groups.setdefault((int(n_node[k]), e, snd[k, :e].tobytes(), rcv[k, :e].tobytes()), []).append(i)
+    for i, k in enumerate(np.asarray(dataset[split].instance[:n])):
+        groups.setdefault(topology[k], []).append(i)
     src = np.arange(n)
     for rows in groups.values():
         src[rows] = np.roll(rows, 1)
