@@ -372,6 +372,28 @@ def test_evaluation_metrics(pendulum):
     assert r["quat"] == 0.0
 
 
+def test_sequence_shares_decompose_the_error(pendulum):
+    """Each sequence's share of the normalized error: the shares add up to the error (over the
+    groups with a ratio: the pendulum's position has none), and noise added to one sequence
+    raises that sequence's share alone."""
+    true = np.asarray(pendulum["test"].body[...], dtype=np.float64)
+    const = np.broadcast_to(true[:, :1], true.shape)
+    mask = ev.movable_mask(pendulum, pendulum["test"].instance[...])
+    rng = np.random.default_rng(0)
+    pred = true + 0.01 * rng.standard_normal(true.shape)
+    base = ev.sequence_shares(pred[:, 1:], true[:, 1:], const[:, 1:], mask)
+    assert base.shape == (true.shape[0],) and (base > 0).all()
+    assert base.sum() == pytest.approx(ev.normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"],
+                                       rel=1e-12)
+    worse = pred.copy()
+    worse[1] += 0.1 * rng.standard_normal(worse[1].shape)
+    shares = ev.sequence_shares(worse[:, 1:], true[:, 1:], const[:, 1:], mask)
+    assert shares[1] > 10 * base[1]
+    np.testing.assert_allclose(np.delete(shares, 1), np.delete(base, 1), rtol=1e-12)
+    assert shares.sum() == pytest.approx(ev.normalized_errors(worse[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"],
+                                         rel=1e-12)
+
+
 def test_cli_train_and_evaluate(tmp_path, pendulum, capsys):
     from gnwarp.cli import main
     path = tmp_path / "pend.h5"

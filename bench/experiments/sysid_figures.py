@@ -176,21 +176,22 @@ def split_arrays(ds, split: str, n: int | None):
             np.asarray(sp.instance[:n]))
 
 
-def window_error(pred: np.ndarray, true: np.ndarray, mask: np.ndarray) -> float:
+def window_error(pred: np.ndarray, true: np.ndarray, mask: np.ndarray, shares: bool = False):
     """Normalized error (``gnwarp.eval.metrics.normalized_errors``) of rollouts [S, H+1, B, 13]
-    whose step 0 is the true state; the constant baseline repeats it."""
-    from gnwarp.eval.metrics import normalized_errors
+    whose step 0 is the true state; the constant baseline repeats it. ``shares``: (error, each
+    sequence's share of it [S], ``gnwarp.eval.metrics.sequence_shares``)."""
+    from gnwarp.eval.metrics import normalized_errors, sequence_shares
     const = np.broadcast_to(true[:, :1], true.shape)
     r = normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"]
-    return r if math.isfinite(r) else math.inf
+    r = r if math.isfinite(r) else math.inf
+    return (r, sequence_shares(pred[:, 1:], true[:, 1:], const[:, 1:], mask)) if shares else r
 
 
 @torch.no_grad()
-def forward_window_error(model, ds, split: str, W: int, horizon: int, n: int | None, batch: int = 1024) -> float:
-    """A forward model's error as ``sysid_rollout_error`` measures sysid's: rollouts from step
-    ``W`` of each of the first ``n`` sequences of ``split`` for ``horizon`` steps (cut to the
-    sequences' end), under their true controls."""
-    from gnwarp.eval.metrics import movable_mask
+def forward_window_predictions(model, ds, split: str, W: int, horizon: int, n: int | None, batch: int = 1024):
+    """A forward model's rollouts as ``sysid_rollout_predictions`` gives sysid's: from step ``W``
+    of each of the first ``n`` sequences of ``split`` for ``horizon`` steps (cut to the
+    sequences' end), under their true controls: (predicted, true, instance)."""
     body, ctrl, inst = split_arrays(ds, split, n)
     H = min(int(horizon), ctrl.shape[1] - W)
     builder = model.graph_builder(ds)
@@ -200,31 +201,48 @@ def forward_window_error(model, ds, split: str, W: int, horizon: int, n: int | N
         r = model.rollout(torch.as_tensor(body[b, W]), torch.as_tensor(ctrl[b, W:W + H]), torch.as_tensor(inst[b]),
                           builder=builder)
         preds.append(r.float().cpu().numpy())
-    return window_error(np.concatenate(preds), body[:, W:W + H + 1], movable_mask(ds, inst))
+    return np.concatenate(preds), body[:, W:W + H + 1], inst
 
 
 def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
-    from gnwarp.eval.metrics import rollout_error
-    from gnwarp.train.sysid import other_instance_windows, sysid_rollout_error
+    """The Figure 8 errors; and, per model, each test sequence's share of its error ("sequences"
+    rows, with the test instances' parameters): a mean of squared rollout errors can rest on a
+    few sequences."""
+    from gnwarp.eval.metrics import movable_mask, rollout_error
+    from gnwarp.train.sysid import other_instance_windows, sysid_rollout_predictions, trained_param_stats
     W, n = args.window, min(args.test, len(ds["test"]))
     H = ds["test"].num_steps - W
+    inst = split_arrays(ds, "test", n)[2]
+    mask = movable_mask(ds, inst)
     other = other_instance_windows(ds, "test", n)   # sequence i from sequence i-1's window: another instance
-    runs = [forward_window_error(m, ds, "test", W, H, n) for m in models["true params runs"]]
-    errs = {"no params": forward_window_error(models["no params"], ds, "test", W, H, n),
-            "true params": float(np.median(runs)),   # one run's, or the median of --reference-runs
-            "sysid same": sysid_rollout_error(models["sysid"], ds, "test", H, n),
-            "sysid other": sysid_rollout_error(models["sysid"], ds, "test", H, n, window_from=other)}
+    preds = {f"true params {k}": forward_window_predictions(m, ds, "test", W, H, n)
+             for k, m in enumerate(models["true params runs"])}
+    preds["no params"] = forward_window_predictions(models["no params"], ds, "test", W, H, n)
+    preds["sysid same"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n)
+    preds["sysid other"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n, window_from=other)
+    if args.param_loss > 0:   # the sysid forward model with its supervised columns identified perfectly
+        preds["oracle"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n,
+                                                    oracle=trained_param_stats(models["sysid"], system))
+    errs, shares = {}, {}
+    for k, (pred, true, _) in preds.items():
+        errs[k], shares[k] = window_error(pred, true, mask, shares=True)
+    runs = [errs[f"true params {k}"] for k in range(len(models["true params runs"]))]
+    errs["true params"] = float(np.median(runs))   # one run's, or the median of --reference-runs
     # for reference, the forward models' usual error (rollouts from step 0, ``gnwarp.eval``)
     from_0 = {k: rollout_error(models[k], ds, "test", ds["test"].num_steps, n) for k in ("no params", "true params")}
-    rows = [{"part": "fig8", "system": system, "model": k, "error": float(v), "window": W, "horizon": H,
+    rows = [{"part": "fig8", "system": system, "model": k, "error": float(errs[k]), "window": W, "horizon": H,
              "test_sequences": n, "from_step_0": from_0.get(k),
-             **({"runs": runs} if k == "true params" else {})} for k, v in errs.items()]
-    if args.param_loss > 0:   # the sysid forward model with its supervised columns identified perfectly
-        from gnwarp.train.sysid import trained_param_stats
-        e = sysid_rollout_error(models["sysid"], ds, "test", H, n, oracle=trained_param_stats(models["sysid"], system))
-        rows.append({"part": "oracle", "system": system, "model": "sysid, true parameter columns", "error": float(e),
-                     "ratio_to_true": float(e / errs["true params"]) if errs["true params"] else None,
+             **({"runs": runs} if k == "true params" else {})} for k in MODELS]
+    if "oracle" in errs:
+        rows.append({"part": "oracle", "system": system, "model": "sysid, true parameter columns",
+                     "error": float(errs["oracle"]),
+                     "ratio_to_true": float(errs["oracle"] / errs["true params"]) if errs["true params"] else None,
                      "window": W, "horizon": H, "test_sequences": n})
+    params = ds.static.get("params")
+    rows.append({"part": "sequences", "system": system, "instances": inst.tolist(),
+                 "param_names": list(ds.meta.get("param_names", [])),
+                 "params": None if params is None else np.asarray(params, dtype=np.float64)[inst].tolist(),
+                 "shares": {k: [float(x) for x in v] for k, v in shares.items()}})
     return rows
 
 
@@ -636,7 +654,7 @@ def main():
             t_data = time.perf_counter() - t0
             models, info = train_all(args, ds, system, runs)
             rows = fig8_rows(args, system, ds, models)
-            for r in rows:
+            for r in (r for r in rows if "model" in r):   # the Figure 8 and oracle rows: their training
                 key = "sysid" if r["model"].startswith("sysid") else r["model"]
                 r.update(steps=info[key]["steps"], train_seconds=round(info[key]["seconds"], 1))
             rows += probe_rows(args, system, ds, models["sysid"])

@@ -10,11 +10,11 @@ Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animation`` (GIF
 """
 from gnwarp.eval.animation import animate
 from gnwarp.eval.metrics import (evaluate, movable_mask, normalized_errors, one_step_predictions, rollout_error,
-                                 rollout_predictions, squared_errors)
+                                 rollout_predictions, sequence_shares, squared_errors)
 from gnwarp.eval.render import RenderUnavailable, render_rollouts
 from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
 from gnwarp.state import GROUPS
 
 __all__ = ["evaluate", "rollout_error", "rollout_predictions", "one_step_predictions", "normalized_errors",
-           "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors", "plot_state_traces",
+           "sequence_shares", "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors", "plot_state_traces",
            "plot_training", "animate", "render_rollouts", "RenderUnavailable"]

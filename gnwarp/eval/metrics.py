@@ -23,7 +23,7 @@ import torch
 from gnwarp.state import GROUPS
 
 __all__ = ["movable_mask", "body_mask", "squared_errors", "rollout_predictions", "one_step_predictions",
-           "normalized_errors", "first_nonfinite_steps", "rollout_error", "evaluate"]
+           "normalized_errors", "sequence_shares", "first_nonfinite_steps", "rollout_error", "evaluate"]
 
 
 def movable_mask(dataset, instance: np.ndarray) -> np.ndarray:
@@ -139,6 +139,23 @@ def normalized_errors(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mas
             ratios.append(r)
     out["mean"] = float(np.mean(ratios)) if ratios else math.nan
     return out
+
+
+def sequence_shares(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Each sequence's share [S] of ``normalized_errors(pred, true, const, mask)["mean"]``: its
+    squared error per group over the pooled constant-baseline error, averaged over the groups
+    that have a ratio. The shares sum to the mean error, so they show whether a few sequences
+    carry it (a mean of squared rollout errors is dominated by the rollouts that drift furthest).
+    Not finite where the predictions are not."""
+    w = np.broadcast_to(mask[:, None], pred.shape[:3]).astype(np.float64)
+    em, ec = squared_errors(pred, true), squared_errors(const, true)
+    total = max(w.sum(), 1)
+    const_mse = {g: float((ec[g] * w).sum() / total) for g in GROUPS}
+    scale = max(const_mse.values())
+    shares = [(em[g] * w).sum(axis=(1, 2)) / total / c for g, c in const_mse.items() if c > 1e-8 * scale and c > 0]
+    if not shares:
+        return np.full(pred.shape[0], np.nan)
+    return np.mean(shares, axis=0)
 
 
 def rollout_error(model, dataset, split: str = "valid", horizon: int = 20, sequences: int | None = None,

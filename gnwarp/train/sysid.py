@@ -35,7 +35,8 @@ from gnwarp.train.config import TrainConfig
 from gnwarp.train.trainer import Trainer
 
 __all__ = ["SysIDTrainer", "SysIDSample", "ParamStats", "build_sysid_model", "estimate_params", "load_sysid",
-           "param_stats", "sysid_rollout_error", "trained_param_stats", "window_spread", "with_params"]
+           "param_stats", "sysid_rollout_error", "sysid_rollout_predictions", "trained_param_stats", "window_spread",
+           "with_params"]
 
 
 class SysIDSample(NamedTuple):
@@ -427,15 +428,16 @@ def other_instance_windows(dataset, split: str, n: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
-                        sequences: int | None = None, window_from=None, oracle: ParamStats | None = None) -> float:
-    """Mean normalized rollout error (as ``gnwarp.eval.rollout_error``) of rollouts from step W of
+def sysid_rollout_predictions(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
+                              sequences: int | None = None, window_from=None, oracle: ParamStats | None = None
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(predicted [S, H+1, B, 13], true [S, H+1, B, 13], instance [S]) of rollouts from step W of
     each of the first ``sequences`` sequences of ``split``, G_ID identified from its steps
     [0, W) (``window_from`` [S]: the sequences whose windows to use instead, e.g. another
-    instance's, for the paper's Figure 8). ``oracle`` (the
-    ``param_stats`` of a model trained with ``param_loss``): G_ID's first P global columns are
-    replaced by the instances' true standardized parameters, the error of its forward model
-    when those columns are identified perfectly."""
+    instance's, for the paper's Figure 8). ``oracle`` (the ``param_stats`` of a model trained
+    with ``param_loss``): G_ID's first P global columns are replaced by the instances' true
+    standardized parameters, the forward model's predictions when those columns are identified
+    perfectly."""
     sp = dataset[split]
     n = len(sp) if sequences is None else min(int(sequences), len(sp))
     W = model.window
@@ -459,7 +461,14 @@ def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizo
         pred = model.rollout(body[:, W], ctrl[:, W:W + H], g_id, torch.as_tensor(inst)).float().cpu().numpy()
     finally:
         model.builder = old
-    true = body[:, W:W + H + 1].numpy()
+    return pred, body[:, W:W + H + 1].numpy(), inst
+
+
+def sysid_rollout_error(model: SysIDModel, dataset, split: str = "valid", horizon: int = 20,
+                        sequences: int | None = None, window_from=None, oracle: ParamStats | None = None) -> float:
+    """Mean normalized rollout error (as ``gnwarp.eval.rollout_error``) of the rollouts of
+    ``sysid_rollout_predictions`` (same arguments); Inf where they are not finite."""
+    pred, true, inst = sysid_rollout_predictions(model, dataset, split, horizon, sequences, window_from, oracle)
     const = np.broadcast_to(true[:, :1], true.shape)
     r = normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], movable_mask(dataset, inst))["mean"]
     return r if math.isfinite(r) else math.inf
