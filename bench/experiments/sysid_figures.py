@@ -205,9 +205,9 @@ def forward_window_predictions(model, ds, split: str, W: int, horizon: int, n: i
 
 
 def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
-    """The Figure 8 errors; and, per model, each test sequence's share of its error ("sequences"
-    rows, with the test instances' parameters): a mean of squared rollout errors can rest on a
-    few sequences."""
+    """The Figure 8 errors; and each test sequence's share of the error of every true-parameter
+    run, of sysid and of its oracle ("sequences" row, 3 digits, with the test instances'
+    parameters): a mean of squared rollout errors can rest on a few sequences."""
     from gnwarp.eval.metrics import movable_mask, rollout_error
     from gnwarp.train.sysid import other_instance_windows, sysid_rollout_predictions, trained_param_stats
     W, n = args.window, min(args.test, len(ds["test"]))
@@ -239,10 +239,11 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
                      "ratio_to_true": float(errs["oracle"] / errs["true params"]) if errs["true params"] else None,
                      "window": W, "horizon": H, "test_sequences": n})
     params = ds.static.get("params")
+    params = None if params is None else [[float(f"{x:.3g}") for x in p] for p in np.asarray(params)[inst]]
     rows.append({"part": "sequences", "system": system, "instances": inst.tolist(),
-                 "param_names": list(ds.meta.get("param_names", [])),
-                 "params": None if params is None else np.asarray(params, dtype=np.float64)[inst].tolist(),
-                 "shares": {k: [float(x) for x in v] for k, v in shares.items()}})
+                 "param_names": list(ds.meta.get("param_names", [])), "params": params,
+                 "shares": {k: [float(f"{x:.3g}") for x in v] for k, v in shares.items()
+                            if k not in ("no params", "sysid other")}})
     return rows
 
 
@@ -510,17 +511,35 @@ def plot_fig8(out: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
+def paired_ratios(shares: dict[str, list[float]], trim: float = 0.01) -> tuple[float, float]:
+    """Sysid against its reference sequence by sequence, from a "sequences" row's ``shares``: the
+    reference is the true-parameter run of median error (the Figure 8 "true params"). Returns
+    (the error ratio without the ``trim`` share of sequences, at least one, on which the two
+    models' errors together are largest; the median over sequences of the per-sequence ratio):
+    two readings of the Figure 8 ratio that a few far-drifting rollouts cannot decide."""
+    refs = [np.asarray(v) for k, v in shares.items() if k.startswith("true params")]
+    ref = refs[int(np.argsort([x.sum() for x in refs])[len(refs) // 2])]
+    sysid = np.asarray(shares["sysid same"])
+    drop = np.argsort(-(sysid + ref))[:max(1, int(round(trim * len(ref))))]
+    trimmed = float(np.delete(sysid, drop).sum() / np.delete(ref, drop).sum())
+    return trimmed, float(np.median(sysid / ref))
+
+
 def compare_runs(out: Path, rows: list[dict]) -> str:
     """``compare.md`` and ``compare.png`` from Figure 8 rows labelled with a ``run`` (``--label``): per
-    system, each run's errors and its sysid / true-params ratio, side by side. Returns the table."""
+    system, each run's errors and its sysid / true-params ratio, side by side; where the run
+    recorded its per-sequence shares, the ratio's two paired readings (``paired_ratios``).
+    Returns the table."""
     f8 = [r for r in rows if r["part"] == "fig8" and r.get("run")]
     if not f8:
         raise SystemExit(f"--compare: no Figure 8 row with a run label in {out / 'results.jsonl'}")
     runs = list(dict.fromkeys(r["run"] for r in f8))
     systems = list(dict.fromkeys(r["system"] for r in f8))
     cell = {(r["run"], r["system"], r["model"]): r for r in f8}   # newest row of each wins
-    lines = ["| system | run | steps | no params | true params (runs) | sysid same | sysid other | sysid / true |",
-             "|---|---|---|---|---|---|---|---|"]
+    paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
+              if r["part"] == "sequences" and r.get("run")}
+    lines = ["| system | run | test | steps | no params | true params (runs) | sysid same | sysid other | sysid / true "
+             "| without the top 1% | median per sequence |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     ratio = {}
     for s in systems:
         for run in runs:
@@ -530,10 +549,12 @@ def compare_runs(out: Path, rows: list[dict]) -> str:
             t = e["true params"]
             ratio[run, s] = e["sysid same"]["error"] / t["error"]
             spread = ", ".join(_g(x) for x in t.get("runs", []))
-            lines.append(f"| {s} | {run} | {e['sysid same'].get('steps', '-')} | "
+            trimmed, per_seq = (f"{x:.2f}x" for x in paired[run, s]) if (run, s) in paired else ("-", "-")
+            lines.append(f"| {s} | {run} | {t.get('test_sequences', '-')} | {e['sysid same'].get('steps', '-')} | "
                          f"{_g(e['no params']['error'] if e['no params'] else None)} | {_g(t['error'])}"
                          f"{f' ({spread})' if spread else ''} | {_g(e['sysid same']['error'])} | "
-                         f"{_g(e['sysid other']['error'] if e['sysid other'] else None)} | {ratio[run, s]:.2f}x |")
+                         f"{_g(e['sysid other']['error'] if e['sysid other'] else None)} | {ratio[run, s]:.2f}x | "
+                         f"{trimmed} | {per_seq} |")
     table = "\n".join(lines) + "\n"
     (out / "compare.md").write_text(table)
     import matplotlib
@@ -671,7 +692,8 @@ def main():
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema,
                          **({"run": args.label} if args.label else {}),
                          sequences=list(args.sequences), date=time.strftime("%Y-%m-%d %H:%M"))
-                print(json.dumps(r), flush=True)
+                if r["part"] != "sequences":   # 7 x S numbers: in results.jsonl only
+                    print(json.dumps(r), flush=True)
             new += rows
             with open(out / "results.jsonl", "a") as f:
                 for r in rows:
