@@ -19,7 +19,8 @@ from gnwarp.models import GNCoreConfig, ModelConfig
 from gnwarp.models.recurrent import RecurrentGNConfig
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.rollout import RolloutEngine, RolloutInputError
-from gnwarp.models.sysid import GIDError, SysIDConfig, SysIDModel, load_gid, save_gid
+from gnwarp.models.gid import GIDError, load_gid, save_gid
+from gnwarp.models.sysid import SysIDConfig, SysIDModel
 from gnwarp.train.checkpoint import CheckpointError, load_model
 from gnwarp.train.sysid import SysIDTrainer, load_sysid, sysid_rollout_error
 

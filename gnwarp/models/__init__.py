@@ -1,14 +1,16 @@
 """Learned forward models (paper D.1-D.5, E): ``ForwardModel`` on a GN core (``GNCore``) or the MLP
 baseline's core (``MLPCore``), with input / output ``Normalizer``s; their configs. The inference
 side (D.2, D.7.2): the recurrent GN core (``RecurrentGNCore``) and system identification
-(``SysIDModel``: G_ID from a window of dynamic graphs, in place of the static graph)."""
+(``SysIDModel``: G_ID from a window of dynamic graphs, in place of the static graph; ``gid``:
+G_ID saved, loaded and held fixed)."""
 from gnwarp.models.config import MLP_SIZES, GNCoreConfig, MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
 from gnwarp.models.forward import ForwardModel, MLPForwardModel, StepContext, input_sizes
 from gnwarp.models.normalizer import Normalizer
 from gnwarp.models.recurrent import RecurrentGNConfig, RecurrentGNCore
-from gnwarp.models.sysid import SysIDConfig, SysIDModel, load_gid, save_gid
+from gnwarp.models.gid import FixedGIDModel, GIDError, load_gid, save_gid
+from gnwarp.models.sysid import SysIDConfig, SysIDModel
 
 __all__ = ["ForwardModel", "MLPForwardModel", "ModelConfig", "GNCoreConfig", "MLPCoreConfig", "MLP_SIZES", "GNCore",
            "MLPCore", "Normalizer", "StepContext", "input_sizes", "RecurrentGNConfig", "RecurrentGNCore", "SysIDConfig",
-           "SysIDModel", "save_gid", "load_gid"]
+           "SysIDModel", "save_gid", "load_gid", "GIDError", "FixedGIDModel"]
