@@ -23,6 +23,7 @@ from gnwarp.models.gid import GIDError, load_gid, save_gid
 from gnwarp.models.sysid import SysIDConfig, SysIDModel
 from gnwarp.train.checkpoint import CheckpointError, load_model
 from gnwarp.train.sysid import SysIDTrainer, load_sysid, sysid_rollout_error
+from gnwarp.validation import ConfigError
 
 warp()
 
@@ -616,8 +617,9 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
     output width wide. Gradients through it match finite differences; it trains and the options
     travel in the checkpoint, which a run of the other readout (or head) refuses to resume."""
     torch.manual_seed(0)
+    fit = {**({"ridge_features": 2} if readout == "ridge" else {}), **({"ridge": 0.01} if readout != "mean" else {})}
     cfg = SysIDConfig(forward=ModelConfig(gn=TINY, run=RunOptions(impl="torch", precision="fp64")), identifier=ID,
-                      window=4, readout=readout, ridge_features=2, ridge=0.01, ridge_head=head)
+                      window=4, readout=readout, ridge_head=head, **fit)
     m = SysIDModel(cfg, pendulum.layout).bind(pendulum)
     sp = pendulum["train"]
     body, ctrl = torch.as_tensor(sp.body[:5, :8], dtype=torch.float64), torch.as_tensor(sp.ctrl[:5, :8], dtype=torch.float64)
@@ -679,11 +681,18 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
         SysIDConfig(identifier=ID, readout="dynamics", transitions=True)
     with pytest.raises(ValueError, match="window must be at least 2"):
         SysIDConfig(identifier=ID, readout="dynamics", window=1)
-    with pytest.raises(ValueError, match="ridge"):
-        SysIDConfig(identifier=ID, readout="dynamics", ridge=float("nan"))
+    for bad in (float("nan"), float("inf"), -1e-3, True, "small"):   # refused whatever the readout
+        with pytest.raises(ConfigError, match="ridge: must be a finite number > 0"):
+            SysIDConfig(identifier=ID, readout="mean", ridge=bad)
     for other in ("last", "mean"):
         with pytest.raises(ValueError, match="ridge_head .* needs readout"):
             SysIDConfig(identifier=ID, readout=other, ridge_head=4)
+        with pytest.raises(ValueError, match="ridge weights the fit"):      # not silently ignored
+            SysIDConfig(identifier=ID, readout=other, ridge=1e-5)
+    for other in ("last", "mean", "dynamics"):
+        with pytest.raises(ValueError, match=f"readout {other!r} does not read it"):
+            SysIDConfig(identifier=ID, readout=other, ridge_features=2)
+    assert SysIDConfig(identifier=ID, readout="dynamics", ridge=1e-5).ridge == 1e-5
     for bad in (-1, True, 1 << 17, 2.5):
         with pytest.raises(ValueError, match="ridge_head"):
             SysIDConfig(identifier=ID, readout="ridge", ridge_features=2, ridge_head=bad)
@@ -691,7 +700,7 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
                        batch_size=16, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                        progress=False, device="cpu", normalizer_warmup=5)
     rows = []
-    tr = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2, ridge_head=head),
+    tr = SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_head=head, **fit),
                       datasets=[pendulum], callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None])
     summary = tr.run()
     losses = [r["loss"] for r in rows if r.get("loss") not in (None, "")]
@@ -707,8 +716,8 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
     tcfg.steps = 40
     if readout != "mean":   # the other head setting is refused by name
         with pytest.raises(Exception, match="ridge_head"):
-            SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_features=2,
-                                           ridge_head=0 if head else 5), datasets=[pendulum]).run()
+            SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W, readout=readout, ridge_head=0 if head else 5, **fit),
+                         datasets=[pendulum]).run()
     with pytest.raises(Exception, match="readout"):
         SysIDTrainer(tcfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum]).run()
 

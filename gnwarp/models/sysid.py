@@ -41,7 +41,7 @@ from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
 from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, IntRange, PositiveInt,
+from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
                                check_fields, check_keys)
 
 __all__ = ["SysIDConfig", "SysIDModel", "NominalGraph", "StackedWindow", "source_places", "nominal_graph",
@@ -220,7 +220,7 @@ class SysIDConfig:
     stateless: Flag = False
     readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
     ridge_features: PositiveInt = 4
-    ridge: float = 1e-3
+    ridge: PositiveFloat = 1e-3
     ridge_head: IntRange(0, MAX_WIDTH) = 0
     local_params: Flag = False
     param_places: tuple[tuple[Literal["nodes", "edges", "globals"], tuple[Count, ...]], ...] | None = None
@@ -238,9 +238,13 @@ class SysIDConfig:
                 if (kind == "globals") != (len(rows) == 0) or (kind == "nodes" and len(rows) != 1):
                     raise ValueError(f"param_places[{i}] = {(kind, rows)}: a node parameter has one row, an edge "
                                      f"parameter one or more, a global one none")
-        if self.readout in FITS:
-            if not (isinstance(self.ridge, (int, float)) and 0 < self.ridge < float("inf")):
-                raise ValueError(f"ridge must be a positive number, got {self.ridge!r}")
+        default = {f.name: f.default for f in dataclasses.fields(self)}
+        if self.readout != "ridge" and self.ridge_features != default["ridge_features"]:
+            raise ValueError(f"ridge_features splits GN_p's outputs for readout 'ridge'; readout {self.readout!r} "
+                             f"does not read it")
+        if self.readout not in FITS and self.ridge != default["ridge"]:
+            raise ValueError(f"ridge weights the fit of readout 'ridge' or 'dynamics'; readout {self.readout!r} fits "
+                             f"nothing")
         if self.stateless and self.readout == "last":
             raise ValueError("stateless reads each step of the window on its own, so G_ID must pool the steps: it "
                              "needs readout 'mean', 'ridge' or 'dynamics', got 'last'")
