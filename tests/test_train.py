@@ -392,6 +392,12 @@ def test_sequence_shares_decompose_the_error(pendulum):
     np.testing.assert_allclose(np.delete(shares, 1), np.delete(base, 1), rtol=1e-12)
     assert shares.sum() == pytest.approx(ev.normalized_errors(worse[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"],
                                          rel=1e-12)
+    for group in (slice(0, 3), slice(3, 7)):   # position (no ratio on the pendulum) and orientation
+        bad = pred.copy()
+        bad[2, 5, 1, group] = np.nan
+        shares = ev.sequence_shares(bad[:, 1:], true[:, 1:], const[:, 1:], mask)
+        assert np.isposinf(shares[2]) and np.isfinite(np.delete(shares, 2)).all()
+        assert ev.normalized_errors(bad[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"] == math.inf
 
 
 def test_cli_train_and_evaluate(tmp_path, pendulum, capsys):

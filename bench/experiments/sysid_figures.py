@@ -513,7 +513,9 @@ def plot_fig8(out: Path, rows: list[dict]) -> None:
 
 def paired_ratios(shares: dict[str, list[float]], trim: float = 0.01) -> tuple[float, float]:
     """Sysid against its reference sequence by sequence, from a "sequences" row's ``shares``: the
-    reference is the true-parameter run of median error (the Figure 8 "true params"). Returns
+    reference is the true-parameter run of median error (the Figure 8 "true params" with an odd
+    ``--reference-runs``, as every recorded run had; with an even count Figure 8 averages the two
+    middle runs' errors and this takes the upper one). Returns
     (the error ratio without the ``trim`` share of sequences, at least one, on which the two
     models' errors together are largest; the median over sequences of the per-sequence ratio):
     two readings of the Figure 8 ratio that a few far-drifting rollouts cannot decide."""

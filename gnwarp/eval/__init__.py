@@ -16,5 +16,5 @@ from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, p
 from gnwarp.state import GROUPS
 
 __all__ = ["evaluate", "rollout_error", "rollout_predictions", "one_step_predictions", "normalized_errors",
-           "sequence_shares", "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors", "plot_state_traces",
-           "plot_training", "animate", "render_rollouts", "RenderUnavailable"]
+           "sequence_shares", "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors",
+           "plot_state_traces", "plot_training", "animate", "render_rollouts", "RenderUnavailable"]

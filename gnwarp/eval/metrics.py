@@ -146,7 +146,8 @@ def sequence_shares(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mask:
     squared error per group over the pooled constant-baseline error, averaged over the groups
     that have a ratio. The shares sum to the mean error, so they show whether a few sequences
     carry it (a mean of squared rollout errors is dominated by the rollouts that drift furthest).
-    Not finite where the predictions are not."""
+    A sequence whose predictions are not finite (in any group) has an Inf share, and the error
+    is Inf too."""
     w = np.broadcast_to(mask[:, None], pred.shape[:3]).astype(np.float64)
     em, ec = squared_errors(pred, true), squared_errors(const, true)
     total = max(w.sum(), 1)
@@ -155,7 +156,11 @@ def sequence_shares(pred: np.ndarray, true: np.ndarray, const: np.ndarray, mask:
     shares = [(em[g] * w).sum(axis=(1, 2)) / total / c for g, c in const_mse.items() if c > 1e-8 * scale and c > 0]
     if not shares:
         return np.full(pred.shape[0], np.nan)
-    return np.mean(shares, axis=0)
+    out = np.mean(shares, axis=0)
+    # as ``normalized_errors``: predictions that left the finite range in any group are Inf
+    finite = np.all([np.isfinite((em[g] * w).sum(axis=(1, 2))) for g in GROUPS], axis=0)
+    out[~finite] = np.inf
+    return out
 
 
 def rollout_error(model, dataset, split: str = "valid", horizon: int = 20, sequences: int | None = None,
