@@ -121,6 +121,7 @@ def profile_kernels(step, steps: int, path: Path, title: str, top: int | None = 
             step()
         torch.cuda.synchronize()
     per = {}
+    path.parent.mkdir(parents=True, exist_ok=True)   # a fresh --out: the results are written after the profile
     for ev in prof.events():
         if ev.device_type == torch.autograd.DeviceType.CUDA:
             k = per.setdefault(ev.name[:90], [0, 0.0])
