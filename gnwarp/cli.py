@@ -335,7 +335,8 @@ def _cmd_mpc(args) -> int:
 
     import numpy as np
 
-    from gnwarp.control import GradientMPC, GradientMPCConfig, get_task, make_env, run_episodes, sample_targets
+    from gnwarp.control import GradientMPC, GradientMPCConfig, get_task, run_episodes, sample_targets
+    from gnwarp.sim import make_env
     from gnwarp.control.gradient import model_systems
     from gnwarp.control.tasks import system_family
     from gnwarp.data.generation import initial_states

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gnwarp import data, sim
-from gnwarp.control.env import EnvInputError, dataset_states, make_env
+from gnwarp.sim.env import EnvInputError, dataset_states, make_env
 from gnwarp.interop import cuda_available, warp
 from gnwarp.state import DYN_NODE_SIZE
 

@@ -9,7 +9,7 @@ import torch
 
 from gnwarp import data, systems
 from gnwarp.control import GradientMPC, GradientMPCConfig, PlanningError, TaskError, run_episodes
-from gnwarp.data.convert import body_states
+from gnwarp.sim.body_state import body_states
 from gnwarp.gn import RunOptions
 from gnwarp.models import GNCoreConfig, ModelConfig
 from gnwarp.train import TrainConfig, load_model, train
@@ -120,7 +120,7 @@ def test_closed_loop_on_the_true_simulator(model):
         x = env2.step(out["actions"][:, t])
     assert torch.allclose(x, out["states"][:, -1], atol=1e-6)
     try:   # the batched environment, where present, runs the same loop
-        from gnwarp.control import make_env
+        from gnwarp.sim import make_env
         env3 = make_env(pend, 2, backend="mujoco")
     except ImportError:
         return

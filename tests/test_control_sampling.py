@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from gnwarp import data
-from gnwarp.control.env import make_env
+from gnwarp.sim.env import make_env
 from gnwarp.control.episodes import run_episodes
 from gnwarp.control.sampling import (ModelDynamics, RandomPlanner, SamplingConfig, SamplingPlanner, spline_basis,
                                      true_dynamics)

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from gnwarp import data
-from gnwarp.data.convert import body_states, edge_controls, static_graph, topology
+from gnwarp.data.convert import edge_controls, static_graph, topology
+from gnwarp.sim.body_state import body_states
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.interop import cuda_available
 from gnwarp.sim import systems

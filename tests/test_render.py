@@ -16,7 +16,7 @@ def cartpole():
 def test_geom_poses_match_mujoco_kinematics():
     import mujoco
 
-    from gnwarp.data.convert import body_states
+    from gnwarp.sim.body_state import body_states
     from gnwarp.sim import systems
     s = systems.make("cheetah")
     d = mujoco.MjData(s.model)

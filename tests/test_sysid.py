@@ -267,7 +267,8 @@ def test_planning_through_an_identified_system(trained, pendulum):
     """Figure 10's system-ID variant: W random actions on the true env, G_ID from them, then a
     rollout engine and gradient MPC on the fixed G_ID; the engine rolls out what
     ``SysIDModel.rollout`` does with that G_ID, and planning raises the planned reward."""
-    from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env, make_env
+    from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env
+    from gnwarp.sim import make_env
     m = trained[0].model.bind(pendulum)
     env = make_env("pendulum", 3, backend="mujoco")
     qpos, qvel = np.array([[0.3], [2.0], [-1.0]]), np.zeros((3, 1))

@@ -130,7 +130,8 @@ def swimmer_costs(model, target, qpos, qvel):
 def _ilqg_episode(job: dict) -> dict:
     """One closed-loop iLQG episode on a one-world MuJoCo C env (run in a worker process)."""
     torch.set_num_threads(1)
-    from gnwarp.control import get_task, make_env
+    from gnwarp.control import get_task
+    from gnwarp.sim import make_env
     from gnwarp.control.ilqg import ILQG, task_cost
     from gnwarp.sim import systems
     system = systems.make(job["system"])
@@ -200,7 +201,8 @@ def run_episodes(planner, env, task, steps, *, qpos0, qvel0, target=None) -> dic
 
 
 def run_gn_mpc(args, model, task, system, qpos, qvel, target, horizon: int) -> dict:
-    from gnwarp.control import GradientMPC, GradientMPCConfig, make_env
+    from gnwarp.control import GradientMPC, GradientMPCConfig
+    from gnwarp.sim import make_env
     n = qpos.shape[0]
     cfg = GradientMPCConfig(horizon=horizon, iterations=args.iterations, lr=args.lr, seed=args.seed,
                             warmup=args.warmup)
@@ -225,7 +227,7 @@ def _reward(task, target, n: int):
 
 
 def run_sampler(args, kind: str, model, task, system, qpos, qvel, target, horizon: int) -> dict:
-    from gnwarp.control import make_env
+    from gnwarp.sim import make_env
     from gnwarp.control.sampling import ModelDynamics, RandomPlanner, SamplingConfig, SamplingPlanner, true_dynamics
     n = qpos.shape[0]
     env = make_env(system, n, backend=args.backend)

@@ -56,7 +56,8 @@ def model_args(args) -> types.SimpleNamespace:
 def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     from bench.experiments import sysid_figures as sf
     from gnwarp import data
-    from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env, make_env
+    from gnwarp.control import GradientMPC, GradientMPCConfig, identify_on_env
+    from gnwarp.sim import make_env
     from gnwarp.control.episodes import run_episodes
     from gnwarp.control.sampling import RandomPlanner
     from gnwarp.control.tasks import get_task, sample_targets

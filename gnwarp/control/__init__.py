@@ -1,6 +1,7 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
-(``tasks``), gradient MPC through a learned model and closed-loop episodes (``gradient``), the
-batched true environment (``env``), sampling MPC (``sampling``) and the iLQG baseline (``ilqg``).
+(``tasks``), gradient MPC through a learned model and closed-loop episodes (``gradient``), sampling
+MPC (``sampling``) and the iLQG baseline (``ilqg``); the batched true environment they run on is
+``gnwarp.sim.env``.
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")
@@ -12,12 +13,4 @@ from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningErro
 from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
 
 __all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
-           "GradientMPCConfig", "PlanningError", "run_episodes", "identify_on_env", "make_env"]
-
-
-def __getattr__(name):
-    # the environment is imported on first use: it may load MuJoCo-Warp
-    if name == "make_env":
-        from gnwarp.control.env import make_env
-        return make_env
-    raise AttributeError(f"module 'gnwarp.control' has no attribute {name!r}")
+           "GradientMPCConfig", "PlanningError", "run_episodes", "identify_on_env"]

@@ -21,7 +21,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from gnwarp.data.convert import body_states
+from gnwarp.sim.body_state import body_states
 
 __all__ = ["ILQG", "BodyPointCost", "BodyStateCost", "QuadraticCost", "body_state_cost", "task_cost",
            "tangent_difference"]
@@ -127,7 +127,7 @@ class BodyPointCost:
 def body_state_cost(model: mujoco.MjModel, reward_fn: Callable, scale: float = 1.0) -> Callable:
     """A cost ``cost(data, u=None) = -scale * reward_fn(body [nbody, 13], u [nu])`` of the bodies'
     13-number states (``gnwarp.state``, the world body included) read from MjData by
-    ``gnwarp.data.convert.body_states``, so a task reward of graph states serves as a running
+    ``gnwarp.sim.body_state.body_states``, so a task reward of graph states serves as a running
     (and, with u = zeros, terminal) cost. ``reward_fn`` gets float64 numpy arrays and returns a
     scalar (numpy, float or a one-element CPU tensor)."""
     zeros = np.zeros(model.nu)
@@ -140,7 +140,7 @@ def body_state_cost(model: mujoco.MjModel, reward_fn: Callable, scale: float = 1
 
 class BodyStateCost:
     """``cost(data, u=None) = -scale * reward(body [nbody, 13], u [nu])`` of the bodies' 13-number
-    states (``gnwarp.data.convert.body_states``, the world body included) for a ``reward`` written
+    states (``gnwarp.sim.body_state.body_states``, the world body included) for a ``reward`` written
     in torch (tensors in, a scalar tensor out, differentiable), with Gauss-Newton derivatives as
     MuJoCo MPC takes them for residual costs: the bodies' states are the residual, their Jacobian
     J = d body / dx by central differences of the kinematics in tangent space (2 nx ``mj_forward``),

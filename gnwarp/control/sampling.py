@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from gnwarp.control.env import Env, Observation, make_env
+from gnwarp.sim.env import Env, Observation, make_env
 from gnwarp.sim.excitation import catmull_rom
 
 __all__ = ["SamplingConfig", "SamplingPlanner", "RandomPlanner", "EnvDynamics", "ModelDynamics",

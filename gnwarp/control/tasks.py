@@ -23,6 +23,7 @@ import mujoco
 import numpy as np
 import torch
 
+from gnwarp.sim.body_state import body_states
 from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul
 
 __all__ = ["Task", "TASKS", "get_task", "task_names", "system_family", "upright_angle", "body_index",
@@ -251,7 +252,6 @@ def sample_targets(task: Task, system, n: int, seed: int = 0, distance: float = 
     if task.target == "position":
         a = rng.uniform(-np.pi, np.pi, n)
         return torch.tensor(distance * np.stack([np.cos(a), np.sin(a), np.zeros(n)], -1), dtype=torch.float32)
-    from gnwarp.data.convert import body_states
     from gnwarp.data.generation import initial_states
     qpos, _ = initial_states(system, n, rng)
     m = system.model

@@ -3,7 +3,8 @@
 Bodies are nodes (the world included), joints are edges in both directions between the joint's
 body and its parent body. The *static* graph holds model parameters; the *dynamic* graph holds
 each body's absolute pose and world-frame velocities and, on each edge, the control of the
-actuator that drives the joint. The conversion is generic over ``mujoco.MjModel``.
+actuator that drives the joint (the body states themselves are read by ``gnwarp.sim.body_state``).
+The conversion is generic over ``mujoco.MjModel``.
 
 Feature columns carry names; ``static_arrays`` pads the static graphs of several system instances
 and keeps only the columns that vary over them, recording the dropped ones in a ``FeatureLayout``
@@ -18,10 +19,9 @@ import numpy as np
 
 from gnwarp.data.layout import FeatureLayout, varying_columns
 from gnwarp.graphs import GraphsTuple
-from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT
 
 __all__ = ["Topology", "topology", "static_global_features", "static_node_features", "static_edge_features",
-           "StaticGraph", "static_graph", "static_arrays", "body_states", "edge_controls"]
+           "StaticGraph", "static_graph", "static_arrays", "edge_controls"]
 
 
 def _enum_names(enum) -> list[str]:
@@ -262,22 +262,6 @@ def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict
 
 
 # -- dynamic graph ------------------------------------------------------------------------------
-
-def body_states(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-    """[nbody, 13] dynamic node features of one MjData (after mj_forward / kinematics + velocities).
-
-    Reference implementation on MuJoCo C; batched producers (the simulators) must agree with it.
-    """
-    out = np.zeros((model.nbody, DYN_NODE_SIZE))
-    out[:, POS] = data.xpos
-    out[:, QUAT] = data.xquat
-    vel = np.zeros(6)
-    for b in range(model.nbody):
-        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, b, vel, 0)
-        out[b, LINVEL] = vel[3:]
-        out[b, ANGVEL] = vel[:3]
-    return out
-
 
 def edge_controls(topo: Topology, ctrl: np.ndarray) -> np.ndarray:
     """[..., n_edge, n_slot] controls per edge from ctrl [..., nu] (0 where no actuator). The numpy

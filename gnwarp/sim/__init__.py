@@ -8,14 +8,21 @@ MuJoCo-Warp, and the random excitation controls datasets are recorded under.
     >>> traj = sim.simulate(cartpole, np.tile(m.qpos0, (8, 1)), np.zeros((8, m.nv)), u)
     >>> traj.body.shape                                                         # (8, 101, nbody, 13)
 
+    >>> env = sim.make_env(cartpole, 8, backend="mujoco")                       # persistent worlds
+    >>> body = env.reset(np.tile(m.qpos0, (8, 1)))                              # [8, nbody, 13]
+    >>> body = env.step(u[:, 0])                                                # one data step
+
 Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``excitation``
 (random spline controls), ``backends`` (backend choice) over ``mujoco_c`` and ``mujoco_warp``,
-``common`` (what the backends share).
+``common`` (what the backends share), ``env`` (persistent batched environments), ``body_state``
+(the MuJoCo C body-state reader).
 """
 from gnwarp.sim.common import Trajectories
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import BACKENDS, resolve_backend, simulate
+from gnwarp.sim.env import Env, EnvInputError, make_env
 from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_ranges, param_places, sample_params
 
 __all__ = ["System", "names", "make", "param_ranges", "param_places", "sample_params", "from_mjcf", "describe", "simulate",
-           "Trajectories", "BACKENDS", "resolve_backend", "random_spline_controls", "control_range"]
+           "Trajectories", "BACKENDS", "resolve_backend", "random_spline_controls", "control_range",
+           "Env", "EnvInputError", "make_env"]
