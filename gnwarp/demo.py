@@ -73,7 +73,7 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     from gnwarp.eval.animation import animate
     from gnwarp.eval.metrics import evaluate
     from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
-    from gnwarp.sim.backends import resolve_backend
+    from gnwarp.sim.common import resolve_backend
     from gnwarp.train import TrainConfig, load_model, train
 
     cfg = dataclasses.replace(config or DemoConfig(), **overrides)

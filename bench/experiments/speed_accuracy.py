@@ -77,9 +77,9 @@ def mjwarp_step_time(system: str, batch: int, steps: int = 50) -> float:
     rng = np.random.default_rng(0)
     q0, v0 = data.initial_states(s, batch, rng)
     u = sim.random_spline_controls(batch, steps, sim.control_range(s.model), rng)
-    simulate_mujoco_warp([s.model], s.substeps, q0[:8], v0[:8], u[:8, :2])  # compile
+    simulate_mujoco_warp([s], q0[:8], v0[:8], u[:8, :2])  # compile
     t = time.perf_counter()
-    simulate_mujoco_warp([s.model], s.substeps, q0, v0, u)
+    simulate_mujoco_warp([s], q0, v0, u)
     return (time.perf_counter() - t) / steps
 
 

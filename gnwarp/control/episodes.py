@@ -84,7 +84,7 @@ def identify_on_env(model, env, *, seed: int = 0, qpos0=None, qvel0=None, x0=Non
     ``run_episodes`` output)."""
     from gnwarp.control.sampling import RandomPlanner
     W = int(model.window)
-    planner = RandomPlanner(env.system.model.actuator_ctrlrange, env.n_worlds, seed=seed)
+    planner = RandomPlanner(env.actuators, env.n_worlds, seed=seed)   # unlimited actuators: [-1, 1]
     window = run_episodes(planner, env, lambda s, a: torch.zeros(s.shape[0]), W, x0, qpos0=qpos0, qvel0=qvel0)
     n = window["states"].shape[0]
     with torch.no_grad():

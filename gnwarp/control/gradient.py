@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import torch
 
 from gnwarp.control.tasks import Task, TaskError, get_task, system_family
@@ -70,11 +69,7 @@ def model_systems(model) -> list[str]:
 
 def _ctrl_range(system, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-actuator (mid, half width) [U] of the control range; half = inf where unlimited."""
-    m = system.model
-    lim = np.asarray(m.actuator_ctrllimited, dtype=bool)
-    rng = np.asarray(m.actuator_ctrlrange, dtype=np.float64)
-    mid = np.where(lim, rng.mean(1), 0.0)
-    half = np.where(lim, 0.5 * (rng[:, 1] - rng[:, 0]), np.inf)
+    mid, half = system.actuators.mid_half()
     t = lambda a: torch.as_tensor(a, device=device, dtype=dtype)  # noqa: E731
     return t(mid), t(half)
 
@@ -104,10 +99,9 @@ class GradientMPC:
                 raise PlanningError(f"{len(instances)} systems given for {n} episodes: give one per episode")
             instances = [s if isinstance(s, System) else make(s) for s in instances]
             system = instances[0]
-            rng = np.asarray(system.model.actuator_ctrlrange)
+            act = system.actuators
             for i, s in enumerate(instances):
-                if s.nbody != system.nbody or s.nu != system.nu or not np.array_equal(
-                        np.asarray(s.model.actuator_ctrlrange), rng):
+                if s.nbody != system.nbody or s.nu != system.nu or not s.actuators.same_ranges(act):
                     raise PlanningError(f"system {i} ({s.name}) differs from system 0 in bodies, actuators or "
                                         "control ranges; per-episode systems must share them")
         self.system = system if isinstance(system, System) else make(system)

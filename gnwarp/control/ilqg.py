@@ -21,6 +21,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.body_state import body_states
 
 __all__ = ["ILQG", "BodyPointCost", "BodyStateCost", "QuadraticCost", "body_state_cost", "task_cost",
@@ -262,9 +263,8 @@ class ILQG:
         self.reg = reg_init  # kept across plans, as MuJoCo MPC does
         self.step_sizes = np.logspace(0, -3, 10) if step_sizes is None else np.asarray(step_sizes, float)
         self.nx, self.nu = 2 * model.nv + model.na, model.nu
-        limited = model.actuator_ctrllimited.astype(bool)
-        self.lower = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
-        self.upper = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+        act = Actuators.from_model(model)
+        self.lower, self.upper = act.low, act.high
         self.nthread = max(1, min(nthread or os.cpu_count() or 1, horizon))
         self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
         self._pool = ThreadPoolExecutor(self.nthread) if self.nthread > 1 else None

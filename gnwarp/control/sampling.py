@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
 from gnwarp.sim.excitation import catmull_rom
 
@@ -213,10 +214,19 @@ class SamplingPlanner:
 
 
 class RandomPlanner:
-    """The random-actions baseline: uniform in ``ctrlrange`` [U, 2], independent each step."""
+    """The random-actions baseline: uniform in ``ctrlrange`` [U, 2], independent each step.
+
+    ``ctrlrange``: a [U, 2] range (an env's ``ctrlrange``) or an ``Actuators`` record (an env's
+    ``actuators``), whose ``sample_range`` is used: unlimited actuators draw in
+    ``UNLIMITED_SAMPLE_RANGE``."""
 
     def __init__(self, ctrlrange, n_episodes: int, seed: int = 0, device="cpu"):
-        cr = torch.as_tensor(ctrlrange).detach().to("cpu", torch.float64).reshape(-1, 2).to(device, torch.float32)
+        if isinstance(ctrlrange, Actuators):
+            ctrlrange = ctrlrange.sample_range()
+        cr = torch.as_tensor(ctrlrange).detach().to("cpu", torch.float64).reshape(-1, 2)
+        if not bool(torch.isfinite(cr).all()) or bool((cr[:, 1] < cr[:, 0]).any()):
+            raise ValueError(f"ctrlrange must be finite [U, 2] with lower <= upper, got {cr.tolist()}")
+        cr = cr.to(device, torch.float32)
         self.lo, self.hi, self.n, self.seed = cr[:, 0], cr[:, 1], int(n_episodes), seed
         self._gen = torch.Generator(device=device)
         self.reset()

@@ -15,9 +15,9 @@ import numpy as np
 
 from gnwarp.data.convert import static_arrays
 from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
-from gnwarp.sim.common import topology_signature
+from gnwarp.sim.common import resolve_backend, topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
-from gnwarp.sim.backends import resolve_backend, simulate
+from gnwarp.sim.backends import simulate
 from gnwarp.sim.systems import check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 

@@ -17,9 +17,9 @@ Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``exci
 ``common`` (what the backends share), ``env`` (persistent batched environments), ``body_state``
 (the MuJoCo C body-state reader).
 """
-from gnwarp.sim.common import Trajectories
+from gnwarp.sim.common import BACKENDS, Trajectories, resolve_backend
 from gnwarp.sim.excitation import control_range, random_spline_controls
-from gnwarp.sim.backends import BACKENDS, resolve_backend, simulate
+from gnwarp.sim.backends import simulate
 from gnwarp.sim.env import Env, EnvInputError, make_env
 from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_ranges, param_places, sample_params
 

@@ -1,8 +1,9 @@
 """Batched simulation of many sequences under given controls, on three backends.
 
 - ``mujoco_warp``: MuJoCo-Warp, many worlds at once (CUDA; Warp's CPU device works too, slowly).
-  Per-world parameters through batched Model fields; one Model per topology. The step loop of
-  one data step is captured as a graph on CUDA (``gnwarp.sim.mujoco_warp``).
+  Per-world parameters through batched Model fields; one Model per topology. The sequences run
+  on the persistent environment of ``gnwarp.sim.env`` (``MujocoWarpEnv``), whose data step is
+  captured as a graph on CUDA (``gnwarp.sim.mujoco_warp``).
 - ``mujoco``: MuJoCo C through ``mujoco.rollout`` on a thread pool, for CPU machines; body poses
   and velocities come from frame sensors added to a copy of the model (``gnwarp.sim.mujoco_c``).
 - ``auto``: ``mujoco_warp`` when a CUDA device is present, else ``mujoco``.
@@ -15,26 +16,11 @@ from typing import Callable
 
 import numpy as np
 
-from gnwarp.interop import cuda_available
-from gnwarp.sim.common import Trajectories
+from gnwarp.sim.common import Trajectories, resolve_backend
 from gnwarp.sim.mujoco_c import simulate_mujoco, system_sensor_model
 from gnwarp.sim.mujoco_warp import simulate_mujoco_warp
 
-__all__ = ["BACKENDS", "resolve_backend", "simulate"]
-
-BACKENDS = ("auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu")
-
-
-def resolve_backend(backend: str) -> str:
-    """The backend that ``backend`` names: "auto" made concrete; raises for an unknown name, or
-    for "mujoco_warp" without a CUDA device."""
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend '{backend}'; choose one of {BACKENDS}")
-    if backend == "auto":
-        return "mujoco_warp" if cuda_available() else "mujoco"
-    if backend == "mujoco_warp" and not cuda_available():
-        raise RuntimeError("backend 'mujoco_warp' needs a CUDA device; use 'mujoco_warp_cpu' or 'mujoco'")
-    return backend
+__all__ = ["simulate"]
 
 
 def simulate(systems, qpos0: np.ndarray, qvel0: np.ndarray, ctrl: np.ndarray, backend: str = "auto",
@@ -54,5 +40,4 @@ def simulate(systems, qpos0: np.ndarray, qvel0: np.ndarray, ctrl: np.ndarray, ba
         return simulate_mujoco([s.spec for s in systems], sub, qpos0, qvel0, ctrl, progress=progress,
                                sensor_models=[system_sensor_model(s) for s in systems], **kw)
     device = "cpu" if backend == "mujoco_warp_cpu" else None
-    return simulate_mujoco_warp([s.model for s in systems], sub, qpos0, qvel0, ctrl, device=device,
-                                progress=progress, **kw)
+    return simulate_mujoco_warp(systems, qpos0, qvel0, ctrl, device=device, progress=progress, **kw)

@@ -1,6 +1,7 @@
-"""What both simulation backends share: their result (``Trajectories``), input checks, the
-topology signature that groups models simulated together, and MuJoCo-Warp's batched Model fields
-(per-world parameters on MuJoCo-Warp; the MuJoCo C backend copies the same fields)."""
+"""What both simulation backends share: their names and the choice between them
+(``resolve_backend``), their result (``Trajectories``), input checks, the topology signature that
+groups models simulated together, and MuJoCo-Warp's batched Model fields (per-world parameters on
+MuJoCo-Warp, ``put_batched_model``; the MuJoCo C backend copies the same fields)."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,7 +12,24 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["Trajectories", "check_inputs", "topology_signature", "batchable_fields", "varying_model_fields"]
+from gnwarp.interop import cuda_available, warp
+
+__all__ = ["BACKENDS", "resolve_backend", "Trajectories", "check_inputs", "topology_signature", "batchable_fields",
+           "varying_model_fields", "put_batched_model"]
+
+BACKENDS = ("auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu")
+
+
+def resolve_backend(backend: str) -> str:
+    """The backend that ``backend`` names: "auto" made concrete; raises for an unknown name, or
+    for "mujoco_warp" without a CUDA device."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend '{backend}'; choose one of {BACKENDS}")
+    if backend == "auto":
+        return "mujoco_warp" if cuda_available() else "mujoco"
+    if backend == "mujoco_warp" and not cuda_available():
+        raise RuntimeError("backend 'mujoco_warp' needs a CUDA device; use 'mujoco_warp_cpu' or 'mujoco'")
+    return backend
 
 
 @dataclass
@@ -77,3 +95,16 @@ def varying_model_fields(models: Sequence[mujoco.MjModel]) -> dict[str, np.ndarr
         if any(not np.array_equal(v, a0) for v in vals[1:]):
             out[name] = np.stack(vals)
     return out
+
+
+def put_batched_model(models: Sequence[mujoco.MjModel], device):
+    """One MuJoCo-Warp Model on ``device`` for ``models`` of one topology: the fields that differ
+    between them batched with a leading world dimension [len(models), ...]."""
+    import mujoco_warp as mjw
+    wp = warp()
+    varying = varying_model_fields(models)
+    mw = mjw.put_model(models[0], batch_sizes={k: len(models) for k in varying})
+    for name, vals in varying.items():
+        arr = getattr(mw, name)
+        setattr(mw, name, wp.array(vals, dtype=arr.dtype, device=device))
+    return mw

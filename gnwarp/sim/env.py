@@ -8,10 +8,12 @@ step is captured as a graph once and replayed). The interface is the same on eve
     body = env.reset(qpos0, qvel0)                       # [N, nq], [N, nv] -> body states [N, B, 13]
     body = env.step(ctrl)                                # [N, U] -> [N, B, 13] one data step (env.dt)
     traj = env.rollout(ctrl_seq)                         # [N, T, U] -> [N, T+1, B, 13], env left at the end
+    obs = env.rollout(ctrl_seq, states=True)             # Observation: qpos [N, T+1, nq], qvel, body
 
 Body states are the datasets' 13 numbers per body (``gnwarp.state``), written by the same code as
 the datasets' (frame sensors on MuJoCo C, ``kernels/sim/mujoco_warp.record_body_state`` on
-MuJoCo-Warp). Controls are clamped to the actuators' ranges as MuJoCo does (``ctrl_policy="clamp"``)
+MuJoCo-Warp); the MuJoCo-Warp datasets are simulated on ``MujocoWarpEnv`` itself
+(``gnwarp.sim.mujoco_warp``). Controls are clamped to the actuators' ranges as MuJoCo does (``ctrl_policy="clamp"``)
 or refused (``"error"``); NaN / Inf in states or controls raise ``EnvInputError``.
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ import mujoco
 import numpy as np
 import torch
 
-from gnwarp.sim.backends import resolve_backend
+from gnwarp.sim.common import put_batched_model, resolve_backend
 from gnwarp.sim.mujoco_c import system_sensor_model
 from gnwarp.sim.systems import System, make
 from gnwarp.state import DYN_NODE_SIZE, world_state
@@ -40,7 +42,8 @@ class EnvInputError(ValueError):
 
 
 class Observation(NamedTuple):
-    """The true state of every world: ``qpos`` [N, nq], ``qvel`` [N, nv], ``body`` [N, B, 13]."""
+    """The true state of every world: ``qpos`` [N, nq], ``qvel`` [N, nv], ``body`` [N, B, 13]
+    (from ``rollout(..., states=True)``: with a time axis, [N, T+1, ...])."""
     qpos: torch.Tensor
     qvel: torch.Tensor
     body: torch.Tensor
@@ -68,7 +71,8 @@ def _first_bad(t: torch.Tensor) -> tuple[int, ...] | None:
 
 class Env:
     """What every backend shares: sizes, control ranges, input checks. Subclasses implement
-    ``_reset(qpos, qvel)``, ``_rollout(ctrl [N, T, U]) -> [N, T+1, B, 13]`` and the state accessors."""
+    ``_reset(qpos, qvel)``, ``_rollout(ctrl [N, T, U], states) -> [N, T+1, B, 13]`` (an
+    ``Observation`` with a time axis when ``states``) and the state accessors."""
 
     backend = ""
 
@@ -88,13 +92,12 @@ class Env:
         self.dt, self.substeps = float(self.system.dt), int(self.system.substeps)
         self.ctrl_policy = ctrl_policy
         self.device = device
-        limited = np.asarray(m.actuator_ctrllimited, dtype=bool).reshape(-1)
-        clamp = limited & ~(int(m.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL) > 0)
-        cr = np.asarray(m.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
+        self.actuators = self.system.actuators
         # what MuJoCo clamps to (unlimited: nothing) and what planners sample in (unlimited: [-1, 1])
-        self.ctrl_lo = torch.tensor(np.where(clamp, cr[:, 0], -np.inf), device=device)
-        self.ctrl_hi = torch.tensor(np.where(clamp, cr[:, 1], np.inf), device=device)
-        self.ctrlrange = torch.tensor(np.where(limited[:, None], cr, [-1.0, 1.0]), device=device)
+        lo, hi = self.actuators.clamp_bounds()
+        self.ctrl_lo = torch.tensor(lo, device=device)
+        self.ctrl_hi = torch.tensor(hi, device=device)
+        self.ctrlrange = torch.tensor(self.actuators.sample_range(), device=device)
         self.last_ctrl = torch.zeros(n_worlds, self.nu, device=device)
         self._ready = False
 
@@ -152,12 +155,14 @@ class Env:
         """One data step (``substeps`` physics steps) under ``ctrl`` [N, U] -> body states [N, B, 13]."""
         return self.rollout(self.check_ctrl(ctrl, 2)[:, None])[:, 1]
 
-    def rollout(self, ctrl) -> torch.Tensor:
+    def rollout(self, ctrl, states: bool = False):
         """``T`` data steps under ``ctrl`` [N, T, U] from the current state -> body states
-        [N, T+1, B, 13] (the current one included); the env is left in the last state."""
+        [N, T+1, B, 13] (the current one included); the env is left in the last state. With
+        ``states``, an ``Observation`` of every data step: qpos [N, T+1, nq], qvel [N, T+1, nv]
+        (float32 on MuJoCo-Warp, float64 on MuJoCo C) and body [N, T+1, B, 13]."""
         self._need_reset()
         ctrl = self.check_ctrl(ctrl, 3)
-        out = self._rollout(ctrl)
+        out = self._rollout(ctrl, bool(states))
         self.last_ctrl = ctrl[:, -1].to(self.last_ctrl.dtype)
         return out
 
@@ -231,15 +236,20 @@ class MujocoEnv(Env):
         _, sens = self._run(np.zeros((self.n_worlds, 1, self.nu)), 1)   # sensors read the state before a step
         self._body = self._bodies(sens)[:, 0]
 
-    def _rollout(self, ctrl: torch.Tensor) -> torch.Tensor:
+    def _rollout(self, ctrl: torch.Tensor, states: bool = False):
         T, sub = ctrl.shape[1], self.substeps
         u = np.repeat(ctrl.numpy(), sub, axis=1)
         u = np.concatenate([u, u[:, -1:]], axis=1)   # one extra step reads the sensors of the last state
         state, sens = self._run(u, T * sub + 1)
-        self._state = np.ascontiguousarray(state[:, T * sub - 1])
+        # state[:, k] is the state after step k: data step t is after step t * sub - 1
+        full = np.concatenate([self._state[:, None], state[:, np.arange(1, T + 1) * sub - 1]], axis=1)
+        self._state = np.ascontiguousarray(full[:, -1])
         out = self._bodies(sens[:, ::sub][:, :T + 1])
         self._body = out[:, -1].clone()
-        return out
+        if not states:
+            return out
+        q = torch.from_numpy(np.ascontiguousarray(full[..., 1:1 + self.nq + self.nv]))
+        return Observation(q[..., :self.nq], q[..., self.nq:], out)
 
     def body_states(self) -> torch.Tensor:
         self._need_reset()
@@ -273,7 +283,6 @@ class MujocoWarpEnv(Env):
 
         from gnwarp.interop import cuda_available, warp
         from gnwarp.kernels.sim import mujoco_warp as K
-        from gnwarp.sim.mujoco_warp import put_batched_model
         wp = warp()
         wdev = wp.get_device(device or ("cuda:0" if cuda_available() else "cpu"))
         super().__init__(systems, n_worlds, ctrl_policy, wp.device_to_torch(wdev))
@@ -334,14 +343,21 @@ class MujocoWarpEnv(Env):
             self._ctrl_t.zero_()
             self._observe()
 
-    def _rollout(self, ctrl: torch.Tensor) -> torch.Tensor:
+    def _rollout(self, ctrl: torch.Tensor, states: bool = False):
         wp = self._wp
-        T = ctrl.shape[1]
-        out = torch.empty(self.n_worlds, T + 1, self.nbody, DYN_NODE_SIZE, device=self.device)
-        out[:, 0] = self._body_t
+        N, T = self.n_worlds, ctrl.shape[1]
+        out = torch.empty(N, T + 1, self.nbody, DYN_NODE_SIZE, device=self.device)
+        qpos = torch.empty(N, T + 1, self.nq, device=self.device, dtype=self._qpos_t.dtype) if states else None
+        qvel = torch.empty(N, T + 1, self.nv, device=self.device, dtype=self._qvel_t.dtype) if states else None
         ctrl = ctrl.to(self._ctrl_t.dtype)
         with self._stream():
-            for t in range(T):
+            for t in range(T + 1):
+                out[:, t] = self._body_t
+                if states:
+                    qpos[:, t] = self._qpos_t
+                    qvel[:, t] = self._qvel_t
+                if t == T:
+                    break
                 self._ctrl_t.copy_(ctrl[:, t])
                 if self._graph is not None:
                     wp.capture_launch(self._graph)
@@ -351,8 +367,7 @@ class MujocoWarpEnv(Env):
                         with wp.ScopedCapture() as cap:
                             self._data_step()
                         self._graph = cap.graph   # capturing ran nothing: the next steps replay it
-                out[:, t + 1] = self._body_t
-        return out
+        return Observation(qpos, qvel, out) if states else out
 
     def body_states(self) -> torch.Tensor:
         self._need_reset()

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gnwarp.sim.actuators import Actuators
+
 __all__ = ["random_spline_controls", "control_range", "catmull_rom"]
 
 
@@ -55,9 +57,6 @@ def random_spline_controls(num_sequences: int, num_steps: int, ctrlrange: np.nda
 
 
 def control_range(model) -> np.ndarray:
-    """[nu, 2] control range of a MjModel; unlimited actuators get [-1, 1]."""
-    cr = np.array(model.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2).copy()
-    limited = np.array(model.actuator_ctrllimited).reshape(-1).astype(bool)
-    # mjLIMITED_AUTO compiles to a concrete flag; unlimited ones have no range to sample in
-    cr[~limited] = [-1.0, 1.0]
-    return cr
+    """[nu, 2] range excitation controls are drawn in for a MjModel: ``Actuators.sample_range``
+    (the control range of limited actuators, ``UNLIMITED_SAMPLE_RANGE`` [-1, 1] for the others)."""
+    return Actuators.from_model(model).sample_range()

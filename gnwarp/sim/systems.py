@@ -27,6 +27,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.builders import (CHEETAH_BODIES, CHEETAH_LIMBS, JACO_ACTUATOR_NAMES, JACO_BODIES, build_acrobot,
                                  build_cartpole, build_cheetah, build_jaco, build_pendulum, build_swimmer,
                                  build_walker)
@@ -107,6 +108,11 @@ class System:
     @property
     def njnt(self) -> int:
         return self.model.njnt
+
+    @property
+    def actuators(self) -> Actuators:
+        """The actuators' record (control ranges, limits, clamping) of ``model`` as it is now."""
+        return Actuators.from_model(self.model)
 
     @property
     def timestep(self) -> float:
@@ -569,11 +575,10 @@ def check_model(model: mujoco.MjModel, where: str = "model") -> None:
             else:
                 label = _obj_name(model, obj, i, kind)
             fail(f"{label} has {name} {a[i].tolist()}; it must be finite")
-    cr = np.asarray(model.actuator_ctrlrange, dtype=np.float64).reshape(-1, 2)
-    limited = np.asarray(model.actuator_ctrllimited).reshape(-1).astype(bool)
-    for i in np.flatnonzero(limited & np.any(np.abs(cr) > _CTRL_MAX, axis=1)):
-        fail(f"{_obj_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, int(i), 'actuator')} has ctrlrange {cr[i].tolist()}, "
-             f"beyond +-{_CTRL_MAX:g}")
+    act = Actuators.from_model(model)
+    for i in np.flatnonzero(act.limited & ((np.abs(act.low) > _CTRL_MAX) | (np.abs(act.high) > _CTRL_MAX))):
+        fail(f"{_obj_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, int(i), 'actuator')} has ctrlrange "
+             f"{[float(act.low[i]), float(act.high[i])]}, beyond +-{_CTRL_MAX:g}")
 
 
 def _actuator_type(model: mujoco.MjModel, i: int) -> str:

@@ -1,40 +1,9 @@
-"""Warp kernels that feed controls into, and read graph node states out of, batched MuJoCo-Warp data.
+"""Warp kernels that read graph node states out of batched MuJoCo-Warp data.
 
-Launched by ``gnwarp.sim.mujoco_warp``. They run inside a captured step loop, so the data step
-they act on comes from a device-side counter (``step_in``) instead of a launch argument.
+Launched by ``gnwarp.sim.env.MujocoWarpEnv`` inside its captured data step, so the time index
+they write comes from a device array (``step_in``) instead of a launch argument.
 """
 import warp as wp
-
-
-@wp.kernel
-def ctrl_feed(
-    # Data in:
-    step_in: wp.array(dtype=int),
-    ctrl_seq_in: wp.array3d(dtype=float),   # [nworld, T, nu]
-    # Data out:
-    ctrl_out: wp.array2d(dtype=float),      # [nworld, nu]
-):
-    w, u = wp.tid()
-    t = wp.min(step_in[0], ctrl_seq_in.shape[1] - 1)
-    ctrl_out[w, u] = ctrl_seq_in[w, t, u]
-
-
-@wp.kernel
-def record_qstate(
-    # Data in:
-    step_in: wp.array(dtype=int),
-    qpos_in: wp.array2d(dtype=float),
-    qvel_in: wp.array2d(dtype=float),
-    # Data out:
-    qpos_out: wp.array3d(dtype=float),      # [nworld, T+1, nq]
-    qvel_out: wp.array3d(dtype=float),      # [nworld, T+1, nv]
-):
-    w, i = wp.tid()
-    t = step_in[0]
-    if i < qpos_in.shape[1]:
-        qpos_out[w, t, i] = qpos_in[w, i]
-    if i < qvel_in.shape[1]:
-        qvel_out[w, t, i] = qvel_in[w, i]
 
 
 @wp.kernel
@@ -75,7 +44,3 @@ def record_body_state(
     state_out[w, t, b, 11] = ang[1]
     state_out[w, t, b, 12] = ang[2]
 
-
-@wp.kernel
-def advance(step_out: wp.array(dtype=int)):
-    step_out[0] = step_out[0] + 1
