@@ -338,7 +338,7 @@ def _cmd_mpc(args) -> int:
     from gnwarp.control import GradientMPC, GradientMPCConfig, get_task, run_episodes, sample_targets
     from gnwarp.sim import make_env
     from gnwarp.control.gradient import model_systems
-    from gnwarp.control.tasks import system_family
+    from gnwarp.sim.families import family_name
     from gnwarp.data.generation import initial_states
     from gnwarp.sim import systems
     from gnwarp.train import load_model
@@ -350,7 +350,7 @@ def _cmd_mpc(args) -> int:
         raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
     model = load_model(args.model, device=args.device, **({"impl": args.impl} if args.impl else {}))
     # the system: --system, else the one the model was trained on that fits the task
-    name = args.system or next((s for s in model_systems(model) if system_family(s) == task.system),
+    name = args.system or next((s for s in model_systems(model) if family_name(s) == task.system),
                                "swimmer6" if task.system == "swimmer" else task.system)
     system = systems.make(name)
     n = args.episodes

@@ -28,10 +28,11 @@ import dataclasses
 
 import torch
 
-from gnwarp.control.tasks import Task, TaskError, get_task, system_family
+from gnwarp.control.tasks import Task, TaskError, get_task
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
 from gnwarp.interop import Graphed
+from gnwarp.sim.families import family_name
 from gnwarp.validation import Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
 __all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems"]
@@ -110,7 +111,7 @@ class GradientMPC:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
         trained = model_systems(model)
-        if trained and not any(s == self.system.name or system_family(s) == system_family(self.system.name)
+        if trained and not any(s == self.system.name or family_name(s) == family_name(self.system.name)
                                for s in trained):
             raise PlanningError(f"the model was trained on {', '.join(trained)}, not on {self.system.name} "
                                 f"(task {self.task.name!r})")

@@ -24,9 +24,10 @@ import numpy as np
 import torch
 
 from gnwarp.sim.body_state import body_states
+from gnwarp.sim.families import family_name
 from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul
 
-__all__ = ["Task", "TASKS", "get_task", "task_names", "system_family", "upright_angle", "body_index",
+__all__ = ["Task", "TASKS", "get_task", "task_names", "upright_angle", "body_index",
            "sample_targets", "TaskError"]
 
 
@@ -35,11 +36,6 @@ class TaskError(ValueError):
 
 
 Reward = Callable[..., torch.Tensor]
-
-
-def system_family(name: str) -> str:
-    """A system name without its size: "swimmer6" -> "swimmer"."""
-    return name.rstrip("0123456789")
 
 
 @functools.lru_cache(maxsize=None)
@@ -181,7 +177,7 @@ class Task:
 
     def fits(self, system: str) -> bool:
         """Whether the task applies to system ``system`` (e.g. "swimmer6" for a "swimmer" task)."""
-        return system == self.system or system_family(system) == self.system
+        return system == self.system or family_name(system) == self.system
 
     def check_system(self, system: str, what: str = "system") -> None:
         """``TaskError`` unless the task applies to ``system``."""

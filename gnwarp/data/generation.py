@@ -17,6 +17,7 @@ from gnwarp.data.convert import static_arrays
 from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
 from gnwarp.sim.common import resolve_backend, topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
+from gnwarp.sim.families import family_of
 from gnwarp.sim.backends import simulate
 from gnwarp.sim.systems import check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
@@ -30,22 +31,19 @@ PAPER_SIZES = {False: {"train": 10000, "valid": 1000, "test": 1000},
 
 # -- initial states ------------------------------------------------------------------------------
 
-# Per built-in system: how far from the model's reference pose initial states are drawn.
-# (scale of uniform noise on hinge/slide joints, unlimited hinges drawn over the full circle)
-_FULL_CIRCLE = {"pendulum", "acrobot", "cartpole"}
-
-
 def initial_states(system, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Random initial (qpos [n, nq], qvel [n, nv]) for a system.
 
     Hinge and slide joints: uniform inside their range (shrunk to its middle half) when limited;
-    unlimited hinges over the full circle for pendulum, cartpole and acrobot, and +-0.1 rad
-    otherwise (so floating bases such as cheetah's torso start upright). Velocities ~ N(0, 0.1).
+    unlimited hinges over the full circle for the families whose record says so (``Family.full_circle``:
+    pendulum, cartpole and acrobot), and +-0.1 rad otherwise (so floating bases such as cheetah's
+    torso start upright). Velocities ~ N(0, 0.1).
     """
     import mujoco
     m = system.model
     qpos = np.tile(np.asarray(m.qpos0, dtype=np.float64), (n, 1))
-    base = system.name.rstrip("0123456789")
+    fam = family_of(system.name)
+    full_circle = fam is not None and fam.full_circle
     for j in range(m.njnt):
         t = int(m.jnt_type[j])
         if t not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
@@ -55,7 +53,7 @@ def initial_states(system, n: int, rng: np.random.Generator) -> tuple[np.ndarray
             lo, hi = m.jnt_range[j]
             mid, half = 0.5 * (lo + hi), 0.25 * (hi - lo)
             qpos[:, a] = rng.uniform(mid - half, mid + half, n)
-        elif t == mujoco.mjtJoint.mjJNT_HINGE and base in _FULL_CIRCLE:
+        elif t == mujoco.mjtJoint.mjJNT_HINGE and full_circle:
             qpos[:, a] = rng.uniform(-np.pi, np.pi, n)
         else:
             qpos[:, a] += rng.uniform(-0.1, 0.1, n)

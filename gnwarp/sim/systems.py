@@ -21,16 +21,12 @@ import dataclasses
 import math
 import numbers
 import pathlib
-import re
-from typing import Callable
 
 import mujoco
 import numpy as np
 
 from gnwarp.sim.actuators import Actuators
-from gnwarp.sim.builders import (CHEETAH_BODIES, CHEETAH_LIMBS, JACO_ACTUATOR_NAMES, JACO_BODIES, build_acrobot,
-                                 build_cartpole, build_cheetah, build_jaco, build_pendulum, build_swimmer,
-                                 build_walker)
+from gnwarp.sim.families import FAMILIES, parse_name
 
 __all__ = [
     "System",
@@ -55,8 +51,6 @@ SIZE_RANGE = (1e-6, 1e6)
 INERTIA_MAX = 1e12
 _CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.dataset.MAX_ABS)
 
-_SWIMMER_LINKS = (3, 15)           # SwimmerN exists for these N
-_SWIMMER_SAMPLED_LINKS = (3, 9)    # the parameterized SwimmerN samples N in this range (paper B)
 
 
 @dataclasses.dataclass(eq=False)
@@ -127,85 +121,12 @@ class System:
 
 
 # ------------------------------------------------------------------------------------------------
-# The registry: builder, data timestep, physics substeps, and parameter ranges of each system.
-
-
-@dataclasses.dataclass(frozen=True)
-class _Family:
-    build: Callable[[dict[str, float], float], mujoco.MjSpec]
-    dt: float
-    substeps: int
-    translation_invariant: bool
-
-
-def _build_cheetah(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
-    # the cheetah's density and clearance are calibrated on the fixed system, whose parameters live here
-    return build_cheetah(p, timestep, _defaults("cheetah", None))
-
-
-_FAMILIES: dict[str, _Family] = {
-    "pendulum": _Family(build_pendulum, dt=0.02, substeps=1, translation_invariant=False),
-    "cartpole": _Family(build_cartpole, dt=0.01, substeps=1, translation_invariant=False),
-    "acrobot": _Family(build_acrobot, dt=0.01, substeps=1, translation_invariant=False),
-    # dm_control's swimmer steps at 2 ms.
-    "swimmer": _Family(build_swimmer, dt=0.02, substeps=10, translation_invariant=True),
-    "cheetah": _Family(_build_cheetah, dt=0.01, substeps=1, translation_invariant=True),
-    "walker": _Family(build_walker, dt=0.0025, substeps=1, translation_invariant=True),
-    # 100 ms data steps over 10 ms implicit physics steps.
-    "jaco": _Family(build_jaco, dt=0.1, substeps=10, translation_invariant=False),
-}
-_DEFAULT_SWIMMER_LINKS = 6
+# The registry: one record per family (``gnwarp.sim.families``) and the instances built from it.
 
 
 def names() -> list[str]:
     """The built-in systems. The swimmer takes its number of links as a suffix: "swimmer6"."""
-    return list(_FAMILIES)
-
-
-def _parse(name: str) -> tuple[str, int | None]:
-    """Splits a system name into its family and, for the swimmer, the number of links (or None)."""
-    if not isinstance(name, str):
-        raise ValueError(f"system name must be a string, got {name!r}")
-    key = name.strip().lower()
-    if key in _FAMILIES:
-        return key, None
-    match = re.fullmatch(r"swimmer(\d+)", key)
-    if match:
-        n = int(match.group(1))
-        lo, hi = _SWIMMER_LINKS
-        if not lo <= n <= hi:
-            raise ValueError(f"swimmer{n}: the swimmer has {lo} to {hi} links, got {n}")
-        return "swimmer", n
-    raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(names())} "
-                     f"(swimmer takes a number of links {_SWIMMER_LINKS[0]}..{_SWIMMER_LINKS[1]} "
-                     f"as a suffix, e.g. swimmer6)")
-
-
-def _ranges(family: str, n: int | None) -> list[tuple[str, str, tuple[float, float]]]:
-    """(parameter, group label, range) of every parameter of a system, in sampling order."""
-    if family == "pendulum":
-        return [("length", "length", (0.2, 1.0)), ("mass", "mass", (0.5, 3.0))]
-    if family == "cartpole":
-        return [("cart_mass", "cart_mass", (0.2, 2.0)),
-                ("pole_length", "pole_length", (0.3, 1.0)),
-                ("pole_thickness", "pole_thickness", (0.4, 2.2))]
-    if family == "swimmer":
-        # Without a suffix the number of links is a parameter; with one it is fixed.
-        links = (float(n), float(n)) if n is not None else tuple(map(float, _SWIMMER_SAMPLED_LINKS))
-        out = [("n_links", "n_links", links)]
-        for i in range(int(links[1])):
-            out.append((f"link_length_{i}", "link_length_*", (0.3, 2.0)))
-            out.append((f"link_thickness_{i}", "link_thickness_*", (0.5, 5.0)))
-        return out
-    if family == "cheetah":
-        out = [(f"base_angle_{b}", "base_angle_*", (-0.1, 0.1)) for b in CHEETAH_LIMBS]
-        out += [(f"length_{b}", "length_*", (0.5, 2.0)) for b in CHEETAH_BODIES]
-        out += [(f"thickness_{b}", "thickness_*", (0.5, 2.0)) for b in CHEETAH_BODIES]
-        return out
-    if family == "jaco":
-        return ([(f"mass_{b}", "mass_*", (0.5, 1.5)) for b in JACO_BODIES]
-                + [(f"gear_{a}", "gear_*", (0.5, 1.5)) for a in JACO_ACTUATOR_NAMES])
-    return []  # acrobot, walker: no parameterized variant in the paper
+    return list(FAMILIES)
 
 
 def param_ranges(name: str) -> dict[str, tuple[float, float]]:
@@ -215,29 +136,8 @@ def param_ranges(name: str) -> dict[str, tuple[float, float]]:
     radians, fixed value 0) and the swimmer's integer "n_links" ("swimmer" samples it in 3..9;
     "swimmer<N>" fixes it to N).
     """
-    family, n = _parse(name)
-    return {key: rng for key, _, rng in _ranges(family, n)}
-
-
-def _element(family: str, key: str) -> tuple[int, str] | None:
-    """The element a parameter describes: (mujoco.mjtObj body or actuator, its name), or None
-    for a parameter of the whole system (the swimmer's number of links)."""
-    body, act = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_ACTUATOR
-    if family == "pendulum":
-        return body, "pole"
-    if family == "cartpole":
-        return body, "cart" if key == "cart_mass" else "pole_1"
-    if family == "swimmer":
-        if key == "n_links":
-            return None
-        i = int(key.rsplit("_", 1)[1])
-        return body, "head" if i == 0 else f"segment_{i - 1}"
-    if family == "cheetah":
-        return body, key.split("_", 1)[1].removeprefix("angle_")
-    if family == "jaco":
-        kind, name = key.split("_", 1)
-        return (act if kind == "gear" else body), name
-    return None
+    fam, n = parse_name(name)
+    return {key: rng for key, _, rng in fam.ranges(n)}
 
 
 def param_places(system: "System", names=None) -> list[tuple[str, int]]:
@@ -247,13 +147,13 @@ def param_places(system: "System", names=None) -> list[tuple[str, int]]:
     system's (every parameter of a system that is not one of the registry's, e.g. a variant
     renamed by its maker). ``names``: the parameters, in order (default: ``system.params``'s)."""
     try:
-        family, _ = _parse(system.name)
+        fam, _ = parse_name(system.name)
     except ValueError:
-        family = None
+        fam = None
     names = list(system.params) if names is None else list(names)
     out = []
     for key in names:
-        el = _element(family, key)
+        el = fam.element(key) if fam is not None else None
         if el is None:
             out.append(("globals", 0))
             continue
@@ -264,25 +164,8 @@ def param_places(system: "System", names=None) -> list[tuple[str, int]]:
     return out
 
 
-def _defaults(family: str, n: int | None) -> dict[str, float]:
-    """The parameters of the fixed system."""
-    out = {}
-    for key, _, _ in _ranges(family, n):
-        if key == "n_links":
-            out[key] = float(n if n is not None else _DEFAULT_SWIMMER_LINKS)
-        elif key.startswith("base_angle_"):
-            out[key] = 0.0
-        else:
-            out[key] = 1.0
-    if family == "swimmer":  # only the links that exist
-        links = int(out["n_links"])
-        out = {k: v for k, v in out.items()
-               if not k.startswith("link_") or int(k.rsplit("_", 1)[1]) < links}
-    return out
-
-
 def _no_variant(name: str) -> ValueError:
-    with_variant = [f for f in _FAMILIES if _ranges(f, None)]
+    with_variant = [f.name for f in FAMILIES.values() if f.ranges()]
     return ValueError(f"{name} has no parameterized variant (the paper varies only "
                       f"{', '.join(with_variant)}); use make({name!r}) for the fixed system")
 
@@ -292,12 +175,12 @@ def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
 
     Returns the full parameter dict of one instance, as stored in `System.params`.
     """
-    family, n = _parse(name)
-    ranges = _ranges(family, n)
+    fam, n = parse_name(name)
+    ranges = fam.ranges(n)
     if not ranges:
         raise _no_variant(name)
     out: dict[str, float] = {}
-    if family == "swimmer":
+    if fam.links is not None:
         lo, hi = (int(v) for v in ranges[0][2])
         links = int(rng.integers(lo, hi + 1))
         out["n_links"] = float(links)
@@ -312,7 +195,7 @@ def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
     return out
 
 
-def _validate(name: str, family: str, n: int | None, params: dict) -> dict[str, float]:
+def _validate(name: str, fam, n: int | None, params: dict) -> dict[str, float]:
     """Checks user parameters against their ranges; returns the full dict with defaults filled."""
     ranges = param_ranges(name)
     if not ranges:
@@ -339,8 +222,8 @@ def _validate(name: str, family: str, n: int | None, params: dict) -> dict[str, 
         if key == "n_links" and value != int(value):
             raise ValueError(f"{name}: parameter 'n_links' must be an integer, got {value!r}")
         checked[key] = value
-    links = int(checked.get("n_links", n if n is not None else _DEFAULT_SWIMMER_LINKS))
-    full = _defaults(family, links if family == "swimmer" else n)
+    links = int(checked.get("n_links", n if n is not None else fam.default_links or 0))
+    full = fam.defaults(links if fam.links is not None else n)
     extra = sorted(k for k in checked if k not in full)
     if extra:
         raise ValueError(f"{name}: parameter(s) {', '.join(map(repr, extra))} name links beyond "
@@ -363,18 +246,17 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
       the fixed system if neither params nor seed is given, else a parameterized instance whose
       full parameter dict is `System.params`.
     """
-    family, n = _parse(name)
-    fam = _FAMILIES[family]
+    fam, n = parse_name(name)
     if params is not None and seed is not None:
         raise ValueError(f"{name}: give either params or seed, not both")
     if params is None and seed is None:
-        full, parameterized = _defaults(family, n), False
+        full, parameterized = fam.defaults(n), False
     elif params is None:
         full, parameterized = sample_params(name, np.random.default_rng(seed)), True
     else:
-        full, parameterized = _validate(name, family, n, params), True
+        full, parameterized = _validate(name, fam, n, params), True
     spec = fam.build(full, fam.dt / fam.substeps)
-    system_name = f"swimmer{int(full['n_links'])}" if family == "swimmer" else family
+    system_name = f"{fam.name}{int(full['n_links'])}" if fam.links is not None else fam.name
     model = spec.compile()
     check_model(model, system_name)
     return System(name=system_name, model=model, dt=fam.dt, substeps=fam.substeps,
@@ -614,8 +496,8 @@ def describe(system: System) -> dict:
             types.append(kind)
     parameters: dict[str, tuple[float, float]] = {}
     if system.source == "builtin":
-        family, _ = _parse(system.name)
-        for _, label, rng in _ranges(family, None):
+        fam, _ = parse_name(system.name)
+        for _, label, rng in fam.ranges():
             parameters.setdefault(label, rng)
     return {
         "name": system.name,
