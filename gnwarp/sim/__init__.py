@@ -12,11 +12,13 @@ MuJoCo-Warp, and the random excitation controls datasets are recorded under.
     >>> body = env.reset(np.tile(m.qpos0, (8, 1)))                              # [8, nbody, 13]
     >>> body = env.step(u[:, 0])                                                # one data step
 
-Modules: ``systems`` (registry) and ``builders`` (MjSpec of each system), ``excitation``
-(random spline controls), ``backends`` (backend choice) over ``mujoco_c`` and ``mujoco_warp``,
-``common`` (what the backends share), ``env`` (persistent batched environments), ``body_state``
-(the MuJoCo C body-state reader).
+Modules: ``systems`` (registry) over ``families`` (one record per built-in family) and
+``builders`` (MjSpec of each system), ``actuators`` (control ranges, limits, clamping), ``excitation``
+(random spline controls), ``backends`` (``simulate``) over ``mujoco_c`` and ``mujoco_warp``,
+``common`` (the backends' names and choice, what they share), ``env`` (persistent batched
+environments; MuJoCo-Warp datasets run on them too), ``body_state`` (the MuJoCo C body-state reader).
 """
+from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.common import BACKENDS, Trajectories, resolve_backend
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import simulate
@@ -25,4 +27,4 @@ from gnwarp.sim.systems import System, describe, from_mjcf, make, names, param_r
 
 __all__ = ["System", "names", "make", "param_ranges", "param_places", "sample_params", "from_mjcf", "describe", "simulate",
            "Trajectories", "BACKENDS", "resolve_backend", "random_spline_controls", "control_range",
-           "Env", "EnvInputError", "make_env"]
+           "Env", "EnvInputError", "make_env", "Actuators"]

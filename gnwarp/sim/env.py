@@ -72,7 +72,11 @@ def _first_bad(t: torch.Tensor) -> tuple[int, ...] | None:
 class Env:
     """What every backend shares: sizes, control ranges, input checks. Subclasses implement
     ``_reset(qpos, qvel)``, ``_rollout(ctrl [N, T, U], states) -> [N, T+1, B, 13]`` (an
-    ``Observation`` with a time axis when ``states``) and the state accessors."""
+    ``Observation`` with a time axis when ``states``) and the state accessors.
+
+    Control ranges, from the system's ``Actuators`` record (``actuators``): ``ctrl_lo`` /
+    ``ctrl_hi`` [U] what controls are clamped to (+-inf where MuJoCo does not clamp), ``ctrlrange``
+    [U, 2] where planners sample (``Actuators.sample_range``: [-1, 1] for unlimited actuators)."""
 
     backend = ""
 

@@ -184,8 +184,9 @@ def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
         lo, hi = (int(v) for v in ranges[0][2])
         links = int(rng.integers(lo, hi + 1))
         out["n_links"] = float(links)
-        lengths = rng.uniform(0.3, 2.0, size=links)
-        thicknesses = rng.uniform(0.5, 5.0, size=links)
+        per_link = {key: rng_ for key, _, rng_ in ranges}   # every link shares link 0's ranges
+        lengths = rng.uniform(*per_link["link_length_0"], size=links)
+        thicknesses = rng.uniform(*per_link["link_thickness_0"], size=links)
         for i in range(links):
             out[f"link_length_{i}"] = float(lengths[i])
             out[f"link_thickness_{i}"] = float(thicknesses[i])
