@@ -13,8 +13,9 @@ step is captured as a graph once and replayed). The interface is the same on eve
 Body states are the datasets' 13 numbers per body (``gnwarp.state``), written by the same code as
 the datasets' (frame sensors on MuJoCo C, ``kernels/sim/mujoco_warp.record_body_state`` on
 MuJoCo-Warp); the MuJoCo-Warp datasets are simulated on ``MujocoWarpEnv`` itself
-(``gnwarp.sim.mujoco_warp``). Controls are clamped to the actuators' ranges as MuJoCo does (``ctrl_policy="clamp"``)
-or refused (``"error"``); NaN / Inf in states or controls raise ``EnvInputError``.
+(``gnwarp.sim.mujoco_warp``). Controls are clamped to the actuators' ranges as MuJoCo does
+(``ctrl_policy="clamp"``) or refused (``"error"``); NaN / Inf in states or controls raise
+``EnvInputError``.
 """
 from __future__ import annotations
 
