@@ -29,7 +29,9 @@ __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICI
            "check_instance", "RolloutInputs"]
 
 # What a rollout does with controls outside an actuator's range: "clamp" them to it (as MuJoCo
-# does for ctrllimited actuators), "error" (refuse them), or "none" (use them as they are).
+# does for ctrllimited actuators), "error" (refuse them), or "none" (use them as they are). The
+# range is ``gnwarp.sim.actuators.Actuators``' low / high (+-inf where unlimited), read from the
+# static edge features the datasets store it in (act_ctrllimited, act_ctrlrange_*).
 CTRL_POLICIES = ("clamp", "error", "none")
 
 
