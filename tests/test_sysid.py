@@ -363,6 +363,65 @@ def test_sysid_resume_continues_exactly(pendulum, tmp_path, ema):
         SysIDTrainer(cfg("fwd", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
 
 
+def _old_format(folder: Path, options: dict | None) -> None:
+    """Rewrite a checkpoint's config.json as checkpoints before "sysid_train" were: the training
+    options inside its "train" table (``options``; None: no options recorded at all); the
+    manifest updated so that it stays a valid checkpoint."""
+    from gnwarp.files import sha256_file
+    from gnwarp.train.checkpoint import MANIFEST
+    cfg = json.loads((folder / "config.json").read_text())
+    del cfg["sysid_train"]
+    cfg["train"].update(options or {})
+    (folder / "config.json").write_text(json.dumps(cfg))
+    manifest = json.loads((folder / MANIFEST).read_text())
+    manifest["config.json"] = sha256_file(folder / "config.json")
+    (folder / MANIFEST).write_text(json.dumps(manifest))
+
+
+def test_sysid_training_options_round_trip_and_resume_without_side_channel(pendulum, tmp_path):
+    """``SysIDTrainConfig`` is saved in config.json ("sysid_train") and read back by
+    ``trained_options``; a rerun into the same out with neither the model config nor the options
+    resumes as the run was started (10 + 10 steps give the weights of 20 straight); checkpoints
+    written before the table load with the options their "train" table holds (the defaults,
+    the paper's, where it holds none), and a malformed table is refused saying how to fix it."""
+    import shutil
+    from gnwarp.train.sysid import trained_options
+
+    def cfg(name, steps):
+        return TrainConfig(out=str(tmp_path / name), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")),
+                           steps=steps, batch_size=16, lr=3e-3, valid_every=10, valid_sequences=2, log_every=5,
+                           checkpoint_every=10, progress=False, device="cpu", normalizer_warmup=5)
+    sysid = SysIDConfig(identifier=ID, window=W, readout="mean")
+    options = SysIDTrainConfig(targets=2, start_windows=0.5, param_loss=1.0)
+    assert SysIDTrainConfig.from_dict(json.loads(json.dumps(options.to_dict()))) == options
+    full = SysIDTrainer(cfg("full", 20), sysid, datasets=[pendulum], options=options).run()
+    half = SysIDTrainer(cfg("half", 10), sysid, datasets=[pendulum], options=options).run()
+    saved = json.loads((Path(half["last"]) / "config.json").read_text())
+    assert saved["sysid_train"] == options.to_dict() and "param_loss" not in saved["train"]
+    assert trained_options(load_sysid(half["last"])) == options
+    shutil.copytree(tmp_path / "half", tmp_path / "old")   # the same run, its checkpoint as written before
+    resumed = SysIDTrainer(cfg("half", 20), datasets=[pendulum])   # no sysid, no options: the checkpoint's
+    assert resumed.state["step"] == 10 and resumed.options == options and resumed.model.config.readout == "mean"
+    r = resumed.run()
+    a, b = load_sysid(full["last"]), load_sysid(r["last"])
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    assert trained_options(b) == options
+    # a new run (nothing to resume) without options trains the paper's way
+    assert SysIDTrainer(cfg("new", 10), sysid, datasets=[pendulum]).options == SysIDTrainConfig()
+
+    old = tmp_path / "old" / "last"
+    _old_format(old, options.to_dict())
+    assert trained_options(load_sysid(old)) == options
+    assert SysIDTrainer(cfg("old", 20), datasets=[pendulum]).options == options   # resumes from the old format
+    _old_format(tmp_path / "old" / "best", None)       # from before the options: the paper's training
+    assert trained_options(load_sysid(tmp_path / "old" / "best")) == SysIDTrainConfig()
+    bad = load_sysid(half["last"])
+    bad.checkpoint_info = {**bad.checkpoint_info, "sysid_train": {"targets": 0}}
+    with pytest.raises(CheckpointError, match="targets: must be an integer >= 1.*fix or remove"):
+        trained_options(bad)
+
+
 def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
     """A system-ID model reads no static feature of the data, but its rollouts (plain and in a
     rollout engine on a fixed G_ID) clamp controls to the bound source's actuator ranges as
@@ -769,7 +828,7 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
     uniform = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
     assert starts(uniform) < 0.2      # 1 in T - W + 1 = 26 windows
     summary = half.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["start_windows"] == 0.5
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["start_windows"] == 0.5
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -892,7 +951,7 @@ def test_window_consistency_term(pendulum, tmp_path):
     assert float(terms["window_spread"].detach()) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
     check_added_term(tr.model, terms, "window_spread", 0.7)
     summary = tr.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["consistency"] == 0.7
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["consistency"] == 0.7
     import csv
     with open(Path(summary["out"]) / "log.csv", newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["loss"]]
@@ -973,7 +1032,7 @@ def test_parameter_supervision(pendulum, tmp_path):
     after = error()
     assert after < 0.8 * before, (before, after)
     saved = json.loads((Path(summary["last"]) / "config.json").read_text())
-    assert saved["train"]["param_loss"] == 5.0
+    assert saved["sysid_train"]["param_loss"] == 5.0
     assert saved["param_stats"]["pendulum"]["names"] == ["length", "mass"]
     np.testing.assert_allclose(saved["param_stats"]["pendulum"]["std"], st.std)
 
@@ -1049,7 +1108,7 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
     w = m.identifier.out["globals"].weight.grad
     assert w[:2].abs().sum() == 0 and w[2:].abs().sum() > 0     # GN_p's estimate is not what the model read
     summary = tr.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["param_teacher"] == 1.0
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["param_teacher"] == 1.0
 
     model = load_sysid(summary["last"]).bind(pendulum)
     inst = np.asarray(pendulum["valid"].instance[...])

@@ -52,7 +52,7 @@ class SysIDSample(NamedTuple):
 
 def trained_param_stats(model: SysIDModel, system: str) -> ParamStats | None:
     """The parameter statistics a model loaded with ``load_sysid`` was trained with for
-    ``system`` (``SysIDTrainer(param_loss=...)``); None if it was trained without them.
+    ``system`` (``SysIDTrainConfig.param_loss``); None if it was trained without them.
     ``CheckpointError`` if its config.json holds malformed ones."""
     kept = (getattr(model, "checkpoint_info", None) or {}).get("param_stats")
     stats = kept.get(system) if isinstance(kept, dict) else None
