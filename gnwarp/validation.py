@@ -247,6 +247,9 @@ def add_config_flags(parser, cls, names: Sequence[str] | None = None) -> list[st
     annotation as they are parsed. A flag left out reads as None (``config_flags_given``); a
     boolean field defaulting to False is a switch. Returns the flags."""
     checks = _field_checks(cls)
+    unknown = sorted(set(names or ()) - set(checks))
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field {unknown[0]!r} to make a flag of")
     out = []
     for f in dataclasses.fields(cls):
         if names is not None and f.name not in names:
@@ -257,12 +260,13 @@ def add_config_flags(parser, cls, names: Sequence[str] | None = None) -> list[st
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         flag, text = flag_name(f.name), f.metadata.get("help", "")
         if _base_type(tp) is bool and default is False:
-            parser.add_argument(flag, dest=f.name, action="store_true", default=None, help=text)
+            parser.add_argument(flag, dest=f.name, action="store_true", default=None,
+                                help=f"{text} (default: off)" if text else "default: off")
         else:
             base = _base_type(tp)
             choices = list(typing.get_args(base)) if typing.get_origin(base) is Literal else None
             parser.add_argument(flag, dest=f.name, default=None, type=_flag_parser(flag, tp, adapter), choices=choices,
-                                metavar=None if choices else f.name.upper(),
+                                metavar=None if choices else {int: "N", float: "X"}.get(base, "TEXT"),
                                 help=f"{text} (default: {default!r})" if text else f"default: {default!r}")
         out.append(flag)
     return out

@@ -1230,8 +1230,8 @@ def test_local_params_hand_each_parameter_to_its_node_and_edges(jaco, pendulum, 
     assert torch.isfinite(roll).all()
     with pytest.raises(ValueError, match="holds them elsewhere"):
         back.bind(pendulum)
-    with pytest.raises(ValueError, match="needs param_loss"):
-        SysIDTrainer(cfg, sc, datasets=[jaco])
+    with pytest.raises(ValueError, match="needs param_loss"):   # (options left out: the resumed run's)
+        SysIDTrainer(cfg, sc, datasets=[jaco], options=SysIDTrainConfig())
     with pytest.raises(ValueError, match="widen SysIDConfig.identifier.out_globals"):
         SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=3, local_params=True), datasets=[jaco],
                      options=SysIDTrainConfig(param_loss=1.0))
@@ -1402,3 +1402,6 @@ def test_generated_flags_follow_the_config_fields(capsys):
     assert ap.parse_args(["--transitions"]).transitions is True and ap.parse_args([]).transitions is None
     with pytest.raises(TypeError, match="nested config"):
         add_config_flags(argparse.ArgumentParser(), SysIDConfig, ["identifier"])
+    with pytest.raises(TypeError, match="no field 'readouts'"):
+        add_config_flags(argparse.ArgumentParser(), SysIDConfig, ["readouts"])
+    assert "(default: off)" in {a.dest: a.help for a in ap._actions}["transitions"]

@@ -5,7 +5,8 @@ sequence of the train split, a random ``window``-step identification window and 
 random step t0 outside it; ``loss`` identifies G_ID from the window and applies the forward
 model's loss (Algorithm D.3) at t0 with G_ID as the static graph; ``validate`` identifies from
 the first ``window`` steps of each valid sequence and rolls out the next ``valid_horizon``
-steps with that G_ID; checkpoints hold the whole model (``load_sysid`` reads them).
+steps with that G_ID; checkpoints hold the whole model (``load_sysid`` reads them) and the
+training options (``SysIDTrainConfig``, ``trained_options`` reads them back).
 
 On CUDA the step is replayed from one CUDA graph as the ``Trainer``'s is (window sampling,
 GN_p over the window, the forward model's loss, backward, update: no host synchronization
