@@ -381,7 +381,7 @@ def _old_format(folder: Path, options: dict | None) -> None:
 def test_sysid_training_options_round_trip_and_resume_without_side_channel(pendulum, tmp_path):
     """``SysIDTrainConfig`` is saved in config.json ("sysid_train") and read back by
     ``trained_options``; a rerun into the same out with neither the model config nor the options
-    resumes as the run was started (10 + 10 steps give the weights of 20 straight); checkpoints
+    resumes as the run started (10 + 10 steps give the weights of 20 straight); checkpoints
     written before the table load with the options their "train" table holds (the defaults,
     the paper's, where it holds none), and a malformed table is refused saying how to fix it."""
     import shutil

@@ -14,10 +14,11 @@ from gnwarp.eval.metrics import (evaluate, movable_mask, normalized_errors, one_
 from gnwarp.eval.render import RenderUnavailable, render_rollouts
 from gnwarp.eval.sysid import (other_instance_windows, sysid_error_rows, sysid_rollout_error, sysid_rollout_predictions,
                                window_errors)
-from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
+from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training, write_report
 from gnwarp.state import GROUPS
 
 __all__ = ["evaluate", "rollout_error", "rollout_predictions", "one_step_predictions", "normalized_errors",
            "sequence_shares", "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors",
-           "plot_state_traces", "plot_training", "animate", "render_rollouts", "RenderUnavailable", "other_instance_windows",
-           "sysid_rollout_predictions", "sysid_rollout_error", "sysid_error_rows", "window_errors"]
+           "plot_state_traces", "plot_training", "animate", "render_rollouts", "RenderUnavailable",
+           "other_instance_windows", "sysid_rollout_predictions", "sysid_rollout_error", "sysid_error_rows",
+           "window_errors", "write_report"]

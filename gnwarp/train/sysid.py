@@ -66,8 +66,8 @@ def trained_param_stats(model: SysIDModel, system: str) -> ParamStats | None:
 
 
 def trained_options(model: SysIDModel) -> SysIDTrainConfig:
-    """The ``SysIDTrainConfig`` a model loaded with ``load_sysid`` was trained with (its
-    config.json's; a checkpoint written before the options were recorded gives the defaults, the
+    """The ``SysIDTrainConfig`` that trained a model loaded with ``load_sysid`` (its
+    config.json's; a checkpoint from before the options were recorded gives the defaults, the
     paper's training, for the options it lacks). ``CheckpointError`` for malformed ones."""
     return _saved_options(getattr(model, "checkpoint_info", None) or {})
 
@@ -107,7 +107,7 @@ class SysIDTrainer(Trainer):
     arguments as ``Trainer``'s. A rerun into the same ``out`` resumes from ``<out>/last``
     (model, optimizer, sampler and run state), as the ``Trainer``'s do; a checkpoint of another
     model is refused. Resuming, ``sysid`` and ``options`` left out are the checkpoint's (its
-    config.json records both), so a run continues as it was started.
+    config.json records both), so a run continues as started.
 
     With ``param_loss``, G_ID stays the forward model's latent static graph; the term tells GN_p
     what to identify, at a precision the one-step loss alone rewards too weakly (a 1% error in a
@@ -175,7 +175,8 @@ class SysIDTrainer(Trainer):
 
     @property
     def log_fields(self) -> tuple[str, ...]:
-        extra = (("window_spread",) if self.options.consistency > 0 else ()) + (("param_error",) if self.options.param_loss > 0 else ())
+        o = self.options
+        extra = (("window_spread",) if o.consistency > 0 else ()) + (("param_error",) if o.param_loss > 0 else ())
         return (*super().log_fields, *extra)
 
     def _load_last(self):
