@@ -32,9 +32,9 @@ from bench.harness import (device_name, gn_sizes, median_ms, profile_kernels, re
 from gnwarp import data  # noqa: E402
 from gnwarp.models import ModelConfig, RecurrentGNConfig  # noqa: E402
 from gnwarp.models.config import DEFAULT_RUN  # noqa: E402
-from gnwarp.models.sysid import SysIDConfig  # noqa: E402
+from gnwarp.models import SysIDConfig  # noqa: E402
 from gnwarp.train import TrainConfig, Trainer  # noqa: E402
-from gnwarp.train.sysid import SysIDTrainer  # noqa: E402
+from gnwarp.train import SysIDTrainConfig, SysIDTrainer  # noqa: E402
 
 MODELS = ("true params", "sysid recurrent", "sysid stateless")
 
@@ -93,8 +93,8 @@ def main(argv=None):
                 sysid = SysIDConfig(identifier=ident, window=window, transitions=True, readout="ridge",
                                     ridge_head=64, local_params=True, nominal_static=True,
                                     stateless=label.endswith("stateless"))
-                return SysIDTrainer(config(tag, steps, **kw), sysid, datasets=[ds], param_loss=1.0,
-                                    param_teacher=0.5)
+                return SysIDTrainer(config(tag, steps, **kw), sysid, datasets=[ds],
+                                    options=SysIDTrainConfig(param_loss=1.0, param_teacher=0.5))
             for label in MODELS:
                 tag = label.replace(" ", "_")
                 trainer(label, "warm-" + tag, 30, valid_every=15).run()   # compile and load every kernel

@@ -161,16 +161,17 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
+    from gnwarp.train.sysid_config import sysid_flags_given, sysid_settings
     given = sysid_flags_given(args)
     if given and not args.sysid:
         raise SystemExit(f"gnwarp train: {', '.join(given)} apply to system identification (--sysid) only")
     if args.sysid:  # Algorithm D.4: GN_p and the forward model end to end (parameterized data)
         from gnwarp.train.sysid import SysIDTrainer
-        try:
+        if given:
             sysid, options = sysid_settings(args)
-        except SystemExit as e:
-            raise SystemExit(f"gnwarp train: {e}") from None
-        r = SysIDTrainer(cfg, sysid, **options).run()
+            r = SysIDTrainer(cfg, sysid, options=options).run()
+        else:   # a resumed run continues as its checkpoint records (a new one: the paper's model and training)
+            r = SysIDTrainer(cfg).run()
     else:
         r = train(cfg)
     print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
@@ -188,21 +189,14 @@ def _evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
     import math
     from pathlib import Path
 
-    import numpy as np
-
-    from gnwarp.train.sysid import load_sysid, other_instance_windows, sysid_rollout_error, trained_param_stats
+    from gnwarp.eval.sysid import sysid_error_rows
+    from gnwarp.train.sysid import load_sysid, trained_param_stats
     print("| model | identified from | " + " | ".join(f"{h}-step rollout" for h in horizons) + " |")
     print("|---|---|" + "---|" * len(horizons))
     bad = False
     for path in paths:
         m = load_sysid(path, device=args.device)
-        n = len(ds[args.split]) if sequences is None else min(sequences, len(ds[args.split]))
-        rows = [("same instance", None, None), ("another instance", other_instance_windows(ds, args.split, n), None)]
-        stats = trained_param_stats(m, ds.system)
-        if stats is not None and "params" in ds.static:
-            rows.append(("same instance, true parameter columns", None, stats))
-        for label, src, oracle in rows:
-            errs = [sysid_rollout_error(m, ds, args.split, h, n, window_from=src, oracle=oracle) for h in horizons]
+        for label, errs in sysid_error_rows(m, ds, args.split, horizons, sequences, trained_param_stats(m, ds.system)):
             bad |= not all(math.isfinite(e) for e in errs)
             print(f"| {Path(path).resolve().parent.name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
     if bad:
@@ -244,9 +238,8 @@ def _cmd_evaluate(args) -> int:
     horizons = tuple(dict.fromkeys(_positive_ints("--horizons", args.horizons)))
 
     from gnwarp.data.dataset import load
-    from gnwarp.eval.animation import animate
     from gnwarp.eval.metrics import evaluate
-    from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces
+    from gnwarp.eval.report import markdown_table, write_report
     from gnwarp.files import jsonable
     from gnwarp.train import load_model
     ds = load(args.data)
@@ -265,25 +258,14 @@ def _cmd_evaluate(args) -> int:
         name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
         m = load_model(path, device=args.device, **({"impl": args.impl} if args.impl else {}))
         results[name] = evaluate(m, ds, args.split, sequences, horizons, keep_predictions=bool(args.out))
-    preds = {n: r.pop("predictions", None) for n, r in results.items()}
-    table = markdown_table(results, ds.system)
-    print(table)
     if args.out:
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "errors.md").write_text(table)
-        plot_errors(results, out / "errors.png", f"{ds.system}: normalized errors")
-        first = next(iter(preds.values()))
-        if first is not None:
-            true, inst = first["true"], first["instance"]
-            body = 1 if true.shape[2] > 1 else 0
-            plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
-                              out / "states.png", f"{ds.system}, body {body}")
-            k = min(3, true.shape[0])
-            animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
-                    title=f"{ds.system}: true vs predicted")
+        table = write_report(results, ds, out)
+        print(table)
         (out / "results.json").write_text(json.dumps(jsonable(results), indent=1))
         print(f"wrote {out}/errors.md, errors.png, states.png, rollouts.gif, results.json")
+    else:
+        print(markdown_table(results, ds.system))
     # predictions that left the finite range: reported above, and the exit status says so
     bad = []
     for name, r in results.items():
@@ -377,109 +359,6 @@ def _cmd_mpc(args) -> int:
     return 0
 
 
-# -- system identification's flags (``gnwarp train --sysid`` and bench/experiments/sysid_figures.py) ----
-def add_sysid_arguments(parser) -> None:
-    """System identification's training options (``SysIDConfig``, ``SysIDTrainer``) as
-    flags on ``parser`` (a parser or an argument group), each defaulting to the paper's model;
-    ``sysid_settings`` reads them, ``sysid_flags_given`` names the ones set."""
-    a = parser.add_argument
-    a("--transitions", action="store_true",
-      help="the recurrent GN reads the window's transitions (states, controls and the "
-           "change to the next state; beyond the paper, SysIDConfig.transitions)")
-    a("--stateless", action="store_true",
-      help="the identifier GN carries no state between the window's steps: it reads each step on its own "
-           "and runs them all as one batch (needs --readout mean, ridge or dynamics; beyond the paper, "
-           "SysIDConfig.stateless)")
-    a("--targets", type=int, default=1,
-      help="one-step losses per identification window (default 1, the paper's)")
-    a("--readout", choices=["last", "mean", "ridge", "dynamics"], default="last",
-      help="G_ID is the recurrent GN's last output (default, the paper's), the mean of "
-           "its outputs over the window, a ridge fit over the window of some output columns on the "
-           "others, or a ridge fit of the window's observed velocity changes on the outputs (beyond the "
-           "paper, SysIDConfig.readout)")
-    a("--ridge-head", type=int, default=0, metavar="H",
-      help="with --readout ridge or dynamics: an MLP of width H maps the fit's coefficients to G_ID "
-           "(beyond the paper, SysIDConfig.ridge_head; 0: none, G_ID is the coefficients)")
-    a("--ridge-features", type=int, default=None, metavar="F",
-      help="with --readout ridge: regressors per fit, the rest of the recurrent GN's outputs being its "
-           "targets (default 4; SysIDConfig.ridge_features)")
-    a("--ridge", type=float, default=None, metavar="L",
-      help="with --readout ridge or dynamics: the fit's ridge weight, relative to the mean diagonal of "
-           "its regressors' second moments (default 1e-3; SysIDConfig.ridge)")
-    a("--local-params", action="store_true",
-      help="with --param-loss: the forward model also reads each supervised parameter on the node or "
-           "edges it describes (a link's mass on its node, a gear on its joint's edges), as a true "
-           "static graph holds it (beyond the paper, SysIDConfig.local_params)")
-    a("--gid-globals", type=int, default=None, metavar="G",
-      help="G_ID's global width, and GN_p's hidden globals (default: the identifier's, 10); with "
-           "--param-loss at least the system's parameter count (cheetah 20, JACO 18; "
-           "RecurrentGNConfig.out_globals)")
-    a("--nominal-static", action="store_true",
-      help="the forward model also reads the training data's static graph at its mean "
-           "over the instances (the system as designed; G_ID says how an instance differs; beyond the "
-           "paper, SysIDConfig.nominal_static)")
-    a("--start-windows", type=float, default=0.0, metavar="F",
-      help="fraction of identification windows at their sequence's start, where "
-           "identification reads in use (default 0: uniform windows, the paper's)")
-    a("--consistency", type=float, default=0.0, metavar="C",
-      help="weight of a window-consistency term (pairs of windows of one sequence should "
-           "identify alike; default 0, the paper's; beyond the paper, SysIDTrainer.consistency)")
-    a("--param-loss", type=float, default=0.0, metavar="P",
-      help="weight of supervising G_ID's first global columns with the data's instance "
-           "parameters (default 0, the paper's: no labels; beyond the paper, SysIDTrainer.param_loss)")
-    a("--param-teacher", type=float, default=0.0, metavar="Q",
-      help="with --param-loss: the fraction of windows whose forward model reads the true parameters "
-           "in G_ID's supervised columns (teacher forcing; default 0; 1: the forward model trains as a "
-           "true-parameter model and the identifier on --param-loss alone; SysIDTrainer.param_teacher)")
-
-
-def _sysid_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(add_help=False)
-    add_sysid_arguments(p)
-    return p
-
-
-def sysid_flags_given(args) -> list[str]:
-    """The flags of ``add_sysid_arguments`` that ``args`` sets to other than their defaults."""
-    p = _sysid_parser()
-    defaults = vars(p.parse_args([]))
-    return [a.option_strings[0] for a in p._actions if getattr(args, a.dest) != defaults[a.dest]]
-
-
-def sysid_flag_values(args) -> dict:
-    """{name: value} of every flag of ``add_sysid_arguments`` in ``args`` (what a run records)."""
-    return {a.dest: getattr(args, a.dest) for a in _sysid_parser()._actions}
-
-
-def sysid_settings(args, identifier=None, **config):
-    """(``SysIDConfig``, ``SysIDTrainer`` keyword arguments) from ``add_sysid_arguments``' flags in
-    ``args``; ``identifier``: GN_p's sizes before ``--gid-globals`` (default ``SysIDConfig``'s);
-    ``config``: further ``SysIDConfig`` fields (``window``). A flag that does not fit raises
-    ``SystemExit`` naming it; a refused combination the config's ``ValueError``."""
-    import dataclasses
-
-    from gnwarp.models.sysid import SysIDConfig
-    from gnwarp.validation import ConfigError
-    if args.ridge_features is not None and args.readout != "ridge":
-        raise SystemExit(f"--ridge-features sets the regressors of --readout ridge's fit, got --readout {args.readout}")
-    identifier = identifier if identifier is not None else SysIDConfig().identifier
-    if args.gid_globals is not None:   # G_ID's global width (and GN_p's hidden globals)
-        try:
-            identifier = dataclasses.replace(identifier, hidden_globals=args.gid_globals, out_globals=args.gid_globals)
-        except ConfigError as e:
-            raise SystemExit(f"--gid-globals {args.gid_globals}: {e.reason}") from None
-    if args.ridge is not None and args.readout not in ("ridge", "dynamics"):
-        raise SystemExit(f"--ridge weights the fit of --readout ridge or dynamics, got --readout {args.readout}")
-    fit = {} if args.ridge_features is None else {"ridge_features": args.ridge_features}
-    fit.update({} if args.ridge is None else {"ridge": args.ridge})
-    sysid = SysIDConfig(identifier=identifier, transitions=args.transitions, stateless=args.stateless,
-                        readout=args.readout,
-                        ridge_head=args.ridge_head, local_params=args.local_params,
-                        nominal_static=args.nominal_static, **fit, **config)
-    return sysid, {"targets": args.targets, "start_windows": args.start_windows, "consistency": args.consistency,
-                   "param_loss": args.param_loss, "param_teacher": args.param_teacher}
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -521,7 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sysid", action="store_true",
                    help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
                         "GN infers a latent static graph from a 20-step window; `gnwarp evaluate` reads its checkpoints")
-    add_sysid_arguments(t.add_argument_group("system identification (with --sysid)"))
+    from gnwarp.train.sysid_config import add_sysid_arguments
+    add_sysid_arguments(t.add_argument_group("system identification (with --sysid; SysIDConfig and SysIDTrainConfig "
+                                             "fields)"))
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 

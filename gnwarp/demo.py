@@ -5,6 +5,7 @@ model and an MLP baseline for the same number of steps, evaluates both against t
 baseline (one-step, 20- and 100-step rollouts), and writes under ``out``::
 
     report.md          what was run, the error table, the pictures below
+    errors.md          the error table
     errors.png         normalized errors, GN vs MLP vs constant (like the paper's Figs. 4-5)
     states.png         the 13 state variables of one body along a 100-step rollout (Fig. H.1)
     rollouts.gif       true vs predicted motion of a few test rollouts
@@ -70,9 +71,8 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
 
     from gnwarp.data.dataset import load
     from gnwarp.data.generation import generate
-    from gnwarp.eval.animation import animate
     from gnwarp.eval.metrics import evaluate
-    from gnwarp.eval.report import markdown_table, plot_errors, plot_state_traces, plot_training
+    from gnwarp.eval.report import plot_training, write_report
     from gnwarp.sim.common import resolve_backend
     from gnwarp.train import TrainConfig, load_model, train
 
@@ -131,16 +131,7 @@ def run_demo(config: DemoConfig | None = None, **overrides) -> dict:
     timings["evaluate"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    table = markdown_table(results, cfg.system)
-    plot_errors(results, out / "errors.png", f"{cfg.system}: normalized errors")
-    preds = {n: r.pop("predictions") for n, r in results.items()}
-    true, inst = preds["GN"]["true"], preds["GN"]["instance"]
-    body = 1 if true.shape[2] > 1 else 0
-    plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, ds.dt,
-                      out / "states.png", f"{cfg.system}, body {body}: {true.shape[1] - 1}-step rollout")
-    k = min(cfg.animate_rollouts, true.shape[0])
-    animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, ds, inst[:k], out / "rollouts.gif",
-            title=f"{cfg.system}: true (grey) vs predicted rollouts", renderer=cfg.renderer)
+    table = write_report(results, ds, out, cfg.animate_rollouts, cfg.renderer)
     plot_training({"GN": out / "gn" / "log.csv", f"MLP {cfg.mlp_size}": out / "mlp" / "log.csv"},
                   out / "training.png")
     timings["plots"] = time.perf_counter() - t

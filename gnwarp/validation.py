@@ -20,7 +20,8 @@ import numpy as np
 import pydantic
 from pydantic import BeforeValidator, Field, Strict
 
-__all__ = ["ConfigError", "Allowed", "check_fields", "check_keys", "allowed_values", "MAX_WIDTH", "MAX_LAYERS", "IntRange", "FloatRange", "Flag", "Count", "PositiveInt", "PositiveFloat", "InputWidth", "Width", "Widths", "LayerCount"]
+__all__ = ["ConfigError", "Allowed", "check_fields", "check_keys", "allowed_values", "MAX_WIDTH", "MAX_LAYERS", "IntRange", "FloatRange", "Flag", "Count", "PositiveInt", "PositiveFloat", "InputWidth", "Width", "Widths", "LayerCount", "described", "flag_name",
+           "add_config_flags", "config_flags_given", "config_from_flags"]
 
 
 class ConfigError(ValueError):
@@ -198,3 +199,92 @@ def check_keys(cls, d: Any, what: str | None = None) -> dict:
     if unknown:
         raise ConfigError(unknown[0], f"unknown {what or cls.__name__ + ' keys'} {unknown} (known: {known})")
     return d
+
+
+# -- command-line flags generated from a config's fields -----------------------------------------
+def described(default=dataclasses.MISSING, help: str = "", **kwargs) -> dataclasses.Field:  # noqa: A002
+    """A dataclass field with a description (``help``), which its generated command-line flag
+    shows (``add_config_flags``); other arguments as ``dataclasses.field``'s."""
+    return dataclasses.field(default=default, metadata={"help": help}, **kwargs)
+
+
+def flag_name(name: str) -> str:
+    """The command-line flag of config field ``name``: ``param_loss`` -> ``--param-loss``."""
+    return "--" + name.replace("_", "-")
+
+
+def _base_type(tp):
+    """The plain type under an annotation (through Annotated and Optional)."""
+    if typing.get_origin(tp) is Annotated:
+        return _base_type(typing.get_args(tp)[0])
+    if typing.get_origin(tp) in (Union, types.UnionType):
+        inner = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _base_type(inner[0]) if len(inner) == 1 else tp
+    return tp
+
+
+def _flag_parser(flag: str, tp, adapter):
+    """argparse's ``type=`` for a flag: the text as the field's type, validated by its annotation
+    (an ``ArgumentTypeError`` naming the allowed values otherwise)."""
+    import argparse
+    base = _base_type(tp)
+    convert = base if base in (int, float) else (type(typing.get_args(base)[0]) if typing.get_origin(base) is Literal
+                                                 else str)
+
+    def parse(text: str):
+        try:
+            return adapter.validate_python(convert(text))
+        except (ValueError, pydantic.ValidationError):
+            raise argparse.ArgumentTypeError(f"must be {allowed_values(tp)}, got {text!r}") from None
+    parse.__name__ = flag
+    return parse
+
+
+def add_config_flags(parser, cls, names: Sequence[str] | None = None) -> list[str]:
+    """A flag per field of the config dataclass ``cls`` (``names``: those fields only, default
+    all) on ``parser`` (a parser or an argument group): ``--field-name`` (``flag_name``), its help
+    the field's description (``described``) and default, its values checked against the field's
+    annotation as they are parsed. A flag left out reads as None (``config_flags_given``); a
+    boolean field defaulting to False is a switch. Returns the flags."""
+    checks = _field_checks(cls)
+    unknown = sorted(set(names or ()) - set(checks))
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field {unknown[0]!r} to make a flag of")
+    out = []
+    for f in dataclasses.fields(cls):
+        if names is not None and f.name not in names:
+            continue
+        tp, adapter, _ = checks[f.name]
+        if adapter is None:
+            raise TypeError(f"{cls.__name__}.{f.name}: a nested config has no flag")
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        flag, text = flag_name(f.name), f.metadata.get("help", "")
+        if _base_type(tp) is bool and default is False:
+            parser.add_argument(flag, dest=f.name, action="store_true", default=None,
+                                help=f"{text} (default: off)" if text else "default: off")
+        else:
+            base = _base_type(tp)
+            choices = list(typing.get_args(base)) if typing.get_origin(base) is Literal else None
+            parser.add_argument(flag, dest=f.name, default=None, type=_flag_parser(flag, tp, adapter), choices=choices,
+                                metavar=None if choices else {int: "N", float: "X"}.get(base, "TEXT"),
+                                help=f"{text} (default: {default!r})" if text else f"default: {default!r}")
+        out.append(flag)
+    return out
+
+
+def config_flags_given(args, cls, names: Sequence[str] | None = None) -> dict[str, Any]:
+    """{field: value} of the flags of ``add_config_flags(parser, cls, names)`` set in ``args``
+    (an ``argparse.Namespace``)."""
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
+            if (names is None or f.name in names) and getattr(args, f.name, None) is not None}
+
+
+def config_from_flags(cls, args, names: Sequence[str] | None = None, **fields):
+    """``cls(**fields, **flags set)`` from ``add_config_flags``' flags in ``args``; a refused value
+    raises ``ConfigError`` naming its flag."""
+    given = config_flags_given(args, cls, names)
+    try:
+        return cls(**{**fields, **given})
+    except ConfigError as e:
+        head = e.path.split(".")[0]
+        raise ConfigError(flag_name(head) if head in given else e.path, e.reason) from None

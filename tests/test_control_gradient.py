@@ -179,10 +179,10 @@ def test_adam_state_is_shifted_with_the_plan(model, pendulum_data):
 def test_cuda_captured_planning_iteration_matches_eager(pendulum_data):
     """One planning iteration replayed from a CUDA graph (rollout, reward, adjoint backward, Adam)
     plans what eager iterations plan, step after step."""
-    from gnwarp.train.trainer import build_model
+    from gnwarp.models.factory import build_model
     torch.manual_seed(0)   # an untrained model on CUDA (the fixture's training runs Warp CPU kernels)
     cfg = TrainConfig(model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", precision="fp32")))
-    m = build_model(cfg, [pendulum_data]).to("cuda")
+    m = build_model(cfg.model, [pendulum_data]).to("cuda")
     plans = {}
     for capture in (True, False):
         p = GradientMPC(m, "pendulum-balance", "pendulum", n=4,

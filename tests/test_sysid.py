@@ -20,9 +20,11 @@ from gnwarp.models.recurrent import RecurrentGNConfig
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.rollout import RolloutEngine, RolloutInputError
 from gnwarp.models.gid import GIDError, load_gid, save_gid
-from gnwarp.models.sysid import SysIDConfig, SysIDModel
+from gnwarp.models import SysIDConfig, SysIDModel
 from gnwarp.train.checkpoint import CheckpointError, load_model
-from gnwarp.train.sysid import SysIDTrainer, load_sysid, sysid_rollout_error
+from gnwarp.eval.sysid import sysid_rollout_error
+from gnwarp.train.sysid import SysIDTrainer, load_sysid
+from gnwarp.train.sysid_config import SysIDTrainConfig
 from gnwarp.validation import ConfigError
 
 warp()
@@ -161,10 +163,12 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                  "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     ridge = load_sysid(tmp_path / "run-t" / "best").config
     assert (ridge.transitions, ridge.readout, ridge.ridge_head, ridge.ridge_features) == (True, "ridge", 8, 3)
-    saved = json.loads((tmp_path / "run-t" / "best" / "config.json").read_text())["train"]
+    saved = json.loads((tmp_path / "run-t" / "best" / "config.json").read_text())["sysid_train"]
     assert (saved["param_loss"], saved["param_teacher"]) == (1.0, 1.0)
-    with pytest.raises(SystemExit, match="--readout ridge"):
-        main(["train", "--data", str(path), "--sysid", "--ridge-features", "3", "-o", str(tmp_path / "run-f"), "-q"])
+    capsys.readouterr()
+    assert main(["train", "--data", str(path), "--sysid", "--ridge-features", "3", "-o", str(tmp_path / "run-f"),
+                 "-q"]) == 2
+    assert "--ridge-features: ridge_features splits GN_p's outputs for readout 'ridge'" in capsys.readouterr().err
     assert main(["train", "--data", str(path), "--sysid", "--param-teacher", "0.5", "-o", str(tmp_path / "run-q"),
                  "-q"] + [a for kv in sets for a in ("--set", kv)]) == 2
     assert "needs param_loss" in capsys.readouterr().err and not (tmp_path / "run-q" / "best").exists()
@@ -182,12 +186,12 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["train", "--data", str(path), "--sysid", "--ridge-head", "8", "-o", str(tmp_path / "run-h"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 2
     assert "ridge_head" in capsys.readouterr().err and not (tmp_path / "run-h" / "best").exists()
-    saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["train"]
+    saved = json.loads((tmp_path / "run-m" / "best" / "config.json").read_text())["sysid_train"]
     assert (saved["start_windows"], saved["consistency"]) == (0.5, 0.3)
     assert main(["train", "--data", str(path), "--sysid", "--param-loss", "2", "-o", str(tmp_path / "run-p"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     saved = json.loads((tmp_path / "run-p" / "best" / "config.json").read_text())
-    assert saved["train"]["param_loss"] == 2.0 and "param_stats" in saved
+    assert saved["sysid_train"]["param_loss"] == 2.0 and "param_stats" in saved
     assert main(["train", "--data", str(path), "--sysid", "--param-loss", "1", "--local-params", "-o",
                  str(tmp_path / "run-l"), "-q"] + [a for kv in sets for a in ("--set", kv)]) == 0
     local = load_sysid(tmp_path / "run-l" / "best").config
@@ -200,9 +204,10 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
                 + [a for kv in sets for a in ("--set", kv)]) == 0
     ident = load_sysid(tmp_path / "run-g" / "best").config.identifier
     assert (ident.out_globals, ident.hidden_globals, ident.out_nodes) == (6, 6, SysIDConfig().identifier.out_nodes)
-    with pytest.raises(SystemExit, match="--gid-globals 0"):
-        main(["train", "--data", str(path), "--sysid", "--gid-globals", "0", "-o", str(tmp_path / "run-g0"), "-q"])
     capsys.readouterr()
+    assert main(["train", "--data", str(path), "--sysid", "--gid-globals", "0", "-o", str(tmp_path / "run-g0"),
+                 "-q"]) == 2
+    assert "--gid-globals: must be an integer from 1" in capsys.readouterr().err
     assert main(["train", "--data", str(path), "--sysid", "--local-params", "-o", str(tmp_path / "run-l0"), "-q"]
                 + [a for kv in sets for a in ("--set", kv)]) == 2
     assert "needs param_loss" in capsys.readouterr().err
@@ -247,8 +252,9 @@ def test_cuda_captured_sysid_training_matches_uncaptured(pendulum, tmp_path, opt
                           model=ModelConfig(gn=TINY, run=RunOptions(impl="warp", deterministic=True)))
         rows = []
         tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W, **options), datasets=[pendulum],
-                          start_windows=start, consistency=consistency, param_loss=param_loss, param_teacher=teacher,
-                          callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None])
+                          callbacks=[lambda t, event, info: rows.append(info["row"]) if event == "log" else None],
+                              options=SysIDTrainConfig(start_windows=start, consistency=consistency,
+                                                       param_loss=param_loss, param_teacher=teacher))
         tr.run()
         assert (tr.captured is not None and tr.captured.graph is not None) == capture
         runs[capture] = (tr, rows)
@@ -358,6 +364,65 @@ def test_sysid_resume_continues_exactly(pendulum, tmp_path, ema):
         SysIDTrainer(cfg("fwd", 40), SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
 
 
+def _old_format(folder: Path, options: dict | None) -> None:
+    """Rewrite a checkpoint's config.json as checkpoints before "sysid_train" were: the training
+    options inside its "train" table (``options``; None: no options recorded at all); the
+    manifest updated so that it stays a valid checkpoint."""
+    from gnwarp.files import sha256_file
+    from gnwarp.train.checkpoint import MANIFEST
+    cfg = json.loads((folder / "config.json").read_text())
+    del cfg["sysid_train"]
+    cfg["train"].update(options or {})
+    (folder / "config.json").write_text(json.dumps(cfg))
+    manifest = json.loads((folder / MANIFEST).read_text())
+    manifest["config.json"] = sha256_file(folder / "config.json")
+    (folder / MANIFEST).write_text(json.dumps(manifest))
+
+
+def test_sysid_training_options_round_trip_and_resume_without_side_channel(pendulum, tmp_path):
+    """``SysIDTrainConfig`` is saved in config.json ("sysid_train") and read back by
+    ``trained_options``; a rerun into the same out with neither the model config nor the options
+    resumes as the run started (10 + 10 steps give the weights of 20 straight); checkpoints
+    written before the table load with the options their "train" table holds (the defaults,
+    the paper's, where it holds none), and a malformed table is refused saying how to fix it."""
+    import shutil
+    from gnwarp.train.sysid import trained_options
+
+    def cfg(name, steps):
+        return TrainConfig(out=str(tmp_path / name), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")),
+                           steps=steps, batch_size=16, lr=3e-3, valid_every=10, valid_sequences=2, log_every=5,
+                           checkpoint_every=10, progress=False, device="cpu", normalizer_warmup=5)
+    sysid = SysIDConfig(identifier=ID, window=W, readout="mean")
+    options = SysIDTrainConfig(targets=2, start_windows=0.5, param_loss=1.0)
+    assert SysIDTrainConfig.from_dict(json.loads(json.dumps(options.to_dict()))) == options
+    full = SysIDTrainer(cfg("full", 20), sysid, datasets=[pendulum], options=options).run()
+    half = SysIDTrainer(cfg("half", 10), sysid, datasets=[pendulum], options=options).run()
+    saved = json.loads((Path(half["last"]) / "config.json").read_text())
+    assert saved["sysid_train"] == options.to_dict() and "param_loss" not in saved["train"]
+    assert trained_options(load_sysid(half["last"])) == options
+    shutil.copytree(tmp_path / "half", tmp_path / "old")   # the same run, its checkpoint as written before
+    resumed = SysIDTrainer(cfg("half", 20), datasets=[pendulum])   # no sysid, no options: the checkpoint's
+    assert resumed.state["step"] == 10 and resumed.options == options and resumed.model.config.readout == "mean"
+    r = resumed.run()
+    a, b = load_sysid(full["last"]), load_sysid(r["last"])
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)
+    assert trained_options(b) == options
+    # a new run (nothing to resume) without options trains the paper's way
+    assert SysIDTrainer(cfg("new", 10), sysid, datasets=[pendulum]).options == SysIDTrainConfig()
+
+    old = tmp_path / "old" / "last"
+    _old_format(old, options.to_dict())
+    assert trained_options(load_sysid(old)) == options
+    assert SysIDTrainer(cfg("old", 20), datasets=[pendulum]).options == options   # resumes from the old format
+    _old_format(tmp_path / "old" / "best", None)       # from before the options: the paper's training
+    assert trained_options(load_sysid(tmp_path / "old" / "best")) == SysIDTrainConfig()
+    bad = load_sysid(half["last"])
+    bad.checkpoint_info = {**bad.checkpoint_info, "sysid_train": {"targets": 0}}
+    with pytest.raises(CheckpointError, match="targets: must be an integer >= 1.*fix or remove"):
+        trained_options(bad)
+
+
 def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
     """A system-ID model reads no static feature of the data, but its rollouts (plain and in a
     rollout engine on a fixed G_ID) clamp controls to the bound source's actuator ranges as
@@ -458,7 +523,7 @@ def test_stacked_window_holds_each_steps_graph(pendulum, system):
     builder's shared topology tensors, instances of varied link counts (the swimmer) their own."""
     from gnwarp.data import FeatureLayout, graph_builder
     from gnwarp.graphs import batch
-    from gnwarp.models.sysid import StackedWindow
+    from gnwarp.models.sysid_graphs import StackedWindow
     ds = pendulum if system == "pendulum" else data.generate("swimmer", (6, 1, 1), num_steps=8, seed=0,
                                                               backend="mujoco", parameterized=True, progress=False)
     b = graph_builder(FeatureLayout([], [], [], n_ctrl_slots=ds.layout.n_ctrl_slots), ds)
@@ -485,7 +550,7 @@ def test_another_instances_window_shares_the_graph_topology(pendulum, tmp_path, 
     parameterized swimmer) from the previous sequence of its own topology, so that ``gnwarp
     evaluate`` reports the row instead of refusing a G_ID of another graph layout."""
     from gnwarp.cli import main
-    from gnwarp.train.sysid import other_instance_windows
+    from gnwarp.eval.sysid import other_instance_windows
     np.testing.assert_array_equal(other_instance_windows(pendulum, "train", 7), np.roll(np.arange(7), 1))
     ds = data.generate("swimmer", (12, 1, 8), num_steps=26, seed=0, backend="mujoco", parameterized=True,
                        progress=False)
@@ -550,16 +615,18 @@ def test_stateless_identifier_reads_each_step_on_its_own(pendulum, tmp_path, imp
 
 
 def test_several_targets_per_identification_window(pendulum, tmp_path):
-    """``SysIDTrainer(targets=K)``: K one-step losses per window, at steps outside it, each with
+    """``SysIDTrainConfig(targets=K)``: K one-step losses per window, at steps outside it, each with
     the window's G_ID; K=1 draws what the paper's sampling draws; it trains."""
     cfg = TrainConfig(out=str(tmp_path / "k"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=30,
                       batch_size=8, lr=3e-3, valid_every=30, valid_sequences=2, log_every=10, checkpoint_every=30,
                       progress=False, device="cpu", normalizer_warmup=2)
     with pytest.raises(ValueError, match="targets"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], targets=0)
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                     options=SysIDTrainConfig(targets=0))
     rows = []
-    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], targets=3,
-                      callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None])
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                      callbacks=[lambda t, e, info: rows.append(info["row"]) if e == "log" else None],
+                          options=SysIDTrainConfig(targets=3))
     (parts,) = tr.sample()
     p = parts[0]
     assert p.graph.n_node.shape[0] == 3 * 8 and p.target.shape == (3 * 8 * 2, 13)
@@ -724,7 +791,7 @@ def test_pooled_readouts_of_the_identifiers_outputs(pendulum, tmp_path, readout,
 
 
 def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
-    """``SysIDTrainer(start_windows=F)``: F = 1 draws every window at its sequence's start, F = 0.5
+    """``SysIDTrainConfig(start_windows=F)``: F = 1 draws every window at its sequence's start, F = 0.5
     about half of them, F = 0 (the paper's) uniform windows; targets stay outside the window;
     values outside [0, 1] are refused by name; the fraction is recorded in the run's config."""
     cfg = TrainConfig(out=str(tmp_path / "s"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=20,
@@ -732,7 +799,8 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
                       progress=False, device="cpu", normalizer_warmup=2)
     for bad in (-0.1, 1.5, True, "half"):
         with pytest.raises(ValueError, match="start_windows"):
-            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=bad)
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                         options=SysIDTrainConfig(start_windows=bad))
     body = torch.as_tensor(pendulum["train"].body[...])
 
     def starts(tr, draws=4):
@@ -752,14 +820,16 @@ def test_identification_windows_at_the_sequence_start(pendulum, tmp_path):
                 assert t0 and not t <= t0[0] < t + W        # the target lies outside the window
                 out.append(t == 0)
         return np.mean(out)
-    all_start = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=1.0)
+    all_start = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                             options=SysIDTrainConfig(start_windows=1.0))
     assert starts(all_start) == 1.0
-    half = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], start_windows=0.5)
+    half = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                        options=SysIDTrainConfig(start_windows=0.5))
     assert 0.35 < starts(half) < 0.65
     uniform = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum])
     assert starts(uniform) < 0.2      # 1 in T - W + 1 = 26 windows
     summary = half.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["start_windows"] == 0.5
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["start_windows"] == 0.5
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -847,7 +917,7 @@ def check_added_term(model, terms, name, weight):
 
 
 def test_window_consistency_term(pendulum, tmp_path):
-    """``SysIDTrainer(consistency=c)``: a batch's second half re-draws its first half's
+    """``SysIDTrainConfig(consistency=c)``: a batch's second half re-draws its first half's
     sequences with new windows; the loss adds c times ``window_spread`` of the batch's G_ID
     (recomputed here from the sampled windows), whose gradient reaches GN_p only; bad weights
     and odd shares are refused by name; the weight is recorded in the run's config."""
@@ -855,12 +925,15 @@ def test_window_consistency_term(pendulum, tmp_path):
     cfg = term_config(tmp_path / "c")
     for bad in (-0.5, math.nan, True, "1"):
         with pytest.raises(ValueError, match="consistency"):
-            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=bad)
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                         options=SysIDTrainConfig(consistency=bad))
     cfg.batch_size = 15
     with pytest.raises(ValueError, match="even"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=1.0)
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                     options=SysIDTrainConfig(consistency=1.0))
     cfg.batch_size = 16
-    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=0.7)
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                      options=SysIDTrainConfig(consistency=0.7))
     body = torch.as_tensor(pendulum["train"].body[...])
     (parts,) = tr.sample()
     p = parts[0]
@@ -879,15 +952,16 @@ def test_window_consistency_term(pendulum, tmp_path):
     assert float(terms["window_spread"].detach()) == pytest.approx(float(window_spread(g_id).detach()), rel=1e-5)
     check_added_term(tr.model, terms, "window_spread", 0.7)
     summary = tr.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["consistency"] == 0.7
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["consistency"] == 0.7
     import csv
     with open(Path(summary["out"]) / "log.csv", newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["loss"]]
     assert rows and all(0.0 <= float(r["window_spread"]) < 2.0 for r in rows)
     cfg.steps = 20     # resumed from `last`: the log keeps its columns and gains the new rows
     logged = []
-    SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], consistency=0.7,
-                 callbacks=[lambda t, e, info: logged.append(int(info["row"]["step"])) if e == "log" else None]).run()
+    SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                 callbacks=[lambda t, e, info: logged.append(int(info["row"]["step"])) if e == "log" else None],
+                     options=SysIDTrainConfig(consistency=0.7)).run()
     assert logged == [15, 20]
     with open(Path(summary["out"]) / "log.csv", newline="") as f:
         text = f.read()
@@ -897,24 +971,27 @@ def test_window_consistency_term(pendulum, tmp_path):
 
 
 def test_parameter_supervision(pendulum, tmp_path):
-    """``SysIDTrainer(param_loss=w)``: the loss adds w times the masked mean squared error between
+    """``SysIDTrainConfig(param_loss=w)``: the loss adds w times the masked mean squared error between
     G_ID's first P global columns and the instances' standardized parameters (recomputed here
     in float64 from the dataset), whose gradient reaches GN_p only; training with it makes
     ``estimate_params`` track the true parameters better than the untrained identifier; bad weights, data without parameters
     and a G_ID too narrow are refused by name; the weight and statistics land in config.json."""
 
-    from gnwarp.train.sysid import estimate_params, param_stats
+    from gnwarp.models.sysid_params import estimate_params, param_stats
     cfg = term_config(tmp_path / "p")
     for bad in (-1.0, math.inf, True, "1"):
         with pytest.raises(ValueError, match="param_loss"):
-            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=bad)
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                         options=SysIDTrainConfig(param_loss=bad))
     narrow = RecurrentGNConfig(latent=8, hidden_edges=4, hidden_nodes=4, hidden_globals=4, edge_mlp=(16,),
                                node_mlp=(16,), global_mlp=(16,), out_edges=3, out_nodes=3, out_globals=1)
     with pytest.raises(ValueError, match="2 parameters but G_ID has 1 global"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=narrow, window=W), datasets=[pendulum], param_loss=1.0)
+        SysIDTrainer(cfg, SysIDConfig(identifier=narrow, window=W), datasets=[pendulum],
+                     options=SysIDTrainConfig(param_loss=1.0))
     fixed = data.generate("pendulum", (4, 1, 1), num_steps=12, seed=0, backend="mujoco", progress=False)
     with pytest.raises(ValueError, match="no instance parameters"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[fixed], param_loss=1.0)
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[fixed],
+                     options=SysIDTrainConfig(param_loss=1.0))
 
     st = param_stats(pendulum)
     raw = np.asarray(pendulum.static["params"], dtype=np.float64)
@@ -925,7 +1002,8 @@ def test_parameter_supervision(pendulum, tmp_path):
 
     Wp = 10   # a window long enough for the tiny identifier to read a length from
     cfg.lr = 1e-2
-    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=Wp), datasets=[pendulum], param_loss=5.0)
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=Wp), datasets=[pendulum],
+                      options=SysIDTrainConfig(param_loss=5.0))
     (parts,) = tr.sample()
     p = parts[0]
     terms = tr.loss(parts, accumulate=False)
@@ -955,7 +1033,7 @@ def test_parameter_supervision(pendulum, tmp_path):
     after = error()
     assert after < 0.8 * before, (before, after)
     saved = json.loads((Path(summary["last"]) / "config.json").read_text())
-    assert saved["train"]["param_loss"] == 5.0
+    assert saved["sysid_train"]["param_loss"] == 5.0
     assert saved["param_stats"]["pendulum"]["names"] == ["length", "mass"]
     np.testing.assert_allclose(saved["param_stats"]["pendulum"]["std"], st.std)
 
@@ -967,7 +1045,7 @@ def test_param_stats_masks_missing_and_constant_parameters():
     from types import SimpleNamespace
 
     from gnwarp.graphs import GraphsTuple
-    from gnwarp.train.sysid import estimate_params, param_stats
+    from gnwarp.models.sysid_params import estimate_params, param_stats
     params = np.array([[1.0, np.nan, 2.0], [3.0, np.nan, 2.0], [5.0, 7.0, 2.0], [100.0, 1.0, 9.0]])
 
     class Fake(dict):   # a dataset's three attributes param_stats reads; instance 3 is not in train
@@ -993,24 +1071,25 @@ def test_param_stats_masks_missing_and_constant_parameters():
 
 
 def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
-    """``SysIDTrainer(param_teacher=1)``: the forward model's loss is computed with G_ID's first P
+    """``SysIDTrainConfig(param_teacher=1)``: the forward model's loss is computed with G_ID's first P
     global columns set to the instances' standardized parameters (recomputed here in float64),
     so its gradient leaves GN_p's rows for those columns untouched; bad fractions, and teacher
     forcing without ``param_loss``, are refused by name; the fraction lands in config.json.
     ``sysid_rollout_error(oracle=param_stats(ds))`` is the error with those columns replaced by
     the true parameters, which differs from the identified G_ID's."""
 
-    from gnwarp.train.sysid import param_stats
+    from gnwarp.models.sysid_params import param_stats
     cfg = term_config(tmp_path / "q")
     cfg.noise_std = 0.0
     for bad in (-0.1, 1.5, True, "1"):
         with pytest.raises(ValueError, match="param_teacher"):
-            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=1.0,
-                         param_teacher=bad)
+            SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                         options=SysIDTrainConfig(param_loss=1.0, param_teacher=bad))
     with pytest.raises(ValueError, match="needs param_loss"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_teacher=1.0)
-    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum], param_loss=2.0,
-                      param_teacher=1.0)
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                     options=SysIDTrainConfig(param_teacher=1.0))
+    tr = SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=W), datasets=[pendulum],
+                      options=SysIDTrainConfig(param_loss=2.0, param_teacher=1.0))
     (parts,) = tr.sample()
     p = parts[0]
     terms = tr.loss(parts, accumulate=False)
@@ -1030,7 +1109,7 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
     w = m.identifier.out["globals"].weight.grad
     assert w[:2].abs().sum() == 0 and w[2:].abs().sum() > 0     # GN_p's estimate is not what the model read
     summary = tr.run()
-    assert json.loads((Path(summary["last"]) / "config.json").read_text())["train"]["param_teacher"] == 1.0
+    assert json.loads((Path(summary["last"]) / "config.json").read_text())["sysid_train"]["param_teacher"] == 1.0
 
     model = load_sysid(summary["last"]).bind(pendulum)
     inst = np.asarray(pendulum["valid"].instance[...])
@@ -1051,7 +1130,8 @@ def test_parameter_teacher_forcing_and_the_oracle_error(pendulum, tmp_path):
         sysid_rollout_error(model, fixed, "valid", 2, oracle=st)
 
     # the statistics it was trained with, from its checkpoint, checked
-    from gnwarp.train.sysid import ParamStats, trained_param_stats
+    from gnwarp.models.sysid_params import ParamStats
+    from gnwarp.train.sysid import trained_param_stats
     kept = trained_param_stats(model, "pendulum")
     assert kept.names == st.names and np.allclose(kept.mean, st.mean) and np.allclose(kept.std, st.std)
     assert trained_param_stats(model, "cartpole") is None
@@ -1101,14 +1181,14 @@ def test_local_params_hand_each_parameter_to_its_node_and_edges(jaco, pendulum, 
     (its first P globals) on the node of each link mass and on both edges of each gear's joint,
     zero elsewhere; teacher forcing puts the true parameters there; the placement is saved and
     checked against the data bound; misuse is refused by name."""
-    from gnwarp.models.sysid import source_places
-    from gnwarp.train.sysid import with_params
+    from gnwarp.models.sysid_graphs import source_places
+    from gnwarp.models.sysid_params import with_params
     idg = dataclasses.replace(ID, out_globals=18, hidden_globals=18)
     cfg = TrainConfig(out=str(tmp_path / "l"), model=ModelConfig(gn=TINY, run=RunOptions(impl="torch")), steps=2,
                       batch_size=4, lr=1e-3, valid_every=2, valid_sequences=2, valid_horizon=2, checkpoint_every=2,
                       progress=False, device="cpu", normalizer_warmup=1)
     sc = SysIDConfig(identifier=idg, window=3, local_params=True)
-    tr = SysIDTrainer(cfg, sc, datasets=[jaco], param_loss=1.0, param_teacher=1.0)
+    tr = SysIDTrainer(cfg, sc, datasets=[jaco], options=SysIDTrainConfig(param_loss=1.0, param_teacher=1.0))
     m = tr.model
     names = jaco.meta["param_names"]
     places = dict(zip(names, m.sysid.param_places))
@@ -1151,10 +1231,11 @@ def test_local_params_hand_each_parameter_to_its_node_and_edges(jaco, pendulum, 
     assert torch.isfinite(roll).all()
     with pytest.raises(ValueError, match="holds them elsewhere"):
         back.bind(pendulum)
-    with pytest.raises(ValueError, match="needs param_loss"):
-        SysIDTrainer(cfg, sc, datasets=[jaco])
-    with pytest.raises(ValueError, match="widen identifier.out_globals"):
-        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=3, local_params=True), datasets=[jaco], param_loss=1.0)
+    with pytest.raises(ValueError, match="needs param_loss"):   # (options left out: the resumed run's)
+        SysIDTrainer(cfg, sc, datasets=[jaco], options=SysIDTrainConfig())
+    with pytest.raises(ValueError, match="widen SysIDConfig.identifier.out_globals"):
+        SysIDTrainer(cfg, SysIDConfig(identifier=ID, window=3, local_params=True), datasets=[jaco],
+                     options=SysIDTrainConfig(param_loss=1.0))
     with pytest.raises(ValueError, match="set local_params=True"):
         SysIDConfig(param_places=(("nodes", (1,)),))
     with pytest.raises(ValueError, match="a node parameter has one row"):
@@ -1192,7 +1273,7 @@ def test_nominal_static_reads_the_system_as_designed(jaco, pendulum, tmp_path):
     every graph and normalized as static features are; the nominal graph is saved in the
     checkpoint and validated; another topology, a run resumed on other data and misuse are
     refused by name."""
-    from gnwarp.models.sysid import NominalGraph, nominal_graph
+    from gnwarp.models.sysid_graphs import NominalGraph, nominal_graph
     from gnwarp.validation import ConfigError
     nom = nominal_graph(jaco)
     layout, train = jaco.layout, np.unique(jaco["train"].instance[:])
@@ -1257,11 +1338,12 @@ def test_nominal_static_reads_the_system_as_designed(jaco, pendulum, tmp_path):
 
 
 def test_sysid_flags_map_to_the_config_and_trainer_options():
-    """``gnwarp.cli.add_sysid_arguments`` / ``sysid_settings`` (shared by ``gnwarp train --sysid``
-    and the figures script): each flag reaches its ``SysIDConfig`` field or ``SysIDTrainer``
-    option, ``sysid_flags_given`` names every flag set, and a misfit flag is refused by name."""
+    """``gnwarp.train.sysid_config.add_sysid_arguments`` / ``sysid_settings`` (shared by ``gnwarp
+    train --sysid`` and the figures script): each flag reaches its ``SysIDConfig`` or
+    ``SysIDTrainConfig`` field, ``sysid_flags_given`` names every flag set, and a misfit flag is
+    refused by name."""
     import argparse
-    from gnwarp.cli import add_sysid_arguments, sysid_flags_given, sysid_settings
+    from gnwarp.train.sysid_config import add_sysid_arguments, sysid_flag_values, sysid_flags_given, sysid_settings
     ap = argparse.ArgumentParser()
     add_sysid_arguments(ap)
     args = ap.parse_args(["--transitions", "--stateless", "--targets", "3", "--readout", "ridge", "--ridge-head", "8",
@@ -1274,15 +1356,53 @@ def test_sysid_flags_map_to_the_config_and_trainer_options():
             sysid.local_params, sysid.nominal_static, sysid.window) == (True, True, "ridge", 8, 2, 1e-5, True, True, 4)
     assert (sysid.identifier.out_globals, sysid.identifier.hidden_globals) == (7, 7)
     assert dataclasses.replace(sysid.identifier, out_globals=ID.out_globals, hidden_globals=ID.hidden_globals) == ID
-    assert options == {"targets": 3, "start_windows": 0.25, "consistency": 0.5, "param_loss": 2.0,
-                       "param_teacher": 0.75}
+    assert options == SysIDTrainConfig(targets=3, start_windows=0.25, consistency=0.5, param_loss=2.0,
+                                       param_teacher=0.75)
     every = {a.option_strings[0] for a in ap._actions if a.option_strings[0] != "-h"}
     assert set(sysid_flags_given(args)) == every and len(every) == 14 and sysid_flags_given(ap.parse_args([])) == []
-    plain, opts = sysid_settings(ap.parse_args([]))
-    assert plain == SysIDConfig() and opts == {"targets": 1, "start_windows": 0.0, "consistency": 0.0,
-                                               "param_loss": 0.0, "param_teacher": 0.0}
-    with pytest.raises(SystemExit, match="--ridge-features sets"):
+    assert sysid_flag_values(args)["param_loss"] == 2.0 and sysid_flag_values(ap.parse_args([]))["readout"] is None
+    assert sysid_settings(ap.parse_args([])) == (SysIDConfig(), SysIDTrainConfig())
+    with pytest.raises(ConfigError, match="--ridge-features: ridge_features splits"):
         sysid_settings(ap.parse_args(["--ridge-features", "2"]))
-    with pytest.raises(SystemExit, match="--ridge weights the fit of --readout ridge or dynamics"):
+    with pytest.raises(ConfigError, match="--ridge: ridge weights the fit of readout 'ridge' or 'dynamics'"):
         sysid_settings(ap.parse_args(["--ridge", "1e-5"]))
+    with pytest.raises(ConfigError, match="--param-teacher: .*needs param_loss > 0"):
+        sysid_settings(ap.parse_args(["--param-teacher", "0.5"]))
     assert sysid_settings(ap.parse_args(["--readout", "dynamics", "--ridge", "1e-4"]))[0].ridge == 1e-4
+
+
+def test_generated_flags_follow_the_config_fields(capsys):
+    """``gnwarp.validation.add_config_flags``: one flag per field of ``SysIDTrainConfig``, its help
+    the field's description and default, its values checked by the field's annotation as they
+    are parsed (a bad value refused naming its flag and the allowed values)."""
+    import argparse
+    from gnwarp.validation import add_config_flags, config_flags_given, config_from_flags
+    ap = argparse.ArgumentParser()
+    flags = add_config_flags(ap, SysIDTrainConfig)
+    names = [f.name for f in dataclasses.fields(SysIDTrainConfig)]
+    assert flags == ["--" + n.replace("_", "-") for n in names]
+    actions = {a.dest: a for a in ap._actions}
+    for f in dataclasses.fields(SysIDTrainConfig):
+        assert actions[f.name].default is None   # not given: the config's default
+        assert f.metadata["help"] in actions[f.name].help and f"(default: {f.default!r})" in actions[f.name].help
+    assert config_from_flags(SysIDTrainConfig, ap.parse_args([])) == SysIDTrainConfig()
+    args = ap.parse_args(["--param-loss", "0.5", "--targets", "2"])
+    assert config_flags_given(args, SysIDTrainConfig) == {"targets": 2, "param_loss": 0.5}
+    assert config_from_flags(SysIDTrainConfig, args) == SysIDTrainConfig(targets=2, param_loss=0.5)
+    for argv, text in ((["--targets", "0"], "argument --targets: must be an integer >= 1, got '0'"),
+                       (["--start-windows", "1.5"], "argument --start-windows: must be a finite number >= 0 and <= 1"),
+                       (["--consistency", "x"], "argument --consistency: must be a finite number >= 0, got 'x'")):
+        with pytest.raises(SystemExit):
+            ap.parse_args(argv)
+        assert text in capsys.readouterr().err
+    # the model's flags: a choice field lists its choices, a switch takes no value
+    ap = argparse.ArgumentParser()
+    add_config_flags(ap, SysIDConfig, ["readout", "transitions"])
+    assert {a.dest: a.choices for a in ap._actions if a.dest == "readout"} == {
+        "readout": ["last", "mean", "ridge", "dynamics"]}
+    assert ap.parse_args(["--transitions"]).transitions is True and ap.parse_args([]).transitions is None
+    with pytest.raises(TypeError, match="nested config"):
+        add_config_flags(argparse.ArgumentParser(), SysIDConfig, ["identifier"])
+    with pytest.raises(TypeError, match="no field 'readouts'"):
+        add_config_flags(argparse.ArgumentParser(), SysIDConfig, ["readouts"])
+    assert "(default: off)" in {a.dest: a.help for a in ap._actions}["transitions"]

@@ -220,8 +220,8 @@ def test_trainer_runs_a_given_model_as_its_config_says(tmp_path, pendulum):
     """A model passed to the Trainer runs as ``config.model.run`` says ("fp64": float64), and
     changing a model's options leaves other models built from the same config alone."""
     cfg = config(tmp_path, steps=2, valid_every=2)
-    other = gnwarp.train.build_model(cfg, [pendulum])
-    m = gnwarp.train.build_model(cfg, [pendulum])
+    other = gnwarp.models.build_model(cfg.model, [pendulum])
+    m = gnwarp.models.build_model(cfg.model, [pendulum])
     cfg.model.run = cfg.model.run.replace(precision="fp64")
     t = gnwarp.Trainer(cfg, [pendulum], model=m)
     assert t.model.dtype == torch.float64 and t.model.options.precision == "fp64"

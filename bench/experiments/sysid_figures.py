@@ -57,7 +57,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import device_name, experiment_out, gn_sizes  # noqa: E402
-from gnwarp.cli import add_sysid_arguments, sysid_flag_values, sysid_settings  # noqa: E402
+from gnwarp.train.sysid_config import SYSID_MODEL_FLAGS, add_sysid_arguments, sysid_settings  # noqa: E402
 
 SYSTEMS = ["pendulum", "cartpole", "cheetah", "jaco"]
 MODELS = ("no params", "true params", "sysid same", "sysid other")
@@ -133,7 +133,7 @@ def identifier_config(args):
 
 
 def sysid_config(args):
-    """(``SysIDConfig``, ``SysIDTrainer`` options) of the sysid model from the shared flags."""
+    """(``SysIDConfig``, ``SysIDTrainConfig``) of the sysid model from the shared flags."""
     return sysid_settings(args, identifier_config(args), window=args.window)
 
 
@@ -160,7 +160,7 @@ def train_all(args, ds, system: str, runs: Path) -> tuple[dict, dict]:
 
     cfg = train_config(args, runs / system / "sysid", ds)
     sysid, options = sysid_config(args)
-    r = SysIDTrainer(cfg, sysid, datasets=[ds], **options).run()
+    r = SysIDTrainer(cfg, sysid, datasets=[ds], options=options).run()
     models["sysid"], info["sysid"] = load_sysid(r["best"], device=args.device), r
     for m in [*models.values(), *models["true params runs"]]:
         if not isinstance(m, list):
@@ -174,17 +174,6 @@ def split_arrays(ds, split: str, n: int | None):
     n = len(sp) if n is None else min(int(n), len(sp))
     return (np.asarray(sp.body[:n], dtype=np.float32), np.asarray(sp.ctrl[:n], dtype=np.float32),
             np.asarray(sp.instance[:n]))
-
-
-def window_error(pred: np.ndarray, true: np.ndarray, mask: np.ndarray, shares: bool = False):
-    """Normalized error (``gnwarp.eval.metrics.normalized_errors``) of rollouts [S, H+1, B, 13]
-    whose step 0 is the true state; the constant baseline repeats it. ``shares``: (error, each
-    sequence's share of it [S], ``gnwarp.eval.metrics.sequence_shares``)."""
-    from gnwarp.eval.metrics import normalized_errors, sequence_shares
-    const = np.broadcast_to(true[:, :1], true.shape)
-    r = normalized_errors(pred[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"]
-    r = r if math.isfinite(r) else math.inf
-    return (r, sequence_shares(pred[:, 1:], true[:, 1:], const[:, 1:], mask)) if shares else r
 
 
 @torch.no_grad()
@@ -209,7 +198,8 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
     run, of sysid and of its oracle ("sequences" row, 3 digits, with the test instances'
     parameters): a mean of squared rollout errors can rest on a few sequences."""
     from gnwarp.eval.metrics import movable_mask, rollout_error
-    from gnwarp.train.sysid import other_instance_windows, sysid_rollout_predictions, trained_param_stats
+    from gnwarp.eval.sysid import other_instance_windows, sysid_rollout_predictions, window_errors
+    from gnwarp.train.sysid import trained_options, trained_param_stats
     W, n = args.window, min(args.test, len(ds["test"]))
     H = ds["test"].num_steps - W
     inst = split_arrays(ds, "test", n)[2]
@@ -220,12 +210,12 @@ def fig8_rows(args, system: str, ds, models: dict) -> list[dict]:
     preds["no params"] = forward_window_predictions(models["no params"], ds, "test", W, H, n)
     preds["sysid same"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n)
     preds["sysid other"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n, window_from=other)
-    if args.param_loss > 0:   # the sysid forward model with its supervised columns identified perfectly
+    if trained_options(models["sysid"]).param_loss > 0:   # its supervised columns identified perfectly
         preds["oracle"] = sysid_rollout_predictions(models["sysid"], ds, "test", H, n,
                                                     oracle=trained_param_stats(models["sysid"], system))
     errs, shares = {}, {}
     for k, (pred, true, _) in preds.items():
-        errs[k], shares[k] = window_error(pred, true, mask, shares=True)
+        errs[k], shares[k] = window_errors(pred, true, mask, shares=True)
     runs = [errs[f"true params {k}"] for k in range(len(models["true params runs"]))]
     errs["true params"] = float(np.median(runs))   # one run's, or the median of --reference-runs
     # for reference, the forward models' usual error (rollouts from step 0, ``gnwarp.eval``)
@@ -317,7 +307,8 @@ def estimate_rows(args, system: str, ds, model) -> list[dict]:
     """With ``--param-loss``: the parameters G_ID carries (``estimate_params``) against the test
     instances' true ones, from each test sequence's first window: the rms error over the
     parameter's mean magnitude, and R^2."""
-    from gnwarp.train.sysid import estimate_params, trained_param_stats
+    from gnwarp.models.sysid_params import estimate_params
+    from gnwarp.train.sysid import trained_param_stats
     body, ctrl, inst = split_arrays(ds, "test", args.test)
     model.bind(ds)
     W = model.window
@@ -342,6 +333,7 @@ def fig9(args, models: dict, out: Path) -> list[dict]:
     """Pendulum instances of given lengths (mass 1): identification windows with and without
     controls, rollouts from step W; rows of errors and the trajectories of one sequence each."""
     from gnwarp.data import initial_states
+    from gnwarp.eval.sysid import window_errors
     from gnwarp.sim import control_range, make, random_spline_controls, simulate
     sysid, true_m = models["sysid"], models["true params"]
     W, T, n = args.window, args.num_steps, args.fig9_sequences
@@ -365,7 +357,7 @@ def fig9(args, models: dict, out: Path) -> list[dict]:
                                  torch.zeros(n, dtype=torch.int64), builder=builder).float().cpu().numpy()
             true = body[:, W:W + H + 1]
             rows.append({"part": "fig9", "system": "pendulum", "length": float(L), "condition": cond,
-                         "sysid": window_error(pred, true, mask), "true params": window_error(ref, true, mask),
+                         "sysid": window_errors(pred, true, mask), "true params": window_errors(ref, true, mask),
                          "fig9_sequences": n, "window": W, "horizon": H})
             traces[(float(L), cond)] = (body[0], pred[0], ref[0], uu[0])
     plot_fig9(traces, args.fig9_lengths, W, out / (f"fig9_{args.label}.png" if args.label else "fig9.png"))
@@ -681,14 +673,15 @@ def main():
                 key = "sysid" if r["model"].startswith("sysid") else r["model"]
                 r.update(steps=info[key]["steps"], train_seconds=round(info[key]["seconds"], 1))
             rows += probe_rows(args, system, ds, models["sysid"])
-            if args.param_loss > 0:
+            sysid, options = sysid_config(args)
+            if options.param_loss > 0:
                 rows += estimate_rows(args, system, ds, models["sysid"])
             rows += spread_rows(args, system, ds, models["sysid"])
             if system == "pendulum":
                 rows += fig9(args, models, out)
-            # the sysid flags as set (a flag left at None, its config's default, is not recorded)
-            flags = {k: v for k, v in sysid_flag_values(args).items() if v is not None}
-            flags["gid_globals"] = args.gid_globals or args.gid
+            # the sysid settings trained with (each flag's value, its config's default where not set)
+            flags = {**{k: getattr(sysid, k) for k in SYSID_MODEL_FLAGS}, **options.to_dict(),
+                     "gid_globals": sysid.identifier.out_globals}
             for r in rows:
                 r.update(device=dev, quick=args.quick, data_seconds=round(t_data, 1), **flags,
                          precision=args.precision or "tf32", noise_std=cfg_noise(args), ema=args.ema,

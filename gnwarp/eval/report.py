@@ -1,5 +1,6 @@
 """Reports of evaluation results: markdown tables, bar charts of the normalized errors (like the
-paper's Figs. 4-5), state traces along a rollout (Fig. H.1) and training curves."""
+paper's Figs. 4-5), state traces along a rollout (Fig. H.1), training curves, and all of them
+written to one folder (``write_report``, what ``gnwarp evaluate -o`` and ``gnwarp demo`` write)."""
 from __future__ import annotations
 
 import csv
@@ -10,7 +11,7 @@ import numpy as np
 
 from gnwarp.state import DYN_NODE_NAMES, GROUPS
 
-__all__ = ["markdown_table", "plot_errors", "plot_state_traces", "plot_training"]
+__all__ = ["markdown_table", "plot_errors", "plot_state_traces", "plot_training", "write_report"]
 
 
 def _pyplot():
@@ -136,3 +137,31 @@ def plot_training(logs: dict[str, Path], path) -> Path:
     b.legend(fontsize=8)
     fig.tight_layout()
     return _save(fig, path, 110)
+
+
+def write_report(results: dict[str, dict], dataset, out, rollouts: int = 3, renderer: str = "matplotlib") -> str:
+    """Write the report of ``evaluate`` results (``results``: {model name: its output}) on
+    ``dataset`` into the folder ``out`` (made if missing): ``errors.md`` (``markdown_table``),
+    ``errors.png`` (``plot_errors``) and, where the results kept their predictions
+    (``keep_predictions=True``; they are popped from ``results``), ``states.png`` (the 13 state
+    variables of one body along the first test rollout) and ``rollouts.gif`` (the first
+    ``rollouts`` rollouts, true vs predicted, drawn by ``renderer``, as ``animate``'s). Returns
+    the markdown table."""
+    from gnwarp.eval.animation import animate
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    system = dataset.system
+    preds = {n: r.pop("predictions", None) for n, r in results.items()}
+    table = markdown_table(results, system)
+    (out / "errors.md").write_text(table)
+    plot_errors(results, out / "errors.png", f"{system}: normalized errors")
+    first = next(iter(preds.values()))
+    if first is not None:
+        true, inst = first["true"], first["instance"]
+        body = 1 if true.shape[2] > 1 else 0   # the first body that moves in a chain fixed to the world
+        plot_state_traces(true[0, :, body], {n: p["pred"][0, :, body] for n, p in preds.items()}, dataset.dt,
+                          out / "states.png", f"{system}, body {body}: {true.shape[1] - 1}-step rollout")
+        k = min(rollouts, true.shape[0])
+        animate(true[:k], {n: p["pred"][:k] for n, p in preds.items()}, dataset, inst[:k], out / "rollouts.gif",
+                title=f"{system}: true (grey) vs predicted rollouts", renderer=renderer)
+    return table

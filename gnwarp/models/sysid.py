@@ -19,286 +19,29 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
-from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
 
-import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from gnwarp.data.builder import GraphTemplate, graph_builder
 from gnwarp.data.layout import FeatureLayout
+from gnwarp.gn.index import graph_index
 from gnwarp.gn.options import RunOptions
 from gnwarp.gn.reference import MLP
-from gnwarp.gn.index import graph_index
-from gnwarp.graphs import GraphsTuple, batch
-from gnwarp.models.config import ModelConfig
+from gnwarp.graphs import GraphsTuple
 from gnwarp.models.forward import ForwardModel
 from gnwarp.models.gid import FixedGIDModel, GIDError
 from gnwarp.models.normalizer import Normalizer
-from gnwarp.models.recurrent import KINDS, RecurrentGNConfig, RecurrentGNCore
+from gnwarp.models.recurrent import KINDS, RecurrentGNCore
 from gnwarp.models.rollout import (RolloutInputError, RolloutInputs, check_instance, float_tensor,
                                   source_info)
-from gnwarp.state import ANGVEL, DYN_NODE_SIZE, LINVEL, state_delta
-from gnwarp.validation import (MAX_WIDTH, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
-                               check_fields, check_keys)
+from gnwarp.models.sysid_config import FIT_TARGETS, SysIDConfig
+from gnwarp.models.sysid_graphs import (StackedWindow, gid_layout, instance_topologies, place_tables, source_name,
+                                        source_places, source_static)
+from gnwarp.state import DYN_NODE_SIZE, state_delta
 
-__all__ = ["SysIDConfig", "SysIDModel", "NominalGraph", "StackedWindow", "source_places", "nominal_graph",
-           "instance_topologies"]
-
-
-# the readouts that fit a linear model over the window (``SysIDConfig.readout``)
-FITS = ("ridge", "dynamics")
-# the "dynamics" readout's targets: the velocity columns of ``state_delta`` (6)
-FIT_TARGETS = slice(LINVEL.start, ANGVEL.stop)
-
-
-Finite = FloatRange()
-
-
-@dataclass
-class NominalGraph:
-    """One graph's static features as ``SysIDConfig.nominal_static`` reads them: the kept static
-    columns of the training data (``*_names``; the data's ``FeatureLayout``), each element at its
-    mean over the train split's instances (``globals`` [F_g], ``nodes`` [n][F_v], ``edges``
-    [e][F_e]), and the graph's topology (``senders``, ``receivers`` [e]). Built by
-    ``nominal_graph``; validated when made, so a checkpoint's is checked as it loads."""
-    global_names: tuple[str, ...]
-    node_names: tuple[str, ...]
-    edge_names: tuple[str, ...]
-    globals: tuple[Finite, ...]
-    nodes: tuple[tuple[Finite, ...], ...]
-    edges: tuple[tuple[Finite, ...], ...]
-    senders: tuple[Count, ...]
-    receivers: tuple[Count, ...]
-
-    def __post_init__(self):
-        check_fields(self)
-        rows = {"globals": [self.globals], "nodes": self.nodes, "edges": self.edges}
-        for kind, names in (("globals", self.global_names), ("nodes", self.node_names), ("edges", self.edge_names)):
-            bad = [i for i, r in enumerate(rows[kind]) if len(r) != len(names)]
-            if bad:
-                raise ConfigError(kind, f"row {bad[0]} has {len(rows[kind][bad[0]])} values for "
-                                        f"{len(names)} {kind[:-1]} columns")
-        if not self.nodes:
-            raise ConfigError("nodes", "a nominal graph has at least one node")
-        if not (len(self.senders) == len(self.receivers) == len(self.edges)):
-            raise ConfigError("senders", f"{len(self.senders)} senders and {len(self.receivers)} receivers for "
-                                         f"{len(self.edges)} edges")
-        if any(i >= len(self.nodes) for i in (*self.senders, *self.receivers)):
-            raise ConfigError("senders", f"an edge's node index is beyond the graph's {len(self.nodes)} nodes")
-
-    def to_dict(self) -> dict:
-        return {f.name: [list(r) for r in v] if f.name in ("nodes", "edges") else list(v)
-                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "NominalGraph":
-        return cls(**check_keys(cls, d, "nominal graph keys"))
-
-    def tensors(self) -> dict[str, torch.Tensor]:
-        """{"globals" [F_g], "nodes" [n, F_v], "edges" [e, F_e]} float64."""
-        return {"globals": torch.tensor(self.globals, dtype=torch.float64),
-                "nodes": torch.tensor(self.nodes, dtype=torch.float64).reshape(len(self.nodes), len(self.node_names)),
-                "edges": torch.tensor(self.edges, dtype=torch.float64).reshape(len(self.edges), len(self.edge_names))}
-
-
-def _source_static(source) -> dict:
-    """A Dataset's or a System's static arrays (``gnwarp.data.static_arrays``' layout)."""
-    from gnwarp.data.convert import static_arrays
-    from gnwarp.sim.systems import System
-    return static_arrays([source])[0] if isinstance(source, System) else source.static
-
-
-def _source_name(source) -> str:
-    return repr(getattr(source, "system", getattr(source, "name", type(source).__name__)))
-
-
-def instance_topologies(static: dict) -> list[tuple]:
-    """Per instance of static arrays (``gnwarp.data.static_arrays``' layout): its graph layout
-    (n_node, senders, receivers), equal for instances whose graphs a G_ID fits alike."""
-    ne, nn_ = np.asarray(static["n_edge"]), np.asarray(static["n_node"])
-    s, r = np.asarray(static["senders"]), np.asarray(static["receivers"])
-    return [(int(nn_[i]), tuple(int(x) for x in s[i, :ne[i]]), tuple(int(x) for x in r[i, :ne[i]]))
-            for i in range(nn_.shape[0])]
-
-
-def nominal_graph(dataset) -> NominalGraph:
-    """``dataset``'s nominal static graph (``SysIDConfig.nominal_static``): its kept static
-    columns, each element's mean over the instances of its train split. Raises ``ValueError``
-    when the instances differ in topology (a swimmer with varied links)."""
-    static, layout = dataset.static, dataset.layout
-    used = np.unique(np.asarray(dataset["train"].instance[...]))
-    topo = instance_topologies(static)
-    if any(topo[i] != topo[used[0]] for i in range(len(topo))):
-        raise ValueError(f"nominal_static: the instances of {_source_name(dataset)} differ in topology (bodies or "
-                         f"joints); a nominal static graph needs one")
-    n, senders, receivers = topo[used[0]]
-    mean = {k: np.asarray(static[k], dtype=np.float64)[used].mean(0) for k in KINDS}
-    return NominalGraph(tuple(layout.global_names), tuple(layout.node_names), tuple(layout.edge_names),
-                        tuple(float(v) for v in mean["globals"]),
-                        tuple(tuple(float(v) for v in r) for r in mean["nodes"][:n]),
-                        tuple(tuple(float(v) for v in r) for r in mean["edges"][:len(senders)]), senders, receivers)
-
-
-def _identifier_default() -> RecurrentGNConfig:
-    # D.2: abstract static graph of size 10 per node, edge and global; the hidden graph as wide
-    return RecurrentGNConfig(hidden_edges=10, hidden_nodes=10, hidden_globals=10, out_edges=10, out_nodes=10,
-                             out_globals=10)
-
-
-@dataclass
-class SysIDConfig:
-    """A system-identification model: ``forward`` (the forward model's ``ModelConfig``; its run
-    options are the whole model's), ``identifier`` (GN_p; its ``out_*`` sizes are G_ID's widths,
-    except under a fitting readout without a head: ``gid_size``) and ``window`` (steps of the identification
-    window, paper: 20).
-
-    ``transitions`` (beyond the paper; default off, the paper's GN_p): GN_p reads the window's
-    W - 1 transitions instead of its W states: at each step t < W - 1 the state, the controls and
-    the state change to step t + 1 (``state_delta``, normalized by the forward model's output
-    statistics), so the accelerations the parameters shape are inputs rather than something
-    GN_p's recurrence must difference out of consecutive states.
-
-    ``readout`` (beyond the paper): "last" (the paper's) takes G_ID as GN_p's output graph at
-    the window's last step; "mean" averages its output graphs over every step, so that each
-    step's evidence about the parameters counts alike (an estimate pooled over the window, as a
-    least-squares fit pools its equations) instead of passing through 19 GRU updates; "ridge"
-    reads each step's output of a node (edge, global) as regressors phi [F] (its first
-    ``ridge_features`` columns) and targets psi (the rest, P of them), and G_ID is the ridge
-    solution B [F, P] of psi ~ B^T phi over the window, flattened (F * P wide; with ``ridge_head``,
-    the head's map of it): a least-squares fit
-    whose features GN_p learns, the way a classical estimator identifies a system from a window.
-    "dynamics" fixes the ridge fit's targets to what the window observed: each step's output of a
-    node (edge, global) is the regressor phi [F] (all F of its columns) and the target is the
-    body's velocity change to the next step (``state_delta``'s 6 velocity columns, normalized as
-    the forward model's targets; an edge's is its receiver's, a global's the mean over the
-    graph's moving bodies), so G_ID [F * 6] holds the coefficients of a linear model of the
-    window's dynamics over learned features of the states and controls: the fit a classical
-    identifier makes, with regressors GN_p learns. GN_p then reads states, not transitions (a
-    regressor that saw the change it is fitted to would explain it away), and the window's last
-    step is only a target.
-    ``ridge``: the ridge weight, relative to the mean diagonal of the features' second moments.
-    ``ridge_head`` (with a fitting readout; default 0, none): the width of a two-layer MLP (SiLU)
-    per node, edge and global that maps the fit's coefficients to G_ID, which is then the
-    identifier's ``out_*`` sizes wide. A fit's coefficients are the window's dynamics (for a
-    pendulum, the velocity change per sin(angle) and per control), which the parameters shape
-    nonlinearly (a length is a ratio of two of them); the head learns that map, so that G_ID can
-    hold the parameters themselves (what ``SysIDTrainer(param_loss=...)`` asks of it). The head
-    is plain torch layers in the parameter dtype, whatever ``RunOptions.impl``: a few small GEMMs
-    once per window.
-
-    ``stateless`` (beyond the paper; default off, the paper's recurrent GN_p): GN_p carries no
-    hidden state from one step of the window to the next. Each step is read on its own, from the
-    empty hidden graph (``RecurrentGNCore.first_steps``), and all of the window's steps run as
-    one batch: one GN block instead of W - 1 in sequence, forward and backward. A pooling readout
-    ("mean", "ridge", "dynamics") then combines the steps, as a least-squares fit combines its
-    equations; needs one ("last" would read only the last step). With ``transitions`` each step
-    holds what a fit needs (the state, the controls, the change they caused).
-
-    ``local_params`` (beyond the paper; default off): G_ID's first P global columns (the
-    parameters ``SysIDTrainer(param_loss=...)`` supervises) are also handed to the forward model
-    where each parameter lives, as a true static graph holds it: a body's length or mass as a
-    column of its node, an actuator's gear as a column of its joint's edges (``param_places``,
-    one ``(kind, rows)`` per parameter: ("nodes", (body,)), ("edges", (edge, ...)) with edge
-    rows within a graph, ("globals", ()); filled from the training data's
-    ``gnwarp.sim.param_places`` by ``build_sysid_model``). The forward model then reads the
-    mass of a JACO link on that link's node rather than picking it out of 18 globals.
-
-    ``nominal_static`` (beyond the paper; default off): the forward model also reads the training
-    data's static graph with each element at its mean over the train split's instances
-    (``nominal``, a ``NominalGraph`` filled by ``build_sysid_model``): the system as designed, its
-    bodies' geometry and its joints' ranges, the same for every instance, so that it carries no
-    parameter while G_ID says only how an instance differs from it. The paper's G_ID replaces the
-    whole static graph, so the forward model must also learn from GN_p what is fixed (which JACO
-    link is which). Needs every instance of one topology; binding a source of another is refused."""
-    forward: ModelConfig = field(default_factory=ModelConfig)
-    identifier: RecurrentGNConfig = field(default_factory=_identifier_default)
-    window: PositiveInt = 20
-    transitions: bool = False
-    stateless: Flag = False
-    readout: Literal["last", "mean", "ridge", "dynamics"] = "last"
-    ridge_features: PositiveInt = 4
-    ridge: PositiveFloat = 1e-3
-    ridge_head: IntRange(0, MAX_WIDTH) = 0
-    local_params: Flag = False
-    param_places: tuple[tuple[Literal["nodes", "edges", "globals"], tuple[Count, ...]], ...] | None = None
-    nominal_static: Flag = False
-    nominal: NominalGraph | None = None
-
-    def __post_init__(self):
-        check_fields(self)
-        if self.nominal is not None and not self.nominal_static:
-            raise ValueError("nominal is the static graph nominal_static reads: set nominal_static=True")
-        if self.param_places is not None:
-            if not self.local_params:
-                raise ValueError("param_places places the parameters for local_params: set local_params=True")
-            for i, (kind, rows) in enumerate(self.param_places):
-                if (kind == "globals") != (len(rows) == 0) or (kind == "nodes" and len(rows) != 1):
-                    raise ValueError(f"param_places[{i}] = {(kind, rows)}: a node parameter has one row, an edge "
-                                     f"parameter one or more, a global one none")
-        default = {f.name: f.default for f in dataclasses.fields(self)}
-        if self.readout != "ridge" and self.ridge_features != default["ridge_features"]:
-            raise ValueError(f"ridge_features splits GN_p's outputs for readout 'ridge'; readout {self.readout!r} "
-                             f"does not read it")
-        if self.readout not in FITS and self.ridge != default["ridge"]:
-            raise ValueError(f"ridge weights the fit of readout 'ridge' or 'dynamics'; readout {self.readout!r} fits "
-                             f"nothing")
-        if self.stateless and self.readout == "last":
-            raise ValueError("stateless reads each step of the window on its own, so G_ID must pool the steps: it "
-                             "needs readout 'mean', 'ridge' or 'dynamics', got 'last'")
-        if self.ridge_head and self.readout not in FITS:
-            raise ValueError(f"ridge_head maps a fit's coefficients to G_ID: it needs readout 'ridge' or 'dynamics', "
-                             f"got {self.readout!r}")
-        if self.readout == "dynamics":
-            if self.transitions:
-                raise ValueError("readout 'dynamics' fits the window's observed state changes on GN_p's outputs, so "
-                                 "GN_p must not read those changes: transitions=True is refused with it")
-            if self.window < 2:
-                raise ValueError(f"readout 'dynamics' fits state changes between steps: window must be at least 2, "
-                                 f"got {self.window}")
-        if self.readout == "ridge":
-            small = [k for k in KINDS if 0 < self.identifier.out(k) <= self.ridge_features]
-            if small:
-                raise ValueError(f"readout 'ridge' splits GN_p's outputs into {self.ridge_features} features and "
-                                 f"the targets; identifier.out_{small[0]} = {self.identifier.out(small[0])} "
-                                 f"leaves no target")
-
-    def gid_size(self, kind: str) -> int:
-        """G_ID's width per node, edge or global."""
-        w = self.identifier.out(kind)
-        if self.ridge_head:
-            return w
-        return self.fit_size(kind)
-
-    def fit_size(self, kind: str) -> int:
-        """The width of the fit's flattened coefficients per node, edge or global (the identifier's
-        output width when the readout fits nothing)."""
-        w = self.identifier.out(kind)
-        if self.readout == "dynamics":
-            return w * (FIT_TARGETS.stop - FIT_TARGETS.start)
-        return (w - self.ridge_features) * self.ridge_features if self.readout == "ridge" and w > 0 else w
-
-    @property
-    def core(self) -> str:
-        return "sysid"   # what a run's progress bar and logs call the model
-
-    def to_dict(self) -> dict:
-        return {"forward": self.forward.to_dict(), "identifier": self.identifier.to_dict(), "window": self.window,
-                "transitions": self.transitions, **({"stateless": True} if self.stateless else {}),
-                "readout": self.readout,
-                **({"ridge_features": self.ridge_features, "ridge": self.ridge} if self.readout == "ridge" else {}),
-                **({"ridge": self.ridge} if self.readout == "dynamics" else {}),
-                **({"ridge_head": self.ridge_head} if self.ridge_head else {}),
-                **({"local_params": True, "param_places": [[k, list(r)] for k, r in self.param_places or ()]}
-                   if self.local_params else {}),
-                **({"nominal_static": True, "nominal": None if self.nominal is None else self.nominal.to_dict()}
-                   if self.nominal_static else {})}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "SysIDConfig":
-        return cls(**check_keys(cls, d, "sysid config keys"))
+__all__ = ["SysIDModel", "LatentColumnsNormalizer"]
 
 
 def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch.Tensor:
@@ -316,37 +59,6 @@ def _ridge_solution(phi: torch.Tensor, psi: torch.Tensor, ridge: float) -> torch
     y = torch.linalg.solve_triangular(L, R, upper=False)
     B = torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True)
     return B.reshape(B.shape[0], -1).to(dtype)
-
-
-def source_places(source) -> tuple:
-    """``SysIDConfig.param_places`` of a parameterized Dataset or System: each parameter's node
-    row, edge rows (its actuator's edges within a graph, the same in every instance) or none
-    (a global), from the dataset's ``param_places`` metadata or ``gnwarp.sim.param_places``."""
-    from gnwarp.sim.systems import System, param_places
-    static = _source_static(source)
-    if isinstance(source, System):
-        names, places = list(source.params), [list(p) for p in param_places(source)]
-    else:
-        names, places = source.meta.get("param_names", []), source.meta.get("param_places")
-        if names and places is None:
-            raise ValueError(f"dataset {source.system!r} does not say where its parameters live (no param_places in "
-                             f"its metadata: generated before them); regenerate it for local_params")
-    if not names:
-        raise ValueError(f"{_source_name(source)} has no instance parameters: "
-                         f"local_params places the parameters of a parameterized system")
-    ec = np.asarray(static["edge_ctrl"])[..., 0]
-    ne = np.asarray(static["n_edge"])
-    out = []
-    for name, (kind, i) in zip(names, places):
-        if kind != "edges":
-            out.append((kind, (i,) if kind == "nodes" else ()))
-            continue
-        rows = [tuple(int(e) for e in np.flatnonzero(ec[j, :ne[j]] == i)) for j in range(ec.shape[0])]
-        if not rows[0] or any(r != rows[0] for r in rows):
-            raise ValueError(f"parameter {name!r} of actuator {i}: its edges differ between the instances (or it "
-                             f"drives none); local_params needs them at the same rows in every graph")
-        out.append(("edges", rows[0]))
-    return tuple(out)
 
 
 class LatentColumnsNormalizer(Normalizer):
@@ -368,96 +80,8 @@ class LatentColumnsNormalizer(Normalizer):
         return self._masked(*super().mean_std(dtype))
 
 
-
-def gid_layout(sizes: dict[str, int], n_ctrl_slots: int, slots: dict[str, int] | None = None,
-               nominal: NominalGraph | None = None) -> FeatureLayout:
-    """The forward model's layout: G_ID's latents as its static columns, then ``slots`` columns
-    of placed parameters per node and edge (``SysIDConfig.local_params``), then the nominal
-    static graph's columns (``SysIDConfig.nominal_static``)."""
-    slots = slots or {}
-    names = {"globals": [f"gid_global_{i}" for i in range(sizes["globals"])],
-             "nodes": [f"gid_node_{i}" for i in range(sizes["nodes"])]
-             + [f"param_node_{i}" for i in range(slots.get("nodes", 0))],
-             "edges": [f"gid_edge_{i}" for i in range(sizes["edges"])]
-             + [f"param_edge_{i}" for i in range(slots.get("edges", 0))]}
-    if nominal is not None:
-        for k in KINDS:
-            names[k] += [f"nominal_{n}" for n in getattr(nominal, f"{k[:-1]}_names")]   # global_names, ...
-    return FeatureLayout(names["globals"], names["nodes"], names["edges"], n_ctrl_slots=n_ctrl_slots)
-
-
-def place_tables(places) -> dict[str, torch.Tensor]:
-    """Per kind ("nodes", "edges"): a table [rows + 1, slots] (int64) of the parameter in each
-    slot of each node (edge) row within a graph, -1 where none; its last row is all -1 (for rows
-    beyond the placed ones)."""
-    out = {}
-    for kind in ("nodes", "edges"):
-        per_row: dict[int, list[int]] = {}
-        for p, (k, rows) in enumerate(places):
-            if k == kind:
-                for r in rows:
-                    per_row.setdefault(r, []).append(p)
-        n = max(per_row, default=-1) + 1
-        width = max((len(v) for v in per_row.values()), default=0)
-        t = torch.full((n + 1, width), -1, dtype=torch.int64)
-        for r, ps in per_row.items():
-            t[r, :len(ps)] = torch.tensor(ps)
-        out[kind] = t
-    return out
-
-
 # the static edge features of an actuator's range (read from the bound source for clamping)
 RANGE_COLUMNS = ("act_ctrllimited", "act_ctrlrange_0", "act_ctrlrange_1")
-
-
-class StackedWindow(NamedTuple):
-    """An identification window's ``steps`` dynamic graphs, built as one batch: ``graph`` holds
-    steps x N graphs, step by step (step t's N graphs are the t-th block of rows, as
-    ``gnwarp.graphs.batch`` of the steps lays them out), and ``topology`` one step's senders,
-    receivers and counts, which every step shares (no features). ``window[t]`` is step t's graph
-    (views), ``len(window)`` the steps, ``head(k)`` the first k steps as one batch."""
-    graph: GraphsTuple
-    steps: int
-    topology: GraphsTuple
-
-    @classmethod
-    def of(cls, graphs: list) -> "StackedWindow":
-        """The window of ``graphs`` (one step each, of one topology)."""
-        g0 = graphs[0]
-        return cls(batch(graphs), len(graphs), g0._replace(nodes=None, edges=None, globals=None))
-
-    @classmethod
-    def build(cls, builder, instance: torch.Tensor, body: torch.Tensor, ctrl: torch.Tensor) -> "StackedWindow":
-        """The window of N ``instance``s of ``builder``'s source from ``body`` [W, N, B, 13] and
-        ``ctrl`` [W, N, U] (step first), in one call of the builder."""
-        W, N = body.shape[:2]
-        graph = builder(instance.repeat(W), body.reshape(W * N, *body.shape[2:]), ctrl.reshape(W * N, ctrl.shape[-1]))
-        topology = builder.shared_topology(N, ctrl.shape[-1])
-        return cls(graph, W, topology if topology is not None else cls._first(graph, W))
-
-    @classmethod
-    def _first(cls, graph: GraphsTuple, steps: int) -> GraphsTuple:
-        """The first step's topology of a stacked ``graph`` (views)."""
-        return cls(graph, steps, None).head(1)._replace(nodes=None, edges=None, globals=None)
-
-    def __len__(self) -> int:
-        return self.steps
-
-    def __getitem__(self, t: int) -> GraphsTuple:
-        if not -self.steps <= t < self.steps:
-            raise IndexError(f"step {t} of a {self.steps}-step window")
-        t %= self.steps
-        return self.topology._replace(**{k: self._rows(k, t, t + 1) for k in KINDS})
-
-    def head(self, k: int) -> GraphsTuple:
-        """The first ``k`` steps as one batch of k x N graphs (views)."""
-        return GraphsTuple(**{f: self._rows(f, 0, k) for f in GraphsTuple._fields})
-
-    def _rows(self, field: str, a: int, b: int):
-        """The rows of ``graph``'s ``field`` that steps [a, b) hold (every field has the same
-        number of rows per step)."""
-        x = getattr(self.graph, field)
-        return None if x is None else x[x.shape[0] // self.steps * a:x.shape[0] // self.steps * b]
 
 
 class SysIDModel(nn.Module):
@@ -483,8 +107,9 @@ class SysIDModel(nn.Module):
         # what the model reads of the data: its dynamic graph only
         self.layout = FeatureLayout([], [], [], n_ctrl_slots=K)
         if config.local_params and config.param_places is None:
-            raise ValueError("local_params needs param_places (where each parameter lives): build the model with "
-                             "gnwarp.train.build_sysid_model from a parameterized dataset")
+            raise ValueError("local_params needs param_places (where each parameter lives): set "
+                             "SysIDConfig.param_places, or build the model with gnwarp.models.build_sysid_model from "
+                             "a parameterized dataset")
         # local_params: per node (edge) row of a graph, the parameter of each slot; buffers, so that they live on
         # the model's device (a captured step copies nothing from the host)
         tables = place_tables(config.param_places or ())
@@ -493,11 +118,11 @@ class SysIDModel(nn.Module):
         slots = {k: t.shape[1] for k, t in tables.items()}
         if config.param_places and len(config.param_places) > self.gid_sizes["globals"]:
             raise ValueError(f"local_params places {len(config.param_places)} parameters from G_ID's first global "
-                             f"columns, but G_ID has {self.gid_sizes['globals']} (widen identifier.out_globals; "
-                             f"gnwarp train: --gid-globals)")
+                             f"columns, but G_ID has {self.gid_sizes['globals']} (widen "
+                             f"SysIDConfig.identifier.out_globals)")
         if config.nominal_static and config.nominal is None:
-            raise ValueError("nominal_static needs the nominal static graph (nominal): build the model with "
-                             "gnwarp.train.build_sysid_model from a dataset")
+            raise ValueError("nominal_static needs the nominal static graph (SysIDConfig.nominal): set it, or build "
+                             "the model with gnwarp.models.build_sysid_model from a dataset")
         # nominal_static: the nominal graph's columns per kind (None: none), float64 buffers on the model's device
         for kind, t in (config.nominal.tensors() if config.nominal else {}).items():
             self.register_buffer(f"nominal_{kind}", t if t.shape[-1] else None, persistent=False)
@@ -561,14 +186,14 @@ class SysIDModel(nn.Module):
         clamping controls."""
         if self.sysid.local_params and source_places(source) != self.sysid.param_places:
             raise ValueError(f"this model places its parameters as {self.sysid.param_places!r:.120}, and "
-                             f"{_source_name(source)} holds them elsewhere (another system, or other parameters)")
+                             f"{source_name(source)} holds them elsewhere (another system, or other parameters)")
         nom = self.sysid.nominal
         if nom is not None:
             want = (len(nom.nodes), nom.senders, nom.receivers)
-            other = [t for t in instance_topologies(_source_static(source)) if t != want]
+            other = [t for t in instance_topologies(source_static(source)) if t != want]
             if other:
                 raise ValueError(f"this model reads a nominal static graph of {want[0]} bodies and "
-                                 f"{len(nom.senders)} edges; {_source_name(source)} has instances of another "
+                                 f"{len(nom.senders)} edges; {source_name(source)} has instances of another "
                                  f"topology ({other[0][0]} bodies, {len(other[0][1])} edges, or other joints)")
         self.builder = self.graph_builder(source, strict)
         try:

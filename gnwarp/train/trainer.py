@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
 import math
 import os
 import time
@@ -40,8 +39,8 @@ from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.graphs import GraphsTuple
 from gnwarp.interop import Graphed, resolve_device
-from gnwarp.models.config import check_model_size
-from gnwarp.models.forward import ForwardModel, input_sizes
+from gnwarp.models.factory import build_model
+from gnwarp.models.forward import ForwardModel
 from gnwarp.train.capture import capture_problem, default_generator, registers_generators
 from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
                                      load_checkpoint, model_config_changes, recover_checkpoint)
@@ -49,27 +48,9 @@ from gnwarp.train.config import TrainConfig
 from gnwarp.train.optim import FlatAdam, WeightAverage
 from gnwarp.train.sampler import BatchSampler
 
-__all__ = ["Trainer", "train", "build_model", "LOG_FIELDS"]
+__all__ = ["Trainer", "train", "LOG_FIELDS"]
 
 LOG_FIELDS = ("step", "seconds", "lr", "loss", "pos", "quat", "linvel", "angvel", "valid_error")
-
-
-def build_model(config: TrainConfig, datasets) -> ForwardModel:
-    """A new model for ``datasets``: their merged feature layout, re-centring decided (D.4), the
-    MLP baseline's fixed topology read from the data."""
-    mcfg = dataclasses.replace(config.model)
-    layout = merge_layouts([d.layout for d in datasets])
-    if mcfg.recenter is None:  # D.4: re-centre single-system models of translation-invariant systems
-        mcfg.recenter = len(datasets) == 1 and bool(datasets[0].meta.get("translation_invariant", False))
-    if mcfg.core == "mlp":
-        B = {int(d.meta["max_bodies"]) for d in datasets}
-        E = {int(d.meta["max_edges"]) for d in datasets}
-        uniform = all(np.all(np.asarray(d.static["n_node"]) == d.meta["max_bodies"]) for d in datasets)
-        if len(B) > 1 or len(E) > 1 or not uniform:
-            raise ValueError("the MLP baseline needs one fixed topology; these datasets mix graph sizes")
-        mcfg.mlp = dataclasses.replace(mcfg.mlp, n_node=B.pop(), n_edge=E.pop())
-    check_model_size(mcfg, input_sizes(layout))  # an impossible size: an error naming it, before allocating
-    return ForwardModel(mcfg, layout)
 
 
 def _data_info(datasets) -> list[dict]:
@@ -103,7 +84,7 @@ class Trainer:
         if self._prepare_out(model):  # with resume: recovers what killed runs left, refuses what it cannot resume
             model, training = self._load_last()
         elif model is None:
-            model = build_model(config, self.datasets)
+            model = build_model(config.model, self.datasets)
         run = config.model.run
         self.model = model.set_options(run).to(device=self.device, dtype=run.param_dtype)
         self.sampler = BatchSampler(self.datasets, self.model, self.device)
