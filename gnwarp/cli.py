@@ -342,6 +342,7 @@ def _cmd_mpc(args) -> int:
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
     from gnwarp.sim import systems
     from gnwarp.train import load_model
+    from gnwarp.train.checkpoint import training_env_steps
 
     task = get_task(args.task)
     config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup, lr=args.lr,
@@ -371,7 +372,7 @@ def _cmd_mpc(args) -> int:
     record = ResultRecord(
         experiment="mpc", task=task.name, system=system.name, planner="gradient", dynamics="learned", seed=args.seed,
         episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()], control_dt=float(system.dt),
-        action_repeat=int(system.substeps), env_steps=_training_env_steps(args.model),
+        action_repeat=int(system.substeps), env_steps=training_env_steps(args.model),
         metrics={"ms_per_control_step": 1e3 * secs / args.steps, "episode_steps_per_s": n * args.steps / secs},
         config={"model": str(args.model), "horizon": planner.horizon, "iterations": config.iterations,
                 "warmup": args.warmup, "lr": args.lr, "backend": args.backend,
@@ -404,17 +405,6 @@ def _check_outputs(records, video) -> None:
             raise IsADirectoryError(f"{what} {path} is a folder; give a file path")
     if records.exists():
         read_records(records)   # appended to: it must hold valid records
-
-
-def _training_env_steps(model_path) -> int | None:
-    """Control steps of the training splits the checkpoint's model was trained on (None when
-    its config does not say)."""
-    from gnwarp.train.checkpoint import checkpoint_config
-    try:
-        data = checkpoint_config(model_path).get("data") or []
-        return int(sum(d["splits"]["train"] * d["num_steps"] for d in data)) or None
-    except (KeyError, TypeError, ValueError, OSError):
-        return None
 
 
 # -- system identification's flags (``gnwarp train --sysid`` and bench/experiments/sysid_figures.py) ----

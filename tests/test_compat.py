@@ -14,7 +14,7 @@ import torch
 from gnwarp import data
 from gnwarp.data.dataset import check as check_dataset
 from gnwarp.train import load_model
-from gnwarp.train.checkpoint import check_checkpoint, load_training
+from gnwarp.train.checkpoint import check_checkpoint, load_training, training_env_steps
 
 HERE = Path(__file__).resolve().parent / "data"
 COMPAT = HERE / "compat"
@@ -78,3 +78,4 @@ def test_committed_checkpoint_loads_and_predicts_the_same():
     np.testing.assert_allclose(nxt.numpy(), expected, rtol=1e-5, atol=1e-6)
     training = load_training(path)
     assert training["state"]["step"] == 10
+    assert training_env_steps(path) == 4 * 10   # 4 train sequences of 10 steps

@@ -276,7 +276,10 @@ def run_task(args, name: str, out: Path) -> list[dict]:
     if args.first:   # the first K of the N episodes' initial states and targets (a slow planner's share)
         n = min(args.first, n)
         qpos, qvel, target = qpos[:n], qvel[:n], None if target is None else target[:n]
-    model = load_model(model_path(args, system.name, out), device=args.device).bind(system)
+    from gnwarp.train.checkpoint import training_env_steps
+    path = model_path(args, system.name, out)
+    model = load_model(path, device=args.device).bind(system)
+    env_steps = training_env_steps(path)   # the learned planners' training data
     rows = []
     for kind in args.planners:
         print(f"{name}: {kind} ...", flush=True)
@@ -313,6 +316,8 @@ def run_task(args, name: str, out: Path) -> list[dict]:
               f"{row['episode_steps_per_s']:.1f} episode-steps/s"
               + (f"; distance to target {row['initial_distance']:.3g} -> {row['final_distance_mean']:.3g} m"
                  if "final_distance_mean" in row else ""), flush=True)
+        if kind in ("gn_mpc", "sampling_model") and env_steps is not None:
+            row["env_steps"] = env_steps
         if kind == "gn_mpc" and args.video:
             row["video"] = video(args, task, system, res["states"], out)
         rows.append(row)
@@ -375,7 +380,8 @@ def to_record(row: dict, experiment: str = "control", variant: str = "", seed=No
         variant=variant, seed=seed, episodes=int(row["episodes"]), episode_steps=int(row["steps"]),
         returns=None if returns is None else [float(x) for x in returns],
         reported=None if returns is not None else {"mean": row["return_mean"], "std": row["return_std"]},
-        control_dt=float(system.dt), action_repeat=int(system.substeps), env_steps=None if learned else 0,
+        control_dt=float(system.dt), action_repeat=int(system.substeps),
+        env_steps=row.get("env_steps") if learned else 0,
         metrics={k: row[k] for k in METRICS if k in row}, config={k: row[k] for k in CONFIG if k in row},
         commit=commit, gpu=row.get("device", "unknown"), date=row.get("date", ""))
 
