@@ -4,11 +4,13 @@ that the summaries regenerated from them show the same numbers.
     PYTHONPATH=. python3 bench/convert_records.py [--check-only]
 
 Rewrites, in place, ``bench/results/control/{results,throughput,cpu_timing,swimmer_iterations}.jsonl``
-and ``{fig10,fig11,iterations}/results.jsonl`` as ``gnwarp.eval.records`` lines (every number as it
+and ``{fig10,fig11,iterations}/results.jsonl`` as ``gnwarp.eval.records`` lines, and writes
+``bench/results/forward_models/results.jsonl`` from its ``<system>/results.json`` files (every number as it
 was; a file already in the record format is left alone), regenerates the ``summary.md`` of
 ``control``, ``fig10`` and ``fig11`` with ``gnwarp.eval.summarize``, and compares each mean +- std
 cell and ratio of the first table of the summary at commit e848b55 (the row format's last) with the
-regenerated one (exit 1 on a difference).
+regenerated one, and each error of the forward models' table with its record (exit 1 on a
+difference).
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared with
 sys.path.insert(0, str(ROOT))
 
-from bench.experiments import control, control_sysid  # noqa: E402
+from bench.experiments import control, control_sysid, forward_models  # noqa: E402
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -80,7 +82,7 @@ def table(lines: list[str]) -> tuple[list[str], list[list[str]]]:
 def compare(old_md: str, new_lines: list[str]) -> list[str]:
     """Differences between the old summary's first table and the regenerated mean +- std table."""
     head, rows = table(old_md.splitlines())
-    i = new_lines.index("Mean +- std over episodes:")
+    i = next(k for k, line in enumerate(new_lines) if line.startswith("Mean +- std over episodes"))
     nhead, nrows = table(new_lines[i:])
     problems = []
     if len(rows) != len(nrows):
@@ -95,6 +97,39 @@ def compare(old_md: str, new_lines: list[str]) -> list[str]:
                 continue
             if got != cell:
                 problems.append(f"{old[0]} / {label}: {cell} before, {got} regenerated")
+    return problems
+
+
+FORWARD = ROOT / "bench" / "results" / "forward_models"
+
+
+def convert_forward_models() -> list[str]:
+    """``forward_models/<system>/results.json`` as ``forward_models/results.jsonl`` records (their
+    summary.md regenerated); the differences from the errors of the summary at ``BASE``."""
+    old = subprocess.run(["git", "show", f"{BASE}:{(FORWARD / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    title = old[0][2:]
+    gpu = title[title.index("(") + 1:title.index(")")]
+    head, rows = table(old)
+    records = []
+    for row in rows:
+        s = json.loads((FORWARD / row[0] / "results.json").read_text())
+        records += forward_models.to_records(s, gpu=gpu)
+    write_records(FORWARD / "results.jsonl", records, append=False)
+    by = {(r.task, r.variant, r.episode_steps): r.reported["mean"] for r in read_records(FORWARD / "results.jsonl")}
+    problems = []
+    for row in rows:
+        mlp = next(r.variant for r in records if r.task == row[0] and r.variant != "GN")
+        for label, cell in zip(head, row):
+            m = re.match(r"(GN|MLP) (one|20|100)-step$", label)
+            if not m:
+                continue
+            model = "GN" if m.group(1) == "GN" else mlp
+            steps = {"one": 1, "20": 20, "100": 100}[m.group(2)]
+            got = f"{by[row[0], model, steps]:.3g}"
+            if got != cell:
+                problems.append(f"forward_models: {row[0]} / {label}: {cell} before, {got} from the records")
+    write_summary(records, FORWARD, title)
     return problems
 
 
@@ -118,6 +153,10 @@ def main() -> int:
         print(f"{sub or 'control'}: {len(problems)} differences")
         if not args.check_only:
             write_summary(recs, out, title, ratio_of=ratio)
+    if not args.check_only:
+        problems = convert_forward_models()
+        print(f"forward_models: {len(problems)} differences")
+        bad += problems
     for line in bad:
         print(line)
     return 1 if bad else 0

@@ -137,3 +137,15 @@ def test_commit_and_gpu_helpers(tmp_path):
     assert c == "unknown" or len(c.split("+")[0]) == 40
     assert git_commit(tmp_path) == "unknown"  # outside any repository
     assert isinstance(gpu_name(), str) and gpu_name("cpu") == "cpu"
+
+
+def test_errors_without_std_are_summarized_by_their_mean(tmp_path):
+    rec = record(planner="none", variant="GN", returns=None, episodes=200, episode_steps=20,
+                 reported={"mean": 0.0123, "std": None, "of": "errors"})
+    assert rec.kind == "errors" and rec.values is None
+    (g,) = summarize.groups([rec])
+    assert g.reported and g.mean == 0.0123 and math.isnan(g.std) and math.isnan(g.ci)
+    lines = summarize.summary_lines([g])
+    assert "| pendulum-balance | 0.0123 |" in lines and "errors per group" in lines[2]
+    summarize.write_summary([rec], tmp_path)
+    assert (tmp_path / "errors.png").exists()

@@ -29,8 +29,9 @@ __all__ = ["FORMAT", "VERSION", "PLANNERS", "DYNAMICS", "RecordError", "ResultRe
            "read_records", "git_commit", "gpu_name"]
 
 FORMAT, VERSION = "gnwarp-result", 1
-# planner or agent names a record may carry (the planner registry's names)
-PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random")
+# planner or agent names a record may carry (the planner registry's names); "none": a record of a
+# model's accuracy, where nothing plans
+PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "none")
 # what the planner predicts with: a learned model, the true simulator on MuJoCo-Warp or MuJoCo C,
 # or nothing (random actions, model-accuracy records)
 DYNAMICS = ("learned", "true_mjwarp", "true_mujoco_c", "none")
@@ -58,7 +59,8 @@ class ResultRecord:
     same (task, planner, dynamics), e.g. the model ("true_params"); "" when nothing does.
     ``seed``: the seed of initial states and targets (None: not recorded). ``episodes``: the
     number of episodes (or sequences); ``returns`` / ``errors``: one float per episode (NaN is
-    written as null), or None for both with ``reported`` = {"mean", "std"} when only those exist.
+    written as null), or None for both with ``reported`` = {"mean", "std", "of"} when only those
+    exist (std null when it was not written; "of": "returns" or "errors").
     ``episode_steps``: control steps per episode; ``control_dt``: seconds per control step
     (None: not recorded); ``action_repeat``: simulator steps per control step; ``env_steps``:
     true-simulator control steps whose data trained any weights used (None: not recorded; 0:

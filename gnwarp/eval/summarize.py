@@ -102,7 +102,8 @@ def groups(records: list[ResultRecord]) -> list[Group]:
             raise ValueError(f"group {key}: a record without per-episode values cannot be pooled with others")
         if only_reported:
             r = recs[0]
-            n, mean, std = r.episodes, float(r.reported["mean"]), float(r.reported["std"])
+            n, mean = r.episodes, float(r.reported["mean"])
+            std = math.nan if r.reported["std"] is None else float(r.reported["std"])
             ci = t_quantile(n - 1) * std * math.sqrt(n / (n - 1)) / math.sqrt(n) if n > 1 else math.nan
             g = Group(*key, recs, n, mean, std, ci, True)
         else:
@@ -128,6 +129,11 @@ def ratio(a: float, b: float) -> float | None:
     return None
 
 
+def _pm(g: Group) -> str:
+    """"mean +- std", or the mean alone where the std is unknown."""
+    return f"{g.mean:.4g}" if math.isnan(g.std) else f"{g.mean:.4g} +- {g.std:.2g}"
+
+
 def _g(x: float, spec: str) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
@@ -147,17 +153,16 @@ def summary_lines(gs: list[Group], title: str = "Results", ratio_of: tuple[str, 
         interval = "-" if math.isnan(g.ci) else f"[{lo:.4g}, {hi:.4g}]"
         lines.append(f"| {g.task} | {g.system or '-'} | {g.episode_steps} | {g.planner} | {g.dynamics} | "
                      f"{g.variant or '-'} | {g.n}{' (reported)' if g.reported else ''} | {g.mean:.4g} | "
-                     f"{g.std:.2g} | {interval} |")
+                     f"{_g(g.std, '.2g')} | {interval} |")
     cases = list(dict.fromkeys(g.case for g in gs))
     cols = list(dict.fromkeys(g.column for g in gs))
     cell = {(g.case, g.column): g for g in gs}
     head = "| task | " + " | ".join(cols)
     if ratio_of:
         head += f" | {ratio_of[0]} / {ratio_of[1]}"
-    lines += ["", "Mean +- std over episodes:", "", head + " |", "|---" * (len(cols) + 1 + bool(ratio_of)) + "|"]
+    lines += ["", "Mean +- std over episodes (the mean alone where no std was recorded):", "", head + " |", "|---" * (len(cols) + 1 + bool(ratio_of)) + "|"]
     for c in cases:
-        row = f"| {c} | " + " | ".join(f"{cell[c, k].mean:.4g} +- {cell[c, k].std:.2g}" if (c, k) in cell else "-"
-                                       for k in cols)
+        row = f"| {c} | " + " | ".join(_pm(cell[c, k]) if (c, k) in cell else "-" for k in cols)
         if ratio_of:
             a, b = cell.get((c, ratio_of[0])), cell.get((c, ratio_of[1]))
             r = ratio(a.mean, b.mean) if a and b else None
