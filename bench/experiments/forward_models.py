@@ -115,6 +115,7 @@ def to_records(s: dict, gpu: str = "unknown", commit: str = "unknown", date: str
     from gnwarp.sim import systems
     system = systems.make(s["system"])
     env_steps = int(s["dataset"]["train"]) * int(s["num_steps"])
+    stable = s.get("stability")   # absent when the child's stability rollout failed
     out = []
     for model, r in s["results"].items():
         train = s["gn"] if model == "GN" else s["mlp"]
@@ -127,9 +128,9 @@ def to_records(s: dict, gpu: str = "unknown", commit: str = "unknown", date: str
                 reported={"mean": float(r[key]["mean"]), "std": None, "of": "errors"},
                 control_dt=float(system.dt), action_repeat=int(system.substeps), env_steps=env_steps,
                 metrics={"train_steps": train["steps"], "train_seconds": train["seconds"],
-                         **({"stability_finite": int(s["stability"]["finite"])} if model == "GN" else {})},
+                         **({"stability_finite": int(stable["finite"])} if model == "GN" and stable else {})},
                 config={"groups": {k: v for k, v in r[key].items() if k in ("pos", "quat", "linvel", "angvel")},
-                        "simulator": s.get("simulator"), "gn_backend": s.get("gn_backend")},
+                        "simulator": s.get("simulator"), "gn_impl": s.get("gn_impl", s.get("gn_backend"))},
                 commit=commit, gpu=gpu, date=date))
     return out
 
