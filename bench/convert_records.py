@@ -5,8 +5,8 @@ that the summaries regenerated from them show the same numbers.
 
 Rewrites, in place, ``bench/results/control/{results,throughput,cpu_timing,swimmer_iterations}.jsonl``
 and ``{fig10,fig11,iterations}/results.jsonl`` as ``gnwarp.eval.records`` lines, and writes
-``bench/results/forward_models/results.jsonl`` from its ``<system>/results.json`` files (every number as it
-was; a file already in the record format is left alone), regenerates the ``summary.md`` of
+``bench/results/forward_models/results.jsonl`` from its ``<system>/results.json`` files (every number
+unchanged; a file already in the record format is left alone), regenerates the ``summary.md`` of
 ``control``, ``fig10`` and ``fig11`` with ``gnwarp.eval.summarize``, and compares each mean +- std
 cell and ratio of the first table of the summary at commit e848b55 (the row format's last) with the
 regenerated one, and each error of the forward models' table with its record (exit 1 on a

@@ -60,7 +60,7 @@ class ResultRecord:
     ``seed``: the seed of initial states and targets (None: not recorded). ``episodes``: the
     number of episodes (or sequences); ``returns`` / ``errors``: one float per episode (NaN is
     written as null), or None for both with ``reported`` = {"mean", "std", "of"} when only those
-    exist (std null when it was not written; "of": "returns" or "errors").
+    exist (std null where unknown; "of": "returns" or "errors").
     ``episode_steps``: control steps per episode; ``control_dt``: seconds per control step
     (None: not recorded); ``action_repeat``: simulator steps per control step; ``env_steps``:
     true-simulator control steps whose data trained any weights used (None: not recorded; 0:

@@ -160,7 +160,7 @@ def summary_lines(gs: list[Group], title: str = "Results", ratio_of: tuple[str, 
     head = "| task | " + " | ".join(cols)
     if ratio_of:
         head += f" | {ratio_of[0]} / {ratio_of[1]}"
-    lines += ["", "Mean +- std over episodes (the mean alone where no std was recorded):", "", head + " |", "|---" * (len(cols) + 1 + bool(ratio_of)) + "|"]
+    lines += ["", "Mean +- std over episodes (the mean alone where a record has no std):", "", head + " |", "|---" * (len(cols) + 1 + bool(ratio_of)) + "|"]
     for c in cases:
         row = f"| {c} | " + " | ".join(_pm(cell[c, k]) if (c, k) in cell else "-" for k in cols)
         if ratio_of:

@@ -416,7 +416,7 @@ def checkpoint_config(path) -> dict:
 
 
 def training_env_steps(path) -> int | None:
-    """Simulator control steps of the training splits a checkpoint's model was trained on (the
+    """Simulator control steps in the training splits of the datasets a checkpoint names (the
     ``env_steps`` of a results record): the sum over its datasets of train sequences x steps;
     None when its config does not say."""
     try:
