@@ -322,14 +322,19 @@ def _cmd_mpc(args) -> int:
     from gnwarp.control.gradient import model_systems
     from gnwarp.sim.families import family_name
     from gnwarp.data.generation import initial_states
+    from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
     from gnwarp.sim import systems
     from gnwarp.train import load_model
+    from gnwarp.train.checkpoint import training_env_steps
 
     task = get_task(args.task)
     config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup, lr=args.lr,
                                seed=args.seed)   # refused before anything is loaded
     if args.episodes < 1 or args.steps < 1:
         raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
+    records = Path(args.records or f"mpc-{task.name}.jsonl")
+    video = None if args.video == "none" else Path(args.video or f"mpc-{task.name}.gif")
+    _check_outputs(records, video)   # before planning, not after
     model = load_model(args.model, device=args.device, **({"impl": args.impl} if args.impl else {}))
     # the system: --system, else the one the model was trained on that fits the task
     name = args.system or next((s for s in model_systems(model) if family_name(s) == task.system),
@@ -347,16 +352,42 @@ def _cmd_mpc(args) -> int:
     print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
           f"over {n} episodes of {args.steps} steps (horizon {planner.horizon}, {config.iterations} iterations "
           f"a step; {1e3 * secs / args.steps:.1f} ms a control step, {n * args.steps / secs:.0f} episode-steps/s)")
-    if args.video != "none":
+    record = ResultRecord(
+        experiment="mpc", task=task.name, system=system.name, planner="gradient", dynamics="learned", seed=args.seed,
+        episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()], control_dt=float(system.dt),
+        action_repeat=int(system.substeps), env_steps=training_env_steps(args.model),
+        metrics={"ms_per_control_step": 1e3 * secs / args.steps, "episode_steps_per_s": n * args.steps / secs},
+        config={"model": str(args.model), "horizon": planner.horizon, "iterations": config.iterations,
+                "warmup": args.warmup, "lr": args.lr, "backend": args.backend,
+                "initial_qpos": np.asarray(qpos).tolist(), "initial_qvel": np.asarray(qvel).tolist(),
+                "targets": None if target is None else target.cpu().double().numpy().tolist()},
+        commit=git_commit(), gpu=gpu_name(model.device), date=time.strftime("%Y-%m-%d %H:%M:%S"))
+    write_records(records, [record])
+    print(f"wrote {records}")
+    if video is not None:
         from gnwarp.eval.animation import animate
         k = min(3, n)
         shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
                                      static={"n_node": np.full(k, system.nbody)})
-        path = Path(args.video or f"mpc-{task.name}.gif")
-        animate(out["states"][:k].numpy(), {}, shim, np.zeros(k, dtype=np.int64), path, dt=system.dt,
+        animate(out["states"][:k].numpy(), {}, shim, np.zeros(k, dtype=np.int64), video, dt=system.dt,
                 title=f"{task.name}: gradient MPC, true simulator", renderer=args.renderer)
-        print(f"wrote {path}")
+        print(f"wrote {video}")
     return 0
+
+
+def _check_outputs(records, video) -> None:
+    """Refuse output paths that cannot be written (a missing folder, a folder given as a file, a
+    records file that is not one) before any work, with ``OSError`` / ``RecordError`` naming them."""
+    from gnwarp.eval.records import read_records
+    for what, path in (("--records", records), ("--video", video)):
+        if path is None:
+            continue
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"{what} {path}: folder {path.parent} does not exist")
+        if path.is_dir():
+            raise IsADirectoryError(f"{what} {path} is a folder; give a file path")
+    if records.exists():
+        read_records(records)   # appended to: it must hold valid records
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -441,8 +472,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("mpc", help="gradient MPC through a learned model, run in closed loop on the true simulator",
                        description="Plan actions by gradient steps on the task reward of rollouts of a learned "
-                                   "model (paper F.1.1), apply them on the true simulator, print the true returns "
-                                   "and write a video of the first episodes.")
+                                   "model (paper F.1.1), apply them on the true simulator, print the true returns, "
+                                   "append them as a results record to --records and write a video of the first "
+                                   "episodes. Output paths are checked before planning.")
     m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
@@ -457,6 +489,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="true simulator (default: MuJoCo-Warp on a GPU, else MuJoCo C)")
     m.add_argument("--device", default=None, help="the model's device: cpu, cuda, ... (default: CUDA when present)")
     m.add_argument("--impl", choices=IMPLS, default=None, help="GN implementation (default: the checkpoint's)")
+    m.add_argument("-o", "--out", "--records", dest="records", metavar="PATH",
+                   help="results records file (JSON lines, appended; default: mpc-<task>.jsonl): per-episode "
+                        "returns, initial states, targets and settings (gnwarp.eval.records)")
     m.add_argument("--video", help="video path (default: mpc-<task>.gif; 'none': no video)")
     m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"])
     m.set_defaults(func=_cmd_mpc)

@@ -153,15 +153,46 @@ def test_clear_errors(model, pendulum_data):
 
 def test_cli_mpc(model, tmp_path, capsys):
     from gnwarp.cli import main
-    video = tmp_path / "mpc.gif"
+    from gnwarp.eval.records import read_records
+    video, records = tmp_path / "mpc.gif", tmp_path / "mpc.jsonl"
     args = ["mpc", "--model", str(model.path), "--task", "pendulum-balance", "--episodes", "2", "--steps", "3",
             "--horizon", "3", "--iterations", "1", "--warmup", "0", "--backend", "mujoco", "--video", str(video),
-            "--renderer", "matplotlib"]
+            "--renderer", "matplotlib", "--records", str(records)]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "true return" in out and "+-" in out and video.is_file()
+    assert "true return" in out and "+-" in out and video.is_file() and f"wrote {records}" in out
+    (rec,) = read_records(records)
+    assert (rec.experiment, rec.task, rec.system, rec.planner, rec.dynamics) == (
+        "mpc", "pendulum-balance", "pendulum", "gradient", "learned")
+    assert rec.episodes == 2 and len(rec.returns) == 2 and rec.episode_steps == 3 and rec.seed == 0
+    assert f"true return {sum(rec.returns) / 2:.4g}" in out
+    assert rec.env_steps == 20 * 20   # the training split: 20 sequences of 20 steps
+    assert np.asarray(rec.config["initial_qpos"]).shape == (2, 1) and rec.config["targets"] is None
+    assert rec.control_dt == pytest.approx(0.02) and rec.config["horizon"] == 3
     assert main(args[:4] + ["cheetah-forward"] + args[5:]) == 2
     assert "the model was trained on pendulum, not on cheetah" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option", ["--records", "--video"])
+def test_cli_mpc_checks_output_paths_first(tmp_path, capsys, option):
+    """A missing output folder is refused before the model is even loaded (here: none exists)."""
+    from gnwarp.cli import main
+    missing = tmp_path / "missing" / "out.x"
+    args = ["mpc", "--model", str(tmp_path / "no-model"), "--task", "pendulum-balance", "--video", "none",
+            "--records", str(tmp_path / "r.jsonl"), option, str(missing)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"{option} {missing}" in err and "does not exist" in err and "no-model" not in err
+
+
+def test_cli_mpc_refuses_a_records_file_that_is_not_one(tmp_path, capsys):
+    from gnwarp.cli import main
+    bad = tmp_path / "r.jsonl"
+    bad.write_text("not a record\n")
+    assert main(["mpc", "--model", str(tmp_path / "no-model"), "--task", "pendulum-balance", "--video", "none",
+                 "--records", str(bad)]) == 2
+    assert f"{bad}, line 1" in capsys.readouterr().err
+    assert bad.read_text() == "not a record\n"
 
 
 def test_adam_state_is_shifted_with_the_plan(model, pendulum_data):

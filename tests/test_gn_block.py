@@ -542,6 +542,42 @@ def test_tf32_off_cuda_is_fp32(monkeypatch):
     assert ModelConfig().run.precision == "tf32"
 
 
+class _Matmul:
+    """torch.backends.cuda.matmul's settings as one torch version has them: older torch has only
+    ``allow_tf32`` and raises AttributeError for ``fp32_precision``."""
+    def __init__(self, new_api: bool):
+        self.__dict__["values"] = {"allow_tf32": False, **({"fp32_precision": "ieee"} if new_api else {})}
+
+    def __getattr__(self, name):
+        if name not in self.values:
+            raise AttributeError("Unknown attribute " + name)
+        return self.values[name]
+
+    def __setattr__(self, name, value):
+        if name not in self.values:
+            raise AttributeError("Unknown attribute " + name)
+        self.values[name] = value
+
+
+@pytest.mark.parametrize("new_api", [True, False])
+def test_tf32_matmul_on_either_torch_api(monkeypatch, new_api):
+    """TF32 is scoped through ``fp32_precision`` where torch has it, else through the legacy
+    ``allow_tf32`` flag (torch < 2.9), and restored afterwards; the other setting is untouched."""
+    from gnwarp.gn import tf32_matmul
+    m = _Matmul(new_api)
+    monkeypatch.setattr(torch.backends.cuda, "matmul", m)
+    before = dict(m.values)
+    with tf32_matmul(True):
+        inside = dict(m.values)
+    assert m.values == before
+    if new_api:
+        assert inside == {"allow_tf32": False, "fp32_precision": "tf32"}
+    else:
+        assert inside == {"allow_tf32": True}
+    with tf32_matmul(False):
+        assert m.values == before
+
+
 def test_run_options_saved_names_and_errors():
     """Saved option dicts round-trip; earlier versions' names are read as today's; bad values and
     unknown keys are refused naming what is wrong."""

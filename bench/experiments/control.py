@@ -20,7 +20,9 @@ Reported: the TRUE return (mean, std over episodes) of each, planning seconds pe
 (host wall clock, device synchronized) and episode-steps per second (N x steps / wall clock of the
 whole closed loop), the ratio GN-MPC / iLQG (goal >= 90% on pendulum and cartpole balance and
 swimmer6 reach; returns are negative on the balance tasks, so the ratio is iLQG / GN-MPC there:
-"fraction of iLQG's performance"), a bar plot and a GIF of GN-MPC per task.
+"fraction of iLQG's performance"), a bar plot and a GIF of GN-MPC per task. Each (task, planner)
+is one results record (``gnwarp.eval.records``) appended to ``<out>/results.jsonl``; ``summary.md``
+and ``returns.png`` are generated from them by ``gnwarp.eval.summarize`` (``--rebuild``: only that).
 
     python bench/experiments/control.py --checkpoints ckpts [--episodes 20] [--tasks all]
     python bench/experiments/control.py --quick        # tiny CPU smoke run (temp folder)
@@ -28,7 +30,6 @@ swimmer6 reach; returns are negative on the balance tasks, so the ratio is iLQG 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import types
@@ -39,13 +40,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.harness import device_name, ensure_dataset, experiment_out, gn_sizes, write_summary  # noqa: E402
+from bench.harness import device_name, ensure_dataset, experiment_out, gn_sizes  # noqa: E402
 
 DEFAULT_TASKS = "pendulum-balance,cartpole-balance,swimmer-reach"
 PLANNERS = ("gn_mpc", "ilqg", "sampling_true", "sampling_model", "random")
-LABELS = {"gn_mpc": "GN-MPC (learned)", "ilqg": "iLQG (true, MuJoCo C)", "sampling_true": "sampling (true)",
-          "sampling_model": "sampling (learned)", "random": "random"}
-GOAL_TASKS = ("pendulum-balance", "cartpole-balance", "swimmer-reach")
 
 
 def task_system(task, override: str | None = None) -> str:
@@ -280,7 +278,10 @@ def run_task(args, name: str, out: Path) -> list[dict]:
     if args.first:   # the first K of the N episodes' initial states and targets (a slow planner's share)
         n = min(args.first, n)
         qpos, qvel, target = qpos[:n], qvel[:n], None if target is None else target[:n]
-    model = load_model(model_path(args, system.name, out), device=args.device).bind(system)
+    from gnwarp.train.checkpoint import training_env_steps
+    path = model_path(args, system.name, out)
+    model = load_model(path, device=args.device).bind(system)
+    env_steps = training_env_steps(path)   # the learned planners' training data
     rows = []
     for kind in args.planners:
         print(f"{name}: {kind} ...", flush=True)
@@ -317,6 +318,8 @@ def run_task(args, name: str, out: Path) -> list[dict]:
               f"{row['episode_steps_per_s']:.1f} episode-steps/s"
               + (f"; distance to target {row['initial_distance']:.3g} -> {row['final_distance_mean']:.3g} m"
                  if "final_distance_mean" in row else ""), flush=True)
+        if kind in ("gn_mpc", "sampling_model") and env_steps is not None:
+            row["env_steps"] = env_steps
         if kind == "gn_mpc" and args.video:
             row["video"] = video(args, task, system, res["states"], out)
         rows.append(row)
@@ -341,45 +344,53 @@ def video(args, task, system, states, out: Path) -> str | None:
 
 # -- outputs ----------------------------------------------------------------------------------------
 
-def _ratio(gn: dict | None, il: dict | None) -> float | None:
-    """GN-MPC as a fraction of iLQG's performance: gn / il for positive returns, il / gn for
-    negative ones (costs), None when either is missing or the signs differ."""
-    if not gn or not il or "return_mean" not in gn or "return_mean" not in il:
-        return None
-    g, i = gn["return_mean"], il["return_mean"]
-    if g > 0 and i > 0:
-        return g / i
-    if g < 0 and i < 0:
-        return i / g
-    return None
+# planner kind of a row -> (registered planner name, dynamics it plans through)
+RECORD_NAMES = {"gn_mpc": ("gradient", "learned"), "ilqg": ("ilqg", "true_mujoco_c"),
+                "sampling_model": ("sampling", "learned"), "random": ("random", "none")}
+# the columns of the summary's ratio: GN-MPC's share of iLQG's performance
+RATIO = ("gradient (learned)", "ilqg (true, MuJoCo C)")
+METRICS = ("plan_ms", "plan_first_ms", "episode_steps_per_s", "wall_s", "initial_distance", "final_distance_mean",
+           "final_distance_std", "final_distances", "distance_curve")
+CONFIG = ("horizon", "backend", "quick", "note", "source", "video", "iterations", "samples", "knots", "noise", "lr",
+          "ilqg_iterations", "ilqg_warmup", "warmup")
 
 
-def _sizes(rows: list[dict], args) -> str:
-    """"N episodes of T steps per task", or the sizes per row where they differ."""
-    eps = {r.get("episodes") for r in rows} or {args.episodes}
-    steps = {r.get("steps") for r in rows} or {args.steps}
-    if len(eps) == 1 and len(steps) == 1:
-        return f"{eps.pop()} episodes of {steps.pop()} steps per task"
-    return "episodes and steps per row (" + "; ".join(dict.fromkeys(
-        f"{LABELS[r['planner']]} on {_case(r)}: {r['episodes']} episodes" for r in rows)) + ")"
+def true_dynamics_name(backend: str, device: str) -> str:
+    """The dynamics of a planner on the true env: MuJoCo C for backend "mujoco" (and "auto" on a
+    CPU-only device), MuJoCo-Warp otherwise."""
+    if backend == "mujoco" or (backend == "auto" and not device.startswith("NVIDIA")):
+        return "true_mujoco_c"
+    return "true_mjwarp"
 
 
-def _case(r: dict) -> str:
-    """A row's task, with its system and episode length where they are not the task's defaults
-    (e.g. "swimmer-reach on swimmer7, 700 steps")."""
+def to_record(row: dict, experiment: str = "control", variant: str = "", seed=None, commit: str = "unknown"):
+    """A row of this script (a dict with task, system, planner, episodes, steps, returns or
+    return_mean / return_std, timings, note ...) as a ``ResultRecord`` (numbers unchanged)."""
     from gnwarp.control import get_task
-    task = get_task(r["task"])
-    name = r["task"]
-    if r.get("system") and r["system"] != task_system(task):
-        name += f" on {r['system']}"
-    if r.get("steps", 100) != 100:
-        name += f", {r['steps']} steps"
-    return name
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    kind = row["planner"]
+    if kind == "sampling_true":
+        planner, dynamics = "sampling", true_dynamics_name(row.get("backend", "auto"), row.get("device", ""))
+    else:
+        planner, dynamics = RECORD_NAMES[kind]
+    system = systems.make(row.get("system") or task_system(get_task(row["task"])))
+    returns = row.get("returns")
+    learned = dynamics == "learned"
+    return ResultRecord(
+        experiment=experiment, task=row["task"], system=system.name, planner=planner, dynamics=dynamics,
+        variant=variant, seed=seed, episodes=int(row["episodes"]), episode_steps=int(row["steps"]),
+        returns=None if returns is None else [float(x) for x in returns],
+        reported=None if returns is not None else {"mean": row["return_mean"], "std": row["return_std"]},
+        control_dt=float(system.dt), action_repeat=int(system.substeps),
+        env_steps=row.get("env_steps") if learned else 0,
+        metrics={k: row[k] for k in METRICS if k in row}, config={k: row[k] for k in CONFIG if k in row},
+        commit=commit, gpu=row.get("device", "unknown"), date=row.get("date", ""))
 
 
-def plot_distances(out: Path, rows: list[dict]) -> None:
+def plot_distances(out: Path, records) -> None:
     """Mean distance from the head to the target over the episode, per (task, system, planner)."""
-    far = [r for r in rows if r.get("distance_curve")]
+    far = [r for r in records if r.metrics.get("distance_curve")]
     if not far:
         return
     import matplotlib
@@ -387,7 +398,7 @@ def plot_distances(out: Path, rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.4, 4))
     for r in far:
-        ax.plot(r["distance_curve"], label=f"{LABELS[r['planner']]}, {r['system']} ({r['episodes']} episodes)")
+        ax.plot(r.metrics["distance_curve"], label=f"{r.planner} ({r.dynamics}), {r.system} ({r.episodes} episodes)")
     ax.set_xlabel("control step")
     ax.set_ylabel("distance head - target (m), mean")
     ax.legend(fontsize=7)
@@ -396,75 +407,13 @@ def plot_distances(out: Path, rows: list[dict]) -> None:
     plt.close(fig)
 
 
-def write_table(out: Path, rows: list[dict], args) -> None:
-    by = {(_case(r), r["planner"]): r for r in rows}
-    tasks = list(dict.fromkeys(_case(r) for r in rows))
-    dev = next((r["device"] for r in rows if r["planner"] == "gn_mpc"), rows[0]["device"] if rows else "?")
-    cell = lambda r: ("skipped" if r and "skipped" in r else "-" if not r  # noqa: E731
-                      else f"{r['return_mean']:.4g} +- {r['return_std']:.2g}")
-    lines = [f"# Control: true returns in closed loop ({dev}{', QUICK smoke run' if args.quick else ''})", "",
-             f"`python bench/experiments/control.py` ({time.strftime('%Y-%m-%d')}): {_sizes(rows, args)} "
-             f"from the same random initial states (and targets), every action executed "
-             f"on the true simulator ({args.backend}; iLQG on MuJoCo C), returns the task's reward of the true "
-             f"trajectory (mean +- std over episodes). GN-MPC: {args.iterations} Adam iterations per step, task "
-             f"horizon; sampling: {args.samples} samples, {args.knots} knots; iLQG: {args.ilqg_iterations} "
-             f"iterations per step. Ratio: GN-MPC's share of iLQG's performance (goal >= 90% on "
-             f"{', '.join(GOAL_TASKS)}).", "",
-             "| task | " + " | ".join(LABELS[p] for p in PLANNERS) + " | GN-MPC / iLQG |",
-             "|---" * (len(PLANNERS) + 2) + "|"]
-    for t in tasks:
-        ratio = _ratio(by.get((t, "gn_mpc")), by.get((t, "ilqg")))
-        goal = "" if t not in GOAL_TASKS or ratio is None else (" (goal met)" if ratio >= 0.9 else " (goal missed)")
-        lines.append(f"| {t} | " + " | ".join(cell(by.get((t, p))) for p in PLANNERS) +
-                     f" | {'-' if ratio is None else f'{100 * ratio:.0f}%'}{goal} |")
-    lines += ["", "Planning ms per control step after the first (the first, with its warm-up iterations, in "
-              "parentheses) / episode-steps per second (N x steps / wall clock of the whole closed loop). Batched "
-              "planners plan all N episodes in one step; iLQG plans one episode per process "
-              f"({args.ilqg_workers} processes):", "",
-              "| task | " + " | ".join(LABELS[p] for p in PLANNERS) + " |", "|---" * (len(PLANNERS) + 1) + "|"]
-    for t in tasks:
-        def tcell(r):
-            if not r or "skipped" in r:
-                return "-"
-            return f"{r['plan_ms']:.3g} ms ({r['plan_first_ms']:.3g}) / {r['episode_steps_per_s']:.3g}"
-        lines.append(f"| {t} | " + " | ".join(tcell(by.get((t, p))) for p in PLANNERS) + " |")
-    notes = [f"{r['task']}: {r['note']}" for r in rows if r["planner"] == "ilqg" and r.get("note")]
-    if notes:
-        lines += ["", "iLQG: " + "; ".join(notes)]
-    skipped = [r for r in rows if "skipped" in r]
-    if skipped:
-        lines += ["", "Skipped: " + "; ".join(f"{r['planner']} on {r['task']} ({r['skipped']})" for r in skipped)]
-    far = [r for r in rows if "final_distance_mean" in r]
-    if far:
-        lines += ["", "Distance from the head to the target (m), mean over episodes: at the start -> after the last "
-                  "step (+- std):", "", "| task | system | planner | episodes | steps | start | end |", "|---|---|---|---|---|---|---|"]
-        lines += [f"| {r['task']} | {r['system']} | {LABELS[r['planner']]} | {r['episodes']} | {r['steps']} | {r['initial_distance']:.3g} | "
-                  f"{r['final_distance_mean']:.3g} +- {r['final_distance_std']:.2g} |" for r in far]
-    vids = [r["video"] for r in rows if r.get("video")]
-    if vids:
-        lines += ["", "Videos (GN-MPC, true simulator): " + ", ".join(f"`{v}`" for v in vids)]
-    write_summary(out, lines)
-
-
-def plot(out: Path, rows: list[dict]) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    tasks = list(dict.fromkeys(_case(r) for r in rows))
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.8), squeeze=False)
-    for ax, t in zip(axes[0], tasks):
-        rs = {r["planner"]: r for r in rows if _case(r) == t and "return_mean" in r}
-        names = [p for p in PLANNERS if p in rs]
-        x = np.arange(len(names))
-        ax.bar(x, [rs[p]["return_mean"] for p in names], yerr=[rs[p]["return_std"] for p in names], capsize=3,
-               color=[f"C{PLANNERS.index(p)}" for p in names])
-        ax.set_xticks(x, [LABELS[p] for p in names], rotation=40, ha="right", fontsize=8)
-        ax.set_title(t)
-        ax.set_ylabel("true return")
-        ax.axhline(0, color="k", lw=0.5)
-    fig.tight_layout()
-    fig.savefig(out / "returns.png", dpi=110)
-    plt.close(fig)
+def summarize(out: Path, records, quick: bool = False) -> None:
+    """``out/summary.md`` and ``returns.png`` (``gnwarp.eval.summarize``) and ``distances.png``."""
+    from gnwarp.eval.summarize import write_summary
+    gpu = next((r.gpu for r in records if r.planner == "gradient"), records[0].gpu if records else "?")
+    title = f"Control: true returns in closed loop ({gpu}{', QUICK smoke run' if quick else ''})"
+    print(f"wrote {write_summary(records, out, title, ratio_of=RATIO)}")
+    plot_distances(out, records)
 
 
 def main():
@@ -530,29 +479,24 @@ def main():
         ap.error(f"unknown planners {bad}; choose from {PLANNERS}")
     out = experiment_out("control", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
+    from gnwarp.eval.records import git_commit, read_records, write_records
     if args.rebuild:
-        every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
-        rows = list({(r["task"], r.get("system"), r["planner"], r["steps"]): r for r in every}.values())
-        import re
-        found = [re.match(r"(\d+) processes", r.get("note", "")) for r in rows if r["planner"] == "ilqg"]
-        args.ilqg_workers = next((int(m.group(1)) for m in found if m), args.ilqg_workers)
-        write_table(out, rows, args)
-        plot(out, rows)
-        plot_distances(out, rows)
+        summarize(out, read_records(out / "results.jsonl"), args.quick)
         return
     args.data = args.data or str(out / "data")
     Path(args.data).mkdir(parents=True, exist_ok=True)
     print(f"writing to {out}", flush=True)
-    rows = []
-    with open(out / "results.jsonl", "a") as f:
-        for name in args.tasks:
-            for row in run_task(args, name, out):
-                f.write(json.dumps(row) + "\n")
-                f.flush()
-                rows.append(row)
-    write_table(out, rows, args)
-    plot(out, rows)
-    plot_distances(out, rows)
+    records, commit = [], git_commit()
+    settings = {k: getattr(args, k) for k in ("iterations", "samples", "knots", "noise", "lr", "ilqg_iterations",
+                                              "ilqg_warmup", "warmup")}
+    for name in args.tasks:
+        for row in run_task(args, name, out):
+            if "skipped" in row:
+                continue
+            rec = to_record({**row, **settings}, seed=args.seed, commit=commit)
+            write_records(out / "results.jsonl", [rec])
+            records.append(rec)
+    summarize(out, records, args.quick)
 
 
 if __name__ == "__main__":

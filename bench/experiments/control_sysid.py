@@ -15,7 +15,8 @@ its own random instance (the true env holds one model per world), from random in
    Random actions are the floor.
 
 Reported: each planner's true return over the planned steps (mean, std over episodes). Written
-to ``<out>/results.jsonl``, ``summary.md`` and ``fig10.png``.
+as results records (``gnwarp.eval.records``) to ``<out>/results.jsonl``; ``summary.md`` and
+``returns.png`` are generated from them (``gnwarp.eval.summarize``).
 
     python bench/experiments/control_sysid.py [--systems pendulum,cartpole] [--episodes 20]
     python bench/experiments/control_sysid.py --quick        # tiny CPU smoke run (temp folder)
@@ -23,7 +24,6 @@ to ``<out>/results.jsonl``, ``summary.md`` and ``fig10.png``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -35,13 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.harness import device_name, experiment_out, results_dir, write_summary  # noqa: E402
+from bench.harness import device_name, experiment_out, results_dir  # noqa: E402
 
 TASKS = {"pendulum": "pendulum-balance", "cartpole": "cartpole-balance", "cheetah": "cheetah-forward",
          "jaco": "jaco-palm-pose"}
 PLANNERS = ("no_params", "true_params", "sysid", "random")
-LABELS = {"no_params": "GN-MPC, no params", "true_params": "GN-MPC, true params", "sysid": "GN-MPC, system ID",
-          "random": "random"}
+# the summary's ratio: system ID's share of the true-parameter planner's performance
+RATIO = ("gradient (learned, sysid)", "gradient (learned, true_params)")
 
 
 def model_args(args) -> types.SimpleNamespace:
@@ -62,6 +62,7 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     from gnwarp.control.sampling import RandomPlanner
     from gnwarp.control.tasks import get_task, sample_targets
     from gnwarp.data.generation import initial_states
+    from gnwarp.eval.records import git_commit, write_records
     from gnwarp.sim import systems
 
     task = TASKS[system]
@@ -83,7 +84,7 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     qpos_w, qvel_w = env.qpos.cpu().numpy(), env.qvel.cpu().numpy()          # where the window left each world
     target = sample_targets(get_task(task), base, n, seed=args.seed)        # None for tasks without targets
     cfg = GradientMPCConfig(iterations=args.iterations, warmup=args.warmup, lr=args.lr, seed=args.seed)
-    rows = []
+    rows, commit = [], git_commit()
     for kind in args.planners:
         print(f"{system}: {kind} ...", flush=True)
         if kind == "random":
@@ -103,53 +104,37 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
                "train_steps": {k: v["steps"] for k, v in info.items()}, "device": device_name(),
                "quick": args.quick, "date": time.strftime("%Y-%m-%d %H:%M")}
         print(f"  true return {row['return_mean']:.4g} +- {row['return_std']:.3g} ({row['wall_s']} s)", flush=True)
-        with open(out / "results.jsonl", "a") as f:
-            f.write(json.dumps(row) + "\n")
+        write_records(out / "results.jsonl", [to_record(row, seed=args.seed, commit=commit)])
         rows.append(row)
     env.close()
     return rows
 
 
-def report(out: Path, rows: list[dict], args) -> None:
-    by = {(r["system"], r["planner"]): r for r in rows}
-    systems_ = list(dict.fromkeys(r["system"] for r in rows))
-    cell = lambda r: "-" if r is None else f"{r['return_mean']:.4g} +- {r['return_std']:.2g}"  # noqa: E731
-    lines = [f"# Figure 10: planning without the parameters ({rows[0]['device'] if rows else '?'}"
-             f"{', QUICK smoke run' if args.quick else ''})", "",
-             f"`python bench/experiments/control_sysid.py` ({time.strftime('%Y-%m-%d')}): each episode on its own "
-             f"random instance of the system; {args.window} steps of random actions first (the identification "
-             f"window, the same for every planner), then {args.steps} steps of GN-MPC ({args.iterations} Adam "
-             "iterations per step) through each model, in closed loop on the true simulator. True returns over the "
-             "planned steps, mean +- std over episodes.", "",
-             "| system (task) | episodes | " + " | ".join(LABELS[p] for p in PLANNERS) + " | sysid / true params |",
-             "|---" * (len(PLANNERS) + 3) + "|"]
-    for s in systems_:
-        sy, tp = by.get((s, "sysid")), by.get((s, "true_params"))
-        ratio = "-" if not (sy and tp) else (f"{100 * tp['return_mean'] / sy['return_mean']:.0f}%"
-                                             if tp["return_mean"] < 0 else
-                                             f"{100 * sy['return_mean'] / tp['return_mean']:.0f}%")
-        eps = next(r["episodes"] for r in rows if r["system"] == s)
-        lines.append(f"| {s} ({TASKS[s]}) | {eps} | " + " | ".join(cell(by.get((s, p))) for p in PLANNERS)
-                     + f" | {ratio} |")
-    steps = {s: next(r["train_steps"] for r in rows if r["system"] == s) for s in systems_}
-    lines += ["", "Training steps per model: " + "; ".join(f"{s}: {v}" for s, v in steps.items()),
-              "", "Ratio: system ID's share of the true-parameter planner's performance (returns are negative on "
-              "the balance tasks, so it is true / sysid there)."]
-    write_summary(out, lines)
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, len(systems_), figsize=(4.2 * len(systems_), 3.6), squeeze=False)
-    for ax, s in zip(axes[0], systems_):
-        names = [p for p in PLANNERS if (s, p) in by]
-        ax.bar(range(len(names)), [by[(s, p)]["return_mean"] for p in names],
-               yerr=[by[(s, p)]["return_std"] for p in names], capsize=3, color=[f"C{PLANNERS.index(p)}" for p in names])
-        ax.set_xticks(range(len(names)), [LABELS[p] for p in names], rotation=35, ha="right", fontsize=8)
-        ax.set_title(TASKS[s])
-        ax.set_ylabel("true return")
-    fig.tight_layout()
-    fig.savefig(out / "fig10.png", dpi=110)
-    plt.close(fig)
+def to_record(row: dict, seed=None, commit: str = "unknown"):
+    """A row of this script as a ``ResultRecord``: GN-MPC through each model is planner
+    "gradient" on learned dynamics, the model named by the variant ("no_params", "true_params",
+    "sysid"); random actions plan with no model. Numbers unchanged."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make(row["system"])
+    gradient = row["planner"] != "random"
+    return ResultRecord(
+        experiment="control/fig10", task=row["task"], system=row["system"],
+        planner="gradient" if gradient else "random", dynamics="learned" if gradient else "none",
+        variant=row["planner"] if gradient else "", seed=seed, episodes=int(row["episodes"]),
+        episode_steps=int(row["steps"]), returns=[float(x) for x in row["returns"]], control_dt=float(system.dt),
+        action_repeat=int(system.substeps), env_steps=None if gradient else 0,
+        metrics={k: row[k] for k in ("wall_s",) if k in row},
+        config={k: row[k] for k in ("window", "train_steps", "quick") if k in row},
+        commit=commit, gpu=row.get("device", "unknown"), date=row.get("date", ""))
+
+
+def report(out: Path, records, quick: bool = False) -> None:
+    """``summary.md`` and ``returns.png`` from the records (``gnwarp.eval.summarize``)."""
+    from gnwarp.eval.summarize import write_summary
+    title = (f"Figure 10: planning without the parameters ({records[0].gpu if records else '?'}"
+             f"{', QUICK smoke run' if quick else ''})")
+    write_summary(records, out, title, ratio_of=RATIO)
 
 
 def main():
@@ -171,7 +156,7 @@ def main():
     ap.add_argument("--device", default="auto")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=None, help="default: bench/results/control/fig10 (--quick: a temporary folder)")
-    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig10.png")
+    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and returns.png")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     args.batch, args.valid_every, args.normalizer_warmup, args.gid, args.impl = 200, 1000, 20, 10, "warp"
@@ -196,8 +181,8 @@ def main():
                 if system not in TASKS:
                     ap.error(f"unknown system {system!r}; choose from {', '.join(TASKS)}")
                 run_system(args, system, Path(tmp), out)
-    every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
-    report(out, list({(r["system"], r["planner"]): r for r in every}.values()), args)
+    from gnwarp.eval.records import read_records
+    report(out, read_records(out / "results.jsonl"), args.quick)
     print(f"wrote {out}")
 
 

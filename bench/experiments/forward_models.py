@@ -7,6 +7,9 @@ side by side on the one GPU (the GPU has room for many small models; the step lo
 launch-bound, so processes overlap). Each process runs ``gnwarp.demo.run_demo`` on its dataset
 with a wall-clock cap, then a 1000-step rollout of the best GN under new random controls.
 
+Each system's errors are results records (``gnwarp.eval.records``) in ``<out>/results.jsonl``;
+``summary.md`` and ``errors.png`` are generated from them (``gnwarp.eval.summarize``).
+
     python bench/experiments/forward_models.py --seconds 240 --out bench/results/forward_models
     python bench/experiments/forward_models.py --quick      # tiny CPU smoke run
 """
@@ -21,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import (SYSTEMS, add_run_args, add_training_args, device_name, ensure_dataset,  # noqa: E402
-                           experiment_out, forward_args, gn_sizes, run_side_by_side, write_summary)
+                           experiment_out, forward_args, gn_sizes, run_side_by_side)
 
 
 def child(args) -> None:
@@ -78,7 +81,7 @@ def main():
     t0 = time.perf_counter()
     for name in names:  # MuJoCo C on every core: seconds per system
         ensure_dataset(out / "data" / f"{name}.h5", name, args.sequences, args.steps, seed=1)
-    t_data = time.perf_counter() - t0
+    print(f"datasets: {time.perf_counter() - t0:.0f} s", flush=True)
     commands = {}
     for name in names:
         commands[name] = [sys.executable, __file__, "--child", "--system", name,
@@ -86,39 +89,50 @@ def main():
                           *forward_args(args, "seconds", "max_steps", "lr", "valid_every", "latent", "edge_width",
                                         "node_width", "mlp"), "--valid-eval", str(args.sequences[1])]
     run_side_by_side(commands, out)
-    rows = []
+    from gnwarp.eval.records import git_commit, write_records
+    from gnwarp.eval.summarize import write_summary as summarize
+    records, commit, gpu = [], git_commit(), device_name()
     for name in names:
         f = out / name / "results.json"
         if not f.exists():
-            rows.append(f"| {name} | failed (see {name}.log) | | | | | | |")
+            print(f"{name}: failed (see {name}.log)", flush=True)
             continue
-        s = json.loads(f.read_text())
-        r = s["results"]
-        mlp_key = [k for k in r if k.startswith("MLP")][0]
-        rows.append((name, s, r["GN"], r[mlp_key]))
-    lines = [f"# Forward models per system ({device_name()}); GN vs MLP {args.mlp} at the same number of steps", "",
-             f"Budget per system: GN training capped at {args.seconds:g} s wall clock (all systems side by side on the one "
-             f"device), MLP trained for the GN's step count. Data: {args.sequences[0]}/{args.sequences[1]}/"
-             f"{args.sequences[2]} sequences x {args.steps} steps (MuJoCo C, {t_data:.0f} s for all). Errors: squared "
-             "error / constant-prediction baseline, averaged over position, orientation, linear and angular "
-             "velocity groups (lower is better).", "",
-             "| system | GN steps (s) | GN one-step | GN 20-step | GN 100-step | MLP one-step | MLP 20-step | MLP 100-step | "
-             "GN 1000-step rollouts finite |", "|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        if isinstance(row, str):
-            lines.append(row)
-            continue
-        name, s, g, m = row
-        lines.append(f"| {name} | {s['gn']['steps']} ({s['gn']['seconds']:.0f}) | {_e(g, 'one_step')} | {_e(g, 'rollout_20')} | "
-                     f"{_e(g, 'rollout_100')} | {_e(m, 'one_step')} | {_e(m, 'rollout_20')} | {_e(m, 'rollout_100')} | "
-                     f"{s['stability']['finite']} |")
-    write_summary(out, lines)
+        records += to_records(json.loads(f.read_text()), gpu=gpu, commit=commit)
+    write_records(out / "results.jsonl", records, append=False)
+    title = f"Forward models per system ({gpu}); GN vs MLP {args.mlp} at the same number of steps"
+    print(f"wrote {summarize(records, out, title)}")
 
 
-def _e(r: dict, key: str) -> str:
-    """The normalized error averaged over state groups, for one horizon of an evaluate() result."""
-    v = r.get(key, {}).get("mean")
-    return "n/a" if v is None else f"{v:.3g}"
+HORIZONS = {"one_step": 1, "rollout_20": 20, "rollout_100": 100}
+
+
+def to_records(s: dict, gpu: str = "unknown", commit: str = "unknown", date: str = "") -> list:
+    """One system's ``results.json`` (``run_demo``'s summary plus the stability rollout) as
+    results records of errors: per model (GN, MLP) and horizon (1, 20, 100 steps) the normalized
+    error averaged over state groups and sequences (``reported``: per-sequence errors are not
+    kept), planner "none" on learned dynamics, the model as the variant."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make(s["system"])
+    env_steps = int(s["dataset"]["train"]) * int(s["num_steps"])
+    stable = s.get("stability")   # absent when the child's stability rollout failed
+    out = []
+    for model, r in s["results"].items():
+        train = s["gn"] if model == "GN" else s["mlp"]
+        for key, horizon in HORIZONS.items():
+            if r.get(key, {}).get("mean") is None:
+                continue
+            out.append(ResultRecord(
+                experiment="forward_models", task=s["system"], system=s["system"], planner="none", dynamics="learned",
+                variant=model, episodes=int(r["sequences"]), episode_steps=horizon,
+                reported={"mean": float(r[key]["mean"]), "std": None, "of": "errors"},
+                control_dt=float(system.dt), action_repeat=int(system.substeps), env_steps=env_steps,
+                metrics={"train_steps": train["steps"], "train_seconds": train["seconds"],
+                         **({"stability_finite": int(stable["finite"])} if model == "GN" and stable else {})},
+                config={"groups": {k: v for k, v in r[key].items() if k in ("pos", "quat", "linvel", "angvel")},
+                        "simulator": s.get("simulator"), "gn_impl": s.get("gn_impl", s.get("gn_backend"))},
+                commit=commit, gpu=gpu, date=date))
+    return out
 
 
 if __name__ == "__main__":

@@ -177,15 +177,26 @@ def renamed_attribute(old: str, new: str) -> property:
 
 @contextlib.contextmanager
 def tf32_matmul(enabled: bool):
-    """Scoped TF32 for float32 GEMMs when ``enabled`` (new torch API only: mixing it with the
-    legacy ``allow_tf32`` flag makes torch raise)."""
+    """Scoped TF32 for float32 GEMMs when ``enabled``: torch's ``fp32_precision`` setting where it
+    exists (torch >= 2.9; mixing it with the legacy ``allow_tf32`` flag makes torch raise), else
+    the legacy ``allow_tf32`` flag (older torch raises AttributeError for ``fp32_precision``)."""
     if not enabled:
         yield
         return
     m = torch.backends.cuda.matmul
-    old = m.fp32_precision
-    m.fp32_precision = "tf32"
+    name, value = ("fp32_precision", "tf32") if _has_fp32_precision(m) else ("allow_tf32", True)
+    old = getattr(m, name)
+    setattr(m, name, value)
     try:
         yield
     finally:
-        m.fp32_precision = old
+        setattr(m, name, old)
+
+
+def _has_fp32_precision(matmul) -> bool:
+    """Whether this torch has the ``fp32_precision`` TF32 setting (its absence raises AttributeError)."""
+    try:
+        getattr(matmul, "fp32_precision")
+    except AttributeError:
+        return False
+    return True

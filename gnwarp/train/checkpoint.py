@@ -42,7 +42,7 @@ from gnwarp.models.forward import ForwardModel, input_sizes
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model",
            "load_checkpoint", "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
-           "read_checkpoint", "load_weights", "load_training"]
+           "read_checkpoint", "load_weights", "load_training", "training_env_steps"]
 
 FORMAT, VERSION = "gnwarp-model", 1
 MANIFEST = "manifest.json"
@@ -413,6 +413,17 @@ def model_config_changes(saved: ModelConfig | dict, wanted: ModelConfig | dict) 
 def checkpoint_config(path) -> dict:
     """The config.json of a checkpoint folder, after checking its manifest (``CheckpointError``)."""
     return read_checkpoint(path)[1]
+
+
+def training_env_steps(path) -> int | None:
+    """Simulator control steps in the training splits of the datasets a checkpoint names (the
+    ``env_steps`` of a results record): the sum over its datasets of train sequences x steps;
+    None when its config does not say."""
+    try:
+        data = checkpoint_config(path).get("data") or []
+        return int(sum(d["splits"]["train"] * d["num_steps"] for d in data)) or None
+    except (KeyError, TypeError, ValueError, OSError):
+        return None
 
 
 def _debris(folder: Path, name: str | None = None) -> list[tuple[Path, str, str, int]]:
