@@ -82,7 +82,7 @@ def simulate_mujoco_warp(models: Sequence[mujoco.MjModel], substeps: int, qpos0:
                           outputs=[body_out])
                 for _ in range(substeps if rk4 else substeps - 1):
                     mjw.step(mw, d)
-                wp.launch(K.advance, dim=1, inputs=[step])
+                wp.launch(K.advance, dim=1, outputs=[step])
 
             data_step()  # first data step also compiles every kernel outside any capture
             graph = None

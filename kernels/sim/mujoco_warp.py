@@ -1,7 +1,8 @@
 """Warp kernels that feed controls into, and read graph node states out of, batched MuJoCo-Warp data.
 
 Launched by ``gnwarp.sim.mujoco_warp``. They run inside a captured step loop, so the data step
-they act on comes from a device-side counter (``step_in``) instead of a launch argument.
+they act on comes from a device-side counter (``step_in``, advanced by ``advance``) instead of a
+launch argument.
 """
 import warp as wp
 
@@ -77,5 +78,8 @@ def record_body_state(
 
 
 @wp.kernel
-def advance(step_out: wp.array(dtype=int)):
+def advance(
+    # Data out:
+    step_out: wp.array(dtype=int),
+):
     step_out[0] = step_out[0] + 1
