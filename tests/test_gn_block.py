@@ -566,10 +566,6 @@ def test_graph_network_options_attributes():
     with pytest.raises(ValueError, match="precision"):
         gn.precision = "fp8"
     assert gn.precision == "tf32"
-    with pytest.raises(AttributeError, match="backend is now .impl"):  # an earlier version's name
-        gn.backend = "torch"
-    with pytest.raises(TypeError, match="'backend' is now 'impl'"):
-        GraphNetwork(**SMALL, backend="torch")
     g = make_batch("mixed", dtype=torch.float32)
     gn.precision = "fp64"
     with pytest.raises(ValueError, match="float64 parameters"):
