@@ -107,8 +107,8 @@ def prep_kernel(blocks: tuple, mat_dtype, dtype, *, max_vec: int = PREP_VEC):
     col0), ...): rows x stride elements each at ``dst_out[d0 + dst_off ...]``, read from columns
     [col0, col0 + width) of the segment's matrix ``mat_k_in``. Each thread owns ``max_vec``
     elements strided by its region's thread count (coalesced; loads before stores). Launch
-    ``prep_threads(n_cast, blocks)[1]`` threads. Replaces a cast launch and, per first layer, a
-    zero fill and a pack launch."""
+    ``prep_threads(n_cast, blocks)[1]`` threads. One launch where separate ones would take a cast
+    and, per first layer, a zero fill and a pack."""
     V = max_vec
     bs = list(blocks) + [(0, 0, 0, 1, 0)] * (PREP_SLOTS - len(blocks))
     counts = [-(-rows * stride // V) for _, rows, _, stride, _ in bs]

@@ -244,10 +244,10 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     count so each load of a warp is coalesced, all loads before the stores), and rows are taken
     ``concat_rows_per_block`` at a time so that every warp works on one piece: no warp
     branches. Measured on an H200 (bench/probes/concat_probe.py, bench/results/concat_probe_nvidia-h200.md,
-    the paper core's edge rows at batch 4096, fp32 -> fp16): v9's kernel, where every thread
-    tested all four pieces for each of its 8 columns, issued a predicated load per piece and
-    column and was bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off):
-    162 us for the second block's 73728 x 672 rows, where this kernel takes 81 us."""
+    the paper core's edge rows at batch 4096, fp32 -> fp16): a kernel where every thread tests
+    all four pieces for each of its 8 columns issues a predicated load per piece and column and
+    is bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off): 162 us for
+    the second block's 73728 x 672 rows, where this kernel takes 81 us."""
     S = concat_spans(widths, out_width)
     R = concat_rows_per_block(widths, out_width, max_vec)
     N0, N1, N2, N3 = (concat_piece_threads(s, max_vec)[0] for s in S)
@@ -390,7 +390,7 @@ def _route_piece(col: int, mode: str, indexed: bool, in_dtype, out_dtype):
 @functools.cache
 def route_kernel(pieces: tuple, in_dtype):
     """Adjoint of ``concat_kernel``: the gradient of concatenated input rows ``g_in`` handed back
-    to the inputs it was built from, piece by piece, in one pass. ``pieces``: up to four
+    to the inputs it is built from, piece by piece, in one pass. ``pieces``: up to four
     (col, width, mode, indexed, out_dtype): columns [col, col + width) of each row r are stored
     at ``g_k_out[r]`` (mode ``ROUTE_STORE``: the edge update's own input) or added, atomically,
     at ``g_k_out[index_k_in[r]]`` (``ROUTE_ADD`` with ``indexed``: the sender / receiver node
@@ -398,8 +398,9 @@ def route_kernel(pieces: tuple, in_dtype):
     gradient also receives other pieces' sums). Columns of no piece (padding, or an input whose
     gradient is read in place) get no thread: launch ``rows * sum of widths`` threads, one per
     element, consecutive threads on consecutive columns of a row (coalesced loads and atomics).
-    Replaces, per update, one scatter launch per indexed piece, a per-graph segment sum, and the
-    casts and adds that merged them (measured on an H200: bench/results/gn_block_nvidia-h200_notes.md)."""
+    One launch per update, where separate launches would take one scatter per indexed piece, a
+    per-graph segment sum, and the casts and adds that merge them (measured on an H200:
+    bench/results/gn_block_nvidia-h200_notes.md)."""
     ps = list(pieces) + [(0, 0, ROUTE_STORE, False, in_dtype)] * (4 - len(pieces))
     W0, W1, W2, W3 = (p[1] for p in ps)
     A1, A2, A3 = W0, W0 + W1, W0 + W1 + W2
@@ -446,7 +447,7 @@ def route_kernel(pieces: tuple, in_dtype):
 def gather_add_sum_kernel(width: int, dtype, *, base: bool, gather_a: bool, gather_b: bool, bias_sum: bool,
                           base_dtype=None):
     """grad_out[r] = base_in[r] + src_a_in[index_a_in[r]] + src_b_in[index_b_in[r]] (backward of
-    the scatter-sums: each row receives the gradient of the sums it was added into), and
+    the scatter-sums: each row receives the gradient of the sums it is added into), and
     sum_out[j] += grad_out[:, j] summed over the rows (the output layer's bias gradient). Chunked.
 
     ``base_in`` (the gradient of the block's output, as autograd hands it over) is read in its

@@ -7,7 +7,8 @@ adds) and reading mean and std back (count clamp, divisions, variance, clamps, s
 block per feature column sums its column's weighted values, squares and weights over the rows
 (each lane a strided range, then one tile reduction: a fixed order, so deterministic), adds them
 to the column's float64 sums and writes the column's new mean and std in the model's dtype.
-The row count is added by the caller afterwards (every block reads the old count; none writes it).
+The row count is added by the caller afterwards (every block reads the count without this batch;
+none writes it).
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
