@@ -5,7 +5,9 @@ factory function, lists its parameters under section comments ``# Model:``, ``# 
 ``# Data in:`` or ``# Data out:`` (text in parentheses may follow the section's name). Arrays
 under ``# Data in:`` end in ``_in``; everything under ``# Data out:`` ends in ``_out``; a
 parameter the body writes (a subscript assignment, an atomic add, a tile store) is under
-``# Data out:``. Read with ``ast`` and the source lines only: nothing is imported or compiled.
+``# Data out:``. A kernel's outputs are its last parameters: ``gnwarp.interop.Launcher`` passes
+the arguments from the first ``*_out`` on as ``outputs=``. Read with ``ast`` and the source lines
+only: nothing is imported or compiled.
 """
 import ast
 import re
@@ -109,6 +111,10 @@ def _violations(rel: str, fn: ast.FunctionDef, lines: list) -> list:
             problems.append(f"{where}: an input array not named *_in")
         if name in written and section not in (None, "Data out"):
             problems.append(f"{where}: written by the body but under '# {section}:'")
+    names = [a.arg for a in fn.args.args]
+    outs = [i for i, n in enumerate(names) if n.endswith("_out")]
+    if outs and not all(n.endswith("_out") for n in names[outs[0]:]):
+        problems.append(f"{rel}:{fn.lineno} {fn.name}: an input after the first output {names[outs[0]]}")
     return problems
 
 
@@ -140,6 +146,8 @@ def test_exceptions_are_used():
     ("@wp.kernel\ndef k(\n    # Data in:\n    x_in: wp.array(dtype=float),\n):\n"
      "    wp.atomic_add(x_in, 0, 1.0)\n", "written by the body"),
     ("@wp.kernel\ndef k(\n    # Data out:\n    y: wp.array(dtype=float),\n):\n    y[0] = 1.0\n", "not named *_out"),
+    ("@wp.kernel\ndef k(\n    # Data out:\n    y_out: wp.array(dtype=float),\n    # Data in:\n    n: int,\n):\n"
+     "    y_out[0] = 1.0\n", "an input after the first output"),
     ("@wp.kernel\ndef k(\n    # Data out:\n    y_out: wp.array(dtype=float),\n):\n    y_out[0] = 1.0\n", None),
 ])
 def test_checker_catches_violations(source, message):
