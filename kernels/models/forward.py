@@ -27,10 +27,11 @@ __all__ = ["noisy_centred_kernel", "loss_terms_kernel", "loss_finalize_kernel", 
 def noisy_centred_kernel(dtype, noise: bool, recenter: bool):
     """Kernel ``(nodes_in [n, F], col, eps_in [n, 13], std, movable_in [n] int32, offsets_in [G+1]
     int32, node_graph_in [n] int32, noisy_out [n, 13], centred_out [n, 13])`` over n threads (one
-    per node), dyn = nodes_in[:, col:col + 13] (the body states of the input graph): noisy = dyn + std * eps on
-    moving bodies (quaternion divided by max(|q|, 1e-12)); centred = noisy with its graph's mean
-    x, y over moving bodies subtracted on moving bodies (a copy when not ``recenter``). Each thread
-    re-sums its graph's noisy x, y (a few nodes: two loads each) rather than wait on a reduction."""
+    per node), dyn = nodes_in[:, col:col + 13] (the body states of the input graph): noisy = dyn +
+    std * eps on moving bodies (quaternion divided by max(|q|, 1e-12)); centred = noisy with its
+    graph's mean x, y over moving bodies subtracted on moving bodies (a copy when not
+    ``recenter``). Each thread re-sums its graph's noisy x, y (a few nodes: two loads each) rather
+    than wait on a reduction."""
     T = dtype
     NOISE = 1 if noise else 0
     CENTRE = 1 if recenter else 0
