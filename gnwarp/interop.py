@@ -186,12 +186,20 @@ class Launcher:
             return wp.from_torch(a, dtype=WP_DTYPE.get(a.dtype), requires_grad=False, return_ctype=True)
         return a
 
+    @staticmethod
+    def outputs_from(kernel) -> int:
+        """Index of ``kernel``'s first output: its parameters named ``*_out`` come last (the
+        convention of ``gnwarp.kernels``)."""
+        return sum(not a.label.endswith("_out") for a in kernel.adj.args)
+
     def __call__(self, kernel, dim: int, *args):
-        """Launch ``kernel`` over ``dim`` threads (nothing when ``dim`` is 0)."""
+        """Launch ``kernel`` over ``dim`` threads (nothing when ``dim`` is 0) with ``args`` in the
+        order of its parameters (inputs, then outputs)."""
         if dim == 0:
             return
-        wp.launch(kernel, dim=dim, inputs=[self.array(a) for a in args], device=self.device,
-                       stream=self.stream)
+        args = [self.array(a) for a in args]
+        k = self.outputs_from(kernel)
+        wp.launch(kernel, dim=dim, inputs=args[:k], outputs=args[k:], device=self.device, stream=self.stream)
 
     def tiled(self, kernel, blocks: int, block_dim: int, *args, adjoint: list | None = None):
         """Launch a tile kernel over ``blocks`` blocks of ``block_dim`` threads on CUDA (one thread a
@@ -199,8 +207,11 @@ class Launcher:
         integer arguments) in the order of ``args``."""
         if blocks == 0:
             return
+        k = self.outputs_from(kernel)
         kw = {}
         if adjoint is not None:
-            kw = dict(adjoint=True, adj_inputs=[None if a is None else self.array(a) for a in adjoint])
-        wp.launch_tiled(kernel, dim=[blocks], inputs=[self.array(a) for a in args], device=self.device,
-                             stream=self.stream, block_dim=block_dim if self.is_cuda else 1, **kw)
+            adj = [None if a is None else self.array(a) for a in adjoint]
+            kw = dict(adjoint=True, adj_inputs=adj[:k], adj_outputs=adj[k:])
+        args = [self.array(a) for a in args]
+        wp.launch_tiled(kernel, dim=[blocks], inputs=args[:k], outputs=args[k:], device=self.device,
+                        stream=self.stream, block_dim=block_dim if self.is_cuda else 1, **kw)

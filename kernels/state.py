@@ -16,25 +16,32 @@ __all__ = ["state_delta_kernel"]
 
 @functools.cache
 def state_delta_kernel(dtype):
-    """Kernel ``(x [n, 13], x_next [n, 13], out [n, 13])`` over n threads, in ``dtype``."""
+    """Kernel ``(x_in [n, 13], x_next_in [n, 13], delta_out [n, 13])`` over n threads, in ``dtype``."""
     T = dtype
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def state_delta(x: wp.array2d(dtype=T), y: wp.array2d(dtype=T), out: wp.array2d(dtype=T)):
+    def state_delta(
+        # Data in:
+        x_in: wp.array2d(dtype=T),
+        x_next_in: wp.array2d(dtype=T),
+        # Data out:
+        delta_out: wp.array2d(dtype=T),
+    ):
         i = wp.tid()
         for k in range(3):
-            out[i, k] = y[i, k] - x[i, k]
+            delta_out[i, k] = x_next_in[i, k] - x_in[i, k]
         for k in range(7, 13):
-            out[i, k] = y[i, k] - x[i, k]
-        aw = y[i, 3]
-        ax = y[i, 4]
-        ay = y[i, 5]
-        az = y[i, 6]
-        n2 = wp.max(x[i, 3] * x[i, 3] + x[i, 4] * x[i, 4] + x[i, 5] * x[i, 5] + x[i, 6] * x[i, 6], T(1e-24))
-        bw = x[i, 3] / n2
-        bx = -x[i, 4] / n2
-        by = -x[i, 5] / n2
-        bz = -x[i, 6] / n2
+            delta_out[i, k] = x_next_in[i, k] - x_in[i, k]
+        aw = x_next_in[i, 3]
+        ax = x_next_in[i, 4]
+        ay = x_next_in[i, 5]
+        az = x_next_in[i, 6]
+        n2 = wp.max(x_in[i, 3] * x_in[i, 3] + x_in[i, 4] * x_in[i, 4] + x_in[i, 5] * x_in[i, 5]
+                    + x_in[i, 6] * x_in[i, 6], T(1e-24))
+        bw = x_in[i, 3] / n2
+        bx = -x_in[i, 4] / n2
+        by = -x_in[i, 5] / n2
+        bz = -x_in[i, 6] / n2
         w = aw * bw - ax * bx - ay * by - az * bz
         qx = aw * bx + ax * bw + ay * bz - az * by
         qy = aw * by - ax * bz + ay * bw + az * bx
@@ -42,9 +49,9 @@ def state_delta_kernel(dtype):
         r = wp.max(wp.sqrt(w * w + qx * qx + qy * qy + qz * qz), T(1e-12))
         if w < T(0.0):
             r = -r
-        out[i, 3] = w / r
-        out[i, 4] = qx / r
-        out[i, 5] = qy / r
-        out[i, 6] = qz / r
+        delta_out[i, 3] = w / r
+        delta_out[i, 4] = qx / r
+        delta_out[i, 5] = qy / r
+        delta_out[i, 6] = qz / r
 
     return state_delta

@@ -243,8 +243,8 @@ def test_concat_kernel(widths, gathered, vec_):
     out = torch.full((rows + 1, K_), float("nan"), dtype=torch.float32)  # one row past the end
     kern = K.concat_kernel(widths, gathered, tuple(WP_DTYPE[t.dtype] for t in srcs), wp.float32, K_, max_vec=vec_)
     wp.launch(kern, dim=K.concat_threads(rows, widths, K_, vec_), device="cpu",
-              inputs=[wp.from_torch(t.view(-1)) for t in srcs] + [wp.from_torch(i) for i in idx]
-              + [rows, wp.from_torch(out.view(-1))])
+              inputs=[wp.from_torch(t.view(-1)) for t in srcs] + [wp.from_torch(i) for i in idx] + [rows],
+              outputs=[wp.from_torch(out.view(-1))])
     expect = torch.cat([(t[i.long()] if g else t).float() for t, i, g in zip(srcs, idx, gathered)]
                        + [torch.zeros(rows, K_ - sum(widths))], 1)
     assert torch.equal(out[:rows], expect)
@@ -276,8 +276,8 @@ def test_route_kernel(deterministic_order):
     # pieces 1 and 2 add into one output (sender and receiver columns into the nodes' gradient)
     kern = K.route_kernel(pieces, wp.float32)
     wp.launch(kern, dim=rows * 18, device="cpu",
-              inputs=[wp.from_torch(g)] + [wp.from_torch(idx)] * 4
-              + [wp.from_torch(store), wp.from_torch(acc), wp.from_torch(acc), wp.from_torch(own[:, :5])])
+              inputs=[wp.from_torch(g)] + [wp.from_torch(idx)] * 4,
+              outputs=[wp.from_torch(store), wp.from_torch(acc), wp.from_torch(acc), wp.from_torch(own[:, :5])])
     assert torch.equal(store[:rows], g[:, :3].double()) and store[rows].isnan().all()
     expect = acc0.clone()
     expect.index_add_(0, idx.long(), g[:, 6:11])
@@ -602,10 +602,6 @@ def test_graph_network_options_attributes():
     with pytest.raises(ValueError, match="precision"):
         gn.precision = "fp8"
     assert gn.precision == "tf32"
-    with pytest.raises(AttributeError, match="backend is now .impl"):  # an earlier version's name
-        gn.backend = "torch"
-    with pytest.raises(TypeError, match="'backend' is now 'impl'"):
-        GraphNetwork(**SMALL, backend="torch")
     g = make_batch("mixed", dtype=torch.float32)
     gn.precision = "fp64"
     with pytest.raises(ValueError, match="float64 parameters"):

@@ -50,14 +50,19 @@ def main():
         out = torch.empty(E, KO, device=dev, dtype=out_dtype)
         vv = v if gathered else torch.randn(E, 159, device=dev)
         uu = u if gathered else torch.randn(E, 160, device=dev)
-        args = [arr(e), arr(vv), arr(vv), arr(uu), arr(s), arr(s), arr(r), arr(g), E, arr(out)]
-        return lambda: wp.launch(kern, dim=concat_threads(E, (192, 159, 159, 160), KO), inputs=args, device=wd,
-                                 stream=stream, block_dim=block_dim)
+        args = [arr(e), arr(vv), arr(vv), arr(uu), arr(s), arr(s), arr(r), arr(g), E]
+        return lambda: wp.launch(kern, dim=concat_threads(E, (192, 159, 159, 160), KO), inputs=args,
+                                 outputs=[arr(out)], device=wd, stream=stream, block_dim=block_dim)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def copy_cast(a: wp.array(dtype=wp.float32), b: wp.array(dtype=wp.float16)):
+    def copy_cast(
+        # Data in:
+        a_in: wp.array(dtype=wp.float32),
+        # Data out:
+        b_out: wp.array(dtype=wp.float16),
+    ):
         i = wp.tid()
-        b[i] = wp.float16(a[i])
+        b_out[i] = wp.float16(a_in[i])
 
     x = torch.randn(E * KO, device=dev)
     y = torch.empty(E * KO, device=dev, dtype=torch.float16)
@@ -68,8 +73,8 @@ def main():
         ("concat kernel, gathered, fp32 -> fp16, block 512", concat(torch.float16, block_dim=512), 4 + 2),
         ("concat kernel, gathered, fp32 -> fp32", concat(torch.float32), 4 + 4),
         ("concat kernel, no gathers, fp32 -> fp16", concat(torch.float16, gathered=False), 4 + 2),
-        ("Warp one-line copy kernel fp32 -> fp16", lambda: wp.launch(copy_cast, dim=E * KO, inputs=[arr(x), arr(y)],
-                                                                     device=wd, stream=stream), 4 + 2),
+        ("Warp one-line copy kernel fp32 -> fp16", lambda: wp.launch(copy_cast, dim=E * KO, inputs=[arr(x)],
+                                                                     outputs=[arr(y)], device=wd, stream=stream), 4 + 2),
         ("torch copy_ fp32 -> fp16", lambda: y.copy_(x), 4 + 2),
         ("torch cat(e, v[s], v[r], u[g]).half()", lambda: torch.cat([e, v[sl], v[rl], u[gl]], 1).half(), None),
     ]

@@ -119,7 +119,7 @@ class FirstLayer:
         columns dropped)."""
         if buf is not None:
             launch(K.unpack_kernel(self.segs, self.shape[1], WP_DTYPE[gw0.dtype], WP_DTYPE[buf.dtype],
-                                   accumulate=accumulate), gw0.numel(), gw0, buf)
+                                   accumulate=accumulate), gw0.numel(), buf, gw0)
 
 
 def prepare(launch, run, params, first):

@@ -19,7 +19,7 @@ import torch
 from gnwarp.gn import blas_block, replay, rules, tile_block
 from gnwarp.gn.config import GNBlockConfig
 from gnwarp.gn.index import GraphIndex, check_index, graph_index
-from gnwarp.gn.options import ResolvedRun, RunOptions, check_option_names, renamed_attribute
+from gnwarp.gn.options import ResolvedRun, RunOptions
 from gnwarp.gn.reference import TorchGraphNetwork, check_graph
 from gnwarp.graphs import GraphsTuple
 
@@ -61,12 +61,9 @@ class GraphNetwork(TorchGraphNetwork):
     edge_first_layer = _option("edge_first_layer")
     emulate_min = _option("emulate_min")
     check_inputs = _option("check_inputs")
-    backend = renamed_attribute("backend", "impl")
 
     def __init__(self, config: GNBlockConfig | None = None, *, options: RunOptions | None = None, **kwargs):
         fields = set(RunOptions.__dataclass_fields__)
-        if "backend" in kwargs:
-            check_option_names(["backend"], "GraphNetwork")
         run_kw = {k: kwargs.pop(k) for k in list(kwargs) if k in fields}
         super().__init__(config, **kwargs)
         if options is not None and run_kw:

@@ -19,7 +19,7 @@ from gnwarp.gn.rules import TUNABLES
 from gnwarp.interop import WP_DTYPE
 
 __all__ = ["PRECISIONS", "IMPLS", "PATHS", "EDGE_FIRST_LAYERS", "RunOptions", "ResolvedRun", "tf32_matmul",
-           "check_option_names", "renamed_attribute", "ConfigError"]
+           "check_option_names", "ConfigError"]
 
 Precision = Literal["fp32", "tf32", "fp16", "bf16", "fp16x3", "fp64"]
 Impl = Literal["warp", "torch"]
@@ -158,21 +158,10 @@ class ResolvedRun:
 
 
 def check_option_names(names, where: str) -> None:
-    """Raise TypeError if any of ``names`` is not a ``RunOptions`` field, naming today's name of
-    an earlier version's (``backend`` is now ``impl``)."""
+    """Raise TypeError if any of ``names`` is not a ``RunOptions`` field."""
     bad = sorted(set(names) - set(RunOptions.__dataclass_fields__))
     if bad:
-        hints = [f"{n!r} is now {_LEGACY_KEYS[n]!r}" for n in bad if n in _LEGACY_KEYS]
-        raise TypeError(f"{where} got unknown run options {bad}" + (f" ({'; '.join(hints)})" if hints else "")
-                        + " (see gnwarp.RunOptions)")
-
-
-def renamed_attribute(old: str, new: str) -> property:
-    """A property that refuses an earlier version's attribute name, naming today's (setting it
-    would otherwise make a new, unread attribute on a torch module)."""
-    def refuse(self, *_):
-        raise AttributeError(f"{type(self).__name__}.{old} is now .{new}")
-    return property(refuse, refuse)
+        raise TypeError(f"{where} got unknown run options {bad} (see gnwarp.RunOptions)")
 
 
 @contextlib.contextmanager

@@ -10,7 +10,7 @@ import torch.nn as nn
 
 from gnwarp.gn.index import GraphIndex
 from gnwarp.gn.module import GraphNetwork
-from gnwarp.gn.options import RunOptions, renamed_attribute
+from gnwarp.gn.options import RunOptions
 from gnwarp.gn.reference import MLP
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.config import GNCoreConfig, MLPCoreConfig, core_blocks
@@ -28,7 +28,6 @@ class GNCore(nn.Module):
 
     ``sizes``: input widths {"nodes", "edges", "globals"}; ``options``: how both blocks run (their
     input checks are off: a model's graphs come from its ``GraphBuilder``)."""
-    backend = renamed_attribute("backend", "options.impl (ForwardModel.set_options(impl=...))")
 
     def __init__(self, config: GNCoreConfig, sizes: dict[str, int], options: RunOptions | None = None):
         super().__init__()

@@ -66,7 +66,7 @@ class Normalizer(nn.Module):
         bd = K.BLOCK if launch.is_cuda else 1
         kernel = K.accumulate_kernel(WP_DTYPE[x.dtype], w is not None)
         launch.tiled(kernel, self.size, bd, x, w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd,
-                     self.count.reshape(1), self.sum, self.sumsq, self.std_floor, mean, std)
+                     self.count.reshape(1), self.std_floor, self.sum, self.sumsq, mean, std)
         if w is None:
             self.count += x.shape[0]
         else:

@@ -146,7 +146,8 @@ class FlatAdam(torch.optim.Optimizer):
             blocks = max(1, min(1024, -(-self.numel // (bd * 8))))
             launch.tiled(K.sumsq_kernel(T), blocks, bd, self.grad_flat, self.numel, bd, blocks * bd, self.scalars)
         clip = self.max_grad_norm is not None
-        launch(K.finalize_kernel(T, clip=clip), 1, self.scalars, b1, b2, self.max_grad_norm if clip else 0.0)
+        launch(K.finalize_kernel(T, clip=clip), 1, self.scalars, b1, b2, self.max_grad_norm if clip else 0.0,
+               self.scalars)
         if self.check_finite and not capturing:
             n = float(self.scalars[K.NORM].item())
             if not math.isfinite(n):
@@ -156,7 +157,8 @@ class FlatAdam(torch.optim.Optimizer):
         wd = group["weight_decay"]
         nt = K.adam_threads(self.numel)
         launch(K.adam_kernel(T, weight_decay=wd > 0, decoupled=self.decoupled), nt, self.flat, self.grad_flat,
-               self.exp_avg, self.exp_avg_sq, self.scalars, self.numel, nt, b1, b2, group["eps"], wd)
+               self.exp_avg, self.exp_avg_sq, self.scalars, self.numel, nt, b1, b2, group["eps"], wd,
+               self.flat, self.exp_avg, self.exp_avg_sq)
         return loss
 
     # -- checkpoints ---------------------------------------------------------------------------

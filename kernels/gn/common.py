@@ -22,9 +22,9 @@ Loads before stores: each thread first loads all its elements (``vec(width)`` fe
 them. The CUDA compiler cannot move a load above a store to another array that might alias it,
 so a load-store-load-store sequence keeps one 2-4 byte load in flight per thread. Loading
 first keeps ``vec(width)`` loads in flight. Measured on an H200 (bench/results/
-gn_block_nvidia-h200_notes.md): a plain fp32 -> fp16 copy goes from 176 us with one element per
-thread to 93 us with four loaded first (49.5M elements); the GN forward and training step gained
-1-7%.
+gn_block_nvidia-h200_notes.md): a plain fp32 -> fp16 copy takes 176 us with one element per
+thread and 93 us with four loaded first (49.5M elements); the GN forward and training step are
+1-7% faster with loads first.
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import warp as wp

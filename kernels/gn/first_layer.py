@@ -14,8 +14,8 @@ __all__ = ["unpack_kernel", "PREP_SLOTS", "PREP_VEC", "prep_threads", "prep_kern
 @functools.cache
 def unpack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, *, accumulate: bool):
     """The gradient of a first-layer weight from the aligned blocks its GEMM wrote (``prep_kernel``'s
-    layout): ``mat[i, c] = flat[off + (row0 + i) * stride + (c - col0)]`` (``accumulate``: +=, into
-    a gradient accumulator) for the columns c in [col0, col0 + width) of each segment (col0,
+    layout): ``mat_out[i, c] = flat_in[off + (row0 + i) * stride + (c - col0)]`` (``accumulate``:
+    +=, into a gradient accumulator) for the columns c in [col0, col0 + width) of each segment (col0,
     width, off, stride, row0) of a row-major [rows, cols] matrix; four segments at most (edges,
     sender / receiver nodes stacked, globals). One thread per matrix element."""
     segs = list(segments) + [(0, 0, 0, 1, 0)] * (4 - len(segments))
@@ -25,8 +25,10 @@ def unpack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, *, accumula
 
     @wp.kernel(module="unique", module_options=OPTIONS)
     def unpack(
-        mat: wp.array2d(dtype=M),
-        flat: wp.array(dtype=F),
+        # Data in:
+        flat_in: wp.array(dtype=F),
+        # Data out:
+        mat_out: wp.array2d(dtype=M),
     ):
         t = wp.tid()
         i = t // cols
@@ -46,9 +48,9 @@ def unpack_kernel(segments: tuple, cols: int, mat_dtype, flat_dtype, *, accumula
                 d = O3 + (R3 + i) * S3 + (c - C3)
         if d >= 0:
             if wp.static(accumulate):
-                mat[i, c] = mat[i, c] + M(flat[d])
+                mat_out[i, c] = mat_out[i, c] + M(flat_in[d])
             else:
-                mat[i, c] = M(flat[d])
+                mat_out[i, c] = M(flat_in[d])
 
     return unpack
 
@@ -64,14 +66,21 @@ def prep_threads(n_cast: int, blocks: tuple, max_vec: int = PREP_VEC) -> tuple:
 
 
 def _prep_block(dst_off: int, n: int, stride: int, width: int, col0: int, mat_dtype, dtype, max_vec: int):
-    """One block segment of ``prep_kernel``: dst[d0 + dst_off + i * stride + c] = mat[i, col0 + c]
+    """One block segment of ``prep_kernel``: dst_out[d0 + dst_off + i * stride + c] = mat_in[i, col0 + c]
     for c < width, 0 for width <= c < stride (the padding), for the ``max_vec`` elements
     j = j0 + k * NT (k < max_vec, j < n = rows * stride) of the thread j0 of NT."""
     O, S, W, C, M, T, V = dst_off, stride, width, col0, mat_dtype, dtype, max_vec
     NT = -(-n // V)
 
     @wp.func
-    def block(mat: wp.array2d(dtype=M), j0: int, d0: int, dst: wp.array(dtype=T)):
+    def block(
+        # Data in:
+        mat_in: wp.array2d(dtype=M),
+        j0: int,
+        d0: int,
+        # Data out:
+        dst_out: wp.array(dtype=T),
+    ):
         xs = wp.vector(length=V, dtype=T)  # zero: the padding
         for k in range(V):  # every load first, then the stores
             j = j0 + k * NT
@@ -79,11 +88,11 @@ def _prep_block(dst_off: int, n: int, stride: int, width: int, col0: int, mat_dt
                 i = j // S
                 c = j - i * S
                 if c < W:
-                    xs[k] = T(mat[i, C + c])
+                    xs[k] = T(mat_in[i, C + c])
         for k in range(V):
             j = j0 + k * NT
             if j < n:
-                dst[d0 + O + j] = xs[k]
+                dst_out[d0 + O + j] = xs[k]
 
     return block
 
@@ -91,15 +100,15 @@ def _prep_block(dst_off: int, n: int, stride: int, width: int, col0: int, mat_dt
 @functools.cache
 def prep_kernel(blocks: tuple, mat_dtype, dtype, *, max_vec: int = PREP_VEC):
     """A GN block's parameters made ready for its GEMMs, in one launch (every forward, since the
-    optimizer changes them): the first ``n_cast_threads`` threads cast ``src`` (the block's
-    parameters as one flat span, FlatAdam's buffer) to the compute dtype, ``dst[i] = src[i]``
-    for i < n_cast; the rest write the first-layer weights as aligned, zero-padded blocks from
-    up to ``PREP_SLOTS`` block segments ``blocks`` = ((dst_off, rows, width, stride, col0), ...):
-    rows x stride elements each at ``dst[d0 + dst_off ...]``, read from columns
-    [col0, col0 + width) of the segment's matrix ``mat_k``. Each thread owns ``max_vec``
+    optimizer changes them): the first ``n_cast_threads`` threads cast ``src_in`` (the block's
+    parameters as one flat span, FlatAdam's buffer) to the compute dtype, ``dst_out[i] =
+    src_in[i]`` for i < n_cast; the rest write the first-layer weights as aligned, zero-padded
+    blocks from up to ``PREP_SLOTS`` block segments ``blocks`` = ((dst_off, rows, width, stride,
+    col0), ...): rows x stride elements each at ``dst_out[d0 + dst_off ...]``, read from columns
+    [col0, col0 + width) of the segment's matrix ``mat_k_in``. Each thread owns ``max_vec``
     elements strided by its region's thread count (coalesced; loads before stores). Launch
-    ``prep_threads(n_cast, blocks)[1]`` threads. Replaces a cast launch and, per first layer, a
-    zero fill and a pack launch."""
+    ``prep_threads(n_cast, blocks)[1]`` threads. One launch where separate ones would take a cast
+    and, per first layer, a zero fill and a pack."""
     V = max_vec
     bs = list(blocks) + [(0, 0, 0, 1, 0)] * (PREP_SLOTS - len(blocks))
     counts = [-(-rows * stride // V) for _, rows, _, stride, _ in bs]
@@ -113,41 +122,52 @@ def prep_kernel(blocks: tuple, mat_dtype, dtype, *, max_vec: int = PREP_VEC):
     T = dtype
 
     @wp.kernel(module="unique", module_options=OPTIONS)
-    def prep(src: wp.array(dtype=M), n_cast: int, n_cast_threads: int, d0: int,
-             mat_0: wp.array2d(dtype=M), mat_1: wp.array2d(dtype=M), mat_2: wp.array2d(dtype=M),
-             mat_3: wp.array2d(dtype=M), mat_4: wp.array2d(dtype=M), mat_5: wp.array2d(dtype=M),
-             dst: wp.array(dtype=T)):
+    def prep(
+        # Data in:
+        src_in: wp.array(dtype=M),
+        n_cast: int,
+        n_cast_threads: int,
+        d0: int,
+        mat_0_in: wp.array2d(dtype=M),
+        mat_1_in: wp.array2d(dtype=M),
+        mat_2_in: wp.array2d(dtype=M),
+        mat_3_in: wp.array2d(dtype=M),
+        mat_4_in: wp.array2d(dtype=M),
+        mat_5_in: wp.array2d(dtype=M),
+        # Data out:
+        dst_out: wp.array(dtype=T),
+    ):
         t = wp.tid()
         if t < n_cast_threads:
             xs = wp.vector(length=V, dtype=T)
             for k in range(V):
                 i = t + k * n_cast_threads
                 if i < n_cast:
-                    xs[k] = T(src[i])
+                    xs[k] = T(src_in[i])
             for k in range(V):
                 i = t + k * n_cast_threads
                 if i < n_cast:
-                    dst[i] = xs[k]
+                    dst_out[i] = xs[k]
         else:
             b = t - n_cast_threads
             if wp.static(N0 > 0):
                 if b < S1:
-                    f0(mat_0, b, d0, dst)
+                    f0(mat_0_in, b, d0, dst_out)
             if wp.static(N1 > 0):
                 if b >= S1 and b < S2:
-                    f1(mat_1, b - S1, d0, dst)
+                    f1(mat_1_in, b - S1, d0, dst_out)
             if wp.static(N2 > 0):
                 if b >= S2 and b < S3:
-                    f2(mat_2, b - S2, d0, dst)
+                    f2(mat_2_in, b - S2, d0, dst_out)
             if wp.static(N3 > 0):
                 if b >= S3 and b < S4:
-                    f3(mat_3, b - S3, d0, dst)
+                    f3(mat_3_in, b - S3, d0, dst_out)
             if wp.static(N4 > 0):
                 if b >= S4 and b < S5:
-                    f4(mat_4, b - S4, d0, dst)
+                    f4(mat_4_in, b - S4, d0, dst_out)
             if wp.static(N5 > 0):
                 if b >= S5 and b < S6:
-                    f5(mat_5, b - S5, d0, dst)
+                    f5(mat_5_in, b - S5, d0, dst_out)
 
     return prep
 

@@ -26,12 +26,12 @@ def pieces_kernel(width: int, *, epilogue: bool, relu: bool, write_f32: bool, wr
     """One float32 row per block (``wp.launch_tiled``, dim = rows; any block size, 1 on the CPU):
     the operand pieces of the fp16x3 GEMM, optionally after the epilogue of the GEMM before.
 
-    ``epilogue``: y = src * row_inv[r] * col_inv[c] + bias[c] (the previous fp16x3 GEMM's
-    output unscaled), ReLU if ``relu``, written to ``dst`` if ``write_f32`` (may be ``src``:
-    each thread reads its elements before it writes them); else y = src.
+    ``epilogue``: y = src_in * row_inv_in[r] * col_inv_in[c] + bias[c] (the previous fp16x3
+    GEMM's output unscaled), ReLU if ``relu``, written to ``dst_out`` if ``write_f32`` (may be
+    ``src_in``: each thread reads its elements before it writes them); else y = src_in.
     ``write_pieces``: the row's scale s = 2^k puts its largest |y| in [2^14, 2^15) (fp16's range holds
     y * s and its remainder; k from the exponent bits, no log), hi = fp16(y * s),
-    lo = fp16(y * s - hi), written as pieces[r] = [hi | lo | hi] (activations) or
+    lo = fp16(y * s - hi), written as pieces_out[r] = [hi | lo | hi] (activations) or
     [hi | hi | lo] (``weights``), so that one GEMM of pieces over 3 * width columns sums
     hi*Whi + lo*Whi + hi*Wlo; ``inv_out[r]`` = 1 / s (exact: a power of two). The row maximum
     is a block reduction (tile max). NaN stays NaN; an all-zero row gets any scale.
@@ -56,29 +56,38 @@ def pieces_kernel(width: int, *, epilogue: bool, relu: bool, write_f32: bool, wr
         return out
 
     @wp.kernel(module="unique", module_options=OPTIONS)
-    def pieces(src: wp.array2d(dtype=F), row_inv: wp.array(dtype=wp.float32), col_inv: wp.array(dtype=F),
-                  bias: wp.array(dtype=F), dst: wp.array2d(dtype=F), pieces: wp.array2d(dtype=H),
-                  inv_out: wp.array(dtype=wp.float32)):
+    def pieces(
+        # Data in:
+        src_in: wp.array2d(dtype=F),
+        row_inv_in: wp.array(dtype=wp.float32),
+        col_inv_in: wp.array(dtype=F),
+        # Parameters:
+        bias: wp.array(dtype=F),
+        # Data out:
+        dst_out: wp.array2d(dtype=F),
+        pieces_out: wp.array2d(dtype=H),
+        inv_out: wp.array(dtype=wp.float32),
+    ):
         r, lane = wp.tid()
         nb = wp.block_dim()
         ri = wp.float32(1.0)
         if wp.static(epilogue):
-            ri = row_inv[r]
+            ri = row_inv_in[r]
         m = wp.float32(0.0)
         for c0 in range(0, G, nb * V):
             ys = R()
             for k in range(V):
                 c = c0 + k * nb + lane
                 if c < G:
-                    ys[k] = src[r, c]
+                    ys[k] = src_in[r, c]
             for k in range(V):
                 c = c0 + k * nb + lane
                 if c < G:
                     y = ys[k]
                     if wp.static(epilogue):
-                        y = unscale(y, ri, col_inv[c], bias[c])
+                        y = unscale(y, ri, col_inv_in[c], bias[c])
                         if wp.static(write_f32):
-                            dst[r, c] = y
+                            dst_out[r, c] = y
                     for j in range(g):
                         m = wp.max(m, wp.abs(y[j]))
         if wp.static(write_pieces):
@@ -94,15 +103,15 @@ def pieces_kernel(width: int, *, epilogue: bool, relu: bool, write_f32: bool, wr
                     c = c0 + k * nb + lane
                     if c < G:
                         if wp.static(epilogue and write_f32):
-                            ys[k] = dst[r, c]
+                            ys[k] = dst_out[r, c]
                         else:
-                            ys[k] = src[r, c]
+                            ys[k] = src_in[r, c]
                 for k in range(V):
                     c = c0 + k * nb + lane
                     if c < G:
                         y = ys[k]
                         if wp.static(epilogue and not write_f32):
-                            y = unscale(y, ri, col_inv[c], bias[c])
+                            y = unscale(y, ri, col_inv_in[c], bias[c])
                         hi = H()
                         lo = H()
                         for j in range(g):
@@ -110,12 +119,12 @@ def pieces_kernel(width: int, *, epilogue: bool, relu: bool, write_f32: bool, wr
                             h = wp.float16(x)
                             hi[j] = h
                             lo[j] = wp.float16(x - wp.float32(h))
-                        pieces[r, c] = hi
+                        pieces_out[r, c] = hi
                         if wp.static(weights):
-                            pieces[r, G + c] = hi
-                            pieces[r, 2 * G + c] = lo
+                            pieces_out[r, G + c] = hi
+                            pieces_out[r, 2 * G + c] = lo
                         else:
-                            pieces[r, G + c] = lo
-                            pieces[r, 2 * G + c] = hi
+                            pieces_out[r, G + c] = lo
+                            pieces_out[r, 2 * G + c] = hi
 
     return pieces

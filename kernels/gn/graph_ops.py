@@ -44,8 +44,9 @@ __all__ = [
 @functools.cache
 def project_kernel(width: int, dtype, *, direct: bool, sender: bool, receiver: bool, globals_: bool,
                    relu: bool):
-    """The edge update's first layer from projections: hidden_out[r] = act(direct_in[r] + node_proj_in[senders[r], :W] + node_proj_in[receivers[r], S:S+W]
-    + global_proj_in[row_graph[r]] + bias).
+    """The edge update's first layer from projections: hidden_out[r] = act(direct_in[r] +
+    node_proj_in[senders_in[r], :W] + node_proj_in[receivers_in[r], S:S+W] +
+    global_proj_in[row_graph_in[r]] + bias).
 
     ``node_proj_in`` holds the sender projection in columns [0, W) and the receiver projection
     after it (columns [W, 2W) when both exist).
@@ -64,9 +65,9 @@ def project_kernel(width: int, dtype, *, direct: bool, sender: bool, receiver: b
         direct_in: wp.array2d(dtype=T),
         node_proj_in: wp.array2d(dtype=T),
         global_proj_in: wp.array2d(dtype=T),
-        senders: wp.array(dtype=wp.int32),
-        receivers: wp.array(dtype=wp.int32),
-        row_graph: wp.array(dtype=wp.int32),
+        senders_in: wp.array(dtype=wp.int32),
+        receivers_in: wp.array(dtype=wp.int32),
+        row_graph_in: wp.array(dtype=wp.int32),
         # Parameters:
         bias: wp.array(dtype=T),
         # Data out:
@@ -76,11 +77,11 @@ def project_kernel(width: int, dtype, *, direct: bool, sender: bool, receiver: b
         r = i // WV
         j0 = i - r * WV
         if wp.static(has_sender):
-            s = senders[r]
+            s = senders_in[r]
         if wp.static(has_receiver):
-            q = receivers[r]
+            q = receivers_in[r]
         if wp.static(has_global):
-            g = row_graph[r]
+            g = row_graph_in[r]
         ys = wp.vector(length=V, dtype=T)
         for k in range(V):  # every load of the thread first (see the module docstring), then stores
             j = j0 + k * WV
@@ -104,7 +105,8 @@ def project_kernel(width: int, dtype, *, direct: bool, sender: bool, receiver: b
 
 @functools.cache
 def segment_sum_kernel(width: int, src_dtype, dst_dtype, *, perm: bool, accumulate: bool = False):
-    """sum_out[s, dst_col + j] = sum over p in [offsets[s], offsets[s+1]) of src_in[perm[p], src_col + j]
+    """sum_out[s, dst_col + j] = sum over p in [offsets_in[s], offsets_in[s+1]) of
+    src_in[perm_in[p], src_col + j]
     (``accumulate``: added to what sum_out holds).
 
     Sums in a fixed order (deterministic, bitwise reproducible). Without ``perm`` the segments
@@ -121,8 +123,8 @@ def segment_sum_kernel(width: int, src_dtype, dst_dtype, *, perm: bool, accumula
     def segment_sum(
         # Data in:
         src_in: wp.array2d(dtype=S),
-        perm: wp.array(dtype=wp.int32),
-        offsets: wp.array(dtype=wp.int32),
+        perm_in: wp.array(dtype=wp.int32),
+        offsets_in: wp.array(dtype=wp.int32),
         src_col: int,
         dst_col: int,
         # Data out:
@@ -134,9 +136,9 @@ def segment_sum_kernel(width: int, src_dtype, dst_dtype, *, perm: bool, accumula
         for k in range(V):
             j = j0 + k * WV
             acc = A(0.0)
-            for p in range(offsets[s], offsets[s + 1]):
+            for p in range(offsets_in[s], offsets_in[s + 1]):
                 if wp.static(has_perm):
-                    acc += A(src_in[perm[p], src_col + j])
+                    acc += A(src_in[perm_in[p], src_col + j])
                 else:
                     acc += A(src_in[p, src_col + j])
             if wp.static(accumulate):
@@ -187,17 +189,24 @@ def concat_threads(rows: int, widths: tuple, out_width: int, max_vec: int = CONC
 def _concat_piece(width: int, span: int, gathered: bool, in_dtype, dtype, out_width: int, offset: int,
                   max_vec: int):
     """One piece of ``concat_kernel``'s rows, as a function of the row and the thread's first
-    column: out[r, offset + c] = p_in[row, c] for c < width, 0 for width <= c < span."""
+    column: cat_out[r, offset + c] = p_in[row, c] for c < width, 0 for width <= c < span."""
     W, S, G, Ti, T, K, E = width, span, gathered, in_dtype, dtype, out_width, offset
     N, V = concat_piece_threads(span, max_vec)
     V = max(V, 1)  # (an absent piece is never called)
 
     @wp.func
-    def copy_piece(p_in: wp.array(dtype=Ti), index: wp.array(dtype=wp.int32), r: int, c0: int,
-                   out: wp.array(dtype=T)):
+    def copy_piece(
+        # Data in:
+        p_in: wp.array(dtype=Ti),
+        index_in: wp.array(dtype=wp.int32),
+        r: int,
+        c0: int,
+        # Data out:
+        cat_out: wp.array(dtype=T),
+    ):
         b = r * W
         if wp.static(G):
-            b = index[r] * W
+            b = index_in[r] * W
         xs = wp.vector(length=V, dtype=T)  # zero: the padding columns
         for k in range(V):
             if wp.static((k + 1) * N <= W):  # every thread's column k is inside the row
@@ -208,10 +217,10 @@ def _concat_piece(width: int, span: int, gathered: bool, in_dtype, dtype, out_wi
         o = r * K + E + c0
         for k in range(V):
             if wp.static((k + 1) * N <= S):
-                out[o + k * N] = xs[k]
+                cat_out[o + k * N] = xs[k]
             elif wp.static(k * N < S):
                 if c0 + k * N < S:
-                    out[o + k * N] = xs[k]
+                    cat_out[o + k * N] = xs[k]
 
     return copy_piece
 
@@ -219,9 +228,9 @@ def _concat_piece(width: int, span: int, gathered: bool, in_dtype, dtype, out_wi
 @functools.cache
 def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_width: int, *,
                   max_vec: int = CONCAT_VEC):
-    """out[r] = [p0_in[r0], p1_in[r1], p2_in[r2], p3_in[r3], 0...] (columns side by side, cast to
-    ``dtype``, zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece k
-    reads row ``index_k[r]``, the others row ``r``.
+    """cat_out[r] = [p0_in[r0], p1_in[r1], p2_in[r2], p3_in[r3], 0...] (columns side by side, cast
+    to ``dtype``, zeros up to ``out_width``); a piece of width 0 is absent; a gathered piece k
+    reads row ``index_k_in[r]``, the others row ``r``.
 
     Builds the input rows of an MLP whose first layer is one GEMM: the node update's
     [v, sum of received edges, u[graph of node]], the global update's [u, sum v', sum e'] and
@@ -235,10 +244,10 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     count so each load of a warp is coalesced, all loads before the stores), and rows are taken
     ``concat_rows_per_block`` at a time so that every warp works on one piece: no warp
     branches. Measured on an H200 (bench/probes/concat_probe.py, bench/results/concat_probe_nvidia-h200.md,
-    the paper core's edge rows at batch 4096, fp32 -> fp16): v9's kernel, where every thread
-    tested all four pieces for each of its 8 columns, issued a predicated load per piece and
-    column and was bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off):
-    162 us for the second block's 73728 x 672 rows, where this kernel takes 81 us."""
+    the paper core's edge rows at batch 4096, fp32 -> fp16): a kernel where every thread tests
+    all four pieces for each of its 8 columns issues a predicated load per piece and column and
+    is bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off): 162 us for
+    the second block's 73728 x 672 rows, where this kernel takes 81 us."""
     S = concat_spans(widths, out_width)
     R = concat_rows_per_block(widths, out_width, max_vec)
     N0, N1, N2, N3 = (concat_piece_threads(s, max_vec)[0] for s in S)
@@ -261,13 +270,13 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
         p1_in: wp.array(dtype=T1),
         p2_in: wp.array(dtype=T2),
         p3_in: wp.array(dtype=T3),
-        index_0: wp.array(dtype=wp.int32),
-        index_1: wp.array(dtype=wp.int32),
-        index_2: wp.array(dtype=wp.int32),
-        index_3: wp.array(dtype=wp.int32),
+        index_0_in: wp.array(dtype=wp.int32),
+        index_1_in: wp.array(dtype=wp.int32),
+        index_2_in: wp.array(dtype=wp.int32),
+        index_3_in: wp.array(dtype=wp.int32),
         rows: int,
         # Data out (flat row-major):
-        out: wp.array(dtype=T),
+        cat_out: wp.array(dtype=T),
     ):
         i = wp.tid()
         rb = i // NT
@@ -277,33 +286,33 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
                 j = t // N0
                 r = rb * R + j
                 if r < rows:
-                    f0(p0_in, index_0, r, t - j * N0, out)
+                    f0(p0_in, index_0_in, r, t - j * N0, cat_out)
         if wp.static(W1 > 0):
             if t >= A1 and t < A2:
                 j = (t - A1) // N1
                 r = rb * R + j
                 if r < rows:
-                    f1(p1_in, index_1, r, t - A1 - j * N1, out)
+                    f1(p1_in, index_1_in, r, t - A1 - j * N1, cat_out)
         if wp.static(W2 > 0):
             if t >= A2 and t < A3:
                 j = (t - A2) // N2
                 r = rb * R + j
                 if r < rows:
-                    f2(p2_in, index_2, r, t - A2 - j * N2, out)
+                    f2(p2_in, index_2_in, r, t - A2 - j * N2, cat_out)
         if wp.static(W3 > 0):
             if t >= A3:
                 j = (t - A3) // N3
                 r = rb * R + j
                 if r < rows:
-                    f3(p3_in, index_3, r, t - A3 - j * N3, out)
+                    f3(p3_in, index_3_in, r, t - A3 - j * N3, cat_out)
 
     return concat
 
 
 @functools.cache
 def scatter_out_kernel(width: int, dtype, out_dtype, *, scatter_a: bool, scatter_b: bool, copy: bool):
-    """copy_out[r] = x_in[r] (in the output dtype); sum_a_out[index_a[r]] += x_in[r];
-    sum_b_out[index_b[r]] += x_in[r] (atomic adds in the accumulation dtype).
+    """copy_out[r] = x_in[r] (in the output dtype); sum_a_out[index_a_in[r]] += x_in[r];
+    sum_b_out[index_b_in[r]] += x_in[r] (atomic adds in the accumulation dtype).
 
     The output epilogue of the edge and node updates (the output bias is already in ``x_in``,
     added by the GEMM's epilogue): the sums add the stored values, so they equal the sum of what
@@ -318,8 +327,8 @@ def scatter_out_kernel(width: int, dtype, out_dtype, *, scatter_a: bool, scatter
     def scatter_out(
         # Data in:
         x_in: wp.array2d(dtype=T),
-        index_a: wp.array(dtype=wp.int32),
-        index_b: wp.array(dtype=wp.int32),
+        index_a_in: wp.array(dtype=wp.int32),
+        index_b_in: wp.array(dtype=wp.int32),
         # Data out:
         copy_out: wp.array2d(dtype=O),
         sum_a_out: wp.array2d(dtype=A),
@@ -329,9 +338,9 @@ def scatter_out_kernel(width: int, dtype, out_dtype, *, scatter_a: bool, scatter
         r = i // WV
         j0 = i - r * WV
         if wp.static(scatter_a):
-            a = index_a[r]
+            a = index_a_in[r]
         if wp.static(scatter_b):
-            b = index_b[r]
+            b = index_b_in[r]
         xs = wp.vector(length=V, dtype=A)
         for k in range(V):
             xs[k] = A(x_in[r, j0 + k * WV])
@@ -353,20 +362,27 @@ ROUTE_STORE, ROUTE_ADD = "store", "add"
 
 def _route_piece(col: int, mode: str, indexed: bool, in_dtype, out_dtype):
     """One piece of ``route_kernel``: column ``col + j`` of row r of the gradient stored at
-    out[r, j] or added (atomic) at out[index[r] if ``indexed`` else r, j]."""
+    g_out[r, j] or added (atomic) at g_out[index_in[r] if ``indexed`` else r, j]."""
     C, Ti, O = col, in_dtype, out_dtype
 
     @wp.func
-    def route(g_in: wp.array2d(dtype=Ti), index: wp.array(dtype=wp.int32), r: int, j: int,
-              out: wp.array2d(dtype=O)):
+    def route(
+        # Data in:
+        g_in: wp.array2d(dtype=Ti),
+        index_in: wp.array(dtype=wp.int32),
+        r: int,
+        j: int,
+        # Data out:
+        g_out: wp.array2d(dtype=O),
+    ):
         x = O(g_in[r, C + j])
         if wp.static(mode == ROUTE_STORE):
-            out[r, j] = x
+            g_out[r, j] = x
         else:
             d = r
             if wp.static(indexed):
-                d = index[r]
-            wp.atomic_add(out, d, j, x)
+                d = index_in[r]
+            wp.atomic_add(g_out, d, j, x)
 
     return route
 
@@ -374,16 +390,17 @@ def _route_piece(col: int, mode: str, indexed: bool, in_dtype, out_dtype):
 @functools.cache
 def route_kernel(pieces: tuple, in_dtype):
     """Adjoint of ``concat_kernel``: the gradient of concatenated input rows ``g_in`` handed back
-    to the inputs it was built from, piece by piece, in one pass. ``pieces``: up to four
+    to the inputs it is built from, piece by piece, in one pass. ``pieces``: up to four
     (col, width, mode, indexed, out_dtype): columns [col, col + width) of each row r are stored
-    at ``out_k[r]`` (mode ``ROUTE_STORE``: the edge update's own input) or added, atomically, at
-    ``out_k[index_k[r]]`` (``ROUTE_ADD`` with ``indexed``: the sender / receiver node columns,
-    the graph's global columns) or at ``out_k[r]`` (``ROUTE_ADD``: a row-aligned input whose
+    at ``g_k_out[r]`` (mode ``ROUTE_STORE``: the edge update's own input) or added, atomically,
+    at ``g_k_out[index_k_in[r]]`` (``ROUTE_ADD`` with ``indexed``: the sender / receiver node
+    columns, the graph's global columns) or at ``g_k_out[r]`` (``ROUTE_ADD``: a row-aligned input whose
     gradient also receives other pieces' sums). Columns of no piece (padding, or an input whose
     gradient is read in place) get no thread: launch ``rows * sum of widths`` threads, one per
     element, consecutive threads on consecutive columns of a row (coalesced loads and atomics).
-    Replaces, per update, one scatter launch per indexed piece, a per-graph segment sum, and the
-    casts and adds that merged them (measured on an H200: bench/results/gn_block_nvidia-h200_notes.md)."""
+    One launch per update, where separate launches would take one scatter per indexed piece, a
+    per-graph segment sum, and the casts and adds that merge them (measured on an H200:
+    bench/results/gn_block_nvidia-h200_notes.md)."""
     ps = list(pieces) + [(0, 0, ROUTE_STORE, False, in_dtype)] * (4 - len(pieces))
     W0, W1, W2, W3 = (p[1] for p in ps)
     A1, A2, A3 = W0, W0 + W1, W0 + W1 + W2
@@ -396,31 +413,31 @@ def route_kernel(pieces: tuple, in_dtype):
     def route(
         # Data in:
         g_in: wp.array2d(dtype=Ti),
-        index_0: wp.array(dtype=wp.int32),
-        index_1: wp.array(dtype=wp.int32),
-        index_2: wp.array(dtype=wp.int32),
-        index_3: wp.array(dtype=wp.int32),
+        index_0_in: wp.array(dtype=wp.int32),
+        index_1_in: wp.array(dtype=wp.int32),
+        index_2_in: wp.array(dtype=wp.int32),
+        index_3_in: wp.array(dtype=wp.int32),
         # Data out:
-        out_0: wp.array2d(dtype=O0),
-        out_1: wp.array2d(dtype=O1),
-        out_2: wp.array2d(dtype=O2),
-        out_3: wp.array2d(dtype=O3),
+        g_0_out: wp.array2d(dtype=O0),
+        g_1_out: wp.array2d(dtype=O1),
+        g_2_out: wp.array2d(dtype=O2),
+        g_3_out: wp.array2d(dtype=O3),
     ):
         t = wp.tid()
         r = t // WA
         c = t - r * WA
         if wp.static(W0 > 0):
             if c < A1:
-                f0(g_in, index_0, r, c, out_0)
+                f0(g_in, index_0_in, r, c, g_0_out)
         if wp.static(W1 > 0):
             if c >= A1 and c < A2:
-                f1(g_in, index_1, r, c - A1, out_1)
+                f1(g_in, index_1_in, r, c - A1, g_1_out)
         if wp.static(W2 > 0):
             if c >= A2 and c < A3:
-                f2(g_in, index_2, r, c - A2, out_2)
+                f2(g_in, index_2_in, r, c - A2, g_2_out)
         if wp.static(W3 > 0):
             if c >= A3:
-                f3(g_in, index_3, r, c - A3, out_3)
+                f3(g_in, index_3_in, r, c - A3, g_3_out)
 
     return route
 
@@ -429,9 +446,9 @@ def route_kernel(pieces: tuple, in_dtype):
 @functools.cache
 def gather_add_sum_kernel(width: int, dtype, *, base: bool, gather_a: bool, gather_b: bool, bias_sum: bool,
                           base_dtype=None):
-    """out[r] = base_in[r] + src_a_in[index_a[r]] + src_b_in[index_b[r]] (backward of the
-    scatter-sums: each row receives the gradient of the sums it was added into), and
-    sum_out[j] += out[:, j] summed over the rows (the output layer's bias gradient). Chunked.
+    """grad_out[r] = base_in[r] + src_a_in[index_a_in[r]] + src_b_in[index_b_in[r]] (backward of
+    the scatter-sums: each row receives the gradient of the sums it is added into), and
+    sum_out[j] += grad_out[:, j] summed over the rows (the output layer's bias gradient). Chunked.
 
     ``base_in`` (the gradient of the block's output, as autograd hands it over) is read in its
     own dtype (``base_dtype``, default ``dtype``) and strides: no cast or copy before."""
@@ -447,13 +464,13 @@ def gather_add_sum_kernel(width: int, dtype, *, base: bool, gather_a: bool, gath
         # Data in:
         base_in: wp.array2d(dtype=Tb),
         src_a_in: wp.array2d(dtype=T),
-        index_a: wp.array(dtype=wp.int32),
+        index_a_in: wp.array(dtype=wp.int32),
         src_b_in: wp.array2d(dtype=T),
-        index_b: wp.array(dtype=wp.int32),
+        index_b_in: wp.array(dtype=wp.int32),
         rows: int,
         chunk: int,
         # Data out:
-        out: wp.array2d(dtype=T),
+        grad_out: wp.array2d(dtype=T),
         sum_out: wp.array(dtype=A),
     ):
         i = wp.tid()
@@ -471,14 +488,14 @@ def gather_add_sum_kernel(width: int, dtype, *, base: bool, gather_a: bool, gath
                     if wp.static(has_base):
                         x += A(base_in[r, j])
                     if wp.static(has_a):
-                        x += A(src_a_in[index_a[r], j])
+                        x += A(src_a_in[index_a_in[r], j])
                     if wp.static(has_b):
-                        x += A(src_b_in[index_b[r], j])
+                        x += A(src_b_in[index_b_in[r], j])
                     ys[k] = T(x)
             for k in range(RB):
                 r = rb + k
                 if r < r1:
-                    out[r, j] = ys[k]
+                    grad_out[r, j] = ys[k]
                     acc += A(ys[k])
         if wp.static(has_sum):
             wp.atomic_add(sum_out, j, acc)
@@ -489,8 +506,8 @@ def gather_add_sum_kernel(width: int, dtype, *, base: bool, gather_a: bool, gath
 @functools.cache
 def scatter_edges_kernel(width: int, src_dtype, dst_dtype, *, sender: bool, receiver: bool, globals_: bool):
     """Backward of ``project_kernel`` (the edge update's first layer in "project" mode), one read of each gradient row:
-    nodes_out[senders[r], :W] += g_in[r]; nodes_out[receivers[r], RCV:RCV+W] += g_in[r];
-    globals_out[edge_graph[r]] += g_in[r] (atomic). RCV = W when both node pieces exist, else 0."""
+    nodes_out[senders_in[r], :W] += g_in[r]; nodes_out[receivers_in[r], RCV:RCV+W] += g_in[r];
+    globals_out[edge_graph_in[r]] += g_in[r] (atomic). RCV = W when both node pieces exist, else 0."""
     has_sender, has_receiver, has_global = sender, receiver, globals_
     V = vec(width)
     WV = width // V
@@ -502,9 +519,9 @@ def scatter_edges_kernel(width: int, src_dtype, dst_dtype, *, sender: bool, rece
     def scatter_edges(
         # Data in:
         g_in: wp.array2d(dtype=S),
-        senders: wp.array(dtype=wp.int32),
-        receivers: wp.array(dtype=wp.int32),
-        edge_graph: wp.array(dtype=wp.int32),
+        senders_in: wp.array(dtype=wp.int32),
+        receivers_in: wp.array(dtype=wp.int32),
+        edge_graph_in: wp.array(dtype=wp.int32),
         # Data out:
         nodes_out: wp.array2d(dtype=D),
         globals_out: wp.array2d(dtype=D),
@@ -513,11 +530,11 @@ def scatter_edges_kernel(width: int, src_dtype, dst_dtype, *, sender: bool, rece
         r = i // WV
         j0 = i - r * WV
         if wp.static(has_sender):
-            s = senders[r]
+            s = senders_in[r]
         if wp.static(has_receiver):
-            q = receivers[r]
+            q = receivers_in[r]
         if wp.static(has_global):
-            g = edge_graph[r]
+            g = edge_graph_in[r]
         xs = wp.vector(length=V, dtype=D)
         for k in range(V):
             xs[k] = D(g_in[r, j0 + k * WV])

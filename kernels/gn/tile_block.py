@@ -75,17 +75,17 @@ def update_tile_kernel(tile_rows: int, slots: tuple[tuple[int, int], ...], hidde
         x1_in: wp.array2d(dtype=T),
         x2_in: wp.array2d(dtype=T),
         x3_in: wp.array2d(dtype=T),
-        index0: wp.array(dtype=wp.int32),
-        index1: wp.array(dtype=wp.int32),
-        index2: wp.array(dtype=wp.int32),
-        index3: wp.array(dtype=wp.int32),
-        scatter0_index: wp.array(dtype=wp.int32),
-        scatter1_index: wp.array(dtype=wp.int32),
+        index0_in: wp.array(dtype=wp.int32),
+        index1_in: wp.array(dtype=wp.int32),
+        index2_in: wp.array(dtype=wp.int32),
+        index3_in: wp.array(dtype=wp.int32),
+        scatter0_index_in: wp.array(dtype=wp.int32),
+        scatter1_index_in: wp.array(dtype=wp.int32),
         # Parameters:
         w_in: wp.array2d(dtype=T),
         b_in: wp.array2d(dtype=T),
         # Data out:
-        out: wp.array2d(dtype=T),
+        y_out: wp.array2d(dtype=T),
         sum0_out: wp.array2d(dtype=T),
         sum1_out: wp.array2d(dtype=T),
     ):
@@ -97,28 +97,28 @@ def update_tile_kernel(tile_rows: int, slots: tuple[tuple[int, int], ...], hidde
             z = z + wp.tile_matmul(wp.tile_load(x0_in, shape=(TM, F0), offset=(r0, 0)),
                                    wp.tile_load(w_in, shape=(F0, H0), offset=(R0, 0)))
         if wp.static(M0 == GATHER):
-            i0 = wp.tile_load(index0, shape=TM, offset=r0)
+            i0 = wp.tile_load(index0_in, shape=TM, offset=r0)
             z = z + wp.tile_matmul(wp.tile_load_indexed(x0_in, indices=i0, shape=(TM, F0), axis=0),
                                    wp.tile_load(w_in, shape=(F0, H0), offset=(R0, 0)))
         if wp.static(M1 == ROWS):
             z = z + wp.tile_matmul(wp.tile_load(x1_in, shape=(TM, F1), offset=(r0, 0)),
                                    wp.tile_load(w_in, shape=(F1, H0), offset=(R1, 0)))
         if wp.static(M1 == GATHER):
-            i1 = wp.tile_load(index1, shape=TM, offset=r0)
+            i1 = wp.tile_load(index1_in, shape=TM, offset=r0)
             z = z + wp.tile_matmul(wp.tile_load_indexed(x1_in, indices=i1, shape=(TM, F1), axis=0),
                                    wp.tile_load(w_in, shape=(F1, H0), offset=(R1, 0)))
         if wp.static(M2 == ROWS):
             z = z + wp.tile_matmul(wp.tile_load(x2_in, shape=(TM, F2), offset=(r0, 0)),
                                    wp.tile_load(w_in, shape=(F2, H0), offset=(R2, 0)))
         if wp.static(M2 == GATHER):
-            i2 = wp.tile_load(index2, shape=TM, offset=r0)
+            i2 = wp.tile_load(index2_in, shape=TM, offset=r0)
             z = z + wp.tile_matmul(wp.tile_load_indexed(x2_in, indices=i2, shape=(TM, F2), axis=0),
                                    wp.tile_load(w_in, shape=(F2, H0), offset=(R2, 0)))
         if wp.static(M3 == ROWS):
             z = z + wp.tile_matmul(wp.tile_load(x3_in, shape=(TM, F3), offset=(r0, 0)),
                                    wp.tile_load(w_in, shape=(F3, H0), offset=(R3, 0)))
         if wp.static(M3 == GATHER):
-            i3 = wp.tile_load(index3, shape=TM, offset=r0)
+            i3 = wp.tile_load(index3_in, shape=TM, offset=r0)
             z = z + wp.tile_matmul(wp.tile_load_indexed(x3_in, indices=i3, shape=(TM, F3), axis=0),
                                    wp.tile_load(w_in, shape=(F3, H0), offset=(R3, 0)))
         # hidden layers: ReLU, then the next linear layer
@@ -134,13 +134,13 @@ def update_tile_kernel(tile_rows: int, slots: tuple[tuple[int, int], ...], hidde
         if wp.static(L >= 4):
             z = wp.tile_matmul(wp.tile_map(relu, z), wp.tile_load(w_in, shape=(K4, N4), offset=(O4, 0))) \
                 + wp.tile_broadcast(wp.tile_load(b_in, shape=(1, N4), offset=(4, 0)), shape=(TM, N4))
-        wp.tile_store(out, z, offset=(r0, 0))
+        wp.tile_store(y_out, z, offset=(r0, 0))
         # scatter-sums of the output rows (padded rows carry index -1: skipped)
         if wp.static(n_scatter >= 1):
-            s0 = wp.tile_load(scatter0_index, shape=TM, offset=r0)
+            s0 = wp.tile_load(scatter0_index_in, shape=TM, offset=r0)
             wp.tile_atomic_add_indexed(sum0_out, indices=s0, t=z, axis=0)
         if wp.static(n_scatter >= 2):
-            s1 = wp.tile_load(scatter1_index, shape=TM, offset=r0)
+            s1 = wp.tile_load(scatter1_index_in, shape=TM, offset=r0)
             wp.tile_atomic_add_indexed(sum1_out, indices=s1, t=z, axis=0)
 
     return update_tile

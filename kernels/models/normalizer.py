@@ -7,7 +7,8 @@ adds) and reading mean and std back (count clamp, divisions, variance, clamps, s
 block per feature column sums its column's weighted values, squares and weights over the rows
 (each lane a strided range, then one tile reduction: a fixed order, so deterministic), adds them
 to the column's float64 sums and writes the column's new mean and std in the model's dtype.
-The row count is added by the caller afterwards (every block reads the old count; none writes it).
+The row count is added by the caller afterwards (every block reads the count without this batch;
+none writes it).
 """
 # no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
 import functools
@@ -21,27 +22,39 @@ BLOCK = 128  # threads per column block on CUDA (Warp's CPU device runs one thre
 
 @functools.cache
 def accumulate_kernel(dtype, weighted: bool):
-    """Kernel ``(x [n, F], w [n], n, bd, count [1], sum [F], sumsq [F], floor, mean [F], std [F])``
-    launched tiled over F blocks of ``bd`` threads: sum[j] += sum_i w_i x_ij, sumsq[j] += sum_i
-    w_i x_ij^2 (w = 1 when not ``weighted``), then mean[j], std[j] of the updated sums with the
-    count ``count + sum_i w_i``: std = max(sqrt(max(var, 0)), floor); mean 0 and std 1 while the
-    count is 0. ``x``, ``w``, ``mean``, ``std`` in ``dtype``; the sums in float64."""
+    """Kernel ``(x_in [n, F], w_in [n], n, bd, count_in [1], floor, sum_out [F], sumsq_out [F],
+    mean_out [F], std_out [F])`` launched tiled over F blocks of ``bd`` threads: sum_out[j] +=
+    sum_i w_i x_ij, sumsq_out[j] += sum_i w_i x_ij^2 (w = 1 when not ``weighted``), then
+    mean_out[j], std_out[j] of the updated sums with the count ``count_in + sum_i w_i``: std =
+    max(sqrt(max(var, 0)), floor); mean 0 and std 1 while the count is 0. ``x_in``, ``w_in``,
+    ``mean_out``, ``std_out`` in ``dtype``; the sums in float64."""
     T = dtype
     W = 1 if weighted else 0
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def accumulate(x: wp.array2d(dtype=T), w: wp.array(dtype=T), n: int, bd: int, count: wp.array(dtype=wp.float64),
-                   total: wp.array(dtype=wp.float64), total_sq: wp.array(dtype=wp.float64), floor: wp.float64,
-                   mean: wp.array(dtype=T), std: wp.array(dtype=T)):
+    def accumulate(
+        # Data in:
+        x_in: wp.array2d(dtype=T),
+        w_in: wp.array(dtype=T),
+        n: int,
+        bd: int,
+        count_in: wp.array(dtype=wp.float64),
+        floor: wp.float64,
+        # Data out:
+        sum_out: wp.array(dtype=wp.float64),
+        sumsq_out: wp.array(dtype=wp.float64),
+        mean_out: wp.array(dtype=T),
+        std_out: wp.array(dtype=T),
+    ):
         col, lane = wp.tid()
         a = wp.float64(0.0)
         b = wp.float64(0.0)
         c = wp.float64(0.0)
         i = lane
         while i < n:
-            v = wp.float64(x[i, col])
+            v = wp.float64(x_in[i, col])
             if wp.static(W == 1):
-                wi = wp.float64(w[i])
+                wi = wp.float64(w_in[i])
                 a += wi * v
                 b += wi * v * v
                 c += wi
@@ -53,21 +66,21 @@ def accumulate_kernel(dtype, weighted: bool):
         sb = wp.tile_sum(wp.tile(b))
         sc = wp.tile_sum(wp.tile(c))
         if lane == 0:
-            s = total[col] + sa[0]
-            q = total_sq[col] + sb[0]
-            cnt = count[0] + wp.float64(n)
+            s = sum_out[col] + sa[0]
+            q = sumsq_out[col] + sb[0]
+            cnt = count_in[0] + wp.float64(n)
             if wp.static(W == 1):
-                cnt = count[0] + sc[0]
-            total[col] = s
-            total_sq[col] = q
+                cnt = count_in[0] + sc[0]
+            sum_out[col] = s
+            sumsq_out[col] = q
             if cnt > wp.float64(0.0):
                 d = wp.max(cnt, wp.float64(1.0))
                 m = s / d
                 var = wp.max(q / d - m * m, wp.float64(0.0))
-                mean[col] = T(m)
-                std[col] = T(wp.max(wp.sqrt(var), floor))
+                mean_out[col] = T(m)
+                std_out[col] = T(wp.max(wp.sqrt(var), floor))
             else:
-                mean[col] = T(0.0)
-                std[col] = T(1.0)
+                mean_out[col] = T(0.0)
+                std_out[col] = T(1.0)
 
     return accumulate

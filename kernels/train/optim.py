@@ -35,7 +35,7 @@ SUMSQ_UNROLL = 4  # independent partial sums per thread of ``sumsq`` (loads in f
 
 @functools.cache
 def sumsq_kernel(dtype):
-    """scalars[SUMSQ] += sum of g[i]**2 over i < n: each thread sums a grid-strided range,
+    """scalars_out[SUMSQ] += sum of g_in[i]**2 over i < n: each thread sums a grid-strided range,
     ``SUMSQ_UNROLL`` elements per iteration into as many partial sums (their loads independent,
     in flight together), each block reduces its threads' sums as a tile and adds the result with
     one atomic. Launch with ``wp.launch_tiled(dim=[blocks], block_dim=bd)`` and
@@ -44,25 +44,33 @@ def sumsq_kernel(dtype):
     U = SUMSQ_UNROLL
 
     @wp.kernel(module="unique", module_options=_options())
-    def sumsq(g: wp.array(dtype=T), n: int, bd: int, stride: int, scalars: wp.array(dtype=T)):
+    def sumsq(
+        # Data in:
+        g_in: wp.array(dtype=T),
+        n: int,
+        bd: int,
+        stride: int,
+        # Data out:
+        scalars_out: wp.array(dtype=T),
+    ):
         b, lane = wp.tid()
         i = b * bd + lane
         acc = wp.vector(length=U, dtype=T)
         while i + (U - 1) * stride < n:
             xs = wp.vector(length=U, dtype=T)
             for k in range(U):
-                xs[k] = g[i + k * stride]
+                xs[k] = g_in[i + k * stride]
             for k in range(U):
                 acc[k] += xs[k] * xs[k]
             i += U * stride
         while i < n:
-            x = g[i]
+            x = g_in[i]
             acc[0] += x * x
             i += stride
         total = T(0.0)
         for k in range(U):
             total += acc[k]
-        wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(total)))  # into slot SUMSQ = 0
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(total)))  # into slot SUMSQ = 0
 
     return sumsq
 
@@ -71,22 +79,31 @@ def sumsq_kernel(dtype):
 def finalize_kernel(dtype, *, clip: bool):
     """One thread, between the norm and the update: step += 1; the bias corrections of that step;
     the clipping coefficient min(1, max_norm / (norm + 1e-6)) (as torch's ``clip_grad_norm_``);
-    the norm kept in scalars[NORM] and the accumulator zeroed for the next step."""
+    the norm kept in scalars[NORM] and the accumulator zeroed for the next step. Launch with the
+    device scalars as both ``scalars_in`` and ``scalars_out``."""
     T = dtype
 
     @wp.kernel(module="unique", module_options=_options())
-    def finalize(scalars: wp.array(dtype=T), beta1: T, beta2: T, max_norm: T):
-        step = scalars[STEP] + T(1.0)
-        scalars[STEP] = step
-        scalars[BC1] = T(1.0) - wp.pow(beta1, step)
-        scalars[BC2] = T(1.0) - wp.pow(beta2, step)
-        norm = wp.sqrt(scalars[SUMSQ])
-        scalars[NORM] = norm
-        scalars[SUMSQ] = T(0.0)
+    def finalize(
+        # Data in:
+        scalars_in: wp.array(dtype=T),
+        beta1: T,
+        beta2: T,
+        max_norm: T,
+        # Data out:
+        scalars_out: wp.array(dtype=T),
+    ):
+        step = scalars_in[STEP] + T(1.0)
+        norm = wp.sqrt(scalars_in[SUMSQ])
+        scalars_out[STEP] = step
+        scalars_out[BC1] = T(1.0) - wp.pow(beta1, step)
+        scalars_out[BC2] = T(1.0) - wp.pow(beta2, step)
+        scalars_out[NORM] = norm
+        scalars_out[SUMSQ] = T(0.0)
         coef = T(1.0)
         if wp.static(clip):
             coef = wp.min(T(1.0), max_norm / (norm + T(1.0e-6)))
-        scalars[COEF] = coef
+        scalars_out[COEF] = coef
 
     return finalize
 
@@ -104,13 +121,30 @@ def adam_kernel(dtype, *, weight_decay: bool, decoupled: bool):
     of thread t of nt = ``adam_threads(n)``, in torch's formulation:
     g = coef * grad (+ wd * p for Adam's L2 decay); m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2;
     p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps) (AdamW first scales p by 1 - lr * wd).
-    Every load is issued before the first store."""
+    Every load is issued before the first store. Launch with the parameters, first and second
+    moments as both ``*_in`` and ``*_out``."""
     T = dtype
     V = ADAM_VEC
 
     @wp.kernel(module="unique", module_options=_options())
-    def adam(p: wp.array(dtype=T), g: wp.array(dtype=T), m: wp.array(dtype=T), v: wp.array(dtype=T),
-             scalars: wp.array(dtype=T), n: int, nt: int, beta1: T, beta2: T, eps: T, wd: T):
+    def adam(
+        # Data in:
+        p_in: wp.array(dtype=T),
+        g_in: wp.array(dtype=T),
+        m_in: wp.array(dtype=T),
+        v_in: wp.array(dtype=T),
+        scalars_in: wp.array(dtype=T),
+        n: int,
+        nt: int,
+        beta1: T,
+        beta2: T,
+        eps: T,
+        wd: T,
+        # Data out:
+        p_out: wp.array(dtype=T),
+        m_out: wp.array(dtype=T),
+        v_out: wp.array(dtype=T),
+    ):
         t = wp.tid()
         ps = wp.vector(length=V, dtype=T)
         gs = wp.vector(length=V, dtype=T)
@@ -119,14 +153,14 @@ def adam_kernel(dtype, *, weight_decay: bool, decoupled: bool):
         for k in range(V):
             i = t + k * nt
             if i < n:
-                ps[k] = p[i]
-                gs[k] = g[i]
-                ms[k] = m[i]
-                vs[k] = v[i]
-        lr = scalars[LR]
-        coef = scalars[COEF]
-        step = lr / scalars[BC1]
-        sq2 = wp.sqrt(scalars[BC2])
+                ps[k] = p_in[i]
+                gs[k] = g_in[i]
+                ms[k] = m_in[i]
+                vs[k] = v_in[i]
+        lr = scalars_in[LR]
+        coef = scalars_in[COEF]
+        step = lr / scalars_in[BC1]
+        sq2 = wp.sqrt(scalars_in[BC2])
         for k in range(V):
             i = t + k * nt
             if i < n:
@@ -139,8 +173,8 @@ def adam_kernel(dtype, *, weight_decay: bool, decoupled: bool):
                 mi = beta1 * ms[k] + (T(1.0) - beta1) * gi
                 vi = beta2 * vs[k] + (T(1.0) - beta2) * gi * gi
                 denom = wp.sqrt(vi) / sq2 + eps
-                p[i] = pi - step * mi / denom
-                m[i] = mi
-                v[i] = vi
+                p_out[i] = pi - step * mi / denom
+                m_out[i] = mi
+                v_out[i] = vi
 
     return adam

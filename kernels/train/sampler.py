@@ -17,49 +17,62 @@ __all__ = ["sample_batch_kernel"]
 
 @functools.cache
 def sample_batch_kernel(dtype):
-    """Kernel ``(seq [N] int64, t [N] int64, instance [S] int64, body [S, T+1, B, 13], ctrl [S, T, U],
-    s_nodes [I, B, Fv], s_edges [I, E, Fe], s_globals [I, Fg], edge_ctrl [I, E, K] int64 (-1: no
-    actuator), nodes [N*B, Fv+13], edges [N*E, Fe+K], globals [N, Fg], target [N*B, 13])`` over
-    N * (B + E + 1) threads: graph g = tid // (B + E + 1) writes node row r < B, edge row r - B
-    < E, else its global row, r = tid % (B + E + 1); I is the instance of seq[g]."""
+    """Kernel ``(seq_in [N] int64, t_in [N] int64, instance_in [S] int64, body_in [S, T+1, B, 13],
+    ctrl_in [S, T, U], s_nodes_in [I, B, Fv], s_edges_in [I, E, Fe], s_globals_in [I, Fg],
+    edge_ctrl_in [I, E, K] int64 (-1: no actuator), nodes_out [N*B, Fv+13], edges_out [N*E, Fe+K],
+    globals_out [N, Fg], target_out [N*B, 13])`` over N * (B + E + 1) threads: graph g = tid //
+    (B + E + 1) writes node row r < B, edge row r - B < E, else its global row, r = tid % (B + E +
+    1); I is the instance of seq_in[g]."""
     T = dtype
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def sample_batch(seq: wp.array(dtype=wp.int64), t: wp.array(dtype=wp.int64), instance: wp.array(dtype=wp.int64),
-                     body: wp.array4d(dtype=T), ctrl: wp.array3d(dtype=T), s_nodes: wp.array3d(dtype=T),
-                     s_edges: wp.array3d(dtype=T), s_globals: wp.array2d(dtype=T),
-                     edge_ctrl: wp.array3d(dtype=wp.int64), nodes: wp.array2d(dtype=T), edges: wp.array2d(dtype=T),
-                     globals: wp.array2d(dtype=T), target: wp.array2d(dtype=T)):
+    def sample_batch(
+        # Data in:
+        seq_in: wp.array(dtype=wp.int64),
+        t_in: wp.array(dtype=wp.int64),
+        instance_in: wp.array(dtype=wp.int64),
+        body_in: wp.array4d(dtype=T),
+        ctrl_in: wp.array3d(dtype=T),
+        s_nodes_in: wp.array3d(dtype=T),
+        s_edges_in: wp.array3d(dtype=T),
+        s_globals_in: wp.array2d(dtype=T),
+        edge_ctrl_in: wp.array3d(dtype=wp.int64),
+        # Data out:
+        nodes_out: wp.array2d(dtype=T),
+        edges_out: wp.array2d(dtype=T),
+        globals_out: wp.array2d(dtype=T),
+        target_out: wp.array2d(dtype=T),
+    ):
         tid = wp.tid()
-        B = body.shape[2]
-        E = s_edges.shape[1]
+        B = body_in.shape[2]
+        E = s_edges_in.shape[1]
         g = tid // (B + E + 1)
         r = tid - g * (B + E + 1)
-        sq = int(seq[g])
-        st = int(t[g])
-        inst = int(instance[sq])
+        sq = int(seq_in[g])
+        st = int(t_in[g])
+        inst = int(instance_in[sq])
         if r < B:
             row = g * B + r
-            fv = s_nodes.shape[2]
+            fv = s_nodes_in.shape[2]
             for k in range(fv):
-                nodes[row, k] = s_nodes[inst, r, k]
+                nodes_out[row, k] = s_nodes_in[inst, r, k]
             for k in range(13):
-                nodes[row, fv + k] = body[sq, st, r, k]
-                target[row, k] = body[sq, st + 1, r, k]
+                nodes_out[row, fv + k] = body_in[sq, st, r, k]
+                target_out[row, k] = body_in[sq, st + 1, r, k]
         elif r < B + E:
             e = r - B
             row = g * E + e
-            fe = s_edges.shape[2]
+            fe = s_edges_in.shape[2]
             for k in range(fe):
-                edges[row, k] = s_edges[inst, e, k]
-            for k in range(edge_ctrl.shape[2]):
-                c = int(edge_ctrl[inst, e, k])
+                edges_out[row, k] = s_edges_in[inst, e, k]
+            for k in range(edge_ctrl_in.shape[2]):
+                c = int(edge_ctrl_in[inst, e, k])
                 v = T(0.0)
                 if c >= 0:
-                    v = ctrl[sq, st, c]
-                edges[row, fe + k] = v
+                    v = ctrl_in[sq, st, c]
+                edges_out[row, fe + k] = v
         else:
-            for k in range(s_globals.shape[1]):
-                globals[g, k] = s_globals[inst, k]
+            for k in range(s_globals_in.shape[1]):
+                globals_out[g, k] = s_globals_in[inst, k]
 
     return sample_batch
