@@ -39,6 +39,7 @@ from gnwarp.gn.options import RunOptions, check_option_names
 from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig, check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
+from gnwarp.version import __version__
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model",
            "load_checkpoint", "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
@@ -89,7 +90,7 @@ def snapshot(model: ForwardModel, training: dict | None = None, info: dict | Non
     so that training on may go on while another thread writes them, ``CheckpointWriter``)."""
     if training is not None:
         training = _cpu_copy(_plain(training, "training"))
-    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __import__("gnwarp").__version__,
+    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __version__,
            "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
     return {"config": json.dumps(cfg, indent=1), "training": training,
             "model": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}}
