@@ -250,8 +250,7 @@ def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300,
 
     from tqdm.auto import tqdm
 
-    from gnwarp.interop import Graphed
-    from gnwarp.train.capture import default_generator, registers_generators
+    from gnwarp.interop import Graphed, default_generator, registers_generators
     dev = split.obs.device
     cuda = dev.type == "cuda"
     capture = cuda if capture is None else bool(capture)

@@ -39,10 +39,9 @@ from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.graphs import GraphsTuple
-from gnwarp.interop import Graphed, resolve_device
+from gnwarp.interop import Graphed, capture_problem, default_generator, registers_generators, resolve_device
 from gnwarp.models.config import check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
-from gnwarp.train.capture import capture_problem, default_generator, registers_generators
 from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
                                      load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
