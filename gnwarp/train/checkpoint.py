@@ -90,8 +90,10 @@ def snapshot(model: ForwardModel, training: dict | None = None, info: dict | Non
     so that training on may go on while another thread writes them, ``CheckpointWriter``)."""
     if training is not None:
         training = _cpu_copy(_plain(training, "training"))
-    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __version__,
-           "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
+    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __version__, "model": model.config.to_dict()}
+    if getattr(model, "layout", None) is not None:  # models of observation graphs have input sizes instead
+        cfg["layout"] = model.layout.to_dict()
+    cfg.update(info or {})
     return {"config": json.dumps(cfg, indent=1), "training": training,
             "model": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}}
 

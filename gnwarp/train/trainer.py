@@ -103,9 +103,8 @@ class Trainer:
             model, training = self._load_last()
         elif model is None:
             model = build_model(config, self.datasets)
-        run = config.model.run
-        self.model = model.set_options(run).to(device=self.device, dtype=run.param_dtype)
-        self.sampler = BatchSampler(self.datasets, self.model, self.device)
+        self.model = self.place_model(model)
+        self.sampler = self.make_sampler()
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
         cuda = self.device.type == "cuda"
         # a CUDA graph replays the device's default generator by itself; others need registering
@@ -148,6 +147,17 @@ class Trainer:
         if isinstance(saved, dict):
             return "flat_adam" if saved.get("format") == "gnwarp.FlatAdam/1" else "adam"
         return "flat_adam" if self.device.type == "cuda" else "adam"
+
+    def place_model(self, model):
+        """The model as it trains: run as ``config.model.run`` says, on the device, in its
+        parameter dtype."""
+        run = self.config.model.run
+        return model.set_options(run).to(device=self.device, dtype=run.param_dtype)
+
+    def make_sampler(self):
+        """Where batches come from: an object with ``sample(batch_size, generator)`` (its result
+        is ``loss``'s arguments) and ``static_shapes`` (whether a step may be captured)."""
+        return BatchSampler(self.datasets, self.model, self.device)
 
     def make_optimizer(self, kind: str | None = None) -> torch.optim.Optimizer:
         """torch's Adam (clipping in ``step``) or FlatAdam (clipping inside), as ``kind`` (default:
@@ -277,6 +287,11 @@ class Trainer:
         if self._writer is not None:
             for name, path in self._writer.done(wait):
                 self.emit("checkpoint", name=name, path=path)
+
+    @property
+    def description(self) -> str:
+        """What the progress bar names the model."""
+        return str(self.model.config.core)
 
     @property
     def log_fields(self) -> tuple[str, ...]:
@@ -427,7 +442,7 @@ class Trainer:
             _trim_log(log_path, st["step"])
         start_step = st["step"]
         t_start = time.perf_counter() - st["seconds"]
-        bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.model.config.core}", unit="step",
+        bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.description}", unit="step",
                    disable=not c.progress, dynamic_ncols=True, smoothing=0.05)
         self.model.train()
         fields = self.log_fields if new_log else _log_header(log_path)   # a resumed log keeps its columns
