@@ -14,7 +14,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gnwarp import cli, data
-from gnwarp.data.dataset import MAX_ABS, DatasetWarning, check
+from gnwarp.data.checks import MAX_ABS
+from gnwarp.data.dataset import check
+from gnwarp.data.format import DatasetWarning
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.sim import systems
 

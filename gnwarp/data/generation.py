@@ -14,7 +14,9 @@ import time
 import numpy as np
 
 from gnwarp.data.convert import static_arrays
-from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
+from gnwarp.data.checks import MAX_ABS
+from gnwarp.data.dataset import Dataset, Split
+from gnwarp.data.format import SPLITS
 from gnwarp.sim.common import topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.backends import resolve_backend, simulate

@@ -52,7 +52,7 @@ __all__ = [
 MASS_RANGE = (1e-6, 1e6)
 SIZE_RANGE = (1e-6, 1e6)
 INERTIA_MAX = 1e12
-_CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.dataset.MAX_ABS)
+_CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.checks.MAX_ABS)
 
 _SWIMMER_LINKS = (3, 15)           # SwimmerN exists for these N
 _SWIMMER_SAMPLED_LINKS = (3, 9)    # the parameterized SwimmerN samples N in this range (paper B)

@@ -38,6 +38,7 @@ import torch
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
+from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
 from gnwarp.interop import Graphed, capture_problem, default_generator, registers_generators, resolve_device
 from gnwarp.models.config import check_model_size
@@ -514,12 +515,10 @@ def _trim_log(path: Path, step: int) -> None:
             pass
     if len(keep) == len(rows):
         return
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", newline="") as f:
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fields)
         w.writeheader()
         w.writerows(keep)
-    os.replace(tmp, path)
 
 
 def _move_aside(out: Path) -> Path:
