@@ -68,8 +68,8 @@ def atomic_write(path: str | Path, folder: bool = False):
 
     Yields a temporary path beside it (``temporary_of(path)``: the same folder, so the rename
     stays on one file system; with ``folder``, an empty folder) to write into. When the block
-    ends, what was written is flushed to the disk (fsync) and renamed over ``path``; when it
-    raises, the temporary is removed and ``path`` is left as it was. A folder replacing another
+    ends, what the block wrote is flushed to the disk (fsync) and renamed over ``path``; when it
+    raises, the temporary is removed and ``path`` stays as it is. A folder replacing another
     is moved aside first (``temporary_of(path, "old")``, removed after the rename; a kill between
     the two renames leaves both beside ``path``, for a recovery to pick up: the checkpoints'
     ``recover_checkpoint``). The caller makes the parent folder."""
@@ -101,7 +101,7 @@ def atomic_write(path: str | Path, folder: bool = False):
 
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Remove the temporaries (``.<name>.tmp-<pid>``) of ``path`` that writes killed before their
-    rename left beside it: those of processes no longer running. Returns what was removed."""
+    rename left beside it: those of processes no longer running. Returns the paths removed."""
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
     removed = []

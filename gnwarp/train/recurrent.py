@@ -156,7 +156,7 @@ class TeacherForcingTrainer(Trainer):
 def load_recurrent(path, data: ProprioData, device=None, run=None) -> RecurrentForwardModel:
     """A ``RecurrentForwardModel`` from a checkpoint folder a ``TeacherForcingTrainer`` wrote
     (manifest and checksums checked, weights read with ``weights_only=True`` and checked
-    finite), reading ``data``'s graphs (the observation graphs of the system it was trained on:
+    finite), reading ``data``'s graphs (the observation graphs of the system it trained on:
     its input sizes must match), on ``device`` (default: ``data``'s). ``run``: run options in
     place of the saved ones."""
     path, cfg = read_checkpoint(Path(path))

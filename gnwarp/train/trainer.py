@@ -11,8 +11,9 @@ kept, early stopping. A run folder holds::
     <out>/best/   the checkpoint with the lowest validation error
     <out>/log.csv losses, learning rate and validation errors
 
-Its seams, for the stages that reuse it (captured steps, system identification, RL learners,
-distributed ranks): ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
+Its seams, for the stages that reuse it (captured steps, system identification, recurrent
+teacher forcing, RL learners, distributed ranks): ``place_model`` (the model as it trains),
+``make_sampler`` / ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
 ``step`` (one optimization step), ``validate``, ``checkpoint`` and ``callbacks`` (called as
 ``callback(trainer, event, info)`` for the events "log", "validate", "checkpoint" and "end").
 The loop's checkpoints are copied to the CPU at their step and written by a background thread
