@@ -1,11 +1,11 @@
-"""Benchmark: the recurrent one-step model's teacher-forcing loop (``train_teacher_forcing``, D.7.3),
-replayed from CUDA graphs against eager, in one process.
+"""Benchmark: the recurrent one-step model's teacher-forcing step (``TeacherForcingTrainer.step``,
+D.7.3), replayed from CUDA graphs against eager, in one process.
 
 The proprioceptive JACO of ``bench/experiments/recurrent_jaco.py`` at its full size (recurrent GN,
 latent 128, hidden graph 20, MLPs 256x256, batch 200 windows of 21 observations: 20 recurrent steps
 a window), ``--sequences`` simulated on MuJoCo C. For each precision: a short run of each mode
 first (kernels compiled, graphs captured), then ``--eager-steps`` eager steps and ``--steps``
-captured ones, steps/s over each run (the loss read back every 256 steps, as the loop does); and
+captured ones, steps/s over each run (the loss read back once at its end); and
 the model's 100-step rollouts (20 warm-up steps) of every training sequence, eager and captured
 (median of 5, CUDA events).
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,8 +27,8 @@ import torch  # noqa: E402
 from bench.harness import device_name, median_ms, results_dir, save_results  # noqa: E402
 from gnwarp.data import proprio  # noqa: E402
 from gnwarp.models.recurrent import RecurrentGNConfig  # noqa: E402
-from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel,  # noqa: E402
-                                             train_teacher_forcing)
+from gnwarp.models.recurrent_forward import RecurrentForwardConfig, RecurrentForwardModel  # noqa: E402
+from gnwarp.train import TrainConfig, TeacherForcingTrainer  # noqa: E402
 
 
 def main(argv=None):
@@ -62,16 +63,24 @@ def main(argv=None):
         model = RecurrentForwardModel(cfg, data.sizes, data.graphs, data.movable).to(dev)
         modes = [("eager", False, args.eager_steps)] + ([("captured", True, args.steps)] if cuda else [])
         for mode, capture, steps in modes:
-            train_teacher_forcing(model, train, 5, args.batch, capture=capture)   # compile (and capture)
+            with tempfile.TemporaryDirectory() as run_dir:   # steps only: nothing is written there
+                tc = TrainConfig(out=run_dir, batch_size=args.batch, lr=1e-3, device=str(dev), capture=capture,
+                                 normalizer_warmup=0, progress=False, resume=False)
+                trainer = TeacherForcingTrainer(tc, data, model)
+            for _ in range(5):   # compile (and capture)
+                trainer.step()
             if cuda:
                 torch.cuda.synchronize()
             t = time.perf_counter()
-            losses = train_teacher_forcing(model, train, steps, args.batch, capture=capture)
+            for _ in range(steps):
+                loss = trainer.step()["loss"]
+            if steps:
+                float(loss)   # the last step's loss on the host: every step has run
             if cuda:
                 torch.cuda.synchronize()
             s = time.perf_counter() - t
-            row = dict(device=name, precision=prec, mode=mode, steps=len(losses), seconds=round(s, 3),
-                       steps_per_s=round(len(losses) / s, 1), window=21, batch=args.batch)
+            row = dict(device=name, precision=prec, mode=mode, steps=steps, seconds=round(s, 3),
+                       steps_per_s=round(steps / s, 1) if steps else 0.0, window=21, batch=args.batch)
             with torch.no_grad():   # 100-step rollouts (20 warm-up steps) of every training sequence
                 run = lambda: model.rollout(train.instance, train.obs, train.ctrl, warmup=20, capture=capture)  # noqa: E731
                 row["rollout_ms"] = round(median_ms(run, dev, 5 if cuda else 1, 1), 2)
@@ -79,11 +88,10 @@ def main(argv=None):
             rows.append(row)
             print(row, flush=True)
     lines = [f"# The recurrent model's teacher-forcing loop on {name}", "",
-             f"`python bench/recurrent_loop.py` ({time.strftime('%Y-%m-%d')}): `train_teacher_forcing` on the "
+             f"`python bench/recurrent_loop.py` ({time.strftime('%Y-%m-%d')}): `TeacherForcingTrainer.step` on the "
              f"proprioceptive JACO, latent {latent}, hidden graph {hidden}, MLPs {'x'.join(map(str, mlp))}, batch "
              f"{args.batch} windows of 21 observations (20 recurrent steps each); one process, each mode after a "
-             "short run of it that compiled its kernels; a captured run's time includes its two eager warm-up steps and "
-             "its capture.", "",
+             "short run of it (5 steps) that compiled its kernels and captured its step.", "",
              "| precision | eager steps/s | captured steps/s | captured / eager | 100-step rollout of "
              f"{len(train)} sequences, eager ms | captured ms |", "|---|---|---|---|---|---|"]
     for prec in args.precisions.split(","):

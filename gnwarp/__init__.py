@@ -1,6 +1,6 @@
 """gnwarp: graph networks as learnable physics engines, on NVIDIA Warp and MuJoCo-Warp."""
 
-__version__ = "0.1.0"
+from gnwarp.version import __version__  # noqa: F401
 
 
 def _find_kernels():

@@ -46,8 +46,8 @@ def _sizes(args):
 def _cmd_generate(args) -> int:
     from pathlib import Path
 
-    from gnwarp.data.dataset import remove_stale_temporaries
     from gnwarp.data.generation import generate
+    from gnwarp.files import remove_stale_temporaries
     from gnwarp.sim.systems import from_mjcf
     out = Path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
     if out.exists() and not args.overwrite:  # fail before simulating, not after

@@ -1,14 +1,21 @@
-"""Small file helpers shared by the stages that write files: checksums and JSON-safe values."""
+"""Small file helpers shared by the stages that write files: atomic writes, checksums and
+JSON-safe values."""
 from __future__ import annotations
 
+import contextlib
+import glob
 import hashlib
 import math
 import os
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable", "pid_alive"]
+__all__ = ["sha256_file", "jsonable", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries"]
+
+_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)$")
 
 
 def pid_alive(pid: int) -> bool:
@@ -46,3 +53,85 @@ def jsonable(x):
     if isinstance(x, (np.integer, np.bool_)):
         return x.item()
     return x
+
+
+def temporary_of(path: str | Path, kind: str = "tmp", pid: int | None = None) -> Path:
+    """``.<name>.<kind>-<pid>`` beside ``path``: where ``atomic_write`` writes (kind "tmp") and
+    puts a replaced folder aside (kind "old"); this process's unless ``pid``."""
+    path = Path(path)
+    return path.parent / f".{path.name}.{kind}-{os.getpid() if pid is None else pid}"
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path, folder: bool = False):
+    """Write the file (or, with ``folder``, the folder) ``path`` whole or not at all.
+
+    Yields a temporary path beside it (``temporary_of(path)``: the same folder, so the rename
+    stays on one file system; with ``folder``, an empty folder) to write into. When the block
+    ends, what the block wrote is flushed to the disk (fsync) and renamed over ``path``; when it
+    raises, the temporary is removed and ``path`` stays as it is. A folder replacing another
+    is moved aside first (``temporary_of(path, "old")``, removed after the rename; a kill between
+    the two renames leaves both beside ``path``, for a recovery to pick up: the checkpoints'
+    ``recover_checkpoint``). The caller makes the parent folder."""
+    path = Path(path)
+    tmp, old = temporary_of(path), temporary_of(path, "old")
+    for p in (tmp, old):   # this process's leftovers of an earlier failed write
+        _remove(p)
+    if folder:
+        tmp.mkdir()
+    moved = False
+    try:
+        yield tmp
+        for f in (sorted(tmp.iterdir()) if folder else [tmp]):
+            _fsync(f)
+        if folder and path.exists():
+            os.replace(path, old)
+            moved = True
+        os.replace(tmp, path)
+        _fsync(path.parent)   # the rename itself
+    except BaseException:
+        if moved and not path.exists():   # put the previous folder back
+            with contextlib.suppress(OSError):
+                os.replace(old, path)
+        _remove(tmp)
+        raise
+    if moved:
+        _remove(old)
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove the temporaries (``.<name>.tmp-<pid>``) of ``path`` that writes killed before their
+    rename left beside it: those of processes no longer running. Returns the paths removed."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    removed = []
+    for p in parent.glob("." + glob.escape(path.name) + ".tmp-*"):
+        m = _TEMPORARY.match(p.name)
+        if m is None or m["name"] != path.name or pid_alive(int(m["pid"])):  # a running writer's: left alone
+            continue
+        _remove(p)
+        removed.append(p)
+    return removed
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file's (or a folder's entries') writes to the disk; a no-op where the system
+    cannot open it for that (folders on some systems)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()

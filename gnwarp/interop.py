@@ -14,7 +14,7 @@ import torch
 import warp as wp
 
 __all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Graphed", "replay_cached",
-           "Launcher"]
+           "Launcher", "registers_generators", "default_generator", "capture_problem"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -123,6 +123,37 @@ class Graphed:
             torch.cuda.current_stream().wait_stream(self.stream)
             self.graph = graph
         self.graph.replay()
+
+
+# -- what a captured training step needs ----------------------------------------------------------
+# Uncaptured, a training step launches tens of Warp kernels and ~100 torch ones from Python, each
+# costing tens of microseconds of host time; ``Graphed`` replays the step's device work (batch
+# sampling, noise, normalizer accumulation, loss, backward, clipping, the optimizer update, the
+# running loss sums) as one launch. What must hold for a step to be captured (``capture_problem``
+# says what does not): a CUDA device; batches of one shape (graphs of one topology per dataset);
+# an optimizer whose learning rate lives on the device (``FlatAdam``, or torch's Adam made
+# capturable with a tensor learning rate); a random generator the graph can replay (the device's
+# default generator, or any with ``CUDAGraph.register_generator_state``).
+
+def registers_generators() -> bool:
+    """Whether this torch can replay random numbers of any generator in a CUDA graph."""
+    return hasattr(torch.cuda.CUDAGraph, "register_generator_state")
+
+
+def default_generator(device: torch.device) -> torch.Generator:
+    """The default random generator of a CUDA device (CUDA graphs replay it by themselves)."""
+    return torch.cuda.default_generators[device.index if device.index is not None else torch.cuda.current_device()]
+
+
+def capture_problem(device: torch.device, static_shapes: bool, generator: torch.Generator) -> str | None:
+    """None if a training step on ``device`` can be captured, else why not."""
+    if device.type != "cuda":
+        return "capture needs a CUDA device"
+    if not static_shapes:
+        return "the batches' graphs vary in size (several topologies in one dataset)"
+    if generator is not default_generator(device) and not registers_generators():
+        return "this torch cannot replay a non-default random generator in a CUDA graph"
+    return None
 
 
 def replay_cached(cache: dict, key, inputs: tuple, run, keep=None, limit: int = 4):

@@ -1,4 +1,5 @@
 """The partly observed JACO (gnwarp.data.proprio) and the recurrent one-step model (D.7.3)."""
+import json
 import math
 
 import mujoco
@@ -7,11 +8,14 @@ import pytest
 import torch
 
 from gnwarp.data import proprio
+from gnwarp.files import sha256_file
 from gnwarp.models.normalizer import normalize_graph
 from gnwarp.models.recurrent import RecurrentGNConfig
 from gnwarp.models.recurrent_forward import (RecurrentForwardConfig, RecurrentForwardModel, apply_observation_delta,
-                                             observation_delta, train_teacher_forcing)
+                                             observation_delta)
 from gnwarp.sim.systems import make
+from gnwarp.train import CheckpointError, TrainConfig
+from gnwarp.train.recurrent import TeacherForcingTrainer, load_recurrent
 
 TINY = RecurrentGNConfig(latent=16, hidden_edges=8, hidden_nodes=8, hidden_globals=8, edge_mlp=(32,), node_mlp=(32,),
                          global_mlp=(32,))
@@ -27,6 +31,23 @@ def model(data, recurrent=True, impl="torch", seed=0):
     cfg = RecurrentForwardConfig(core=TINY, recurrent=recurrent)
     cfg.run = cfg.run.replace(impl=impl)
     return RecurrentForwardModel(cfg, data.sizes, data.graphs, data.movable)
+
+
+def train_config(out, steps, **changes):
+    """A short CPU run that steps as a plain Adam loop does (no clipping, no decay, no warm-up
+    batches), logging every step."""
+    kw = dict(out=str(out), steps=steps, batch_size=8, lr=3e-3, seed=0, grad_clip=None, lr_decay=1.0,
+              normalizer_warmup=0, log_every=1, device="cpu", progress=False)
+    return TrainConfig(**{**kw, **changes})
+
+
+def fit(cfg, data, m, **kw):
+    """(trainer, loss of every step) of a run of ``TeacherForcingTrainer``."""
+    rows = []
+    t = TeacherForcingTrainer(cfg, data, m, callbacks=[lambda tr, ev, info: rows.append(info["row"]) if ev == "log"
+                                                         else None], **kw)
+    t.run()
+    return t, [r["loss"] for r in rows if r.get("loss", "") != ""]
 
 
 def test_variant_hides_a_lagged_command():
@@ -96,15 +117,89 @@ def test_loss_and_rollout_shapes(data):
         m.rollout(tr.instance[:3], tr.obs[:3], tr.ctrl[:3], warmup=24)
 
 
-def test_training_lowers_the_loss(data):
+def test_training_lowers_the_loss(data, tmp_path):
     tr = data.split("train")
     m = model(data)
     fixed = tr.windows(8, 21, torch.Generator().manual_seed(1))
-    losses = train_teacher_forcing(m, tr, steps=30, batch=8, lr=3e-3, seed=0)
+    _, losses = fit(train_config(tmp_path, 30), data, m)
     assert len(losses) == 30
     with torch.no_grad():
         after = float(m.loss(fixed[2], fixed[0], fixed[1]))
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3]) and after < losses[0]
+
+
+@pytest.mark.parametrize("normalizer_steps", [None, 2])
+def test_trainer_steps_as_a_plain_adam_loop(data, tmp_path, normalizer_steps):
+    """Without clipping, decay or warm-up batches, the trainer's steps are Adam on the loss of
+    windows drawn from a generator seeded with ``seed``: the same losses and weights."""
+    tr = data.split("train")
+    ref = model(data)
+    gen, opt, want = torch.Generator().manual_seed(0), torch.optim.Adam(ref.parameters(), lr=3e-3), []
+    for k in range(4):
+        obs, ctrl, inst = tr.windows(8, 21, gen)
+        loss = ref.loss(inst, obs, ctrl, accumulate=normalizer_steps is None or k < normalizer_steps)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        want.append(float(loss.detach()))
+    t, got = fit(train_config(tmp_path, 4), data, model(data), normalizer_steps=normalizer_steps)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    for (name, p), q in zip(t.model.state_dict().items(), ref.state_dict().values()):
+        torch.testing.assert_close(p, q, msg=name)
+    assert len(set(got)) == 4   # the steps trained
+
+
+def test_killed_run_resumes_to_the_same_weights(data, tmp_path):
+    """A run killed after its step-2 checkpoint and resumed into the same folder (from a new,
+    differently initialized model) ends with the weights, normalizers and log of an uninterrupted
+    run; ``load_recurrent`` reads the checkpoint back to the same model."""
+    clip = dict(grad_clip=0.5, checkpoint_every=2, valid_every=2)   # clipping on, as by default
+    whole, _ = fit(train_config(tmp_path / "whole", 4, **clip), data, model(data))
+
+    class Killed(Exception):
+        pass
+
+    def kill(trainer, event, info):
+        if event == "checkpoint" and info["name"] == "last":
+            raise Killed
+    with pytest.raises(Killed):
+        TeacherForcingTrainer(train_config(tmp_path / "cut", 4, **clip), data, model(data), callbacks=[kill]).run()
+    killed_at = torch.load(tmp_path / "cut" / "last" / "training.pt", weights_only=True)["state"]["step"]
+    assert killed_at == 2
+    resumed, _ = fit(train_config(tmp_path / "cut", 4, **clip), data, model(data, seed=5))
+    assert resumed.state["step"] == 4
+    for (name, p), q in zip(whole.model.state_dict().items(), resumed.model.state_dict().values()):
+        torch.testing.assert_close(p, q, msg=name, rtol=0, atol=0)
+    logs = [(tmp_path / d / "log.csv").read_text().splitlines() for d in ("whole", "cut")]
+    assert [r.split(",")[0] for r in logs[0]] == [r.split(",")[0] for r in logs[1]] == ["step", "1", "2", "3", "4"]
+    back = load_recurrent(tmp_path / "cut" / "last", data)
+    assert back.config.to_dict() == resumed.model.config.to_dict()
+    for (name, p), q in zip(resumed.model.state_dict().items(), back.state_dict().values()):
+        torch.testing.assert_close(p, q, msg=name, rtol=0, atol=0)
+    tr = data.split("valid")
+    with torch.no_grad():
+        torch.testing.assert_close(back.rollout(tr.instance, tr.obs, tr.ctrl, warmup=20),
+                                   resumed.model.rollout(tr.instance, tr.obs, tr.ctrl, warmup=20))
+
+
+def test_trainer_refuses_what_it_cannot_train(data, tmp_path):
+    fit(train_config(tmp_path, 1), data, model(data))
+    other = RecurrentForwardModel(RecurrentForwardConfig(core=TINY.__class__(**{**TINY.to_dict(), "latent": 24})),
+                                  data.sizes, data.graphs, data.movable)
+    with pytest.raises(CheckpointError, match="model.core.latent: 16 -> 24"):
+        TeacherForcingTrainer(train_config(tmp_path, 2), data, other)
+    with pytest.raises(ValueError, match="window must be 2..25"):
+        TeacherForcingTrainer(train_config(tmp_path / "w", 2), data, model(data), window=26)
+    with pytest.raises(TypeError, match="ProprioData"):
+        TeacherForcingTrainer(train_config(tmp_path / "d", 2), data.dataset, model(data))
+    with pytest.raises(CheckpointError, match="not a recurrent one-step model"):
+        cfg = json.loads((tmp_path / "last" / "config.json").read_text())
+        cfg.pop("kind")
+        (tmp_path / "last" / "config.json").write_text(json.dumps(cfg))
+        manifest = json.loads((tmp_path / "last" / "manifest.json").read_text())
+        manifest["config.json"] = sha256_file(tmp_path / "last" / "config.json")
+        (tmp_path / "last" / "manifest.json").write_text(json.dumps(manifest))
+        load_recurrent(tmp_path / "last", data)
 
 
 @pytest.mark.parametrize("recurrent", [True, False])
@@ -146,21 +241,23 @@ def test_feed_forward_has_no_memory(data):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("normalizer_steps", [None, 4])
-def test_cuda_captured_teacher_forcing_matches_eager(data, normalizer_steps):
-    """The teacher-forcing step replayed from CUDA graphs (windows drawn on the device, the
-    sequence loop, backward, Adam; one graph with normalizer accumulation, one without) trains as
-    eager steps with the same device generator do: the same losses and parameters."""
+def test_cuda_captured_teacher_forcing_matches_eager(data, normalizer_steps, tmp_path):
+    """The trainer's teacher-forcing step replayed from CUDA graphs (windows drawn on the device,
+    the sequence loop, backward, the optimizer; one graph with normalizer accumulation, one
+    without) trains as eager steps with the same device generator do: the same losses and
+    parameters."""
     cuda = proprio.ProprioData(data.dataset, data.system, device="cuda")
-    tr = cuda.split("train")
+    cfg = dict(device="cuda", valid_every=1000, checkpoint_every=1000)
     with pytest.raises(ValueError, match="graphs are built on cpu"):   # a model reading CPU graphs
-        train_teacher_forcing(model(data, impl="warp").to("cuda"), tr, steps=1, batch=2, capture=False)
+        TeacherForcingTrainer(train_config(tmp_path / "cpu", 1, device="cuda"), cuda, model(data, impl="warp")).run()
     runs = {}
     for capture in (True, False):
-        m = model(cuda, impl="warp", seed=0).to("cuda")
+        m = model(cuda, impl="warp", seed=0)
         m.core.set_options(m.core.options.replace(deterministic=True))
-        losses = train_teacher_forcing(m, tr, steps=10, batch=8, lr=3e-3, seed=0, normalizer_steps=normalizer_steps,
-                                       capture=capture)
-        runs[capture] = (m, losses)
+        t, losses = fit(train_config(tmp_path / str(capture), 10, capture=capture, **cfg), cuda, m,
+                        normalizer_steps=normalizer_steps)
+        assert (t.captured is not None) == capture
+        runs[capture] = (t.model, losses)
     (a, la), (b, lb) = runs[True], runs[False]
     assert len(la) == len(lb) == 10 and all(math.isfinite(x) for x in la)
     np.testing.assert_allclose(la, lb, rtol=1e-4, atol=1e-6)

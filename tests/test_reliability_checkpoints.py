@@ -442,8 +442,8 @@ def test_a_killed_dataset_save_leaves_a_temporary_the_next_save_removes(tmp_path
     """)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     pid = run_to_death([sys.executable, "-c", script], cwd=tmp_path, env=env)
-    assert [x.name for x in path.parent.iterdir()] == [f"pend.h5.{pid}.tmp"] and not path.exists()
-    live = path.parent / f"pend.h5.{os.getppid()}.tmp"   # another live writer's: left alone
+    assert [x.name for x in path.parent.iterdir()] == [f".pend.h5.tmp-{pid}"] and not path.exists()
+    live = path.parent / f".pend.h5.tmp-{os.getppid()}"   # another live writer's: left alone
     live.write_bytes(b"")
     pendulum.save(path)
     assert sorted(x.name for x in path.parent.iterdir()) == sorted(["pend.h5", live.name])

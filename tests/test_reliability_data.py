@@ -3,6 +3,7 @@ checksummed, validated datasets, refused meaningless models, and `gnwarp check`.
 import os
 import re
 import shutil
+import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -14,7 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gnwarp import cli, data
-from gnwarp.data.dataset import MAX_ABS, DatasetWarning, check
+from gnwarp.data.checks import MAX_ABS
+from gnwarp.data.dataset import check
+from gnwarp.data.format import DatasetWarning
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.sim import systems
 
@@ -470,3 +473,43 @@ def test_dataset_roundtrip_property(shape, seed, corrupt, pick):
 def test_max_abs_matches_generation():
     from gnwarp.data import generation
     assert generation._MAXVAL == MAX_ABS
+
+
+# -- atomic writes (gnwarp.files) ---------------------------------------------------------------
+def test_atomic_write_replaces_whole_or_not_at_all(tmp_path):
+    from gnwarp.files import atomic_write, temporary_of
+    path = tmp_path / "a.txt"
+    path.write_text("old")
+    with pytest.raises(RuntimeError, match="disk full"):
+        with atomic_write(path) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("disk full")
+    assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+    with atomic_write(path) as tmp:
+        assert tmp == temporary_of(path) and tmp.parent == path.parent
+        tmp.write_text("new")
+        assert path.read_text() == "old"          # in place only once the block ends
+    assert path.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+    folder = tmp_path / "ck"
+    for text in ("one", "two"):                   # a folder, and a folder replacing it
+        with atomic_write(folder, folder=True) as tmp:
+            (tmp / "x").write_text(text)
+        assert (folder / "x").read_text() == text
+    with pytest.raises(KeyError):
+        with atomic_write(folder, folder=True) as tmp:
+            (tmp / "x").write_text("three")
+            raise KeyError("x")
+    assert (folder / "x").read_text() == "two" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "ck"]
+
+
+def test_stale_temporaries_of_dead_writers_only_are_removed(tmp_path):
+    import subprocess
+    from gnwarp.files import remove_stale_temporaries, temporary_of
+    path = tmp_path / "d.h5"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale, live = temporary_of(path, pid=int(dead.stdout)), temporary_of(path, pid=os.getppid())
+    other = temporary_of(tmp_path / "e.h5", pid=int(dead.stdout))   # another file's: not this path's
+    for p in (stale, live, other):
+        p.write_bytes(b"")
+    assert remove_stale_temporaries(path) == [stale]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name])

@@ -7,11 +7,13 @@
     >>> g = ds.graphs("train", seq=[0, 1], t=[5, 7])           # input graphs, torch
 
 Modules: ``convert`` (MjModel -> static graph), ``layout`` (which static columns a model reads),
-``dataset`` (the file format), ``generation`` (simulating datasets), ``builder`` (input graphs).
+``format`` (the file layout), ``checks`` (validation of its arrays),
+``dataset`` (``Dataset``, ``load``, ``check``), ``generation`` (simulating datasets), ``builder`` (input graphs).
 """
 from gnwarp.data.builder import GraphBuilder, GraphTemplate, graph_builder
 from gnwarp.data.convert import static_arrays, static_graph
-from gnwarp.data.dataset import FORMAT, SPLITS, VERSION, Dataset, DatasetError, Split, load
+from gnwarp.data.dataset import Dataset, Split, load
+from gnwarp.data.format import FORMAT, SPLITS, VERSION, DatasetError
 from gnwarp.data.generation import PAPER_SIZES, generate, initial_states, split_sizes
 from gnwarp.data.layout import FeatureLayout, LayoutMismatchError, map_static, merge_layouts, varying_columns
 

@@ -13,6 +13,8 @@ import torch
 from gnwarp.data.convert import static_arrays
 from gnwarp.data.layout import FeatureLayout, LayoutMismatchError, map_static
 from gnwarp.graphs import GraphsTuple, graph_of
+from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.kernels.data import builder as K
 from gnwarp.sim.systems import System
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 
@@ -98,6 +100,39 @@ class GraphBuilder:
         snd, rcv, n_node, n_edge, _, _ = self.topology(N, U)
         return GraphsTuple(nodes=None, edges=None, receivers=rcv, senders=snd, globals=None, n_node=n_node,
                            n_edge=n_edge)
+
+    def fuses(self, body: torch.Tensor, ctrl: torch.Tensor) -> bool:
+        """Whether ``sequence_batch`` of these sequences runs as one Warp launch: one topology,
+        every actuator slot's control present, float32 or float64 states in the builder's dtype."""
+        return (self.fixed_topology and ctrl.shape[-1] >= self.n_ctrl_read and body.dtype in (torch.float32, torch.float64)
+                and self.dtype == body.dtype == ctrl.dtype and body.shape[-1] == DYN_NODE_SIZE)
+
+    def sequence_batch(self, instance: torch.Tensor, body: torch.Tensor, ctrl: torch.Tensor, seq: torch.Tensor,
+                       t: torch.Tensor, fused: bool | None = None) -> tuple[GraphsTuple, torch.Tensor]:
+        """(input graphs of the states at steps ``t`` [n] of sequences ``seq`` [n], their true next
+        states [sum(n_node), 13]) of stored sequences: ``instance`` [S], ``body`` [S, T+1, B, 13],
+        ``ctrl`` [S, T, U], on the builder's device. ``fused`` (default ``fuses(body, ctrl)``):
+        written by one Warp launch (``kernels/data/builder.py``) instead of ~12 torch kernels."""
+        if fused if fused is not None else self.fuses(body, ctrl):
+            return self._fused_batch(instance, body, ctrl, seq, t)
+        inst = instance[seq]
+        g = self(inst, body[seq, t], ctrl[seq, t])
+        nxt = body[seq, t + 1]
+        target = nxt.reshape(-1, DYN_NODE_SIZE) if self.uniform else nxt[self.node_mask[inst]]
+        return g, target
+
+    def _fused_batch(self, instance, body, ctrl, seq, t) -> tuple[GraphsTuple, torch.Tensor]:
+        n = seq.shape[0]
+        snd, rcv, n_node, n_edge, _, _ = self.topology(n, ctrl.shape[-1])
+        B, E = self.s_nodes.shape[1], self.s_edges.shape[1]
+        new = lambda *shape: torch.empty(shape, device=body.device, dtype=body.dtype)  # noqa: E731
+        nodes = new(n * B, self.s_nodes.shape[2] + DYN_NODE_SIZE)
+        edges = new(n * E, self.s_edges.shape[2] + self.edge_ctrl.shape[2])
+        glob, target = new(n, self.s_globals.shape[1]), new(n * B, DYN_NODE_SIZE)
+        Launcher(nodes)(K.sample_batch_kernel(WP_DTYPE[nodes.dtype]), n * (B + E + 1), seq, t, instance, body, ctrl,
+                        self.s_nodes, self.s_edges, self.s_globals, self.edge_ctrl, nodes, edges, glob, target)
+        g = GraphsTuple(nodes=nodes, edges=edges, receivers=rcv, senders=snd, globals=glob, n_node=n_node, n_edge=n_edge)
+        return g, target
 
     def __call__(self, instance, body, ctrl) -> GraphsTuple:
         dev = self.s_nodes.device

@@ -14,13 +14,16 @@ import time
 import numpy as np
 
 from gnwarp.data.convert import static_arrays
-from gnwarp.data.dataset import MAX_ABS, SPLITS, Dataset, Split
+from gnwarp.data.checks import MAX_ABS
+from gnwarp.data.dataset import Dataset, Split
+from gnwarp.data.format import SPLITS
 from gnwarp.sim.common import resolve_backend, topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.families import family_of
 from gnwarp.sim.backends import simulate
 from gnwarp.sim.systems import check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
+from gnwarp.version import __version__
 
 __all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate", "memory_estimate"]
 
@@ -256,7 +259,7 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         "nq": int(nq), "nv": int(nv), "nu": int(nu), "graph": graph_meta,
         "dynamic_node_names": list(DYN_NODE_NAMES),
         "generation_seconds": time.perf_counter() - t0, "simulation_seconds": sim_time,
-        "gnwarp_version": __import__("gnwarp").__version__,
+        "gnwarp_version": __version__,
     }
     return Dataset(meta, static, splits)
 

@@ -5,12 +5,12 @@ A G_ID that is missing, corrupt or of another model's widths or topology raises 
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import torch
 
 from gnwarp.data.builder import GraphTemplate
+from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.recurrent import KINDS
 from gnwarp.models.rollout import RolloutEngine, RolloutInputs
@@ -113,12 +113,8 @@ def save_gid(path, g_id: GraphsTuple) -> Path:
     payload = {"format": GID_FORMAT, "version": GID_VERSION, "tensors": tensors, "sha256": _digest(tensors),
                "none": [k for k in KINDS if getattr(g_id, k) is None]}
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    with atomic_write(path) as tmp:
         torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

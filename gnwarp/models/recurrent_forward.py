@@ -13,9 +13,10 @@ The feed-forward baseline is the same model with ``recurrent=False``: its hidden
 to zeros before every step, so it sees the current observation only, with the same weights'
 shapes and the same normalization: the comparison isolates memory.
 
-Training (D.7.3, teacher forcing): windows of 21 observations; the first 20 are the inputs, in
-order, carrying the hidden graph along; the last 20 are the targets; the loss is the mean squared
-error of the normalized changes over all steps and bodies with a joint.
+The teacher-forcing loss (D.7.3, ``RecurrentForwardModel.loss``): windows of 21 observations;
+the first 20 are the inputs, in order, carrying the hidden graph along; the last 20 are the
+targets; the loss is the mean squared error of the normalized changes over all steps and bodies
+with a joint.
 """
 from __future__ import annotations
 
@@ -31,9 +32,9 @@ from gnwarp.gn.options import RunOptions
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.normalizer import Normalizer, normalize_graph
 from gnwarp.models.recurrent import RecurrentGNConfig, RecurrentGNCore
+from gnwarp.validation import ConfigError, check_keys
 
-__all__ = ["RecurrentForwardConfig", "RecurrentForwardModel", "observation_delta", "apply_observation_delta",
-           "train_teacher_forcing"]
+__all__ = ["RecurrentForwardConfig", "RecurrentForwardModel", "observation_delta", "apply_observation_delta"]
 
 DELTA_SIZE = 2  # (dq, dqdot) per body
 
@@ -65,6 +66,26 @@ class RecurrentForwardConfig:
 
     def core_config(self) -> RecurrentGNConfig:
         return dataclasses.replace(self.core, out_nodes=DELTA_SIZE, out_edges=0, out_globals=0)
+
+    def to_dict(self) -> dict:
+        """As a checkpoint's config.json keeps it (``from_dict`` reads it back)."""
+        return {"core": self.core.to_dict(), "recurrent": self.recurrent, "run": self.run.to_dict(),
+                "std_floor": self.std_floor}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RecurrentForwardConfig":
+        """A config from ``to_dict``'s dict; unknown keys raise ``ConfigError``."""
+        d = dict(check_keys(cls, d))
+        if "core" in d:
+            d["core"] = RecurrentGNConfig.from_dict(d["core"])
+        if "run" in d:
+            d["run"] = RunOptions.from_dict(d["run"])
+        if not isinstance(d.get("recurrent", True), bool):
+            raise ConfigError("recurrent", f"must be true or false, got {d['recurrent']!r}")
+        if "std_floor" in d and not (isinstance(d["std_floor"], (int, float)) and not isinstance(d["std_floor"], bool)
+                                     and d["std_floor"] > 0):
+            raise ConfigError("std_floor", f"must be a number > 0, got {d['std_floor']!r}")
+        return cls(**d)
 
 
 class RecurrentForwardModel(nn.Module):
@@ -231,71 +252,3 @@ class RecurrentForwardModel(nn.Module):
 # captured recurrent rollouts per model (``RecurrentForwardModel.rollout``), dropped with the model
 _ROLLOUT_GRAPHS: "weakref.WeakKeyDictionary[RecurrentForwardModel, dict]" = weakref.WeakKeyDictionary()
 
-
-def train_teacher_forcing(model: RecurrentForwardModel, split, steps: int = 300, batch: int = 32,
-                          window: int = 21, lr: float = 1e-3, seed: int = 0, log_every: int = 0,
-                          normalizer_steps: int | None = None, max_seconds: float | None = None,
-                          progress: bool = False, capture: bool | None = None) -> list[float]:
-    """Adam on teacher-forcing losses of random ``window``-observation windows of ``split`` (a
-    ``ProprioSplit``). The normalizers accumulate for the first ``normalizer_steps`` steps (default
-    all). Stops after ``steps`` steps or ``max_seconds`` of wall clock, whichever comes first
-    (``progress``: a bar with rate and ETA). Returns the loss of every step run (read from the
-    device once every ``log_every`` steps and at the end, not every step).
-
-    ``capture`` (default: on when the split is on a CUDA device): each step (window sampling on the
-    device, the sequence loop, backward, Adam) is replayed from a CUDA graph once two eager steps
-    have compiled its kernels; one graph with normalizer accumulation, one without. On the CPU the
-    windows are drawn by a CPU generator, as before; on CUDA by a device generator."""
-    import time
-
-    from tqdm.auto import tqdm
-
-    from gnwarp.interop import Graphed
-    from gnwarp.train.capture import default_generator, registers_generators
-    dev = split.obs.device
-    cuda = dev.type == "cuda"
-    capture = cuda if capture is None else bool(capture)
-    if capture and not cuda:
-        raise ValueError("capture=True needs the split on a CUDA device")
-    if cuda and model.norm_delta.count.device != dev:
-        raise ValueError(f"the model is on {model.norm_delta.count.device}, the split on {dev}: move one")
-    if not cuda:
-        gen = torch.Generator().manual_seed(seed)
-    else:  # a CUDA graph replays the device's default generator by itself; others need registering
-        gen = torch.Generator(device=dev) if registers_generators() else default_generator(dev)
-        gen.manual_seed(seed)
-    opt = torch.optim.Adam(model.parameters(), lr=lr, capturable=cuda)
-    out: dict[str, torch.Tensor] = {}
-
-    def device_step(accumulate: bool) -> None:
-        obs, ctrl, inst = split.windows(batch, window, gen)
-        loss = model.loss(inst, obs, ctrl, accumulate=accumulate)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        out["loss"] = loss.detach()
-
-    own = gen if cuda and gen is not default_generator(dev) else None
-    replays = ({acc: Graphed(lambda acc=acc: device_step(acc), warmup=2, generator=own) for acc in (True, False)}
-               if capture else {})
-    losses, pending = [], []
-    t0 = time.perf_counter()
-    bar = tqdm(total=steps, desc="teacher forcing", unit="step", disable=not progress)
-    for k in range(steps):
-        acc = normalizer_steps is None or k < normalizer_steps
-        if capture:
-            replays[acc]()
-        else:
-            device_step(acc)
-        pending.append(out["loss"].clone() if capture else out["loss"])  # a replay overwrites its output
-        bar.update(1)
-        last = k == steps - 1 or (max_seconds is not None and time.perf_counter() - t0 >= max_seconds)
-        if last or (log_every and k % log_every == 0) or len(pending) >= 256:
-            losses += torch.stack(pending).float().cpu().tolist()
-            pending = []
-            if log_every and (k % log_every == 0 or last):
-                bar.write(f"  step {k:5d}  loss {losses[-1]:.4g}")
-        if last:
-            break
-    bar.close()
-    return losses

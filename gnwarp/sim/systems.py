@@ -49,7 +49,7 @@ __all__ = [
 MASS_RANGE = (1e-6, 1e6)
 SIZE_RANGE = (1e-6, 1e6)
 INERTIA_MAX = 1e12
-_CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.dataset.MAX_ABS)
+_CTRL_MAX = 1e6  # |actuator ctrl range|: datasets store controls within +-1e6 (gnwarp.data.checks.MAX_ABS)
 
 
 

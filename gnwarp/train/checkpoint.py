@@ -34,11 +34,12 @@ import numpy as np
 import torch
 
 from gnwarp.data.layout import FeatureLayout
-from gnwarp.files import pid_alive, sha256_file
+from gnwarp.files import atomic_write, pid_alive, sha256_file
 from gnwarp.gn.options import RunOptions, check_option_names
 from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig, check_model_size
 from gnwarp.models.forward import ForwardModel, input_sizes
+from gnwarp.version import __version__
 
 __all__ = ["FORMAT", "VERSION", "CheckpointError", "CheckpointWriter", "save_checkpoint", "snapshot", "load_model",
            "load_checkpoint", "check_checkpoint", "checkpoint_config", "recover_checkpoint", "clean_debris", "model_config_changes",
@@ -89,8 +90,10 @@ def snapshot(model: ForwardModel, training: dict | None = None, info: dict | Non
     so that training on may go on while another thread writes them, ``CheckpointWriter``)."""
     if training is not None:
         training = _cpu_copy(_plain(training, "training"))
-    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __import__("gnwarp").__version__,
-           "model": model.config.to_dict(), "layout": model.layout.to_dict(), **(info or {})}
+    cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __version__, "model": model.config.to_dict()}
+    if getattr(model, "layout", None) is not None:  # models of observation graphs have input sizes instead
+        cfg["layout"] = model.layout.to_dict()
+    cfg.update(info or {})
     return {"config": json.dumps(cfg, indent=1), "training": training,
             "model": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}}
 
@@ -107,33 +110,13 @@ def _cpu_copy(x):
 
 def _write(path: Path, snap: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
-    old = path.parent / f".{path.name}.old-{os.getpid()}"
-    for p in (tmp, old):
-        if p.exists():
-            shutil.rmtree(p)
-    tmp.mkdir()
-    moved = False
-    try:
+    with atomic_write(path, folder=True) as tmp:
         (tmp / "config.json").write_text(snap["config"])
         torch.save(snap["model"], tmp / "model.pt")
         if snap["training"] is not None:
             torch.save(snap["training"], tmp / "training.pt")
         files = sorted(p.name for p in tmp.iterdir())
         (tmp / MANIFEST).write_text(json.dumps({n: sha256_file(tmp / n) for n in files}, indent=1))
-        if path.exists():
-            os.replace(path, old)
-            moved = True
-        os.replace(tmp, path)
-    except BaseException:
-        if moved and not path.exists():  # put the previous checkpoint back
-            try:
-                os.replace(old, path)
-            except OSError:
-                pass
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
     return path
 
 
@@ -468,10 +451,9 @@ def recover_checkpoint(path, fallbacks=()) -> Path | None:
     if moved:
         os.replace(src, path)
     else:
-        tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(src, tmp)
-        os.replace(tmp, path)
+        with atomic_write(path, folder=True) as tmp:
+            tmp.rmdir()
+            shutil.copytree(src, tmp)
     warnings.warn(f"restored {path} from {src.name}, left by a run killed while saving it", stacklevel=2)
     return src
 

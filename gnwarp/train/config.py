@@ -45,7 +45,7 @@ class TrainConfig:
     elsewhere). A run resumes with the optimizer it was started with (under "auto", the kind
     its saved optimizer state is).
     ``capture``: on CUDA, replay the training step (and the validation rollouts) from CUDA
-    graphs once warm (``gnwarp.train.capture``); batches of graphs of varying sizes run eagerly.
+    graphs once warm (``gnwarp.interop.Graphed``); batches of graphs of varying sizes run eagerly.
     How the model runs (implementation, precision; "fp64" trains in float64) is ``model.run``.
     ``on_config_change``: when ``resume`` finds a run in ``out`` it cannot continue as configured
     (its checkpoint's model differs from ``model``: run options may change, sizes not; or its

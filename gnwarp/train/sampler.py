@@ -6,9 +6,6 @@ import numpy as np
 import torch
 
 from gnwarp.graphs import GraphsTuple, batch
-from gnwarp.interop import WP_DTYPE, Launcher
-from gnwarp.kernels.train import sampler as K
-from gnwarp.state import DYN_NODE_SIZE
 
 __all__ = ["SplitSampler", "BatchSampler"]
 
@@ -27,37 +24,15 @@ class SplitSampler:
         self.instance = torch.as_tensor(np.asarray(sp.instance[...]), device=device, dtype=torch.int64)
         self.builder = model.graph_builder(ds)
         self.S, self.T = self.body.shape[0], self.ctrl.shape[1]
-        b = self.builder
         # one topology and every actuator slot's control present: one Warp launch writes a batch
-        self.fused = (b.fixed_topology and self.ctrl.shape[-1] >= b.n_ctrl_read and dtype in (torch.float32, torch.float64)
-                      and b.dtype == dtype and self.body.shape[-1] == DYN_NODE_SIZE)
+        self.fused = self.builder.fuses(self.body, self.ctrl)
 
     def sample(self, n: int, gen: torch.Generator) -> tuple[GraphsTuple, torch.Tensor]:
         """(graph, target next states [sum(n_node), 13]) of n uniform (sequence, step) pairs."""
         dev = self.body.device
         seq = torch.randint(self.S, (n,), generator=gen, device=dev)
         t = torch.randint(self.T, (n,), generator=gen, device=dev)
-        if self.fused:
-            return self._fused(seq, t)
-        inst = self.instance[seq]
-        g = self.builder(inst, self.body[seq, t], self.ctrl[seq, t])
-        nxt = self.body[seq, t + 1]
-        b = self.builder
-        target = nxt.reshape(-1, DYN_NODE_SIZE) if b.uniform else nxt[b.node_mask[inst]]
-        return g, target
-
-    def _fused(self, seq: torch.Tensor, t: torch.Tensor) -> tuple[GraphsTuple, torch.Tensor]:
-        """``sample``'s batch of pairs (seq, t) written by one Warp launch (``kernels/train/sampler.py``)."""
-        b, n = self.builder, seq.shape[0]
-        snd, rcv, n_node, n_edge, _, _ = b.topology(n, self.ctrl.shape[-1])
-        B, E = b.s_nodes.shape[1], b.s_edges.shape[1]
-        new = lambda *shape: torch.empty(shape, device=self.body.device, dtype=self.body.dtype)  # noqa: E731
-        nodes, edges = new(n * B, b.s_nodes.shape[2] + DYN_NODE_SIZE), new(n * E, b.s_edges.shape[2] + b.edge_ctrl.shape[2])
-        glob, target = new(n, b.s_globals.shape[1]), new(n * B, DYN_NODE_SIZE)
-        Launcher(nodes)(K.sample_batch_kernel(WP_DTYPE[nodes.dtype]), n * (B + E + 1), seq, t, self.instance, self.body,
-                        self.ctrl, b.s_nodes, b.s_edges, b.s_globals, b.edge_ctrl, nodes, edges, glob, target)
-        g = GraphsTuple(nodes=nodes, edges=edges, receivers=rcv, senders=snd, globals=glob, n_node=n_node, n_edge=n_edge)
-        return g, target
+        return self.builder.sequence_batch(self.instance, self.body, self.ctrl, seq, t, fused=self.fused)
 
 
 class BatchSampler:

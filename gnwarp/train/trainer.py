@@ -11,8 +11,9 @@ kept, early stopping. A run folder holds::
     <out>/best/   the checkpoint with the lowest validation error
     <out>/log.csv losses, learning rate and validation errors
 
-Its seams, for the stages that reuse it (captured steps, system identification, RL learners,
-distributed ranks): ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
+Its seams, for the stages that reuse it (captured steps, system identification, recurrent
+teacher forcing, RL learners, distributed ranks): ``place_model`` (the model as it trains),
+``make_sampler`` / ``sampler`` (where batches come from), ``loss`` (the objective of a batch),
 ``step`` (one optimization step), ``validate``, ``checkpoint`` and ``callbacks`` (called as
 ``callback(trainer, event, info)`` for the events "log", "validate", "checkpoint" and "end").
 The loop's checkpoints are copied to the CPU at their step and written by a background thread
@@ -37,11 +38,11 @@ import torch
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
 from gnwarp.eval.metrics import rollout_error
+from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
-from gnwarp.interop import Graphed, resolve_device
+from gnwarp.interop import Graphed, capture_problem, default_generator, registers_generators, resolve_device
 from gnwarp.models.factory import build_model
 from gnwarp.models.forward import ForwardModel
-from gnwarp.train.capture import capture_problem, default_generator, registers_generators
 from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
                                      load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
@@ -85,9 +86,8 @@ class Trainer:
             model, training = self._load_last()
         elif model is None:
             model = build_model(config.model, self.datasets)
-        run = config.model.run
-        self.model = model.set_options(run).to(device=self.device, dtype=run.param_dtype)
-        self.sampler = BatchSampler(self.datasets, self.model, self.device)
+        self.model = self.place_model(model)
+        self.sampler = self.make_sampler()
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
         cuda = self.device.type == "cuda"
         # a CUDA graph replays the device's default generator by itself; others need registering
@@ -130,6 +130,17 @@ class Trainer:
         if isinstance(saved, dict):
             return "flat_adam" if saved.get("format") == "gnwarp.FlatAdam/1" else "adam"
         return "flat_adam" if self.device.type == "cuda" else "adam"
+
+    def place_model(self, model):
+        """The model as it trains: run as ``config.model.run`` says, on the device, in its
+        parameter dtype."""
+        run = self.config.model.run
+        return model.set_options(run).to(device=self.device, dtype=run.param_dtype)
+
+    def make_sampler(self):
+        """Where batches come from: an object with ``sample(batch_size, generator)`` (its result
+        is ``loss``'s arguments) and ``static_shapes`` (whether a step may be captured)."""
+        return BatchSampler(self.datasets, self.model, self.device)
 
     def make_optimizer(self, kind: str | None = None) -> torch.optim.Optimizer:
         """torch's Adam (clipping in ``step``) or FlatAdam (clipping inside), as ``kind`` (default:
@@ -259,6 +270,11 @@ class Trainer:
         if self._writer is not None:
             for name, path in self._writer.done(wait):
                 self.emit("checkpoint", name=name, path=path)
+
+    @property
+    def description(self) -> str:
+        """What the progress bar names the model."""
+        return str(self.model.config.core)
 
     @property
     def log_fields(self) -> tuple[str, ...]:
@@ -409,7 +425,7 @@ class Trainer:
             _trim_log(log_path, st["step"])
         start_step = st["step"]
         t_start = time.perf_counter() - st["seconds"]
-        bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.model.config.core}", unit="step",
+        bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.description}", unit="step",
                    disable=not c.progress, dynamic_ncols=True, smoothing=0.05)
         self.model.train()
         fields = self.log_fields if new_log else _log_header(log_path)   # a resumed log keeps its columns
@@ -481,12 +497,10 @@ def _trim_log(path: Path, step: int) -> None:
             pass
     if len(keep) == len(rows):
         return
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", newline="") as f:
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fields)
         w.writeheader()
         w.writerows(keep)
-    os.replace(tmp, path)
 
 
 def _move_aside(out: Path) -> Path:

@@ -1,5 +1,5 @@
-"""Warp kernel of ``gnwarp/train/sampler.py``: a training batch's input graphs and targets in one
-launch.
+"""Warp kernel of ``gnwarp/data/builder.py`` (``GraphBuilder.sequence_batch``): a batch's input
+graphs and targets from stored sequences in one launch.
 
 A batch of N (sequence, step) pairs of one topology is N copies of the system's graph: node rows
 [static node features, body state at t], edge rows [static edge features, the controls at t of the
