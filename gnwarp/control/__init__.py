@@ -1,6 +1,8 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
-(``tasks``), gradient MPC through a learned model and closed-loop episodes (``gradient``), the
-batched true environment (``env``), sampling MPC (``sampling``) and the iLQG baseline (``ilqg``).
+(``tasks``), gradient MPC through a learned model (``gradient``), the batched true environment
+(``env``), sampling MPC (``sampling``), the iLQG baseline (``ilqg``), the ``Planner`` protocol
+they all implement with the registry of planner names (``planner``) and closed-loop episodes
+(``episodes``).
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")
@@ -9,10 +11,12 @@ batched true environment (``env``), sampling MPC (``sampling``) and the iLQG bas
 """
 from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
+from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
 from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
 
 __all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
-           "GradientMPCConfig", "PlanningError", "run_episodes", "identify_on_env", "make_env"]
+           "GradientMPCConfig", "PlanningError", "Planner", "PLANNERS", "get_planner", "planner_name", "run_episodes",
+           "identify_on_env", "make_env"]
 
 
 def __getattr__(name):
