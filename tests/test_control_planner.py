@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from gnwarp import data
-from gnwarp.control import PLANNERS, GradientMPC, GradientMPCConfig, Planner, get_planner, planner_name, run_episodes
+from gnwarp.control import (PLANNERS, GradientMPC, GradientMPCConfig, Planner, PlanningError, get_planner, planner_name,
+                            run_episodes)
 from gnwarp.control.env import make_env
 from gnwarp.control.ilqg import ILQG, ILQGSettings
 from gnwarp.control.sampling import (EnvDynamics, ModelDynamics, RandomPlanner, RandomSettings, SamplingConfig,
@@ -129,6 +130,17 @@ def test_registry_and_run_episodes_refusals(model):
             return torch.zeros(N, 1)
     with pytest.raises(TypeError, match="lacks n, targets, device, needs_sim_state, reset, optimize, act"):
         run_episodes(StepOnly(), env, "pendulum-balance", 2, qpos0=Q0)
+    # reset's episode count: gradient MPC's is its rollout engine's batch; random actions take any
+    with pytest.raises(PlanningError, match="plans 2 episodes"):
+        make("gradient", model, env).reset(3)
+    r = make("random", model, env)
+    r.reset(3)
+    r.optimize(None)
+    assert r.act(None).shape == (3, 1) and r.n == 3
+    s = SamplingPlanner(true_dynamics("pendulum", N, 4, backend="mujoco"), "pendulum-balance", env.ctrlrange, N,
+                        targets=torch.zeros(N, 3))
+    with pytest.raises(ValueError, match="one entry per episode \\(3\\)"):
+        s.reset(3)      # the targets held are for 2 episodes
 
 
 def test_learned_models_implement_dynamics(pendulum, model):

@@ -386,7 +386,7 @@ class ILQG:
                 raise ValueError(f"targets must have one entry per episode ({self.n}), got shape {t.shape}")
             self.targets = t
         elif self.targets is not None and self.targets.shape[0] != self.n:
-            self.targets = None
+            raise ValueError(f"the targets held are for {self.targets.shape[0]} episodes, not {self.n}: give targets")
         self._U = None
         # per episode: its plan, its regularization, whether it has planned since the reset
         self._episodes = [(None, self.settings.reg_init, False) for _ in range(self.n)]

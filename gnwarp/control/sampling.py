@@ -187,7 +187,8 @@ class SamplingPlanner:
         range, no plan, the noise generator re-seeded (``seed``; None: the settings'); ``targets``
         [n, ...] for a task's reward (None: those held)."""
         self.n = self.n if n is None else _episodes(n)
-        self.targets = _targets(targets, self.n, self.device) if targets is not None else self.targets
+        held = self.targets if targets is None else targets
+        self.targets = None if held is None else _targets(held, self.n, self.device)
         self._gen.manual_seed(self.settings.seed if seed is None else seed)
         mid = 0.5 * (self.lo + self.hi)
         self.knots = mid.expand(self.n, self.settings.knots, self.nu).clone()
