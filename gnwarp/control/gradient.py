@@ -263,7 +263,7 @@ class GradientMPC:
         self.shift()
 
     def act(self, x, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it was made from
+        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from
         (clamped to the horizon)."""
         if self.plan is None:
             raise PlanningError("no plan to act on: call optimize(states) (or step) first")

@@ -251,7 +251,7 @@ class SamplingPlanner:
         self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
 
     def act(self, obs, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it was made from."""
+        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from."""
         return _plan_action(self.plan, time)
 
     def step(self, obs) -> torch.Tensor:

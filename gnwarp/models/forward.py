@@ -71,6 +71,7 @@ class ForwardModel(nn.Module):
     The model is built in the dtype its run options ask for (float64 for precision "fp64", else
     float32); ``set_options`` changes how it runs without touching the weights.
 
+    A ``gnwarp.dynamics.Dynamics`` (what ``RolloutEngine`` and ``GradientMPC`` roll out).
     Main methods (shapes: N graphs, B bodies, T steps, U controls):
         ``bind(source)``: use the static graphs of a Dataset or System for ``rollout``.
         ``rollout(initial_body [N, B, 13], ctrl [N, T, U], instance [N]) -> [N, T+1, B, 13]``.
