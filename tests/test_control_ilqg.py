@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gnwarp import sim
-from gnwarp.control.ilqg import ILQG, BodyPointCost, QuadraticCost, body_state_cost, task_cost
+from gnwarp.control.ilqg import ILQG, ILQGSettings, BodyPointCost, QuadraticCost, body_state_cost, task_cost
 from gnwarp.control.tasks import get_task
 
 # two coupled sliders, a spring and damping, no gravity or contacts, Euler: linear dynamics
@@ -61,13 +61,14 @@ def test_unconstrained_reaches_lqr(substeps):
     m = _linear_model()
     A, B, gains = _lqr(m, substeps)
     U_lqr = _lqr_controls(A, B, gains)
-    il = ILQG(m, H, QuadraticCost(m, Q, R), QuadraticCost(m, QF), substeps=substeps, iterations=5, nthread=2)
+    il = ILQG(m, QuadraticCost(m, Q, R), QuadraticCost(m, QF),
+              ILQGSettings(horizon=H, substeps=substeps, iterations=5, nthread=2))
     U, info = il.plan(X0[:2], X0[2:])
     np.testing.assert_allclose(U, U_lqr, atol=1e-5 * np.abs(U_lqr).max())
     assert info["cost"] == pytest.approx(il.total_cost(X0[:2], X0[2:], U_lqr), rel=1e-8)
     # a generic cost (no analytic derivatives): finite-difference cost derivatives, same answer
-    fd = ILQG(m, H, lambda d, u: QuadraticCost(m, Q, R)(d, u), lambda d: QuadraticCost(m, QF)(d),
-              substeps=substeps, iterations=5, nthread=1)
+    fd = ILQG(m, lambda d, u: QuadraticCost(m, Q, R)(d, u), lambda d: QuadraticCost(m, QF)(d),
+              ILQGSettings(horizon=H, substeps=substeps, iterations=5, nthread=1))
     U_fd, _ = fd.plan(X0[:2], X0[2:])
     np.testing.assert_allclose(U_fd, U_lqr, atol=1e-4 * np.abs(U_lqr).max())
 
@@ -76,7 +77,7 @@ def test_box_respected_and_beats_clamped_lqr():
     bound = 0.5
     m = _linear_model(f'ctrllimited="true" ctrlrange="-{bound} {bound}"')
     A, B, gains = _lqr(m)
-    il = ILQG(m, H, QuadraticCost(m, Q, R), QuadraticCost(m, QF), iterations=30)
+    il = ILQG(m, QuadraticCost(m, Q, R), QuadraticCost(m, QF), ILQGSettings(horizon=H, iterations=30))
     U, info = il.plan(X0[:2], X0[2:])
     assert np.all(np.abs(U) <= bound + 1e-12) and np.isclose(np.abs(U).max(), bound)
     clamped_closed = il.total_cost(X0[:2], X0[2:], _lqr_controls(A, B, gains, bound, m))
@@ -106,8 +107,8 @@ def _pendulum_cost(m):
 def test_line_search_never_increases_cost():
     s = sim.make("pendulum")
     # steps from 4 down: the long ones overshoot and must be refused
-    il = ILQG.for_system(s, 50, _pendulum_cost(s.model), iterations=15, nthread=2,
-                         step_sizes=(4.0, 2.0, 1.0, 0.5, 0.25, 0.1))
+    il = ILQG.for_system(s, _pendulum_cost(s.model), settings=ILQGSettings(
+        horizon=50, iterations=15, nthread=2, step_sizes=(4.0, 2.0, 1.0, 0.5, 0.25, 0.1)))
     u0 = np.random.default_rng(0).uniform(-1, 1, (50, 1))
     U, info = il.plan(np.array([1.0]), np.zeros(1), u_init=u0)
     costs = np.array(info["costs"])
@@ -118,7 +119,8 @@ def test_line_search_never_increases_cost():
     # linear-quadratic: the Newton step is alpha = 1, and alpha >= 2 cannot lower the cost, so
     # every step is refused, the cost stays and the regularization grows
     m = _linear_model()
-    il = ILQG(m, H, QuadraticCost(m, Q, R), QuadraticCost(m, QF), iterations=3, step_sizes=(8.0, 4.0, 3.0))
+    il = ILQG(m, QuadraticCost(m, Q, R), QuadraticCost(m, QF),
+              ILQGSettings(horizon=H, iterations=3, step_sizes=(8.0, 4.0, 3.0)))
     _, info = il.plan(X0[:2], X0[2:])
     assert info["alphas"] == [0.0] * 3 and len(set(info["costs"])) == 1
     assert np.all(np.diff([1e-6] + info["reg"]) > 0)
@@ -127,8 +129,8 @@ def test_line_search_never_increases_cost():
 def test_regularization_grows_when_backward_pass_fails():
     s = sim.make("pendulum")
     # a negative control weight makes Quu indefinite until the regularization outweighs it
-    il = ILQG.for_system(s, 10, QuadraticCost(s.model, np.eye(2), -np.eye(1)), iterations=3,
-                         reg_init=1e-6, reg_min=1e-6, reg_factor=10.0)
+    il = ILQG.for_system(s, QuadraticCost(s.model, np.eye(2), -np.eye(1)), settings=ILQGSettings(
+        horizon=10, iterations=3, reg_init=1e-6, reg_min=1e-6, reg_factor=10.0))
     _, info = il.plan(np.array([0.1]), np.zeros(1))
     assert info["backward_failures"] >= 6 and max(info["reg"]) >= 1.0
     assert np.all(np.diff(info["costs"]) <= 0)
@@ -136,7 +138,7 @@ def test_regularization_grows_when_backward_pass_fails():
 
 def test_receding_horizon_warm_start_and_errors():
     m = _linear_model()
-    il = ILQG(m, H, QuadraticCost(m, Q, R), QuadraticCost(m, QF), iterations=2)
+    il = ILQG(m, QuadraticCost(m, Q, R), QuadraticCost(m, QF), ILQGSettings(horizon=H, iterations=2))
     U1, _ = il.plan(X0[:2], X0[2:])
     il.iterations = 0  # no iterations: the plan is the warm start itself
     U2, info = il.plan(X0[:2], X0[2:])
@@ -147,13 +149,13 @@ def test_receding_horizon_warm_start_and_errors():
     with pytest.raises(ValueError, match="NaN"):
         il.plan(np.array([np.nan, 0.0]), X0[2:])
     with pytest.raises(ValueError, match="horizon"):
-        ILQG(m, 0, QuadraticCost(m, Q, R))
+        ILQG(m, QuadraticCost(m, Q, R), settings=ILQGSettings(horizon=0))
 
 
 def test_pendulum_closed_loop_balance():
     s = sim.make("pendulum")
     m = s.model
-    il = ILQG.for_system(s, 25, _pendulum_cost(m), iterations=3)
+    il = ILQG.for_system(s, _pendulum_cost(m), settings=ILQGSettings(horizon=25, iterations=3))
     d, passive = mujoco.MjData(m), mujoco.MjData(m)
     d.qpos[0] = passive.qpos[0] = 0.15  # gravity's torque here is ~0.75 of the torque limit
     upright = []
@@ -194,7 +196,7 @@ def test_body_point_cost_derivatives_match_finite_differences():
     m = sim.make("swimmer6").model
     d, rng = _random_state(m, 3, 0.3)
     W = np.diag([0.7, 0.2, 0.0])
-    il = ILQG(m, 2, lambda dd, u: 0.0, nthread=1)
+    il = ILQG(m, lambda dd, u: 0.0, settings=ILQGSettings(horizon=2, nthread=1))
     for ref, lin in [(d.xpos[1] + [0.1, -0.2, 0.0], np.array([-0.6, 0.8, 0.0])), (d.xpos[1].copy(), None)]:
         cost = BodyPointCost(m, 1, ref, lin=lin, W=W, R=0.1 * np.eye(m.nu))
         u = rng.standard_normal(m.nu)
@@ -225,7 +227,7 @@ def test_task_cost_gauss_newton_derivatives_match_finite_differences(task_name):
     tg = sample_targets(task, s, 1, seed=0)
     cost = task_cost(m, task, None if tg is None else tg[0].numpy())
     u = 0.3 * rng.standard_normal(m.nu)
-    il = ILQG(m, 2, lambda dd, uu: 0.0, nthread=1)
+    il = ILQG(m, lambda dd, uu: 0.0, settings=ILQGSettings(horizon=2, nthread=1))
     fd = il._cost_derivatives(d, lambda dd, uu: cost(dd, uu), u)
     an = cost.derivatives(d, u)
     scale = max(1.0, np.abs(fd[0]).max())

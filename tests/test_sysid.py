@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from gnwarp import TrainConfig, data
+from gnwarp.dynamics import Dynamics
 from gnwarp.sim import systems
 from gnwarp.state import state_delta
 from gnwarp.gn import RunOptions
@@ -442,6 +443,7 @@ def test_sysid_rollouts_clamp_controls_to_the_sources_ranges(trained, pendulum):
     with pytest.raises(RolloutInputError, match="outside actuator 0's control range"):
         m.rollout(x0, big, g_id, inst, ctrl_policy="error")
     fixed = m.with_fixed_gid(g_id)
+    assert isinstance(fixed, Dynamics)   # G_ID held fixed: a one-step model like a ForwardModel
     engine = fixed.rollout_engine(inst, 4)
     assert engine.store.keep == [(), ("nodes",)]    # the forward model's core says what to keep
     with torch.no_grad():

@@ -9,9 +9,10 @@ targets) run in closed loop on the true environment (``make_env``, MuJoCo-Warp o
 
 - ``gn_mpc``: ``GradientMPC`` through the learned model (task horizon, ``--iterations`` Adam steps
   per control step, plus iterations x horizon at the first state);
-- ``ilqg``: ``ILQG.for_system`` on MuJoCo C with the same horizon and the task's cost
-  (``task_cost``, running and terminal), one process per episode (``--ilqg-workers``); tasks
-  ``task_cost`` refuses (swimmer-reach: its reward is of displacements) are skipped and said so;
+- ``ilqg``: ``ILQG.for_task`` on MuJoCo C with the same horizon and the task's cost
+  (``task_cost``, running and terminal), one process per episode (``--ilqg-workers``), each in the
+  same ``run_episodes`` loop as every planner; tasks ``task_cost`` refuses (swimmer-reach: its
+  reward is of displacements) get their own costs (``--ilqg-swimmer own``) or are skipped;
 - ``sampling_true``: predictive sampling on the true env (N x ``--samples`` worlds);
 - ``sampling_model``: the same sampler through the learned model (a ``RolloutEngine``);
 - ``random``: uniform random actions.
@@ -126,35 +127,29 @@ def swimmer_costs(model, target, qpos, qvel):
 
 
 def _ilqg_episode(job: dict) -> dict:
-    """One closed-loop iLQG episode on a one-world MuJoCo C env (run in a worker process)."""
+    """One closed-loop iLQG episode on a one-world MuJoCo C env (run in a worker process), in the
+    ``run_episodes`` loop every planner runs in."""
     torch.set_num_threads(1)
-    from gnwarp.control import get_task
+    from gnwarp.control import get_task, run_episodes
+    from gnwarp.control.ilqg import ILQG, ILQGSettings
     from gnwarp.sim import make_env
-    from gnwarp.control.ilqg import ILQG, task_cost
     from gnwarp.sim import systems
     system = systems.make(job["system"])
     task = get_task(job["task"])
     model = ilqg_model(system, job["rk4"])
-    own = task.target == "position"
-    cost = None if own else task_cost(model, task, job["target"])
-    ilqg = ILQG(model, job["horizon"], cost or (lambda d, u: 0.0), cost, substeps=system.substeps,
-                iterations=job["warmup"], nthread=1)
+    settings = ILQGSettings(horizon=job["horizon"], iterations=job["iterations"], warmup=job["warmup"],
+                            substeps=system.substeps, nthread=1)
+    target = None if job["target"] is None else job["target"][None]
+    if task.target == "position":   # the swimmer's cost is measured from the current state: made every step
+        planner = ILQG(model, settings=settings, targets=target,
+                       costs=lambda i, tgt, qpos, qvel: swimmer_costs(model, tgt, qpos, qvel))
+    else:
+        planner = ILQG.for_task(system, task, 1, settings, target, model=model)
     env = make_env(system, 1, backend="mujoco")
-    body = env.reset(job["qpos"][None], job["qvel"][None])
-    states, actions, secs = [body[0]], [], []
-    for t in range(job["steps"]):
-        t0 = time.perf_counter()
-        qpos, qvel = env.qpos[0].numpy(), env.qvel[0].numpy()
-        if own:   # the swimmer's cost is measured from the current state: rebuilt every step
-            ilqg.running_cost, ilqg.terminal_cost = swimmer_costs(model, job["target"], qpos, qvel)
-        u = ilqg.action(qpos, qvel)
-        secs.append(time.perf_counter() - t0)
-        ilqg.iterations = job["iterations"]
-        body = env.step(u[None])
-        states.append(body[0])
-        actions.append(env.last_ctrl[0].float())
+    out = run_episodes(planner, env, task, job["steps"], qpos0=job["qpos"][None], qvel0=job["qvel"][None],
+                       target=target)
     env.close()
-    return {"states": torch.stack(states).float(), "actions": torch.stack(actions), "plan_seconds": secs}
+    return {"states": out["states"][0], "actions": out["actions"][0], "plan_seconds": list(out["plan_seconds"])}
 
 
 def run_ilqg(args, task, system, qpos, qvel, target, horizon: int) -> dict:
@@ -226,7 +221,7 @@ def _reward(task, target, n: int):
 
 def run_sampler(args, kind: str, model, task, system, qpos, qvel, target, horizon: int) -> dict:
     from gnwarp.sim import make_env
-    from gnwarp.control.sampling import ModelDynamics, RandomPlanner, SamplingConfig, SamplingPlanner, true_dynamics
+    from gnwarp.control.sampling import RandomPlanner, SamplingConfig, SamplingPlanner, model_dynamics, true_dynamics
     n = qpos.shape[0]
     env = make_env(system, n, backend=args.backend)
     reward = _reward(task, target, n)
@@ -240,10 +235,7 @@ def run_sampler(args, kind: str, model, task, system, qpos, qvel, target, horizo
         planner = SamplingPlanner(dyn, reward, env.ctrlrange.cpu(), n, cfg)
         note = f"{args.samples} samples x {n} episodes on the true env ({dyn.env.backend})"
     else:
-        engine = model.rollout_engine(torch.zeros(n * args.samples, dtype=torch.int64), horizon, ctrl_policy="none",
-                                      check=False)
-        dyn = ModelDynamics(lambda x, u: engine.rollout(x.to(model.dtype), u.to(model.device, model.dtype)),
-                            device=model.device)
+        dyn = model_dynamics(model, n, args.samples, horizon)
         planner = SamplingPlanner(dyn, reward, env.ctrlrange.cpu(), n, cfg)
         note = f"{args.samples} samples x {n} episodes through the learned model"
     out = run_episodes(planner, env, reward, args.steps, qpos0=qpos, qvel0=qvel)

@@ -1,7 +1,8 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
-(``tasks``), gradient MPC through a learned model and closed-loop episodes (``gradient``), sampling
-MPC (``sampling``) and the iLQG baseline (``ilqg``); the batched true environment they run on is
-``gnwarp.sim.env``.
+(``tasks``), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
+iLQG baseline (``ilqg``), the ``Planner`` protocol they all implement with the registry of planner
+names (``planner``) and closed-loop episodes (``episodes``); the batched true environment they run
+on is ``gnwarp.sim.env``.
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")
@@ -10,7 +11,9 @@ MPC (``sampling``) and the iLQG baseline (``ilqg``); the batched true environmen
 """
 from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
+from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
 from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
 
 __all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
-           "GradientMPCConfig", "PlanningError", "run_episodes", "identify_on_env"]
+           "GradientMPCConfig", "PlanningError", "Planner", "PLANNERS", "get_planner", "planner_name", "run_episodes",
+           "identify_on_env"]

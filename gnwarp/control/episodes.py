@@ -1,11 +1,12 @@
-"""Closed-loop episodes on the true simulator: one runner for every planner (gradient MPC,
-sampling MPC, random actions, or a user's object with ``step``).
+"""Closed-loop episodes on the true simulator: one runner for every ``Planner`` (gradient MPC,
+sampling MPC, iLQG, random actions, or a user's planner: ``gnwarp.control.planner``).
 
-Each of ``steps`` data steps the planner sees the episodes' true state and returns actions
-[N, U]; the true ``Env`` executes them (clamped to the actuators' ranges as MuJoCo does); the
-true trajectory is scored by the task's reward. A planner that plans on the simulator itself
-(``needs_sim_state``: sampling MPC on ``EnvDynamics``) gets ``env.observe()`` (qpos, qvel and
-body states), every other one the body states [N, B, 13].
+The planner is reset for the N episodes (their targets given), then each of ``steps`` data steps
+it sees the episodes' true state and returns actions [N, U] (``step``: optimize, then act); the
+true ``Env`` executes them (clamped to the actuators' ranges as MuJoCo does); the true trajectory
+is scored by the task's reward. A planner that plans on the simulator's state
+(``needs_sim_state``: iLQG, sampling MPC on ``EnvDynamics``) gets ``env.observe()`` (qpos, qvel
+and body states), every other one the body states [N, B, 13].
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from gnwarp.control.planner import Planner
 from gnwarp.control.tasks import Task, get_task
 
 __all__ = ["run_episodes", "identify_on_env"]
@@ -25,12 +27,13 @@ def _sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-def run_episodes(planner, env, task, steps: int, x0=None, *, target=None, qpos0=None, qvel0=None,
+def run_episodes(planner: Planner, env, task, steps: int, x0=None, *, target=None, qpos0=None, qvel0=None,
                  progress: Callable[[int], None] | None = None) -> dict:
-    """Run ``planner`` in closed loop on ``env`` (one episode per world) for ``steps`` steps.
+    """Run ``planner`` (a ``Planner``) in closed loop on ``env`` (one episode per world) for
+    ``steps`` steps, after ``planner.reset(N, target)``.
 
     ``task``: a task name or ``Task`` (its reward, with ``target``: per-episode targets, default
-    the planner's ``target``), or any ``reward(states [N, T+1, B, 13], actions [N, T, U]) -> [N]``.
+    the planner's ``targets``), or any ``reward(states [N, T+1, B, 13], actions [N, T, U]) -> [N]``.
     Start: ``qpos0`` / ``qvel0`` (the env is reset there), else ``x0`` (body states of an env
     already reset: ``x0 = env.reset(...)``), else the env's current state. Returns {"returns" [N]
     (the true trajectory's reward), "states" [N, steps+1, B, 13], "actions" [N, steps, U] (as
@@ -38,16 +41,14 @@ def run_episodes(planner, env, task, steps: int, x0=None, *, target=None, qpos0=
     tensors on the CPU."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+    if not isinstance(planner, Planner):
+        missing = [m for m in ("n", "targets", "device", "needs_sim_state", "reset", "optimize", "act", "step")
+                   if not hasattr(planner, m)]
+        raise TypeError(f"planner must implement gnwarp.control.planner.Planner; {type(planner).__name__} lacks "
+                        f"{', '.join(missing)}")
     if isinstance(task, (str, Task)):
         task = get_task(task)
-        if target is not None and hasattr(planner, "_target"):
-            planner.target = planner._target(target)
-        tgt = target if target is not None else getattr(planner, "target", None)
-        tgt = None if tgt is None else torch.as_tensor(tgt).detach().cpu().float()
-        score = lambda s, a: task.reward(s, a, tgt)  # noqa: E731
-    elif callable(getattr(task, "reward", None)) or callable(task):
-        score = getattr(task, "reward", task)
-    else:
+    elif not (callable(getattr(task, "reward", None)) or callable(task)):
         raise TypeError(f"task must be a task name, a Task or a reward callable, got {type(task).__name__}")
     if qpos0 is not None:
         x = torch.as_tensor(env.reset(qpos0, qvel0))
@@ -55,8 +56,15 @@ def run_episodes(planner, env, task, steps: int, x0=None, *, target=None, qpos0=
         x = torch.as_tensor(x0)
     else:
         x = torch.as_tensor(env.body_states())
-    sim_state = bool(getattr(planner, "needs_sim_state", False))
-    device = getattr(planner, "device", getattr(env, "device", None))
+    planner.reset(x.shape[0], target)   # a fresh plan; the targets (None: the planner's own)
+    if isinstance(task, Task):
+        tgt = target if target is not None else planner.targets
+        tgt = None if tgt is None else torch.as_tensor(tgt).detach().cpu().float()
+        score = lambda s, a: task.reward(s, a, tgt)  # noqa: E731
+    else:
+        score = getattr(task, "reward", task)
+    sim_state = bool(planner.needs_sim_state)
+    device = planner.device
     states, actions, secs = [x.detach().cpu().float()], [], []
     for t in range(steps):
         t0 = time.perf_counter()

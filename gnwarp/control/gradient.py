@@ -80,17 +80,21 @@ class GradientMPC:
 
     ``model``: a ForwardModel (bound here to ``system``); ``task``: a ``Task`` or its name;
     ``system``: a ``gnwarp.systems.System`` (or a built-in name); ``n``: episodes planned together;
-    ``target``: per-episode targets for tasks with one (see ``tasks.sample_targets``).
+    ``targets``: per-episode targets for tasks with one (see ``tasks.sample_targets``).
 
-    ``step(x [N, B, 13]) -> first actions [N, U]`` plans from the true states ``x`` and shifts the
-    sequence for the next call; ``actions`` [N, H, U] is the current plan; ``reset()`` draws a new
-    random sequence (the next ``step`` warms up again).
+    A ``gnwarp.control.planner.Planner``: ``optimize(x [N, B, 13])`` runs the Adam iterations from
+    the true states ``x`` (plus the warm-up after a reset), keeps the plan (``plan`` [N, H, U])
+    and shifts the working sequence for the next call; ``act(x, t)`` -> the plan's actions [N, U]
+    at step t; ``step(x)`` = both; ``actions`` [N, H, U] is the working sequence; ``reset()``
+    draws a new random sequence from the settings' seed (the next ``optimize`` warms up again).
     Raises ``PlanningError`` for a model trained on another system (or whose static features do
     not fit it), ``TaskError`` for a task of another system, and, at every step, for states of
     the wrong shape or with NaN / Inf (naming the episode and body).
     """
 
-    def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, target=None):
+    needs_sim_state = False   # plans from body states
+
+    def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, targets=None):
         from gnwarp.sim.systems import System, make
         # a list of n Systems of one topology: episode i plans through instance i's static graph
         # (a parameterized model given each episode's true parameters, Figure 10)
@@ -107,7 +111,9 @@ class GradientMPC:
                                         "control ranges; per-episode systems must share them")
         self.system = system if isinstance(system, System) else make(system)
         self.task: Task = get_task(task, self.system.name)
-        self.config = config if config is not None else GradientMPCConfig()
+        if not isinstance(config, (GradientMPCConfig, type(None))):
+            raise TypeError(f"config must be a GradientMPCConfig, got {type(config).__name__}")
+        self.settings = config if config is not None else GradientMPCConfig()
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
         trained = model_systems(model)
@@ -120,21 +126,21 @@ class GradientMPC:
         except LayoutMismatchError as e:
             raise PlanningError(f"the model does not fit {self.system.name} (task {self.task.name!r}): {e}") from None
         self.model, self.n = model, n
-        self.horizon = self.config.horizon or self.task.horizon
-        self.warmup = self.config.warmup if self.config.warmup is not None else self.config.iterations * self.horizon
+        self.horizon = self.settings.horizon or self.task.horizon
+        self.warmup = self.settings.warmup if self.settings.warmup is not None else self.settings.iterations * self.horizon
         dev, dt = model.device, model.dtype
         self.device, self.dtype = dev, dt
         self.B, self.U = self.system.nbody, self.system.nu
         self.mid, self.half = _ctrl_range(self.system, dev, dt)
-        cap = self.config.capture
+        cap = self.settings.capture
         self.capture = dev.type == "cuda" and (cap is None or bool(cap))
         # the planner's actions are in range by construction: the engine need not clamp or check;
         # captured, the whole iteration is one graph, so the engine's loops run inside it
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
         self.engine = model.rollout_engine(inst, self.horizon, ctrl_policy="none",
                                            check=False, graphs=not self.capture)
-        self.target = None if target is None else self._target(target)
-        self._gen = torch.Generator(device="cpu").manual_seed(int(self.config.seed))
+        self.targets = None if targets is None else self._targets(targets)
+        self._gen = torch.Generator(device="cpu")
         shape = (n, self.horizon, self.U)
         # device state, updated in place (a captured iteration reads and writes these tensors)
         self.z = torch.zeros(shape, device=dev, dtype=dt)
@@ -143,21 +149,29 @@ class GradientMPC:
         self._x = torch.zeros((n, self.B, DYN_NODE_SIZE), device=dev, dtype=dt)
         self._r = torch.zeros(n, device=dev, dtype=dt)                  # planned reward before the last step
         self._graph = Graphed(self._iterate_once, warmup=2) if self.capture else None
-        self.reset()
+        self.reset(n)
 
     # -- the action sequence ------------------------------------------------------------------------
-    def _target(self, target) -> torch.Tensor:
-        t = torch.as_tensor(target).to(self.device, self.dtype)
+    def _targets(self, targets) -> torch.Tensor:
+        t = torch.as_tensor(targets).to(self.device, self.dtype)
         if t.shape[:1] != (self.n,):
-            raise TaskError(f"target must have one entry per episode ({self.n}), got shape {tuple(t.shape)}")
+            raise TaskError(f"targets must have one entry per episode ({self.n}), got shape {tuple(t.shape)}")
         return t
 
-    def reset(self, target=None) -> None:
-        """A new random sequence (and fresh Adam moments); the next ``step`` warms up again."""
-        if target is not None:
-            self.target = self._target(target)
+    def reset(self, n: int | None = None, targets=None, seed: int | None = None) -> None:
+        """A new random sequence drawn from ``seed`` (None: the settings' seed) and fresh Adam
+        moments; the next ``optimize`` warms up again. ``targets``: the episodes' targets (None:
+        those held). ``n``: the episodes, fixed when the planner is made (the rollout engine's
+        batch): another value raises ``PlanningError``."""
+        if n is not None and n != self.n:
+            raise PlanningError(f"this planner plans {self.n} episodes (its rollout engine's batch), got n={n!r}: "
+                                "make a GradientMPC for that many")
+        if targets is not None:
+            self.targets = self._targets(targets)
+        self._gen.manual_seed(int(self.settings.seed if seed is None else seed))
+        self.plan = None
         shape = (self.n, self.horizon, self.U)
-        z = torch.randn(shape, generator=self._gen, dtype=torch.float64) * self.config.init_std
+        z = torch.randn(shape, generator=self._gen, dtype=torch.float64) * self.settings.init_std
         self.z.copy_(z)
         self._m.zero_()
         self._v.zero_()
@@ -194,7 +208,7 @@ class GradientMPC:
         z = self.z if z is None else z
         with torch.no_grad():
             u = self.to_actions(z)
-            return self.task.reward(self.engine.rollout(x, u), u, self.target)
+            return self.task.reward(self.engine.rollout(x, u), u, self.targets)
 
     def iterate(self, x: torch.Tensor, k: int = 1) -> torch.Tensor:
         """``k`` Adam steps on the plan from checked states ``x``; returns the planned reward [N]
@@ -210,12 +224,12 @@ class GradientMPC:
     def _iterate_once(self) -> None:
         """One planning iteration on the device buffers, in place, no host sync: rollout from
         ``_x`` under the plan, reward, its gradient w.r.t. z (the engine's adjoint loop), Adam."""
-        b1, b2 = self.config.betas
-        lr = self.config.lr
+        b1, b2 = self.settings.betas
+        lr = self.settings.lr
         with torch.enable_grad():
             z = self.z.detach().requires_grad_(True)
             u = self.to_actions(z)
-            r = self.task.reward(self.engine.rollout(self._x, u), u, self.target)
+            r = self.task.reward(self.engine.rollout(self._x, u), u, self.targets)
             (g,) = torch.autograd.grad(-r.sum(), z)
         with torch.no_grad():
             self._r.copy_(r.detach())
@@ -232,12 +246,27 @@ class GradientMPC:
         for a in (self.z, self._m, self._v):
             a[:, :-1] = a[:, 1:].clone()
 
-    def step(self, x) -> torch.Tensor:
-        """Plan from the true states ``x`` [N, B, 13]; return the first actions [N, U] and shift."""
+    def optimize(self, x) -> None:
+        """One planning budget from the true states ``x`` [N, B, 13]: ``iterations`` Adam steps
+        (plus ``warmup`` after a reset); the plan (``plan`` [N, H, U]) is kept for ``act`` and the
+        working sequence shifted one step for the next call."""
         x = self.check_state(x)
-        k = self.config.iterations + (0 if self.started else self.warmup)
+        k = self.settings.iterations + (0 if self.started else self.warmup)
         self.iterate(x, k)
         self.started = True
-        a = self.actions[:, 0].detach().clone()
+        self.plan = self.actions.detach().clone()
         self.shift()
-        return a
+
+    def act(self, x, time: int = 0) -> torch.Tensor:
+        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from
+        (clamped to the horizon)."""
+        if self.plan is None:
+            raise PlanningError("no plan to act on: call optimize(states) (or step) first")
+        if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
+            raise PlanningError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
+        return self.plan[:, min(int(time), self.horizon - 1)]
+
+    def step(self, x) -> torch.Tensor:
+        """``optimize(x)`` then ``act(x, 0)``: the first actions [N, U]."""
+        self.optimize(x)
+        return self.act(x, 0)

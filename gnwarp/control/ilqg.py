@@ -9,6 +9,10 @@ Levenberg-Marquardt regularization of Quu that grows when the backward pass or t
 fails. Knots hold one control for ``substeps`` physics steps: ``ILQG.for_system`` plans on a
 System's data timestep, ``substeps=1`` on the physics timestep. Derivatives run on a thread pool,
 each thread with its own MjData (MuJoCo-Warp 4.0 has no derivatives, hence MuJoCo C).
+
+``ILQG`` is a ``gnwarp.control.planner.Planner`` of N episodes (one plan each, planned one after
+another) from the simulator's state; ``ILQG.for_task`` plans a ``Task``'s reward as its cost.
+Its options are one validated ``ILQGSettings``.
 """
 from __future__ import annotations
 
@@ -20,16 +24,21 @@ from typing import Callable
 
 import mujoco
 import numpy as np
+import torch
 
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.body_state import body_states
+from gnwarp.validation import ConfigError, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
-__all__ = ["ILQG", "BodyPointCost", "BodyStateCost", "QuadraticCost", "body_state_cost", "task_cost",
+__all__ = ["ILQG", "ILQGSettings", "BodyPointCost", "BodyStateCost", "QuadraticCost", "body_state_cost", "task_cost",
            "tangent_difference"]
 
 # running_cost(data, u) and terminal_cost(data): ``data`` holds the state after mj_forward
 RunningCost = Callable[[mujoco.MjData, np.ndarray], float]
 TerminalCost = Callable[[mujoco.MjData], float]
+# costs(episode, target, qpos, qvel) -> (running_cost, terminal_cost or None): each episode's costs,
+# asked at every optimize from the episode's state (a cost measured from the current state)
+EpisodeCosts = Callable[[int, "np.ndarray | None", np.ndarray, np.ndarray], tuple]
 _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # qpos, qvel, act, ctrl, warm start, ...
 
 
@@ -237,30 +246,82 @@ class _Trajectory:
     cost: np.ndarray   # [H+1] running costs, then the terminal cost
 
 
-class ILQG:
-    """Box-constrained iLQG on MuJoCo C.
+@dataclasses.dataclass
+class ILQGSettings:
+    """``horizon``: knots H (None: the task's, with ``ILQG.for_task``). ``iterations``: most iLQG
+    iterations per plan; ``warmup``: at the first state after a reset (None: ``iterations``).
+    ``substeps``: physics steps per knot, one control held over them (None: the system's data
+    step with ``for_system`` / ``for_task``, else 1). ``fd_eps`` / ``fd_centered``: the dynamics'
+    finite differences (``mjd_transitionFD``); ``cost_eps``: the costs' (without their own
+    ``derivatives``). ``reg_init``, ``reg_min``, ``reg_max``, ``reg_factor``: Levenberg-Marquardt
+    regularization of Quu, its start, bounds and growth factor. ``step_sizes``: the line search's
+    (None: 1 down to 1e-3, 10 of them). ``tol``: relative decrease below which a plan stops.
+    ``nthread``: derivative threads (None: the CPU cores, at most H)."""
+    horizon: PositiveInt | None = None
+    iterations: IntRange(0) = 10
+    warmup: IntRange(0) | None = None
+    substeps: PositiveInt | None = None
+    fd_eps: PositiveFloat = 1e-6
+    fd_centered: Flag = False
+    cost_eps: PositiveFloat = 1e-4
+    reg_init: PositiveFloat = 1e-6
+    reg_min: PositiveFloat = 1e-6
+    reg_max: PositiveFloat = 1e6
+    reg_factor: FloatRange(gt=1) = 10.0
+    step_sizes: tuple[PositiveFloat, ...] | None = None
+    tol: FloatRange(ge=0) = 1e-8
+    nthread: PositiveInt | None = None
 
-    model: the true model (read only). horizon: knots H. running_cost(data, u) -> float and
-    terminal_cost(data) -> float (or None) see the state after ``mj_forward``; a cost with a
-    ``derivatives(data, u)`` method (``QuadraticCost``) gives its own derivatives. substeps:
-    physics steps per knot, one control held over them. iterations: most iLQG iterations per plan.
-    The total cost is the plain sum of running costs over knots plus the terminal cost.
+    def __post_init__(self):
+        check_fields(self)
+        if self.reg_min > self.reg_max:
+            raise ConfigError("reg_min", f"must not exceed reg_max ({self.reg_max:g}), got {self.reg_min:g}")
+        if self.step_sizes is not None and not self.step_sizes:
+            raise ConfigError("step_sizes", "must hold at least one step size (or be None)")
+
+
+class ILQG:
+    """Box-constrained iLQG on MuJoCo C, a ``Planner`` of N episodes.
+
+    model: the true model (read only). running_cost(data, u) -> float and terminal_cost(data) ->
+    float (or None) see the state after ``mj_forward``; a cost with a ``derivatives(data, u)``
+    method (``QuadraticCost``) gives its own derivatives. The total cost is the plain sum of
+    running costs over knots plus the terminal cost. settings: ``ILQGSettings`` (its horizon is
+    needed here). costs: in place of the two costs, ``costs(episode, target, qpos, qvel) ->
+    (running_cost, terminal_cost)`` asked at every ``optimize`` for each episode (per-episode
+    targets, costs measured from the current state). n, targets: as ``reset``'s.
+
+    ``plan`` / ``action`` plan one state (the current episode's plan and regularization);
+    ``optimize(obs)`` plans every episode from ``obs`` (an ``Observation``: qpos [N, nq], qvel
+    [N, nv]), ``act(obs, t)`` -> the plans' controls [N, nu] at knot t, ``step(obs)`` = both.
     """
 
-    def __init__(self, model: mujoco.MjModel, horizon: int, running_cost: RunningCost,
-                 terminal_cost: TerminalCost | None = None, *, substeps: int = 1, iterations: int = 10,
-                 fd_eps: float = 1e-6, fd_centered: bool = False, cost_eps: float = 1e-4,
-                 reg_init: float = 1e-6, reg_min: float = 1e-6, reg_max: float = 1e6,
-                 reg_factor: float = 10.0, step_sizes=None, tol: float = 1e-8, nthread: int | None = None):
-        if horizon < 1 or substeps < 1 or iterations < 0:
-            raise ValueError("ILQG: horizon and substeps must be >= 1, iterations >= 0")
+    needs_sim_state = True    # plans from qpos and qvel
+    device = torch.device("cpu")
+
+    def __init__(self, model: mujoco.MjModel, running_cost: RunningCost | None = None,
+                 terminal_cost: TerminalCost | None = None, settings: ILQGSettings | None = None, *,
+                 costs: EpisodeCosts | None = None, n: int = 1, targets=None):
+        if not isinstance(settings, (ILQGSettings, type(None))):
+            raise TypeError(f"settings must be an ILQGSettings, got {type(settings).__name__}")
+        settings = settings if settings is not None else ILQGSettings()
+        if settings.horizon is None:
+            raise ConfigError("horizon", "ILQG needs a horizon (ILQGSettings.horizon; for_task takes the task's)")
+        if (running_cost is None) == (costs is None):
+            raise ValueError("ILQG: give running_cost (and terminal_cost), or costs, not both")
         if model.nu < 1:
             raise ValueError("ILQG: the model has no actuators")
+        self.settings = settings
+        substeps = settings.substeps or 1
+        horizon, iterations = settings.horizon, settings.iterations
         self.model, self.horizon, self.substeps, self.iterations = model, horizon, substeps, iterations
-        self.running_cost, self.terminal_cost = running_cost, terminal_cost
-        self.fd_eps, self.fd_centered, self.cost_eps, self.tol = fd_eps, fd_centered, cost_eps, tol
-        self.reg_min, self.reg_max, self.reg_factor = reg_min, reg_max, reg_factor
-        self.reg = reg_init  # kept across plans, as MuJoCo MPC does
+        self.warmup = settings.iterations if settings.warmup is None else settings.warmup
+        self.running_cost, self.terminal_cost, self.costs = running_cost, terminal_cost, costs
+        self.fd_eps, self.fd_centered, self.cost_eps, self.tol = (settings.fd_eps, settings.fd_centered,
+                                                                  settings.cost_eps, settings.tol)
+        self.reg_min, self.reg_max, self.reg_factor = settings.reg_min, settings.reg_max, settings.reg_factor
+        self.reg = settings.reg_init  # kept across plans, as MuJoCo MPC does
+        step_sizes, nthread = settings.step_sizes, settings.nthread
         self.step_sizes = np.logspace(0, -3, 10) if step_sizes is None else np.asarray(step_sizes, float)
         self.nx, self.nu = 2 * model.nv + model.na, model.nu
         act = Actuators.from_model(model)
@@ -270,21 +331,109 @@ class ILQG:
         self._pool = ThreadPoolExecutor(self.nthread) if self.nthread > 1 else None
         self._nstate = mujoco.mj_stateSize(model, _INTEGRATION)
         self._U: np.ndarray | None = None
+        self.n, self.targets = 1, None
+        self.reset(n, targets)
 
     @classmethod
-    def for_system(cls, system, horizon: int, running_cost: RunningCost,
-                   terminal_cost: TerminalCost | None = None, **kw) -> "ILQG":
-        """Plan on a ``gnwarp.sim.System``'s data timestep (one knot = ``system.substeps`` physics steps)."""
-        return cls(system.model, horizon, running_cost, terminal_cost, substeps=system.substeps, **kw)
+    def for_system(cls, system, running_cost: RunningCost | None = None, terminal_cost: TerminalCost | None = None,
+                   settings: ILQGSettings | None = None, **kw) -> "ILQG":
+        """Plan on a ``gnwarp.sim.System``'s data timestep (one knot = ``system.substeps`` physics
+        steps, unless ``settings.substeps`` says otherwise); ``kw`` as the constructor's."""
+        settings = settings if settings is not None else ILQGSettings()
+        if settings.substeps is None:
+            settings = dataclasses.replace(settings, substeps=system.substeps)
+        return cls(system.model, running_cost, terminal_cost, settings, **kw)
 
-    def reset(self) -> None:
-        """Forget the previous plan (the next plan starts from zeros, or ``u_init``)."""
+    @classmethod
+    def for_task(cls, system, task, n: int = 1, settings: ILQGSettings | None = None, targets=None,
+                 model: mujoco.MjModel | None = None) -> "ILQG":
+        """Plan ``task``'s reward (a ``Task`` or its name) as the cost (``task_cost``: running and
+        terminal, each episode's target its own) for ``n`` episodes on ``system`` (a System or a
+        built-in name); ``model``: the MjModel planned on (default ``system.model``, e.g. an
+        implicit-integrator copy). ``settings.horizon`` None: the task's. A task ``task_cost``
+        refuses raises ValueError here."""
+        from gnwarp.control.tasks import get_task
+        from gnwarp.sim.systems import System, make
+        system = system if isinstance(system, System) else make(system)
+        task = get_task(task, system.name)
+        settings = settings if settings is not None else ILQGSettings()
+        settings = dataclasses.replace(settings, horizon=settings.horizon or task.horizon,
+                                       substeps=settings.substeps or system.substeps)
+        model = system.model if model is None else model
+        task_cost(model, task, None)   # a refused task raises before any planning
+        made: dict = {}
+
+        def costs(episode, target, qpos, qvel):
+            key = None if target is None else np.asarray(target).tobytes()
+            if episode not in made or made[episode][0] != key:   # one cost per episode and target
+                c = task_cost(model, task, target)
+                made[episode] = (key, (c, c))
+            return made[episode][1]
+        return cls(model, settings=settings, costs=costs, n=n, targets=targets)
+
+    def reset(self, n: int | None = None, targets=None, seed: int | None = None) -> None:
+        """Forget the plans: each episode's next plan starts from zeros (or ``u_init``) with
+        ``warmup`` iterations. ``n``: the episodes (None: as many as before); ``targets`` [n, ...]:
+        the episodes' targets given to ``costs`` (None: those held); ``seed``: unused (iLQG draws
+        no random numbers)."""
+        if n is not None:
+            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+                raise ValueError(f"n (episodes) must be an integer >= 1, got {n!r}")
+            self.n = int(n)
+        if targets is not None:
+            t = np.asarray(torch.as_tensor(targets).detach().cpu())
+            if t.shape[:1] != (self.n,):
+                raise ValueError(f"targets must have one entry per episode ({self.n}), got shape {t.shape}")
+            self.targets = t
+        elif self.targets is not None and self.targets.shape[0] != self.n:
+            raise ValueError(f"the targets held are for {self.targets.shape[0]} episodes, not {self.n}: give targets")
         self._U = None
+        # per episode: its plan, its regularization, whether it has planned since the reset
+        self._episodes = [(None, self.settings.reg_init, False) for _ in range(self.n)]
+        self.plan_U = None
+        self.last_info: list[dict] = []
+
+    # -- the Planner protocol ----------------------------------------------------------------------
+
+    def optimize(self, obs) -> None:
+        """Plan every episode from the simulator's state ``obs`` (qpos [N, nq], qvel [N, nv]: an
+        ``Observation``), ``warmup`` iterations for an episode's first plan, then ``iterations``;
+        the plans [N, H, nu] are kept for ``act`` and each warm-starts the next, shifted."""
+        qpos = np.asarray(torch.as_tensor(obs.qpos).detach().cpu(), dtype=np.float64)
+        qvel = np.asarray(torch.as_tensor(obs.qvel).detach().cpu(), dtype=np.float64)
+        if qpos.shape != (self.n, self.model.nq) or qvel.shape != (self.n, self.model.nv):
+            raise ValueError(f"ILQG plans {self.n} episodes: qpos must be [{self.n}, {self.model.nq}] and qvel "
+                             f"[{self.n}, {self.model.nv}], got {qpos.shape} and {qvel.shape}")
+        plans, infos = [], []
+        for i in range(self.n):
+            self._U, self.reg, started = self._episodes[i]
+            if self.costs is not None:
+                tgt = None if self.targets is None else self.targets[i]
+                self.running_cost, self.terminal_cost = self.costs(i, tgt, qpos[i], qvel[i])
+            U, info = self.plan(qpos[i], qvel[i], iterations=self.iterations if started else self.warmup)
+            self._episodes[i] = (self._U, self.reg, True)
+            plans.append(U)
+            infos.append(info)
+        self.plan_U, self.last_info = np.stack(plans), infos
+
+    def act(self, obs, time: int = 0) -> torch.Tensor:
+        """Controls [N, nu] (float64) of the last plans at knot ``time`` (clamped to the horizon)."""
+        if self.plan_U is None:
+            raise RuntimeError("no plan to act on: call optimize(obs) (or step) first")
+        if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
+            raise ValueError(f"time must be an integer >= 0 (knots since the plan's state), got {time!r}")
+        return torch.from_numpy(self.plan_U[:, min(int(time), self.horizon - 1)].copy())
+
+    def step(self, obs) -> torch.Tensor:
+        """``optimize(obs)`` then ``act(obs, 0)``: the first controls [N, nu]."""
+        self.optimize(obs)
+        return self.act(obs, 0)
 
     # -- public -----------------------------------------------------------------------------------
 
-    def plan(self, qpos, qvel, act=None, u_init=None) -> tuple[np.ndarray, dict]:
-        """Optimize H controls from the state (qpos [nq], qvel [nv], act [na]).
+    def plan(self, qpos, qvel, act=None, u_init=None, iterations: int | None = None) -> tuple[np.ndarray, dict]:
+        """Optimize H controls from the state (qpos [nq], qvel [nv], act [na]) in at most
+        ``iterations`` iterations (None: ``self.iterations``).
 
         The start is ``u_init`` [H, nu] if given, else the previous plan shifted one knot (the
         receding-horizon warm start, last control repeated), else zeros; clamped into the box.
@@ -307,7 +456,7 @@ class ILQG:
         J = traj.cost.sum()
         info = {"costs": [J], "reg": [], "alphas": [], "backward_failures": 0, "iterations": 0}
         K = np.zeros((self.horizon, self.nu, self.nx))
-        for _ in range(self.iterations):
+        for _ in range(self.iterations if iterations is None else iterations):
             info["iterations"] += 1
             D = self._derivatives(traj)
             bp = self._backward(D, traj.U, self.reg)

@@ -7,25 +7,30 @@ current true state, scores them with ``reward(states [M, T+1, B, 13], actions [M
 and makes the best candidate (``method="best"``) or the reward-weighted mean (``"mppi"``) the
 new nominal. Its first action is applied; the nominal is then shifted one step (the warm start).
 
-Rollouts come from a ``dynamics``: ``EnvDynamics`` (the true simulator, an ``Env`` of N*K worlds
-reset to each episode's state) or ``ModelDynamics`` (a learned model's rollout callable,
+Rollouts come from a ``dynamics``, any ``gnwarp.dynamics.RolloutDynamics`` (``rollout(obs,
+actions, samples)``): ``EnvDynamics`` (the true simulator, an ``Env`` of N*K worlds reset to each
+episode's state: the oracle) or ``ModelDynamics`` (a learned model's rollout callable,
 ``(x0 [M, B, 13], actions [M, T, U]) -> [M, T+1, B, 13]``, e.g. ``ForwardModel.rollout`` or a
-``RolloutEngine``'s). ``gnwarp.control.episodes.run_episodes`` runs any planner in closed loop.
+``RolloutEngine``'s; ``model_dynamics`` makes one from a ``Dynamics`` model). Both planners here
+implement ``gnwarp.control.planner.Planner``; ``gnwarp.control.episodes.run_episodes`` runs any
+planner in closed loop.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 import torch
 
+from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
 from gnwarp.sim.excitation import catmull_rom
+from gnwarp.validation import ConfigError, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
-__all__ = ["SamplingConfig", "SamplingPlanner", "RandomPlanner", "EnvDynamics", "ModelDynamics",
-           "true_dynamics", "spline_basis"]
+__all__ = ["SamplingConfig", "SamplingPlanner", "RandomSettings", "RandomPlanner", "EnvDynamics", "ModelDynamics",
+           "true_dynamics", "model_dynamics", "spline_basis"]
 
 Reward = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 INTERPOLATIONS = ("zero", "linear", "cubic")
@@ -40,30 +45,30 @@ class SamplingConfig:
     noise: standard deviation of the knot noise, relative to half of each actuator's range;
     method: "best" (predictive sampling) or "mppi" (softmax of reward / (temperature x the
     episode's reward spread)); seed: of the noise."""
-    horizon: int = 20
-    samples: int = 64
-    knots: int = 4
-    interpolation: str = "zero"
-    noise: float = 0.2
-    method: str = "best"
-    temperature: float = 0.1
-    seed: int = 0
+    horizon: PositiveInt = 20
+    samples: PositiveInt = 64
+    knots: PositiveInt = 4
+    interpolation: Literal[INTERPOLATIONS] = "zero"
+    noise: FloatRange(ge=0) = 0.2
+    method: Literal[METHODS] = "best"
+    temperature: PositiveFloat = 0.1
+    seed: IntRange(0) = 0
 
     def __post_init__(self):
-        for name in ("horizon", "samples", "knots"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"SamplingConfig.{name} must be an integer >= 1, got {v!r}")
-        if self.interpolation not in INTERPOLATIONS:
-            raise ValueError(f"SamplingConfig.interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
-        if self.method not in METHODS:
-            raise ValueError(f"SamplingConfig.method must be one of {METHODS}, got {self.method!r}")
+        check_fields(self)   # ConfigError naming the field
         if self.interpolation != "zero" and self.knots < 2:
-            raise ValueError(f"{self.interpolation} interpolation needs knots >= 2")
+            raise ConfigError("knots", f"{self.interpolation} interpolation needs knots >= 2, got {self.knots}")
         if self.knots > self.horizon:
-            raise ValueError(f"SamplingConfig.knots ({self.knots}) must not exceed the horizon ({self.horizon})")
-        if not (self.noise >= 0 and np.isfinite(self.noise)) or not (self.temperature > 0):
-            raise ValueError("SamplingConfig.noise must be >= 0 and temperature > 0")
+            raise ConfigError("knots", f"must not exceed the horizon ({self.horizon}), got {self.knots}")
+
+
+@dataclass
+class RandomSettings:
+    """seed: of the uniform random actions."""
+    seed: IntRange(0) = 0
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 def spline_basis(kind: str, knots: int, times: np.ndarray) -> np.ndarray:
@@ -90,8 +95,9 @@ def _basis_pair(cfg: SamplingConfig) -> tuple[np.ndarray, np.ndarray]:
 # -- dynamics ---------------------------------------------------------------------------------
 
 class EnvDynamics:
-    """The true simulator as a planner's dynamics: ``env`` holds N*K worlds; each rollout resets
-    world n*K + k to episode n's state (qpos, qvel) and steps the candidates."""
+    """The true simulator as a planner's dynamics (a ``gnwarp.dynamics.RolloutDynamics``): ``env``
+    holds N*K worlds; each rollout resets world n*K + k to episode n's state (qpos, qvel) and
+    steps the candidates."""
 
     def __init__(self, env: Env, source: Env | None = None):
         self.env, self.source = env, source
@@ -112,8 +118,9 @@ class EnvDynamics:
 
 
 class ModelDynamics:
-    """A learned model as a planner's dynamics: ``rollout_fn(x0 [M, B, 13], actions [M, T, U])
-    -> [M, T+1, B, 13]`` from the episodes' body states, without gradients."""
+    """A learned model as a planner's dynamics (a ``gnwarp.dynamics.RolloutDynamics``):
+    ``rollout_fn(x0 [M, B, 13], actions [M, T, U]) -> [M, T+1, B, 13]`` from the episodes' body
+    states, without gradients."""
 
     def __init__(self, rollout_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], device=None):
         self.rollout_fn = rollout_fn
@@ -132,37 +139,69 @@ def true_dynamics(system, n_episodes: int, samples: int, backend: str = "auto", 
     return EnvDynamics(make_env(system, n_episodes * samples, backend=backend, device=device, **kw), source)
 
 
+def model_dynamics(model, n_episodes: int, samples: int, horizon: int) -> ModelDynamics:
+    """``ModelDynamics`` through a bound ``gnwarp.dynamics.Dynamics`` model: one ``RolloutEngine``
+    of ``n_episodes * samples`` rollouts of ``horizon`` steps of instance 0, the controls used as
+    given (a sampling planner keeps them in range) and not checked."""
+    engine = model.rollout_engine(torch.zeros(n_episodes * samples, dtype=torch.int64), horizon, ctrl_policy="none",
+                                  check=False)
+    return ModelDynamics(lambda x, u: engine.rollout(x.to(model.dtype), u.to(model.device, model.dtype)),
+                         device=model.device)
+
+
 # -- planners ---------------------------------------------------------------------------------
 
 class SamplingPlanner:
-    """Predictive sampling / MPPI over ``n_episodes`` episodes at once.
+    """Predictive sampling / MPPI over ``n_episodes`` episodes at once (a ``Planner``).
 
-    ``dynamics``: ``EnvDynamics`` or ``ModelDynamics``; ``reward``: a callable of (states
-    [M, T+1, B, 13], actions [M, T, U]) -> [M], higher is better; ``ctrlrange`` [U, 2]: where
-    actions are sampled and clamped (an env's ``ctrlrange``). ``step(obs) -> [N, U]``."""
+    ``dynamics``: a ``RolloutDynamics`` (``EnvDynamics``, ``ModelDynamics``); ``reward``: a
+    callable of (states [M, T+1, B, 13], actions [M, T, U]) -> [M], higher is better, or a
+    ``Task`` (or its name), whose reward gets each candidate its episode's ``targets`` [N, ...];
+    ``ctrlrange`` [U, 2]: where actions are sampled and clamped (an env's ``ctrlrange``).
+    ``optimize(obs)`` samples and scores K candidates per episode; ``act(obs, t)`` -> [N, U];
+    ``step(obs)`` = both."""
 
-    def __init__(self, dynamics, reward: Reward, ctrlrange, n_episodes: int, config: SamplingConfig | None = None):
-        self.dynamics, self.reward = dynamics, reward
-        self.cfg = config or SamplingConfig()
-        self.n = int(n_episodes)
+    def __init__(self, dynamics, reward: Reward | Task | str, ctrlrange, n_episodes: int,
+                 config: SamplingConfig | None = None, targets=None):
+        if not isinstance(config, (SamplingConfig, type(None))):
+            raise TypeError(f"config must be a SamplingConfig, got {type(config).__name__}")
+        self.dynamics = dynamics
+        self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
+        self.reward = self._task_reward if self.task is not None else reward
+        self.settings = config or SamplingConfig()
+        self.n = _episodes(n_episodes)
         self.device = dynamics.device
         cr = torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)).reshape(-1, 2).to(self.device, torch.float32)
         if not bool(torch.isfinite(cr).all()) or bool((cr[:, 1] < cr[:, 0]).any()):
             raise ValueError(f"ctrlrange must be finite [U, 2] with lower <= upper, got {cr.tolist()}")
         self.lo, self.hi = cr[:, 0], cr[:, 1]
         self.nu = cr.shape[0]
-        at, shift = _basis_pair(self.cfg)
+        at, shift = _basis_pair(self.settings)
         self._at = torch.tensor(at, dtype=torch.float32, device=self.device)
         self._shift = torch.tensor(shift, dtype=torch.float32, device=self.device)
         self._gen = torch.Generator(device=self.device)
-        self.reset()
+        self.targets = None
+        self.reset(self.n, targets)
 
-    def reset(self) -> None:
-        """Nominal knots at the middle of the range; the noise generator re-seeded."""
-        self._gen.manual_seed(self.cfg.seed)
+    def reset(self, n: int | None = None, targets=None, seed: int | None = None) -> None:
+        """Start ``n`` episodes (None: as many as before): nominal knots at the middle of the
+        range, no plan, the noise generator re-seeded (``seed``; None: the settings'); ``targets``
+        [n, ...] for a task's reward (None: those held)."""
+        self.n = self.n if n is None else _episodes(n)
+        held = self.targets if targets is None else targets
+        self.targets = None if held is None else _targets(held, self.n, self.device)
+        self._gen.manual_seed(self.settings.seed if seed is None else seed)
         mid = 0.5 * (self.lo + self.hi)
-        self.knots = mid.expand(self.n, self.cfg.knots, self.nu).clone()
+        self.knots = mid.expand(self.n, self.settings.knots, self.nu).clone()
         self.last_rewards = None
+        self.plan = None
+
+    def _task_reward(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The task's reward of rows of episodes x candidates, each with its episode's target."""
+        tgt = None
+        if self.targets is not None:
+            tgt = self.targets.to(states.device).repeat_interleave(states.shape[0] // self.n, 0)
+        return self.task.reward(states, actions.to(states.device, states.dtype), tgt)
 
     def actions(self, knots: torch.Tensor) -> torch.Tensor:
         """Action sequences [..., T, U] of knots [..., P, U], inside the range."""
@@ -175,7 +214,7 @@ class SamplingPlanner:
 
     def candidates(self) -> torch.Tensor:
         """Knots of the K candidates of each episode [N, K, P, U]: the nominal first."""
-        cfg = self.cfg
+        cfg = self.settings
         shape = (self.n, cfg.samples - 1, cfg.knots, self.nu)
         scale = cfg.noise * 0.5 * (self.hi - self.lo)
         noise = torch.randn(shape, generator=self._gen, device=self.device) * scale
@@ -188,13 +227,14 @@ class SamplingPlanner:
         alone: planning on the true simulator without a ``source`` env to read it from."""
         return isinstance(self.dynamics, EnvDynamics) and self.dynamics.source is None
 
-    def step(self, obs) -> torch.Tensor:
-        """One planning step from the episodes' true states ``obs`` (an ``Observation``, or body
-        states [N, B, 13]) -> first actions [N, U]; the nominal becomes the chosen sequence, shifted."""
+    def optimize(self, obs) -> None:
+        """One planning budget from the episodes' true states ``obs`` (an ``Observation``, or body
+        states [N, B, 13]): K candidates rolled out and scored; the chosen sequences become the
+        plan [N, T, U] (``act``) and, shifted one step, the nominal."""
         n = (obs.body if isinstance(obs, Observation) else obs).shape[0]
         if n != self.n:
             raise ValueError(f"this planner holds {self.n} episodes, got states of {n}")
-        cfg, N, K = self.cfg, self.n, self.cfg.samples
+        cfg, N, K = self.settings, self.n, self.settings.samples
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
         states = self.dynamics.rollout(obs, acts, K)
@@ -208,32 +248,83 @@ class SamplingPlanner:
             w = torch.softmax((r - top) / (cfg.temperature * spread), 1)
             chosen = torch.einsum("nk,nkpu->npu", w, cand)
         self.last_rewards = r
-        first = self.actions(chosen)[:, 0]
+        self.plan = self.actions(chosen)
         self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
-        return first
+
+    def act(self, obs, time: int = 0) -> torch.Tensor:
+        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from."""
+        return _plan_action(self.plan, time)
+
+    def step(self, obs) -> torch.Tensor:
+        """``optimize(obs)`` then ``act(obs, 0)``: the first actions [N, U]."""
+        self.optimize(obs)
+        return self.act(obs, 0)
 
 
 class RandomPlanner:
-    """The random-actions baseline: uniform in ``ctrlrange`` [U, 2], independent each step.
+    """The random-actions baseline (a ``Planner``): uniform in ``ctrlrange`` [U, 2], independent
+    each step: ``optimize`` draws them, ``act`` returns them. ``seed``: ``RandomSettings.seed``.
 
     ``ctrlrange``: a [U, 2] range (an env's ``ctrlrange``) or an ``Actuators`` record (an env's
     ``actuators``), whose ``sample_range`` is used: unlimited actuators draw in
     ``UNLIMITED_SAMPLE_RANGE``."""
 
+    needs_sim_state = False
+
     def __init__(self, ctrlrange, n_episodes: int, seed: int = 0, device="cpu"):
+        self.settings = RandomSettings(seed=seed)
         if isinstance(ctrlrange, Actuators):
             ctrlrange = ctrlrange.sample_range()
         cr = torch.as_tensor(ctrlrange).detach().to("cpu", torch.float64).reshape(-1, 2)
         if not bool(torch.isfinite(cr).all()) or bool((cr[:, 1] < cr[:, 0]).any()):
             raise ValueError(f"ctrlrange must be finite [U, 2] with lower <= upper, got {cr.tolist()}")
         cr = cr.to(device, torch.float32)
-        self.lo, self.hi, self.n, self.seed = cr[:, 0], cr[:, 1], int(n_episodes), seed
+        self.lo, self.hi, self.n = cr[:, 0], cr[:, 1], _episodes(n_episodes)
+        self.device = self.lo.device
         self._gen = torch.Generator(device=device)
-        self.reset()
+        self.targets = None
+        self.reset(self.n)
 
-    def reset(self) -> None:
-        self._gen.manual_seed(self.seed)
+    def reset(self, n: int | None = None, targets=None, seed: int | None = None) -> None:
+        """Start ``n`` episodes (None: as many as before), the generator re-seeded (``seed``; None:
+        the settings'); ``targets`` are kept for the caller's reward only."""
+        self.n = self.n if n is None else _episodes(n)
+        self.targets = targets if targets is not None else self.targets
+        self._gen.manual_seed(self.settings.seed if seed is None else seed)
+        self.plan = None
+
+    def optimize(self, obs) -> None:
+        """Draw this step's actions [N, U]."""
+        u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
+        self.plan = (self.lo + u * (self.hi - self.lo))[:, None]
+
+    def act(self, obs, time: int = 0) -> torch.Tensor:
+        """The actions [N, U] the last ``optimize`` drew (``time`` does not matter)."""
+        return _plan_action(self.plan, 0)
 
     def step(self, obs) -> torch.Tensor:
-        u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
-        return self.lo + u * (self.hi - self.lo)
+        """``optimize(obs)`` then ``act(obs, 0)``: fresh random actions [N, U]."""
+        self.optimize(obs)
+        return self.act(obs, 0)
+
+
+def _episodes(n) -> int:
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n (episodes) must be an integer >= 1, got {n!r}")
+    return int(n)
+
+
+def _targets(targets, n: int, device) -> torch.Tensor:
+    t = torch.as_tensor(targets).to(device)
+    if t.shape[:1] != (n,):
+        raise ValueError(f"targets must have one entry per episode ({n}), got shape {tuple(t.shape)}")
+    return t
+
+
+def _plan_action(plan: torch.Tensor | None, time) -> torch.Tensor:
+    """plan [N, T, U] at data step ``time`` (clamped to the last): [N, U]; an error before any plan."""
+    if plan is None:
+        raise RuntimeError("no plan to act on: call optimize(state) (or step) first")
+    if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
+        raise ValueError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
+    return plan[:, min(int(time), plan.shape[1] - 1)]

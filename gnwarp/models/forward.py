@@ -71,6 +71,7 @@ class ForwardModel(nn.Module):
     The model is built in the dtype its run options ask for (float64 for precision "fp64", else
     float32); ``set_options`` changes how it runs without touching the weights.
 
+    A ``gnwarp.dynamics.Dynamics`` (what ``RolloutEngine`` and ``GradientMPC`` roll out).
     Main methods (shapes: N graphs, B bodies, T steps, U controls):
         ``bind(source)``: use the static graphs of a Dataset or System for ``rollout``.
         ``rollout(initial_body [N, B, 13], ctrl [N, T, U], instance [N]) -> [N, T+1, B, 13]``.
@@ -226,6 +227,13 @@ class ForwardModel(nn.Module):
             raise ValueError("no static graphs: call model.bind(dataset_or_system) first, or pass builder=")
         return GraphTemplate(builder, torch.as_tensor(instance))
 
+    def rollout_inputs(self, template: GraphTemplate, n_ctrl: int | None, ctrl_policy: str = "clamp",
+                       check: bool = True, builder=None) -> RolloutInputs:
+        """Checks and control clamping of rollouts over ``template`` (``RolloutInputs``): the
+        actuators' ranges are the template's own static edge features, whichever ``builder``
+        made it. ``n_ctrl``: the controls U (None: the template's largest control index + 1)."""
+        return RolloutInputs(template, self.layout, n_ctrl, ctrl_policy, check)
+
     def rollout(self, initial_body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
                 template: GraphTemplate | None = None, adjoint: bool = True, ctrl_policy: str = "clamp",
                 check: bool = True) -> torch.Tensor:
@@ -261,7 +269,7 @@ class ForwardModel(nn.Module):
             tmpl = self.template(instance, builder)
         else:
             tmpl, n_ctrl = template, (source_info(builder)[1] if builder is not None else None)
-        inputs = RolloutInputs(tmpl, self.layout, n_ctrl, ctrl_policy, check)
+        inputs = self.rollout_inputs(tmpl, n_ctrl, ctrl_policy, check, builder)
         body, ctrl = inputs.shapes(initial_body, ctrl)
         dev = tmpl.static_nodes.device
         body = body.to(dev, tmpl.dtype)

@@ -24,9 +24,9 @@ class GIDError(ValueError):
 
 class FixedGIDModel:
     """A ``SysIDModel`` whose static graph is one fixed G_ID (``SysIDModel.with_fixed_gid``):
-    ``template``, ``context``, ``next_nodes``, ``bind`` and ``rollout_engine`` as a
-    ``ForwardModel``'s, so ``RolloutEngine`` (captured forward and adjoint backward) and
-    ``GradientMPC`` run on it. The G_ID's graphs must be the rollouts' (checked when a template
+    ``template``, ``context``, ``next_nodes``, ``rollout_inputs``, ``bind`` and ``rollout_engine``
+    as a ``ForwardModel``'s (the ``gnwarp.dynamics.Dynamics`` protocol), so ``RolloutEngine``
+    (captured forward and adjoint backward) and ``GradientMPC`` run on it. The G_ID's graphs must be the rollouts' (checked when a template
     is made: ``GIDError``)."""
 
     def __init__(self, model, g_id: GraphsTuple):   # model: a SysIDModel (which imports this module)
@@ -78,9 +78,17 @@ class FixedGIDModel:
     def next_nodes(self, graph: GraphsTuple, ctx=None) -> torch.Tensor:
         return self.sysid.forward_model.next_nodes(self.sysid.with_gid(graph, self.g_id), ctx)
 
-    def rollout_inputs(self, instance, n_ctrl: int, ctrl_policy: str = "clamp", check: bool = True) -> RolloutInputs:
-        """As ``SysIDModel.rollout_inputs`` (``RolloutEngine`` reads the actuator ranges here)."""
-        return self.sysid.rollout_inputs(instance, n_ctrl, ctrl_policy, check)
+    def rollout_inputs(self, template: GraphTemplate, n_ctrl: int | None, ctrl_policy: str = "clamp",
+                       check: bool = True, builder=None) -> RolloutInputs:
+        """Checks and control clamping of rollouts over ``template`` (``RolloutEngine`` reads
+        them here): the actuators' ranges come from the bound source (``SysIDModel.rollout_inputs``),
+        so a template of another ``builder`` takes only ``ctrl_policy="none"`` (ValueError)."""
+        if builder is not None and builder is not self.builder:
+            if ctrl_policy != "none":
+                raise ValueError("this model reads the actuator ranges from its bound source: bind it to that "
+                                 "source, or pass ctrl_policy='none' with another builder")
+            return RolloutInputs(template, self.layout, n_ctrl, ctrl_policy, check)
+        return self.sysid.rollout_inputs(template.instance, n_ctrl, ctrl_policy, check)
 
     def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
                        graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None) -> RolloutEngine:

@@ -314,8 +314,8 @@ class _EngineRollout(torch.autograd.Function):
 
 
 class RolloutEngine:
-    """Rollouts of one batch shape: ``instance`` [N] system instances of a bound model, ``horizon``
-    T steps. ``rollout(x0 [N, B, 13], ctrl [N, T, U]) -> [N, T+1, B, 13]`` is ``model.rollout``,
+    """Rollouts of one batch shape: ``instance`` [N] system instances of a bound model (a
+    ``gnwarp.dynamics.Dynamics``: ``ForwardModel``, ``FixedGIDModel``), ``horizon`` T steps. ``rollout(x0 [N, B, 13], ctrl [N, T, U]) -> [N, T+1, B, 13]`` is ``model.rollout``,
     differentiable with respect to ``x0`` and ``ctrl`` by the adjoint loop; on CUDA its forward
     and its backward each replay one CUDA graph (recorded on the second call of each, after an
     eager warm-up). Gradients with respect to the model's parameters are not computed (use
@@ -348,15 +348,8 @@ class RolloutEngine:
         else:
             n_ctrl = None   # model.template says what is missing
         self.template = model.template(torch.as_tensor(instance), builder)
-        own = getattr(model, "rollout_inputs", None)   # a model that reads the ranges elsewhere (system ID)
-        other = builder is not None and builder is not getattr(model, "builder", None)
-        if own is not None and other and ctrl_policy != "none":
-            raise ValueError("this model reads the actuator ranges from its bound source: bind it to that source, or "
-                             "pass ctrl_policy='none' with another builder")
-        if own is not None and not other:
-            self.inputs = own(self.template.instance, n_ctrl, ctrl_policy, check)
-        else:
-            self.inputs = RolloutInputs(self.template, getattr(model, "layout", None), n_ctrl, ctrl_policy, check)
+        # the model knows where its actuators' ranges are (system ID: the bound source only)
+        self.inputs = model.rollout_inputs(self.template, n_ctrl, ctrl_policy, check, builder)
         self.horizon = int(horizon)
         # graphs=False: run the loops eagerly on CUDA too (for a caller that captures a larger
         # step around the rollout, e.g. a whole planning iteration: graphs do not nest)
