@@ -209,7 +209,7 @@ def _field_docs(cls) -> dict[str, str]:
     ``name``: text (or ``name`` (note): text), or ``name: text`` lines under an "Args:" heading."""
     doc = inspect.cleandoc(cls.__doc__ or "")
     found: dict[str, str] = {}
-    entry = r"``(\w+)``(?:\s*\([^)]*\))?:"
+    entry = r"(?:\A|(?<=\n)|(?<=\. ))``(\w+)``(?:\s*\([^)]*\))?:"  # at a line's or a sentence's start
     for m in re.finditer(entry + r"\s*(.+?)(?=\s" + entry + r"|\n\s*\n|$)", doc, re.S):
         found.setdefault(m.group(1), m.group(2))
     args = doc.split("Args:", 1)
@@ -219,8 +219,9 @@ def _field_docs(cls) -> dict[str, str]:
     out = {}
     for name, text in found.items():
         text = " ".join(text.replace("``", "").split())
-        text = re.split(r"(?<=[.])\s+(?=[A-Z(])", text)[0].rstrip(".")
-        out[name] = text if len(text) <= 120 else text[:117] + "..."
+        text = re.split(r"(?<=[.])\s+(?=[A-Z(])", text)[0]
+        text = text[:-1] if text.endswith(".") and not text.endswith("...") else text
+        out[name] = text if len(text) <= 120 else text[:117].rsplit(" ", 1)[0] + " ..."
     return out
 
 
