@@ -155,10 +155,10 @@ def _config_source(path: str, items: list[str], flags: dict, config: str | None)
 
 
 def _cmd_train(args) -> int:
-    from gnwarp.validation import ConfigError
+    from gnwarp.demo import quick_train_keys
     from gnwarp.files import check_output_path
     from gnwarp.train import TrainConfig, train
-    from gnwarp.demo import quick_train_keys
+    from gnwarp.validation import ConfigError
     raw = _apply_overrides(_merged(quick_train_keys() if args.quick else {}, _read_config(args.config)), args.set)
     flags = {}
     if args.data:
@@ -173,7 +173,8 @@ def _cmd_train(args) -> int:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
         source = _config_source(e.path, args.set, flags, args.config)
-        raise ConfigError(e.path, f"{e.reason} (from {'--quick' if args.quick and source == 'the defaults' else source})") from None
+        source = "--quick" if args.quick and source == "the defaults" else source
+        raise ConfigError(e.path, f"{e.reason} (from {source})") from None
     check_output_path(cfg.out, folder=True)
     given = sysid_flags_given(args)
     if given and not args.sysid:
@@ -256,8 +257,8 @@ def _cmd_evaluate(args) -> int:
         if sequences < 1:
             raise ValueError(f"-n/--sequences must be an integer >= 1, got {args.sequences!r}")
     horizons = tuple(dict.fromkeys(_positive_ints("--horizons", args.horizons)))
-    from gnwarp.files import check_output_path
-    if args.out:
+    if args.out:  # a folder that cannot be made is refused before anything loads
+        from gnwarp.files import check_output_path
         check_output_path(args.out, folder=True)
 
     from gnwarp.data.dataset import load
