@@ -689,9 +689,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=_cmd_check)
 
     m = sub.add_parser("mpc", help="gradient MPC through a learned model, run in closed loop on the true simulator",
-                       description="Plan actions by gradient steps on the task reward of rollouts of a learned "
-                                   "model (paper F.1.1), apply them on the true simulator, print the true returns "
-                                   "and write a video of the first episodes.")
+                       description=_paragraphs(
+                           "Plan actions by gradient steps on the task reward of rollouts of a learned model "
+                           "(paper F.1.1), apply them on the true simulator, print the true returns and write a "
+                           "video of the first episodes. A progress bar counts the planning iterations: the "
+                           "first state's warm-up (iterations x horizon by default), then --iterations a step.",
+                           "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
     m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
