@@ -1,4 +1,13 @@
-"""The ``gnwarp`` command line: ``gnwarp systems``, ``gnwarp generate``, ``gnwarp demo`` ..."""
+"""The gnwarp command line: graph networks as learned physics engines of MuJoCo
+systems, and control through them.
+
+Start with "gnwarp demo" (a few minutes on a CPU). Then, step by step:
+  gnwarp systems
+  gnwarp generate pendulum -n 200
+  gnwarp train --data pendulum.h5 --quick
+  gnwarp evaluate runs/model/best --data pendulum.h5
+  gnwarp mpc --model runs/model/best --task pendulum-balance
+"gnwarp COMMAND --help" describes each command and its options."""
 from __future__ import annotations
 
 import argparse
@@ -48,8 +57,9 @@ def _cmd_generate(args) -> int:
 
     from gnwarp.data.generation import generate
     from gnwarp.files import remove_stale_temporaries
+    from gnwarp.files import check_output_path
     from gnwarp.sim.systems import from_mjcf
-    out = Path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
+    out = check_output_path(args.out or f"{args.system}{'-param' if args.parameterized else ''}.h5")
     if out.exists() and not args.overwrite:  # fail before simulating, not after
         raise FileExistsError(f"output exists: {out} (use --overwrite)")
     remove_stale_temporaries(out)  # what a killed generate to this path left
@@ -145,9 +155,11 @@ def _config_source(path: str, items: list[str], flags: dict, config: str | None)
 
 
 def _cmd_train(args) -> int:
-    from gnwarp.validation import ConfigError
+    from gnwarp.demo import quick_train_keys
+    from gnwarp.files import check_output_path
     from gnwarp.train import TrainConfig, train
-    raw = _apply_overrides(_read_config(args.config), args.set)
+    from gnwarp.validation import ConfigError
+    raw = _apply_overrides(_merged(quick_train_keys() if args.quick else {}, _read_config(args.config)), args.set)
     flags = {}
     if args.data:
         raw["data"], flags["data"] = args.data, "--data"
@@ -160,7 +172,10 @@ def _cmd_train(args) -> int:
     try:
         cfg = TrainConfig.from_dict(raw)
     except ConfigError as e:  # the same error as from Python, plus where the value came from
-        raise ConfigError(e.path, f"{e.reason} (from {_config_source(e.path, args.set, flags, args.config)})") from None
+        source = _config_source(e.path, args.set, flags, args.config)
+        source = "--quick" if args.quick and source == "the defaults" else source
+        raise ConfigError(e.path, f"{e.reason} (from {source})") from None
+    check_output_path(cfg.out, folder=True)
     from gnwarp.train.sysid_config import sysid_flags_given, sysid_settings
     given = sysid_flags_given(args)
     if given and not args.sysid:
@@ -236,6 +251,9 @@ def _cmd_evaluate(args) -> int:
         if sequences < 1:
             raise ValueError(f"-n/--sequences must be an integer >= 1, got {args.sequences!r}")
     horizons = tuple(dict.fromkeys(_positive_ints("--horizons", args.horizons)))
+    if args.out:  # a folder that cannot be made is refused before anything loads
+        from gnwarp.files import check_output_path
+        check_output_path(args.out, folder=True)
 
     from gnwarp.data.dataset import load
     from gnwarp.eval.metrics import evaluate
@@ -306,8 +324,22 @@ def _cmd_demo(args) -> int:
             if v is not None}
     if args.quiet:
         over["progress"] = False
-    run_demo(DemoConfig(**over))
+    from pathlib import Path
+
+    from gnwarp.files import check_output_path
+    cfg = DemoConfig(**over)
+    check_output_path(cfg.out, folder=True)
+    summary = run_demo(cfg)
+    if args.quiet:  # the progress lines and the table were left out: one line says where everything is
+        print(f"wrote {Path(cfg.out) / 'report.md'} in {summary['timings_s']['total']:.0f} s")
     return 0
+
+
+def _episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
+    """Host memory ``run_episodes`` holds for ``n`` episodes of ``steps`` steps: float32 states
+    [n, steps+1, bodies, 13] and actions [n, steps, nu], each per step and stacked, and about
+    500 bytes of Python objects a step."""
+    return 2 * 4 * (n * (steps + 1) * bodies * 13 + n * steps * nu) + 500 * steps
 
 
 def _cmd_mpc(args) -> int:
@@ -326,6 +358,7 @@ def _cmd_mpc(args) -> int:
     from gnwarp.sim import systems
     from gnwarp.train import load_model
     from gnwarp.train.checkpoint import training_env_steps
+    from gnwarp.validation import check_memory
 
     task = get_task(args.task)
     config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup, lr=args.lr,
@@ -341,13 +374,21 @@ def _cmd_mpc(args) -> int:
                                "swimmer6" if task.system == "swimmer" else task.system)
     system = systems.make(name)
     n = args.episodes
+    check_memory(_episode_bytes(n, args.steps, system.nbody, system.nu),
+                 f"{n} episodes x {args.steps} steps x {system.nbody} bodies (every state kept)",
+                 "Use fewer --steps or --episodes")
     target = sample_targets(task, system, n, args.seed)
     planner = GradientMPC(model, task, system, n, config, target)
+    from tqdm.auto import tqdm  # one bar over every planning iteration, the first state's warm-up included
+    bar = tqdm(total=planner.warmup + config.iterations * args.steps, desc=f"mpc {task.name}", unit="it",
+               disable=args.quiet, dynamic_ncols=True)
+    planner.progress = bar.update
     env = make_env(system, n, backend=args.backend)
     qpos, qvel = initial_states(system, n, np.random.default_rng(args.seed))
     t0 = time.perf_counter()
     out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target)
     secs = time.perf_counter() - t0
+    bar.close()
     r = out["returns"]
     print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
           f"over {n} episodes of {args.steps} steps (horizon {planner.horizon}, {config.iterations} iterations "
@@ -376,61 +417,137 @@ def _cmd_mpc(args) -> int:
 
 
 def _check_outputs(records, video) -> None:
-    """Refuse output paths that cannot be written (a missing folder, a folder given as a file, a
-    records file that is not one) before any work, with ``OSError`` / ``RecordError`` naming them."""
+    """Refuse output paths that cannot be written (``files.check_output_path``) and a records file
+    that is not one, before any work, with ``OSError`` / ``RecordError`` naming them."""
     from gnwarp.eval.records import read_records
+    from gnwarp.files import check_output_path
     for what, path in (("--records", records), ("--video", video)):
-        if path is None:
-            continue
-        if not path.parent.is_dir():
-            raise FileNotFoundError(f"{what} {path}: folder {path.parent} does not exist")
-        if path.is_dir():
-            raise IsADirectoryError(f"{what} {path} is a folder; give a file path")
+        if path is not None:
+            try:
+                check_output_path(path)
+            except OSError as e:
+                raise type(e)(f"{what}: {e}") from None
     if records.exists():
         read_records(records)   # appended to: it must hold valid records
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="gnwarp", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+class _Help(argparse.RawDescriptionHelpFormatter):
+    """Help with each option's default appended, unless its text names one already or there is
+    none to show (None, an empty list, an off switch); descriptions keep their own lines."""
 
-    s = sub.add_parser("systems", help="list the built-in systems")
+    def _get_help_string(self, action):
+        text = action.help or ""
+        d = action.default
+        if ("default" in text or d is None or d is False or d == [] or d is argparse.SUPPRESS
+                or action.required or not (action.option_strings or action.nargs == "?")):
+            return text
+        shown = " ".join(d) if isinstance(d, list) else d
+        return f"{text} (default: {shown})"
+
+
+def _paragraphs(*texts: str) -> str:
+    """Paragraphs wrapped to 78 columns, a blank line between them (a parser's description)."""
+    import textwrap
+    return "\n\n".join(textwrap.fill(" ".join(t.split()), 78) for t in texts)
+
+
+def _merged(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s keys on top, nested tables merged key by key."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _flat(d: dict, prefix: str = "") -> list[str]:
+    """A nested dict as ``key=value`` strings, nested keys dotted (what --set would take)."""
+    import json
+    out = []
+    for k, v in d.items():
+        out += _flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}={json.dumps(v)}"]
+    return out
+
+
+def _train_epilog() -> str:
+    """``train --help``'s list of the keys ``--set`` takes, from TrainConfig's fields (each
+    with its default, allowed values and the first sentence of its description)."""
+    import json
+    import textwrap
+
+    from gnwarp.demo import quick_train_keys
+    from gnwarp.files import jsonable
+    from gnwarp.train import TrainConfig
+    from gnwarp.validation import config_keys
+    lines = ["On a CPU: --quick sets " + " ".join(_flat(quick_train_keys(), "")) + ", or --set steps=2000 "
+             "alone keeps the paper's model and shortens the run.",
+             "", "config keys (a config file's keys, or --set KEY=VALUE; nested keys dotted):"]
+    lines = textwrap.wrap(lines[0], 78) + lines[1:]
+    keys = config_keys(TrainConfig)
+    for key, default, allowed, doc in sorted(keys, key=lambda r: "." in r[0]):  # top-level keys first
+        shown = default if isinstance(default, str) else json.dumps(jsonable(default))
+        text = f"{key}={shown}: {allowed}" + (f"; {doc}" if doc else "")
+        lines += textwrap.wrap(text, 78, initial_indent="  ", subsequent_indent="      ")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="gnwarp", description=__doc__, formatter_class=_Help)
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("systems", help="list the built-in systems",
+                       description="List the built-in systems: bodies, generalized coordinates (nq, nv), "
+                                   "actuators, timesteps and the parameters that --parameterized data varies.")
     s.set_defaults(func=_cmd_systems)
 
-    g = sub.add_parser("generate", help="simulate a dataset under random controls and write it (HDF5)")
-    g.add_argument("system", nargs="?", default="pendulum", help="built-in system name (see `gnwarp systems`)")
-    g.add_argument("--mjcf", help="simulate this MJCF file instead of a built-in system")
+    g = sub.add_parser("generate", help="simulate a dataset under random controls and write it (HDF5)",
+                       description=_paragraphs(
+                           "Simulate sequences of a system under random spline controls and write them as "
+                           "one HDF5 dataset with train, valid and test splits (what train and evaluate read). "
+                           "The output path is checked, and a dataset too large for this machine's memory "
+                           "refused, before anything is simulated.",
+                           "On a CPU, -n 200 (a few seconds for the pendulum) is a good start; the paper's "
+                           "sizes are tens of thousands of sequences."))
+    g.add_argument("system", nargs="?", default="pendulum", help="built-in system name (see: gnwarp systems)")
+    g.add_argument("--mjcf", help="simulate this MJCF file instead of a built-in system (default: none)")
     g.add_argument("--dt", type=float, help="data timestep for --mjcf (default: its timestep x substeps)")
     g.add_argument("--substeps", type=int, default=1, help="physics steps per data step for --mjcf")
     g.add_argument("-n", "--num-sequences", type=int, default=None,
                    help="total sequences, split like the paper (default: the paper's sizes)")
-    g.add_argument("--train", type=int)
-    g.add_argument("--valid", type=int)
-    g.add_argument("--test", type=int)
+    g.add_argument("--train", type=int, help="train sequences, instead of -n (default: the paper's)")
+    g.add_argument("--valid", type=int, help="validation sequences, instead of -n (default: the paper's)")
+    g.add_argument("--test", type=int, help="test sequences, instead of -n (default: the paper's)")
     g.add_argument("--steps", type=int, default=100, help="data steps per sequence")
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--seed", type=int, default=0, help="random seed of initial states, controls and parameters")
     g.add_argument("--parameterized", action="store_true", help="randomize system parameters per sequence")
     g.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"],
                    help="simulator (default: MuJoCo-Warp on a GPU, else MuJoCo C)")
     g.add_argument("-o", "--out", help="output file (default: <system>.h5)")
-    g.add_argument("--overwrite", action="store_true")
+    g.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=_cmd_generate)
 
     t = sub.add_parser("train", help="train a forward model (config file plus --set overrides)",
-                       description="Train a forward model. Keys are those of gnwarp.train.TrainConfig; nested "
-                                   "model keys are dotted, e.g. --set model.core=mlp --set model.gn.latent=64 "
-                                   "--set model.run.precision=tf32. Every value is validated before anything "
-                                   "runs. Resumes from <out>/last when it exists.")
-    t.add_argument("config", nargs="?", help="JSON or TOML training config (TrainConfig fields)")
+                       description=_paragraphs(
+                           "Train a forward model on dataset files. Settings come from the defaults (the "
+                           "paper's model and schedule, sized for a GPU), then --quick, then a config file, "
+                           "then --set KEY=VALUE; nested keys are dotted, e.g. --set model.core=mlp --set "
+                           "model.gn.latent=64. Every value is validated, and the run folder checked, before "
+                           "anything runs. Resumes from <out>/last when it exists.",
+                           "Example: gnwarp train --data pendulum.h5 --quick -o runs/pendulum"),
+                       epilog=_train_epilog())
+    t.add_argument("config", nargs="?", help="JSON or TOML training config, keys as listed below (default: none)")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key (repeatable; values parsed as JSON when they parse)")
-    t.add_argument("--data", nargs="+", help="dataset file(s); overrides the config's `data`")
-    t.add_argument("-o", "--out", help="run folder (checkpoints and log); overrides the config's `out`")
+                   help="override a config key (repeatable; values parsed as JSON when they parse; "
+                        "default: none)")
+    t.add_argument("--quick", action="store_true",
+                   help="a run sized for a CPU (minutes): the demo's smaller GN and schedule (listed below)")
+    t.add_argument("--data", nargs="+", help="dataset file(s); overrides the config's data (default: the config's)")
+    t.add_argument("-o", "--out", help="run folder (checkpoints and log); overrides the config's out "
+                                       "(default: the config's, runs/model)")
     t.add_argument("--no-resume", action="store_true", help="start afresh even if <out>/last exists")
     t.add_argument("--sysid", action="store_true",
                    help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
-                        "GN infers a latent static graph from a 20-step window; `gnwarp evaluate` reads its checkpoints")
+                        "GN infers a latent static graph from a 20-step window; gnwarp evaluate reads its checkpoints")
     from gnwarp.train.sysid_config import add_sysid_arguments
     add_sysid_arguments(t.add_argument_group("system identification (with --sysid; SysIDConfig and SysIDTrainConfig "
                                              "fields)"))
@@ -438,13 +555,15 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=_cmd_train)
 
     e = sub.add_parser("evaluate", help="one-step and rollout errors of checkpoints on a dataset",
-                       description="One-step and rollout errors of checkpoints on a dataset. Predictions that "
-                                   "leave the finite range are reported with the first step where they did, "
-                                   "and the exit status is then 1.")
+                       description=_paragraphs(
+                           "One-step and rollout errors of checkpoints on a dataset, normalized by those of "
+                           "predicting the initial state unchanged, printed as a table. Predictions that "
+                           "leave the finite range are reported with the first step where they did, and "
+                           "the exit status is then 1."))
     e.add_argument("checkpoints", nargs="+", help="checkpoint folders (e.g. runs/gn/best runs/mlp/best)")
     e.add_argument("--data", required=True, help="dataset file")
     e.add_argument("--names", nargs="+", help="model names for the table (default: the run folder names)")
-    e.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    e.add_argument("--split", default="test", choices=["train", "valid", "test"], help="dataset split to evaluate on")
     e.add_argument("-n", "--sequences", default=None, metavar="N",
                    help="first N sequences of the split, N >= 1 (default all)")
     e.add_argument("--horizons", nargs="+", default=["20", "100"], metavar="H",
@@ -452,34 +571,51 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
     e.add_argument("--impl", choices=IMPLS, default=None,
                    help="run the GN on Warp kernels or the torch reference (default: as the checkpoint was saved)")
-    e.add_argument("-o", "--out", help="also write the table, bar chart, state plot and GIF here")
+    e.add_argument("-o", "--out", help="also write the table, bar chart, state plot and GIF into this folder "
+                                       "(default: none, the table is printed)")
     e.set_defaults(func=_cmd_evaluate)
 
-    d = sub.add_parser("demo", help="simulate Pendulum, train a GN and an MLP, evaluate, write a report")
+    d = sub.add_parser("demo", help="simulate Pendulum, train a GN and an MLP, evaluate, write a report",
+                       description=_paragraphs(
+                           "The whole pipeline in a few minutes on a CPU: simulate a small dataset, train a "
+                           "graph network and an MLP baseline for the same number of steps, evaluate both "
+                           "against the constant baseline, and write report.md with error plots, a rollout "
+                           "GIF and results.json into the output folder."))
     d.add_argument("-o", "--out", help="output folder (default: ./gnwarp-demo)")
-    d.add_argument("--steps", type=int, help="training steps per model")
-    d.add_argument("--seconds", type=float, help="training time cap for the GN (the MLP gets its step count)")
+    d.add_argument("--steps", type=int, help="training steps per model (default: 8000)")
+    d.add_argument("--seconds", type=float, help="training time cap for the GN; the MLP gets its step count "
+                                                 "(default: 300)")
     d.add_argument("--system", help="system to model (default: pendulum)")
     d.add_argument("--impl", choices=IMPLS, help="GN implementation (default: warp)")
     d.add_argument("--device", help="cpu, cuda, ... (default: CUDA when present)")
-    d.add_argument("-q", "--quiet", action="store_true")
+    d.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress lines or table; one line says where the report went")
     d.set_defaults(func=_cmd_demo)
 
     c = sub.add_parser("check", help="validate a dataset file or a checkpoint folder (every array read, checksums "
-                                     "verified); exit 1 when it finds problems")
+                                     "verified); exit 1 when it finds problems",
+                       description=_paragraphs(
+                           "Validate a dataset file or a checkpoint folder in full: every array is read and "
+                           "checked, checksums verified. Prints one line per finding (problems start with "
+                           "'error:'); the exit status is 0 when clean, 1 when there are problems."))
     c.add_argument("path", help="dataset file (.h5) or checkpoint folder (e.g. runs/gn/best)")
     c.set_defaults(func=_cmd_check)
 
     m = sub.add_parser("mpc", help="gradient MPC through a learned model, run in closed loop on the true simulator",
-                       description="Plan actions by gradient steps on the task reward of rollouts of a learned "
-                                   "model (paper F.1.1), apply them on the true simulator, print the true returns, "
-                                   "append them as a results record to --records and write a video of the first "
-                                   "episodes. Output paths are checked before planning.")
+                       description=_paragraphs(
+                           "Plan actions by gradient steps on the task reward of rollouts of a learned model "
+                           "(paper F.1.1), apply them on the true simulator, print the true returns, append them "
+                           "as a results record to --records and write a video of the first episodes. Output "
+                           "paths are checked before planning. A progress bar counts the planning iterations: "
+                           "the first state's warm-up (iterations x horizon by default), then --iterations a step.",
+                           "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
     m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
     m.add_argument("--episodes", type=int, default=8, help="episodes planned together")
-    m.add_argument("--steps", type=int, default=100, help="control steps per episode")
+    m.add_argument("--steps", type=int, default=100,
+                   help="control steps per episode (every state is kept in memory: a run that cannot fit in "
+                        "the available memory is refused before it starts)")
     m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
     m.add_argument("--iterations", type=int, default=5, help="gradient iterations per control step")
     m.add_argument("--warmup", type=int, help="extra iterations at the first state (default: iterations x horizon)")
@@ -493,8 +629,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="results records file (JSON lines, appended; default: mpc-<task>.jsonl): per-episode "
                         "returns, initial states, targets and settings (gnwarp.eval.records)")
     m.add_argument("--video", help="video path (default: mpc-<task>.gif; 'none': no video)")
-    m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"])
+    m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"],
+                   help="how the video is drawn: MuJoCo's renderer (EGL/OSMesa), matplotlib, or auto "
+                        "(MuJoCo where it renders, else matplotlib)")
+    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=_cmd_mpc)
+    for name, action in sub.choices.items():  # every command: its defaults shown, a description
+        action.formatter_class = _Help
+        action.description = action.description or next(a.help for a in sub._choices_actions if a.dest == name)
     return p
 
 

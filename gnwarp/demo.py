@@ -25,7 +25,7 @@ from gnwarp.files import jsonable
 from gnwarp.interop import resolve_device
 from gnwarp.models.config import DEFAULT_RUN, GNCoreConfig, ModelConfig
 
-__all__ = ["DemoConfig", "run_demo"]
+__all__ = ["DemoConfig", "run_demo", "quick_train_keys"]
 
 
 @dataclass
@@ -63,6 +63,16 @@ class DemoConfig:
     def __post_init__(self):
         if isinstance(self.gn, dict):
             self.gn = GNCoreConfig(**self.gn)
+
+
+def quick_train_keys() -> dict:
+    """``gnwarp train --quick``: the demo's GN sizes (those unlike the paper's) and schedule as
+    TrainConfig keys (nested tables for ``model``): a run sized for a CPU in minutes."""
+    d, paper = DemoConfig(), dataclasses.asdict(GNCoreConfig())
+    gn = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(d.gn).items() if v != paper[k]}
+    return {"steps": d.train_steps, "max_seconds": d.train_seconds, "batch_size": d.batch_size, "lr": d.lr,
+            "lr_decay": d.lr_decay, "lr_decay_steps": d.lr_decay_every, "valid_every": d.valid_every,
+            "valid_sequences": d.valid_sequences, "model": {"gn": gn}}
 
 
 def run_demo(config: DemoConfig | None = None, **overrides) -> dict:

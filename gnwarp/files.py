@@ -1,5 +1,5 @@
-"""Small file helpers shared by the stages that write files: atomic writes, checksums and
-JSON-safe values."""
+"""Small file helpers shared by the stages that write files: atomic writes, checksums, JSON-safe
+values and the check that an output path can be written before any work starts."""
 from __future__ import annotations
 
 import contextlib
@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries"]
+__all__ = ["sha256_file", "jsonable", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries",
+           "check_output_path"]
 
 _TEMPORARY = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)$")
 
@@ -135,3 +136,40 @@ def _remove(path: Path) -> None:
     else:
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
+
+
+def check_output_path(path: str | os.PathLike, folder: bool = False) -> Path:
+    """``path`` as a ``Path`` once it is known that it can be written, before any work starts.
+
+    A file (``folder`` False): its parent folder must exist and be writable, and ``path`` must
+    not be a folder. A folder (``folder`` True; made with its parents): ``path`` must be a folder
+    if it exists, and the nearest existing folder above it must be writable (no file on the way).
+    Raises ``FileNotFoundError`` (a missing parent folder), ``NotADirectoryError`` /
+    ``IsADirectoryError`` (a file where a folder goes, or the reverse) or ``PermissionError``
+    (not writable), each naming the path."""
+    p = Path(path)
+    if str(p) == "":
+        raise FileNotFoundError("empty output path")
+    if folder:
+        if p.exists() and not p.is_dir():
+            raise NotADirectoryError(f"output folder {p} is a file")
+        base = p
+        while not base.exists():  # the folder is made with its parents: the first existing one decides
+            if base.parent == base:
+                break
+            base = base.parent
+        if base.exists() and not base.is_dir():
+            raise NotADirectoryError(f"cannot make output folder {p}: {base} is a file")
+    else:
+        if p.is_dir():
+            raise IsADirectoryError(f"output file {p} is a folder")
+        base = p.parent
+        if not base.exists():
+            raise FileNotFoundError(f"folder of output file {p} does not exist: {base} (make it first)")
+        if not base.is_dir():
+            raise NotADirectoryError(f"folder of output file {p} is a file: {base}")
+    target = p if p.exists() else base
+    if not os.access(target, os.W_OK) or (target.is_dir() and not os.access(target, os.X_OK)):
+        raise PermissionError(f"cannot write {'output folder' if folder else 'output file'} {p}: "
+                              f"{target} is not writable")
+    return p

@@ -7,8 +7,12 @@ Warp work interleaves with torch's and a ``torch.cuda.graph`` capture records it
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import gc
+import os
+import sys
+import tempfile
 
 import torch
 import warp as wp
@@ -22,8 +26,61 @@ def warp():
     """The ``warp`` module, initialized once, its banner and module-load lines silenced (Warp
     1.19 logs them at info level; warnings and errors still show)."""
     wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    if _cuda_driver_loads():
+        wp.init()
+    else:  # a CPU machine: Warp's C code warns that the driver is missing, which is expected here
+        with _stderr_without(_NO_DRIVER):
+            wp.init()
     return wp
+
+
+# what Warp's native init prints (to fd 2, from C) when it cannot load the CUDA driver
+_NO_DRIVER = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+
+def _cuda_driver_loads() -> bool:
+    """Whether the CUDA driver library loads, the way Warp looks for it (True where it cannot be
+    told: other platforms are left to Warp)."""
+    names = {"linux": ("libcuda.so", "libcuda.so.1"), "win32": ("nvcuda.dll",)}.get(
+        "linux" if sys.platform.startswith("linux") else sys.platform)
+    if names is None:
+        return True
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            pass
+    return False
+
+
+@contextlib.contextmanager
+def _stderr_without(line: str):
+    """File descriptor 2 captured while the block runs (C code writes there, not to
+    ``sys.stderr``); afterwards everything it got is written to stderr except lines containing
+    ``line``, so other warnings and errors still show."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no file descriptor 2 to capture: run as is
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            try:
+                sys.stderr.flush()
+            except (OSError, ValueError):
+                pass
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = [x for x in tmp.read().decode(errors="replace").splitlines(keepends=True) if line not in x]
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
 
 
 def cuda_available() -> bool:

@@ -10,6 +10,9 @@ Each dataclass field's annotation says what it allows (pydantic types with const
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import os
+import re
 import sys
 import types
 import typing
@@ -21,7 +24,7 @@ import pydantic
 from pydantic import BeforeValidator, Field, Strict
 
 __all__ = ["ConfigError", "Allowed", "check_fields", "check_keys", "allowed_values", "MAX_WIDTH", "MAX_LAYERS", "IntRange", "FloatRange", "Flag", "Count", "PositiveInt", "PositiveFloat", "InputWidth", "Width", "Widths", "LayerCount", "described", "flag_name",
-           "add_config_flags", "config_flags_given", "config_from_flags"]
+           "add_config_flags", "config_flags_given", "config_from_flags", "config_keys", "available_memory", "check_memory"]
 
 
 class ConfigError(ValueError):
@@ -288,3 +291,66 @@ def config_from_flags(cls, args, names: Sequence[str] | None = None, **fields):
     except ConfigError as e:
         head = e.path.split(".")[0]
         raise ConfigError(flag_name(head) if head in given else e.path, e.reason) from None
+
+
+def _field_docs(cls) -> dict[str, str]:
+    """{field: the first sentence of its description} from ``cls``'s docstring: entries written
+    ``name``: text (or ``name`` (note): text), or ``name: text`` lines under an "Args:" heading."""
+    doc = inspect.cleandoc(cls.__doc__ or "")
+    found: dict[str, str] = {}
+    entry = r"(?:\A|(?<=\n)|(?<=\. ))``(\w+)``(?:\s*\([^)]*\))?:"  # at a line's or a sentence's start
+    for m in re.finditer(entry + r"\s*(.+?)(?=\s" + entry + r"|\n\s*\n|$)", doc, re.S):
+        found.setdefault(m.group(1), m.group(2))
+    args = doc.split("Args:", 1)
+    if len(args) == 2:
+        for m in re.finditer(r"^ {1,4}(\w+): (.+(?:\n {5,}.+)*)", args[1], re.M):
+            found.setdefault(m.group(1), m.group(2))
+    out = {}
+    for name, text in found.items():
+        text = " ".join(text.replace("``", "").split())
+        text = re.split(r"(?<=[.])\s+(?=[A-Z(])", text)[0]
+        text = text[:-1] if text.endswith(".") and not text.endswith("...") else text
+        out[name] = text if len(text) <= 120 else text[:117].rsplit(" ", 1)[0] + " ..."
+    return out
+
+
+def config_keys(cls, prefix: str = "") -> list[tuple[str, Any, str, str]]:
+    """Every key of the config dataclass ``cls`` (nested configs' keys dotted: ``model.gn.latent``)
+    as (key, default, allowed values, description from the docstring or ""), in field order;
+    what ``gnwarp train --help`` lists for ``--set``."""
+    defaults, docs = cls(), _field_docs(cls)
+    rows = []
+    for name, (tp, _, nested) in _field_checks(cls).items():
+        value = getattr(defaults, name)
+        if nested is not None and dataclasses.is_dataclass(value):
+            rows += config_keys(type(value), f"{prefix}{name}.")
+            continue
+        rows.append((prefix + name, value, allowed_values(tp) if tp is not None else "", docs.get(name, "")))
+    return rows
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux: MemAvailable), else physical memory,
+    else None (cannot be told)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(nbytes: int, what: str, hint: str = "") -> None:
+    """Refuse, before allocating, work that needs about ``nbytes`` of host memory when this machine
+    has less available: ``ValueError`` naming ``what`` (its sizes), the estimate and the limit,
+    then ``hint`` (what to make smaller)."""
+    avail = available_memory()
+    if avail is not None and nbytes > avail:
+        gib = lambda n: f"{n / 2**30:.3g} GiB"  # noqa: E731
+        raise ValueError(f"{what} needs about {gib(nbytes)} of memory; this machine has {gib(avail)} "
+                          f"available" + (f". {hint}" if hint else ""))

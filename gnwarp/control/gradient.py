@@ -149,6 +149,7 @@ class GradientMPC:
         self._x = torch.zeros((n, self.B, DYN_NODE_SIZE), device=dev, dtype=dt)
         self._r = torch.zeros(n, device=dev, dtype=dt)                  # planned reward before the last step
         self._graph = Graphed(self._iterate_once, warmup=2) if self.capture else None
+        self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
 
     # -- the action sequence ------------------------------------------------------------------------
@@ -219,6 +220,8 @@ class GradientMPC:
                 self._graph()
             else:
                 self._iterate_once()
+            if self.progress is not None:
+                self.progress(1)
         return self._r.clone()
 
     def _iterate_once(self) -> None:

@@ -8,7 +8,6 @@ variant), checks that the simulation did not diverge, and returns a ``Dataset``
 from __future__ import annotations
 
 import numbers
-import os
 import time
 
 import numpy as np
@@ -24,6 +23,7 @@ from gnwarp.sim.backends import simulate
 from gnwarp.sim.systems import check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 from gnwarp.version import __version__
+from gnwarp.validation import available_memory
 
 __all__ = ["PAPER_SIZES", "initial_states", "split_sizes", "generate", "memory_estimate"]
 
@@ -91,21 +91,6 @@ def split_sizes(num_sequences, parameterized: bool) -> dict[str, int]:
     return sizes
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux: MemAvailable), else physical memory."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
 def memory_estimate(total: int, num_steps: int, bodies: int, nq: int, nv: int, nu: int, substeps: int = 1,
                     backend: str = "mujoco") -> dict[str, int]:
     """Bytes a dataset of ``total`` sequences of ``num_steps`` steps needs: "dataset" (its float32
@@ -126,7 +111,7 @@ def memory_estimate(total: int, num_steps: int, bodies: int, nq: int, nv: int, n
 def _check_memory(name, total, num_steps, dims, substeps, backend):
     """Refuse, before allocating, a dataset that would not fit in memory; ``dims``: (B, nq, nv, nu)."""
     est = memory_estimate(total, num_steps, *dims, substeps, backend)
-    avail = _available_memory()
+    avail = available_memory()
     if avail is not None and est["peak"] > avail:
         gib = lambda n: f"{n / 2**30:.3g} GiB"  # noqa: E731
         raise ValueError(f"dataset of '{name}' too large: {total} sequences x {num_steps} steps x {dims[0]} bodies "

@@ -1,0 +1,169 @@
+"""The command line as a new user meets it on a CPU: help for every command and option, output
+paths and sizes refused before any work, quiet modes that still say where results went, and no
+Warp CUDA-driver warning."""
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from gnwarp import data
+from gnwarp.cli import build_parser, main
+from gnwarp.files import check_output_path
+from gnwarp.gn import RunOptions
+from gnwarp.models import GNCoreConfig, ModelConfig
+from gnwarp.train import TrainConfig, train
+from gnwarp.validation import available_memory, check_memory, config_keys
+
+ROOT = Path(__file__).resolve().parents[1]
+SWITCHES = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._HelpAction)
+
+
+def _commands(parser):
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+def test_every_command_and_option_has_help_and_its_default():
+    commands = _commands(build_parser())
+    assert set(commands) >= {"systems", "generate", "train", "evaluate", "demo", "check", "mpc"}
+    for name, sp in commands.items():
+        assert sp.description and len(sp.description) > 20, f"gnwarp {name} has no description"
+        formatter = sp._get_formatter()
+        for action in sp._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            what = f"gnwarp {name} {'/'.join(action.option_strings) or action.dest}"
+            assert action.help, f"{what} has no help"
+            if isinstance(action, SWITCHES) or action.required or (not action.option_strings and action.nargs != "?"):
+                continue  # a switch, a required value or a positional: no default to show
+            assert "default" in formatter._get_help_string(action), f"{what} shows no default"
+
+
+def test_top_level_help_is_plain_text():
+    text = build_parser().format_help()
+    assert "``" not in text and "`" not in text
+    assert "gnwarp demo" in text and "--quick" in text
+
+
+def test_train_help_lists_every_config_key_with_its_default():
+    text = _commands(build_parser())["train"].format_help()
+    keys = config_keys(TrainConfig)
+    assert len(keys) > 40 and {"steps", "model.gn.latent", "model.run.impl"} <= {k for k, *_ in keys}
+    for key, default, allowed, _ in keys:
+        assert f"  {key}=" in text, key
+    assert "steps=100000: an integer >= 0" in text
+    assert "--quick sets steps=" in text
+
+
+def test_quick_preset_is_a_valid_cpu_sized_config():
+    from gnwarp.cli import _apply_overrides, _merged
+    from gnwarp.demo import DemoConfig, quick_train_keys
+    quick = quick_train_keys()
+    cfg = TrainConfig.from_dict(_apply_overrides(_merged(quick, {"model": {"core": "gn"}}), ["steps=50"]))
+    assert cfg.steps == 50 and cfg.model.gn.latent == DemoConfig().gn.latent < GNCoreConfig().latent
+    assert cfg.max_seconds == DemoConfig().train_seconds and cfg.model.gn.blocks == 2
+
+
+def test_check_output_path(tmp_path):
+    assert check_output_path(tmp_path / "x.h5") == tmp_path / "x.h5"
+    assert check_output_path(tmp_path / "a" / "b", folder=True) == tmp_path / "a" / "b"  # made with parents
+    with pytest.raises(FileNotFoundError, match="does not exist: .*missing"):
+        check_output_path(tmp_path / "missing" / "x.h5")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(NotADirectoryError, match="is a file"):
+        check_output_path(tmp_path / "f" / "run", folder=True)
+    with pytest.raises(IsADirectoryError):
+        check_output_path(tmp_path)
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        with pytest.raises(PermissionError, match="not writable"):
+            check_output_path(ro / "x.h5")
+
+
+@pytest.mark.parametrize("argv", [
+    ["generate", "-n", "3", "--steps", "5", "-o", "{tmp}/missing/x.h5"],
+    ["train", "--data", "{tmp}/none.h5", "-o", "{tmp}/file/run"],
+    ["evaluate", "{tmp}/ckpt", "--data", "{tmp}/none.h5", "-o", "{tmp}/file/out"],
+    ["demo", "-q", "-o", "{tmp}/file/demo"],
+])
+def test_unwritable_output_is_refused_before_work(argv, tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    t0 = time.perf_counter()
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    assert time.perf_counter() - t0 < 5  # nothing simulated, trained or loaded
+    err = capsys.readouterr().err
+    assert f"gnwarp {argv[0]}: error:" in err and ("does not exist" in err or "is a file" in err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_size_that_cannot_fit_is_refused_naming_the_limit():
+    from gnwarp.cli import _episode_bytes
+    need = _episode_bytes(8, 10**12, 2, 1)
+    assert need > 8 * 10**12 * 2 * 13 * 4
+    avail = available_memory()
+    assert avail is not None and avail > 0
+    with pytest.raises(ValueError, match=r"8 episodes .* needs about .* GiB of memory; this machine has .* GiB "
+                                         r"available\. Use fewer"):
+        check_memory(need, "8 episodes x 1000000000000 steps", "Use fewer --steps")
+    check_memory(_episode_bytes(8, 100, 2, 1), "a small run")  # fits: no error
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    ds = data.generate("pendulum", (8, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)
+    out = tmp_path_factory.mktemp("newcomer") / "run"
+    cfg = TrainConfig(out=str(out), model=ModelConfig(gn=GNCoreConfig(latent=8, edge_hidden=(8,), node_hidden=(8,),
+                                                                      global_hidden=(8,)),
+                                                      run=RunOptions(impl="torch")),
+                      steps=4, batch_size=4, valid_every=4, valid_sequences=2, checkpoint_every=4,
+                      normalizer_warmup=1, progress=False, device="cpu")
+    return train(cfg, [ds])["last"]
+
+
+def test_mpc_refuses_steps_beyond_memory_before_planning(tiny_model, capsys):
+    t0 = time.perf_counter()
+    assert main(["mpc", "--model", str(tiny_model), "--task", "pendulum-balance", "--steps", "1000000000000",
+                 "--backend", "mujoco", "--video", "none"]) == 2
+    err = capsys.readouterr().err
+    assert "1000000000000 steps" in err and "available" in err and time.perf_counter() - t0 < 30
+
+
+def test_mpc_progress_bar_counts_the_warmup(tiny_model, tmp_path, capsys):
+    argv = ["mpc", "--model", str(tiny_model), "--task", "pendulum-balance", "--episodes", "2", "--steps", "2",
+            "--horizon", "3", "--iterations", "1", "--warmup", "4", "--backend", "mujoco", "--video", "none"]
+    assert main(argv) == 0
+    out = capsys.readouterr()
+    assert "6/6" in out.err and "true return" in out.out  # 4 warm-up + 1 x 2 steps iterations
+    assert main(argv + ["-q"]) == 0
+    out = capsys.readouterr()
+    assert "6/6" not in out.err and "true return" in out.out
+
+
+def test_demo_quiet_prints_where_the_report_went(tmp_path, monkeypatch, capsys):
+    import gnwarp.demo
+    seen = {}
+
+    def fake_run_demo(cfg):
+        seen["cfg"] = cfg
+        return {"timings_s": {"total": 1.0}}
+    monkeypatch.setattr(gnwarp.demo, "run_demo", fake_run_demo)
+    assert main(["demo", "-q", "-o", str(tmp_path / "d")]) == 0
+    assert seen["cfg"].progress is False
+    assert capsys.readouterr().out.strip() == f"wrote {tmp_path / 'd' / 'report.md'} in 1 s"
+
+
+def test_no_cuda_warning_on_a_cpu_machine(tmp_path):
+    """A CLI command that starts Warp prints no CUDA-driver warning where there is no driver."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    code = ("import sys; from gnwarp.interop import warp; warp(); from gnwarp.cli import main; "
+            "sys.exit(main(sys.argv[1:]))")
+    r = subprocess.run([sys.executable, "-c", code, "generate", "-n", "3", "--steps", "5", "-q",
+                        "-o", str(tmp_path / "x.h5")], capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "wrote" in r.stdout
+    assert "CUDA" not in r.stdout + r.stderr
