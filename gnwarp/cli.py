@@ -426,7 +426,7 @@ def _check_outputs(records, video) -> None:
             try:
                 check_output_path(path)
             except OSError as e:
-                raise type(e)(f"{what}: {e}") from None
+                raise type(e)(f"{what} {path}: {e}") from None
     if records.exists():
         read_records(records)   # appended to: it must hold valid records
 

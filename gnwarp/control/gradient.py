@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
 from gnwarp.control.tasks import Task, TaskError, get_task
