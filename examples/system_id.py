@@ -38,5 +38,5 @@ body, ctrl, inst = (torch.as_tensor(a) for a in (test.body, test.ctrl, test.inst
 with torch.no_grad():
     g_id = model.identify(body[:, :W], ctrl[:, :W], inst)              # G_ID from each test window
     traj = model.rollout(body[:, W], ctrl[:, W:W + 10], g_id, inst)   # 10 steps after the window
-print("G_ID nodes:", tuple(g_id.nodes.shape), "rollout:", tuple(traj.shape))
+print("G_ID globals:", None if g_id.globals is None else tuple(g_id.globals.shape), "rollout:", tuple(traj.shape))
 print("10-step sysid error:", sysid_rollout_error(model, ds, "test", 10))
