@@ -75,7 +75,7 @@ def test_code_blocks_run(path, tmp_path):
             where = f"{path.name}:{line}"
             if lang == "bash":
                 r = subprocess.run(["bash", "-euo", "pipefail", "-c", code], cwd=work, env=env,
-                                   capture_output=True, text=True, timeout=900)
+                                   capture_output=True, text=True, timeout=1800)
                 assert r.returncode == 0, f"{where} exited {r.returncode}:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
             else:
                 exec(compile(code, where, "exec"), namespace)
