@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.harness import device_name, results_dir  # noqa: E402
+from bench.harness import device_name, results_dir, slug  # noqa: E402
 from gnwarp import data, sim  # noqa: E402
 from gnwarp.interop import cuda_available  # noqa: E402
 
@@ -81,7 +81,7 @@ def main():
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--parameterized", action="store_true")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (CPU smoke test)")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("datagen"))
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
     names = sim.names() if args.systems == "all" else args.systems.split(",")
@@ -118,8 +118,7 @@ def main():
     print(table)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    slug = dev.split("(")[0].strip().replace(" ", "_").lower()
-    stem = f"datagen_{slug}{('_' + args.tag) if args.tag else ''}"
+    stem = f"datagen_{slug(dev.split('(')[0])}{('_' + args.tag) if args.tag else ''}"
     (out / f"{stem}.md").write_text(table + "\n")
     (out / f"{stem}.json").write_text(json.dumps({"device": dev, "rows": rows}, indent=1))
 

@@ -709,7 +709,7 @@ def _md(s: str) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: smoke test of this script")
-    p.add_argument("--out", default=results_dir())
+    p.add_argument("--out", default=results_dir("gn_block"))
     p.add_argument("--device", default=None, help="default: cuda if available, else cpu")
     p.add_argument("--sections", default="peak,main,shapes,capture,errors,crossover")
     p.add_argument("--peers", default=",".join(TORCH_PEERS + WARP_PEERS))

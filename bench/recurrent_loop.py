@@ -39,7 +39,7 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=200)
     ap.add_argument("--sequences", type=int, default=400)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("recurrent_loop"))
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
     latent, hidden, mlp = 128, 20, (256, 256)

@@ -56,7 +56,7 @@ def main(argv=None):
     ap.add_argument("--plain-max", type=int, default=256, help="largest batch timed with plain autograd")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("rollout"))
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
     if args.quick:

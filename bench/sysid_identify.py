@@ -35,7 +35,7 @@ def main(argv=None):
     ap.add_argument("--batches", default="200,1000")
     ap.add_argument("--window", type=int, default=20)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("sysid_identify"))
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
     latent, mlp, g = 128, (128, 128), 10

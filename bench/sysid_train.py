@@ -54,7 +54,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=1500, help="steps of each captured run")
     ap.add_argument("--batch", type=int, default=200)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("sysid_train"))
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--profile", type=int, default=0,
                     help="also profile this many eager steps of each model (torch.profiler): kernels and device time "

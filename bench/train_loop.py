@@ -60,7 +60,7 @@ def main(argv=None):
     ap.add_argument("--eager-steps", type=int, default=600, help="steps of each eager run")
     ap.add_argument("--batch", type=int, default=200)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("train_loop"))
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--profile", type=int, default=0,
                     help="also profile this many eager steps per precision (torch.profiler: device time per kernel "

@@ -14,7 +14,7 @@ once): ~44 us at 4 TB/s. Variants:
 
 The kernel versions this probe retired (v9's, where every thread tested all four pieces for each
 of its columns, and one launch per piece) are in git history; their numbers stay in
-``bench/results/concat_probe_nvidia-h200.md``.
+``bench/results/probes/concat_probe_nvidia-h200.md``.
 
 ``--ncu VARIANT,...`` runs the named variants a few times uncaptured and nothing else (for
 ``ncu --kernel-name regex:concat``). Usage: ``python bench/probes/concat_probe.py [--out DIR]``
@@ -82,7 +82,7 @@ def variants(pieces, width: int, out_dtype):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=results_dir())
+    p.add_argument("--out", default=results_dir("probes"))
     p.add_argument("--ncu", default="", help="comma-separated variants: run each 3 times, uncaptured, and stop")
     a = p.parse_args()
     dev = torch.device("cuda")

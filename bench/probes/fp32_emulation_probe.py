@@ -20,7 +20,7 @@ Each is timed beside torch.mm in fp32 (IEEE), tf32 and bf16, in the same run, an
 measured against float64. The bf16 / tf32 split passes are timed on their own (one fused
 elementwise kernel from torch.compile), as are the library's fp16x3 pieces kernel and its
 epilogue. (The torch prototype of fp16x3 this probe measured first, two GEMMs unscaled after,
-is in git history; its numbers stay in ``bench/results/fp32_emulation_probe_nvidia-h200.md``.)
+is in git history; its numbers stay in ``bench/results/probes/fp32_emulation_probe_nvidia-h200.md``.)
 Usage: ``python bench/probes/fp32_emulation_probe.py [--out DIR]`` (CUDA).
 """
 from __future__ import annotations

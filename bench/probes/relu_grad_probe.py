@@ -10,7 +10,7 @@ same run:
 - ``torch``: ``torch.ops.aten.threshold_backward`` then ``sum(0)`` (two kernels)
 
 The one-column kernels this probe retired (v8's conditional load, and its unconditional variant)
-are in git history; their numbers stay in ``bench/results/relu_grad_probe_nvidia-h200.md``.
+are in git history; their numbers stay in ``bench/results/probes/relu_grad_probe_nvidia-h200.md``.
 
 Usage: ``python bench/probes/relu_grad_probe.py [--out DIR]`` (CUDA). Prints a table and writes
 ``relu_grad_probe_<gpu>.md``.
@@ -64,7 +64,7 @@ def check(name, fn, act, g0, g, gb, gt) -> bool:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=results_dir())
+    p.add_argument("--out", default=results_dir("probes"))
     a = p.parse_args()
     dev = torch.device("cuda")
     rows_out = []

@@ -42,7 +42,7 @@ def main(argv=None):
     ap.add_argument("--precisions", default="tf32,fp16")
     ap.add_argument("--graphs", type=int, default=4096)
     ap.add_argument("--steps", type=int, default=5)
-    ap.add_argument("--out", default=results_dir())
+    ap.add_argument("--out", default=results_dir("rollout"))
     args = ap.parse_args(argv)
     dev = torch.device("cuda")
     T, N = args.steps, args.graphs

@@ -23,7 +23,7 @@ class Tunables:
 
     side_streams: side CUDA streams the backward spreads its weight-gradient GEMMs over (0: all
         on the current stream); 2-3 measured no faster than 1 (bench/gn_block.py --sections
-        side; bench/results/gn_block_nvidia-h200_notes.md). Read when a backward runs: a
+        side; bench/results/gn_block/NOTES.md). Read when a backward runs: a
         captured graph keeps the choice it was captured with.
     emulate_min_rows, emulate_min_width: fp16x3 emulates an MLP from this many rows and this
         hidden width (``emulates``).
@@ -58,7 +58,7 @@ TUNABLES = Tunables()
 # plus the concatenated row written and read; project costs the direct projection written and
 # read back plus two gathered hidden rows, at ~1.3 TB/s, and four more launches (forward) / ~6
 # (backward). Measured (H200, paper core on cheetah graphs, captured; the second block has
-# extra_K = 480; the v7 ablation in bench/results/gn_block_nvidia-h200_notes.md, where "split"
+# extra_K = 480; the v7 ablation in bench/results/gn_block/NOTES.md, where "split"
 # is today's "project"): with tensor cores (tf32, fp16, bf16) concat wins everywhere: forward at
 # batch 4096 tf32 1.40 vs 1.52 ms, fp16 1.05 vs 1.21; training step at 200 tf32 0.89 vs 0.96, at
 # 4096 fp16 3.71 vs 4.25. In plain fp32 the extra FLOPs run at the SIMT rate (48 TFLOP/s):
@@ -87,7 +87,7 @@ def edge_concat(config: GNBlockConfig, run, n_edges: int) -> bool:
 # 0.12 ms); the node MLPs' width-256 layers emulated made the paper core's forward 2% slower.
 # Hence: an MLP emulates when its hidden width is >= emulate_min_width on >= emulate_min_rows
 # rows: layers 1..L, and layer 0 too when it is one GEMM on the concatenated input rows. Paper
-# core at batch 4096 (bench/results/gn_block_nvidia-h200.md): forward 5.70 -> 3.45-3.48 ms
+# core at batch 4096 (bench/results/gn_block/gn_block_nvidia-h200.md): forward 5.70 -> 3.45-3.48 ms
 # captured, error against float64 ~1.0e-6 (IEEE fp32: 4.1-4.3e-7).
 def emulates(run, rows: int, hidden_width: int) -> bool:
     """Whether an MLP with this hidden width runs its layers as fp16x3 GEMMs on ``rows`` rows."""

@@ -17,7 +17,7 @@ __all__ = ["GNCoreConfig", "core_blocks", "MLP_SIZES", "MLPCoreConfig", "ModelCo
            "weight_count", "check_model_size"]
 
 # How models run unless told otherwise: TF32 GEMMs on CUDA (exactly fp32 on the CPU). Measured on an
-# H200 (bench/results/train_loop_nvidia-h200.md, rollout_nvidia-h200.md): the captured training
+# H200 (bench/results/train_loop/train_loop_nvidia-h200.md, rollout/rollout_nvidia-h200.md): the captured training
 # loop 702 steps/s against fp32's 467, 4096-graph rollouts 1.38 against 5.61 ms a step; and the
 # 20-step rollout errors of trained models unchanged to 3 digits against fp32
 # (bench/results/speed_accuracy/). fp16 is faster still (783 steps/s, 1.02 ms) with errors also

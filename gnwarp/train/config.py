@@ -41,7 +41,7 @@ class TrainConfig:
     ``device``: "auto" (CUDA when present), "cpu", "cuda", "cuda:1", ...
     ``optimizer``: "adam" (torch.optim.Adam + clip_grad_norm_), "flat_adam"
     (``gnwarp.train.FlatAdam``: the same update and clipping over one flat buffer in Warp
-    kernels; faster on the GPU, see README) or "auto" (default: flat_adam on CUDA, adam
+    kernels; faster on the GPU, see docs/gn_kernels.md) or "auto" (default: flat_adam on CUDA, adam
     elsewhere). A run resumes with the optimizer it was started with (under "auto", the kind
     its saved optimizer state is).
     ``capture``: on CUDA, replay the training step (and the validation rollouts) from CUDA

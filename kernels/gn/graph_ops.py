@@ -243,7 +243,7 @@ def concat_kernel(widths: tuple, gathered: tuple, in_dtypes: tuple, dtype, out_w
     (``concat_piece_threads``: up to ``max_vec`` columns each, strided by the piece's thread
     count so each load of a warp is coalesced, all loads before the stores), and rows are taken
     ``concat_rows_per_block`` at a time so that every warp works on one piece: no warp
-    branches. Measured on an H200 (bench/probes/concat_probe.py, bench/results/concat_probe_nvidia-h200.md,
+    branches. Measured on an H200 (bench/probes/concat_probe.py, bench/results/probes/concat_probe_nvidia-h200.md,
     the paper core's edge rows at batch 4096, fp32 -> fp16): a kernel where every thread tests
     all four pieces for each of its 8 columns issues a predicated load per piece and column and
     is bound by the load/store pipe (ncu: 96% busy, half the lanes predicated off): 162 us for
@@ -400,7 +400,7 @@ def route_kernel(pieces: tuple, in_dtype):
     element, consecutive threads on consecutive columns of a row (coalesced loads and atomics).
     One launch per update, where separate launches would take one scatter per indexed piece, a
     per-graph segment sum, and the casts and adds that merge them (measured on an H200:
-    bench/results/gn_block_nvidia-h200_notes.md)."""
+    bench/results/gn_block/NOTES.md)."""
     ps = list(pieces) + [(0, 0, ROUTE_STORE, False, in_dtype)] * (4 - len(pieces))
     W0, W1, W2, W3 = (p[1] for p in ps)
     A1, A2, A3 = W0, W0 + W1, W0 + W1 + W2

@@ -32,7 +32,7 @@ def relu_grad_sum_kernel(width: int, dtype, *, bias_sum: bool):
     owns ``vec(width)`` columns (strided by width / vec, so a warp's accesses stay coalesced) of
     a chunk of rows; both loads are unconditional (a select, not a load that waits on the
     activation's). Measured against a one-column kernel with a conditional load on an H200
-    (bench/results/relu_grad_probe_nvidia-h200.md, fp16): 3600 x 512 9.3 vs 11.9 us, 73728 x 512
+    (bench/results/probes/relu_grad_probe_nvidia-h200.md, fp16): 3600 x 512 9.3 vs 11.9 us, 73728 x 512
     125 vs 157 us."""
     has_sum = bias_sum
     V = vec(width)
