@@ -1,4 +1,4 @@
-"""Reliability of what datasets and MJCF files feed the pipeline (issue 15, items 2 and 3):
+"""Reliability of what datasets and MJCF files feed the pipeline:
 checksummed, validated datasets, refused meaningless models, and `gnwarp check`."""
 import os
 import re
