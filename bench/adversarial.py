@@ -1,4 +1,4 @@
-"""Bad input, tried as an adversarial user would (issue 15): every case runs the `gnwarp` command
+"""Bad input, tried as an adversarial user would: every case runs the `gnwarp` command
 line in its own process on a corrupted dataset, checkpoint, MJCF file, config or argument, and
 is classified by what the process did:
 
@@ -283,7 +283,7 @@ def main():
     counts = {}
     for r in rows:
         counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
-    lines = ["# Bad input, end to end through `gnwarp` (issue 15)", "",
+    lines = ["# Bad input, end to end through `gnwarp`", "",
              f"`python bench/adversarial.py` ({time.strftime('%Y-%m-%d')}, CPU, {time.perf_counter() - t0:.0f} s): "
              f"{len(rows)} cases, each in its own process.", "",
              "| outcome | cases |", "|---|---|"] + [f"| {k} | {v} |" for k, v in sorted(counts.items())] + [

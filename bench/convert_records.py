@@ -32,7 +32,7 @@ from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: 
 CONTROL = ROOT / "bench" / "results" / "control"
 ROW_FILES = ["results.jsonl", "throughput.jsonl", "cpu_timing.jsonl", "swimmer_iterations.jsonl",
              "fig11/results.jsonl", "iterations/results.jsonl"]
-# old column label -> regenerated column name
+# column label at BASE -> regenerated column name
 COLUMNS = {"GN-MPC (learned)": "gradient (learned)", "iLQG (true, MuJoCo C)": "ilqg (true, MuJoCo C)",
            "sampling (true)": "sampling (true, MuJoCo-Warp)", "sampling (learned)": "sampling (learned)",
            "random": "random (no model)", "GN-MPC, no params": "gradient (learned, no_params)",
@@ -79,16 +79,16 @@ def table(lines: list[str]) -> tuple[list[str], list[list[str]]]:
     return rows[0], [r for r in rows[2:]]
 
 
-def compare(old_md: str, new_lines: list[str]) -> list[str]:
-    """Differences between the old summary's first table and the regenerated mean +- std table."""
-    head, rows = table(old_md.splitlines())
+def compare(base_md: str, new_lines: list[str]) -> list[str]:
+    """Differences between the first table of the summary at BASE and the regenerated mean +- std table."""
+    head, rows = table(base_md.splitlines())
     i = next(k for k, line in enumerate(new_lines) if line.startswith("Mean +- std over episodes"))
     nhead, nrows = table(new_lines[i:])
     problems = []
     if len(rows) != len(nrows):
         return [f"{len(rows)} rows before, {len(nrows)} regenerated"]
-    for old, new in zip(rows, nrows):
-        for label, cell in zip(head[1:], old[1:]):
+    for base, new in zip(rows, nrows):
+        for label, cell in zip(head[1:], base[1:]):
             if label in RATIO_COLUMNS:
                 got, cell = new[-1], re.sub(r" \(goal (met|missed)\)", "", cell)
             elif label in COLUMNS:
@@ -96,7 +96,7 @@ def compare(old_md: str, new_lines: list[str]) -> list[str]:
             else:
                 continue
             if got != cell:
-                problems.append(f"{old[0]} / {label}: {cell} before, {got} regenerated")
+                problems.append(f"{base[0]} / {label}: {cell} before, {got} regenerated")
     return problems
 
 
@@ -106,11 +106,11 @@ FORWARD = ROOT / "bench" / "results" / "forward_models"
 def convert_forward_models() -> list[str]:
     """``forward_models/<system>/results.json`` as ``forward_models/results.jsonl`` records (their
     summary.md regenerated); the differences from the errors of the summary at ``BASE``."""
-    old = subprocess.run(["git", "show", f"{BASE}:{(FORWARD / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
+    base = subprocess.run(["git", "show", f"{BASE}:{(FORWARD / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
                          capture_output=True, text=True, check=True).stdout.splitlines()
-    title = old[0][2:]
+    title = base[0][2:]
     gpu = title[title.index("(") + 1:title.index(")")]
-    head, rows = table(old)
+    head, rows = table(base)
     records = []
     for row in rows:
         s = json.loads((FORWARD / row[0] / "results.json").read_text())
@@ -144,11 +144,11 @@ def main() -> int:
     for sub, title, ratio in [("", None, control.RATIO), ("fig10", None, control_sysid.RATIO),
                               ("fig11", None, control.RATIO)]:
         out = CONTROL / sub
-        old = subprocess.run(["git", "show", f"{BASE}:{(out / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
+        base = subprocess.run(["git", "show", f"{BASE}:{(out / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
                              capture_output=True, text=True, check=True).stdout
-        title = old.splitlines()[0][2:]
+        title = base.splitlines()[0][2:]
         recs = read_records(out / "results.jsonl")
-        problems = compare(old, summary_lines(groups(recs), title, ratio))
+        problems = compare(base, summary_lines(groups(recs), title, ratio))
         bad += [f"{sub or 'control'}: {p}" for p in problems]
         print(f"{sub or 'control'}: {len(problems)} differences")
         if not args.check_only:

@@ -160,8 +160,8 @@ OUR_PRECISIONS = ("fp32", "tf32", "fp16", "bf16", "fp16x3")
 # matmul peak are fp32's; torch has no such mode
 PEER_PRECISION = {"fp16x3": "fp32"}
 WARP_PEERS = ("warp-blas", "warp-tile")
-# names in earlier rows: the blas path's peers were "warp-split*", the edge first layer's
-# "project" mode was "split"
+# earlier rows' names, read as today's: peers "warp-split*" are the blas path's, the edge
+# first layer's mode "split" is "project"
 RENAMED = {"peer": {"warp-split": "warp-blas", "warp-split-graph": "warp-blas-graph"}, "efl": {"split": "project"}}
 
 
@@ -625,7 +625,7 @@ class Runner:
         def best(pred):
             c = [r for r in ok if pred(r)]
             return min(c, key=lambda r: r["ms"]) if c else None
-        out = ["## Goals of issue 3", ""]
+        out = ["## Goals", ""]
         r = best(lambda r: r["mode"] == "train" and r["batch"] == 200 and r["peer"].startswith("warp"))
         got = "n/a" if r is None else f"{r['ms']:.3f} ms ({r['peer']}, {r['precision']})"
         out.append(f"- training step at batch 200 <= 0.5 ms: best of ours {got}")

@@ -1,4 +1,4 @@
-"""Numerical stress of trained forward models (issue 15, item 10), per system:
+"""Numerical stress of trained forward models, per system:
 
 - long rollouts: 10000 steps from the test split's initial states under new random spline
   controls; finite or the first non-finite step, and the largest |state| against the training data's;

@@ -1,4 +1,4 @@
-"""The closed-loop environments (issue 17): MuJoCo-Warp (Warp's CPU device) against MuJoCo C
+"""The closed-loop environments: MuJoCo-Warp (Warp's CPU device) against MuJoCo C
 stepping the same actions from the same states; shapes, resets, control clamping, bad inputs."""
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Sampling MPC (issue 17): predictive sampling and MPPI on the true dynamics beat random actions
+"""Sampling MPC: predictive sampling and MPPI on the true dynamics beat random actions
 on pendulum balance; planned actions stay in range; the sampler runs through a learned model."""
 import numpy as np
 import pytest

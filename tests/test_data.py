@@ -1,4 +1,4 @@
-"""Graph conversion, simulation backends and datasets (issue 2)."""
+"""Graph conversion, simulation backends and datasets."""
 import os
 
 import h5py

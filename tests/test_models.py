@@ -1,4 +1,4 @@
-"""The forward model (issue 4): quaternions, normalizers, state update, loss, rollouts (CPU)."""
+"""The forward model: quaternions, normalizers, state update, loss, rollouts (CPU)."""
 import math
 
 import numpy as np

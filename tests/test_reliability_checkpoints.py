@@ -1,4 +1,4 @@
-"""Checkpoints never run code, are checked whole on load, and survive kills (issue 15, items 1, 7).
+"""Checkpoints never run code, are checked whole on load, and survive kills.
 
 Tiny models on the CPU. Kills are simulated deterministically (debris folders made by hand, an
 exception between the two renames that replace a checkpoint) and for real: a ``gnwarp train`` /

@@ -1,4 +1,4 @@
-"""Reliability of what datasets and MJCF files feed the pipeline (issue 15, items 2 and 3):
+"""Reliability of what datasets and MJCF files feed the pipeline:
 checksummed, validated datasets, refused meaningless models, and `gnwarp check`."""
 import os
 import re
@@ -156,7 +156,7 @@ def test_bad_static_and_layout_refused_at_load(good, tmp_path, mutation, match):
 
 
 def test_sender_1e9_never_reaches_the_graph_builder(good, tmp_path):
-    """The issue's segfault: a stored sender of 1e9 reached the GN block unchecked."""
+    """A stored sender of 1e9 (which, unchecked, segfaults in the GN block) is refused."""
     p = _mutated(good, tmp_path, _set("static/senders", (0, 3), 10**9))
     with pytest.raises(data.DatasetError, match=r"/static/senders.*1000000000"):
         data.load(p)

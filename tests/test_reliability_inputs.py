@@ -1,4 +1,4 @@
-"""Bad inputs give one clear error (issue 15, items 4, 5, 6, 8, 9): typed configurations (the
+"""Bad inputs give one clear error: typed configurations (the
 Python API, config files and ``gnwarp train --set`` alike), ``gnwarp evaluate``'s arguments and
 non-finite reports, the GN block's index, rollout inputs and control clamping; and a property test
 of GraphsTuple batch / unbatch round trips. CPU, tiny sizes."""

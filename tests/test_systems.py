@@ -7,7 +7,7 @@ import pytest
 
 from gnwarp.sim import builders, systems
 
-# name: (bodies incl. world, nq, nv, nu, data timestep) -- issue 2's table.
+# name: (bodies incl. world, nq, nv, nu, data timestep) -- the reference table.
 TABLE = {
     "pendulum": (2, 1, 1, 1, 0.02),
     "cartpole": (3, 2, 2, 1, 0.01),

@@ -1,4 +1,4 @@
-"""Training, checkpoints, evaluation, the CLI and the demo (issue 4), at tiny sizes on the CPU."""
+"""Training, checkpoints, evaluation, the CLI and the demo, at tiny sizes on the CPU."""
 import csv
 import json
 import math

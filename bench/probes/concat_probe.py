@@ -12,9 +12,9 @@ once): ~44 us at 4 TB/s. Variants:
 - ``ours pre-gathered``: the gathered pieces materialized beforehand (is it the gathers?)
 - ``torch``: index_select, cat and cast in torch
 
-The kernel versions this probe retired (v9's, where every thread tested all four pieces for each
-of its columns, and one launch per piece) are in git history; their numbers stay in
-``bench/results/probes/concat_probe_nvidia-h200.md``.
+The committed table ``bench/results/probes/concat_probe_nvidia-h200.md`` also holds two variants
+this script does not run (their code is in git history): ``v9 v8``, where every thread tests all
+four pieces for each of its columns, and ``pieces vN``, one launch per piece.
 
 ``--ncu VARIANT,...`` runs the named variants a few times uncaptured and nothing else (for
 ``ncu --kernel-name regex:concat``). Usage: ``python bench/probes/concat_probe.py [--out DIR]``

@@ -9,8 +9,9 @@ same run:
   ``ours chunkN`` with N rows per thread (its tuning knob)
 - ``torch``: ``torch.ops.aten.threshold_backward`` then ``sum(0)`` (two kernels)
 
-The one-column kernels this probe retired (v8's conditional load, and its unconditional variant)
-are in git history; their numbers stay in ``bench/results/probes/relu_grad_probe_nvidia-h200.md``.
+The committed table ``bench/results/probes/relu_grad_probe_nvidia-h200.md`` also holds two
+one-column kernels this script does not run (their code is in git history): ``v8 one column,
+conditional load`` and ``one column, both loads``.
 
 Usage: ``python bench/probes/relu_grad_probe.py [--out DIR]`` (CUDA). Prints a table and writes
 ``relu_grad_probe_<gpu>.md``.

@@ -146,7 +146,7 @@ class Dataset:
         import torch
         key = (str(device), dtype)
         if key not in self._builders:  # static tensors built once per device and dtype
-            if not self._builders:  # a Dataset made in memory was never checked: its indices now
+            if not self._builders:  # a Dataset made in memory skipped load's checks: check its indices here
                 U = int(sp.ctrl.shape[2]) if len(sp.ctrl.shape) == 3 else None
                 problems = check_static(self.static, self.meta, U)
                 if problems:

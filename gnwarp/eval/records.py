@@ -142,7 +142,7 @@ class ResultRecord:
             if self.reported.get("of", "returns") not in ("returns", "errors"):
                 bad("reported", "its 'of' must be 'returns' or 'errors'")
         elif not values:
-            bad("returns", "a record needs per-episode returns or errors (or, for old runs, 'reported')")
+            bad("returns", "a record needs per-episode returns or errors (or, for a run that kept only its mean, 'reported')")
         for name in ("metrics", "config"):
             v = getattr(self, name)
             if not isinstance(v, dict) or not all(isinstance(k, str) for k in v):

@@ -110,7 +110,7 @@ class ModelConfig:
             moved = {k: gn.pop(k) for k in _RUN_KEYS_IN_GN if k in gn}
             self.gn = gn
             # an earlier version's config: its run options lived in ``gn``; options given as a
-            # dict beside them win (TrainConfig's old ``dtype`` arrives so); a RunOptions object
+            # dict beside them win (an earlier version's TrainConfig ``dtype`` arrives so); a RunOptions object
             # here is the default, which the saved options replace
             self.run = {**moved, **self.run} if isinstance(self.run, dict) else {**self.run.to_dict(), **moved}
         check_fields(self)  # types and ranges, nested dicts made configs: one ConfigError naming the key
