@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared with
 sys.path.insert(0, str(ROOT))
 
-from bench.experiments import control, control_sysid, forward_models  # noqa: E402
+from bench.experiments import control, control_sysid, forward_models, multi_system, sysid_figures  # noqa: E402
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -133,34 +133,175 @@ def convert_forward_models() -> list[str]:
     return problems
 
 
+SYSID = ROOT / "bench" / "results" / "sysid_figures"
+SYSID_BASE = "3c77a89"  # the commit whose sysid_figures summaries (written from rows) are compared with
+
+
+def old_text(path: Path, commit: str) -> str:
+    """``path`` as committed at ``commit``."""
+    return subprocess.run(["git", "show", f"{commit}:{path.relative_to(ROOT)}"], cwd=ROOT, capture_output=True,
+                          text=True, check=True).stdout
+
+
+def sections(md: str) -> dict[str, tuple[list[str], list[list[str]]]]:
+    """The tables of a markdown file by the heading (or paragraph) above them: {title: (header, rows)}."""
+    lines, out, title = md.splitlines(), {}, ""
+    i = 0
+    while i < len(lines):
+        if lines[i].startswith("|"):
+            head, rows = table(lines[i:])
+            out[title] = (head, rows)
+            i += len(rows) + 2
+            continue
+        if lines[i].strip():
+            title = lines[i]
+        i += 1
+    return out
+
+
+def convert_sysid_figures() -> list[str]:
+    """Every ``sysid_figures/**/results.jsonl`` of rows as ``records.jsonl`` beside it (its error rows;
+    the bookkeeping key "sitting" dropped); the ``summary.md`` of the folders that have one regenerated
+    from the records and ``probe.md`` from the rows. Returns the differences between each number of the
+    summary at ``SYSID_BASE`` (Figure 8, ratios, Figure 9, training, probe) and the regenerated ones."""
+    problems = []
+    for path in sorted(SYSID.rglob("results.jsonl")):
+        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        if not rows or "part" not in rows[0]:
+            continue                      # sysid_sensitivity's rows
+        for r in rows:
+            r.pop("sitting", None)
+        records = sysid_figures.to_records(rows)
+        write_records(path.parent / "records.jsonl", records, append=False)
+        records = read_records(path.parent / "records.jsonl")
+        assert len(records) == sum({"fig8": 1, "oracle": 1, "fig9": 2}.get(r["part"], 0) for r in rows), path
+        summary = path.parent / "summary.md"
+        if not summary.exists():
+            continue
+        where = str(path.parent.relative_to(ROOT))
+        old = sections(old_text(summary, SYSID_BASE))
+        gs = {(g.task, g.variant): g for g in groups(records)}
+        mean = {k: g.mean for k, g in gs.items()}
+        last = {k: g.records[-1] for k, g in gs.items()}
+
+        def check(what, cell, value):
+            got = sysid_figures._g(value) if not isinstance(value, str) else value
+            if got != cell:
+                problems.append(f"{where}: {what}: {cell} before, {got} regenerated")
+
+        head, rows8 = old["## Figure 8"]
+        for row in rows8:
+            s = row[0]
+            v = {k: mean.get((s, k)) for k in sysid_figures.MODELS}
+            for k in sysid_figures.MODELS:
+                check(f"{s} / {k}", row[head.index(k)], v[k])
+            check(f"{s} / sysid / true", row[head.index("sysid / true")], v["sysid same"] / v["true params"])
+            check(f"{s} / sysid / no params", row[head.index("sysid / no params")], v["sysid same"] / v["no params"])
+        key9 = next(k for k in old if k.startswith("50 sequences") or "sequences per length" in k)
+        head, rows9 = old[key9]
+        for row in rows9:
+            task = f"pendulum length x{row[0]}, {row[1]}"
+            check(f"{task} / sysid", row[2], mean.get((task, "sysid same")))
+            check(f"{task} / true params", row[3], mean.get((task, "true params")))
+        head, rowst = old["Training (each model capped at the same steps and wall clock):"]
+        for row in rowst:
+            variant = "sysid same" if row[1] == "sysid" else row[1]
+            m = last[row[0], variant].metrics
+            check(f"{row[0]} / {row[1]} training steps", row[2], str(m["train_steps"]))
+            check(f"{row[0]} / {row[1]} training seconds", row[3], str(m["train_seconds"]))
+        write_summary_sysid = sysid_figures.write_summary(path.parent, records)
+        sysid_figures.write_probe(path.parent, sysid_figures.latest([json.loads(line) for line in
+                                                                      path.read_text().splitlines() if line.strip()]))
+        probe_old = [r for k, (h, rs) in old.items() if k.startswith("Least squares") for r in rs]
+        probe_new = [r for k, (h, rs) in sections((path.parent / "probe.md").read_text()).items()
+                     if k.startswith("Least squares") for r in rs]
+        if probe_old != probe_new:
+            problems.append(f"{where}: the probe table differs from the summary's")
+        print(f"{where}: {len(records)} records; {write_summary_sysid.name} and probe.md regenerated")
+    return problems
+
+
+MULTI = ROOT / "bench" / "results" / "multi_system"
+
+
+def convert_multi_system() -> list[str]:
+    """``multi_system/<run>/results.json`` as ``results.jsonl`` records, for the folder's three runs and
+    for ``swimmerN_captured/``; their ``summary.md`` regenerated. Returns the differences between
+    each number of the summaries at ``SYSID_BASE`` (steps, one-, 20- and 100-step errors) and the
+    records."""
+    problems = []
+    for folder, runs in ((MULTI, ["multi4", "multi5", "swimmerN"]), (MULTI / "swimmerN_captured", [None])):
+        old = old_text(folder / "summary.md", SYSID_BASE)
+        title = re.sub(r", session \d+\)", ")", old.splitlines()[0][2:])
+        m = re.search(r"Data: (\d+)/(\d+)/(\d+) sequences x (\d+) steps per trained system", old)
+        seqs, steps = [int(m.group(i)) for i in (1, 2, 3)], int(m.group(4))
+        seconds = float(re.search(r"capped at ([\d.]+) s of training", old).group(1))
+        records = []
+        for run in runs:
+            s = json.loads(((folder / run if run else folder) / "results.json").read_text())
+            records += multi_system.to_records(s, env_steps=seqs[0] * steps * len(s["train_systems"]), gpu=title[
+                title.rindex("(") + 1:].split(",")[0].rstrip(")"), config={"sequences": seqs, "sequence_steps": steps,
+                                                                           "seconds": seconds, "gn": [128, 256, 128]})
+        write_records(folder / "results.jsonl", records, append=False)
+        records = read_records(folder / "results.jsonl")
+        by = {(r.variant, r.task, r.episode_steps): r for r in records}
+        head, rows = table(old.splitlines())
+        for row in rows:
+            run, name = row[0], row[2]
+            for col, horizon in (("one-step", 1), ("20-step", 20), ("100-step", 100)):
+                got = f"{by[run, name, horizon].reported['mean']:.3g}"
+                if got != row[head.index(col)]:
+                    problems.append(f"multi_system {folder.name}: {run} / {name} / {col}: {row[head.index(col)]} "
+                                    f"before, {got} from the records")
+            r1 = by[run, name, 1]
+            for col, got in (("steps", str(r1.metrics["train_steps"])),
+                             ("seen in training", "yes" if r1.metrics["seen_in_training"] else "no")):
+                if got != row[head.index(col)]:
+                    problems.append(f"multi_system {folder.name}: {run} / {name} / {col}: {row[head.index(col)]} "
+                                    f"before, {got} from the records")
+        write_summary(records, folder, title)
+        print(f"{folder.relative_to(ROOT)}: {len(records)} records; summary.md regenerated")
+    return problems
+
+
+# the experiments converted after the control ones: name -> conversion (returns the differences)
+CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
+               "multi_system": convert_multi_system}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--check-only", action="store_true", help="convert nothing, write nothing: only compare")
+    ap.add_argument("--check-only", action="store_true", help="convert nothing, write nothing: only compare "
+                    "the control summaries")
+    ap.add_argument("--only", nargs="+", choices=["control", *CONVERSIONS], default=None,
+                    help="convert and check only these experiments (default: all)")
     args = ap.parse_args()
-    if not args.check_only:
-        for name in ROW_FILES + ["fig10/results.jsonl"]:
-            print(f"{name}: {'converted' if convert(CONTROL / name) else 'already records'}")
+    only = set(args.only or ["control", *CONVERSIONS])
     bad = []
-    for sub, title, ratio in [("", None, control.RATIO), ("fig10", None, control_sysid.RATIO),
-                              ("fig11", None, control.RATIO)]:
-        out = CONTROL / sub
-        old = subprocess.run(["git", "show", f"{BASE}:{(out / 'summary.md').relative_to(ROOT)}"], cwd=ROOT,
-                             capture_output=True, text=True, check=True).stdout
-        title = old.splitlines()[0][2:]
-        recs = read_records(out / "results.jsonl")
-        problems = compare(old, summary_lines(groups(recs), title, ratio))
-        bad += [f"{sub or 'control'}: {p}" for p in problems]
-        print(f"{sub or 'control'}: {len(problems)} differences")
+    if "control" in only:
         if not args.check_only:
-            write_summary(recs, out, title, ratio_of=ratio)
+            for name in ROW_FILES + ["fig10/results.jsonl"]:
+                print(f"{name}: {'converted' if convert(CONTROL / name) else 'already records'}")
+        for sub, title, ratio in [("", None, control.RATIO), ("fig10", None, control_sysid.RATIO),
+                                  ("fig11", None, control.RATIO)]:
+            out = CONTROL / sub
+            old = old_text(out / "summary.md", BASE)
+            title = old.splitlines()[0][2:]
+            recs = read_records(out / "results.jsonl")
+            problems = compare(old, summary_lines(groups(recs), title, ratio))
+            bad += [f"{sub or 'control'}: {p}" for p in problems]
+            print(f"{sub or 'control'}: {len(problems)} differences")
+            if not args.check_only:
+                write_summary(recs, out, title, ratio_of=ratio)
     if not args.check_only:
-        problems = convert_forward_models()
-        print(f"forward_models: {len(problems)} differences")
-        bad += problems
+        for name, conversion in CONVERSIONS.items():
+            if name in only:
+                problems = conversion()
+                print(f"{name}: {len(problems)} differences")
+                bad += problems
     for line in bad:
         print(line)
     return 1 if bad else 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

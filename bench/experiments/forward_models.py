@@ -46,7 +46,7 @@ def child(args) -> None:
     dev = summary["device"]
     model = load_model(Path(args.child_out) / "gn" / "best", device=dev).bind(ds)
     system = sim.make(args.system)
-    n, T = 16, 1000
+    n, T = min(16, len(ds["test"])), 1000   # the quick run's test split holds fewer
     u = sim.random_spline_controls(n, T, sim.control_range(system.model), np.random.default_rng(7))
     te = ds["test"]
     x0 = torch.as_tensor(te.body[:n, 0], device=dev)
