@@ -25,7 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared with
 sys.path.insert(0, str(ROOT))
 
-from bench.experiments import control, control_sysid, forward_models, multi_system, sysid_figures  # noqa: E402
+from bench.experiments import (ablation_h2, control, control_sysid, forward_models, multi_system,  # noqa: E402
+                               sysid_figures)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -264,9 +265,40 @@ def convert_multi_system() -> list[str]:
     return problems
 
 
+ABLATION = ROOT / "bench" / "results" / "ablation_h2"
+
+
+def convert_ablation_h2() -> list[str]:
+    """``ablation_h2/results.jsonl``'s rows (one per variant and seed) as records in place, its
+    ``summary.md`` regenerated. Returns the differences between each number of the summary at
+    ``SYSID_BASE`` (seeds, parameters, 20-step mean and std, one-step mean) and the regenerated
+    groups; "seconds per run" (a mean over seeds) is not regenerated."""
+    path = ABLATION / "results.jsonl"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    if rows and rows[0].get("format") != FORMAT:
+        for r in rows:   # every committed run: 2000 training sequences of 100 steps, 200 test sequences
+            r.setdefault("test_sequences", 200)
+            r.setdefault("env_steps", 2000 * 100)
+        write_records(path, [x for r in rows for x in ablation_h2.to_records(r)], append=False)
+    records = read_records(path)
+    gs = {(g.variant, g.episode_steps): g for g in groups(records)}
+    old = old_text(ABLATION / "summary.md", SYSID_BASE)
+    head, table_rows = table(old.splitlines())
+    problems = []
+    for row in table_rows:
+        g20, g1 = gs[row[0], 20], gs[row[0], 1]
+        for col, got in (("seeds", str(g20.n)), ("parameters", str(g20.records[-1].metrics["parameters"])),
+                         ("20-step error mean", f"{g20.mean:.3g}"), ("std", f"{g20.std:.2g}"),
+                         ("one-step mean", f"{g1.mean:.3g}")):
+            if got != row[head.index(col)]:
+                problems.append(f"ablation_h2: {row[0]} / {col}: {row[head.index(col)]} before, {got} regenerated")
+    ablation_h2.summarize(ABLATION)
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
-               "multi_system": convert_multi_system}
+               "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2}
 
 
 def main() -> int:
