@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared with
 sys.path.insert(0, str(ROOT))
 
-from bench.experiments import (ablation_h2, control, control_sysid, forward_models, multi_system,  # noqa: E402
-                               sysid_figures)
+from bench.experiments import (ablation_h2, budget_retrain, control, control_sysid, forward_models,  # noqa: E402
+                               multi_system, sysid_figures)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -296,9 +296,48 @@ def convert_ablation_h2() -> list[str]:
     return problems
 
 
+BUDGET = ROOT / "bench" / "results" / "budget_retrain"
+
+
+def convert_budget_retrain() -> list[str]:
+    """``budget_retrain/results.jsonl``'s rows (one per system, with the forward-model table's numbers
+    as ``before``) as records in place, its ``summary.md`` regenerated. Returns the differences
+    between each number of the summary at ``SYSID_BASE`` (steps and errors, before and after) and
+    the records."""
+    path = BUDGET / "results.jsonl"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    if rows and rows[0].get("format") != FORMAT:
+        for r in rows:   # every committed run: 2000 training sequences of 100 steps, 200 test sequences
+            r.setdefault("test_sequences", 200)
+            r.setdefault("env_steps", 2000 * 100)
+        write_records(path, [x for r in rows for x in budget_retrain.to_records(r)], append=False)
+    by = {(r.task, r.variant, r.episode_steps): r for r in read_records(path)}
+    head, table_rows = table(old_text(BUDGET / "summary.md", SYSID_BASE).splitlines())
+    problems = []
+
+    def g2(x):
+        return f"{x:.2g}"
+    for row in table_rows:
+        s = row[0]
+        cells = [("steps before", str(by[s, "eager loop", 1].metrics["train_steps"])),
+                 ("steps after", str(by[s, "captured loop", 1].metrics["train_steps"]))]
+        for i, h in ((4, 1), (6, 20), (8, 100)):
+            cells += [(head[i], g2(by[s, "eager loop", h].reported["mean"])),
+                      (f"{head[i]} after", g2(by[s, "captured loop", h].reported["mean"]))]
+        got = [c for _, c in cells]
+        want = [row[1], row[2], row[4], row[5], row[6], row[7], row[8], row[9]]
+        for (what, g), w in zip(cells, want):
+            if g != w:
+                problems.append(f"budget_retrain: {s} / {what}: {w} before, {g} from the records")
+        assert len(got) == len(want)
+    budget_retrain.report(BUDGET)
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
-               "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2}
+               "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
+               "budget_retrain": convert_budget_retrain}
 
 
 def main() -> int:
