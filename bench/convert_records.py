@@ -26,7 +26,7 @@ BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared
 sys.path.insert(0, str(ROOT))
 
 from bench.experiments import (ablation_h2, budget_retrain, control, control_sysid, forward_models,  # noqa: E402
-                               multi_system, sysid_figures)
+                               multi_system, speed_accuracy, sysid_figures)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -334,10 +334,47 @@ def convert_budget_retrain() -> list[str]:
     return problems
 
 
+SPEED = ROOT / "bench" / "results" / "speed_accuracy"
+
+
+def convert_speed_accuracy() -> list[str]:
+    """``speed_accuracy/rows.json`` as ``results.jsonl`` records (``rows.json`` removed), its
+    ``summary.md`` regenerated. Returns the differences between each number of the summary at
+    ``SYSID_BASE`` (error, ms per step, graph-steps/s, MuJoCo-Warp ms per step) and the records."""
+    rows_path = SPEED / "rows.json"
+    old = old_text(SPEED / "summary.md", SYSID_BASE)
+    if rows_path.exists():
+        gpu = old.splitlines()[0][old.index("(") + 1:-1] if "(" in old.splitlines()[0] else "unknown"
+        records = [x for r in json.loads(rows_path.read_text()) if "error" not in r
+                   for x in speed_accuracy.to_records(r, gpu=gpu, test_sequences=200, env_steps=2000 * 100,
+                                                      config={"seconds": 150.0, "sequences": [2000, 50, 200],
+                                                              "sequence_steps": 100})]
+        write_records(SPEED / "results.jsonl", records, append=False)
+        rows_path.unlink()
+    by = {(r.task, r.variant): r for r in read_records(SPEED / "results.jsonl")}
+    head, rows = table(old.splitlines())
+    problems = []
+    for row in rows:
+        r = by[row[0], f"{row[1]}, {row[2]}"]
+        m = r.metrics
+        for what, got, want in ((head[3], f"{r.reported['mean']:.3g}", row[3]),
+                                ("ms per step", f"{m['ms_per_step']:.3f}", row[4]),
+                                ("graph-steps/s", f"{m['graph_steps_per_s']:.3g}", row[5]),
+                                ("mode", r.config["mode"], row[6]),
+                                ("MuJoCo-Warp ms per step", f"{m['mjwarp_ms_per_step']:.3f}", row[7])):
+            if got != want:
+                problems.append(f"speed_accuracy: {row[0]} / {row[1]} / {row[2]} / {what}: {want} before, {got} "
+                                "from the records")
+    if len(rows) != len(by):
+        problems.append(f"speed_accuracy: {len(rows)} rows before, {len(by)} records")
+    speed_accuracy.report(SPEED)
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
                "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
-               "budget_retrain": convert_budget_retrain}
+               "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy}
 
 
 def main() -> int:
