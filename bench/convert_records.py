@@ -26,7 +26,7 @@ BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared
 sys.path.insert(0, str(ROOT))
 
 from bench.experiments import (ablation_h2, budget_retrain, control, control_sysid, forward_models,  # noqa: E402
-                               multi_system, speed_accuracy, sysid_figures)
+                               mlp_sweep, multi_system, speed_accuracy, sysid_figures)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -371,10 +371,42 @@ def convert_speed_accuracy() -> list[str]:
     return problems
 
 
+MLP = ROOT / "bench" / "results" / "mlp_sweep"
+
+
+def convert_mlp_sweep() -> list[str]:
+    """``mlp_sweep/<system>[/<size>]/results.json`` and the forward models' GN as
+    ``mlp_sweep/results.jsonl`` records, its ``summary.md`` regenerated. Returns the differences
+    between each number of the summary at ``SYSID_BASE`` (GN steps, GN and MLP 20-step errors) and
+    the records."""
+    old = old_text(MLP / "summary.md", SYSID_BASE)
+    first = old.splitlines()[0]
+    gpu = first[first.rindex("(") + 1:-1]
+    head, rows = table(old.splitlines())
+    records = []
+    for row in rows:
+        s = row[0].split(" ")[0]
+        gn = json.loads((FORWARD / s / "results.json").read_text())
+        records += mlp_sweep.to_records(s, gn, mlp_sweep.collect(MLP, s), gpu=gpu)
+    write_records(MLP / "results.jsonl", records, append=False)
+    by = {(r.task, r.variant, r.episode_steps): r for r in read_records(MLP / "results.jsonl")}
+    problems = []
+    for row in rows:
+        s = row[0].split(" ")[0]
+        cells = [(row[0], f"{s} ({by[s, 'GN', 20].metrics['train_steps']})"), (row[1], f"{by[s, 'GN', 20].reported['mean']:.3g}")]
+        cells += [(row[head.index(size)], f"{by[s, f'MLP {size}', 20].reported['mean']:.3g}")
+                  for size in head[2:7]]
+        problems += [f"mlp_sweep: {s}: {want} before, {got} from the records" for want, got in cells if want != got]
+    write_summary(records, MLP, "MLP baseline sweep (section E) beside the GN of bench/experiments/forward_models.py "
+                  f"({gpu})")
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
                "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
-               "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy}
+               "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy,
+               "mlp_sweep": convert_mlp_sweep}
 
 
 def main() -> int:
