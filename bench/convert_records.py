@@ -26,7 +26,7 @@ BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared
 sys.path.insert(0, str(ROOT))
 
 from bench.experiments import (ablation_h2, budget_retrain, control, control_sysid, forward_models,  # noqa: E402
-                               mlp_sweep, multi_system, speed_accuracy, sysid_figures)
+                               mlp_sweep, multi_system, recurrent_jaco, speed_accuracy, sysid_figures)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -402,11 +402,38 @@ def convert_mlp_sweep() -> list[str]:
     return problems
 
 
+RECURRENT = ROOT / "bench" / "results" / "recurrent_jaco"
+
+
+def convert_recurrent_jaco() -> list[str]:
+    """``recurrent_jaco/results.json`` as ``results.jsonl`` records, ``summary.md`` generated from them
+    in place of ``results.md``. Returns the differences between each number of ``results.md`` at
+    ``SYSID_BASE`` (angle and velocity errors per horizon) and the records."""
+    from gnwarp.data import proprio
+    res = json.loads((RECURRENT / "results.json").read_text())
+    system = proprio.proprio_jaco(res["meta"]["lag"], res["meta"]["servo_scale"])
+    records = recurrent_jaco.to_records(res, system, gpu="NVIDIA H200")   # the run's GPU (README.md)
+    write_records(RECURRENT / "results.jsonl", records, append=False)
+    by = {(r.variant, r.episode_steps): r for r in read_records(RECURRENT / "results.jsonl")}
+    head, rows = table(old_text(RECURRENT / "results.md", SYSID_BASE).splitlines())
+    problems = []
+    for row in rows:
+        for col, cell in zip(head[1:], row[1:]):
+            q, h = col.split(" h=")
+            label = recurrent_jaco.QUANTITIES["angle" if q == "angle" else "velocity"]
+            got = f"{by[f'{row[0]}, {label}', int(h)].reported['mean']:.3g}"
+            if got != cell:
+                problems.append(f"recurrent_jaco: {row[0]} / {col}: {cell} before, {got} from the records")
+    (RECURRENT / "results.md").unlink(missing_ok=True)
+    recurrent_jaco.report(RECURRENT, records)
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
                "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
                "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy,
-               "mlp_sweep": convert_mlp_sweep}
+               "mlp_sweep": convert_mlp_sweep, "recurrent_jaco": convert_recurrent_jaco}
 
 
 def main() -> int:
