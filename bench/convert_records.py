@@ -26,7 +26,8 @@ BASE = "e848b55"  # the commit whose summaries the regenerated ones are compared
 sys.path.insert(0, str(ROOT))
 
 from bench.experiments import (ablation_h2, budget_retrain, control, control_sysid, forward_models,  # noqa: E402
-                               mlp_sweep, multi_system, recurrent_jaco, speed_accuracy, sysid_figures)
+                               mlp_sweep, multi_system, recurrent_jaco, speed_accuracy, sysid_figures,
+                               sysid_sensitivity)
 from gnwarp.eval.records import FORMAT, read_records, write_records  # noqa: E402
 from gnwarp.eval.summarize import groups, summary_lines, write_summary  # noqa: E402
 
@@ -429,11 +430,37 @@ def convert_recurrent_jaco() -> list[str]:
     return problems
 
 
+SENSITIVITY = ROOT / "bench" / "results" / "sysid_figures" / "sensitivity"
+
+
+def convert_sysid_sensitivity() -> list[str]:
+    """``sysid_figures/sensitivity/results.jsonl``'s rows as records in place (seed 0, the script's
+    default, and the run's date), its ``summary.md`` regenerated. Returns the differences between
+    each error of the summary at ``SYSID_BASE`` and the records."""
+    path = SENSITIVITY / "results.jsonl"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    old = old_text(SENSITIVITY / "summary.md", SYSID_BASE)
+    if rows and rows[0].get("format") != FORMAT:
+        date = re.search(r"\((\d{4}-\d\d-\d\d);", old).group(1)
+        write_records(path, [sysid_sensitivity.to_record({**r, "date": date}, seed=0) for r in rows], append=False)
+    by = {(r.task, r.variant): r for r in read_records(path)}
+    head, rows = table(old.splitlines())
+    problems = []
+    for row in rows:
+        for col, cell in zip(head[2:], row[2:]):
+            got = f"{by[f'{row[0]}: {row[1]}', col].reported['mean']:.2g}"
+            if got != cell:
+                problems.append(f"sysid_sensitivity: {row[0]} / {row[1]} / {col}: {cell} before, {got} from the records")
+    sysid_sensitivity.report(SENSITIVITY)
+    return problems
+
+
 # the experiments converted after the control ones: name -> conversion (returns the differences)
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
                "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
                "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy,
-               "mlp_sweep": convert_mlp_sweep, "recurrent_jaco": convert_recurrent_jaco}
+               "mlp_sweep": convert_mlp_sweep, "recurrent_jaco": convert_recurrent_jaco,
+               "sysid_sensitivity": convert_sysid_sensitivity}
 
 
 def main() -> int:
