@@ -1,16 +1,18 @@
-"""One-time conversion of the control experiments' row files to results records, and the check
+"""One-time conversion of the experiments' committed results to results records, and the check
 that the summaries regenerated from them show the same numbers.
 
-    PYTHONPATH=. python3 bench/convert_records.py [--check-only]
+    PYTHONPATH=. python3 bench/convert_records.py [--check-only] [--only control sysid_figures ...]
 
 Rewrites, in place, ``bench/results/control/{results,throughput,cpu_timing,swimmer_iterations}.jsonl``
-and ``{fig10,fig11,iterations}/results.jsonl`` as ``gnwarp.eval.records`` lines, and writes
-``bench/results/forward_models/results.jsonl`` from its ``<system>/results.json`` files (every number
-unchanged; a file already in the record format is left alone), regenerates the ``summary.md`` of
-``control``, ``fig10`` and ``fig11`` with ``gnwarp.eval.summarize``, and compares each mean +- std
-cell and ratio of the first table of the summary at commit e848b55 (the row format's last) with the
-regenerated one, and each error of the forward models' table with its record (exit 1 on a
-difference).
+and ``{fig10,fig11,iterations}/results.jsonl`` as ``gnwarp.eval.records`` lines, regenerates the
+``summary.md`` of ``control``, ``fig10`` and ``fig11`` with ``gnwarp.eval.summarize``, and compares
+each mean +- std cell and ratio of the first table of the summary at commit e848b55 (the row
+format's last) with the regenerated one. Then, for each experiment of ``CONVERSIONS``, writes its
+records from the committed results (forward_models, sysid_figures and every labelled run folder
+under it, multi_system, ablation_h2, budget_retrain, speed_accuracy, mlp_sweep, recurrent_jaco,
+sysid_sensitivity; every number unchanged, a file already in the record format left alone),
+regenerates its summary and compares each number of its summary before (at e848b55 or
+``SYSID_BASE``) with the records. Exit 1 on a difference. Running it again changes nothing.
 """
 from __future__ import annotations
 
