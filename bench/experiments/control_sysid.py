@@ -1,4 +1,4 @@
-"""Figure 10 (issue 17): planning on systems whose parameters the planner is not told.
+"""Figure 10: planning on systems whose parameters the planner is not told.
 
 For each system (default: pendulum and cartpole with their balance tasks), a parameterized dataset
 (``gnwarp generate --parameterized``) and the three models of ``sysid_figures.py`` trained on it:
