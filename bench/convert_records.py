@@ -165,7 +165,7 @@ def sections(md: str) -> dict[str, tuple[list[str], list[list[str]]]]:
 
 def convert_sysid_figures() -> list[str]:
     """Every ``sysid_figures/**/results.jsonl`` of rows as ``records.jsonl`` beside it (its error rows;
-    the bookkeeping key "sitting" dropped); the ``summary.md`` of the folders that have one regenerated
+    the rows' other keys in their config); the ``summary.md`` of the folders that have one regenerated
     from the records and ``probe.md`` from the rows. Returns the differences between each number of the
     summary at ``SYSID_BASE`` (Figure 8, ratios, Figure 9, training, probe) and the regenerated ones."""
     problems = []
@@ -173,8 +173,6 @@ def convert_sysid_figures() -> list[str]:
         rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
         if not rows or "part" not in rows[0]:
             continue                      # sysid_sensitivity's rows
-        for r in rows:
-            r.pop("sitting", None)
         records = sysid_figures.to_records(rows)
         write_records(path.parent / "records.jsonl", records, append=False)
         records = read_records(path.parent / "records.jsonl")
@@ -236,7 +234,7 @@ def convert_multi_system() -> list[str]:
     problems = []
     for folder, runs in ((MULTI, ["multi4", "multi5", "swimmerN"]), (MULTI / "swimmerN_captured", [None])):
         old = old_text(folder / "summary.md", SYSID_BASE)
-        title = re.sub(r", session \d+\)", ")", old.splitlines()[0][2:])
+        title = re.sub(r", [a-z]+ \d+\)$", ")", old.splitlines()[0][2:])   # without the old title's run label
         m = re.search(r"Data: (\d+)/(\d+)/(\d+) sequences x (\d+) steps per trained system", old)
         seqs, steps = [int(m.group(i)) for i in (1, 2, 3)], int(m.group(4))
         seconds = float(re.search(r"capped at ([\d.]+) s of training", old).group(1))
