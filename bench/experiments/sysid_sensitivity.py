@@ -76,7 +76,8 @@ def main():
     args = ap.parse_args()
     if args.quick:
         args.sequences, args.num_steps, args.window, args.eps = 16, 30, 10, (0.01, 0.1)
-    out = experiment_out("sysid_figures/sensitivity", args.out, args.quick)
+    # a --quick run without --out writes to a temporary folder named after the script
+    out = experiment_out("sysid_sensitivity" if args.quick else "sysid_figures/sensitivity", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for s in filter(None, args.systems.split(",")):
