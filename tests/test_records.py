@@ -149,3 +149,19 @@ def test_errors_without_std_are_summarized_by_their_mean(tmp_path):
     assert "| pendulum-balance | 0.0123 |" in lines and "errors per group" in lines[2]
     summarize.write_summary([rec], tmp_path)
     assert (tmp_path / "errors.png").exists()
+
+
+def test_reported_means_of_several_seeds_pool_over_the_seeds():
+    means = [0.0466, 0.0453, 0.0496]
+    recs = [record(planner="none", variant="IN", returns=None, seed=s, episodes=200, episode_steps=20,
+                   reported={"mean": m, "std": None, "of": "errors"}) for s, m in enumerate(means)]
+    (g,) = summarize.groups(recs)
+    assert g.over == "seeds" and g.reported and g.n == 3
+    assert g.mean == pytest.approx(np.mean(means)) and g.std == pytest.approx(np.std(means))
+    assert g.ci == pytest.approx(summarize.t_quantile(2) * np.std(means, ddof=1) / math.sqrt(3))
+    assert any("| 3 seeds (reported means) |" in line for line in summarize.summary_lines([g]))
+    rerun = record(planner="none", variant="IN", returns=None, seed=0, episodes=200, episode_steps=20,
+                   reported={"mean": 0.5, "std": None, "of": "errors"})
+    assert summarize.groups(recs + [rerun])[0].mean == pytest.approx(np.mean([0.5, *means[1:]]))  # the rerun stands
+    with pytest.raises(ValueError, match="cannot be pooled"):
+        summarize.groups(recs + [record(planner="none", variant="IN", seed=9, episode_steps=20)])

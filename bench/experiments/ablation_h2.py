@@ -7,6 +7,10 @@ Every variant trains the same number of steps (not the same seconds: the IN's st
 with the library's captured step; sizes as the budget experiments (latent 128, edge MLP 2x256,
 node/global 2x128), batch 200, lr 1e-3 x0.6 every quarter of the run.
 
+Each run's one-step and 20-step errors are results records (``gnwarp.eval.records``), appended to
+``<out>/results.jsonl`` as the runs finish; ``summary.md`` (mean and std over the seeds' errors)
+is generated from them by ``gnwarp.eval.summarize``, ``ablation_h2.png`` from the same records.
+
     python bench/experiments/ablation_h2.py [--variants IN,GN2-skip] [--seeds 0,1,2] [--steps 25000]
     python bench/experiments/ablation_h2.py --table-only    # summary and plot from results.jsonl
     python bench/experiments/ablation_h2.py --quick         # tiny CPU smoke run
@@ -57,7 +61,27 @@ def run_one(args, data, ds, name: str, seed: int, tmp: Path) -> dict:
     errs = mean_errors(evaluate(model, ds, "test", sequences=args.test, horizons=(20,)))
     return {"variant": name, "seed": seed, "device": device_name(model.device), "steps": result["steps"],
             "seconds": round(result["seconds"], 1), "parameters": n_params, "one_step": errs["one_step"],
-            "rollout_20": errs["rollout_20"]}
+            "rollout_20": errs["rollout_20"], "test_sequences": min(args.test, len(ds["test"])),
+            "env_steps": args.sequences[0] * args.sequence_steps, "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def to_records(row: dict, commit: str = "unknown") -> list:
+    """One run (a variant and seed) as results records of errors: the one-step and 20-step errors
+    normalized by the constant baseline, averaged over state groups and test sequences
+    (``reported``: per-sequence errors are not kept); task and system swimmer6, planner "none" on
+    learned dynamics, the variant's name as the variant, the training seed as the seed. Metrics:
+    parameters, training steps and seconds."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make("swimmer6")
+    return [ResultRecord(
+        experiment="ablation_h2", task="swimmer6", system="swimmer6", planner="none", dynamics="learned",
+        variant=row["variant"], seed=int(row["seed"]), episodes=int(row.get("test_sequences", 200)),
+        episode_steps=horizon, reported={"mean": float(row[key]), "std": None, "of": "errors"},
+        control_dt=float(system.dt), action_repeat=int(system.substeps), env_steps=row.get("env_steps"),
+        metrics={"parameters": row["parameters"], "train_steps": row["steps"], "train_seconds": row["seconds"]},
+        config={"gn_wiring": VARIANTS[row["variant"]]}, commit=commit, gpu=row.get("device", "unknown"),
+        date=row.get("date", "")) for key, horizon in (("one_step", 1), ("rollout_20", 20))]
 
 
 def main():
@@ -76,62 +100,55 @@ def main():
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    args.valid = args.sequences[1]
+    args.valid, args.sequence_steps = args.sequences[1], 100
     if args.quick:
         args.sequences, args.steps, args.valid, args.test, args.valid_every = (30, 5, 8), 30, 5, 8, 15
         args.latent, args.edge_width, args.node_width, args.device = 16, 32, 16, "cpu"
+        args.sequence_steps = 20
         args.out = tempfile.mkdtemp(prefix="ablation_h2_")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if not args.table_only:
         from gnwarp.data import load
+        from gnwarp.eval.records import git_commit, write_records
+        commit = git_commit()
         with tempfile.TemporaryDirectory() as tmp:
-            data = ensure_dataset(Path(tmp) / "swimmer6.h5", "swimmer6", args.sequences, 100 if not args.quick else 20,
-                                  seed=1)
+            data = ensure_dataset(Path(tmp) / "swimmer6.h5", "swimmer6", args.sequences, args.sequence_steps, seed=1)
             ds = load(data, lazy=False)
             for name in args.variants.split(","):
                 for seed in (int(s) for s in args.seeds.split(",")):
                     row = run_one(args, data, ds, name, seed, Path(tmp))
                     print(json.dumps(row), flush=True)
-                    with open(out / "results.jsonl", "a") as f:
-                        f.write(json.dumps(row) + "\n")
-    summarize(out, args)
+                    write_records(out / "results.jsonl", to_records(row, commit=commit))
+    summarize(out)
 
 
-def summarize(out: Path, args) -> None:
+def summarize(out: Path) -> None:
+    """``summary.md`` (``gnwarp.eval.summarize``) and ``ablation_h2.png`` from ``out/results.jsonl``."""
     import numpy as np
-    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
+
+    from gnwarp.eval.records import read_records
+    from gnwarp.eval.summarize import write_summary
+    records = read_records(out / "results.jsonl")
+    title = f"Figure H.2 ablation on Swimmer6 ({records[-1].gpu if records else '?'})"
+    print(f"wrote {write_summary(records, out, title, plot=False)}")
     by = {}
-    for r in rows:
-        by.setdefault(r["variant"], []).append(r)
+    for r in records:
+        if r.episode_steps == 20:
+            by.setdefault(r.variant, {})[r.seed] = r.reported["mean"]   # a rerun of a seed stands
     names = [n for n in VARIANTS if n in by]
-    dev = rows[0]["device"] if rows else "?"
-    lines = [f"# Figure H.2 ablation on Swimmer6 ({dev})", "",
-             f"`python bench/experiments/ablation_h2.py` ({time.strftime('%Y-%m-%d')}): each variant trained "
-             f"{rows[0]['steps'] if rows else '?'} steps (batch 200, lr 1e-3 x0.6 every quarter, captured step, "
-             "tf32), seeds as listed; 20-step rollout error / constant baseline on the test split, mean over the "
-             "state groups; mean and standard deviation over seeds.", "",
-             "| variant | seeds | parameters | 20-step error mean | std | one-step mean | seconds per run |",
-             "|---|---|---|---|---|---|---|"]
-    for n in names:
-        e = np.array([r["rollout_20"] for r in by[n]])
-        o = np.array([r["one_step"] for r in by[n]])
-        lines.append(f"| {n} | {len(e)} | {by[n][0]['parameters']} | {e.mean():.3g} | {e.std():.2g} | {o.mean():.3g} | "
-                     f"{np.mean([r['seconds'] for r in by[n]]):.0f} |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(9, 3.8))
     x = np.arange(len(names))
-    means = [np.mean([r["rollout_20"] for r in by[n]]) for n in names]
-    stds = [np.std([r["rollout_20"] for r in by[n]]) for n in names]
+    means = [np.mean(list(by[n].values())) for n in names]
+    stds = [np.std(list(by[n].values())) for n in names]
     colors = ["grey" if n == "IN" else "tab:blue" if n.startswith("GN2") else "tab:red" if "globals" in n
               else "tab:purple" if "nodes" in n else "tab:green" for n in names]
     ax.bar(x, means, yerr=stds, color=colors, capsize=4)
     for i, n in enumerate(names):
-        ax.scatter([i] * len(by[n]), [r["rollout_20"] for r in by[n]], color="k", s=8, zorder=3)
+        ax.scatter([i] * len(by[n]), list(by[n].values()), color="k", s=8, zorder=3)
     ax.set_xticks(x, names, rotation=30, ha="right")
     ax.set_yscale("log")
     ax.set_ylabel("20-step rollout error / constant")
@@ -139,7 +156,6 @@ def summarize(out: Path, args) -> None:
     fig.tight_layout()
     fig.savefig(out / "ablation_h2.png", dpi=110)
     plt.close(fig)
-
 
 if __name__ == "__main__":
     main()

@@ -1,13 +1,17 @@
-"""Issue 14, "then use it": the seven systems re-trained at the 220 s budget of the committed
-forward-model table (``bench/results/forward_models/summary.md``, trained before the training step
-was captured), now with the library's captured training step, one system after another on the
-one GPU; steps reached and one/20/100-step errors before and after, side by side.
+"""The seven systems re-trained at the 220 s budget of the committed forward-model table
+(``bench/results/forward_models/``, trained with the eager training loop), with the library's
+captured training step, one system after another on the one GPU; steps reached and one/20/100-step
+errors before and after, side by side.
 
 Same data (2000/50/200 sequences x 100 steps, MuJoCo C, seed 1), GN sizes (latent 128, edge MLP
 2x256, node/global 2x128), batch 200, learning rate 1e-3 x0.6 every quarter of the run, validation
 on 50 sequences. The "quarter of the run" needs the run's length: a short calibration (1000
 captured steps after 300 warm ones) measures each system's steps/s and the schedule is laid over
 ``rate x seconds`` steps; the wall-clock cap stops the run either way.
+
+Each system's errors are results records (``gnwarp.eval.records``) in ``<out>/results.jsonl``:
+variant "captured loop" (this run) and "eager loop" (the forward-model table's GN, from its
+records); ``summary.md`` is generated from them (``gnwarp.eval.summarize``).
 
     python bench/experiments/budget_retrain.py [--systems pendulum,cheetah] [--seconds 220]
     python bench/experiments/budget_retrain.py --quick      # tiny CPU smoke run
@@ -16,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 import tarfile
 import tempfile
@@ -27,20 +30,53 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import SYSTEMS, device_name, ensure_dataset, gn_sizes, mean_errors  # noqa: E402
 
-BEFORE = Path(__file__).resolve().parents[1] / "results" / "forward_models" / "summary.md"
+BEFORE = Path(__file__).resolve().parents[1] / "results" / "forward_models" / "results.jsonl"
+HORIZONS = {"one_step": 1, "rollout_20": 20, "rollout_100": 100}
+# the summary's ratio: the captured loop's error as a share of the eager loop's
+RATIO = ("none (learned, captured loop)", "none (learned, eager loop)")
 
 
 def before_table(path: Path = BEFORE) -> dict[str, dict]:
-    """{system: {"steps", "one_step", "rollout_20", "rollout_100"}} of the committed GN table."""
+    """{system: {"steps", "one_step", "rollout_20", "rollout_100"}} of the forward-model table's GN
+    (its results records; {} without them)."""
+    from gnwarp.eval.records import read_records
     rows = {}
     if not path.exists():
         return rows
-    for line in path.read_text().splitlines():
-        m = re.match(r"\|\s*(\w+)\s*\|\s*(\d+)\s*\(\d+\)\s*\|\s*([\d.e+-]+)\s*\|\s*([\d.e+-]+)\s*\|\s*([\d.e+-]+)\s*\|", line)
-        if m:
-            rows[m.group(1)] = {"steps": int(m.group(2)), "one_step": float(m.group(3)),
-                                "rollout_20": float(m.group(4)), "rollout_100": float(m.group(5))}
+    names = {h: k for k, h in HORIZONS.items()}
+    for r in read_records(path):
+        if r.variant == "GN" and r.episode_steps in names:
+            row = rows.setdefault(r.task, {"steps": r.metrics.get("train_steps")})
+            row[names[r.episode_steps]] = r.reported["mean"]
     return rows
+
+
+def to_records(row: dict, commit: str = "unknown") -> list:
+    """One system's row as results records of errors: per horizon (1, 20, 100 steps) the error
+    normalized by the constant baseline, averaged over state groups and the 200 test sequences
+    (``reported``: per-sequence errors are not kept); planner "none" on learned dynamics, variant
+    "captured loop", and, where the row holds the forward-model table's numbers (``before``),
+    "eager loop" records with those. Metrics: training steps (and seconds, steps/s, calibration)."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make(row["system"])
+    common = dict(experiment="budget_retrain", task=row["system"], system=row["system"], planner="none",
+                  dynamics="learned", episodes=int(row.get("test_sequences", 200)), control_dt=float(system.dt),
+                  action_repeat=int(system.substeps), env_steps=row.get("env_steps"), commit=commit,
+                  gpu=row.get("device", "unknown"), date=row.get("date", ""))
+    after = {"train_steps": row["steps"], "train_seconds": row["seconds"], "steps_per_s": row["steps_per_s"],
+             "calibrated_steps_per_s": row["calibrated_steps_per_s"], "planned_steps": row["planned_steps"]}
+    out = []
+    for variant, values, metrics in (("captured loop", row, after),
+                                     ("eager loop", row.get("before"), {"train_steps": (row.get("before") or {}).get("steps")})):
+        if not values:
+            continue
+        for key, horizon in HORIZONS.items():
+            out.append(ResultRecord(variant=variant, episode_steps=horizon,
+                                    reported={"mean": float(values[key]), "std": None, "of": "errors"},
+                                    metrics={k: v for k, v in metrics.items() if v is not None},
+                                    config={"seconds_budget": row["seconds_budget"]}, **common))
+    return out
 
 
 def config(args, data, out, steps, seconds, **kw):
@@ -119,66 +155,31 @@ def main():
                    "calibrated_steps_per_s": round(rate, 1), "planned_steps": planned, "steps": result["steps"],
                    "seconds": round(result["seconds"], 1), "steps_per_s": round(result["steps_per_second"], 1),
                    "one_step": errs["one_step"], "rollout_20": errs["rollout_20"], "rollout_100": errs["rollout_100"],
-                   "data_seconds": round(t_data, 1), "before": before.get(name)}
+                   "data_seconds": round(t_data, 1), "before": before.get(name),
+                   "test_sequences": len(ds["test"]), "env_steps": args.sequences[0] * args.steps,
+                   "date": time.strftime("%Y-%m-%d %H:%M")}
             rows.append(row)
             print(json.dumps(row), flush=True)
         if args.checkpoints:
             with tarfile.open(args.checkpoints, "w:gz") as tar:
                 for r in rows:
                     tar.add(runs / r["system"] / "best", arcname=f"{r['system']}/best")
-    with open(out / "results.jsonl", "a") as f:
-        for r in rows:
-            f.write(json.dumps(r) + "\n")
-    write_table(out, rows, args)
-    plot(out, rows)
+    from gnwarp.eval.records import git_commit, write_records
+    commit = git_commit()
+    write_records(out / "results.jsonl", [x for r in rows for x in to_records(r, commit=commit)])
+    report(out)
 
 
-def _g(x) -> str:
-    return "-" if x is None else f"{x:.2g}"
-
-
-def write_table(out: Path, rows: list[dict], args) -> None:
-    dev = rows[0]["device"] if rows else "?"
-    lines = [f"# The seven systems re-trained at the same budget, before and after captured training ({dev})", "",
-             f"`python bench/experiments/budget_retrain.py` ({time.strftime('%Y-%m-%d')}): GN training capped at "
-             f"{args.seconds:g} s per system. Before: the committed table `bench/results/forward_models/summary.md` "
-             "(all seven side by side, eager training loop). After: one system at a time, the library's captured "
-             "step (tf32, FlatAdam), learning-rate schedule laid over the steps the calibrated rate allows. Errors: "
-             "squared error / constant-prediction baseline, mean over the state groups, 200 test sequences.", "",
-             "| system | steps before | steps after | x | one-step before | after | 20-step before | after | "
-             "100-step before | after |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        b = r["before"] or {}
-        x = f"{r['steps'] / b['steps']:.1f}x" if b.get("steps") else "-"
-        lines.append(f"| {r['system']} | {b.get('steps', '-')} | {r['steps']} | {x} | {_g(b.get('one_step'))} | "
-                     f"{_g(r['one_step'])} | {_g(b.get('rollout_20'))} | {_g(r['rollout_20'])} | "
-                     f"{_g(b.get('rollout_100'))} | {_g(r['rollout_100'])} |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
-
-def plot(out: Path, rows: list[dict]) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-    names = [r["system"] for r in rows]
-    x = np.arange(len(rows))
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
-    for ax, key, title in zip(axes, ("steps", "one_step", "rollout_20", "rollout_100"),
-                              ("training steps in the budget", "one-step error", "20-step error", "100-step error")):
-        b = [np.nan if not r["before"] else r["before"][key] for r in rows]
-        a = [r[key] for r in rows]
-        ax.bar(x - 0.2, b, 0.4, label="before (eager loop)")
-        ax.bar(x + 0.2, a, 0.4, label="after (captured step)")
-        ax.set_yscale("log")
-        ax.set_xticks(x, names, rotation=45)
-        ax.set_title(title)
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "before_after.png", dpi=110)
-    plt.close(fig)
-
+def report(out: Path) -> Path:
+    """``summary.md`` from ``out/results.jsonl`` (``gnwarp.eval.summarize``)."""
+    from gnwarp.eval.records import read_records
+    from gnwarp.eval.summarize import write_summary
+    records = read_records(out / "results.jsonl")
+    title = (f"The seven systems re-trained at the same budget, before and after captured training "
+             f"({records[-1].gpu})")
+    path = write_summary(records, out, title, ratio_of=RATIO)
+    print(f"wrote {path}")
+    return path
 
 if __name__ == "__main__":
     main()

@@ -1,4 +1,4 @@
-"""Issue 17's results: closed-loop control on the true simulator, gradient MPC through a learned
+"""Closed-loop control on the true simulator: gradient MPC through a learned
 model against iLQG on the true model, sampling MPC (true and learned dynamics) and random actions.
 
 For each task (default: pendulum-balance, cartpole-balance, swimmer-reach on swimmer6; ``--tasks

@@ -1,4 +1,4 @@
-"""Figure 10 (issue 17): planning on systems whose parameters the planner is not told.
+"""Figure 10: planning on systems whose parameters the planner is not told.
 
 For each system (default: pendulum and cartpole with their balance tasks), a parameterized dataset
 (``gnwarp generate --parameterized``) and the three models of ``sysid_figures.py`` trained on it:
@@ -45,12 +45,16 @@ RATIO = ("gradient (learned, sysid)", "gradient (learned, true_params)")
 
 
 def model_args(args) -> types.SimpleNamespace:
-    """The training settings ``sysid_figures.train_all`` reads."""
-    return types.SimpleNamespace(
-        steps=args.train_steps, seconds=args.train_seconds, batch=args.batch, lr=1e-3, valid_every=args.valid_every,
-        valid=args.sequences[1], latent=args.gn[0], edge_width=args.gn[1], node_width=args.gn[2], impl=args.impl,
-        device=args.device, seed=args.seed, normalizer_warmup=args.normalizer_warmup, no_capture=False,
-        gid=args.gid, identifier_latent=args.gn[0], identifier_mlp=(args.gn[2], args.gn[2]), window=args.window)
+    """The training settings ``sysid_figures.train_all`` reads: ``sysid_figures``' defaults (its
+    precision, noise, EMA, system-identification flags) with this script's sizes and budgets."""
+    from bench.experiments import sysid_figures as sf
+    base = vars(sf.build_parser().parse_args([]))
+    return types.SimpleNamespace(**{
+        **base, "steps": args.train_steps, "seconds": args.train_seconds, "batch": args.batch, "lr": 1e-3,
+        "valid_every": args.valid_every, "valid": args.sequences[1], "latent": args.gn[0], "edge_width": args.gn[1],
+        "node_width": args.gn[2], "impl": args.impl, "device": args.device, "seed": args.seed,
+        "normalizer_warmup": args.normalizer_warmup, "no_capture": False, "gid": args.gid,
+        "identifier_latent": args.gn[0], "identifier_mlp": (args.gn[2], args.gn[2]), "window": args.window})
 
 
 def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:

@@ -2,6 +2,11 @@
 number of steps as the GN of ``bench/experiments/forward_models.py`` on the same data (regenerated
 from the same seed), evaluated the same way; the best MLP per system is the paper's baseline.
 
+Each (system, model, horizon) is a results record (``gnwarp.eval.records``) in
+``<out>/results.jsonl``: the MLPs (variant "MLP <size>") and, beside them, the GN of the
+forward-model experiment (variant "GN", from its ``<system>/results.json``); ``summary.md`` and
+``errors.png`` are generated from them (``gnwarp.eval.summarize``).
+
     python bench/experiments/mlp_sweep.py --gn-results bench/results/forward_models --out bench/results/mlp_sweep
     python bench/experiments/mlp_sweep.py --quick
 """
@@ -15,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import (SYSTEMS, add_run_args, ensure_dataset, experiment_out, mean_errors,  # noqa: E402
-                           results_dir, run_side_by_side, train_model, write_summary)
+                           results_dir, run_side_by_side, train_model)
 from gnwarp.models import MLP_SIZES  # noqa: E402
 
 
@@ -89,23 +94,48 @@ def main():
         if s not in gn and (Path(args.gn_results) / s / "results.json").exists() and collect(out, s):
             gn[s] = json.loads((Path(args.gn_results) / s / "results.json").read_text())
             names.append(s)
-    lines = ["# MLP baseline sweep (section E) beside the GN of bench/experiments/forward_models.py", "",
-             "Each MLP trained for the GN's number of steps on the same data; 20-step rollout error / constant.", "",
-             f"| system | GN | {' | '.join(MLP_SIZES)} | best MLP | GN better than best MLP |",
-             "|---|---|" + "---|" * len(MLP_SIZES) + "---|---|"]
+    from gnwarp.eval.records import git_commit, write_records
+    from gnwarp.eval.summarize import write_summary
+    records, commit = [], git_commit()
     for s in names:
         r = collect(out, s)
-        g20 = gn[s]["results"]["GN"]["rollout_20"]["mean"]
         if not r:
-            lines.append(f"| {s} | {g20:.3g} | failed (see {s}_*.log) | | | | | | |")
-            continue
-        best = min(r, key=lambda k: r[k]["rollout_20"])
-        cells = " | ".join(f"{r[k]['rollout_20']:.3g}" if k in r else "not finished" for k in MLP_SIZES)
-        verdict = "yes" if g20 < r[best]["rollout_20"] else "no"
-        lines.append(f"| {s} ({gn[s]['gn']['steps']} steps) | {g20:.3g} | {cells} | {best} ({r[best]['rollout_20']:.3g})"
-                     f"{'' if len(r) == len(MLP_SIZES) else f' of {len(r)}'} | {verdict} |")
-    write_summary(out, lines)
+            print(f"{s}: failed (see {s}_*.log)", flush=True)
+        records += to_records(s, gn[s], r, commit=commit)
+    write_records(out / "results.jsonl", records, append=False)
+    title = "MLP baseline sweep (section E) beside the GN of bench/experiments/forward_models.py"
+    print(f"wrote {write_summary(records, out, title)}")
 
+
+HORIZONS = {"one_step": 1, "rollout_20": 20, "rollout_100": 100}
+
+
+def to_records(system: str, gn: dict, mlps: dict, gpu: str = "unknown", commit: str = "unknown",
+               date: str = "") -> list:
+    """One system's errors as results records: the GN (``gn``: the forward-model experiment's
+    ``results.json`` of the system) and each MLP size of ``mlps`` ({size: its results.json}), per
+    horizon (1, 20, 100 steps) the error normalized by the constant baseline, averaged over state
+    groups and test sequences (``reported``: per-sequence errors are not kept); planner "none" on
+    learned dynamics, variants "GN" and "MLP <size>". Metrics: training steps."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    sim = systems.make(system)
+    env_steps = int(gn["dataset"]["train"]) * int(gn["num_steps"]) if gn.get("dataset") else None
+    g = gn["results"]["GN"]
+    runs = [("GN", {k: g[k]["mean"] for k in HORIZONS if k in g} | {"sequences": g["sequences"]}, gn["gn"]["steps"])]
+    runs += [(f"MLP {size}", r, r["steps"]) for size, r in mlps.items()]
+    out = []
+    for variant, r, steps in runs:
+        for key, horizon in HORIZONS.items():
+            if r.get(key) is None:
+                continue
+            out.append(ResultRecord(
+                experiment="mlp_sweep", task=system, system=system, planner="none", dynamics="learned",
+                variant=variant, episodes=int(r["sequences"]), episode_steps=horizon,
+                reported={"mean": float(r[key]), "std": None, "of": "errors"}, control_dt=float(sim.dt),
+                action_repeat=int(sim.substeps), env_steps=env_steps, metrics={"train_steps": int(steps)},
+                commit=commit, gpu=gpu, date=date))
+    return out
 
 if __name__ == "__main__":
     main()

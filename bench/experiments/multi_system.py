@@ -1,4 +1,4 @@
-"""Experiments 2 and 3 of issue 4: one model for several systems, and SwimmerN zero-shot.
+"""One model for several systems, and SwimmerN zero-shot.
 
 - ``multi4``: one GN on Pendulum, Cartpole, Acrobot and Swimmer6 (batches mixed in equal
   proportion); ``multi5``: the same plus Cheetah. Each evaluated on every system's test split.
@@ -6,7 +6,9 @@
   10-15 never seen in training).
 
 Datasets are simulated with MuJoCo C on all cores; the three trainings run side by side on the one
-device, each capped at ``--seconds`` of wall clock.
+device, each capped at ``--seconds`` of wall clock. Each run's errors on each test system are
+results records (``gnwarp.eval.records``) in ``<out>/results.jsonl``; ``summary.md`` and
+``errors.png`` are generated from them (``gnwarp.eval.summarize``).
 
     python bench/experiments/multi_system.py --seconds 300 --out bench/results/multi_system
     python bench/experiments/multi_system.py --quick
@@ -22,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import (add_run_args, add_training_args, device_name, ensure_dataset, experiment_out,  # noqa: E402
-                           forward_args, gn_sizes, mean_errors, run_side_by_side, train_model, write_summary)
+                           forward_args, gn_sizes, mean_errors, run_side_by_side, train_model)
 
 RUNS = {
     "multi4": (["pendulum", "cartpole", "acrobot", "swimmer6"], ["pendulum", "cartpole", "acrobot", "swimmer6"]),
@@ -84,27 +86,53 @@ def main():
                        *forward_args(args, "seconds", "max_steps", "lr", "valid_every", "latent", "edge_width",
                                      "node_width"), "--valid", str(args.sequences[1])]
     run_side_by_side(commands, out)
-    lines = [f"# One model for several systems, and SwimmerN zero-shot ({device_name()})", "",
-             f"Data: {args.sequences[0]}/{args.sequences[1]}/{args.sequences[2]} sequences x {args.steps} steps per "
-             f"trained system (MuJoCo C, {t_data:.0f} s); GN latent {args.latent}, edge MLP 2x{args.edge_width}, node/"
-             f"global 2x{args.node_width}; each run capped at {args.seconds:g} s of training, the runs side by side on "
-             "one device. Errors: model / constant baseline, averaged over state groups.", "",
-             "| run | steps | test system | seen in training | one-step | 20-step | 100-step |", "|---|---|---|---|---|---|---|"]
+    print(f"datasets: {t_data:.0f} s", flush=True)
+    from gnwarp.eval.records import git_commit, write_records
+    from gnwarp.eval.summarize import write_summary
+    records, commit, gpu = [], git_commit(), device_name()
     for r in runs:
         f = out / r / "results.json"
         if not f.exists():
-            lines.append(f"| {r} | failed (see {r}.log) | | | | | |")
+            print(f"{r}: failed (see {r}.log)", flush=True)
             continue
         s = json.loads(f.read_text())
-        for name, v in s["results"].items():
-            lines.append(f"| {r} | {s['steps']} | {name} | {'yes' if v['seen_in_training'] else 'no'} | "
-                         f"{_f(v.get('one_step'))} | {_f(v.get('rollout_20'))} | {_f(v.get('rollout_100'))} |")
-    write_summary(out, lines)
+        config = {"sequences": list(args.sequences), "sequence_steps": args.steps, "seconds": args.seconds,
+                  "gn": [args.latent, args.edge_width, args.node_width]}
+        records += to_records(s, env_steps=args.sequences[0] * args.steps * len(s["train_systems"]), gpu=gpu,
+                              commit=commit, date=time.strftime("%Y-%m-%d %H:%M"), config=config)
+    write_records(out / "results.jsonl", records, append=False)
+    print(f"wrote {write_summary(records, out, f'One model for several systems, and SwimmerN zero-shot ({gpu})')}")
 
 
-def _f(x) -> str:
-    return "n/a" if x is None else f"{x:.3g}"
+HORIZONS = {"one_step": 1, "rollout_20": 20, "rollout_100": 100}
 
+
+def to_records(s: dict, env_steps: int | None = None, gpu: str = "unknown", commit: str = "unknown",
+               date: str = "", config: dict | None = None) -> list:
+    """One run's ``results.json`` as results records of errors: per test system and horizon (1,
+    20, 100 steps) the error normalized by the constant baseline, averaged over state groups and
+    test sequences (``reported``: per-sequence errors are not kept); planner "none" on learned
+    dynamics, the run ("multi4", "multi5", "swimmerN") as the variant. Metrics: the run's training
+    steps and seconds, whether the test system is one it trained on (1 or 0). ``env_steps``:
+    simulated steps of the training data (None: not recorded)."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    out = []
+    for name, r in s["results"].items():
+        system = systems.make(name)
+        for key, horizon in HORIZONS.items():
+            if r.get(key) is None:
+                continue
+            out.append(ResultRecord(
+                experiment="multi_system", task=name, system=name, planner="none", dynamics="learned",
+                variant=s["run"], episodes=int(r["sequences"]), episode_steps=horizon,
+                reported={"mean": float(r[key]), "std": None, "of": "errors"},
+                control_dt=float(system.dt), action_repeat=int(system.substeps), env_steps=env_steps,
+                metrics={"train_steps": s["steps"], "train_seconds": round(float(s["seconds"]), 1),
+                         "seen_in_training": int(bool(r["seen_in_training"]))},
+                config={"train_systems": s["train_systems"], "finite": r.get("finite"), **(config or {})},
+                commit=commit, gpu=gpu, date=date))
+    return out
 
 if __name__ == "__main__":
     main()

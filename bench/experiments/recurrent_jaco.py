@@ -11,8 +11,11 @@ RMS joint-angle error (rad, wrapped) and RMS joint-velocity error (rad/s) over t
     python bench/experiments/recurrent_jaco.py --quick              # CPU smoke run, < 1 min
     python bench/experiments/recurrent_jaco.py                      # full size (GPU)
 
-Writes results.json, results.md and recurrent_jaco.png (error per horizon and one joint's
-trajectory, like Figure 7) under --out (default bench/results/recurrent_jaco).
+Writes under --out (default bench/results/recurrent_jaco): results.json (every horizon's errors
+and the run's settings), results.jsonl (results records, ``gnwarp.eval.records``: per model,
+quantity and horizon 1, 5, 10, 20, 50, 80), summary.md generated from them
+(``gnwarp.eval.summarize``) and recurrent_jaco.png (error per horizon and one joint's trajectory,
+like Figure 7).
 """
 from __future__ import annotations
 
@@ -136,23 +139,62 @@ def main():
         traces[name] = torch.atan2(pred[b, :, j, 1], pred[b, :, j, 0]).cpu().numpy()
         print(f"{name}: loss {losses[0]:.3g} -> {losses[-1]:.3g} (means over 10 steps)")
 
-    horizons = [h for h in (1, 5, 10, 20, 50, 80) if h <= cfg["steps"] - W]
-    lines = ["| model | " + " | ".join(f"angle h={h}" for h in horizons) + " | "
-             + " | ".join(f"vel h={h}" for h in horizons) + " |", "|---" * (1 + 2 * len(horizons)) + "|"]
-    for name, r in res.items():
-        lines.append(f"| {name} | " + " | ".join(f"{r['angle'][h - 1]:.3g}" for h in horizons) + " | "
-                     + " | ".join(f"{r['velocity'][h - 1]:.3g}" for h in horizons) + " |")
-    table = "\n".join(lines)
-    print(table)
     meta = {"config": cfg, "lag": args.lag, "servo_scale": args.servo_scale, "seed": args.seed, "device": str(dev),
             "backend": backend, "quick": args.quick, "training": logs}
     (out / "results.json").write_text(json.dumps({"meta": meta, "errors": res}, indent=1, default=float))
-    (out / "results.md").write_text(f"# Recurrent vs feed-forward, proprioceptive JACO\n\n"
-                                    f"RMS errors per rollout step after a {W}-step warm-up on true observations "
-                                    f"(angle rad, velocity rad/s; arm and finger joints).\n\n{table}\n\n"
-                                    f"```\n{json.dumps(meta, indent=1, default=float)}\n```\n")
+    from gnwarp.eval.records import git_commit, gpu_name, write_records
+    records = to_records({"meta": meta, "errors": res}, system, gpu=gpu_name(dev), commit=git_commit(),
+                         date=time.strftime("%Y-%m-%d %H:%M"))
+    write_records(out / "results.jsonl", records, append=False)
+    print(f"wrote {report(out, records)}")
     plot(res, traces, f"body {j}", W, system.dt, out / "recurrent_jaco.png")
     print(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
+
+
+HORIZONS = (1, 5, 10, 20, 50, 80)
+QUANTITIES = {"angle": "angle (rad)", "velocity": "velocity (rad/s)"}
+
+
+def to_records(results: dict, system, gpu: str = "unknown", commit: str = "unknown", date: str = "") -> list:
+    """``results.json``'s errors as results records: per model ("constant", "recurrent",
+    "feed-forward"), quantity and horizon (1, 5, 10, 20, 50, 80 steps after the warm-up, those the
+    sequences reach) the RMS error over the test sequences and joints (``reported`` mean: the RMS;
+    per-sequence errors are not kept). Task "jaco_proprio", variant "<model>, angle (rad)" or
+    "<model>, velocity (rad/s)"; the constant baseline plans with no model (dynamics "none"), the
+    others are learned. Metrics of a model's records: its training steps and seconds."""
+    from gnwarp.eval.records import ResultRecord
+    meta, errs = results["meta"], results["errors"]
+    cfg = meta["config"]
+    n_test = int(cfg["sequences"][2])
+    out = []
+    for model, r in errs.items():
+        train = meta.get("training", {}).get(model, {})
+        metrics = {k: v for k, v in (("train_steps", train.get("steps")), ("train_seconds", train.get("train_seconds")))
+                   if v is not None}
+        for q, label in QUANTITIES.items():
+            for h in HORIZONS:
+                if h > len(r[q]):
+                    continue
+                out.append(ResultRecord(
+                    experiment="recurrent_jaco", task="jaco_proprio", system=system.name, planner="none",
+                    dynamics="none" if model == "constant" else "learned", variant=f"{model}, {label}",
+                    seed=int(meta["seed"]), episodes=n_test, episode_steps=h,
+                    reported={"mean": float(r[q][h - 1]), "std": None, "of": "errors"},
+                    control_dt=float(system.dt), action_repeat=int(system.substeps),
+                    env_steps=0 if model == "constant" else int(cfg["sequences"][0]) * int(cfg["steps"]),
+                    metrics=metrics, config={"warmup": cfg["warmup"], "lag": meta["lag"],
+                                             "servo_scale": meta["servo_scale"], "quick": meta["quick"], **cfg},
+                    commit=commit, gpu=gpu, date=date))
+    return out
+
+
+def report(out: Path, records: list) -> Path:
+    """``summary.md`` from the records (``gnwarp.eval.summarize``, no plot: recurrent_jaco.png is the figure)."""
+    from gnwarp.eval.summarize import write_summary
+    quick = records and records[0].config.get("quick")
+    title = (f"Recurrent vs feed-forward, proprioceptive JACO: RMS errors after the warm-up ({records[-1].gpu}"
+             f"{', QUICK smoke run' if quick else ''})")
+    return write_summary(records, out, title, plot=False)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,13 @@
-"""Experiment 4 of issue 4: run time against error.
+"""Run time against error.
 
 For each system: GN forward models of three sizes are trained side by side (a fixed wall-clock
 budget each), then every model is evaluated in fp32, tf32 and fp16 (and bf16): its 20-step
 rollout error on the test split (normalized by the constant baseline) against its time per rollout
 step at a large batch, beside MuJoCo-Warp's own time per data step on the same system and batch.
+
+Each (system, size, precision) is a results record (``gnwarp.eval.records``) in
+``<out>/results.jsonl``: its error, with the times as metrics; ``summary.md`` is generated from
+them (``gnwarp.eval.summarize``), ``speed_accuracy.png`` (error against time) from the same records.
 
     python bench/experiments/speed_accuracy.py --systems pendulum,cheetah,swimmer6 --seconds 150 \
         --out bench/results/speed_accuracy
@@ -20,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.harness import (add_run_args, add_training_args, capture, device_name, ensure_dataset,  # noqa: E402
-                           experiment_out, forward_args, median_ms, run_side_by_side, train_model, write_summary)
+                           experiment_out, forward_args, median_ms, run_side_by_side, train_model)
 
 SIZES = {  # name: (latent, edge hidden, node/global hidden)
     "small": (64, (128,), (64,)),
@@ -133,53 +137,80 @@ def main():
                 err = ev.evaluate(model, ds, "test", horizons=(args.horizon,))[f"rollout_{args.horizon}"]["mean"]
                 dt, mode = time_rollout(model, ds, args.batch, args.horizon, args.reps)
                 rows.append(dict(system=s, size=z, precision=prec, rollout_error=err, step_seconds=dt, mode=mode,
-                                 mjwarp_step_seconds=sim_dt, batch=args.batch))
+                                 mjwarp_step_seconds=sim_dt, batch=args.batch, horizon=args.horizon))
                 print(json.dumps(rows[-1]), flush=True)
-    dev = device_name()
-    lines = [f"# Run time against error ({dev})", "",
-             f"GN sizes {', '.join(f'{k}: latent {v[0]}, edge {list(v[1])}, node/global {list(v[2])}' for k, v in SIZES.items() if k in sizes)}; "
-             f"each trained {args.seconds:g} s (all side by side on one device). Error: {args.horizon}-step rollout, model / "
-             f"constant baseline. Time: one rollout step of {args.batch} graphs; MuJoCo-Warp: one data step of "
-             f"{args.batch} worlds (sub-steps included).", "",
-             f"| system | size | precision | {args.horizon}-step error | ms per step | graph-steps/s | mode | MuJoCo-Warp ms per step |",
-             "|---|---|---|---|---|---|---|---|"]
+    from gnwarp.eval.records import git_commit, write_records
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['system']} | {r['size']} | failed: {r['error']} | | | | | |")
-            continue
-        sim = "n/a" if r["mjwarp_step_seconds"] is None else f"{1e3 * r['mjwarp_step_seconds']:.3f}"
-        lines.append(f"| {r['system']} | {r['size']} | {r['precision']} | {r['rollout_error']:.3g} | "
-                     f"{1e3 * r['step_seconds']:.3f} | {args.batch / r['step_seconds']:.3g} | {r['mode']} | {sim} |")
-    (out / "rows.json").write_text(json.dumps(rows, indent=1))
-    _plot(rows, out / "speed_accuracy.png")
-    write_summary(out, lines)
+            print(f"{r['system']} {r['size']}: {r['error']}", flush=True)
+    dev, commit = device_name(), git_commit()
+    config = {"seconds": args.seconds, "sequences": list(args.sequences), "sequence_steps": max(100, args.horizon)}
+    records = [x for r in rows if "error" not in r
+               for x in to_records(r, gpu=dev, commit=commit, date=time.strftime("%Y-%m-%d %H:%M"),
+                                   test_sequences=args.sequences[2], env_steps=args.sequences[0] * max(100, args.horizon),
+                                   config=config)]
+    write_records(out / "results.jsonl", records, append=False)
+    report(out)
 
 
-def _plot(rows, path):
+def to_records(r: dict, gpu: str = "unknown", commit: str = "unknown", date: str = "", test_sequences: int = 200,
+               env_steps: int | None = None, config: dict | None = None) -> list:
+    """One (system, size, precision) row as a results record of errors: the rollout error normalized
+    by the constant baseline, averaged over state groups and test sequences (``reported``: the
+    per-sequence errors are not kept), episode steps the rollout's horizon; planner "none" on
+    learned dynamics, variant "<size>, <precision>". Metrics: ms per rollout step of ``batch``
+    graphs, graph-steps per second, MuJoCo-Warp's ms per data step of as many worlds (absent
+    without CUDA)."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make(r["system"])
+    lat, eh, nh = SIZES[r["size"]]
+    metrics = {"ms_per_step": 1e3 * r["step_seconds"], "graph_steps_per_s": r["batch"] / r["step_seconds"]}
+    if r.get("mjwarp_step_seconds") is not None:
+        metrics["mjwarp_ms_per_step"] = 1e3 * r["mjwarp_step_seconds"]
+    return [ResultRecord(
+        experiment="speed_accuracy", task=r["system"], system=r["system"], planner="none", dynamics="learned",
+        variant=f"{r['size']}, {r['precision']}", episodes=test_sequences, episode_steps=int(r.get("horizon", 20)),
+        reported={"mean": float(r["rollout_error"]), "std": None, "of": "errors"}, control_dt=float(system.dt),
+        action_repeat=int(system.substeps), env_steps=env_steps, metrics=metrics,
+        config={"size": r["size"], "latent": lat, "edge_hidden": list(eh), "node_hidden": list(nh),
+                "precision": r["precision"], "mode": r["mode"], "batch": r["batch"], **(config or {})},
+        commit=commit, gpu=gpu, date=date)]
+
+
+def report(out: Path) -> Path:
+    """``summary.md`` and ``speed_accuracy.png`` from ``out/results.jsonl``."""
+    from gnwarp.eval.records import read_records
+    from gnwarp.eval.summarize import write_summary
+    records = read_records(out / "results.jsonl")
+    path = write_summary(records, out, f"Run time against error ({records[-1].gpu})", plot=False)
+    _plot(records, out / "speed_accuracy.png")
+    print(f"wrote {path}")
+    return path
+
+
+def _plot(records, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    ok = [r for r in rows if "error" not in r]
-    systems = sorted({r["system"] for r in ok})
+    systems = list(dict.fromkeys(r.task for r in records))
     if not systems:
         return
     fig, axes = plt.subplots(1, len(systems), figsize=(4.2 * len(systems), 3.6), squeeze=False)
     marks = {"fp32": "o", "tf32": "s", "fp16": "^", "bf16": "v"}
     for ax, s in zip(axes[0], systems):
-        for z in sorted({r["size"] for r in ok if r["system"] == s}):
-            for r in (r for r in ok if r["system"] == s and r["size"] == z):
-                ax.scatter(1e3 * r["step_seconds"], r["rollout_error"], marker=marks[r["precision"]],
-                           label=f"{z} {r['precision']}")
-        sim = next((r["mjwarp_step_seconds"] for r in ok if r["system"] == s), None)
+        for r in (r for r in records if r.task == s):
+            ax.scatter(r.metrics["ms_per_step"], r.reported["mean"], marker=marks[r.config["precision"]],
+                       label=r.variant.replace(",", ""))
+        sim = next((r.metrics.get("mjwarp_ms_per_step") for r in records if r.task == s), None)
         if sim:
-            ax.axvline(1e3 * sim, color="k", ls="--", lw=1, label="MuJoCo-Warp step")
-        ax.set(xscale="log", yscale="log", xlabel="ms per rollout step (batch)", ylabel="20-step error / constant",
-               title=s)
+            ax.axvline(sim, color="k", ls="--", lw=1, label="MuJoCo-Warp step")
+        ax.set(xscale="log", yscale="log", xlabel="ms per rollout step (batch)",
+               ylabel=f"{records[0].episode_steps}-step error / constant", title=s)
         ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
 
 if __name__ == "__main__":
     main()

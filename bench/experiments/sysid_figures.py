@@ -1,5 +1,4 @@
-"""Issue 16, experiments 1, 2 and 4: system identification (paper Figures 8 and 9, Algorithms D.2,
-D.4) and a linear probe of G_ID.
+"""System identification (paper Figures 8 and 9, Algorithms D.2, D.4) and a linear probe of G_ID.
 
 Figure 8 (Pendulum, Cartpole, Cheetah, JACO; parameterized data, one sampled instance per
 sequence): rollout error normalized to the constant baseline of four models, all rolled out from
@@ -12,7 +11,7 @@ step W (= the window, 20) of each test sequence for the rest of it (80 steps of 
   sysid same   ``SysIDModel``: G_ID from steps [0, W) of the same sequence (same instance);
   sysid other  G_ID from steps [0, W) of another test sequence (another instance).
 
-Goal (issue 16): sysid same within 1.2x of true params, and clearly below no params.
+Goal: sysid same within 1.2x of true params, and clearly below no params.
 
 Figure 9 (Pendulum): the pendulum sysid model of Figure 8 on new instances of fixed mass (1.0)
 and given lengths (the length is never observed: no static feature reaches the model). Each
@@ -33,9 +32,12 @@ train sequences (first window) and scored by R^2 per parameter on the test seque
 
 Each system trains three models (no params, true params, sysid), each capped at ``--seconds``
 of wall clock (and ``--steps`` steps; learning rate x0.6 every quarter of ``--steps``). One
-system per call fits a 10-minute command at ``--seconds 120``. Rows are appended to
-``results.jsonl``; ``summary.md`` and ``fig8.png`` are rebuilt from all rows there (the newest
-row of each system / model), so systems can run in separate calls. A pendulum run also draws
+system per call fits a 10-minute command at ``--seconds 120``. Every measured row (errors, probe,
+per-sequence shares) is appended to ``results.jsonl``, and the Figure 8 and 9 errors as results
+records (``gnwarp.eval.records``) to ``records.jsonl``. ``summary.md`` (the errors) is generated
+from all records there by ``gnwarp.eval.summarize`` (the last record of each system / model
+stands), ``fig8.png`` from the same records, and ``probe.md`` from the newest probe, estimate and
+spread rows, so systems can run in separate calls. A pendulum run also draws
 ``fig9.png`` (``fig9_<label>.png`` with ``--label``, so that labelled runs sharing ``--out`` keep
 their own). Datasets are cached under ``--data`` (default: a temporary folder), checkpoints under
 ``--runs`` (default: a temporary folder).
@@ -313,7 +315,7 @@ def estimate_rows(args, system: str, ds, model) -> list[dict]:
     model.bind(ds)
     W = model.window
     g = model.identify(torch.as_tensor(body[:, :W]), torch.as_tensor(ctrl[:, :W]), torch.as_tensor(inst))
-    st = trained_param_stats(model, system)    # the statistics it was trained with (its config.json)
+    st = trained_param_stats(model, system)    # the statistics it trained with (its config.json)
     est, true = estimate_params(g, st), np.asarray(ds.static["params"], dtype=np.float64)[inst]
     rows = []
     for j, name in enumerate(st.names):
@@ -416,41 +418,74 @@ def _g(x) -> str:
     return "-" if x is None else ("inf" if not math.isfinite(x) else f"{x:.3g}")
 
 
-def write_summary(out: Path, rows: list[dict], args) -> None:
-    f8 = [r for r in rows if r["part"] == "fig8"]
-    systems = [s for s in dict.fromkeys(r["system"] for r in f8)]
-    dev = next((r.get("device") for r in reversed(rows) if r.get("device")), "?")
-    lines = [f"# System identification: Figures 8, 9 and a linear probe of G_ID ({dev})", "",
-             f"`python bench/experiments/sysid_figures.py` ({time.strftime('%Y-%m-%d')}"
-             f"{', --quick: smoke sizes, numbers meaningless' if args.quick else ''}). Parameterized data "
-             "(one sampled instance per sequence). Errors: squared error / constant baseline, mean over state "
-             "groups, of rollouts from step W (the window) of each test sequence to its end.", "",
-             "## Figure 8", "",
-             "| system | W / horizon | no params | true params | sysid same | sysid other | sysid / true | "
-             "sysid / no params | goal (<= 1.2x true, < no params) |", "|---|---|---|---|---|---|---|---|---|"]
-    for s in systems:
-        e = {r["model"]: r for r in f8 if r["system"] == s}
-        v = {k: e[k]["error"] if k in e else None for k in MODELS}
-        r_true = v["sysid same"] / v["true params"] if v["true params"] else None
-        r_nop = v["sysid same"] / v["no params"] if v["no params"] else None
-        ok = r_true is not None and r_nop is not None and r_true <= 1.2 and r_nop < 1.0
-        first = next(iter(e.values()))
-        lines.append(f"| {s} | {first['window']} / {first['horizon']} | " + " | ".join(_g(v[k]) for k in MODELS)
-                     + f" | {_g(r_true)} | {_g(r_nop)} | {'yes' if ok else 'no'} |")
-    f9 = [r for r in rows if r["part"] == "fig9"]
-    if f9:
-        lines += ["", "## Figure 9 (Pendulum, mass 1, length unobserved)", "",
-                  f"{f9[0]['fig9_sequences']} sequences per length; window {f9[0]['window']} steps, rollouts "
-                  f"{f9[0]['horizon']} steps. \"without controls\": zero controls in the window (same controls after).",
-                  "", "| length factor | condition | sysid | true params |", "|---|---|---|---|"]
-        for r in f9:
-            lines.append(f"| {r['length']:g} | {r['condition']} | {_g(r['sysid'])} | {_g(r['true params'])} |")
-    tr = {(r["system"], "sysid" if r["model"].startswith("sysid") else r["model"]): r for r in f8 if "steps" in r}
-    if tr:
-        lines += ["", "Training (each model capped at the same steps and wall clock):", "",
-                  "| system | model | steps | seconds |", "|---|---|---|---|"]
-        for (s, k), r in tr.items():
-            lines.append(f"| {s} | {k} | {r['steps']} | {r['train_seconds']} |")
+# keys of a row that the record holds in its own fields (the rest go to its config)
+_ROW_FIELDS = {"part", "system", "model", "error", "window", "horizon", "test_sequences", "fig9_sequences",
+               "from_step_0", "runs", "steps", "train_seconds", "ratio_to_true", "device", "date", "length",
+               "condition", "sysid", "true params"}
+
+
+def to_records(rows: list[dict], commit: str = "unknown") -> list:
+    """The error rows of this script (parts "fig8", "oracle", "fig9") as results records (``gnwarp.eval.records``):
+    planner "none" on learned dynamics, the model as the variant ("no params", "true params", "sysid same",
+    "sysid other", "sysid, true parameter columns"; with the run's ``--label`` in brackets), each a
+    reported mean error over the test sequences (per-sequence errors are not kept; std null). Figure 8
+    and oracle records have the system as their task; Figure 9's are tasks "pendulum length xL, <condition>"
+    with variants "sysid same" and "true params". Episode steps: the rollout horizon. Metrics: the
+    models' training steps and seconds, the error of rollouts from step 0, the reference runs' errors.
+    Numbers unchanged; rows of other parts give no record."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    out = []
+    for r in rows:
+        part = r.get("part")
+        if part not in ("fig8", "oracle", "fig9"):
+            continue
+        system = systems.make(r["system"])
+        seqs = r.get("sequences")
+        config = {k: v for k, v in r.items() if k not in _ROW_FIELDS}
+        config["window"] = r["window"]
+        run = f" [{r['run']}]" if r.get("run") else ""
+        common = dict(experiment="sysid_figures" + ("/fig9" if part == "fig9" else ""), system=r["system"],
+                      planner="none", dynamics="learned", episode_steps=int(r["horizon"]),
+                      control_dt=float(system.dt), action_repeat=int(system.substeps),
+                      env_steps=int(seqs[0]) * (int(r["window"]) + int(r["horizon"])) if seqs else None,
+                      config=config, commit=commit, gpu=r.get("device", "unknown"), date=r.get("date", ""))
+        if part == "fig9":
+            task = f"pendulum length x{r['length']:g}, {r['condition']}"
+            for model, variant in (("sysid", "sysid same"), ("true params", "true params")):
+                if r.get(model) is None:
+                    continue
+                out.append(ResultRecord(task=task, variant=variant + run, episodes=int(r["fig9_sequences"]),
+                                        reported={"mean": float(r[model]), "std": None, "of": "errors"}, **common))
+            continue
+        metrics = {k: v for k, v in (("train_steps", r.get("steps")), ("train_seconds", r.get("train_seconds")),
+                                      ("from_step_0", r.get("from_step_0")),
+                                      ("ratio_to_true", r.get("ratio_to_true")), ("runs", r.get("runs")))
+                   if v is not None}
+        out.append(ResultRecord(task=r["system"], variant=r["model"] + run, episodes=int(r["test_sequences"]),
+                                reported={"mean": float(r["error"]), "std": None, "of": "errors"},
+                                metrics=metrics, **common))
+    return out
+
+
+# the summary's ratio column: sysid from the same sequence's window against the true parameters
+RATIO = ("none (learned, sysid same)", "none (learned, true params)")
+
+
+def write_summary(out: Path, records: list, quick: bool = False) -> Path:
+    """``summary.md`` from the records (``gnwarp.eval.summarize``): Figure 8 and 9 errors."""
+    from gnwarp.eval.summarize import write_summary as summarize
+    title = (f"System identification, Figures 8 and 9: rollout errors ({records[-1].gpu if records else '?'}"
+             f"{', QUICK smoke run: numbers meaningless' if quick else ''})")
+    return summarize(records, out, title, ratio_of=RATIO, plot=False)
+
+
+def write_probe(out: Path, rows: list[dict]) -> None:
+    """``probe.md``: the linear probe of G_ID (R^2 per parameter), the parameters read from G_ID
+    (``--param-loss``) and G_ID's spread across windows, from the newest rows of ``results.jsonl``."""
+    lines = ["# System identification: what G_ID carries", "",
+             "Generated by `python bench/experiments/sysid_figures.py` from the probe, estimate and spread rows of "
+             "`results.jsonl` (the newest of each system and parameter). Errors of Figures 8 and 9: `summary.md`."]
     pr = [r for r in rows if r["part"] == "probe"]
     if pr:
         lines += ["", "## Linear probe: G_ID -> true parameters (R^2 on test instances)", "",
@@ -473,29 +508,28 @@ def write_summary(out: Path, rows: list[dict], args) -> None:
                   "first and last window (0: G_ID depends only on the sequence's system).", "",
                   "| system | window_spread |", "|---|---|"]
         lines += [f"| {r['system']} | {r['window_spread']:.3f} |" for r in sp]
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    (out / "probe.md").write_text("\n".join(lines) + "\n")
 
 
-def plot_fig8(out: Path, rows: list[dict]) -> None:
+def plot_fig8(out: Path, records: list) -> None:
+    """``fig8.png``: each system's Figure 8 errors (the records' last of each system and model)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    f8 = [r for r in rows if r["part"] == "fig8"]
-    systems = list(dict.fromkeys(r["system"] for r in f8))
+    f8 = [r for r in records if r.experiment == "sysid_figures" and r.variant in MODELS]
+    systems = list(dict.fromkeys(r.task for r in f8))
     if not systems:
         return
+    err = {(r.task, r.variant): r.reported["mean"] for r in f8}
     x = np.arange(len(systems))
     w = 0.2
     fig, ax = plt.subplots(figsize=(2.2 + 1.8 * len(systems), 3.8))
     for i, k in enumerate(MODELS):
-        v = [next((r["error"] for r in f8 if r["system"] == s and r["model"] == k), np.nan) for s in systems]
-        ax.bar(x + (i - 1.5) * w, v, w, label=k)
+        ax.bar(x + (i - 1.5) * w, [err.get((s, k), np.nan) for s in systems], w, label=k)
     ax.axhline(1.0, color="k", lw=0.8, ls=":", label="constant")
     ax.set_yscale("log")
     ax.set_xticks(x, systems)
-    h = f8[0]["horizon"]
-    ax.set_ylabel(f"{h}-step rollout error / constant")
+    ax.set_ylabel(f"{f8[0].episode_steps}-step rollout error / constant")
     ax.set_title("Figure 8: system identification", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -584,7 +618,9 @@ def compare_runs(out: Path, rows: list[dict]) -> str:
 
 
 # -- main -----------------------------------------------------------------------------------------
-def main():
+def build_parser() -> argparse.ArgumentParser:
+    """This script's flags; ``build_parser().parse_args([])`` gives every default (``control_sysid``
+    starts its training settings from them)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--systems", default=",".join(SYSTEMS))
     ap.add_argument("--sequences", type=int, nargs=3, default=(5000, 100, 200), metavar=("TRAIN", "VALID", "TEST"))
@@ -621,11 +657,15 @@ def main():
                     help="TrainConfig.ema of every model: validate and keep a moving average of the weights (default 0: off)")
     add_sysid_arguments(ap.add_argument_group("system identification (gnwarp train --sysid's flags)"))
     ap.add_argument("--label", default=None, help="a `run` label on every row written")
-    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md and fig8.png from results.jsonl")
+    ap.add_argument("--rebuild", action="store_true", help="only rebuild summary.md, fig8.png and probe.md from records.jsonl and results.jsonl")
     ap.add_argument("--compare", action="store_true",
                     help="only write compare.md / compare.png: the --label runs in results.jsonl side by side")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
-    args = ap.parse_args()
+    return ap
+
+
+def main():
+    args = build_parser().parse_args()
     args.valid, args.test = args.sequences[1], args.sequences[2]
     args.fig9_lengths, args.normalizer_warmup = FIG9_LENGTHS, 20
     if args.quick:
@@ -649,7 +689,9 @@ def main():
     from gnwarp import data
     from gnwarp.interop import resolve_device
 
-    dev = device_name(resolve_device(args.device))
+    from gnwarp.eval.records import git_commit, write_records
+
+    dev, commit = device_name(resolve_device(args.device)), git_commit()
     new = []
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = Path(args.data or Path(tmp) / "data")
@@ -693,12 +735,14 @@ def main():
             with open(out / "results.jsonl", "a") as f:
                 for r in rows:
                     f.write(json.dumps(r) + "\n")
-    every = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()]
-    every = latest(every)
-    write_summary(out, every, args)
-    plot_fig8(out, every)
+            write_records(out / "records.jsonl", to_records(rows, commit=commit))
+    from gnwarp.eval.records import read_records
+    every = latest([json.loads(line) for line in (out / "results.jsonl").read_text().splitlines() if line.strip()])
+    records = read_records(out / "records.jsonl")
+    print(f"wrote {write_summary(out, records, args.quick)}")
+    write_probe(out, every)
+    plot_fig8(out, records)
     print(f"wrote {out}")
-
 
 if __name__ == "__main__":
     main()

@@ -1,4 +1,4 @@
-"""How precisely must system identification know the parameters? (issue 16, beyond the paper)
+"""How precisely must system identification know the parameters? (beyond the paper)
 
 For each parameterized system, simulates test-like sequences (random instances, initial states
 and spline controls, MuJoCo C), then re-simulates each from step W (the identification window's
@@ -8,7 +8,11 @@ the (H = T - W)-step rollout normalized by the constant baseline's, mean over st
 A learned sysid model can only be as good as the parameter precision it reaches; this table
 says which precision matches a given rollout error (e.g. the true-parameter model's).
 
+Each (system, parameter, eps) is a results record (``gnwarp.eval.records``) in
+``<out>/results.jsonl``; ``summary.md`` is generated from them (``gnwarp.eval.summarize``).
+
     python bench/experiments/sysid_sensitivity.py --systems pendulum,cartpole
+    python bench/experiments/sysid_sensitivity.py --quick        # small CPU run (temporary folder)
 """
 from __future__ import annotations
 
@@ -54,7 +58,7 @@ def sensitivity(system: str, sequences: int, steps: int, window: int, eps_list, 
                           ctrl[:, window:], backend="mujoco")
             err = normalized_errors(t2.body[:, 1:], true[:, 1:], const[:, 1:], mask)["mean"]
             rows.append({"system": system, "param": key, "eps": eps, "error": float(err), "window": window,
-                         "horizon": steps - window, "sequences": sequences})
+                         "horizon": steps - window, "sequences": sequences, "date": time.strftime("%Y-%m-%d %H:%M")})
             print(f"{system} {key} eps {eps:g}: {err:.3g}", flush=True)
     return rows
 
@@ -68,27 +72,46 @@ def main():
     ap.add_argument("--eps", type=float, nargs="+", default=(0.003, 0.01, 0.03, 0.1))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="default: bench/results/sysid_figures/sensitivity")
+    ap.add_argument("--quick", action="store_true", help="16 sequences of 30 steps, window 10 (temporary folder)")
     args = ap.parse_args()
-    out = experiment_out("sysid_figures/sensitivity", args.out, False)
+    if args.quick:
+        args.sequences, args.num_steps, args.window, args.eps = 16, 30, 10, (0.01, 0.1)
+    # a --quick run without --out writes to a temporary folder named after the script
+    out = experiment_out("sysid_sensitivity" if args.quick else "sysid_figures/sensitivity", args.out, args.quick)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for s in filter(None, args.systems.split(",")):
         rows += sensitivity(s, args.sequences, args.num_steps, args.window, args.eps, args.seed)
-    lines = ["# Rollout error of the true simulator with one parameter off by eps", "",
-             f"`python bench/experiments/sysid_sensitivity.py` ({time.strftime('%Y-%m-%d')}; MuJoCo C, CPU). "
-             f"{args.sequences} sequences per system, random instances and spline controls; rollouts from step "
-             f"{args.window} to {args.num_steps}, scored as Figure 8 (squared error / constant baseline, mean over "
-             "state groups).", "",
-             "| system | parameter | " + " | ".join(f"eps {e:g}" for e in args.eps) + " |",
-             "|---|---|" + "---|" * len(args.eps)]
-    for (s, p) in dict.fromkeys((r["system"], r["param"]) for r in rows):
-        v = [next(r["error"] for r in rows if r["system"] == s and r["param"] == p and r["eps"] == e) for e in args.eps]
-        lines.append(f"| {s} | {p} | " + " | ".join(f"{x:.2g}" for x in v) + " |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
-    import json
-    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    print("\n".join(lines))
+    from gnwarp.eval.records import git_commit, write_records
+    commit = git_commit()
+    write_records(out / "results.jsonl", [to_record(r, seed=args.seed, commit=commit) for r in rows], append=False)
+    print(f"wrote {report(out)}")
 
+
+def to_record(row: dict, seed: int | None = None, commit: str = "unknown"):
+    """One (system, parameter, eps) row as a results record of errors: task "<system>: <parameter>",
+    variant "eps <eps>", the true simulator (MuJoCo C) with that parameter scaled by (1 + eps) as
+    the dynamics, its rollout error over the sequences (``reported`` mean; per-sequence errors are
+    not kept) from step ``window`` for ``horizon`` steps; no training data (env_steps 0)."""
+    from gnwarp.eval.records import ResultRecord
+    from gnwarp.sim import systems
+    system = systems.make(row["system"])
+    return ResultRecord(
+        experiment="sysid_sensitivity", task=f"{row['system']}: {row['param']}", system=row["system"],
+        planner="none", dynamics="true_mujoco_c", variant=f"eps {row['eps']:g}", seed=seed,
+        episodes=int(row["sequences"]), episode_steps=int(row["horizon"]),
+        reported={"mean": float(row["error"]), "std": None, "of": "errors"}, control_dt=float(system.dt),
+        action_repeat=int(system.substeps), env_steps=0,
+        config={"param": row["param"], "eps": row["eps"], "window": row["window"]}, commit=commit,
+        gpu="cpu", date=row.get("date", ""))
+
+
+def report(out: Path) -> Path:
+    """``summary.md`` from ``out/results.jsonl`` (``gnwarp.eval.summarize``)."""
+    from gnwarp.eval.records import read_records
+    from gnwarp.eval.summarize import write_summary
+    return write_summary(read_records(out / "results.jsonl"), out,
+                         "Rollout error of the true simulator with one parameter off by eps", plot=False)
 
 if __name__ == "__main__":
     main()

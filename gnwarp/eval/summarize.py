@@ -8,7 +8,8 @@ the mean; a task-by-column table of mean +- std; the scalar metrics) and ``DIR/r
 
 A group is one (task, system, episode steps, planner, dynamics, variant). Records of a group with
 the same seed are reruns: the last one read stands. Records of a group with different seeds pool
-their episodes.
+their episodes; where they hold only reported means (no per-episode values), the group's values
+are those means, one per seed.
 """
 from __future__ import annotations
 
@@ -48,7 +49,8 @@ class Group:
     """The records of one group and their statistics: ``n`` episodes, ``mean``, ``std`` (over
     episodes, population: divided by n) and ``ci`` (half width of the 95% t interval of the mean,
     from the sample std; NaN for one episode). ``reported``: the numbers are a record's reported
-    mean and std (no per-episode values)."""
+    mean and std (no per-episode values); ``over``: what ``n`` counts, "episodes" or, for reported
+    means of several seeds pooled, "seeds"."""
     task: str
     system: str
     episode_steps: int
@@ -61,6 +63,7 @@ class Group:
     std: float
     ci: float
     reported: bool
+    over: str = "episodes"
 
     @property
     def case(self) -> str:
@@ -98,9 +101,12 @@ def groups(records: list[ResultRecord]) -> list[Group]:
     for key, seeds in by.items():
         recs = list(seeds.values())
         only_reported = [r for r in recs if r.values is None]
-        if only_reported and len(recs) > 1:
-            raise ValueError(f"group {key}: a record without per-episode values cannot be pooled with others")
-        if only_reported:
+        if only_reported and len(recs) > 1 and len(only_reported) < len(recs):
+            raise ValueError(f"group {key}: a record without per-episode values cannot be pooled with records "
+                             "that have them")
+        if only_reported and len(recs) > 1:   # one reported mean per seed: statistics over the seeds
+            g = Group(*key, recs, *_stats([float(r.reported["mean"]) for r in recs]), True, "seeds")
+        elif only_reported:
             r = recs[0]
             n, mean = r.episodes, float(r.reported["mean"])
             std = math.nan if r.reported["std"] is None else float(r.reported["std"])
@@ -134,6 +140,13 @@ def _pm(g: Group) -> str:
     return f"{g.mean:.4g}" if math.isnan(g.std) else f"{g.mean:.4g} +- {g.std:.2g}"
 
 
+def _count_note(g: Group) -> str:
+    """What a group's count stands for, beside it: "", " (reported)" or " seeds (reported means)"."""
+    if g.over == "seeds":
+        return " seeds (reported means)"
+    return " (reported)" if g.reported else ""
+
+
 def _g(x: float, spec: str) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
@@ -152,7 +165,7 @@ def summary_lines(gs: list[Group], title: str = "Results", ratio_of: tuple[str, 
         lo, hi = g.mean - g.ci, g.mean + g.ci
         interval = "-" if math.isnan(g.ci) else f"[{lo:.4g}, {hi:.4g}]"
         lines.append(f"| {g.task} | {g.system or '-'} | {g.episode_steps} | {g.planner} | {g.dynamics} | "
-                     f"{g.variant or '-'} | {g.n}{' (reported)' if g.reported else ''} | {g.mean:.4g} | "
+                     f"{g.variant or '-'} | {g.n}{_count_note(g)} | {g.mean:.4g} | "
                      f"{_g(g.std, '.2g')} | {interval} |")
     cases = list(dict.fromkeys(g.case for g in gs))
     cols = list(dict.fromkeys(g.column for g in gs))
