@@ -81,3 +81,49 @@ def test_code_blocks_run(path, tmp_path):
                 exec(compile(code, where, "exec"), namespace)
     finally:
         os.chdir(old)
+
+
+PATH_RE = re.compile(r"`((?:gnwarp/|kernels/|bench/|tests/|examples/)?[\w/]+\.py)`")
+STAGE_DIRS = ("sim", "data", "gn", "models", "eval", "train", "control")
+NAME_RE = re.compile(r"`(gnwarp(?:\.\w+)+)")
+
+
+def _source_path(rel: str) -> Path | None:
+    """The file a path named in the docs means: rooted at the checkout, or a stage folder of gnwarp/."""
+    if rel.split("/")[0] in STAGE_DIRS:
+        return ROOT / "gnwarp" / rel
+    if rel.split("/")[0] in ("gnwarp", "kernels", "bench", "tests", "examples"):
+        return ROOT / rel
+    return None
+
+
+@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_named_paths_exist(path):
+    """Every source file the docs name (``gnwarp/x.py``, ``sim/env.py``, ``kernels/gn/mlp.py``) exists."""
+    text = path.read_text()
+    named = {m for m in PATH_RE.findall(text) if "/" in m}
+    assert named or path.name != "README.md"
+    missing = sorted(m for m in named if (p := _source_path(m)) is not None and not p.is_file())
+    assert not missing, f"{path.name} names files that do not exist: {missing}"
+
+
+@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_named_objects_exist(path):
+    """Every dotted ``gnwarp.x.y`` the docs name imports (a module, or an attribute of one)."""
+    import importlib
+    missing = []
+    for name in sorted(set(NAME_RE.findall(path.read_text()))):
+        parts = name.split(".")
+        obj, i = None, len(parts)
+        while i > 0:   # the longest importable module prefix, then attributes
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+                break
+            except ModuleNotFoundError:
+                i -= 1
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                missing.append(name)
+                break
+            obj = getattr(obj, attr)
+    assert not missing, f"{path.name} names what gnwarp does not have: {missing}"
