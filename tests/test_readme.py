@@ -99,11 +99,14 @@ def _source_path(rel: str) -> Path | None:
 
 @pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_named_paths_exist(path):
-    """Every source file the docs name (``gnwarp/x.py``, ``sim/env.py``, ``kernels/gn/mlp.py``) exists."""
+    """Every source file the docs name (``gnwarp/x.py``, ``sim/env.py``, ``kernels/gn/mlp.py``) and
+    every file or folder they link to exists."""
     text = path.read_text()
     named = {m for m in PATH_RE.findall(text) if "/" in m}
     assert named or path.name != "README.md"
     missing = sorted(m for m in named if (p := _source_path(m)) is not None and not p.is_file())
+    links = [m for m in re.findall(r"\]\(([^)#\s]+)", text) if "://" not in m]   # [text](relative link)
+    missing += sorted(m for m in links if not (path.parent / m).exists())
     assert not missing, f"{path.name} names files that do not exist: {missing}"
 
 
