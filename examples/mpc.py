@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 import gnwarp
-from gnwarp import control, data, systems
+from gnwarp import control, data, sim, systems
 from gnwarp.models import GNCoreConfig
 from gnwarp.train import train
 
@@ -33,7 +33,7 @@ model = gnwarp.load_model(out / "run" / "best")
 
 pend = systems.make("pendulum")
 n = args.episodes
-env = control.make_env(pend, n, backend="mujoco")                   # n true worlds, one episode each
+env = sim.make_env(pend, n, backend="mujoco")                       # n true worlds, one episode each
 planner = control.GradientMPC(model, "pendulum-balance", pend, n,
                               config=control.GradientMPCConfig(horizon=10, iterations=2, warmup=5))
 qpos0, qvel0 = data.initial_states(pend, n, np.random.default_rng(0))     # random start states

@@ -10,10 +10,9 @@ from pathlib import Path
 import torch
 
 from gnwarp import TrainConfig, data
-from gnwarp.models import GNCoreConfig, ModelConfig
-from gnwarp.models.recurrent import RecurrentGNConfig
-from gnwarp.models.sysid import SysIDConfig
-from gnwarp.train.sysid import SysIDTrainer, load_sysid, sysid_rollout_error
+from gnwarp.eval.sysid import sysid_rollout_error
+from gnwarp.models import GNCoreConfig, ModelConfig, RecurrentGNConfig, SysIDConfig
+from gnwarp.train import SysIDTrainer, load_sysid
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--out", default="gnwarp-sysid", help="output folder (default: %(default)s)")

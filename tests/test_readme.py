@@ -81,3 +81,65 @@ def test_code_blocks_run(path, tmp_path):
                 exec(compile(code, where, "exec"), namespace)
     finally:
         os.chdir(old)
+
+
+PATH_RE = re.compile(r"`((?:gnwarp/|kernels/|bench/|tests/|examples/)?[\w/]+\.py)`")
+STAGE_DIRS = ("sim", "data", "gn", "models", "eval", "train", "control")
+NAME_RE = re.compile(r"`(gnwarp(?:\.\w+)+)")
+
+
+def _source_path(rel: str) -> Path | None:
+    """The file a path named in the docs means: rooted at the checkout, or a stage folder of gnwarp/."""
+    if rel.split("/")[0] in STAGE_DIRS:
+        return ROOT / "gnwarp" / rel
+    if rel.split("/")[0] in ("gnwarp", "kernels", "bench", "tests", "examples"):
+        return ROOT / rel
+    return None
+
+
+@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_named_paths_exist(path):
+    """Every source file the docs name (``gnwarp/x.py``, ``sim/env.py``, ``kernels/gn/mlp.py``) and
+    every file or folder they link to exists."""
+    text = path.read_text()
+    named = {m for m in PATH_RE.findall(text) if "/" in m}
+    assert named or path.name != "README.md"
+    missing = sorted(m for m in named if (p := _source_path(m)) is not None and not p.is_file())
+    links = [m for m in re.findall(r"\]\(([^)#\s]+)", text) if "://" not in m]   # [text](relative link)
+    missing += sorted(m for m in links if not (path.parent / m).exists())
+    assert not missing, f"{path.name} names files that do not exist: {missing}"
+
+
+@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_named_objects_exist(path):
+    """Every dotted ``gnwarp.x.y`` the docs name imports (a module, or an attribute of one)."""
+    import importlib
+    missing = []
+    for name in sorted(set(NAME_RE.findall(path.read_text()))):
+        parts = name.split(".")
+        obj, i = None, len(parts)
+        while i > 0:   # the longest importable module prefix, then attributes
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+                break
+            except ModuleNotFoundError:
+                i -= 1
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                missing.append(name)
+                break
+            obj = getattr(obj, attr)
+    assert not missing, f"{path.name} names what gnwarp does not have: {missing}"
+
+
+def test_architecture_table_names_every_module():
+    """README's architecture table is the map: every module of gnwarp/ has its row (cli and demo
+    are named as ``gnwarp.cli`` / ``gnwarp.demo``)."""
+    text = (ROOT / "README.md").read_text()
+    pkg = ROOT / "gnwarp"
+    mods = [p.relative_to(pkg).as_posix() for p in sorted(pkg.glob("*.py")) + sorted(pkg.glob("*/*.py"))
+            if p.name != "__init__.py" and p.parent.name != "kernels"]
+    assert len(mods) > 50
+    missing = [m for m in mods if f"`{m}`" not in text and f"`gnwarp/{m}`" not in text
+               and f"gnwarp.{m.removesuffix('.py')}" not in text]
+    assert not missing, f"README.md's architecture table lacks {missing}"
