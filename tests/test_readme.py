@@ -86,6 +86,8 @@ def test_code_blocks_run(path, tmp_path):
 PATH_RE = re.compile(r"`((?:gnwarp/|kernels/|bench/|tests/|examples/)?[\w/]+\.py)`")
 STAGE_DIRS = ("sim", "data", "gn", "models", "eval", "train", "control")
 NAME_RE = re.compile(r"`(gnwarp(?:\.\w+)+)")
+# the result folders' READMEs name scripts, modules and files too (their code blocks are not run)
+NAMED = DOCS + sorted((ROOT / "bench" / "results").glob("*/README.md"))
 
 
 def _source_path(rel: str) -> Path | None:
@@ -97,20 +99,20 @@ def _source_path(rel: str) -> Path | None:
     return None
 
 
-@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+@pytest.mark.parametrize("path", NAMED, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_named_paths_exist(path):
     """Every source file the docs name (``gnwarp/x.py``, ``sim/env.py``, ``kernels/gn/mlp.py``) and
     every file or folder they link to exists."""
     text = path.read_text()
     named = {m for m in PATH_RE.findall(text) if "/" in m}
-    assert named or path.name != "README.md"
+    assert named or path != ROOT / "README.md"
     missing = sorted(m for m in named if (p := _source_path(m)) is not None and not p.is_file())
     links = [m for m in re.findall(r"\]\(([^)#\s]+)", text) if "://" not in m]   # [text](relative link)
     missing += sorted(m for m in links if not (path.parent / m).exists())
     assert not missing, f"{path.name} names files that do not exist: {missing}"
 
 
-@pytest.mark.parametrize("path", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+@pytest.mark.parametrize("path", NAMED, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_named_objects_exist(path):
     """Every dotted ``gnwarp.x.y`` the docs name imports (a module, or an attribute of one)."""
     import importlib
