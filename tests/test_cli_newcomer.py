@@ -125,17 +125,18 @@ def tiny_model(tmp_path_factory):
     return train(cfg, [ds])["last"]
 
 
-def test_mpc_refuses_steps_beyond_memory_before_planning(tiny_model, capsys):
+def test_mpc_refuses_steps_beyond_memory_before_planning(tiny_model, tmp_path, capsys):
     t0 = time.perf_counter()
     assert main(["mpc", "--model", str(tiny_model), "--task", "pendulum-balance", "--steps", "1000000000000",
-                 "--backend", "mujoco", "--video", "none"]) == 2
+                 "--backend", "mujoco", "--video", "none", "--records", str(tmp_path / "r.jsonl")]) == 2
     err = capsys.readouterr().err
     assert "1000000000000 steps" in err and "available" in err and time.perf_counter() - t0 < 30
 
 
 def test_mpc_progress_bar_counts_the_warmup(tiny_model, tmp_path, capsys):
     argv = ["mpc", "--model", str(tiny_model), "--task", "pendulum-balance", "--episodes", "2", "--steps", "2",
-            "--horizon", "3", "--iterations", "1", "--warmup", "4", "--backend", "mujoco", "--video", "none"]
+            "--horizon", "3", "--iterations", "1", "--warmup", "4", "--backend", "mujoco", "--video", "none",
+            "--records", str(tmp_path / "r.jsonl")]
     assert main(argv) == 0
     out = capsys.readouterr()
     assert "6/6" in out.err and "true return" in out.out  # 4 warm-up + 1 x 2 steps iterations
