@@ -65,8 +65,9 @@ class Actuators:
 
     def mid_half(self) -> tuple[np.ndarray, np.ndarray]:
         """(mid, half width) [U] of the range: (0, inf) for unlimited actuators."""
-        mid = np.where(self.limited, 0.5 * (self.low + self.high), 0.0)
-        half = np.where(self.limited, 0.5 * (self.high - self.low), np.inf)
+        with np.errstate(invalid="ignore"):  # unlimited ranges are +-inf: their sums are discarded
+            mid = np.where(self.limited, 0.5 * (self.low + self.high), 0.0)
+            half = np.where(self.limited, 0.5 * (self.high - self.low), np.inf)
         return mid, half
 
     def same_ranges(self, other: "Actuators") -> bool:
