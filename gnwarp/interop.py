@@ -277,8 +277,12 @@ class Launcher:
     @staticmethod
     def outputs_from(kernel) -> int:
         """Index of ``kernel``'s first output: its parameters named ``*_out`` come last (the
-        convention of ``gnwarp.kernels``)."""
-        return sum(not a.label.endswith("_out") for a in kernel.adj.args)
+        convention of ``gnwarp.kernels``); counted once per kernel and kept on it (a launch is hot)."""
+        k = getattr(kernel, "gnwarp_first_output", None)
+        if k is None:
+            k = sum(not a.label.endswith("_out") for a in kernel.adj.args)
+            kernel.gnwarp_first_output = k
+        return k
 
     def __call__(self, kernel, dim: int, *args):
         """Launch ``kernel`` over ``dim`` threads (nothing when ``dim`` is 0) with ``args`` in the
