@@ -434,7 +434,8 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
     models' training steps and seconds, the error of rollouts from step 0, the reference runs' errors;
     a labelled run's "sysid same" record whose run kept its per-sequence errors (a "sequences" row)
     adds the ratio's two paired readings (``paired_ratios``): ``ratio_without_top_1pct`` and
-    ``ratio_median_per_sequence``. Numbers unchanged; rows of other parts give no record."""
+    ``ratio_median_per_sequence``. The seed: the row's, or the "s<K>-" that starts a run's label
+    (``--seed K --label sK-...``); None otherwise. Numbers unchanged; rows of other parts give no record."""
     from gnwarp.eval.records import ResultRecord
     from gnwarp.sim import systems
     paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
@@ -449,7 +450,12 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
         config = {k: v for k, v in r.items() if k not in _ROW_FIELDS}
         config["window"] = r["window"]
         run = f" [{r['run']}]" if r.get("run") else ""
-        common = dict(experiment="sysid_figures" + ("/fig9" if part == "fig9" else ""), system=r["system"],
+        # the run's seed: its row's, or a label's "s<K>-" (the runs' commands: --seed K --label sK-...)
+        seed = r.get("seed")
+        if seed is None and re.match(r"s\d+-", r.get("run") or ""):
+            seed = int(re.match(r"s(\d+)-", r["run"]).group(1))
+        common = dict(seed=seed, experiment="sysid_figures" + ("/fig9" if part == "fig9" else ""),
+                      system=r["system"],
                       planner="none", dynamics="learned", episode_steps=int(r["horizon"]),
                       control_dt=float(system.dt), action_repeat=int(system.substeps),
                       env_steps=int(seqs[0]) * (int(r["window"]) + int(r["horizon"])) if seqs else None,
