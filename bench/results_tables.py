@@ -124,9 +124,8 @@ def headline(root: Path, doc: Path) -> list[str]:
     dg = _row(_rows(root, "datagen/datagen_nvidia-h200.json"), system="cheetah", backend="mujoco_warp")
     rows.append([f"dataset generation, cheetah, {dg['sequences']} sequences x {dg['steps']} steps, one H200",
                  f"**{dg['end_to_end_seconds']:.2f} s** end to end (MuJoCo-Warp)", link("datagen")])
-    tl = _rows(root, "train_loop/train_loop_nvidia-h200.jsonl")
-    sps = {p: _row(tl, precision=p, optimizer="flat_adam", captured=True, steps=20000)["steps_per_s"]
-           for p in ("tf32", "fp16")}
+    run = _train_loop_run(_rows(root, "train_loop/train_loop_nvidia-h200.jsonl"))
+    sps = {p: run[p][1]["steps_per_s"] for p in ("tf32", "fp16")}
     rows.append(["`gnwarp train`, paper core, cheetah, one H200",
                  f"**{sps['tf32']:.0f}** steps/s (tf32), **{sps['fp16']:.0f}** (fp16)", link("train_loop")])
     fm = _groups(root, "forward_models/results.jsonl")
@@ -164,6 +163,21 @@ def headline(root: Path, doc: Path) -> list[str]:
     rows.append(["recurrent model, partly observed JACO, joint-angle error at 1, 10 and 20 steps",
                  f"{min(gain):.1f}-{max(gain):.1f}x lower than feed-forward", link("recurrent_jaco")])
     return _md(["what", "result", "details"], rows)
+
+
+def _train_loop_run(rows: list[dict], eager_steps: int = 200, steps: int = 20000) -> dict[str, tuple[dict, dict]]:
+    """{precision: (eager row, captured row)} of the newest ``flat_adam`` run of train_loop.py's
+    command in its notes (``--eager-steps 200 --steps 20000``): each captured row follows its
+    precision's eager row."""
+    out = {}
+    for eager, cap in zip(rows, rows[1:]):
+        if (eager.get("optimizer") == cap.get("optimizer") == "flat_adam" and not eager.get("captured")
+                and cap.get("captured") and eager.get("precision") == cap.get("precision")
+                and eager.get("steps") == eager_steps and cap.get("steps") == steps):
+            out[cap["precision"]] = (eager, cap)
+    if not out:
+        raise LookupError(f"no train_loop run with --eager-steps {eager_steps} --steps {steps}")
+    return out
 
 
 def _sysid_medians(folder: Path, test: int) -> dict[str, float]:
@@ -356,6 +370,39 @@ def speed_accuracy_table(root: Path, doc: Path) -> list[str]:
     return [_note("ms per rollout step of 4096 graphs; 20-step model / constant-baseline error in brackets",
                   "`results.jsonl`"), ""] + _md(
         ["system", "fastest GN: ms/step (error)", "most accurate GN: ms/step (error)", "MuJoCo-Warp ms/step"], rows)
+
+
+@table("datagen")
+def datagen_table(root: Path, doc: Path) -> list[str]:
+    warp = _rows(root, "datagen/datagen_nvidia-h200.json")
+    mjc = {r["system"]: r for r in _rows(root, "datagen/datagen_nvidia-h200_mujoco_c.json")}
+    rows = []
+    for r in warp:
+        sub = r.get("substeps", 1)
+        name = r["system"] + (f" ({sub} substeps)" if sub > 1 else "")
+        rate = _num(r["data_steps_per_s"]) + (f" ({_num(r['physics_steps_per_s'])} physics)" if sub > 1 else "")
+        c = mjc.get(r["system"])
+        rows.append([name, rate, f"{r['end_to_end_seconds']:.2f}", _num(c["data_steps_per_s"]) if c else "-"])
+    n = warp[0]
+    return [_note(f"{n['sequences']} sequences x {n['steps']} steps on MuJoCo-Warp (MuJoCo C: "
+                  f"{next(iter(mjc.values()))['sequences']} sequences)",
+                  "`datagen_nvidia-h200.json` and `datagen_nvidia-h200_mujoco_c.json`"), ""] + _md(
+        ["system", "MuJoCo-Warp data steps/s", "end-to-end s (sim + graphs + write)", "MuJoCo C data steps/s"], rows)
+
+
+@table("train-loop")
+def train_loop_table(root: Path, doc: Path) -> list[str]:
+    rows = _rows(root, "train_loop/train_loop_nvidia-h200.jsonl")
+    run = _train_loop_run(rows)
+    adam = {p: _row(rows, precision=p, optimizer="adam", captured=True) for p in ("tf32", "fp16")}
+    body = [[f"captured, `flat_adam` (the default on CUDA), {run['tf32'][1]['steps']} steps"]
+            + [f"**{run[p][1]['steps_per_s']:.0f}**" for p in ("tf32", "fp16")],
+            [f"captured, `adam` (an earlier run, {adam['tf32']['steps']} steps)"]
+            + [f"{adam[p]['steps_per_s']:.0f}" for p in ("tf32", "fp16")],
+            ["eager (`--set capture=false`), `flat_adam`"] + [f"{run[p][0]['steps_per_s']:.0f}" for p in ("tf32", "fp16")]]
+    return [_note("steps/s of the newest run of `--eager-steps 200 --steps 20000` (the adam row: the newest "
+                  "captured adam row)", "`train_loop_nvidia-h200.jsonl`"), ""] + _md(
+        ["`gnwarp train` (steps/s)", "tf32", "fp16"], body)
 
 
 # -- bench/results/sysid_figures/<run set>/compare.md ----------------------------------------------
