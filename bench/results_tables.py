@@ -405,6 +405,40 @@ def train_loop_table(root: Path, doc: Path) -> list[str]:
         ["`gnwarp train` (steps/s)", "tf32", "fp16"], body)
 
 
+# the parameters whose estimates a system's row shows, and how they read
+ESTIMATED = {"pendulum": (["length"], "length"), "cartpole": (["pole_thickness"], "pole thickness"),
+             "cheetah": (["length_torso"], "torso length"),
+             "jaco": (["gear_joint_1", "gear_joint_2", "gear_joint_3"], "gears of joints 1-3")}
+
+
+@table("sysid-per-sequence")
+def sysid_per_sequence(root: Path, doc: Path) -> list[str]:
+    """sysid_figures/README.md: the runs of ``per_sequence/`` on 1000 test sequences, per system."""
+    runs = _sysid_runs(root / RESULTS / "sysid_figures" / "per_sequence")
+    rows = []
+    for s in ("pendulum", "cartpole", "cheetah", "jaco"):
+        mine = sorted(((e["sysid same"].records[-1].seed or 0, e) for (t, _), e in runs.items()
+                       if t == s and {"sysid same", "true params"} <= set(e) and e["true params"].n == 1000),
+                      key=lambda x: x[0])
+        if not mine:
+            continue
+        ratios = [e["sysid same"].mean / e["true params"].mean for _, e in mine]
+        m = [e["sysid same"].records[-1].metrics for _, e in mine]
+        med = lambda k: statistics.median(x[k] for x in m if k in x)  # noqa: E731
+        params, label = ESTIMATED[s]
+        est = [x["estimate_rel_rms"][p] for x in m for p in params if p in x.get("estimate_rel_rms", {})]
+        teacher = mine[0][1]["sysid same"].records[-1].config.get("param_teacher", 1)
+        rows.append([s + (f", teacher {teacher:g}" if teacher != 1 else ""),
+                     ", ".join(f"{r:.2f}x" for r in ratios), f"{statistics.median(ratios):.2f}x",
+                     f"{med('ratio_without_top_1pct'):.2f}x", f"{med('ratio_median_per_sequence'):.2f}x",
+                     f"{label} {_num(100 * min(est), 3)}-{_num(100 * max(est), 3)}%" if est else "-"])
+    return [_note("sysid / true-parameter model per run (seeds in order), the medians over runs of the ratio and "
+                  "of its paired readings, and the estimates' relative rms error over runs",
+                  "`per_sequence/records.jsonl`"), ""] + _md(
+        ["system", "sysid / true, per seed", "median", "without the top 1%, median", "per sequence, median",
+         "estimate, rel. rms"], rows)
+
+
 # -- bench/results/sysid_figures/<run set>/compare.md ----------------------------------------------
 @table("sysid-compare")
 def sysid_compare(root: Path, doc: Path) -> list[str]:

@@ -434,12 +434,17 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
     models' training steps and seconds, the error of rollouts from step 0, the reference runs' errors;
     a labelled run's "sysid same" record whose run kept its per-sequence errors (a "sequences" row)
     adds the ratio's two paired readings (``paired_ratios``): ``ratio_without_top_1pct`` and
-    ``ratio_median_per_sequence``. The seed: the row's, or the "s<K>-" that starts a run's label
+    ``ratio_median_per_sequence``; and its parameter estimates' relative rms errors
+    (``estimate_rel_rms``, {parameter: error}). The seed: the row's, or the "s<K>-" that starts a run's label
     (``--seed K --label sK-...``); None otherwise. Numbers unchanged; rows of other parts give no record."""
     from gnwarp.eval.records import ResultRecord
     from gnwarp.sim import systems
     paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
               if r.get("part") == "sequences" and r.get("run")}
+    estimates: dict[tuple, dict] = {}   # a labelled run's parameter estimates: relative rms error per parameter
+    for r in rows:
+        if r.get("part") == "estimate" and r.get("run") and r.get("rel_rms") is not None:
+            estimates.setdefault((r["run"], r["system"]), {})[r["param"]] = r["rel_rms"]
     out = []
     for r in rows:
         part = r.get("part")
@@ -475,6 +480,8 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
         if r["model"] == "sysid same" and (r.get("run"), r["system"]) in paired:
             trimmed, per_sequence = paired[r["run"], r["system"]]
             metrics.update(ratio_without_top_1pct=trimmed, ratio_median_per_sequence=per_sequence)
+        if r["model"] == "sysid same" and (r.get("run"), r["system"]) in estimates:
+            metrics["estimate_rel_rms"] = estimates[r["run"], r["system"]]
         out.append(ResultRecord(task=r["system"], variant=r["model"] + run, episodes=int(r["test_sequences"]),
                                 reported={"mean": float(r["error"]), "std": None, "of": "errors"},
                                 metrics=metrics, **common))
