@@ -439,6 +439,69 @@ def sysid_per_sequence(root: Path, doc: Path) -> list[str]:
          "estimate, rel. rms"], rows)
 
 
+def _span(values: list[float], digits: int = 2) -> str:
+    """"lo-hi" of ``values`` at ``digits`` significant digits, one number where they read alike."""
+    lo, hi = _num(min(values), digits), _num(max(values), digits)
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+READOUT_RUNS = ("paper readout, seed 2", "ridge readout, seed 2")   # readouts_6000's same-command A/B
+
+
+@table("sysid-readouts")
+def sysid_readouts(root: Path, doc: Path) -> list[str]:
+    """sysid_figures/README.md: the paper's readout beside the ridge readout, ``readouts_6000/``'s seed-2 runs."""
+    runs = _sysid_runs(root / RESULTS / "sysid_figures" / "readouts_6000")
+    rows = []
+    for s in ("pendulum", "cartpole", "cheetah", "jaco"):
+        p, r = (runs.get((s, run)) for run in READOUT_RUNS)
+        if not p or not r:
+            continue
+        ratio = [e["sysid same"].mean / e["true params"].mean for e in (p, r)]
+        rows.append([s, _span([p["no params"].mean, r["no params"].mean]),
+                     f"{_num(p['true params'].mean)} / {_num(r['true params'].mean)}",
+                     _num(p["sysid same"].mean, 3), _num(r["sysid same"].mean, 3)]
+                    + [f"{x:.3g}x" for x in ratio])
+    return [_note("80-step rollout error / constant of the runs " + " and ".join(f"'{x}'" for x in READOUT_RUNS),
+                  "`readouts_6000/records.jsonl`"), ""] + _md(
+        ["system", "no params", "true params (paper run / ridge run)", "sysid, paper readout", "sysid, ridge readout",
+         "sysid / true, paper", "ridge"], rows)
+
+
+@table("sysid-fig9")
+def sysid_fig9(root: Path, doc: Path) -> list[str]:
+    """sysid_figures/README.md: Figure 9 of the ridge readout's seed-2 run in ``readouts_6000/``."""
+    gs = groups(read_records(root / RESULTS / "sysid_figures" / "readouts_6000" / "records.jsonl"))
+    want = f"sysid same [{READOUT_RUNS[1]}]"
+    cell = {}
+    for g in gs:
+        m = re.fullmatch(r"pendulum length x([\d.]+), (with|without) controls", g.task)
+        if m and g.variant == want:
+            cell[float(m.group(1)), m.group(2)] = g.mean
+    rows = [[f"{x:g}", _num(cell.get((x, "with")), 2), _num(cell.get((x, "without")), 2)]
+            for x in sorted({x for x, _ in cell})]
+    return [_note(f"sysid's 80-step error / constant on pendulums of scaled length, run '{READOUT_RUNS[1]}'",
+                  "`readouts_6000/records.jsonl`"), ""] + _md(
+        ["length factor", "window with controls", "passive window"], rows)
+
+
+PROBED = (("pendulum", "length"), ("pendulum", "mass"), ("cartpole", "cart_mass"), ("cartpole", "pole_length"),
+          ("cheetah", "length_torso"), ("jaco", "gear_joint_1"))
+
+
+@table("sysid-probe")
+def sysid_probe(root: Path, doc: Path) -> list[str]:
+    """sysid_figures/README.md: the linear probe's R^2 of the ridge readout's seed-2 run in ``readouts_6000/``."""
+    runs = _sysid_runs(root / RESULTS / "sysid_figures" / "readouts_6000")
+    rows = []
+    for s, param in PROBED:
+        e = runs.get((s, READOUT_RUNS[1]))
+        r2 = e["sysid same"].records[-1].metrics.get("probe_r2", {}).get(param) if e else None
+        rows.append([s, param.replace("_", " "), "-" if r2 is None else f"{r2:.2f}"])
+    return [_note(f"R^2 on test instances of a linear probe from G_ID, run '{READOUT_RUNS[1]}'",
+                  "`readouts_6000/records.jsonl`"), ""] + _md(["system", "parameter", "R^2"], rows)
+
+
 # -- bench/results/sysid_figures/<run set>/compare.md ----------------------------------------------
 @table("sysid-compare")
 def sysid_compare(root: Path, doc: Path) -> list[str]:

@@ -435,16 +435,20 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
     a labelled run's "sysid same" record whose run kept its per-sequence errors (a "sequences" row)
     adds the ratio's two paired readings (``paired_ratios``): ``ratio_without_top_1pct`` and
     ``ratio_median_per_sequence``; and its parameter estimates' relative rms errors
-    (``estimate_rel_rms``, {parameter: error}). The seed: the row's, or the "s<K>-" that starts a run's label
+    (``estimate_rel_rms``, {parameter: error}) and linear probe's R^2 (``probe_r2``). The seed: the row's, or the "s<K>-" that starts a run's label
     (``--seed K --label sK-...``); None otherwise. Numbers unchanged; rows of other parts give no record."""
     from gnwarp.eval.records import ResultRecord
     from gnwarp.sim import systems
     paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
               if r.get("part") == "sequences" and r.get("run")}
-    estimates: dict[tuple, dict] = {}   # a labelled run's parameter estimates: relative rms error per parameter
+    # a labelled run's parameter estimates (relative rms error) and linear probe (R^2), per parameter
+    estimates: dict[tuple, dict] = {}
+    probes: dict[tuple, dict] = {}
     for r in rows:
         if r.get("part") == "estimate" and r.get("run") and r.get("rel_rms") is not None:
             estimates.setdefault((r["run"], r["system"]), {})[r["param"]] = r["rel_rms"]
+        if r.get("part") == "probe" and r.get("run") and r.get("r2") is not None:
+            probes.setdefault((r["run"], r["system"]), {})[r["param"]] = r["r2"]
     out = []
     for r in rows:
         part = r.get("part")
@@ -482,6 +486,8 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
             metrics.update(ratio_without_top_1pct=trimmed, ratio_median_per_sequence=per_sequence)
         if r["model"] == "sysid same" and (r.get("run"), r["system"]) in estimates:
             metrics["estimate_rel_rms"] = estimates[r["run"], r["system"]]
+        if r["model"] == "sysid same" and (r.get("run"), r["system"]) in probes:
+            metrics["probe_r2"] = probes[r["run"], r["system"]]
         out.append(ResultRecord(task=r["system"], variant=r["model"] + run, episodes=int(r["test_sequences"]),
                                 reported={"mean": float(r["error"]), "std": None, "of": "errors"},
                                 metrics=metrics, **common))
