@@ -77,12 +77,12 @@ def _row(rows: list[dict], **match) -> dict:
 
 # -- formatting ----------------------------------------------------------------------------------
 def _num(x: float | None, digits: int = 2) -> str:
-    """``x`` to ``digits`` significant digits, plainly where it is between 1e-3 and 1e5."""
+    """``x`` to ``digits`` significant digits, plainly where it is between 1e-4 and 1e5."""
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
     if x == 0:
         return "0"
-    if 1e-3 <= abs(x) < 1e5:
+    if 1e-4 <= abs(x) < 1e5:
         d = max(digits - 1 - int(math.floor(math.log10(abs(x)))), 0)
         return f"{x:.{d}f}"
     return f"{x:.{digits - 1}e}".replace("e-0", "e-").replace("e+0", "e")
@@ -443,6 +443,37 @@ def _span(values: list[float], digits: int = 2) -> str:
     """"lo-hi" of ``values`` at ``digits`` significant digits, one number where they read alike."""
     lo, hi = _num(min(values), digits), _num(max(values), digits)
     return lo if lo == hi else f"{lo}-{hi}"
+
+
+# the best command's run labels per system in ``nominal_static/`` (the README's first table): the seed, then
+# the setting (JACO: the teacher at 0.5 and 24 G_ID globals)
+BEST_RUNS = {"pendulum": r"s\d+-ridge-w1-t-q1-h64-f4-gd-loc-nom", "cartpole": r"s\d+-ridge-w1-t-q1-h64-f4-gd-loc-nom",
+             "cheetah": r"s\d+-ridge-w1-t-q1-h64-f4-gd-loc-nom", "jaco": r"s\d+-ridge-w1-t-q0.5-h64-f4-g24-loc-nom"}
+
+
+@table("sysid-best")
+def sysid_best(root: Path, doc: Path) -> list[str]:
+    """sysid_figures/README.md: the best settings' runs in ``nominal_static/`` (``BEST_RUNS``), per system the
+    ranges over runs (true params: over every reference model), each seed's ratio and the estimates."""
+    runs = _sysid_runs(root / RESULTS / "sysid_figures" / "nominal_static")
+    rows = []
+    for s, pattern in BEST_RUNS.items():
+        mine = sorted((e["sysid same"].records[-1].seed or 0, e) for (t, run), e in runs.items()
+                      if t == s and re.fullmatch(pattern, run) and {"sysid same", "true params"} <= set(e))
+        if not mine:
+            continue
+        es = [e for _, e in mine]
+        refs = [x for e in es for x in e["true params"].records[-1].metrics.get("runs", [e["true params"].mean])]
+        params, label = ESTIMATED[s]
+        est = [e["sysid same"].records[-1].metrics.get("estimate_rel_rms", {}).get(p) for e in es for p in params]
+        est = [x for x in est if x is not None]
+        rows.append([s, _span([e["no params"].mean for e in es if "no params" in e]), _span(refs),
+                     _span([e["sysid same"].mean for e in es]),
+                     ", ".join(f"{e['sysid same'].mean / e['true params'].mean:.2f}x" for e in es),
+                     f"{label} {_span([100 * x for x in est])}%" if est else "-"])
+    return [_note("80-step rollout error / constant, ranges over the best command's runs (seeds in order)",
+                  "`nominal_static/records.jsonl`"), ""] + _md(
+        ["system", "no params", "true params", "sysid", "sysid / true, per seed", "estimate, rel. rms"], rows)
 
 
 READOUT_RUNS = ("paper readout, seed 2", "ridge readout, seed 2")   # readouts_6000's same-command A/B
