@@ -49,12 +49,6 @@ def _groups(root: Path, rel: str) -> list[Group]:
     return groups(read_records(root / RESULTS / rel))
 
 
-def _cells(gs: list[Group], **match) -> dict:
-    """{(task, variant, episode_steps, planner, dynamics): group} of ``gs`` that match ``match``."""
-    return {(g.task, g.variant, g.episode_steps, g.planner, g.dynamics): g for g in gs
-            if all(getattr(g, k) == v for k, v in match.items())}
-
-
 def _find(gs: list[Group], **match) -> Group | None:
     hits = [g for g in gs if all(getattr(g, k) == v for k, v in match.items())]
     return hits[-1] if hits else None
@@ -134,9 +128,10 @@ def headline(root: Path, doc: Path) -> list[str]:
     best = {s: min(g.mean for g in sweep if g.task == s and g.episode_steps == 20 and g.variant.startswith("MLP"))
             for s in gn20}
     below = sum(gn20[s] < best[s] for s in gn20)
+    sizes = len({g.variant for g in sweep if g.variant.startswith("MLP")})
     rows.append([f"forward models on the {len(gn20)} systems",
                  f"GN 20-step error {_num(min(gn20.values()))}-{_num(max(gn20.values()))} of the constant "
-                 f"baseline; below the best of five MLPs on {below} of {len(gn20)}",
+                 f"baseline; below the best of {sizes} MLPs on {below} of {len(gn20)}",
                  "[forward_models](bench/results/forward_models/README.md), "
                  "[mlp_sweep](bench/results/mlp_sweep/README.md)"])
     ab = _groups(root, "ablation_h2/results.jsonl")
@@ -264,7 +259,8 @@ def control_fig11(root: Path, doc: Path) -> list[str]:
 
 
 def _error_pivot(root: Path, rel: str, cols: list[tuple[str, dict]], rows_by: str = "task",
-                 extra: Callable | None = None, extra_head: list[str] = ()) -> list[list[str]]:
+                 extra: Callable | None = None) -> list[list[str]]:
+    """One row per value of ``rows_by``: its groups matching each column's fields, then ``extra``'s cells."""
     gs = _groups(root, rel)
     out = []
     for key in dict.fromkeys(getattr(g, rows_by) for g in gs):
@@ -334,11 +330,11 @@ def multi_system_table(root: Path, doc: Path) -> list[str]:
     names = {"multi4": "one GN on 4 systems", "multi5": "one GN on 5 systems (with cheetah)"}
     tasks = ["pendulum", "cartpole", "acrobot", "swimmer6", "cheetah"]
     rows = [[names[v]] + [_cell(_find(gs, variant=v, task=t, episode_steps=20), 2) for t in tasks] for v in names]
-    n_sw = _groups(root, "multi_system/results.jsonl")
-    sw = [g for g in n_sw if g.variant == "swimmerN" and g.episode_steps == 20]
+    sw = [g for g in gs if g.variant == "swimmerN" and g.episode_steps == 20]
     rows.append(["SwimmerN (trained on N = 3-6, 8, 9)"] + [
         _cell(_find(sw, task=t), 2) if t == "swimmer6" else "-" for t in tasks])
-    unseen = sorted((int(g.task[7:]), g) for g in sw if g.task[7:].isdigit() and int(g.task[7:]) not in (3, 4, 5, 6, 8, 9))
+    trained = (3, 4, 5, 6, 8, 9)
+    unseen = sorted((int(g.task[7:]), g) for g in sw if g.task[7:].isdigit() and int(g.task[7:]) not in trained)
     return ([_note("20-step model / constant-baseline error on 200 test sequences", "`results.jsonl`"), ""]
             + _md(["model"] + tasks, rows) + ["", "SwimmerN on swimmers it never saw (20-step error):", ""]
             + _md([f"N = {n}" for n, _ in unseen], [[_cell(g, 2) for _, g in unseen]]))
@@ -399,7 +395,8 @@ def train_loop_table(root: Path, doc: Path) -> list[str]:
             + [f"**{run[p][1]['steps_per_s']:.0f}**" for p in ("tf32", "fp16")],
             [f"captured, `adam` (an earlier run, {adam['tf32']['steps']} steps)"]
             + [f"{adam[p]['steps_per_s']:.0f}" for p in ("tf32", "fp16")],
-            ["eager (`--set capture=false`), `flat_adam`"] + [f"{run[p][0]['steps_per_s']:.0f}" for p in ("tf32", "fp16")]]
+            ["eager (`--set capture=false`), `flat_adam`"]
+            + [f"{run[p][0]['steps_per_s']:.0f}" for p in ("tf32", "fp16")]]
     return [_note("steps/s of the newest run of `--eager-steps 200 --steps 20000` (the adam row: the newest "
                   "captured adam row)", "`train_loop_nvidia-h200.jsonl`"), ""] + _md(
         ["`gnwarp train` (steps/s)", "tf32", "fp16"], body)

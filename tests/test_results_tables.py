@@ -58,7 +58,8 @@ def test_a_changed_record_changes_its_row(tmp_path):
     assert rt.main(["--root", str(root), "--check"]) == 1
     assert rt.run(root) == [root / DOC]
     after = (root / DOC).read_text()
-    row = lambda text, task: next(x for x in _block(text, "control-fig10").splitlines() if x.startswith(f"| {task} |"))  # noqa: E731
+    def row(text, task):
+        return next(x for x in _block(text, "control-fig10").splitlines() if x.startswith(f"| {task} |"))
     assert row(after, "pendulum-balance") != row(before, "pendulum-balance")
     assert row(after, "pendulum-balance").split(" | ")[1].startswith(f"{np.mean(rec['returns']):.1f} +- ")
     assert row(after, "cartpole-balance") == row(before, "cartpole-balance")
