@@ -12,7 +12,9 @@ records from the committed results (forward_models, sysid_figures and every labe
 under it, multi_system, ablation_h2, budget_retrain, speed_accuracy, mlp_sweep, recurrent_jaco,
 sysid_sensitivity; every number unchanged, a file already in the record format left alone),
 regenerates its summary and compares each number of its summary before (at e848b55 or
-``SYSID_BASE``) with the records. Exit 1 on a difference. Running it again changes nothing.
+``SYSID_BASE``) with the records. Last ("provenance"), the seeds and commits that the raw results
+or their notes name are written into the records (``fill_provenance``). Exit 1 on a difference.
+Running it again changes nothing.
 """
 from __future__ import annotations
 
@@ -456,11 +458,60 @@ def convert_sysid_sensitivity() -> list[str]:
 
 
 # the experiments converted after the control ones: name -> conversion (returns the differences)
+# commits the run notes name: (records file under sysid_figures, config key, value) -> commit
+NOTED_COMMITS = {("pool/records.jsonl", "run", "pool-"): "acb6f08",           # pool/NOTES.md: its code
+                 ("nominal_static/records.jsonl", "gpu_command", "e"): "c331ccf",  # "GPU command e, commit c331ccf"
+                 ("options/records.jsonl", "run", "unroll-"): "d75ad35"}       # "unroll=U existed at commit d75ad35"
+
+
+def fill_provenance() -> list[str]:
+    """Seeds and commits that the raw results or their notes name, written into the converted
+    records in place (run after the conversions, which leave them "unknown" / null):
+    forward_models' runs (and the same GN runs in mlp_sweep and budget_retrain's "eager loop") take
+    the seed of their ``<system>/results.json`` config; sysid_figures' records their run's seed
+    (``sysid_figures.to_records``: the row's or the "s<K>-" label's) and the commits of
+    ``NOTED_COMMITS``. Every number unchanged; returns the records whose values changed (none)."""
+    seeds = {p.parent.name: json.loads(p.read_text())["config"].get("seed") for p in FORWARD.glob("*/results.json")}
+
+    def fill(path, change):
+        recs = read_records(path)
+        before = [(r.key, r.episode_steps, r.values, r.reported) for r in recs]
+        for r in recs:
+            change(r)
+        write_records(path, recs, append=False)
+        return [f"{path}: {a[0]} changed" for a, b in zip(before, [(r.key, r.episode_steps, r.values, r.reported)
+                                                                    for r in read_records(path)]) if a != b]
+    problems = []
+
+    def gn_seed(variants=None):   # None: every variant (the run's GN and MLP)
+        def change(r):
+            if r.seed is None and (variants is None or r.variant in variants) and seeds.get(r.task) is not None:
+                r.seed = int(seeds[r.task])
+        return change
+    problems += fill(FORWARD / "results.jsonl", gn_seed())
+    problems += fill(ROOT / "bench" / "results" / "mlp_sweep" / "results.jsonl", gn_seed({"GN"}))
+    problems += fill(BUDGET / "results.jsonl", gn_seed({"eager loop"}))
+    for path in sorted(SYSID.glob("**/records.jsonl")):
+        rel = path.relative_to(SYSID).as_posix()
+
+        def change(r, rel=rel):
+            run = str(r.config.get("run") or "")
+            if r.seed is None and isinstance(r.config.get("seed"), int):
+                r.seed = r.config["seed"]
+            if r.seed is None and re.match(r"s\d+-", run):
+                r.seed = int(re.match(r"s(\d+)-", run).group(1))
+            for (where, key, value), commit in NOTED_COMMITS.items():
+                if rel == where and str(r.config.get(key, "")).startswith(value) and r.commit == "unknown":
+                    r.commit = commit
+        problems += fill(path, change)
+    return problems
+
+
 CONVERSIONS = {"forward_models": convert_forward_models, "sysid_figures": convert_sysid_figures,
                "multi_system": convert_multi_system, "ablation_h2": convert_ablation_h2,
                "budget_retrain": convert_budget_retrain, "speed_accuracy": convert_speed_accuracy,
                "mlp_sweep": convert_mlp_sweep, "recurrent_jaco": convert_recurrent_jaco,
-               "sysid_sensitivity": convert_sysid_sensitivity}
+               "sysid_sensitivity": convert_sysid_sensitivity, "provenance": fill_provenance}
 
 
 def main() -> int:

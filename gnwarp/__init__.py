@@ -26,17 +26,34 @@ def _find_kernels():
 
 _find_kernels()
 
-# the public API: the stages by name, and the handful of objects a user calls
-from gnwarp import data, eval, sim  # noqa: E402, F401  (eval: reachable as gnwarp.eval)
-from gnwarp.gn import TUNABLES, GNBlockConfig, GraphNetwork, RunOptions, flatten_parameters  # noqa: E402
-from gnwarp.graphs import GraphsTuple  # noqa: E402
-from gnwarp.interop import cuda_graph  # noqa: E402
-from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
-from gnwarp.sim import systems  # noqa: E402
+# the public API: the stages by name, and the handful of objects a user calls, imported on first
+# use (PEP 562) so that ``import gnwarp.cli`` and ``gnwarp --help`` do not load torch and Warp
+_LAZY = {"GraphsTuple": "gnwarp.graphs", "GraphNetwork": "gnwarp.gn", "GNBlockConfig": "gnwarp.gn",
+         "RunOptions": "gnwarp.gn", "TUNABLES": "gnwarp.gn", "flatten_parameters": "gnwarp.gn",
+         "ForwardModel": "gnwarp.models", "ModelConfig": "gnwarp.models", "Trainer": "gnwarp.train",
+         "TrainConfig": "gnwarp.train", "load_model": "gnwarp.train", "FlatAdam": "gnwarp.train",
+         "cuda_graph": "gnwarp.interop", "systems": "gnwarp.sim"}
 # (the function ``train`` stays in ``gnwarp.train``: at the top it would hide that subpackage)
-from gnwarp.train import FlatAdam, TrainConfig, Trainer, load_model  # noqa: E402
+_SUBPACKAGES = ("data", "eval", "sim", "gn", "models", "train", "control", "demo", "cli")
 
 # (``gnwarp.eval`` stays out of __all__: a star import would hide Python's builtin ``eval``)
 __all__ = ["GraphsTuple", "GraphNetwork", "GNBlockConfig", "RunOptions", "TUNABLES", "ForwardModel", "ModelConfig",
            "Trainer", "TrainConfig", "load_model", "FlatAdam", "flatten_parameters", "cuda_graph", "systems",
            "sim", "data"]
+
+
+def __getattr__(name: str):
+    """``gnwarp.<name>``: a public object or a subpackage, imported on first use."""
+    import importlib
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+    elif name in _SUBPACKAGES:
+        value = importlib.import_module(f"gnwarp.{name}")
+    else:
+        raise AttributeError(f"module 'gnwarp' has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY) | set(_SUBPACKAGES))

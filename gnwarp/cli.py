@@ -14,7 +14,9 @@ import argparse
 import sys
 import time
 
-from gnwarp.gn.options import IMPLS
+# the GN implementations (``gnwarp.gn.options.IMPLS``, which imports torch and Warp; a test keeps the two
+# equal): each command imports what it needs inside its function, so --help loads neither
+IMPLS = ("warp", "torch")
 
 
 def _cmd_systems(args) -> int:
@@ -490,7 +492,11 @@ def _train_epilog() -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. ``command``: the command about to run; the train command's
+    config-key list and system-ID options (which import the training stack) are added only for
+    "train" or for None (every command in full)."""
+    full_train = command in (None, "train")
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__, formatter_class=_Help)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -534,7 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "model.gn.latent=64. Every value is validated, and the run folder checked, before "
                            "anything runs. Resumes from <out>/last when it exists.",
                            "Example: gnwarp train --data pendulum.h5 --quick -o runs/pendulum"),
-                       epilog=_train_epilog())
+                       epilog=_train_epilog() if full_train else None)
     t.add_argument("config", nargs="?", help="JSON or TOML training config, keys as listed below (default: none)")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable; values parsed as JSON when they parse; "
@@ -548,9 +554,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sysid", action="store_true",
                    help="train system identification end to end (Algorithm D.4) on parameterized data: a recurrent "
                         "GN infers a latent static graph from a 20-step window; gnwarp evaluate reads its checkpoints")
-    from gnwarp.train.sysid_config import add_sysid_arguments
-    add_sysid_arguments(t.add_argument_group("system identification (with --sysid; SysIDConfig and SysIDTrainConfig "
-                                             "fields)"))
+    if full_train:
+        from gnwarp.train.sysid_config import add_sysid_arguments
+        add_sysid_arguments(t.add_argument_group("system identification (with --sysid; SysIDConfig and "
+                                                 "SysIDTrainConfig fields)"))
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 
@@ -640,8 +647,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _command_of(argv: list[str]) -> str:
+    """The command named in ``argv`` (its first word not starting with "-"), or "" for none."""
+    return next((a for a in argv if not a.startswith("-")), "")
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(_command_of(argv)).parse_args(argv)
     try:
         return args.func(args)
     except (ValueError, OSError, FloatingPointError, RuntimeError, TypeError) as e:

@@ -95,3 +95,43 @@ def test_random_actions_of_an_unlimited_actuator_are_not_zero(unlimited):
 def test_random_planner_refuses_an_infinite_range():
     with pytest.raises(ValueError, match="ctrlrange must be finite"):
         RandomPlanner([[-np.inf, np.inf]], 2)
+
+
+def _template(system):
+    from gnwarp.data.builder import GraphTemplate, graph_builder
+    from gnwarp.data.convert import static_arrays
+    _, layout, _ = static_arrays([system])
+    return GraphTemplate(graph_builder(layout, system), torch.zeros(2, dtype=torch.long)), layout
+
+
+def test_rollout_clamp_reads_the_systems_actuator_record(unlimited):
+    """A model bound to Systems clamps controls to their ``Actuators`` record: a limited actuator
+    to its range, an unlimited one not at all; a dataset's template (no record) reads the same
+    range from its static edge features."""
+    from gnwarp.data.builder import GraphBuilder, GraphTemplate
+    from gnwarp.data.convert import static_arrays
+    from gnwarp.models.rollout import RolloutInputs
+    big = torch.tensor([[[50.0], [-50.0], [0.25]]] * 2)                     # [N=2, T=3, U=1]
+    tmpl, layout = _template(sim.make("pendulum"))
+    assert tmpl.actuators is not None and tmpl.actuators[0].limited.all()
+    inp = RolloutInputs(tmpl, layout)
+    assert torch.equal(inp.values(torch.zeros(2, tmpl.B, 13), big), big.clamp(-1.0, 1.0))
+    # the record decides, not the features: a narrower record range clamps there
+    tmpl, layout = _template(sim.make("pendulum"))
+    rec = tmpl.actuators[0]
+    tmpl.actuators = [Actuators(low=rec.low / 2, high=rec.high / 2, limited=rec.limited, clamped=rec.clamped)] * 2
+    x0 = torch.zeros(2, tmpl.B, 13)
+    assert torch.equal(RolloutInputs(tmpl, layout).values(x0, big), big.clamp(-0.5, 0.5))
+    # a dataset's graphs (no System at hand): the static features hold the same range
+    static, layout, _ = static_arrays([sim.make("pendulum")])
+    ds_tmpl = GraphTemplate(GraphBuilder(static), torch.zeros(2, dtype=torch.long))
+    assert ds_tmpl.actuators is None
+    assert torch.equal(RolloutInputs(ds_tmpl, layout).values(x0, big), big.clamp(-1.0, 1.0))
+    # an unlimited actuator (MuJoCo's default range [0, 0]) is not clamped, not even to [0, 0]
+    tmpl, layout = _template(unlimited)
+    assert not tmpl.actuators[0].limited.any()
+    inp = RolloutInputs(tmpl, layout)
+    assert inp.ranges is None
+    assert torch.equal(inp.values(torch.zeros(2, tmpl.B, 13), big), big)
+    # and "error" has nothing to refuse: the same controls pass
+    assert torch.equal(RolloutInputs(tmpl, layout, ctrl_policy="error").values(torch.zeros(2, tmpl.B, 13), big), big)

@@ -431,10 +431,24 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
     reported mean error over the test sequences (per-sequence errors are not kept; std null). Figure 8
     and oracle records have the system as their task; Figure 9's are tasks "pendulum length xL, <condition>"
     with variants "sysid same" and "true params". Episode steps: the rollout horizon. Metrics: the
-    models' training steps and seconds, the error of rollouts from step 0, the reference runs' errors.
-    Numbers unchanged; rows of other parts give no record."""
+    models' training steps and seconds, the error of rollouts from step 0, the reference runs' errors;
+    a labelled run's "sysid same" record whose run kept its per-sequence errors (a "sequences" row)
+    adds the ratio's two paired readings (``paired_ratios``): ``ratio_without_top_1pct`` and
+    ``ratio_median_per_sequence``; and its parameter estimates' relative rms errors
+    (``estimate_rel_rms``, {parameter: error}) and linear probe's R^2 (``probe_r2``). The seed: the row's, or the "s<K>-" that starts a run's label
+    (``--seed K --label sK-...``); None otherwise. Numbers unchanged; rows of other parts give no record."""
     from gnwarp.eval.records import ResultRecord
     from gnwarp.sim import systems
+    paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
+              if r.get("part") == "sequences" and r.get("run")}
+    # a labelled run's parameter estimates (relative rms error) and linear probe (R^2), per parameter
+    estimates: dict[tuple, dict] = {}
+    probes: dict[tuple, dict] = {}
+    for r in rows:
+        if r.get("part") == "estimate" and r.get("run") and r.get("rel_rms") is not None:
+            estimates.setdefault((r["run"], r["system"]), {})[r["param"]] = r["rel_rms"]
+        if r.get("part") == "probe" and r.get("run") and r.get("r2") is not None:
+            probes.setdefault((r["run"], r["system"]), {})[r["param"]] = r["r2"]
     out = []
     for r in rows:
         part = r.get("part")
@@ -445,7 +459,12 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
         config = {k: v for k, v in r.items() if k not in _ROW_FIELDS}
         config["window"] = r["window"]
         run = f" [{r['run']}]" if r.get("run") else ""
-        common = dict(experiment="sysid_figures" + ("/fig9" if part == "fig9" else ""), system=r["system"],
+        # the run's seed: its row's, or a label's "s<K>-" (the runs' commands: --seed K --label sK-...)
+        seed = r.get("seed")
+        if seed is None and re.match(r"s\d+-", r.get("run") or ""):
+            seed = int(re.match(r"s(\d+)-", r["run"]).group(1))
+        common = dict(seed=seed, experiment="sysid_figures" + ("/fig9" if part == "fig9" else ""),
+                      system=r["system"],
                       planner="none", dynamics="learned", episode_steps=int(r["horizon"]),
                       control_dt=float(system.dt), action_repeat=int(system.substeps),
                       env_steps=int(seqs[0]) * (int(r["window"]) + int(r["horizon"])) if seqs else None,
@@ -462,6 +481,13 @@ def to_records(rows: list[dict], commit: str = "unknown") -> list:
                                       ("from_step_0", r.get("from_step_0")),
                                       ("ratio_to_true", r.get("ratio_to_true")), ("runs", r.get("runs")))
                    if v is not None}
+        if r["model"] == "sysid same" and (r.get("run"), r["system"]) in paired:
+            trimmed, per_sequence = paired[r["run"], r["system"]]
+            metrics.update(ratio_without_top_1pct=trimmed, ratio_median_per_sequence=per_sequence)
+        if r["model"] == "sysid same" and (r.get("run"), r["system"]) in estimates:
+            metrics["estimate_rel_rms"] = estimates[r["run"], r["system"]]
+        if r["model"] == "sysid same" and (r.get("run"), r["system"]) in probes:
+            metrics["probe_r2"] = probes[r["run"], r["system"]]
         out.append(ResultRecord(task=r["system"], variant=r["model"] + run, episodes=int(r["test_sequences"]),
                                 reported={"mean": float(r["error"]), "std": None, "of": "errors"},
                                 metrics=metrics, **common))
@@ -554,37 +580,24 @@ def paired_ratios(shares: dict[str, list[float]], trim: float = 0.01) -> tuple[f
 
 
 def compare_runs(out: Path, rows: list[dict]) -> str:
-    """``compare.md`` and ``compare.png`` from Figure 8 rows labelled with a ``run`` (``--label``): per
+    """``compare.md`` and ``compare.png`` of the Figure 8 runs labelled with a ``run`` (``--label``): per
     system, each run's errors and its sysid / true-params ratio, side by side; where the run
-    recorded its per-sequence shares, the ratio's two paired readings (``paired_ratios``).
-    Returns the table."""
+    recorded its per-sequence shares, the ratio's two paired readings (``paired_ratios``). The
+    table is generated from ``records.jsonl`` (``bench/results_tables.py``, block "sysid-compare"),
+    the plot from ``rows``. Returns the table."""
+    from bench import results_tables
     f8 = [r for r in rows if r["part"] == "fig8" and r.get("run")]
     if not f8:
         raise SystemExit(f"--compare: no Figure 8 row with a run label in {out / 'results.jsonl'}")
     runs = list(dict.fromkeys(r["run"] for r in f8))
     systems = list(dict.fromkeys(r["system"] for r in f8))
     cell = {(r["run"], r["system"], r["model"]): r for r in f8}   # newest row of each wins
-    paired = {(r["run"], r["system"]): paired_ratios(r["shares"]) for r in rows
-              if r["part"] == "sequences" and r.get("run")}
-    lines = ["| system | run | test | steps | no params | true params (runs) | sysid same | sysid other | sysid / true "
-             "| without the top 1% | median per sequence |", "|---|---|---|---|---|---|---|---|---|---|---|"]
-    ratio = {}
-    for s in systems:
-        for run in runs:
-            e = {k: cell.get((run, s, k)) for k in MODELS}
-            if e["sysid same"] is None or e["true params"] is None:
-                continue
-            t = e["true params"]
-            ratio[run, s] = e["sysid same"]["error"] / t["error"]
-            spread = ", ".join(_g(x) for x in t.get("runs", []))
-            trimmed, per_seq = (f"{x:.2f}x" for x in paired[run, s]) if (run, s) in paired else ("-", "-")
-            lines.append(f"| {s} | {run} | {t.get('test_sequences', '-')} | {e['sysid same'].get('steps', '-')} | "
-                         f"{_g(e['no params']['error'] if e['no params'] else None)} | {_g(t['error'])}"
-                         f"{f' ({spread})' if spread else ''} | {_g(e['sysid same']['error'])} | "
-                         f"{_g(e['sysid other']['error'] if e['sysid other'] else None)} | {ratio[run, s]:.2f}x | "
-                         f"{trimmed} | {per_seq} |")
-    table = "\n".join(lines) + "\n"
-    (out / "compare.md").write_text(table)
+    ratio = {(run, s): cell[run, s, "sysid same"]["error"] / cell[run, s, "true params"]["error"]
+             for s in systems for run in runs if (run, s, "sysid same") in cell and (run, s, "true params") in cell}
+    doc = out / "compare.md"
+    doc.write_text("<!-- results:begin sysid-compare -->\n<!-- results:end sysid-compare -->\n")
+    results_tables.run(files=[doc])
+    table = doc.read_text()
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -71,6 +71,8 @@ class GraphBuilder:
         same = lambda a: bool((a == a[:1]).all()) if a.shape[0] else True  # noqa: E731
         self.fixed_topology = self.uniform and same(self.senders) and same(self.receivers) and same(self.edge_ctrl)
         self.n_ctrl_read = int(self.edge_ctrl.max()) + 1 if self.edge_ctrl.numel() else 0  # controls the edges read
+        # per instance, the System's actuator record (``graph_builder`` of Systems); None for a dataset
+        self.actuators: list | None = None
         self._topologies: dict[tuple[int, int], tuple] = {}
 
     def topology(self, N: int, U: int) -> tuple:
@@ -192,6 +194,8 @@ class GraphTemplate:
         self.edge_of = graph_of(self.topology.n_edge, int(self.static_edges.shape[0]))  # graph of each edge
         self.n_nodes = int(self.static_nodes.shape[0])
         self._ctrl_map: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        acts = getattr(builder, "actuators", None)   # [N] the instances' actuator records, or None
+        self.actuators = None if acts is None else [acts[i] for i in instance.tolist()]
 
     def graph(self, body: torch.Tensor, ctrl: torch.Tensor) -> GraphsTuple:
         """Input graphs of the N instances from ``body`` [N, B, 13] and ``ctrl`` [N, U]."""
@@ -222,10 +226,13 @@ def graph_builder(layout: FeatureLayout, source, device=None, dtype=None, strict
     """A ``GraphBuilder`` of ``source``'s graphs in ``layout``: source is a ``Dataset``, a
     ``gnwarp.sim.systems.System`` (its static graph, for planning without a dataset) or a list of
     Systems of one family (instance i is the i-th: per-episode parameters)."""
+    systems = None
     if isinstance(source, System):
-        static, data_layout, _ = static_arrays([source])
+        systems = [source]
     elif isinstance(source, (list, tuple)) and source and all(isinstance(s, System) for s in source):
-        static, data_layout, _ = static_arrays(list(source))
+        systems = list(source)
+    if systems is not None:
+        static, data_layout, _ = static_arrays(systems)
     elif all(hasattr(source, a) for a in ("static", "layout", "meta")):  # a Dataset: its module imports this one
         names = tuple(source.meta.get("dynamic_node_names", DYN_NODE_NAMES))
         if names != DYN_NODE_NAMES:
@@ -233,4 +240,7 @@ def graph_builder(layout: FeatureLayout, source, device=None, dtype=None, strict
         static, data_layout = source.static, source.layout
     else:
         raise TypeError(f"expected a gnwarp Dataset or System, got {type(source).__name__}")
-    return GraphBuilder(map_static(layout, data_layout, static, strict), device=device, dtype=dtype)
+    builder = GraphBuilder(map_static(layout, data_layout, static, strict), device=device, dtype=dtype)
+    if systems is not None:   # the rollout clamp reads each instance's actuator record
+        builder.actuators = [s.actuators for s in systems]
+    return builder

@@ -1,7 +1,8 @@
 """Results records: one JSON line per (experiment, task, planner, dynamics, variant) run.
 
-Every experiment writes its measured outcomes as ``ResultRecord`` lines; summaries, plots and
-README rows are generated from them (``python -m gnwarp.eval.summarize``), never typed by hand.
+Every experiment writes its measured outcomes as ``ResultRecord`` lines; summaries and plots are
+generated from them (``python -m gnwarp.eval.summarize``), and so are the README tables
+(``python bench/results_tables.py``), never typed by hand.
 
 A record holds per-episode values: ``returns`` (control) or ``errors`` (model accuracy), one
 float per episode or sequence. Runs whose per-episode values were never written keep their

@@ -1,4 +1,5 @@
-"""Summaries, plots and README rows generated from results records (``gnwarp.eval.records``).
+"""Summaries and plots generated from results records (``gnwarp.eval.records``); the README
+tables built on the same groups are ``bench/results_tables.py``'s.
 
     python -m gnwarp.eval.summarize RECORDS.jsonl [...] --out DIR [--title T] [--ratio A/B]
 

@@ -19,6 +19,7 @@ import math
 import weakref
 from typing import Callable
 
+import numpy as np
 import torch
 
 from gnwarp.gn.replay import ActivationStore
@@ -30,8 +31,8 @@ __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICI
 
 # What a rollout does with controls outside an actuator's range: "clamp" them to it (as MuJoCo
 # does for ctrllimited actuators), "error" (refuse them), or "none" (use them as they are). The
-# range is ``gnwarp.sim.actuators.Actuators``' low / high (+-inf where unlimited), read from the
-# static edge features the datasets store it in (act_ctrllimited, act_ctrlrange_*).
+# range is ``gnwarp.sim.actuators.Actuators``' low / high (+-inf where unlimited): the bound
+# Systems' own record, or for a dataset the static edge features it stores the record's values in.
 CTRL_POLICIES = ("clamp", "error", "none")
 
 
@@ -106,8 +107,27 @@ def _range_columns(layout):
     return out
 
 
+def _record_ranges(actuators: list, n_ctrl: int, like: torch.Tensor):
+    """(lo, hi) [N, U] from each instance's ``Actuators`` record: the range of limited actuators,
+    +-inf for unlimited ones and for controls beyond an instance's actuators."""
+    lo = np.full((len(actuators), n_ctrl), -np.inf)
+    hi = np.full((len(actuators), n_ctrl), np.inf)
+    for i, act in enumerate(actuators):
+        u = min(act.nu, n_ctrl)
+        lo[i, :u] = np.where(act.limited, act.low, -np.inf)[:u]
+        hi[i, :u] = np.where(act.limited, act.high, np.inf)[:u]
+    return tuple(torch.as_tensor(a, dtype=like.dtype, device=like.device) for a in (lo, hi))
+
+
 def _template_info(template, layout, n_ctrl: int | None):
-    """(controls U, (lo, hi) [N, U] or None) of a GraphTemplate (cached per template)."""
+    """(controls U, (lo, hi) [N, U] or None) of a GraphTemplate (cached per template).
+
+    Ranges of a template of Systems (``template.actuators``, set by ``graph_builder``) come from
+    their ``Actuators`` records. A dataset's template reads the static edge features
+    ``act_ctrllimited`` / ``act_ctrlrange_*`` of ``layout``: a dataset holds no System (it may
+    come from a user's MJCF file that is not at hand, and rebuilding a parameterized dataset's
+    instances would compile one MjModel each), and those features are the record's values as
+    generation wrote them."""
     info = _TEMPLATE_INFO.get(template)
     if info is not None and (n_ctrl is None or info[0] == n_ctrl):
         return info
@@ -116,7 +136,12 @@ def _template_info(template, layout, n_ctrl: int | None):
         n_ctrl = int(ci.max()) + 1 if ci.numel() else 0                     # one host sync, once
     ranges = None
     cols = _range_columns(layout) if layout is not None else None
-    if cols is not None and n_ctrl > 0 and ci.numel():
+    records = getattr(template, "actuators", None)
+    if records is not None and n_ctrl > 0:
+        lo, hi = _record_ranges(records, n_ctrl, template.static_edges)
+        if bool(torch.isfinite(torch.stack([lo, hi])).any()):   # else no limited actuator: nothing to do
+            ranges = (lo, hi)
+    elif cols is not None and n_ctrl > 0 and ci.numel():
         se = template.static_edges
         col = lambda k: se[:, cols[k]] if isinstance(cols[k], int) else torch.full_like(se[:, 0], cols[k])  # noqa: E731
         limited, lo_e, hi_e = col("act_ctrllimited") > 0.5, col("act_ctrlrange_0"), col("act_ctrlrange_1")
@@ -140,9 +165,11 @@ class RolloutInputs:
     bodies), before any launch.
 
     ``n_ctrl``: the controls U the source's actuators take (None: the template's own largest
-    control index + 1). ``layout``: the model's ``FeatureLayout``, where the actuators' control
-    ranges are read from (the static edge features ``act_ctrllimited`` / ``act_ctrlrange_*`` of
-    the actuator on each joint; an actuator sharing a joint with another, in a later slot, has no
+    control index + 1). The actuators' control ranges: for a template of Systems, their
+    ``System.actuators`` records (low / high of limited actuators; unlimited ones are not
+    clamped); for a dataset's template, ``layout`` (the model's ``FeatureLayout``) names where
+    they are read from: the static edge features ``act_ctrllimited`` / ``act_ctrlrange_*`` of the
+    actuator on each joint (an actuator sharing a joint with another, in a later slot, has no
     range there and is not clamped). ``ctrl_policy``: one of ``CTRL_POLICIES``. ``check``: also
     refuse NaN / Inf in the initial states (of real bodies) and the controls (one host sync).
     """
