@@ -1,0 +1,320 @@
+"""Warp kernels of ``gnwarp/models/fused_step.py``: a forward model's step around its core in
+three launches forward (encode, core, decode) and three backward (encode, decode's backward,
+encode's backward) for batches of graphs of one size.
+
+In torch, the work around the GN core of one step (the input graph from body states and
+controls, the re-centring of D.4, the input normalization, the de-normalized change, the
+quaternion update of D.5, the world body kept) is some hundred small kernels forward and as many
+backward. Here one thread per node, edge or graph writes its row:
+
+- ``encode``: body [N, ., B, 13] at step t and controls [N, ., U] at step t -> the normalized
+  input graph: nodes [N*B, Fv] = ([static, body - centre] - mean) / std, edges [N*E, Fe] =
+  ([static, control slots] - mean) / std, globals [N, Fg]. Each node thread re-sums its graph's
+  moving bodies' x, y for the centre (graphs have a few bodies).
+- ``decode``: normalized change [N*B, 13] -> next body: position and velocities by addition,
+  orientation by the unit change's Hamilton product, re-normalized; the world body (node 0)
+  kept. The centre cancels: (x - c) + d + c = x + d.
+- ``decode_grad`` / ``encode_grad``: their vector-Jacobian products, written (never accumulated:
+  no zeroing, no atomics), so the backward is deterministic. ``encode_grad`` adds the decode's
+  direct term and the loss's term on the state, and writes the controls' gradient at step t.
+
+Bodies and controls are read at a step index of [N, T, ...] arrays so a rollout's loops read and
+write its trajectory buffers in place (a single step passes a [N, 1, ...] view and 0).
+"""
+# no `from __future__ import annotations`: Warp reads kernel annotations as objects of the factory scope
+import functools
+
+import warp as wp
+
+__all__ = ["encode_kernel", "decode_kernel", "decode_grad_kernel", "encode_grad_kernel"]
+
+
+@functools.cache
+def encode_kernel(dtype, recenter: bool):
+    """Kernel ``(body_in [N, T1, B, 13], tb, ctrl_in [N, T, U], tc, static_nodes_in [N*B, Fv-13],
+    static_edges_in [N*E, Fe-K], static_globals_in [N, Fg], ctrl_index_in [N*E, K] int32 (-1: no
+    actuator), node_mean_in, node_std_in [Fv], edge_mean_in, edge_std_in [Fe], glob_mean_in,
+    glob_std_in [Fg], n_graph, n_body, n_edge, nodes_out [N*B, Fv], edges_out [N*E, Fe],
+    globals_out [N, Fg])`` over N*(B + E + 1) threads: node rows, edge rows, then graph rows of the
+    normalized input graph at body step ``tb`` and control step ``tc``. ``recenter``: subtract
+    each graph's mean x, y over its moving bodies (nodes 1..B-1) from its moving bodies."""
+    T = dtype
+    CENTRE = 1 if recenter else 0
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def encode(
+        # Data in:
+        body_in: wp.array4d(dtype=T),
+        tb: int,
+        ctrl_in: wp.array3d(dtype=T),
+        tc: int,
+        static_nodes_in: wp.array2d(dtype=T),
+        static_edges_in: wp.array2d(dtype=T),
+        static_globals_in: wp.array2d(dtype=T),
+        ctrl_index_in: wp.array2d(dtype=wp.int32),
+        node_mean_in: wp.array(dtype=T),
+        node_std_in: wp.array(dtype=T),
+        edge_mean_in: wp.array(dtype=T),
+        edge_std_in: wp.array(dtype=T),
+        glob_mean_in: wp.array(dtype=T),
+        glob_std_in: wp.array(dtype=T),
+        n_graph: int,
+        n_body: int,
+        n_edge: int,
+        # Data out:
+        nodes_out: wp.array2d(dtype=T),
+        edges_out: wp.array2d(dtype=T),
+        globals_out: wp.array2d(dtype=T),
+    ):
+        i = wp.tid()
+        nv = n_graph * n_body
+        ne = n_graph * n_edge
+        if i < nv:
+            n = i // n_body
+            v = i - n * n_body
+            fs = static_nodes_in.shape[1]
+            for j in range(fs):
+                nodes_out[i, j] = (static_nodes_in[i, j] - node_mean_in[j]) / node_std_in[j]
+            cx = T(0.0)
+            cy = T(0.0)
+            if wp.static(CENTRE == 1):
+                if v != 0:
+                    sx = T(0.0)
+                    sy = T(0.0)
+                    for w in range(1, n_body):
+                        sx += body_in[n, tb, w, 0]
+                        sy += body_in[n, tb, w, 1]
+                    d = wp.max(T(n_body - 1), T(1.0))
+                    cx = sx / d
+                    cy = sy / d
+            for k in range(13):
+                x = body_in[n, tb, v, k]
+                if k == 0:
+                    x = x - cx
+                elif k == 1:
+                    x = x - cy
+                nodes_out[i, fs + k] = (x - node_mean_in[fs + k]) / node_std_in[fs + k]
+        elif i < nv + ne:
+            r = i - nv
+            n = r // n_edge
+            fs = static_edges_in.shape[1]
+            for j in range(fs):
+                edges_out[r, j] = (static_edges_in[r, j] - edge_mean_in[j]) / edge_std_in[j]
+            for k in range(ctrl_index_in.shape[1]):
+                c = ctrl_index_in[r, k]
+                x = T(0.0)
+                if c >= 0:
+                    x = ctrl_in[n, tc, c]
+                edges_out[r, fs + k] = (x - edge_mean_in[fs + k]) / edge_std_in[fs + k]
+        else:
+            n = i - nv - ne
+            for j in range(static_globals_in.shape[1]):
+                globals_out[n, j] = (static_globals_in[n, j] - glob_mean_in[j]) / glob_std_in[j]
+
+    return encode
+
+
+@functools.cache
+def _quat_funcs(dtype):
+    """(mul, mul_grad_b, mul_grad_a) of quaternions in ``dtype``: the product and its
+    transposed Jacobians applied to an incoming gradient."""
+    V = wp.types.vector(4, dtype)
+
+    @wp.func
+    def qmul(a: V, b: V):
+        """a (x) b."""
+        return V(a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+                 a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+                 a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+                 a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0])
+
+    @wp.func
+    def qmul_grad_b(a: V, g: V):
+        """(d (a (x) b) / d b)^T g."""
+        return V(g[0] * a[0] + g[1] * a[1] + g[2] * a[2] + g[3] * a[3],
+                 -g[0] * a[1] + g[1] * a[0] + g[2] * a[3] - g[3] * a[2],
+                 -g[0] * a[2] - g[1] * a[3] + g[2] * a[0] + g[3] * a[1],
+                 -g[0] * a[3] + g[1] * a[2] - g[2] * a[1] + g[3] * a[0])
+
+    @wp.func
+    def qmul_grad_a(b: V, g: V):
+        """(d (a (x) b) / d a)^T g."""
+        return V(g[0] * b[0] + g[1] * b[1] + g[2] * b[2] + g[3] * b[3],
+                 -g[0] * b[1] + g[1] * b[0] - g[2] * b[3] + g[3] * b[2],
+                 -g[0] * b[2] + g[1] * b[3] + g[2] * b[0] - g[3] * b[1],
+                 -g[0] * b[3] - g[1] * b[2] + g[2] * b[1] + g[3] * b[0])
+
+    return V, qmul, qmul_grad_b, qmul_grad_a
+
+
+@functools.cache
+def decode_kernel(dtype):
+    """Kernel ``(delta_in [N*B, 13], body_in [N, T1, B, 13], tb, mean_in [13], std_in [13], n_body,
+    next_out [N, T2, B, 13], tn)`` over N*B threads: d = delta * std + mean; next = body + d for
+    position and velocities, orientation (d_q / |d_q|) (x) q re-normalized (norms at least
+    1e-12); node 0 of each graph (the world) copied. Reads step ``tb``, writes step ``tn``."""
+    T = dtype
+    V, qmul, _, _ = _quat_funcs(dtype)
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def decode(
+        # Data in:
+        delta_in: wp.array2d(dtype=T),
+        body_in: wp.array4d(dtype=T),
+        tb: int,
+        mean_in: wp.array(dtype=T),
+        std_in: wp.array(dtype=T),
+        n_body: int,
+        # Data out:
+        next_out: wp.array4d(dtype=T),
+        tn: int,
+    ):
+        i = wp.tid()
+        n = i // n_body
+        v = i - n * n_body
+        if v == 0:
+            for k in range(13):
+                next_out[n, tn, v, k] = body_in[n, tb, v, k]
+            return
+        for k in range(13):
+            if k < 3 or k >= 7:
+                next_out[n, tn, v, k] = body_in[n, tb, v, k] + (delta_in[i, k] * std_in[k] + mean_in[k])
+        a = V(delta_in[i, 3] * std_in[3] + mean_in[3], delta_in[i, 4] * std_in[4] + mean_in[4],
+              delta_in[i, 5] * std_in[5] + mean_in[5], delta_in[i, 6] * std_in[6] + mean_in[6])
+        a = a / wp.max(wp.length(a), T(1e-12))
+        b = V(body_in[n, tb, v, 3], body_in[n, tb, v, 4], body_in[n, tb, v, 5], body_in[n, tb, v, 6])
+        p = qmul(a, b)
+        p = p / wp.max(wp.length(p), T(1e-12))
+        for k in range(4):
+            next_out[n, tn, v, 3 + k] = p[k]
+
+    return decode
+
+
+@functools.cache
+def decode_grad_kernel(dtype):
+    """Kernel ``(delta_in [N*B, 13], body_in [N, T1, B, 13], tb, g_next_in [N*B, 13], mean_in,
+    std_in [13], n_body, g_delta_out [N*B, 13], g_body_out [N*B, 13])`` over N*B threads: the
+    vector-Jacobian product of ``decode`` with ``g_next_in``: the gradient of the normalized change
+    and the direct gradient of the body state (the world body: the identity, no change)."""
+    T = dtype
+    V, qmul, qmul_grad_b, qmul_grad_a = _quat_funcs(dtype)
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def decode_grad(
+        # Data in:
+        delta_in: wp.array2d(dtype=T),
+        body_in: wp.array4d(dtype=T),
+        tb: int,
+        g_next_in: wp.array2d(dtype=T),
+        mean_in: wp.array(dtype=T),
+        std_in: wp.array(dtype=T),
+        n_body: int,
+        # Data out:
+        g_delta_out: wp.array2d(dtype=T),
+        g_body_out: wp.array2d(dtype=T),
+    ):
+        i = wp.tid()
+        n = i // n_body
+        v = i - n * n_body
+        if v == 0:
+            for k in range(13):
+                g_body_out[i, k] = g_next_in[i, k]
+                g_delta_out[i, k] = T(0.0)
+            return
+        for k in range(13):
+            if k < 3 or k >= 7:
+                g_body_out[i, k] = g_next_in[i, k]
+                g_delta_out[i, k] = g_next_in[i, k] * std_in[k]
+        eps = T(1e-12)
+        a_raw = V(delta_in[i, 3] * std_in[3] + mean_in[3], delta_in[i, 4] * std_in[4] + mean_in[4],
+                  delta_in[i, 5] * std_in[5] + mean_in[5], delta_in[i, 6] * std_in[6] + mean_in[6])
+        la = wp.length(a_raw)
+        ra = wp.max(la, eps)
+        a = a_raw / ra
+        b = V(body_in[n, tb, v, 3], body_in[n, tb, v, 4], body_in[n, tb, v, 5], body_in[n, tb, v, 6])
+        p_raw = qmul(a, b)
+        lp = wp.length(p_raw)
+        rp = wp.max(lp, eps)
+        q = p_raw / rp
+        gq = V(g_next_in[i, 3], g_next_in[i, 4], g_next_in[i, 5], g_next_in[i, 6])
+        # through y = x / max(|x|, eps): (g - y (y . g)) / r where |x| >= eps, else g / r
+        gp = gq / rp
+        if lp >= eps:
+            gp = (gq - q * wp.dot(q, gq)) / rp
+        gb = qmul_grad_b(a, gp)
+        ga = qmul_grad_a(b, gp)
+        gr = ga / ra
+        if la >= eps:
+            gr = (ga - a * wp.dot(a, ga)) / ra
+        for k in range(4):
+            g_body_out[i, 3 + k] = gb[k]
+            g_delta_out[i, 3 + k] = gr[k] * std_in[3 + k]
+
+    return decode_grad
+
+
+@functools.cache
+def encode_grad_kernel(dtype, recenter: bool, add: bool):
+    """Kernel ``(g_nodes_in [N*B, Fv], g_edges_in [N*E, Fe], g_direct_in [N*B, 13], g_add_in
+    [N, T1, B, 13], ta, ctrl_index_in [N*E, K] int32, node_std_in [Fv], edge_std_in [Fe], n_graph,
+    n_body, n_edge, n_ctrl, g_body_out [N*B, 13], g_ctrl_out [N, T, U], tc)`` over N*(B + U)
+    threads: the vector-Jacobian product of ``encode`` (re-centring included when ``recenter``)
+    with the gradients of the normalized nodes and edges, plus ``g_direct_in`` and (when ``add``)
+    ``g_add_in`` at step ``ta``, into ``g_body_out``; each control's gradient (the sum over the
+    edge slots that read it) into ``g_ctrl_out`` at step ``tc``."""
+    T = dtype
+    CENTRE = 1 if recenter else 0
+    ADD = 1 if add else 0
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def encode_grad(
+        # Data in:
+        g_nodes_in: wp.array2d(dtype=T),
+        g_edges_in: wp.array2d(dtype=T),
+        g_direct_in: wp.array2d(dtype=T),
+        g_add_in: wp.array4d(dtype=T),
+        ta: int,
+        ctrl_index_in: wp.array2d(dtype=wp.int32),
+        node_std_in: wp.array(dtype=T),
+        edge_std_in: wp.array(dtype=T),
+        n_graph: int,
+        n_body: int,
+        n_edge: int,
+        n_ctrl: int,
+        # Data out:
+        g_body_out: wp.array2d(dtype=T),
+        g_ctrl_out: wp.array3d(dtype=T),
+        tc: int,
+    ):
+        i = wp.tid()
+        nv = n_graph * n_body
+        if i < nv:
+            n = i // n_body
+            v = i - n * n_body
+            fs = g_nodes_in.shape[1] - 13
+            for k in range(13):
+                g = g_nodes_in[i, fs + k] / node_std_in[fs + k] + g_direct_in[i, k]
+                if wp.static(ADD == 1):
+                    g += g_add_in[n, ta, v, k]
+                if wp.static(CENTRE == 1):
+                    if k < 2 and v != 0:
+                        s = T(0.0)
+                        for w in range(1, n_body):
+                            s += g_nodes_in[n * n_body + w, fs + k]
+                        g -= s / node_std_in[fs + k] / wp.max(T(n_body - 1), T(1.0))
+                g_body_out[i, k] = g
+        else:
+            r = i - nv
+            n = r // n_ctrl
+            u = r - n * n_ctrl
+            kk = ctrl_index_in.shape[1]
+            fs = g_edges_in.shape[1] - kk
+            acc = T(0.0)
+            for e in range(n * n_edge, (n + 1) * n_edge):
+                for k in range(kk):
+                    if ctrl_index_in[e, k] == u:
+                        acc += g_edges_in[e, fs + k] / edge_std_in[fs + k]
+            g_ctrl_out[n, tc, u] = acc
+
+    return encode_grad
