@@ -195,7 +195,7 @@ class FusedStep:
         """Next body states into ``out`` [N, ., B, 13] at step ``tn`` from the normalized change
         ``delta`` [N*B, 13] and ``body`` [N, ., B, 13] at step ``tb``."""
         Launcher(delta)(K.decode_kernel(WP_DTYPE[self.dtype]), self.N * self.B, delta.contiguous(), body, tb,
-                        stats[6], stats[7], self.B, out, tn)
+                        stats[6], stats[7], self.B, tn, out)
 
     def _backward_step(self, body, tb: int, graph, g_next, stats, g_add, ta: int, g_body, g_ctrl, tc: int) -> None:
         """One step's vector-Jacobian product: ``g_next`` [N*B, 13] -> ``g_body`` [N*B, 13] (plus
@@ -216,7 +216,7 @@ class FusedStep:
         add = g_add is not None
         run(K.encode_grad_kernel(WP_DTYPE[self.dtype], self.recenter, add), self.N * (self.B + U), gn, ge, g_direct,
             g_add if add else run.placeholder(self.dtype, 4), ta, self.ctrl_index, stats[1], stats[3], self.N, self.B,
-            self.E, U, g_body, g_ctrl, tc)
+            self.E, U, tc, g_body, g_ctrl)
 
     # -- one step -----------------------------------------------------------------------------
     def _check(self, body, ctrl):

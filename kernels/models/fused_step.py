@@ -150,7 +150,7 @@ def _quat_funcs(dtype):
 @functools.cache
 def decode_kernel(dtype):
     """Kernel ``(delta_in [N*B, 13], body_in [N, T1, B, 13], tb, mean_in [13], std_in [13], n_body,
-    next_out [N, T2, B, 13], tn)`` over N*B threads: d = delta * std + mean; next = body + d for
+    tn, next_out [N, T2, B, 13])`` over N*B threads: d = delta * std + mean; next = body + d for
     position and velocities, orientation (d_q / |d_q|) (x) q re-normalized (norms at least
     1e-12); node 0 of each graph (the world) copied. Reads step ``tb``, writes step ``tn``."""
     T = dtype
@@ -165,9 +165,9 @@ def decode_kernel(dtype):
         mean_in: wp.array(dtype=T),
         std_in: wp.array(dtype=T),
         n_body: int,
+        tn: int,
         # Data out:
         next_out: wp.array4d(dtype=T),
-        tn: int,
     ):
         i = wp.tid()
         n = i // n_body
@@ -258,7 +258,7 @@ def decode_grad_kernel(dtype):
 def encode_grad_kernel(dtype, recenter: bool, add: bool):
     """Kernel ``(g_nodes_in [N*B, Fv], g_edges_in [N*E, Fe], g_direct_in [N*B, 13], g_add_in
     [N, T1, B, 13], ta, ctrl_index_in [N*E, K] int32, node_std_in [Fv], edge_std_in [Fe], n_graph,
-    n_body, n_edge, n_ctrl, g_body_out [N*B, 13], g_ctrl_out [N, T, U], tc)`` over N*(B + U)
+    n_body, n_edge, n_ctrl, tc, g_body_out [N*B, 13], g_ctrl_out [N, T, U])`` over N*(B + U)
     threads: the vector-Jacobian product of ``encode`` (re-centring included when ``recenter``)
     with the gradients of the normalized nodes and edges, plus ``g_direct_in`` and (when ``add``)
     ``g_add_in`` at step ``ta``, into ``g_body_out``; each control's gradient (the sum over the
@@ -282,10 +282,10 @@ def encode_grad_kernel(dtype, recenter: bool, add: bool):
         n_body: int,
         n_edge: int,
         n_ctrl: int,
+        tc: int,
         # Data out:
         g_body_out: wp.array2d(dtype=T),
         g_ctrl_out: wp.array3d(dtype=T),
-        tc: int,
     ):
         i = wp.tid()
         nv = n_graph * n_body
