@@ -10,7 +10,8 @@ the states plus one step's activations; the price is one more forward per step.
 
 ``RolloutEngine`` holds one batch shape (system instances, horizon) and, on CUDA, replays the
 whole forward loop from one CUDA graph and the whole adjoint loop from another: a rollout is one
-launch instead of thousands from Python.
+launch instead of thousands from Python. Its steps may run fused (``gnwarp/models/fused_step.py``:
+a few launches a step, and a backward of vector-Jacobian products on the kept states).
 """
 from __future__ import annotations
 
