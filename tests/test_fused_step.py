@@ -161,6 +161,7 @@ def test_unsupported_cases_fall_back_or_raise(pendulum):
     sp = pendulum["test"]
     mlp = MLPForwardModel(pendulum.layout, n_node=2, n_edge=int(pendulum.static["n_edge"][0])).double().bind(pendulum)
     assert "MLPCore" in FusedStep.unsupported(mlp, mlp.template(torch.zeros(2, dtype=torch.int64)))
+    assert "not a ForwardModel" in FusedStep.unsupported(object(), mlp.template(torch.zeros(2, dtype=torch.int64)))
     assert not mlp.rollout_engine([0, 0], 3).fused and not mlp.rollout_engine([0, 0], 3, fused=None).fused
     with pytest.raises(ValueError, match="fused=True.*MLPCore"):
         mlp.rollout_engine([0, 0], 3, fused=True)
