@@ -93,6 +93,7 @@ class _FusedStepFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, fs, body, ctrl):
+        body, ctrl = body.detach(), ctrl.detach()   # Warp views of leaves that want no .grad of their own
         stats = fs.stats()
         b4, c3 = body[:, None], ctrl[:, None]
         graph = fs.encode(b4, 0, c3, 0, stats)
@@ -118,7 +119,7 @@ class FusedStep:
     differentiable with respect to body and ctrl (not the model's parameters); ``vjp(body, ctrl,
     g_next) -> (g_body, g_ctrl)``. The normalizer statistics are read from the model's device
     tensors at every call (and once per loop). Raises ValueError naming the reason where
-    ``unsupported(model, template)`` gives one. One host sync, here."""
+    ``unsupported(model, template)`` gives one. Host syncs here (index checks), none in a step."""
 
     def __init__(self, model, template):
         why = self.unsupported(model, template)
