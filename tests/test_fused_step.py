@@ -94,7 +94,7 @@ def test_encode_and_decode_equal_the_torch_step(system, recenter, request):
     assert torch.equal(got[:, 0], x[:, 0]) and not torch.allclose(got[:, 1:], x[:, 1:])
 
 
-@pytest.mark.parametrize("system,impl", [("pendulum", "torch"), ("cheetah", "torch"), ("cheetah", "warp")])
+@pytest.mark.parametrize("system,impl", [("pendulum", "torch"), ("cheetah", "torch"), ("pendulum", "warp")])
 @pytest.mark.parametrize("recenter", [False, True])
 def test_step_and_vjp_equal_torch_autograd(system, impl, recenter, request):
     """``FusedStep.step`` equals the torch step, and its backward and ``vjp`` equal torch
