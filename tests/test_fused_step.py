@@ -127,12 +127,12 @@ def test_float32_step_is_close_to_float64(cheetah):
     torch.testing.assert_close(got.double(), torch_step(m64, tm64, x, u), rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("system", ["pendulum", "cheetah"])
-def test_fused_engine_equals_the_unfused_engine(system, request):
+@pytest.mark.parametrize("system,recenter", [("pendulum", True), ("cheetah", True), ("cheetah", False)])
+def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
     """A fused ``RolloutEngine``'s rollouts and gradients w.r.t. x0 and controls equal the unfused
     engine's (float64, horizon 5), call after call."""
     ds = request.getfixturevalue(system)
-    m = tiny_model(ds)
+    m = tiny_model(ds, recenter=recenter)
     sp, N, T = ds["test"], 2, 5
     inst = np.asarray(sp.instance[:N])
     plain, fused = m.rollout_engine(inst, T, fused=False), m.rollout_engine(inst, T, fused=True)

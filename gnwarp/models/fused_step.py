@@ -12,7 +12,10 @@ as::
 and its vector-Jacobian product as encode, the core's forward and backward, and two hand-written
 backward launches (``kernels/models/fused_step.py``): no torch glue, no weight gradients.
 ``RolloutEngine(fused=...)`` runs its loops on it (``forward_loop`` / ``backward_loop``: the
-backward walks the steps in reverse on the states the forward kept, one adjoint step each).
+backward walks the steps in reverse on the states the forward kept). In the loops each decode
+also writes the next step's input graph, and each step's last backward launch the previous
+step's: per step, the forward is the core and one launch, the backward the core's forward and
+backward and two launches.
 
 The core is ``gnwarp.gn.fused_core.FusedCore`` (the GN blocks of a small graph in few launches)
 where that module exists and runs the core, else ``CoreStandIn``: the model's own core on the
@@ -192,16 +195,27 @@ class FusedStep:
                                     self.ctrl_index, *stats[:6], N, B, E, *out)
         return out
 
-    def decode(self, delta, body, tb: int, stats, out, tn: int) -> None:
+    def decode(self, delta, body, tb: int, stats, out, tn: int, ctrl=None, tc: int = 0, graph=None) -> None:
         """Next body states into ``out`` [N, ., B, 13] at step ``tn`` from the normalized change
-        ``delta`` [N*B, 13] and ``body`` [N, ., B, 13] at step ``tb``."""
-        Launcher(delta)(K.decode_kernel(WP_DTYPE[self.dtype]), self.N * self.B, delta.contiguous(), body, tb,
-                        stats[6], stats[7], self.B, tn, out)
+        ``delta`` [N*B, 13] and ``body`` [N, ., B, 13] at step ``tb``; with ``ctrl`` [N, ., U] and
+        ``graph`` (the buffers of an earlier ``encode`` of these statistics), also the next input
+        graph at control step ``tc`` into ``graph`` (its dynamic columns; the static ones stay)."""
+        run = Launcher(delta)
+        enc = graph is not None
+        N, B, E = self.N, self.B, self.E
+        if not enc:
+            ctrl, graph = run.placeholder(self.dtype, 3), (run.placeholder(self.dtype, 2),) * 2
+        run(K.decode_kernel(WP_DTYPE[self.dtype], enc, self.recenter), N * (B + E) if enc else N * B,
+            delta.contiguous(), body, tb, stats[6], stats[7], ctrl, tc, self.ctrl_index, *stats[:4], N, B, E, tn,
+            out, graph[0], graph[1])
 
-    def _backward_step(self, body, tb: int, graph, g_next, stats, g_add, ta: int, g_body, g_ctrl, tc: int) -> None:
+    def _backward_step(self, body, tb: int, graph, g_next, stats, g_add, ta: int, g_body, g_ctrl, tc: int,
+                       ctrl=None, prev: int | None = None) -> None:
         """One step's vector-Jacobian product: ``g_next`` [N*B, 13] -> ``g_body`` [N*B, 13] (plus
         ``g_add`` [N, ., B, 13] at step ``ta`` when given; ``g_body`` may be ``g_next``) and the
-        controls' gradient into ``g_ctrl`` [N, ., U] at step ``tc``. Parameters should be frozen."""
+        controls' gradient into ``g_ctrl`` [N, ., U] at step ``tc``; ``graph``: the step's
+        normalized inputs. With ``prev``, the same launch then writes step ``prev``'s input graph
+        (``body``, ``ctrl`` [N, ., U]) into ``graph``. Parameters should be frozen."""
         nodes, edges, glob = graph
         with torch.enable_grad():
             n, e = nodes.detach().requires_grad_(), edges.detach().requires_grad_()
@@ -213,11 +227,15 @@ class FusedStep:
             gn, ge = torch.autograd.grad(delta, (n, e), g_delta, allow_unused=True)
         gn = torch.zeros_like(nodes) if gn is None else gn.contiguous()
         ge = torch.zeros_like(edges) if ge is None else ge.contiguous()
-        U = g_ctrl.shape[-1]
-        add = g_add is not None
-        run(K.encode_grad_kernel(WP_DTYPE[self.dtype], self.recenter, add), self.N * (self.B + U), gn, ge, g_direct,
-            g_add if add else run.placeholder(self.dtype, 4), ta, self.ctrl_index, stats[1], stats[3], self.N, self.B,
-            self.E, U, tc, g_body, g_ctrl)
+        N, B, E, U = self.N, self.B, self.E, g_ctrl.shape[-1]
+        add, enc = g_add is not None, prev is not None
+        pl = run.placeholder
+        if not enc:
+            ctrl, nodes, edges = pl(self.dtype, 3), pl(self.dtype, 2), pl(self.dtype, 2)
+        run(K.encode_grad_kernel(WP_DTYPE[self.dtype], self.recenter, add, enc), N * (B + U + (E if enc else 0)),
+            gn, ge, g_direct, g_add if add else pl(self.dtype, 4), ta, self.ctrl_index, stats[1], stats[3], body,
+            prev if enc else 0, ctrl, prev if enc else 0, stats[0], stats[2], N, B, E, U, tc, g_body, g_ctrl, nodes,
+            edges)
 
     # -- one step -----------------------------------------------------------------------------
     def _check(self, body, ctrl):
@@ -264,10 +282,12 @@ class FusedStep:
         [N, T, U], one step at a time, in place; no autograd, no host sync."""
         stats = self.stats()
         work = self._buffers(stats)
+        T = ctrl.shape[1]
         with torch.no_grad():
-            for t in range(ctrl.shape[1]):
-                graph = self.encode(traj, t, ctrl, t, stats, out=work)
-                self.decode(self.core(*graph), traj, t, stats, traj, t + 1)
+            graph = self.encode(traj, 0, ctrl, 0, stats, out=work)
+            for t in range(T):   # each decode writes the next step's input graph too
+                nxt = (ctrl, t + 1, graph) if t + 1 < T else (None, 0, None)
+                self.decode(self.core(*graph), traj, t, stats, traj, t + 1, *nxt)
 
     def backward_loop(self, traj, ctrl, g_traj, g_x0, g_ctrl) -> None:
         """The adjoint loop over ``forward_loop``'s states ``traj`` [N, T+1, B, 13]: for dL/dtraj
@@ -279,9 +299,10 @@ class FusedStep:
         g_x0.copy_(g_traj[:, T])
         g = g_x0.view(-1, DYN_NODE_SIZE)
         with frozen_parameters(self.model):
-            for t in range(T - 1, -1, -1):
-                graph = self.encode(traj, t, ctrl, t, stats, out=work)
-                self._backward_step(traj, t, graph, g, stats, g_traj, t, g, g_ctrl, t)
+            graph = self.encode(traj, T - 1, ctrl, T - 1, stats, out=work)
+            for t in range(T - 1, -1, -1):   # each step's last launch writes the previous step's input graph
+                self._backward_step(traj, t, graph, g, stats, g_traj, t, g, g_ctrl, t, ctrl,
+                                    t - 1 if t > 0 else None)
 
 
 def fused_step_for(model, template, fused: bool | None) -> FusedStep | None:
