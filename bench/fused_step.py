@@ -77,7 +77,7 @@ def main(argv=None):
             engines = {"unfused": model.rollout_engine(inst, T, fused=False, check=False),
                        "fused": model.rollout_engine(inst, T, fused=True, check=False)}
             row = dict(device=name, system=system, graphs=N, horizon=T, core=args.core, precision=args.precision,
-                       fused_core=bool(engines["fused"]._fused.fused_core),
+                       fused_core=bool(engines["fused"].fused_step.fused_core),
                        auto_fused=bool(model.rollout_engine(inst, T, check=False).fused))
             outs = {}
             for key, e in engines.items():

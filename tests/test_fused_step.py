@@ -137,6 +137,7 @@ def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
     inst = np.asarray(sp.instance[:N])
     plain, fused = m.rollout_engine(inst, T, fused=False), m.rollout_engine(inst, T, fused=True)
     assert not plain.fused and fused.fused and fused.store is None
+    assert plain.fused_step is None and isinstance(fused.fused_step, FusedStep)
     assert not m.rollout_engine(inst, T).fused          # automatic: the CPU keeps the unfused step
     x0 = torch.as_tensor(sp.body[:N, 0], dtype=F64)
     u = torch.as_tensor(sp.ctrl[:N, :T], dtype=F64)

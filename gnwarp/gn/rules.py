@@ -162,7 +162,7 @@ def choose_path(config: GNBlockConfig, run, device: torch.device, n_edges: int) 
 # -- the fused model step -------------------------------------------------------------------------
 # A rollout engine's step either runs ``ForwardModel.next_nodes`` (torch glue around the core:
 # ~370 CUDA kernels and ~1160 aten ops per step forward + backward on a pendulum, ~1.5 us of device
-# time each, measured on an H100 with bench/probes/mpc_profile.py) or ``FusedStep``
+# time each, measured on an H100 under torch.profiler: one episode, horizon 50) or ``FusedStep``
 # (gnwarp/models/fused_step.py: encode, core, decode; the backward in a few more launches). At a
 # small batch every launch costs more than its work, so fusing wins; at a large batch the glue's
 # kernels are bandwidth-bound either way and the core's large-batch path may be the faster one.

@@ -368,6 +368,11 @@ class RolloutEngine:
         self._fwd_rec = self._bwd_rep = None
 
     @property
+    def fused_step(self):
+        """The ``FusedStep`` the loops run (None when the engine runs the unfused step)."""
+        return self._fused
+
+    @property
     def store(self) -> ActivationStore | None:
         """The activation store (None when the engine recomputes)."""
         return self._store
