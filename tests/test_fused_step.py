@@ -12,6 +12,7 @@ from gnwarp.data.convert import static_arrays
 from gnwarp.gn import RunOptions
 from gnwarp.gn.rules import TUNABLES, choose_fused
 from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig
+from gnwarp.models import fused_step
 from gnwarp.models.fused_step import CoreStandIn, FusedStep
 from gnwarp.models.normalizer import normalize_graph
 from gnwarp.sim.systems import make
@@ -156,7 +157,7 @@ def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
         torch.testing.assert_close(fused.rollout(x0, u), plain.rollout(x0, u), rtol=1e-12, atol=1e-12)
 
 
-def test_unsupported_cases_fall_back_or_raise(pendulum):
+def test_unsupported_cases_fall_back_or_raise(pendulum, monkeypatch):
     """An MLP core and graphs of several sizes are not fused: ``fused=None`` falls back quietly,
     ``fused=True`` raises naming the reason; the automatic rule fuses small CUDA batches only."""
     sp = pendulum["test"]
@@ -176,6 +177,11 @@ def test_unsupported_cases_fall_back_or_raise(pendulum):
         m.rollout_engine([0, 1], 3, fused=True)
     with pytest.raises(ValueError, match="fused must be"):
         tiny_model(pendulum).rollout_engine([0], 3, fused="yes")
+    # where the rule picks the fused step (a small CUDA batch), what cannot run it falls back quietly
+    monkeypatch.setattr(fused_step, "choose_fused", lambda n, device: True)
+    assert not mlp.rollout_engine([0, 0], 3).fused and not m.rollout_engine([0, 1], 3).fused
+    assert tiny_model(pendulum).rollout_engine([0, 0], 3).fused
+    monkeypatch.undo()
     assert not choose_fused(1, "cpu") and choose_fused(1, "cuda")
     assert not choose_fused(TUNABLES.fused_step_max_graphs + 1, torch.device("cuda"))
     with pytest.raises(ValueError, match="body must be"):

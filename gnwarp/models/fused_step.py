@@ -311,13 +311,11 @@ def fused_step_for(model, template, fused: bool | None) -> FusedStep | None:
     runs and ``gnwarp.gn.rules.choose_fused`` picks it for the batch size and device)."""
     if fused not in (None, True, False):
         raise ValueError(f"fused must be True, False or None (automatic), got {fused!r}")
-    if fused is False:
+    if fused is False or (fused is None and not choose_fused(template.N, template.static_nodes.device)):
         return None
     why = FusedStep.unsupported(model, template)
     if why is not None:
         if fused:
             raise ValueError(f"fused=True, but the fused model step cannot run here: {why}")
-        return None
-    if fused is None and not choose_fused(template.N, template.static_nodes.device):
         return None
     return FusedStep(model, template)
