@@ -205,7 +205,7 @@ class FusedStep:
         N, B, E = self.N, self.B, self.E
         if not enc:
             ctrl, graph = run.placeholder(self.dtype, 3), (run.placeholder(self.dtype, 2),) * 2
-        run(K.decode_kernel(WP_DTYPE[self.dtype], enc, self.recenter), N * (B + E) if enc else N * B,
+        run(K.decode_kernel(WP_DTYPE[self.dtype], enc, self.recenter and enc), N * (B + E) if enc else N * B,
             delta.contiguous(), body, tb, stats[6], stats[7], ctrl, tc, self.ctrl_index, *stats[:4], N, B, E, tn,
             out, graph[0], graph[1])
 
