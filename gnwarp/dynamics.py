@@ -59,9 +59,11 @@ class Dynamics(Protocol):
         ``template``, made from ``builder`` (None: the bound source); ``n_ctrl``: the controls U."""
 
     def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
-                       graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None):
+                       graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None,
+                       fused: bool | None = None):
         """A ``RolloutEngine``: rollouts of ``horizon`` steps of instances ``instance`` [N],
-        differentiable with respect to the initial states and the controls."""
+        differentiable with respect to the initial states and the controls; ``fused``: whether
+        its steps run fused (None: automatic; True raises where they cannot)."""
 
 
 @runtime_checkable

@@ -365,7 +365,7 @@ def _engine_case(ds, device="cpu", dtype=torch.float64, impl="warp", T=5, N=2):
     sp = ds["test"]
     x0 = torch.as_tensor(sp.body[:N, 0], dtype=dtype, device=device)
     u = torch.as_tensor(sp.ctrl[:N, :T], dtype=dtype, device=device)
-    return m, m.rollout_engine(np.asarray(sp.instance[:N]), T), x0, u
+    return m, m.rollout_engine(np.asarray(sp.instance[:N]), T, fused=False), x0, u   # the unfused step and its store
 
 
 def _engine_agrees(m, engine, x0, u, calls=3, tol=1e-12):
@@ -501,8 +501,8 @@ def test_cuda_rollout_engine_replays(pendulum, dtype, tol):
 def test_cuda_rollout_engine_store_replays_exactly(pendulum):
     """On CUDA, recording and replaying (both captured) give the gradients of recomputing."""
     m, inst, x0, u = _store_case(pendulum, "cuda", torch.float32, T=6, N=3)
-    plain = m.rollout_engine(inst, 6, store=False)
-    stored = m.rollout_engine(inst, 6, store=True)
+    plain = m.rollout_engine(inst, 6, store=False, fused=False)
+    stored = m.rollout_engine(inst, 6, store=True, fused=False)
     for k in range(4):
         ta, la = _grads(plain, x0, u, k)
         tb, lb = _grads(stored, x0, u, k)

@@ -49,7 +49,8 @@ class GradientMPCConfig:
     (the paper: 3-51). ``warmup``: extra iterations at the first state (None: iterations x
     horizon). ``lr``: Adam's step size on the unconstrained actions z. ``init_std``: the random
     initial z ~ N(0, init_std^2). ``seed``: of that initial sequence. ``capture``: replay one
-    planning iteration from a CUDA graph (None: on CUDA; ignored on the CPU)."""
+    planning iteration from a CUDA graph (None: on CUDA; ignored on the CPU). ``fused``: the
+    rollout engine's model step fused (``ForwardModel.rollout_engine``; None: automatic)."""
     horizon: PositiveInt | None = None
     iterations: PositiveInt = 5
     warmup: IntRange(0) | None = None
@@ -58,6 +59,7 @@ class GradientMPCConfig:
     betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
     seed: IntRange(0) = 0
     capture: Flag | None = None
+    fused: Flag | None = None
 
     def __post_init__(self):
         check_fields(self)
@@ -139,7 +141,7 @@ class GradientMPC:
         # captured, the whole iteration is one graph, so the engine's loops run inside it
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
         self.engine = model.rollout_engine(inst, self.horizon, ctrl_policy="none",
-                                           check=False, graphs=not self.capture)
+                                           check=False, graphs=not self.capture, fused=self.settings.fused)
         self.targets = None if targets is None else self._targets(targets)
         self._gen = torch.Generator(device="cpu")
         shape = (n, self.horizon, self.U)

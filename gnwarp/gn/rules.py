@@ -14,7 +14,7 @@ import torch
 
 from gnwarp.gn.config import GNBlockConfig, column_slices, layout_width, pad
 
-__all__ = ["Tunables", "TUNABLES", "choose_path", "tile_feasible", "edge_concat", "emulates"]
+__all__ = ["Tunables", "TUNABLES", "choose_path", "tile_feasible", "edge_concat", "emulates", "choose_fused"]
 
 
 @dataclass
@@ -34,6 +34,8 @@ class Tunables:
     tile_smem_budget: bytes of shared memory the weights of one fused tile kernel may take.
     tile_mathdx: tile GEMMs through cuBLASDx (Warp's default; 1-2.5 min to compile each kernel
         for sm_90) or Warp's plain shared-memory GEMM (seconds).
+    fused_step_max_graphs: rollout engines on CUDA run the fused model step up to this many
+        graphs (``choose_fused``).
     """
     side_streams: int = 1
     emulate_min_rows: int = 16384
@@ -44,6 +46,7 @@ class Tunables:
     tile_max_edges: int = 3600
     tile_smem_budget: int = 160 * 1024
     tile_mathdx: bool = True
+    fused_step_max_graphs: int = 256
 
 
 TUNABLES = Tunables()
@@ -154,3 +157,20 @@ def choose_path(config: GNBlockConfig, run, device: torch.device, n_edges: int) 
     if max(widths) <= t.tile_max_width and t.tile_min_edges <= n_edges <= t.tile_max_edges:
         return "tile"
     return "blas"
+
+
+# -- the fused model step -------------------------------------------------------------------------
+# A rollout engine's step either runs ``ForwardModel.next_nodes`` (torch glue around the core:
+# ~370 CUDA kernels and ~1160 aten ops per step forward + backward on a pendulum, ~1.5 us of device
+# time each, measured on an H100 under torch.profiler: one episode, horizon 50) or ``FusedStep``
+# (gnwarp/models/fused_step.py: encode, core, decode; the backward in a few more launches). At a
+# small batch every launch costs more than its work, so fusing wins; at a large batch the glue's
+# kernels are bandwidth-bound either way and the core's large-batch path may be the faster one.
+# Until the H100 crossover is measured (bench/fused_step.py), the rule fuses on CUDA up to
+# ``fused_step_max_graphs`` graphs and never on the CPU (no launch latency to save there: the
+# unfused step stays the reference).
+def choose_fused(n_graphs: int, device) -> bool:
+    """Whether a rollout engine of ``n_graphs`` graphs on ``device`` runs the fused model step
+    when it is not told (``RolloutEngine(fused=None)``): on CUDA up to
+    ``TUNABLES.fused_step_max_graphs`` graphs."""
+    return torch.device(device).type == "cuda" and n_graphs <= TUNABLES.fused_step_max_graphs

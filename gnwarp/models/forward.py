@@ -253,6 +253,10 @@ class ForwardModel(nn.Module):
         "clamp" (default) clamps each control to its actuator's range where the actuator is
         ctrllimited, as MuJoCo does (the range is a static edge feature of the model's data);
         "error" refuses controls outside it; "none" uses them as they are.
+
+        This runs the unfused step (``next_nodes``), which also differentiates the parameters;
+        ``rollout_engine(..., fused=...)`` gives rollouts differentiable in the initial states and
+        controls only, whose steps may run fused (``FusedStep``).
         """
         initial_body = float_tensor(initial_body, "initial_body")
         if initial_body.ndim != 3:
@@ -290,16 +294,21 @@ class ForwardModel(nn.Module):
 
     def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp",
                        check: bool = True, graphs: bool = True, store: bool | str = "auto",
-                       store_bytes: int | None = None) -> RolloutEngine:
+                       store_bytes: int | None = None, fused: bool | None = None) -> RolloutEngine:
         """A ``RolloutEngine`` for rollouts of ``horizon`` steps of system instances ``instance``
         [N]: on CUDA its forward and backward (w.r.t. initial states and controls) replay CUDA
         graphs (``graphs=False``: eager, for callers that capture a larger step around it).
         Hold it and call ``engine.rollout(x0, ctrl)`` as often as needed. ``ctrl_policy`` and
         ``check`` as in ``rollout`` (the checks run on the host once per call, before the replay);
         ``store`` / ``store_bytes``: whether its backward replays the forward's recorded GN blocks
-        instead of recomputing them (``RolloutEngine``)."""
+        instead of recomputing them (``RolloutEngine``). ``fused``: run each step as a
+        ``gnwarp.models.fused_step.FusedStep`` (input graph, normalization, core, state update and
+        their backward in a few launches): None (default) where it runs and the measured rule
+        (``gnwarp.gn.rules.choose_fused``: CUDA, small batches) picks it, True always (ValueError
+        naming why it cannot run: an MLP core, graphs of several sizes, ...), False never;
+        ``engine.fused`` says which runs."""
         return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
-                             store=store, store_bytes=store_bytes)
+                             store=store, store_bytes=store_bytes, fused=fused)
 
     def predict(self, body: torch.Tensor, ctrl: torch.Tensor, instance=None, builder=None,
                 ctrl_policy: str = "clamp", check: bool = True) -> torch.Tensor:

@@ -91,12 +91,14 @@ class FixedGIDModel:
         return self.sysid.rollout_inputs(template.instance, n_ctrl, ctrl_policy, check)
 
     def rollout_engine(self, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
-                       graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None) -> RolloutEngine:
+                       graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None,
+                       fused: bool | None = None) -> RolloutEngine:
         """A ``RolloutEngine`` on the fixed G_ID; controls clamped to the bound source's actuator
         ranges (``ctrl_policy``), which are read from the bound source only: another ``builder``
-        needs ``ctrl_policy="none"``."""
+        needs ``ctrl_policy="none"``. Its steps are never fused (``fused=True`` raises; the fused
+        step reads the static graph, not a G_ID)."""
         return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,
-                             store=store, store_bytes=store_bytes)
+                             store=store, store_bytes=store_bytes, fused=fused)
 
 
 # -- G_ID files -----------------------------------------------------------------------------------

@@ -10,7 +10,8 @@ the states plus one step's activations; the price is one more forward per step.
 
 ``RolloutEngine`` holds one batch shape (system instances, horizon) and, on CUDA, replays the
 whole forward loop from one CUDA graph and the whole adjoint loop from another: a rollout is one
-launch instead of thousands from Python.
+launch instead of thousands from Python. Its steps may run fused (``gnwarp/models/fused_step.py``:
+a few launches a step, and a backward of vector-Jacobian products on the kept states).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import torch
 
 from gnwarp.gn.replay import ActivationStore
 from gnwarp.interop import Graphed
+from gnwarp.models.fused_step import frozen_parameters, fused_step_for
 from gnwarp.state import DYN_NODE_SIZE
 
 __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICIES", "RolloutInputError",
@@ -269,21 +271,6 @@ def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool,
     return (g if need_x else None), g_ctrl, g_params
 
 
-@contextlib.contextmanager
-def frozen_parameters(module):
-    """``module``'s parameters with ``requires_grad`` off inside the block, restored after: a
-    backward that wants only input gradients then skips every weight gradient (the GN blocks'
-    backward computes those only for parameters that require them)."""
-    params = [p for p in getattr(module, "parameters", lambda: ())() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
-
-
 def forward_loop(step: Callable, x0, ctrl):
     """States [N, T+1, B, 13] of ``step`` applied T times from ``x0`` under ``ctrl`` [N, T, U]."""
     states = [x0]
@@ -357,10 +344,19 @@ class RolloutEngine:
     replays them instead of recomputing the blocks' GEMMs. "auto" (default): when the recording
     fits ``store_bytes`` (default: half the free CUDA memory at the first recording; 1 GiB on the
     CPU), else recompute; True: always record; False: always recompute. A backward replays only
-    the recording of its own forward (after another forward, it recomputes)."""
+    the recording of its own forward (after another forward, it recomputes).
+
+    ``fused``: run each step as a ``FusedStep`` (``gnwarp/models/fused_step.py``: encode, core,
+    decode in a few launches; the backward walks the steps in reverse with its vector-Jacobian
+    product on the states the forward kept) instead of ``model.next_nodes`` with autograd
+    recomputation. None (default): where it can run (a ``ForwardModel`` with a GN core, graphs of
+    one size and topology, float32 / float64) and ``gnwarp.gn.rules.choose_fused`` picks it (CUDA,
+    small batches); True: always (ValueError naming why it cannot run); False: never. A fused
+    engine records no store. ``engine.fused`` says which runs."""
 
     def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
-                 graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None):
+                 graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None,
+                 fused: bool | None = None):
         try:
             ok = not isinstance(horizon, bool) and int(horizon) == horizon and horizon >= 1
         except (TypeError, ValueError):
@@ -387,14 +383,21 @@ class RolloutEngine:
                                         or store_bytes < 0):
             raise ValueError(f"store_bytes must be a non-negative integer (bytes), got {store_bytes!r}")
         self.store_policy, self.store_bytes = store, store_bytes
+        self._fused = fused_step_for(model, self.template, fused)
+        self.fused = self._fused is not None
         self._store = None
-        if store is not False:
+        if store is not False and not self.fused:
             core = getattr(model, "core", None)
             keep = core.replay_outputs() if hasattr(core, "replay_outputs") else None
             self._store = ActivationStore(self.horizon, keep)
         self._bufs = None
         self._fwd = self._bwd = None
         self._fwd_rec = self._bwd_rep = None
+
+    @property
+    def fused_step(self):
+        """The ``FusedStep`` the loops run (None when the engine runs the unfused step)."""
+        return self._fused
 
     @property
     def store(self) -> ActivationStore | None:
@@ -421,6 +424,11 @@ class RolloutEngine:
 
     def _forward_fn(self, record: bool = False):
         b, store = self._bufs, self._store
+        if self.fused:
+            with torch.no_grad():
+                b["traj"][:, 0] = b["x0"]
+                self._fused.forward_loop(b["traj"], b["ctrl"])
+            return
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
             step, traj = self._step(ctx), b["traj"]
@@ -447,6 +455,9 @@ class RolloutEngine:
 
     def _backward_fn(self, replay: bool = False):
         b, store = self._bufs, self._store
+        if self.fused:
+            self._fused.backward_loop(b["traj"], b["ctrl"], b["g_traj"], b["g_x0"], b["g_ctrl"])
+            return
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
         with frozen_parameters(self.model):   # no weight gradients: the GN's backward skips their GEMMs
