@@ -197,13 +197,13 @@ def run_gn_mpc(args, model, task, system, qpos, qvel, target, horizon: int) -> d
     from gnwarp.control import GradientMPC, GradientMPCConfig
     from gnwarp.sim import make_env
     n = qpos.shape[0]
+    warm = args.iterations * horizon if args.warmup is None else args.warmup   # the paper's, from a random sequence
     cfg = GradientMPCConfig(horizon=horizon, iterations=args.iterations, lr=args.lr, seed=args.seed,
-                            warmup=args.warmup)
+                            warmup=warm, proposals=0)
     planner = GradientMPC(model, task, system, n, cfg, target)
     env = make_env(system, n, backend=args.backend)
     out = run_episodes(planner, env, task, args.steps, qpos0=qpos, qvel0=qvel, target=target)
     env.close()
-    warm = args.iterations * horizon if args.warmup is None else args.warmup
     out["note"] = f"{args.iterations} Adam steps/step + {warm} at the first state, lr {args.lr}"
     return out
 
