@@ -169,6 +169,14 @@ def test_cli_mpc(model, tmp_path, capsys):
     assert rec.env_steps == 20 * 20   # the training split: 20 sequences of 20 steps
     assert np.asarray(rec.config["initial_qpos"]).shape == (2, 1) and rec.config["targets"] is None
     assert rec.control_dt == pytest.approx(0.02) and rec.config["horizon"] == 3
+    # the first control step and the steady state apart, the real-time factor from the steady one
+    m = rec.metrics
+    assert m["first_step_ms"] > 0 and m["steady_ms"] > 0 and m["model_evals_per_step"] == 1 * 3
+    assert m["real_time_factor"] == pytest.approx(1e3 * rec.control_dt / m["steady_ms"])
+    assert len(m["plan_ms"]) == 3 and m["first_step_ms"] == pytest.approx(m["plan_ms"][0])
+    assert m["steady_ms"] == pytest.approx(float(np.median(m["plan_ms"][1:])))   # 3 steps: those after the first
+    assert f"first control step {m['first_step_ms']:.1f} ms" in out and f"steady {m['steady_ms']:.2f} ms" in out
+    assert f"real-time factor {m['real_time_factor']:.3g}" in out
     assert main(args[:4] + ["cheetah-forward"] + args[5:]) == 2
     assert "the model was trained on pendulum, not on cheetah" in capsys.readouterr().err
 

@@ -1,8 +1,9 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
 (``tasks``), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
 iLQG baseline (``ilqg``), the ``Planner`` protocol they all implement with the registry of planner
-names (``planner``) and closed-loop episodes (``episodes``); the batched true environment they run
-on is ``gnwarp.sim.env``.
+names (``planner``), closed-loop episodes (``episodes``) and their planning times, the first step
+apart from the steady state (``timing``); the batched true environment they run on is
+``gnwarp.sim.env``.
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")
