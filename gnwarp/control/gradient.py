@@ -106,7 +106,7 @@ class GradientMPC:
     Raises ``PlanningError`` for a model trained on another system (or whose static features do
     not fit it), ``TaskError`` for a task of another system, and, at every step, for states of
     the wrong shape or with NaN / Inf (naming the episode and body). Counters (per episode, since
-    the planner was made): ``iterations_run`` Adam iterations, ``evals`` model steps evaluated
+    the planner's construction): ``iterations_run`` Adam iterations, ``evals`` model steps evaluated
     forward and backward (iterations x horizon), ``proposal_evals`` model steps evaluated forward
     only by proposals; ``last_evals``: the last ``optimize``'s {"iterations", "evals",
     "proposal_evals"}; ``model_evals_per_step``: iterations x horizon.
@@ -253,7 +253,7 @@ class GradientMPC:
         drawn from the planner's generator) are rolled out through the model, forward only,
         ``PROPOSAL_ROWS`` rollout rows at a time (the last batch filled with more random
         sequences); the working sequence becomes each episode's best. Returns the best's planned
-        reward [N] (-inf where every proposal's was NaN: the working sequence is kept)."""
+        reward [N] (-inf where every proposal's reward is NaN: the working sequence is kept)."""
         n, H, U = self.n, self.horizon, self.U
         total = self.settings.proposals + 2
         per = max(1, min(total, PROPOSAL_ROWS // n))          # sequences per batched rollout
