@@ -9,7 +9,10 @@ warm-up). Each configuration runs in fresh processes:
 
 - cold: Warp's kernel cache, the CUDA driver's cache and torch's compile caches point into a new,
   empty folder; the process times planner construction to the first action (capture included);
-- warm: a second fresh process on the caches the cold one filled times the same first action,
+  ``--cold once``: only for the first configuration of each system and path, whose caches the
+  later configurations reuse; ``--cold none``: the machine's own caches, no cold process;
+- warm: a second fresh process on the caches the cold one filled times the same first action
+  (run again when it compiled anything, so that it loads all it runs from the caches),
   then ``--steps`` more control steps from the same states, each timed with CUDA events (wall
   time on the CPU). Steady = the median over the control steps after the first three (a captured
   iteration records on its third call); model step fwd+bwd = steady / (iterations x horizon);
@@ -43,6 +46,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -217,7 +221,7 @@ def record_key(rec: ResultRecord) -> tuple:
 
 
 def make_record(system: str, n: int, H: int, its: int, path: str, gpu: str, warm: dict, cold: dict | None,
-                steps: int, quick: bool, compile_mode: str, cold_mode: str = "measure") -> ResultRecord:
+                steps: int, quick: bool, compile_mode: str, cold_mode: str = "all") -> ResultRecord:
     """A configuration's record: the warm process's measurements with the cold one's first action
     beside them; ``error`` in its config when either failed. ``cold_mode``: the ``--cold`` choice."""
     from gnwarp.sim import systems
@@ -359,47 +363,84 @@ def run(args) -> int:
     done = {record_key(r) for r in read_records(rec_path) if "error" not in r.config} if rec_path.exists() else set()
     steps = args.steps if args.steps is not None else (4 if quick else 30)
     start = time.monotonic()
-    for system in systems:
-        for n, H, its in configs:
-            for path in paths:
-                key = (system, n, H, its, path, gpu)
-                if key in done:
-                    print(f"{system} {n}x{H}x{its} {path}: recorded, skipped")
-                    continue
-                left = None if args.budget is None else args.budget - (time.monotonic() - start)
-                if left is not None and left < 30:
-                    print(f"budget of {args.budget:.0f} s spent: stopped before {system} {n}x{H}x{its} {path}; "
-                          "run the same command again to go on")
-                    for p in summarize(out):
-                        print(f"wrote {p}")
-                    return 0
-                timeout = args.child_timeout if left is None else min(args.child_timeout, left)
-                spec = dict(system=system, episodes=n, horizon=H, iterations=its, path=path, steps=steps,
-                            quick=quick, compile_mode=args.compile_mode, first_only=False)
-                with tempfile.TemporaryDirectory(prefix="mpc_latency_cache_") as tmp:
-                    cache, cold = Path(tmp), None
-                    if args.cold == "measure":   # an empty cache; the warm process starts on what this one left
-                        cold = run_child({**spec, "first_only": True}, cache, timeout)
-                    elif args.cold == "fill":    # the same, unmeasured
-                        run_child({**spec, "first_only": True}, cache, timeout)
-                    else:                        # the machine's own caches, as earlier runs left them
-                        cache = None
-                    left = None if args.budget is None else args.budget - (time.monotonic() - start)
-                    warm = run_child(spec, cache, args.child_timeout if left is None else max(1.0, min(
-                        args.child_timeout, left)))
-                rec = make_record(system, n, H, its, path, gpu, warm, cold, steps, quick, args.compile_mode, args.cold)
-                write_records(rec_path, [rec])
-                m = rec.metrics
-                if "error" in rec.config:
-                    print(f"{system} {n}x{H}x{its} {path}: {rec.config['error']}")
-                else:
-                    cold_s = f"{m['first_step_cold_ms'] / 1e3:.2f}" if "first_step_cold_ms" in m else "-"
-                    print(f"{system} {n}x{H}x{its} {path}: first action {m['first_step_ms'] / 1e3:.2f} s (cold "
-                          f"{cold_s} s), steady {m['steady_ms']:.2f} ms, model step {m['model_step_us']:.0f} us, "
-                          f"{m['model_evals_per_step']} evals/step, RTF {m['real_time_factor']:.3g}", flush=True)
+
+    def left() -> float | None:
+        return None if args.budget is None else args.budget - (time.monotonic() - start)
+
+    def timeout() -> float:
+        rest = left()
+        return args.child_timeout if rest is None else max(1.0, min(args.child_timeout, rest))
+
+    with tempfile.TemporaryDirectory(prefix="mpc_latency_caches_") as caches:
+        for system in systems:
+            for n, H, its in configs:
+                for path in paths:
+                    key = (system, n, H, its, path, gpu)
+                    if key in done:
+                        print(f"{system} {n}x{H}x{its} {path}: recorded, skipped")
+                        continue
+                    if left() is not None and left() < 30:
+                        print(f"budget of {args.budget:.0f} s spent: stopped before {system} {n}x{H}x{its} {path}; "
+                              "run the same command again to go on")
+                        for p in summarize(out):
+                            print(f"wrote {p}")
+                        return 0
+                    spec = dict(system=system, episodes=n, horizon=H, iterations=its, path=path, steps=steps,
+                                quick=quick, compile_mode=args.compile_mode, first_only=False)
+                    warm, cold = measure_config(spec, args.cold, Path(caches), timeout)
+                    rec = make_record(system, n, H, its, path, gpu, warm, cold, steps, quick, args.compile_mode,
+                                      args.cold)
+                    write_records(rec_path, [rec])
+                    report(rec)
     for p in summarize(out):
         print(f"wrote {p}")
     return 0
+
+
+def _cache_files(cache: Path | None) -> set[str]:
+    """Every file under ``cache`` (what compiled kernels and graphs a process left there)."""
+    if cache is None or not cache.exists():
+        return set()
+    return {str(f.relative_to(cache)) for f in cache.rglob("*") if f.is_file()}
+
+
+def measure_config(spec: dict, cold_mode: str, caches: Path, timeout) -> tuple[dict, dict | None]:
+    """(warm result, cold result or None) of one configuration, in fresh processes. ``cold_mode``
+    "all": a process on new, empty caches times the cold first action, the warm process runs on
+    the caches it filled; "once": the same for the first configuration of each (system, path),
+    whose caches the later ones reuse; "none": the machine's own caches. A warm process that
+    compiled anything (files added to its caches) is run again, so that the warm first action
+    loads everything it runs."""
+    cold = None
+    if cold_mode == "none":
+        cache = None
+    else:
+        name = f"{spec['system']}-{spec['path']}"
+        if cold_mode == "all":
+            name += f"-{spec['episodes']}x{spec['horizon']}x{spec['iterations']}"
+        cache = caches / name
+        if not cache.exists():
+            cache.mkdir(parents=True)
+            cold = run_child({**spec, "first_only": True}, cache, timeout())
+    before = _cache_files(cache)
+    warm = run_child(spec, cache, timeout())
+    if cache is not None and "error" not in warm and _cache_files(cache) - before:
+        warm = {**run_child(spec, cache, timeout()), "compiled_in_first_warm_run": True}
+    if cold_mode == "all" and cache is not None:
+        shutil.rmtree(cache, ignore_errors=True)
+    return warm, cold
+
+
+def report(rec: ResultRecord) -> None:
+    c, m = rec.config, rec.metrics
+    what = f"{rec.system} {rec.episodes}x{c['horizon']}x{c['iterations']} {c['path']}"
+    if "error" in c:
+        print(f"{what}: {c['error']}", flush=True)
+        return
+    cold_s = f"{m['first_step_cold_ms'] / 1e3:.2f} s" if "first_step_cold_ms" in m else "not measured"
+    print(f"{what}: first action {m['first_step_ms'] / 1e3:.2f} s (cold: {cold_s}), steady {m['steady_ms']:.2f} ms, "
+          f"model step {m['model_step_us']:.0f} us, {m['model_evals_per_step']} evals/step, "
+          f"RTF {m['real_time_factor']:.3g}", flush=True)
 
 
 def main(argv=None) -> int:
@@ -409,10 +450,11 @@ def main(argv=None) -> int:
                     help="comma-separated EPISODESxHORIZONxITERATIONS (default: the issue's five; --quick: tiny)")
     ap.add_argument("--paths", default=",".join(PATHS), help="comma-separated: " + ", ".join(PATHS))
     ap.add_argument("--steps", type=int, default=None, help="control steps timed after the first (default 30; quick 4)")
-    ap.add_argument("--cold", choices=("measure", "fill", "none"), default="measure",
-                    help="measure: a process on empty caches times the cold first action, then the warm process "
-                         "runs on the caches it filled; fill: the same, the cold process unmeasured; none: one "
-                         "process on the machine's own caches (warm only where an earlier run filled them)")
+    ap.add_argument("--cold", choices=("all", "once", "none"), default="all",
+                    help="all: for every configuration a process on new, empty caches times the cold first action "
+                         "and the warm process runs on the caches it filled; once: the cold process for the first "
+                         "configuration of each system and path, whose caches the later ones reuse; none: one "
+                         "process on the machine's own caches. A warm process that compiled anything runs again")
     ap.add_argument("--compile-mode", default="default",
                     help="torch.compile mode of the torch_compile path (e.g. default, max-autotune-no-cudagraphs)")
     ap.add_argument("--budget", type=float, default=None,
