@@ -160,7 +160,8 @@ class GradientMPC:
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
         self._inst = inst
         self.engine = self._rollout_engine(inst, graphs=not self.capture)
-        self._proposal_engine = None   # made at the first proposal
+        # the proposal's batched forward rollouts (made here, on the graphs bound here)
+        self._proposal_engine = self._make_proposal_engine() if self.settings.proposals else None
         self.iterations_run = self.evals = self.proposal_evals = 0
         self.last_evals = {"iterations": 0, "evals": 0, "proposal_evals": 0}
         self.targets = None if targets is None else self._targets(targets)
@@ -247,19 +248,27 @@ class GradientMPC:
             u = self.to_actions(z)
             return self.task.reward(self.engine.rollout(x, u), u, self.targets)
 
+    def _make_proposal_engine(self) -> tuple[int, object]:
+        """(sequences per episode in one batched rollout, the eager engine of that batch)."""
+        per = max(1, min(self.settings.proposals + 2, PROPOSAL_ROWS // self.n))
+        try:
+            return per, self._rollout_engine(self._inst.repeat(per), graphs=False, store=False)
+        except ValueError:   # a model held to the planner's N graphs (a fixed G_ID): one sequence at a time
+            return 1, self._rollout_engine(self._inst, graphs=False, store=False)
+
     def propose(self, x: torch.Tensor) -> torch.Tensor:
         """Warm start from sampled proposals at checked states ``x`` [N, B, 13]: the working
         sequence, the mid sequence (z = 0) and ``proposals`` random ones (z ~ N(0, init_std^2),
         drawn from the planner's generator) are rolled out through the model, forward only,
         ``PROPOSAL_ROWS`` rollout rows at a time (the last batch filled with more random
-        sequences); the working sequence becomes each episode's best. Returns the best's planned
+        sequences; one sequence per episode at a time for a model that rolls out only the
+        planner's N graphs, such as a fixed G_ID); the working sequence becomes each episode's best. Returns the best's planned
         reward [N] (-inf where every proposal's reward is NaN: the working sequence is kept)."""
         n, H, U = self.n, self.horizon, self.U
         total = self.settings.proposals + 2
-        per = max(1, min(total, PROPOSAL_ROWS // n))          # sequences per batched rollout
-        if self._proposal_engine is None or self._proposal_engine[0] != per:
-            self._proposal_engine = (per, self._rollout_engine(self._inst.repeat(per), graphs=False, store=False))
-        engine = self._proposal_engine[1]
+        if self._proposal_engine is None:
+            self._proposal_engine = self._make_proposal_engine()
+        per, engine = self._proposal_engine
         xs = x.expand(per, *x.shape).reshape(per * n, *x.shape[1:])
         tgt = None if self.targets is None else self.targets.repeat(per, *([1] * (self.targets.ndim - 1)))
         best_r = torch.full((n,), -torch.inf, device=self.device, dtype=self.dtype)
