@@ -238,6 +238,7 @@ def make_record(system: str, n: int, H: int, its: int, path: str, gpu: str, warm
         config["compile_mode"] = compile_mode
     if errors:
         config["error"] = "; ".join(errors)
+        config["traceback"] = next((r["traceback"] for r in (warm, cold) if r and "traceback" in r), None)
     return ResultRecord(experiment=EXPERIMENT, task=TASKS[system], system=system, planner="gradient",
                         dynamics="learned", variant=f"{path}/{n}x{H}x{its}", seed=0, episodes=n,
                         episode_steps=steps + 1, reported={"mean": None, "std": None, "of": "returns"},
