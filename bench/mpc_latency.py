@@ -362,7 +362,7 @@ def run(args) -> int:
     gpu = device_name()
     rec_path = records_path(out, gpu)
     done = {record_key(r) for r in read_records(rec_path) if "error" not in r.config} if rec_path.exists() else set()
-    steps = args.steps if args.steps is not None else (4 if quick else 30)
+    steps = args.steps if args.steps is not None else (4 if quick else 20)
     start = time.monotonic()
 
     def left() -> float | None:
@@ -450,7 +450,7 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", default=None,
                     help="comma-separated EPISODESxHORIZONxITERATIONS (default: the issue's five; --quick: tiny)")
     ap.add_argument("--paths", default=",".join(PATHS), help="comma-separated: " + ", ".join(PATHS))
-    ap.add_argument("--steps", type=int, default=None, help="control steps timed after the first (default 30; quick 4)")
+    ap.add_argument("--steps", type=int, default=None, help="control steps timed after the first (default 20; quick 4)")
     ap.add_argument("--cold", choices=("all", "once", "none"), default="all",
                     help="all: for every configuration a process on new, empty caches times the cold first action "
                          "and the warm process runs on the caches it filled; once: the cold process for the first "
