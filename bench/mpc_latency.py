@@ -20,8 +20,9 @@ warm-up). Each configuration runs in fresh processes:
   configured iterations over the configured horizon); real-time factor = control timestep /
   steady. The true environment is not stepped (planning time alone).
 
-Paths: "unfused" and "fused" (``GradientMPCConfig(fused=False / None)``, where the config has the
-field; without it, "unfused" is the library's one path), and a torch peer of the same model step
+Paths: "unfused" and "fused" (``GradientMPCConfig(fused=False)`` and ``fused=None``, the
+planner's own choice by size, where the config has the field; without it, "unfused" is the
+library's one path), and a torch peer of the same model step
 in the same run: the same model with ``RunOptions(impl="torch")`` in the same planner, one
 planning iteration (rollout, reward, backward to the actions, Adam) captured in a CUDA graph
 ("torch_graph"), and the same with the model step compiled by ``torch.compile`` inside that
@@ -462,7 +463,8 @@ def main(argv=None) -> int:
                     help="seconds: start no configuration after this (rerun to resume); default none")
     ap.add_argument("--child-timeout", type=float, default=570.0, help="seconds a measuring process may run")
     ap.add_argument("--summarize", action="store_true", help="only regenerate the JSON and README from the records")
-    ap.add_argument("--out", default=None, help=f"records folder (default bench/results/{NAME}; --quick: a temporary one)")
+    ap.add_argument("--out", default=None,
+                    help=f"records folder (default bench/results/{NAME}; --quick: a temporary one)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes on the CPU: a smoke test of the script")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

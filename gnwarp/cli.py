@@ -362,8 +362,9 @@ def _cmd_mpc(args) -> int:
     from gnwarp.validation import check_memory
 
     task = get_task(args.task)
+    # refused before anything is loaded
     config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup,
-                               proposals=args.proposals, lr=args.lr, seed=args.seed)   # refused before anything is loaded
+                               proposals=args.proposals, lr=args.lr, seed=args.seed)
     if args.episodes < 1 or args.steps < 1:
         raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
     records = Path(args.records or f"mpc-{task.name}.jsonl")

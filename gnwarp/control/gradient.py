@@ -259,11 +259,12 @@ class GradientMPC:
     def propose(self, x: torch.Tensor) -> torch.Tensor:
         """Warm start from sampled proposals at checked states ``x`` [N, B, 13]: the working
         sequence, the mid sequence (z = 0) and ``proposals`` random ones (z ~ N(0, init_std^2),
-        drawn from the planner's generator) are rolled out through the model, forward only,
-        ``PROPOSAL_ROWS`` rollout rows at a time (the last batch filled with more random
-        sequences; one sequence per episode at a time for a model that rolls out only the
-        planner's N graphs, such as a fixed G_ID); the working sequence becomes each episode's best. Returns the best's planned
-        reward [N] (-inf where every proposal's reward is NaN: the working sequence is kept)."""
+        drawn on the device from a seed of the planner's generator) are rolled out through the
+        model, forward only, ``PROPOSAL_ROWS`` rollout rows at a time (the last batch filled
+        with more random sequences; one sequence per episode at a time for a model that rolls
+        out only the planner's N graphs, such as a fixed G_ID); the working sequence becomes each
+        episode's best. Returns the best's planned reward [N] (-inf where every proposal's reward
+        is NaN: the working sequence is kept)."""
         n, H, U = self.n, self.horizon, self.U
         total = self.settings.proposals + 2
         if self._proposal_engine is None:
@@ -274,10 +275,13 @@ class GradientMPC:
         best_r = torch.full((n,), -torch.inf, device=self.device, dtype=self.dtype)
         best_z = self.z.clone()
         rows = torch.arange(n, device=self.device)
+        # drawn where they are used (thousands of sequences), seeded from the planner's generator
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(int(torch.randint(0, 2 ** 62, (1,), generator=self._gen)))
         done = 0
         while done < total:
-            z = torch.randn((per, n, H, U), generator=self._gen, dtype=torch.float64) * self.settings.init_std
-            z = z.to(self.device, self.dtype)
+            z = torch.randn((per, n, H, U), generator=gen, device=self.device, dtype=self.dtype)
+            z *= self.settings.init_std
             if done == 0:
                 z[0] = self.z
                 if per > 1:
