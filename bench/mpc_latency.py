@@ -36,7 +36,8 @@ whole grid can run as several commands (``--systems``, ``--configs``, ``--paths`
 From the records (never typed numbers): ``<out>/../mpc_latency_<gpu>.json`` (a list of rows) and
 ``<out>/README.md`` (tables).
 
-    python bench/mpc_latency.py --systems pendulum --configs 1x50x5,1x50x1 --budget 540
+    python bench/mpc_latency.py --systems pendulum --budget 540     # again until nothing is left
+    python bench/mpc_latency.py --systems cheetah --configs 1x50x5,16x50x5 --cold once --budget 540
     python bench/mpc_latency.py --summarize          # regenerate the JSON and README from the records
     python bench/mpc_latency.py --quick              # tiny sizes on the CPU, into a temporary folder
 """
@@ -381,7 +382,7 @@ def run(args) -> int:
                     if key in done:
                         print(f"{system} {n}x{H}x{its} {path}: recorded, skipped")
                         continue
-                    if left() is not None and left() < 30:
+                    if left() is not None and left() < min(120.0, args.budget / 4):   # too little for one more
                         print(f"budget of {args.budget:.0f} s spent: stopped before {system} {n}x{H}x{its} {path}; "
                               "run the same command again to go on")
                         for p in summarize(out):
@@ -460,7 +461,8 @@ def main(argv=None) -> int:
     ap.add_argument("--compile-mode", default="default",
                     help="torch.compile mode of the torch_compile path (e.g. default, max-autotune-no-cudagraphs)")
     ap.add_argument("--budget", type=float, default=None,
-                    help="seconds: start no configuration after this (rerun to resume); default none")
+                    help="seconds this command may run: no configuration starts in its last 2 minutes and a "
+                         "measuring process is stopped at its end (rerun to resume); default none")
     ap.add_argument("--child-timeout", type=float, default=570.0, help="seconds a measuring process may run")
     ap.add_argument("--summarize", action="store_true", help="only regenerate the JSON and README from the records")
     ap.add_argument("--out", default=None,
