@@ -257,7 +257,8 @@ def _num(v):
 
 def summary_rows(records: list[ResultRecord]) -> list[dict]:
     """One row per (system, episodes, horizon, iterations, path, gpu), from the latest record of
-    each: the issue's keys (``ROW_KEYS``) plus episode_steps_per_s, real_time_factor and, for a
+    each: the issue's keys (``ROW_KEYS``) plus episode_steps_per_s, real_time_factor, what the
+    first action ran (Adam iterations, forward-only proposal model steps per episode) and, for a
     failed run, its error."""
     latest = {}
     for r in records:
@@ -272,7 +273,9 @@ def summary_rows(records: list[ResultRecord]) -> list[dict]:
                "model_step_us": _num(m.get("model_step_us")), "model_evals_per_step": m.get("model_evals_per_step"),
                "control_dt_ms": 1e3 * r.control_dt if r.control_dt else None, "gpu": r.gpu,
                "episode_steps_per_s": _num(m.get("episode_steps_per_s")),
-               "real_time_factor": _num(m.get("real_time_factor"))}
+               "real_time_factor": _num(m.get("real_time_factor")),
+               "first_step_iterations": m.get("warmup_iterations", 0) + r.config["iterations"] if m else None,
+               "first_step_proposal_evals": m.get("proposal_evals")}
         if "error" in c:
             row["error"] = c["error"]
         rows.append(row)
