@@ -351,7 +351,8 @@ def _cmd_mpc(args) -> int:
 
     import numpy as np
 
-    from gnwarp.control import GradientMPC, GradientMPCConfig, get_task, run_episodes, sample_targets
+    from gnwarp.control import (GradientMPC, GradientMPCConfig, control_timestep, get_task, plan_timing, run_episodes,
+                                sample_targets)
     from gnwarp.sim import make_env
     from gnwarp.control.gradient import model_systems
     from gnwarp.sim.families import family_name
@@ -363,8 +364,9 @@ def _cmd_mpc(args) -> int:
     from gnwarp.validation import check_memory
 
     task = get_task(args.task)
-    config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup, lr=args.lr,
-                               seed=args.seed)   # refused before anything is loaded
+    # refused before anything is loaded
+    config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup,
+                               proposals=args.proposals, lr=args.lr, seed=args.seed)
     if args.episodes < 1 or args.steps < 1:
         raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
     records = Path(args.records or f"mpc-{task.name}.jsonl")
@@ -392,16 +394,24 @@ def _cmd_mpc(args) -> int:
     secs = time.perf_counter() - t0
     bar.close()
     r = out["returns"]
+    timing = plan_timing(out["plan_seconds"], control_timestep(system))
     print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
           f"over {n} episodes of {args.steps} steps (horizon {planner.horizon}, {config.iterations} iterations "
-          f"a step; {1e3 * secs / args.steps:.1f} ms a control step, {n * args.steps / secs:.0f} episode-steps/s)")
+          f"a step: {planner.model_evals_per_step} model steps an episode)")
+    print(_timing_line(timing, planner, n))
+    metrics = {k: timing[k] for k in ("first_step_ms", "steady_ms", "real_time_factor", "steady_after", "mean_ms")}
+    metrics.update(model_evals_per_step=planner.model_evals_per_step, warmup_iterations=planner.warmup,
+                   proposal_evals=planner.proposal_evals, episode_steps_per_s=n * args.steps / secs,
+                   plan_ms=[1e3 * float(t) for t in out["plan_seconds"]])
+    if timing["steady_ms"]:
+        metrics["steady_episode_steps_per_s"] = 1e3 * n / timing["steady_ms"]
     record = ResultRecord(
         experiment="mpc", task=task.name, system=system.name, planner="gradient", dynamics="learned", seed=args.seed,
         episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()], control_dt=float(system.dt),
         action_repeat=int(system.substeps), env_steps=training_env_steps(args.model),
-        metrics={"ms_per_control_step": 1e3 * secs / args.steps, "episode_steps_per_s": n * args.steps / secs},
+        metrics=metrics,
         config={"model": str(args.model), "horizon": planner.horizon, "iterations": config.iterations,
-                "warmup": args.warmup, "lr": args.lr, "backend": args.backend,
+                "warmup": planner.warmup, "proposals": config.proposals, "lr": args.lr, "backend": args.backend,
                 "initial_qpos": np.asarray(qpos).tolist(), "initial_qvel": np.asarray(qvel).tolist(),
                 "targets": None if target is None else target.cpu().double().numpy().tolist()},
         commit=git_commit(), gpu=gpu_name(model.device), date=time.strftime("%Y-%m-%d %H:%M:%S"))
@@ -416,6 +426,19 @@ def _cmd_mpc(args) -> int:
                 title=f"{task.name}: gradient MPC, true simulator", renderer=args.renderer)
         print(f"wrote {video}")
     return 0
+
+
+def _timing_line(timing: dict, planner, n: int) -> str:
+    """The first control step and the steady state apart, and the real-time factor, in words."""
+    proposed = planner.proposal_evals // planner.horizon
+    start = f"the best of {proposed} proposed sequences" if proposed else "a random sequence"
+    first = f"first control step {timing['first_step_ms']:.1f} ms ({planner.warmup} warm-up iterations from {start})"
+    if timing["steady_ms"] is None:
+        return f"{first}; no steady state (one step)"
+    after = timing["steady_after"]
+    return (f"{first}; steady {timing['steady_ms']:.2f} ms a control step (median of steps {after + 1}-"
+            f"{timing['steps']}), real-time factor {timing['real_time_factor']:.3g} (control step "
+            f"{timing['control_dt_ms']:.3g} ms), {1e3 * n / timing['steady_ms']:.0f} episode-steps/s")
 
 
 def _check_outputs(records, video) -> None:
@@ -614,7 +637,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                            "(paper F.1.1), apply them on the true simulator, print the true returns, append them "
                            "as a results record to --records and write a video of the first episodes. Output "
                            "paths are checked before planning. A progress bar counts the planning iterations: "
-                           "the first state's warm-up (iterations x horizon by default), then --iterations a step.",
+                           "the first state's warm-up (4 x iterations by default, after a proposal of sampled "
+                           "sequences), then --iterations a step. Prints the first control step and the steady "
+                           "state apart, with the real-time factor (control timestep / steady time).",
                            "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
     m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
@@ -625,7 +650,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                         "the available memory is refused before it starts)")
     m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
     m.add_argument("--iterations", type=int, default=5, help="gradient iterations per control step")
-    m.add_argument("--warmup", type=int, help="extra iterations at the first state (default: iterations x horizon)")
+    m.add_argument("--warmup", type=int, help="extra iterations at the first state (default: 4 x iterations; the "
+                                              "paper: iterations x horizon, with --proposals 0)")
+    m.add_argument("--proposals", type=int, default=30,
+                   help="random action sequences rolled out at the first state (beside the mid one); Adam starts "
+                        "from the best (0: from a random sequence)")
     m.add_argument("--lr", type=float, default=0.1, help="Adam's step size")
     m.add_argument("--seed", type=int, default=0, help="initial states, targets and initial plans")
     m.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"],

@@ -78,7 +78,7 @@ def test_one_iteration_lowers_the_planned_cost(model, pendulum_data):
 
 
 def test_step_applies_the_first_action_and_shifts_the_plan(model, pendulum_data, monkeypatch):
-    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=6))
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=6, proposals=0))
     plan = p.actions.clone()
     z = p.z.clone()
     seen = []
@@ -87,10 +87,10 @@ def test_step_applies_the_first_action_and_shifts_the_plan(model, pendulum_data,
     assert torch.equal(a, plan[:, 0])
     assert torch.equal(p.z[:, :-1], z[:, 1:]) and torch.equal(p.z[:, -1], z[:, -1])   # the last repeated
     p.step(x0(pendulum_data, 2))
-    assert seen == [5 + 5 * 6, 5]                      # warm-up at the first state only
+    assert seen == [5 + 4 * 5, 5]                      # warm-up (4 x iterations) at the first state only
     p.reset()
     p.step(x0(pendulum_data, 2))
-    assert seen[-1] == 35
+    assert seen[-1] == 25
 
 
 def test_actions_stay_in_the_control_range(model, pendulum_data):
@@ -169,6 +169,14 @@ def test_cli_mpc(model, tmp_path, capsys):
     assert rec.env_steps == 20 * 20   # the training split: 20 sequences of 20 steps
     assert np.asarray(rec.config["initial_qpos"]).shape == (2, 1) and rec.config["targets"] is None
     assert rec.control_dt == pytest.approx(0.02) and rec.config["horizon"] == 3
+    # the first control step and the steady state apart, the real-time factor from the steady one
+    m = rec.metrics
+    assert m["first_step_ms"] > 0 and m["steady_ms"] > 0 and m["model_evals_per_step"] == 1 * 3
+    assert m["real_time_factor"] == pytest.approx(1e3 * rec.control_dt / m["steady_ms"])
+    assert len(m["plan_ms"]) == 3 and m["first_step_ms"] == pytest.approx(m["plan_ms"][0])
+    assert m["steady_ms"] == pytest.approx(float(np.median(m["plan_ms"][1:])))   # 3 steps: those after the first
+    assert f"first control step {m['first_step_ms']:.1f} ms" in out and f"steady {m['steady_ms']:.2f} ms" in out
+    assert f"real-time factor {m['real_time_factor']:.3g}" in out
     assert main(args[:4] + ["cheetah-forward"] + args[5:]) == 2
     assert "the model was trained on pendulum, not on cheetah" in capsys.readouterr().err
 
@@ -204,6 +212,61 @@ def test_adam_state_is_shifted_with_the_plan(model, pendulum_data):
     m = p._m.clone()
     p.shift()
     assert p.z is z_buf and torch.equal(p._m[:, :-1], m[:, 1:]) and int(p._t) == 2
+
+
+@pytest.mark.parametrize("rows", [None, 9])
+def test_proposal_starts_adam_from_the_best_sequence(model, pendulum_data, monkeypatch, rows):
+    """The proposal rolls out the reset's sequence, the mid sequence and random ones (in batches
+    of ``PROPOSAL_ROWS`` rows), keeps each episode's best and counts the model steps it ran."""
+    import gnwarp.control.gradient as gradient
+    if rows is not None:
+        monkeypatch.setattr(gradient, "PROPOSAL_ROWS", rows)   # 3 sequences of 3 episodes a batch
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=3, config=GradientMPCConfig(horizon=8, proposals=6))
+    x = p.check_state(x0(pendulum_data, 3))
+    z0 = p.z.clone()
+    r_random, r_mid = p.planned_reward(x, z0), p.planned_reward(x, torch.zeros_like(z0))
+    best = p.propose(x)
+    torch.testing.assert_close(p.planned_reward(x), best, rtol=1e-5, atol=1e-5)   # the working sequence is the best
+    assert (best >= torch.maximum(r_random, r_mid) - 1e-5).all()
+    assert not torch.equal(p.z, z0) or bool((r_random >= r_mid).all())
+    batches = 1 if rows is None else 3              # 8 sequences: one batch of 8, or 3 batches of 3
+    per = 8 if rows is None else 3
+    assert p.proposal_evals == batches * per * 8 and p.evals == 0
+
+
+def test_bounded_warmup_counts_its_evaluations_and_beats_a_random_plan(model, pendulum_data):
+    cfg = GradientMPCConfig(horizon=10, iterations=2)
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=3, config=cfg)
+    x = p.check_state(x0(pendulum_data, 3))
+    r_random = p.planned_reward(x)
+    p.optimize(x)
+    assert p.warmup == 4 * 2 and p.model_evals_per_step == 2 * 10
+    assert p.last_evals == {"iterations": 2 + 8, "evals": 10 * 10, "proposal_evals": 32 * 10}
+    with torch.no_grad():
+        r_plan = p.task.reward(p.engine.rollout(x, p.plan), p.plan)
+    assert (r_plan >= r_random - 1e-5).all() and r_plan.sum() > r_random.sum(), (r_plan, r_random)
+    for _ in range(2):                              # no shortcut: every later step runs the full budget
+        p.optimize(x)
+        assert p.last_evals == {"iterations": 2, "evals": p.model_evals_per_step, "proposal_evals": 0}
+    assert p.evals == 100 + 2 * 20 and p.iterations_run == 14 and p.proposal_evals == 320
+    with pytest.raises(ConfigError, match="proposals"):
+        GradientMPCConfig(proposals=-1)
+
+
+def test_bounded_warmup_returns_stay_with_the_papers(model):
+    """Closed loop on the true simulator: the proposal with 4 x iterations of warm-up returns what
+    the paper's iterations x horizon warm-up from a random sequence returns (to 5%)."""
+    from gnwarp.data.generation import initial_states
+    pend = systems.make("pendulum")
+    n, H, it = 6, 8, 2
+    qpos, qvel = initial_states(pend, n, np.random.default_rng(1))
+    returns = {}
+    for name, extra in (("paper", dict(warmup=it * H, proposals=0)), ("bounded", {})):
+        env = MjEnv(pend, n)
+        p = GradientMPC(model, "pendulum-balance", pend, n, GradientMPCConfig(horizon=H, iterations=it, **extra))
+        returns[name] = run_episodes(p, env, "pendulum-balance", 10, env.reset(qpos, qvel))["returns"].double()
+    paper, bounded = returns["paper"].mean(), returns["bounded"].mean()
+    assert bounded >= paper - 0.05 * paper.abs(), returns
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -292,6 +292,12 @@ def test_planning_through_an_identified_system(trained, pendulum):
     before = p.planned_reward(xs)
     p.iterate(xs, 10)
     assert p.planned_reward(xs).sum() > before.sum()
+    # the first state's proposal on a G_ID fixed to 3 graphs: one sequence per episode at a time
+    p.reset()
+    start = p.planned_reward(xs)
+    best = p.propose(xs)
+    assert p.proposal_evals == 32 * 6 and (best >= start - 1e-5).all()
+    torch.testing.assert_close(p.planned_reward(xs), best)
     # a G_ID of other graphs is refused when the engine is made
     with pytest.raises(GIDError, match="another layout"):
         fixed.rollout_engine(torch.zeros(2, dtype=torch.int64), 6)
@@ -328,6 +334,11 @@ def test_planning_with_each_episodes_true_parameters(pendulum):
     before = p.planned_reward(xs)
     p.iterate(xs, 10)
     assert p.planned_reward(xs).sum() > before.sum()
+    p.reset()                                       # the proposal rolls each episode's instance out too
+    start = p.planned_reward(xs)
+    best = p.propose(xs)
+    assert p.proposal_evals == 32 * 5 and (best >= start - 1e-9).all()
+    torch.testing.assert_close(p.planned_reward(xs), best)
     with pytest.raises(PlanningError, match="one per episode"):
         GradientMPC(m, "pendulum-balance", insts[:2], n=3, config=cfg)
     with pytest.raises(PlanningError, match="differs from system 0"):

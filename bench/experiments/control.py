@@ -197,13 +197,13 @@ def run_gn_mpc(args, model, task, system, qpos, qvel, target, horizon: int) -> d
     from gnwarp.control import GradientMPC, GradientMPCConfig
     from gnwarp.sim import make_env
     n = qpos.shape[0]
+    warm = args.iterations * horizon if args.warmup is None else args.warmup   # the paper's, from a random sequence
     cfg = GradientMPCConfig(horizon=horizon, iterations=args.iterations, lr=args.lr, seed=args.seed,
-                            warmup=args.warmup)
+                            warmup=warm, proposals=0)
     planner = GradientMPC(model, task, system, n, cfg, target)
     env = make_env(system, n, backend=args.backend)
     out = run_episodes(planner, env, task, args.steps, qpos0=qpos, qvel0=qvel, target=target)
     env.close()
-    warm = args.iterations * horizon if args.warmup is None else args.warmup
     out["note"] = f"{args.iterations} Adam steps/step + {warm} at the first state, lr {args.lr}"
     return out
 
@@ -300,6 +300,7 @@ def run_task(args, name: str, out: Path) -> list[dict]:
                    plan_ms=1e3 * float(np.mean(_steady(res["plan_seconds"], n, args.steps))),
                    plan_first_ms=1e3 * float(np.asarray(res["plan_seconds"]).reshape(-1)[0]), wall_s=res["wall"],
                    episode_steps_per_s=n * args.steps / res["wall"], note=res["note"])
+        row["real_time_factor"] = 1e3 * float(system.dt) / row["plan_ms"] if row["plan_ms"] > 0 else None
         if task.target == "position":   # Figure 11: the head's distance to the target, first and last state
             head = torch.as_tensor(res["states"]).double()[:, :, 1, :2]
             dist = torch.linalg.vector_norm(head - target[:, None, :2].double(), dim=-1)
@@ -341,7 +342,7 @@ RECORD_NAMES = {"gn_mpc": ("gradient", "learned"), "ilqg": ("ilqg", "true_mujoco
                 "sampling_model": ("sampling", "learned"), "random": ("random", "none")}
 # the columns of the summary's ratio: GN-MPC's share of iLQG's performance
 RATIO = ("gradient (learned)", "ilqg (true, MuJoCo C)")
-METRICS = ("plan_ms", "plan_first_ms", "episode_steps_per_s", "wall_s", "initial_distance", "final_distance_mean",
+METRICS = ("plan_ms", "plan_first_ms", "real_time_factor", "episode_steps_per_s", "wall_s", "initial_distance", "final_distance_mean",
            "final_distance_std", "final_distances", "distance_curve")
 CONFIG = ("horizon", "backend", "quick", "note", "source", "video", "iterations", "samples", "knots", "noise", "lr",
           "ilqg_iterations", "ilqg_warmup", "warmup")

@@ -87,7 +87,9 @@ def run_system(args, system: str, runs: Path, out: Path) -> list[dict]:
     fixed, _, _ = identify_on_env(sysid, env, seed=args.seed, qpos0=qpos, qvel0=qvel)
     qpos_w, qvel_w = env.qpos.cpu().numpy(), env.qvel.cpu().numpy()          # where the window left each world
     target = sample_targets(get_task(task), base, n, seed=args.seed)        # None for tasks without targets
-    cfg = GradientMPCConfig(iterations=args.iterations, warmup=args.warmup, lr=args.lr, seed=args.seed)
+    # the paper's first state: iterations x horizon from a random sequence (unless --warmup)
+    warm = args.iterations * get_task(task).horizon if args.warmup is None else args.warmup
+    cfg = GradientMPCConfig(iterations=args.iterations, warmup=warm, proposals=0, lr=args.lr, seed=args.seed)
     rows, commit = [], git_commit()
     for kind in args.planners:
         print(f"{system}: {kind} ...", flush=True)
@@ -149,7 +151,8 @@ def main():
     ap.add_argument("--steps", type=int, default=100, help="planned control steps per episode (after the window)")
     ap.add_argument("--window", type=int, default=20)
     ap.add_argument("--iterations", type=int, default=5)
-    ap.add_argument("--warmup", type=int, default=None)
+    ap.add_argument("--warmup", type=int, default=None,
+                    help="iterations at the first state (default: iterations x horizon, as the paper)")
     ap.add_argument("--lr", type=float, default=0.1)
     ap.add_argument("--sequences", type=int, nargs=3, default=(5000, 100, 100))
     ap.add_argument("--num-steps", type=int, default=100)

@@ -1,8 +1,9 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
 (``tasks``), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
 iLQG baseline (``ilqg``), the ``Planner`` protocol they all implement with the registry of planner
-names (``planner``) and closed-loop episodes (``episodes``); the batched true environment they run
-on is ``gnwarp.sim.env``.
+names (``planner``), closed-loop episodes (``episodes``) and their planning times, the first step
+apart from the steady state (``timing``); the batched true environment they run on is
+``gnwarp.sim.env``.
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")
@@ -13,7 +14,8 @@ from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
 from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
 from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
+from gnwarp.control.timing import control_timestep, plan_timing
 
 __all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
            "GradientMPCConfig", "PlanningError", "Planner", "PLANNERS", "get_planner", "planner_name", "run_episodes",
-           "identify_on_env"]
+           "identify_on_env", "plan_timing", "control_timestep"]

@@ -7,10 +7,16 @@ rollout engine's adjoint loop) and takes one Adam step. Actions stay inside each
 control range by construction: ``a = mid + half * tanh(z)`` with Adam on ``z`` (an unlimited
 actuator takes ``a = z``). Receding horizon: after planning, the first action is applied, the
 sequence (and Adam's moments) shift by one step with the last repeated, and the shifted sequence
-warm-starts the next state's plan. The first state gets ``warmup`` extra iterations (default
-``iterations x horizon``, as the paper) from a random sequence. Every operation is batched over
-the N episodes; the rewards are independent per episode, so one backward of their sum gives each
-episode its own gradient.
+warm-starts the next state's plan. The first state starts from a sampled proposal: the reset's
+random sequence, the mid sequence (z = 0) and ``proposals`` more random sequences are rolled out
+through the model (forward only, batched) and Adam starts from each episode's best; then
+``warmup`` extra iterations (default ``4 x iterations``, so the first action costs a bounded few
+iterations more than any other; the paper's ``iterations x horizon`` from a random sequence is
+``warmup=iterations * horizon, proposals=0``). Every operation is batched over the N episodes;
+the rewards are independent per episode, so one backward of their sum gives each episode its own
+gradient. The planner counts what it runs: ``evals`` (model steps per episode evaluated forward
+and backward by Adam iterations), ``proposal_evals`` (forward only, by proposals),
+``model_evals_per_step`` (iterations x horizon, every control step after the first).
 
 The plan, Adam's moments and step count, and the state planned from live in device buffers
 updated in place, so one iteration (rollout, reward, backward through the adjoint loop, Adam
@@ -36,7 +42,11 @@ from gnwarp.interop import Graphed
 from gnwarp.sim.families import family_name
 from gnwarp.validation import Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
-__all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems"]
+__all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems", "WARMUP_PER_ITERATION",
+           "PROPOSAL_ROWS"]
+
+WARMUP_PER_ITERATION = 4   # the default warm-up at the first state: this many x iterations
+PROPOSAL_ROWS = 4096       # rollout rows (episodes x proposals) evaluated together at most
 
 
 class PlanningError(ValueError):
@@ -46,14 +56,19 @@ class PlanningError(ValueError):
 @dataclasses.dataclass
 class GradientMPCConfig:
     """``horizon``: planning steps (None: the task's). ``iterations``: Adam steps per control step
-    (the paper: 3-51). ``warmup``: extra iterations at the first state (None: iterations x
-    horizon). ``lr``: Adam's step size on the unconstrained actions z. ``init_std``: the random
-    initial z ~ N(0, init_std^2). ``seed``: of that initial sequence. ``capture``: replay one
-    planning iteration from a CUDA graph (None: on CUDA; ignored on the CPU). ``fused``: the
-    rollout engine's model step fused (``ForwardModel.rollout_engine``; None: automatic)."""
+    (the paper: 3-51). ``warmup``: extra iterations at the first state (None: ``4 x iterations``,
+    a bounded first action; the paper's warm-up is ``iterations x horizon``, set it explicitly
+    with ``proposals=0``). ``proposals``: random sequences rolled out at the first state besides
+    the reset's random sequence and the mid sequence (z = 0); Adam starts from each episode's
+    best (0: from the reset's random sequence). ``lr``: Adam's step size on the unconstrained
+    actions z. ``init_std``: the random initial z ~ N(0, init_std^2) (and the proposals').
+    ``seed``: of those sequences. ``capture``: replay one planning iteration from a CUDA graph
+    (None: on CUDA; ignored on the CPU). ``fused``: the rollout engine's model step fused
+    (``ForwardModel.rollout_engine``; None: automatic)."""
     horizon: PositiveInt | None = None
     iterations: PositiveInt = 5
     warmup: IntRange(0) | None = None
+    proposals: IntRange(0) = 30
     lr: PositiveFloat = 0.1
     init_std: FloatRange(ge=0) = 0.5
     betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
@@ -86,13 +101,17 @@ class GradientMPC:
     ``targets``: per-episode targets for tasks with one (see ``tasks.sample_targets``).
 
     A ``gnwarp.control.planner.Planner``: ``optimize(x [N, B, 13])`` runs the Adam iterations from
-    the true states ``x`` (plus the warm-up after a reset), keeps the plan (``plan`` [N, H, U])
+    the true states ``x`` (after a reset: the proposal, then the warm-up), keeps the plan (``plan`` [N, H, U])
     and shifts the working sequence for the next call; ``act(x, t)`` -> the plan's actions [N, U]
     at step t; ``step(x)`` = both; ``actions`` [N, H, U] is the working sequence; ``reset()``
     draws a new random sequence from the settings' seed (the next ``optimize`` warms up again).
     Raises ``PlanningError`` for a model trained on another system (or whose static features do
     not fit it), ``TaskError`` for a task of another system, and, at every step, for states of
-    the wrong shape or with NaN / Inf (naming the episode and body).
+    the wrong shape or with NaN / Inf (naming the episode and body). Counters (per episode, since
+    the planner's construction): ``iterations_run`` Adam iterations, ``evals`` model steps evaluated
+    forward and backward (iterations x horizon), ``proposal_evals`` model steps evaluated forward
+    only by proposals; ``last_evals``: the last ``optimize``'s {"iterations", "evals",
+    "proposal_evals"}; ``model_evals_per_step``: iterations x horizon.
     """
 
     needs_sim_state = False   # plans from body states
@@ -130,7 +149,8 @@ class GradientMPC:
             raise PlanningError(f"the model does not fit {self.system.name} (task {self.task.name!r}): {e}") from None
         self.model, self.n = model, n
         self.horizon = self.settings.horizon or self.task.horizon
-        self.warmup = self.settings.warmup if self.settings.warmup is not None else self.settings.iterations * self.horizon
+        its = self.settings.iterations
+        self.warmup = self.settings.warmup if self.settings.warmup is not None else WARMUP_PER_ITERATION * its
         dev, dt = model.device, model.dtype
         self.device, self.dtype = dev, dt
         self.B, self.U = self.system.nbody, self.system.nu
@@ -140,8 +160,12 @@ class GradientMPC:
         # the planner's actions are in range by construction: the engine need not clamp or check;
         # captured, the whole iteration is one graph, so the engine's loops run inside it
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
-        self.engine = model.rollout_engine(inst, self.horizon, ctrl_policy="none",
-                                           check=False, graphs=not self.capture, fused=self.settings.fused)
+        self._inst = inst
+        self.engine = self._rollout_engine(inst, graphs=not self.capture)
+        # the proposal's batched forward rollouts (made here, on the graphs bound here)
+        self._proposal_engine = self._make_proposal_engine() if self.settings.proposals else None
+        self.iterations_run = self.evals = self.proposal_evals = 0
+        self.last_evals = {"iterations": 0, "evals": 0, "proposal_evals": 0}
         self.targets = None if targets is None else self._targets(targets)
         self._gen = torch.Generator(device="cpu")
         shape = (n, self.horizon, self.U)
@@ -154,6 +178,18 @@ class GradientMPC:
         self._graph = Graphed(self._iterate_once, warmup=2) if self.capture else None
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
+
+    def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto"):
+        """The model's ``RolloutEngine`` over ``instance`` [rows] for the planning horizon: the
+        planner's actions are in range by construction, so it neither clamps nor checks them."""
+        return self.model.rollout_engine(instance, self.horizon, ctrl_policy="none", check=False, graphs=graphs,
+                                         store=store, fused=self.settings.fused)
+
+    @property
+    def model_evals_per_step(self) -> int:
+        """Model steps each episode's plan evaluates forward and backward in a control step after
+        the first: iterations x horizon."""
+        return self.settings.iterations * self.horizon
 
     # -- the action sequence ------------------------------------------------------------------------
     def _targets(self, targets) -> torch.Tensor:
@@ -214,6 +250,60 @@ class GradientMPC:
             u = self.to_actions(z)
             return self.task.reward(self.engine.rollout(x, u), u, self.targets)
 
+    def _make_proposal_engine(self) -> tuple[int, object]:
+        """(sequences per episode in one batched rollout, the eager engine of that batch)."""
+        per = max(1, min(self.settings.proposals + 2, PROPOSAL_ROWS // self.n))
+        try:
+            return per, self._rollout_engine(self._inst.repeat(per), graphs=False, store=False)
+        except ValueError:   # a model held to the planner's N graphs (a fixed G_ID): one sequence at a time
+            return 1, self._rollout_engine(self._inst, graphs=False, store=False)
+
+    def propose(self, x: torch.Tensor) -> torch.Tensor:
+        """Warm start from sampled proposals at checked states ``x`` [N, B, 13]: the working
+        sequence, the mid sequence (z = 0) and ``proposals`` random ones (z ~ N(0, init_std^2),
+        drawn on the device from a seed of the planner's generator) are rolled out through the
+        model, forward only, ``PROPOSAL_ROWS`` rollout rows at a time (the last batch filled
+        with more random sequences; one sequence per episode at a time for a model that rolls
+        out only the planner's N graphs, such as a fixed G_ID); the working sequence becomes each
+        episode's best. Returns the best's planned reward [N] (-inf where every proposal's reward
+        is NaN: the working sequence is kept)."""
+        n, H, U = self.n, self.horizon, self.U
+        total = self.settings.proposals + 2
+        if self._proposal_engine is None:
+            self._proposal_engine = self._make_proposal_engine()
+        per, engine = self._proposal_engine
+        xs = x.expand(per, *x.shape).reshape(per * n, *x.shape[1:])
+        tgt = None if self.targets is None else self.targets.repeat(per, *([1] * (self.targets.ndim - 1)))
+        best_r = torch.full((n,), -torch.inf, device=self.device, dtype=self.dtype)
+        best_z = self.z.clone()
+        rows = torch.arange(n, device=self.device)
+        # drawn where they are used (thousands of sequences), seeded from the planner's generator
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(int(torch.randint(0, 2 ** 62, (1,), generator=self._gen)))
+        done = 0
+        while done < total:
+            z = torch.randn((per, n, H, U), generator=gen, device=self.device, dtype=self.dtype)
+            z *= self.settings.init_std
+            if done == 0:
+                z[0] = self.z
+                if per > 1:
+                    z[1] = 0.0
+            elif done == 1:   # one sequence per batch: the mid sequence leads the second
+                z[0] = 0.0
+            with torch.no_grad():
+                u = self.to_actions(z).reshape(per * n, H, U)
+                r = self.task.reward(engine.rollout(xs, u), u, tgt).reshape(per, n)
+            r = torch.nan_to_num(r, nan=-torch.inf)
+            top, k = r.max(0)
+            better = top > best_r
+            best_r = torch.where(better, top, best_r)
+            best_z = torch.where(better[:, None, None], z[k, rows], best_z)
+            done += per
+            self.proposal_evals += per * H
+            self.last_evals["proposal_evals"] += per * H
+        self.z.copy_(best_z)
+        return best_r
+
     def iterate(self, x: torch.Tensor, k: int = 1) -> torch.Tensor:
         """``k`` Adam steps on the plan from checked states ``x``; returns the planned reward [N]
         before the last step."""
@@ -223,6 +313,10 @@ class GradientMPC:
                 self._graph()
             else:
                 self._iterate_once()
+            self.iterations_run += 1
+            self.evals += self.horizon
+            self.last_evals["iterations"] += 1
+            self.last_evals["evals"] += self.horizon
             if self.progress is not None:
                 self.progress(1)
         return self._r.clone()
@@ -254,9 +348,12 @@ class GradientMPC:
 
     def optimize(self, x) -> None:
         """One planning budget from the true states ``x`` [N, B, 13]: ``iterations`` Adam steps
-        (plus ``warmup`` after a reset); the plan (``plan`` [N, H, U]) is kept for ``act`` and the
-        working sequence shifted one step for the next call."""
+        (after a reset: first the proposal, then ``warmup`` more steps); the plan (``plan``
+        [N, H, U]) is kept for ``act`` and the working sequence shifted one step for the next call."""
         x = self.check_state(x)
+        self.last_evals = {"iterations": 0, "evals": 0, "proposal_evals": 0}
+        if not self.started and self.settings.proposals > 0:
+            self.propose(x)
         k = self.settings.iterations + (0 if self.started else self.warmup)
         self.iterate(x, k)
         self.started = True
