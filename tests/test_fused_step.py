@@ -9,7 +9,7 @@ import torch
 from gnwarp import data
 from gnwarp.control import GradientMPC, GradientMPCConfig
 from gnwarp.data.convert import static_arrays
-from gnwarp.gn import RunOptions
+from gnwarp.gn import RunOptions, blas_block
 from gnwarp.gn.rules import TUNABLES, choose_fused
 from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig
 from gnwarp.models import fused_step
@@ -137,7 +137,7 @@ def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
     sp, N, T = ds["test"], 2, 5
     inst = np.asarray(sp.instance[:N])
     plain, fused = m.rollout_engine(inst, T, fused=False), m.rollout_engine(inst, T, fused=True)
-    assert not plain.fused and fused.fused and fused.store is None
+    assert not plain.fused and fused.fused and (fused.store is None) == fused.fused_step.fused_core
     assert plain.fused_step is None and isinstance(fused.fused_step, FusedStep)
     assert not m.rollout_engine(inst, T).fused          # automatic: the CPU keeps the unfused step
     x0 = torch.as_tensor(sp.body[:N, 0], dtype=F64)
@@ -155,6 +155,61 @@ def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
         assert out[1][2].abs().max() > 0
     with torch.no_grad():
         torch.testing.assert_close(fused.rollout(x0, u), plain.rollout(x0, u), rtol=1e-12, atol=1e-12)
+
+
+def _fwd_bwd(engine, x0, u, k):
+    """(states, dL/dx0, dL/du) of one rollout of ``engine`` and a fixed loss on all states."""
+    xa, ua = (x0 * (1 + 0.01 * k)).requires_grad_(), (u * (1 - 0.2 * k)).requires_grad_()
+    traj = engine.rollout(xa, ua)
+    w = torch.linspace(-1, 2, traj.numel(), dtype=traj.dtype).reshape(traj.shape)
+    (torch.sin(traj) * w).sum().backward()
+    return traj, xa.grad, ua.grad
+
+
+@pytest.mark.parametrize("system", ["pendulum", "cheetah"])
+def test_fused_engine_replays_its_forward_recording(system, request, monkeypatch):
+    """A fused engine with an activation store records its forward's GN blocks and its backward
+    replays them (no block forward reruns): rollouts and gradients equal the fused engine's
+    without a store bit for bit and the unfused engine's to rounding (float64, Warp blocks). A
+    backward after another forward recomputes: it replays no stale recording."""
+    ds = request.getfixturevalue(system)
+    m = tiny_model(ds, impl="warp")
+    sp, N, T = ds["test"], 2, 4
+    inst = np.asarray(sp.instance[:N])
+    plain = m.rollout_engine(inst, T, fused=False, store=True)
+    bare, stored = (m.rollout_engine(inst, T, fused=True, store=s) for s in (False, True))
+    assert bare.store is None and stored.store is not None and stored.fused and not stored.fused_step.fused_core
+    replays = []
+    real = blas_block._replay
+    monkeypatch.setattr(blas_block, "_replay", lambda *a: replays.append(1) or real(*a))
+    x0 = torch.as_tensor(sp.body[:N, 0], dtype=F64)
+    u = torch.as_tensor(sp.ctrl[:N, :T], dtype=F64)
+    for k in range(2):
+        ref, want = _fwd_bwd(plain, x0, u, k), _fwd_bwd(bare, x0, u, k)
+        replays.clear()
+        got = _fwd_bwd(stored, x0, u, k)
+        assert len(replays) == 2 * T and stored.store.generation == k + 1   # both blocks of every step
+        for a, b, c in zip(ref, want, got):
+            assert torch.equal(c, b) and c.abs().max() > 0
+            torch.testing.assert_close(c, a, rtol=1e-10, atol=1e-12)
+    # two forwards, then the first's backward: the store holds the second's, so it recomputes
+    xa, ua = x0.clone().requires_grad_(), (u * 0.5).requires_grad_()
+    first = stored.rollout(xa, ua)
+    second = stored.rollout(x0 * 1.1, u.clone().requires_grad_())
+    replays.clear()
+    first.square().sum().backward()
+    assert not replays
+    xb, ub = x0.clone().requires_grad_(), (u * 0.5).requires_grad_()
+    bare.rollout(xb, ub).square().sum().backward()
+    assert torch.equal(xa.grad, xb.grad) and torch.equal(ua.grad, ub.grad) and ua.grad.abs().max() > 0
+    second.sum().backward()   # its own recording: replayed
+    assert len(replays) == 2 * T
+    # over budget: dropped at the first recording, and the engine recomputes
+    tight = m.rollout_engine(inst, T, fused=True, store_bytes=0)
+    replays.clear()
+    for a, b in zip(_fwd_bwd(tight, x0, u, 0), _fwd_bwd(bare, x0, u, 0)):
+        assert torch.equal(a, b)
+    assert tight.store is None and not replays
 
 
 def test_unsupported_cases_fall_back_or_raise(pendulum, monkeypatch):
@@ -227,7 +282,10 @@ def test_cuda_fused_engine_replays(cheetah, dtype, tol):
             out.append((traj, xa.grad, ua.grad))
         for a, b in zip(*out):
             torch.testing.assert_close(b, a, rtol=tol, atol=tol)
-    assert fused._fwd.graph is not None and fused._bwd.graph is not None
+    # a backward follows each forward: the recording forward's and the replaying backward's graphs
+    rec = fused.store is not None
+    fwd, bwd = (fused._fwd_rec, fused._bwd_rep) if rec else (fused._fwd, fused._bwd)
+    assert fwd.graph is not None and bwd.graph is not None and rec == (not fused.fused_step.fused_core)
     quiet = m.rollout_engine(inst, T, check=False)   # no input checks: then no host sync at all
 
     def run():

@@ -15,7 +15,8 @@ backward launches (``kernels/models/fused_step.py``): no torch glue, no weight g
 backward walks the steps in reverse on the states the forward kept). In the loops each decode
 also writes the next step's input graph, and each step's last backward launch the previous
 step's: per step, the forward is the core and one launch, the backward the core's forward and
-backward and two launches.
+backward and two launches. Given a ``scope`` (the engine's ``ActivationStore``), the forward
+records each step's GN blocks and the backward's core forward replays them (no block GEMM).
 
 The core is ``gnwarp.gn.fused_core.FusedCore`` (the GN blocks of a small graph in few launches)
 where that module exists and runs the core, else ``CoreStandIn``: the model's own core on the
@@ -210,16 +211,18 @@ class FusedStep:
             out, graph[0], graph[1])
 
     def _backward_step(self, body, tb: int, graph, g_next, stats, g_add, ta: int, g_body, g_ctrl, tc: int,
-                       ctrl=None, prev: int | None = None) -> None:
+                       ctrl=None, prev: int | None = None, scope=None) -> None:
         """One step's vector-Jacobian product: ``g_next`` [N*B, 13] -> ``g_body`` [N*B, 13] (plus
         ``g_add`` [N, ., B, 13] at step ``ta`` when given; ``g_body`` may be ``g_next``) and the
         controls' gradient into ``g_ctrl`` [N, ., U] at step ``tc``; ``graph``: the step's
         normalized inputs. With ``prev``, the same launch then writes step ``prev``'s input graph
-        (``body``, ``ctrl`` [N, ., U]) into ``graph``. Parameters should be frozen."""
+        (``body``, ``ctrl`` [N, ., U]) into ``graph``. ``scope``: a context the core's forward
+        runs in (an ``ActivationStore`` replaying this step). Parameters should be frozen."""
         nodes, edges, glob = graph
         with torch.enable_grad():
             n, e = nodes.detach().requires_grad_(), edges.detach().requires_grad_()
-            delta = self.core(n, e, glob)
+            with scope if scope is not None else contextlib.nullcontext():
+                delta = self.core(n, e, glob)
             g_delta, g_direct = self._new(self.N * self.B, DYN_NODE_SIZE), self._new(self.N * self.B, DYN_NODE_SIZE)
             run = Launcher(g_next)
             run(K.decode_grad_kernel(WP_DTYPE[self.dtype]), self.N * self.B, delta.detach().contiguous(), body, tb,
@@ -277,22 +280,27 @@ class FusedStep:
                           self._new(N, self.static_globals.shape[1]))
         return self._work
 
-    def forward_loop(self, traj: torch.Tensor, ctrl: torch.Tensor) -> None:
+    def forward_loop(self, traj: torch.Tensor, ctrl: torch.Tensor, scope=None) -> None:
         """Fill ``traj`` [N, T+1, B, 13] (``traj[:, 0]`` the initial states) under ``ctrl``
-        [N, T, U], one step at a time, in place; no autograd, no host sync."""
+        [N, T, U], one step at a time, in place; no autograd, no host sync. ``scope(t)``: a
+        context step t's core runs in (an ``ActivationStore`` recording step t)."""
         stats = self.stats()
         work = self._buffers(stats)
         T = ctrl.shape[1]
         with torch.no_grad():
             graph = self.encode(traj, 0, ctrl, 0, stats, out=work)
             for t in range(T):   # each decode writes the next step's input graph too
+                with scope(t) if scope is not None else contextlib.nullcontext():
+                    delta = self.core(*graph)
                 nxt = (ctrl, t + 1, graph) if t + 1 < T else (None, 0, None)
-                self.decode(self.core(*graph), traj, t, stats, traj, t + 1, *nxt)
+                self.decode(delta, traj, t, stats, traj, t + 1, *nxt)
 
-    def backward_loop(self, traj, ctrl, g_traj, g_x0, g_ctrl) -> None:
+    def backward_loop(self, traj, ctrl, g_traj, g_x0, g_ctrl, scope=None) -> None:
         """The adjoint loop over ``forward_loop``'s states ``traj`` [N, T+1, B, 13]: for dL/dtraj
         ``g_traj`` [N, T+1, B, 13], writes dL/dx0 into ``g_x0`` [N, B, 13] (contiguous; the running
-        gradient) and dL/dctrl into ``g_ctrl`` [N, T, U]; no weight gradients, no host sync."""
+        gradient) and dL/dctrl into ``g_ctrl`` [N, T, U]; no weight gradients, no host sync.
+        ``scope(t)``: a context step t's core forward runs in (an ``ActivationStore`` replaying
+        the forward's recording of step t: its blocks then run no GEMM of their forward)."""
         stats = self.stats()
         work = self._buffers(stats)
         T = ctrl.shape[1]
@@ -302,7 +310,7 @@ class FusedStep:
             graph = self.encode(traj, T - 1, ctrl, T - 1, stats, out=work)
             for t in range(T - 1, -1, -1):   # each step's last launch writes the previous step's input graph
                 self._backward_step(traj, t, graph, g, stats, g_traj, t, g, g_ctrl, t, ctrl,
-                                    t - 1 if t > 0 else None)
+                                    t - 1 if t > 0 else None, scope(t) if scope is not None else None)
 
 
 def fused_step_for(model, template, fused: bool | None) -> FusedStep | None:

@@ -352,7 +352,9 @@ class RolloutEngine:
     recomputation. None (default): where it can run (a ``ForwardModel`` with a GN core, graphs of
     one size and topology, float32 / float64) and ``gnwarp.gn.rules.choose_fused`` picks it (CUDA,
     small batches); True: always (ValueError naming why it cannot run); False: never. A fused
-    engine records no store. ``engine.fused`` says which runs."""
+    engine keeps a store as the unfused one does where its core is the model's own (not a
+    ``FusedCore``): the backward's core forward then replays the recording. ``engine.fused`` says
+    which runs."""
 
     def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
                  graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None,
@@ -386,7 +388,7 @@ class RolloutEngine:
         self._fused = fused_step_for(model, self.template, fused)
         self.fused = self._fused is not None
         self._store = None
-        if store is not False and not self.fused:
+        if store is not False and not (self.fused and self._fused.fused_core):
             core = getattr(model, "core", None)
             keep = core.replay_outputs() if hasattr(core, "replay_outputs") else None
             self._store = ActivationStore(self.horizon, keep)
@@ -422,24 +424,32 @@ class RolloutEngine:
                              f"{tuple(b['ctrl'].shape)}, got {tuple(x0.shape)} and {tuple(ctrl.shape)}")
         return b
 
+    @contextlib.contextmanager
+    def _recording(self, t: int):
+        """Context of step ``t`` of a recording forward; after the first step's first recording
+        (eager: before any capture), drops the store when every step's would not fit."""
+        store = self._store
+        with store.recording(t):
+            yield
+        if t == 0 and not store.sized:
+            store.sized = True
+            if not self._store_fits():
+                store.drop()   # the remaining steps run without recording
+
     def _forward_fn(self, record: bool = False):
-        b, store = self._bufs, self._store
+        b = self._bufs
         if self.fused:
             with torch.no_grad():
                 b["traj"][:, 0] = b["x0"]
-                self._fused.forward_loop(b["traj"], b["ctrl"])
+                self._fused.forward_loop(b["traj"], b["ctrl"], self._recording if record else None)
             return
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
             step, traj = self._step(ctx), b["traj"]
             traj[:, 0] = b["x0"]
             for t in range(self.horizon):
-                with store.recording(t) if record else contextlib.nullcontext():
+                with self._recording(t) if record else contextlib.nullcontext():
                     traj[:, t + 1] = step(traj[:, t], b["ctrl"][:, t])
-                if record and t == 0 and not store.sized:
-                    store.sized = True   # once, at the first recording (eager: before any capture)
-                    if not self._store_fits():
-                        store.drop()   # the remaining steps run without recording
 
     def _store_fits(self) -> bool:
         """After the first step's first recording: whether every step's would fit the budget."""
@@ -456,7 +466,8 @@ class RolloutEngine:
     def _backward_fn(self, replay: bool = False):
         b, store = self._bufs, self._store
         if self.fused:
-            self._fused.backward_loop(b["traj"], b["ctrl"], b["g_traj"], b["g_x0"], b["g_ctrl"])
+            self._fused.backward_loop(b["traj"], b["ctrl"], b["g_traj"], b["g_x0"], b["g_ctrl"],
+                                      store.replaying if replay else None)
             return
         with torch.no_grad():
             ctx = self.model.context(self.template.graph(b["x0"], b["ctrl"][:, 0]))
