@@ -33,22 +33,26 @@ def cheetah():
 
 
 def warm(m, ds):
-    """Normalizer statistics from ``ds`` (inputs O(1), no vanishing std), as training sets them."""
+    """Normalizer statistics from ``ds`` (inputs O(1), no vanishing std), as training sets them,
+    on the model's device (the loss launches Warp kernels there)."""
     sp = ds["train"]
     S, T = sp.ctrl.shape[:2]
+    dev = m.builder.s_nodes.device
     body = torch.as_tensor(sp.body[:, :T]).reshape(S * T, *sp.body.shape[2:])
     nxt = torch.as_tensor(sp.body[:, 1:]).reshape(S * T, -1, DYN_NODE_SIZE)
     g = m.builder(torch.as_tensor(np.repeat(sp.instance, T)), body, torch.as_tensor(sp.ctrl).reshape(S * T, -1))
     with torch.no_grad():
-        m.loss(g, nxt.reshape(-1, DYN_NODE_SIZE).to(m.dtype), noise_std=0.01, accumulate=True,
-               generator=torch.Generator().manual_seed(0))
+        m.loss(g, nxt.reshape(-1, DYN_NODE_SIZE).to(dev, m.dtype), noise_std=0.01, accumulate=True,
+               generator=torch.Generator(device=dev).manual_seed(0))
     return m
 
 
-def tiny_model(ds, recenter=True, impl="torch", dtype=F64, seed=0):
+def tiny_model(ds, recenter=True, impl="torch", dtype=F64, seed=0, device="cpu"):
+    """A small model bound to ``ds`` on ``device``, its normalizers set there (a CUDA model never
+    launches a CPU Warp kernel: the GPU machine has no CPU compiler)."""
     torch.manual_seed(seed)
     m = ForwardModel(ModelConfig(gn=TINY, run=RunOptions(impl=impl), recenter=recenter), ds.layout)
-    m.to(dtype=dtype).bind(ds)
+    m.to(device=device, dtype=dtype).bind(ds)
     return warm(m, ds)
 
 
@@ -260,12 +264,28 @@ def test_gradient_mpc_plans_the_same_fused(pendulum):
     torch.testing.assert_close(plans[1], plans[0], rtol=1e-9, atol=1e-10)
 
 
+@pytest.fixture
+def no_cpu_warp(monkeypatch):
+    """Fails a test at its first Warp launch on the CPU (a CUDA test launches none: Warp on the
+    GPU machine has no CPU compiler)."""
+    import warp as wp
+
+    def guard(launch):
+        def guarded(kernel, *args, **kw):
+            if wp.get_device(kw.get("device")).is_cpu:
+                raise AssertionError(f"a CUDA test launched Warp kernel {kernel.key} on the CPU")
+            return launch(kernel, *args, **kw)
+        return guarded
+    monkeypatch.setattr(wp, "launch", guard(wp.launch))
+    monkeypatch.setattr(wp, "launch_tiled", guard(wp.launch_tiled))
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
-def test_cuda_fused_engine_replays(cheetah, dtype, tol):
+def test_cuda_fused_engine_replays(cheetah, dtype, tol, no_cpu_warp):
     """On CUDA a small batch runs fused by itself; its forward and backward replay CUDA graphs and
     agree with the unfused engine's, call after call."""
-    m = tiny_model(cheetah, impl="warp", dtype=dtype).to("cuda").bind(cheetah)
+    m = tiny_model(cheetah, impl="warp", dtype=dtype, device="cuda")
     sp, N, T = cheetah["test"], 2, 6
     inst = np.asarray(sp.instance[:N])
     plain, fused = m.rollout_engine(inst, T, fused=False), m.rollout_engine(inst, T)
