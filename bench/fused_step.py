@@ -95,7 +95,8 @@ def main(argv=None):
                 row[f"{key}_fwdbwd_us_per_step"] = round(1e3 * median_ms(fwdbwd, dev, args.reps, 2) / T, 2)
                 if dev.type == "cuda":
                     path = Path(args.out) / f"fused_step_kernels_{system}_{N}.txt"
-                    k, us = profile_kernels(fwdbwd, 3, path, f"{system} N={N} {key} fwd+bwd, {T} steps")
+                    k, us = profile_kernels(fwdbwd, 3, path, f"{system} N={N} {key} fwd+bwd, {T} steps",
+                                            unit="rollout")   # a call is the whole rollout: per step is k / T
                     row[f"{key}_kernels_per_step"] = round(k / T, 1)
                     row[f"{key}_device_us_per_step"] = round(us / T, 2)
             row["max_abs_diff"] = float(max((a - b).abs().max() for a, b in zip(outs["fused"], outs["unfused"])))

@@ -108,10 +108,12 @@ def median_ms(fn, device: torch.device, reps: int, warmup: int) -> float:
     return statistics.median(ts)
 
 
-def profile_kernels(step, steps: int, path: Path, title: str, top: int | None = None) -> tuple[float, float]:
+def profile_kernels(step, steps: int, path: Path, title: str, top: int | None = None,
+                    unit: str = "step") -> tuple[float, float]:
     """Kernels per call and device time per call (us, the sum of kernel durations) of ``step()``
     on CUDA, over ``steps`` calls under torch.profiler after five warm-up calls; the heading
-    ``title`` and the kernels by time (the first ``top``) appended to ``path``."""
+    ``title`` and the kernels by time (the first ``top``) appended to ``path``, per call; ``unit``
+    names a call there ("... kernels / step")."""
     from torch.profiler import ProfilerActivity, profile  # noqa: PLC0415
     for _ in range(5):
         step()
@@ -129,7 +131,8 @@ def profile_kernels(step, steps: int, path: Path, title: str, top: int | None = 
             k[1] += ev.device_time_total
     calls, us = (sum(v[i] for v in per.values()) / steps for i in (0, 1))
     with open(path, "a") as f:
-        f.write(f"== {title}: {calls:.0f} kernels / step, {us:.1f} us device time / step (sum of kernel durations)\n")
+        f.write(f"== {title}: {calls:.0f} kernels / {unit}, {us:.1f} us device time / {unit} "
+                "(sum of kernel durations)\n")
         for n, (c, u) in sorted(per.items(), key=lambda kv: -kv[1][1])[:top]:
             f.write(f"{u / steps:9.1f} us {c / steps:6.1f}x  {n}\n")
     return calls, us
