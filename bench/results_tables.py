@@ -152,6 +152,15 @@ def headline(root: Path, doc: Path) -> list[str]:
         share.append(f"{_pct(gn, ilqg)} {name}")
     rows.append(["gradient MPC through the learned model against iLQG on true MuJoCo (returns)",
                  ", ".join(share), link("control")])
+    lat = {(r["system"], r["episodes"], r["horizon"], r["iterations"], r["path"]): r
+           for r in json.loads((root / RESULTS / "mpc_latency_nvidia-h100-80gb-hbm3.json").read_text())}
+    one = {p: lat["pendulum", 1, 50, 5, p]["steady_ms"] for p in ("fused", "unfused", "torch_graph")}
+    it1 = lat["pendulum", 1, 50, 1, "fused"]
+    rows.append(["gradient MPC planning step, pendulum, 1 episode, horizon 50, 5 iterations, one H100",
+                 f"**{one['fused']:.0f} ms** per 20 ms control step (fused model step), {one['unfused']:.0f} ms "
+                 f"unfused, {one['torch_graph']:.0f} ms a torch peer in a CUDA graph; 1 iteration: "
+                 f"{it1['steady_ms']:.0f} ms (real-time factor {it1['control_dt_ms'] / it1['steady_ms']:.2f})",
+                 link("mpc_latency")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean
             / _find(rj, variant="recurrent, angle (rad)", episode_steps=t).mean for t in (1, 10, 20)]
