@@ -7,11 +7,16 @@ iteration (on CUDA: run eagerly, Warp modules loaded), the second (recorded into
 the rest of the warm-up and the first control step's iterations (replays). Run it twice: the
 first process fills the kernel caches, the second is what a user waits for.
 
-    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20]
+    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto]
 
 ``--sample MS``: also sample every thread's Python stack every MS milliseconds (the autograd
 engine runs a CUDA backward on its own thread, which cProfile does not see) and print, per phase,
 the functions (file:line name) that were on a stack in the most samples (inclusive time).
+``--warp-log``: Warp's info log on (each module load's time, "(cached)" or "(compiled)").
+``--cuda-output ptx|cubin``: ``wp.config.cuda_output`` (auto: Warp writes PTX where the driver
+is at least as new as its toolkit, and the driver compiles that PTX at every process's module
+load unless its own cache, ``CUDA_CACHE_PATH`` / ``CUDA_CACHE_MAXSIZE``, holds it; a cubin loads
+as is). A format the cache lacks is compiled by the first process.
 """
 from __future__ import annotations
 
@@ -35,6 +40,7 @@ from gnwarp.control import GradientMPC, GradientMPCConfig  # noqa: E402
 from gnwarp.control.tasks import get_task, sample_targets  # noqa: E402
 from gnwarp.data.generation import initial_states  # noqa: E402
 from gnwarp.gn.options import RunOptions  # noqa: E402
+from gnwarp.interop import warp  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
 from gnwarp.sim.body_state import body_states  # noqa: E402
 from gnwarp.data.convert import static_arrays  # noqa: E402
@@ -82,7 +88,14 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--fused", choices=("auto", "on", "off"), default="auto")
     ap.add_argument("--sample", type=float, default=0.0, help="sample every thread's stack every this many ms")
+    ap.add_argument("--warp-log", action="store_true", help="Warp's info log: each module load's time")
+    ap.add_argument("--cuda-output", choices=("auto", "ptx", "cubin"), default="auto")
     a = ap.parse_args(argv)
+    wp = warp()   # initialized with gnwarp's log level, then the options
+    if a.warp_log:
+        wp.config.log_level = wp.LOG_INFO
+    if a.cuda_output != "auto":
+        wp.config.cuda_output = a.cuda_output
     sampler = StackSampler(a.sample / 1e3) if a.sample > 0 else None
     import mujoco
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
