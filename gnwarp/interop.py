@@ -18,7 +18,7 @@ import torch
 import warp as wp
 
 __all__ = ["warp", "cuda_available", "resolve_device", "WP_DTYPE", "warp_stream", "cuda_graph", "Graphed", "replay_cached",
-           "Launcher", "registers_generators", "default_generator", "capture_problem"]
+           "Launcher", "registers_generators", "default_generator", "capture_problem", "vjp"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -89,6 +89,19 @@ def cuda_available() -> bool:
         return warp().get_cuda_device_count() > 0
     except Exception:  # noqa: BLE001 - no usable Warp CUDA runtime means no CUDA here
         return False
+
+
+def vjp(output: torch.Tensor, inputs, grad: torch.Tensor) -> tuple:
+    """``torch.autograd.grad(output, inputs, grad, allow_unused=True)``: the gradients (a tuple, None
+    for an input ``output`` does not depend on) of ``output`` weighted by ``grad`` (same shape). Calls torch's autograd engine the way ``torch.autograd.grad`` does, without its shape
+    check, whose first call imports sympy (about a second of a fresh process's first backward)."""
+    if grad.shape != output.shape:
+        raise ValueError(f"grad must have the output's shape {tuple(output.shape)}, got {tuple(grad.shape)}")
+    inputs = tuple(inputs)
+    run = getattr(torch.autograd.graph, "_engine_run_backward", None)
+    if run is None:   # a torch without it: the public call
+        return torch.autograd.grad(output, inputs, grad, allow_unused=True)
+    return run((output,), (grad,), False, False, inputs, True, accumulate_grad=False)
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:

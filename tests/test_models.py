@@ -9,7 +9,7 @@ from gnwarp import data
 from gnwarp.data.builder import GraphTemplate
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.gn import RunOptions
-from gnwarp.interop import warp
+from gnwarp.interop import vjp, warp
 from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig, Normalizer
 from gnwarp.state import DYN_NODE_SIZE, apply_delta, quat_mul, quat_normalize, rotation_loss, state_delta
 
@@ -666,3 +666,16 @@ def test_noisy_centred_inputs_match_the_torch_formulas(swimmer, dtype, noise):
     assert torch.equal(noisy[~ctx.movable], dyn[~ctx.movable])          # world bodies untouched
     means = centred[ctx.movable, :2].reshape(N, -1, 2).mean(1)
     assert means.abs().max() < 1e-5 and (centred[:, :2] != noisy[:, :2]).any()   # centred, and it did something
+
+
+def test_vjp_matches_autograd_grad():
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(4, 3, generator=g, requires_grad=True), torch.randn(3, requires_grad=True)
+    unused = torch.randn(2, requires_grad=True)
+    w = torch.randn(4, 3, generator=g)
+    out = torch.tanh(a * b) @ torch.eye(3)
+    ref = torch.autograd.grad(out, (a, b, unused), w, allow_unused=True, retain_graph=True)
+    got = vjp(out, (a, b, unused), w)
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1]) and got[2] is None
+    with pytest.raises(ValueError, match="output's shape"):
+        vjp(torch.tanh(a), (a,), w[:, :2])

@@ -7,13 +7,24 @@ iteration (on CUDA: run eagerly, Warp modules loaded), the second (recorded into
 the rest of the warm-up and the first control step's iterations (replays). Run it twice: the
 first process fills the kernel caches, the second is what a user waits for.
 
-    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto]
+    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto]
+
+``--sample MS``: also sample every thread's Python stack every MS milliseconds (the autograd
+engine runs a CUDA backward on its own thread, which cProfile does not see) and print, per phase,
+the functions (file:line name) that were on a stack in the most samples (inclusive time).
+``--warp-log``: Warp's info log on (each module load's time, "(cached)" or "(compiled)").
+``--cuda-output ptx|cubin``: ``wp.config.cuda_output`` (auto: Warp writes PTX where the driver
+is at least as new as its toolkit, and the driver compiles that PTX at every process's module
+load unless its own cache, ``CUDA_CACHE_PATH`` / ``CUDA_CACHE_MAXSIZE``, holds it; a cubin loads
+as is). A format the cache lacks is compiled by the first process.
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -29,9 +40,44 @@ from gnwarp.control import GradientMPC, GradientMPCConfig  # noqa: E402
 from gnwarp.control.tasks import get_task, sample_targets  # noqa: E402
 from gnwarp.data.generation import initial_states  # noqa: E402
 from gnwarp.gn.options import RunOptions  # noqa: E402
+from gnwarp.interop import warp  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
 from gnwarp.sim.body_state import body_states  # noqa: E402
 from gnwarp.data.convert import static_arrays  # noqa: E402
+
+
+class StackSampler:
+    """Every ``period`` seconds, counts each function (once a sample, inclusive) on any thread's
+    Python stack but the sampler's own, under the phase set in ``phase``."""
+
+    def __init__(self, period: float):
+        self.period, self.phase, self.counts = period, "setup", collections.defaultdict(collections.Counter)
+        self.samples = collections.Counter()
+        sys.setswitchinterval(1e-4)   # the sampler gets the GIL soon, and gives it back soon
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        me = threading.get_ident()
+        while not self._stop.wait(self.period):
+            phase, seen = self.phase, set()
+            for tid, frame in sys._current_frames().items():
+                while tid != me and frame is not None:
+                    c = frame.f_code
+                    seen.add(f"{c.co_filename.split('site-packages/')[-1]}:{c.co_firstlineno} {c.co_name}")
+                    frame = frame.f_back
+            self.counts[phase].update(seen)
+            self.samples[phase] += 1
+
+    def report(self, top: int = 40):
+        self._stop.set()
+        self._thread.join()
+        for phase, counter in self.counts.items():
+            n = self.samples[phase]
+            print(f"-- {phase}: {n} samples of {1e3 * self.period:.0f} ms", flush=True)
+            for name, k in counter.most_common(top):
+                print(f"{100 * k / n:5.1f}%  {name}", flush=True)
 
 
 def main(argv=None):
@@ -41,7 +87,16 @@ def main(argv=None):
     ap.add_argument("--horizon", type=int, default=50)
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--fused", choices=("auto", "on", "off"), default="auto")
+    ap.add_argument("--sample", type=float, default=0.0, help="sample every thread's stack every this many ms")
+    ap.add_argument("--warp-log", action="store_true", help="Warp's info log: each module load's time")
+    ap.add_argument("--cuda-output", choices=("auto", "ptx", "cubin"), default="auto")
     a = ap.parse_args(argv)
+    wp = warp()   # initialized with gnwarp's log level, then the options
+    if a.warp_log:
+        wp.config.log_level = wp.LOG_INFO
+    if a.cuda_output != "auto":
+        wp.config.cuda_output = a.cuda_output
+    sampler = StackSampler(a.sample / 1e3) if a.sample > 0 else None
     import mujoco
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)  # noqa: E731
@@ -61,6 +116,9 @@ def main(argv=None):
     targets = sample_targets(get_task(task), system, a.episodes, seed=0)
     sync()
     phases, t = {}, time.perf_counter()
+    order = iter(["construct", "proposal", "iteration_1", "iteration_2", "iterations_rest", "end"])
+    if sampler is not None:
+        sampler.phase = next(order)
 
     def mark(name):
         nonlocal t
@@ -68,6 +126,8 @@ def main(argv=None):
         now = time.perf_counter()
         phases[name] = round(1e3 * (now - t), 1)
         t = now
+        if sampler is not None:
+            sampler.phase = next(order)
     planner = GradientMPC(model, task, system, a.episodes, cfg, targets)
     mark("construct_ms")
     xc = planner.check_state(x)
@@ -84,6 +144,8 @@ def main(argv=None):
            "fused": planner.engine.fused, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "imports_s": round(t_import, 2), **phases, "total_ms": round(sum(phases.values()), 1)}
     print(json.dumps(row), flush=True)
+    if sampler is not None:
+        sampler.report()
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import torch
 
 from gnwarp.gn.rules import choose_fused
 from gnwarp.graphs import GraphsTuple
-from gnwarp.interop import WP_DTYPE, Launcher
+from gnwarp.interop import WP_DTYPE, Launcher, vjp
 from gnwarp.kernels.models import fused_step as K
 from gnwarp.models.cores import GNCore
 from gnwarp.state import DYN_NODE_SIZE
@@ -227,7 +227,7 @@ class FusedStep:
             run = Launcher(g_next)
             run(K.decode_grad_kernel(WP_DTYPE[self.dtype]), self.N * self.B, delta.detach().contiguous(), body, tb,
                 g_next, stats[6], stats[7], self.B, g_delta, g_direct)
-            gn, ge = torch.autograd.grad(delta, (n, e), g_delta, allow_unused=True)
+            gn, ge = vjp(delta, (n, e), g_delta)
         gn = torch.zeros_like(nodes) if gn is None else gn.contiguous()
         ge = torch.zeros_like(edges) if ge is None else ge.contiguous()
         N, B, E, U = self.N, self.B, self.E, g_ctrl.shape[-1]

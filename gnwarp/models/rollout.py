@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from gnwarp.gn.replay import ActivationStore
-from gnwarp.interop import Graphed
+from gnwarp.interop import Graphed, vjp
 from gnwarp.models.fused_step import frozen_parameters, fused_step_for
 from gnwarp.state import DYN_NODE_SIZE
 
@@ -254,7 +254,7 @@ def adjoint_loop(step: Callable, traj, ctrl, g_traj, need_x: bool, need_u: bool,
             with scope(t) if scope is not None else contextlib.nullcontext():
                 nxt = step(body, c)
             inputs = [x for x in (body, c) if x.requires_grad] + list(params)
-            grads = torch.autograd.grad(nxt, inputs, g, allow_unused=True) if inputs else ()
+            grads = vjp(nxt, inputs, g) if inputs else ()
         k = 0
         g_body = None
         if body.requires_grad:
