@@ -151,7 +151,8 @@ def measure(spec: dict) -> dict:
     first = time.perf_counter() - t0
     out = {"first_step_ms": 1e3 * first, "device": device_name(dev), "warmup_iterations": planner.warmup,
            "proposals": cfg.proposals, "proposal_evals": planner.proposal_evals,
-           "first_step_evals": planner.evals, "fused": extra.get("fused", "absent")}
+           "first_step_evals": planner.evals, "fused": extra.get("fused", "absent"),
+           "engine_fused": bool(getattr(planner.engine, "fused", False))}   # what the rule chose
     if spec["first_only"]:
         return out
     evals0, prop0 = planner.evals, planner.proposal_evals
