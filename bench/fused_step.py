@@ -11,8 +11,7 @@ graphs on CUDA) with ``fused=False`` and ``fused=True`` on the same model, state
   correctness column: it must stay at rounding).
 
 The crossover of fused vs unfused over N is what ``gnwarp.gn.rules.choose_fused`` reads
-(``TUNABLES.fused_step_max_graphs``); the core is ``FusedCore`` where the build has it (the
-``fused_core`` column), else the model's own core.
+(``TUNABLES.fused_step_max_graphs``); the core is the model's own GN core.
 
     python bench/fused_step.py [--systems pendulum,cheetah] [--batches 1,16,256,4096] [--horizon 50]
     python bench/fused_step.py --quick          # tiny sizes on the CPU: a smoke test of the script
@@ -77,7 +76,6 @@ def main(argv=None):
             engines = {"unfused": model.rollout_engine(inst, T, fused=False, check=False),
                        "fused": model.rollout_engine(inst, T, fused=True, check=False)}
             row = dict(device=name, system=system, graphs=N, horizon=T, core=args.core, precision=args.precision,
-                       fused_core=bool(engines["fused"].fused_step.fused_core),
                        auto_fused=bool(model.rollout_engine(inst, T, check=False).fused))
             outs = {}
             for key, e in engines.items():
@@ -108,15 +106,15 @@ def main(argv=None):
              f"{T}-step rollouts; us per model step (median of {args.reps} rollouts / horizon); fwd+bwd: a loss on "
              "all states, gradients w.r.t. x0 and the controls; kernels and device us per model step fwd+bwd from "
              "torch.profiler (CUDA).", "",
-             "| system | graphs | fused core | auto picks fused | fwd unfused | fwd fused | fwd+bwd unfused | "
+             "| system | graphs | auto picks fused | fwd unfused | fwd fused | fwd+bwd unfused | "
              "fwd+bwd fused | speed-up fwd+bwd | kernels / step unfused / fused | device us / step unfused / fused | "
-             "max abs diff |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "max abs diff |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         kern = (f"{r['unfused_kernels_per_step']} / {r['fused_kernels_per_step']}" if "fused_kernels_per_step" in r
                 else "-")
         dus = (f"{r['unfused_device_us_per_step']} / {r['fused_device_us_per_step']}" if "fused_device_us_per_step" in r
                else "-")
-        lines.append(f"| {r['system']} | {r['graphs']} | {r['fused_core']} | {r['auto_fused']} | "
+        lines.append(f"| {r['system']} | {r['graphs']} | {r['auto_fused']} | "
                      f"{r['unfused_fwd_us_per_step']} | {r['fused_fwd_us_per_step']} | {r['unfused_fwdbwd_us_per_step']} | "
                      f"{r['fused_fwdbwd_us_per_step']} | {r['speedup_fwdbwd']} | {kern} | {dus} | {r['max_abs_diff']:.2e} |")
     save_results(args.out, "fused_step", name, args.quick, rows, lines)

@@ -13,7 +13,7 @@ from gnwarp.gn import RunOptions, blas_block
 from gnwarp.gn.rules import TUNABLES, choose_fused
 from gnwarp.models import ForwardModel, GNCoreConfig, MLPForwardModel, ModelConfig
 from gnwarp.models import fused_step
-from gnwarp.models.fused_step import CoreStandIn, FusedStep
+from gnwarp.models.fused_step import BatchCore, FusedStep
 from gnwarp.models.normalizer import normalize_graph
 from gnwarp.sim.systems import make
 from gnwarp.state import DYN_NODE_SIZE, apply_delta
@@ -77,7 +77,7 @@ def test_encode_and_decode_equal_the_torch_step(system, recenter, request):
     slots, statistics); decode = its de-normalization, quaternion update and world body."""
     m, tm, x, u = case(request.getfixturevalue(system), recenter=recenter)
     fs = FusedStep(m, tm)
-    assert isinstance(fs.core, CoreStandIn) == (not fs.fused_core)
+    assert isinstance(fs.core, BatchCore)
     stats = fs.stats()
     nodes, edges, glob = fs.encode(x[:, None], 0, u[:, None], 0, stats)
     g = tm.graph(x, u)
@@ -141,7 +141,7 @@ def test_fused_engine_equals_the_unfused_engine(system, recenter, request):
     sp, N, T = ds["test"], 2, 5
     inst = np.asarray(sp.instance[:N])
     plain, fused = m.rollout_engine(inst, T, fused=False), m.rollout_engine(inst, T, fused=True)
-    assert not plain.fused and fused.fused and (fused.store is None) == fused.fused_step.fused_core
+    assert not plain.fused and fused.fused and fused.store is not None
     assert plain.fused_step is None and isinstance(fused.fused_step, FusedStep)
     assert not m.rollout_engine(inst, T).fused          # automatic: the CPU keeps the unfused step
     x0 = torch.as_tensor(sp.body[:N, 0], dtype=F64)
@@ -182,7 +182,7 @@ def test_fused_engine_replays_its_forward_recording(system, request, monkeypatch
     inst = np.asarray(sp.instance[:N])
     plain = m.rollout_engine(inst, T, fused=False, store=True)
     bare, stored = (m.rollout_engine(inst, T, fused=True, store=s) for s in (False, True))
-    assert bare.store is None and stored.store is not None and stored.fused and not stored.fused_step.fused_core
+    assert bare.store is None and stored.store is not None and stored.fused
     replays = []
     real = blas_block._replay
     monkeypatch.setattr(blas_block, "_replay", lambda *a: replays.append(1) or real(*a))
@@ -303,9 +303,8 @@ def test_cuda_fused_engine_replays(cheetah, dtype, tol, no_cpu_warp):
         for a, b in zip(*out):
             torch.testing.assert_close(b, a, rtol=tol, atol=tol)
     # a backward follows each forward: the recording forward's and the replaying backward's graphs
-    rec = fused.store is not None
-    fwd, bwd = (fused._fwd_rec, fused._bwd_rep) if rec else (fused._fwd, fused._bwd)
-    assert fwd.graph is not None and bwd.graph is not None and rec == (not fused.fused_step.fused_core)
+    assert fused.store is not None
+    assert fused._fwd_rec.graph is not None and fused._bwd_rep.graph is not None
     quiet = m.rollout_engine(inst, T, check=False)   # no input checks: then no host sync at all
 
     def run():

@@ -18,9 +18,8 @@ step's: per step, the forward is the core and one launch, the backward the core'
 backward and two launches. Given a ``scope`` (the engine's ``ActivationStore``), the forward
 records each step's GN blocks and the backward's core forward replays them (no block GEMM).
 
-The core is ``gnwarp.gn.fused_core.FusedCore`` (the GN blocks of a small graph in few launches)
-where that module exists and runs the core, else ``CoreStandIn``: the model's own core on the
-batch's graph. Only templates whose graphs all have the same size and edges (``builder.uniform``)
+The core is ``BatchCore``: the model's own GN core (its Warp blocks) on the batch's graph, built
+once. Only templates whose graphs all have the same size and edges (``builder.uniform``)
 are fused; ``FusedStep.unsupported`` says why another is not.
 """
 from __future__ import annotations
@@ -36,12 +35,7 @@ from gnwarp.kernels.models import fused_step as K
 from gnwarp.models.cores import GNCore
 from gnwarp.state import DYN_NODE_SIZE
 
-try:   # the fused GN core, where this build has it; the stand-in below otherwise
-    from gnwarp.gn.fused_core import FusedCore
-except ImportError:
-    FusedCore = None
-
-__all__ = ["FusedStep", "CoreStandIn", "make_core", "fused_step_for", "frozen_parameters"]
+__all__ = ["FusedStep", "BatchCore", "fused_step_for", "frozen_parameters"]
 
 
 @contextlib.contextmanager
@@ -59,17 +53,13 @@ def frozen_parameters(module):
             p.requires_grad_(True)
 
 
-class CoreStandIn:
-    """``FusedCore``'s interface on a model's own core: ``core(graph, index)`` on N graphs of
-    ``n_node`` nodes with the edges ``senders`` / ``receivers`` [E] (local to one graph).
-    ``__call__(nodes [N*n_node, Fv], edges [N*E, Fe], globals [N, Fg]) -> [N*n_node, 13]``,
-    differentiable through the core's own backward."""
+class BatchCore:
+    """A model's core on N graphs of ``n_node`` nodes with the edges ``senders`` / ``receivers``
+    [E] (local to one graph): ``__call__(nodes [N*n_node, Fv], edges [N*E, Fe], globals [N, Fg])
+    -> [N*n_node, 13]``, differentiable through the core's own backward. The batch's topology and
+    its graph index are made once."""
 
-    @staticmethod
-    def unsupported(core, device, n_node, n_edge) -> str | None:
-        return None
-
-    def __init__(self, core, senders, receivers, n_node: int, n_graphs: int, graphs_per_block=None):
+    def __init__(self, core, senders, receivers, n_node: int, n_graphs: int):
         dev = senders.device
         off = torch.arange(n_graphs, device=dev)[:, None] * n_node
         E = int(senders.shape[0])
@@ -83,13 +73,6 @@ class CoreStandIn:
 
     def __call__(self, nodes, edges, globals_):
         return self.core(self.topology._replace(nodes=nodes, edges=edges, globals=globals_), self.index)
-
-
-def make_core(core, senders, receivers, n_node: int, n_graphs: int):
-    """``FusedCore`` of ``core`` when it is available and runs it, else ``CoreStandIn``."""
-    if FusedCore is not None and FusedCore.unsupported(core, senders.device, n_node, int(senders.shape[0])) is None:
-        return FusedCore(core, senders, receivers, n_node, n_graphs)
-    return CoreStandIn(core, senders, receivers, n_node, n_graphs)
 
 
 class _FusedStepFn(torch.autograd.Function):
@@ -142,8 +125,7 @@ class FusedStep:
         ci = template.ctrl_index
         self.n_ctrl_read = int(ci.max()) + 1 if ci.numel() else 0       # the one host sync
         snd, rcv = template.topology.senders[:E], template.topology.receivers[:E]   # graph 0's: local
-        self.core = make_core(model.core, snd, rcv, B, N)
-        self.fused_core = not isinstance(self.core, CoreStandIn)
+        self.core = BatchCore(model.core, snd, rcv, B, N)
         self._work = None
 
     @staticmethod

@@ -352,9 +352,8 @@ class RolloutEngine:
     recomputation. None (default): where it can run (a ``ForwardModel`` with a GN core, graphs of
     one size and topology, float32 / float64) and ``gnwarp.gn.rules.choose_fused`` picks it (CUDA,
     small batches); True: always (ValueError naming why it cannot run); False: never. A fused
-    engine keeps a store as the unfused one does where its core is the model's own (not a
-    ``FusedCore``): the backward's core forward then replays the recording. ``engine.fused`` says
-    which runs."""
+    engine keeps a store as the unfused one does: the backward's core forward replays the
+    recording. ``engine.fused`` says which runs."""
 
     def __init__(self, model, instance, horizon: int, builder=None, ctrl_policy: str = "clamp", check: bool = True,
                  graphs: bool = True, store: bool | str = "auto", store_bytes: int | None = None,
@@ -388,7 +387,7 @@ class RolloutEngine:
         self._fused = fused_step_for(model, self.template, fused)
         self.fused = self._fused is not None
         self._store = None
-        if store is not False and not (self.fused and self._fused.fused_core):
+        if store is not False:
             core = getattr(model, "core", None)
             keep = core.replay_outputs() if hasattr(core, "replay_outputs") else None
             self._store = ActivationStore(self.horizon, keep)
