@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.harness import PAPER, QUICK, device_name, median_ms, profile_kernels, results_dir, save_results  # noqa: E402
+from bench.harness import PAPER, QUICK, device_name, experiment_out, median_ms, profile_kernels, save_results  # noqa: E402
 from gnwarp import data  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
 from gnwarp.train.sampler import BatchSampler  # noqa: E402
@@ -44,9 +44,10 @@ def main(argv=None):
     ap.add_argument("--precision", default="fp32")
     ap.add_argument("--reps", type=int, default=10)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=results_dir("fused_step"))
+    ap.add_argument("--out", default=None, help="default: bench/results/fused_step (--quick: a temporary folder)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
+    args.out = str(experiment_out("fused_step", args.out, args.quick))
     if args.quick:
         args.device, args.systems, args.batches, args.horizon, args.reps, args.core = \
             "cpu", "pendulum,cheetah", "1,4", 4, 2, "quick"
