@@ -74,12 +74,6 @@ ROW_KEYS = ("system", "episodes", "horizon", "iterations", "path", "first_step_m
             "model_step_us", "model_evals_per_step", "control_dt_ms", "gpu")
 
 
-def has_fused() -> bool:
-    """Whether ``GradientMPCConfig`` has the ``fused`` field (the fused model step's switch)."""
-    from gnwarp.control import GradientMPCConfig
-    return "fused" in {f.name for f in dataclasses.fields(GradientMPCConfig)}
-
-
 def parse_configs(text: str) -> list[tuple[int, int, int]]:
     """"1x50x5,16x50x5" -> [(episodes, horizon, iterations), ...]; ValueError naming a bad one."""
     out = []
@@ -102,47 +96,48 @@ def _sync(dev) -> None:
         torch.cuda.synchronize(dev)
 
 
+def planning_setup(system_name: str, n: int, dev, impl: str = "warp", quick: bool = False):
+    """(system, task name, model, initial body states [n, B, 13], targets) of one benchmark
+    configuration: an untrained planning core (``SIZES``; ``QUICK`` sizes when ``quick``) on
+    ``dev``, seeded initial states from the true simulator (MuJoCo C), the task's targets."""
+    import numpy as np
+    import torch
+
+    from gnwarp import systems
+    from gnwarp.control import get_task, sample_targets
+    from gnwarp.data import static_arrays
+    from gnwarp.data.generation import initial_states
+    from gnwarp.gn import RunOptions
+    from gnwarp.models import ForwardModel, ModelConfig
+    from gnwarp.sim import make_env
+
+    system = systems.make(system_name)
+    task = TASKS[system_name]
+    torch.manual_seed(0)
+    model = ForwardModel(ModelConfig(gn=QUICK if quick else SIZES, run=RunOptions(impl=impl)),
+                         static_arrays([system])[1]).to(dev)
+    qpos, qvel = initial_states(system, n, np.random.default_rng(0))
+    x = torch.as_tensor(make_env(system, n, backend="mujoco").reset(qpos, qvel), dtype=torch.float32, device=dev)
+    return system, task, model, x, sample_targets(get_task(task), system, n, seed=0)
+
+
 def measure(spec: dict) -> dict:
     """One configuration's planning times in this process: ``spec`` = {system, episodes, horizon,
     iterations, path, steps, first_only, quick, compile_mode}. Returns {first_step_ms, and unless
     first_only: plan_ms [steps + 1] (the first action, then each control step), steady_ms,
     model_evals_per_step, ...}."""
-    import numpy as np
     import torch
 
-    from gnwarp import systems
-    from gnwarp.control import (GradientMPC, GradientMPCConfig, control_timestep, get_task, plan_timing,
-                                sample_targets)
-    from gnwarp.data import static_arrays
-    from gnwarp.data.generation import initial_states
-    from gnwarp.gn import RunOptions
-    from gnwarp.models import ForwardModel, ModelConfig
-    from gnwarp.sim.body_state import body_states
-    import mujoco
+    from gnwarp.control import GradientMPC, GradientMPCConfig, control_timestep, plan_timing
 
-    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    system = systems.make(spec["system"])
-    task = TASKS[spec["system"]]
     n, H, its, path = spec["episodes"], spec["horizon"], spec["iterations"], spec["path"]
-    impl = "torch" if path.startswith("torch") else "warp"
-    sizes = QUICK if spec["quick"] else SIZES
-    torch.manual_seed(0)
-    model = ForwardModel(ModelConfig(gn=sizes, run=RunOptions(impl=impl)), static_arrays([system])[1]).to(dev)
+    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    system, task, model, x, targets = planning_setup(spec["system"], n, dev, "torch" if path.startswith("torch")
+                                                     else "warp", spec["quick"])
     if path == "torch_compile":   # the model step compiled; the planner's graph captures what it launches
         model.next_nodes = torch.compile(model.next_nodes, mode=spec["compile_mode"], dynamic=False)
-    qpos, qvel = initial_states(system, n, np.random.default_rng(0))
-    d = mujoco.MjData(system.model)
-    x = []
-    for q, v in zip(qpos, qvel):
-        d.qpos[:], d.qvel[:] = q, v
-        mujoco.mj_forward(system.model, d)
-        x.append(body_states(system.model, d))
-    x = torch.tensor(np.stack(x), dtype=torch.float32, device=dev)
-    extra = {}
-    if has_fused() and path in ("unfused", "fused"):
-        extra["fused"] = False if path == "unfused" else None
+    extra = {"fused": False if path == "unfused" else None} if path in ("unfused", "fused") else {}
     cfg = GradientMPCConfig(horizon=H, iterations=its, seed=0, **extra)
-    targets = sample_targets(get_task(task), system, n, seed=0)
     _sync(dev)
     t0 = time.perf_counter()
     planner = GradientMPC(model, task, system, n, cfg, targets)   # binds the model: part of the first action
@@ -362,9 +357,6 @@ def run(args) -> int:
     bad = [p for p in paths if p not in PATHS]
     if bad:
         raise SystemExit(f"--paths: unknown {bad}; known: {', '.join(PATHS)}")
-    if "fused" in paths and not has_fused():
-        print("GradientMPCConfig has no 'fused' field: the fused path is skipped ('unfused' is the one Warp path)")
-        paths = [p for p in paths if p != "fused"]
     gpu = device_name()
     rec_path = records_path(out, gpu)
     done = {record_key(r) for r in read_records(rec_path) if "error" not in r.config} if rec_path.exists() else set()

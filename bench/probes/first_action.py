@@ -31,19 +31,11 @@ from pathlib import Path
 T_START = time.perf_counter()
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.mpc_latency import SIZES, TASKS  # noqa: E402
-from gnwarp import systems  # noqa: E402
+from bench.mpc_latency import planning_setup  # noqa: E402
 from gnwarp.control import GradientMPC, GradientMPCConfig  # noqa: E402
-from gnwarp.control.tasks import get_task, sample_targets  # noqa: E402
-from gnwarp.data.generation import initial_states  # noqa: E402
-from gnwarp.gn.options import RunOptions  # noqa: E402
 from gnwarp.interop import warp  # noqa: E402
-from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
-from gnwarp.sim.body_state import body_states  # noqa: E402
-from gnwarp.data.convert import static_arrays  # noqa: E402
 
 
 class StackSampler:
@@ -97,23 +89,12 @@ def main(argv=None):
     if a.cuda_output != "auto":
         wp.config.cuda_output = a.cuda_output
     sampler = StackSampler(a.sample / 1e3) if a.sample > 0 else None
-    import mujoco
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)  # noqa: E731
     t_import = time.perf_counter() - T_START
-    system = systems.make(a.system)
-    task = TASKS[a.system]
-    model = ForwardModel(ModelConfig(gn=SIZES, run=RunOptions(impl="warp")), static_arrays([system])[1]).to(dev)
-    qpos, qvel = initial_states(system, a.episodes, np.random.default_rng(0))
-    d, xs = mujoco.MjData(system.model), []
-    for q, v in zip(qpos, qvel):
-        d.qpos[:], d.qvel[:] = q, v
-        mujoco.mj_forward(system.model, d)
-        xs.append(body_states(system.model, d))
-    x = torch.tensor(np.stack(xs), dtype=torch.float32, device=dev)
+    system, task, model, x, targets = planning_setup(a.system, a.episodes, dev)
     fused = {"auto": None, "on": True, "off": False}[a.fused]
     cfg = GradientMPCConfig(horizon=a.horizon, iterations=a.iterations, seed=0, fused=fused)
-    targets = sample_targets(get_task(task), system, a.episodes, seed=0)
     sync()
     phases, t = {}, time.perf_counter()
     order = iter(["construct", "proposal", "iteration_1", "iteration_2", "iterations_rest", "end"])

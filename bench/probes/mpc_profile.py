@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
+from bench.harness import profile_kernels  # noqa: E402
 from gnwarp import data  # noqa: E402
 from gnwarp.control import GradientMPC, GradientMPCConfig  # noqa: E402
 from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig  # noqa: E402
@@ -31,6 +32,7 @@ def main(argv=None):
     p.add_argument("--n", type=int, default=1)
     p.add_argument("--horizon", type=int, default=50)
     p.add_argument("--path", default="auto")
+    p.add_argument("--out", default=".", help="folder of the kernel table")
     a = p.parse_args(argv)
     ds = data.generate(a.system, (4, 1, 1), num_steps=10, seed=0, backend="mujoco", progress=False)
     cfg = ModelConfig(gn=GNCoreConfig(latent=128, edge_hidden=(256, 256), node_hidden=(256, 256),
@@ -45,24 +47,12 @@ def main(argv=None):
         for _ in range(3):
             pl.iterate(xs, 1)
         torch.cuda.synchronize()
-        if not capture:
-            from torch.profiler import ProfilerActivity, profile
-            with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
-                pl.iterate(xs, 1)
-                torch.cuda.synchronize()
-            per = {}
-            for ev in prof.events():
-                if ev.device_type == torch.autograd.DeviceType.CUDA:
-                    k = per.setdefault(ev.name[:90], [0, 0.0])
-                    k[0] += 1
-                    k[1] += ev.device_time_total
-            H = a.horizon
-            tot = sum(v[1] for v in per.values())
-            cnt = sum(v[0] for v in per.values())
-            print(f"eager iteration: {cnt} kernels, {tot:.0f} us device; per model step {cnt / H:.1f} kernels, "
-                  f"{tot / H:.1f} us")
-            for n_, (c, us) in sorted(per.items(), key=lambda kv: -kv[1][1])[:45]:
-                print(f"{us / H:8.1f} us {c / H:6.1f}x  {n_}")
+        if not capture:   # the eager iteration's kernels (a captured replay hides them from the profiler)
+            table = Path(a.out) / f"mpc_profile_{a.system}_{a.n}.txt"
+            k, us = profile_kernels(lambda: pl.iterate(xs, 1), 1, table, f"{a.system} N={a.n} H={a.horizon} "
+                                    "eager planning iteration", top=45, unit="iteration")
+            print(f"eager iteration: {k:.0f} kernels, {us:.0f} us device; per model step {k / a.horizon:.1f} "
+                  f"kernels, {us / a.horizon:.1f} us (table: {table})")
         t0 = time.perf_counter()
         ev0, ev1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         ev0.record()
