@@ -106,10 +106,11 @@ class FusedStep:
     differentiable with respect to body and ctrl (not the model's parameters); ``vjp(body, ctrl,
     g_next) -> (g_body, g_ctrl)``. The normalizer statistics are read from the model's device
     tensors at every call (and once per loop). Raises ValueError naming the reason where
-    ``unsupported(model, template)`` gives one. Host syncs here (index checks), none in a step."""
+    ``unsupported(model, template)`` gives one (``check=False``: the caller has asked it). Host
+    syncs here (index checks), none in a step."""
 
-    def __init__(self, model, template):
-        why = self.unsupported(model, template)
+    def __init__(self, model, template, check: bool = True):
+        why = self.unsupported(model, template) if check else None   # check=False: the caller asked it
         if why is not None:
             raise ValueError(f"the fused model step cannot run here: {why}")
         self.model, self.template = model, template
@@ -308,4 +309,4 @@ def fused_step_for(model, template, fused: bool | None) -> FusedStep | None:
         if fused:
             raise ValueError(f"fused=True, but the fused model step cannot run here: {why}")
         return None
-    return FusedStep(model, template)
+    return FusedStep(model, template, check=False)
