@@ -272,16 +272,17 @@ def ensure_dataset(path: Path, system: str, sizes, num_steps: int, seed: int) ->
 
 
 def train_model(data: list[str], out, model, steps: int, *, lr: float, decay_every: int, valid_every: int,
-                valid: int, seconds: float | None = None) -> dict:
+                valid: int, seconds: float | None = None, **config) -> dict:
     """Train ``model`` (a ``ModelConfig``) with the library's ``Trainer``: Adam at ``lr``, x0.6
     every ``decay_every`` steps, ``steps`` steps or ``seconds`` of wall clock, validated every
-    ``valid_every`` steps on ``valid`` sequences (the best kept, no early stop), from scratch.
-    Returns the run's summary (``best``: the best checkpoint)."""
+    ``valid_every`` steps on ``valid`` sequences (the best kept, no early stop), from scratch;
+    ``config``: further ``TrainConfig`` fields (``batch_size``, ``device``, ...). Returns the
+    run's summary (``best``: the best checkpoint)."""
     from gnwarp.train import TrainConfig, Trainer  # noqa: PLC0415
     cfg = TrainConfig(data=list(data), out=str(out), model=model, steps=steps, max_seconds=seconds, lr=lr,
                       lr_decay=0.6, lr_decay_steps=max(1, decay_every), valid_every=valid_every,
                       valid_sequences=valid, patience=None, checkpoint_every=max(1, steps), resume=False,
-                      progress=False)
+                      progress=False, **config)
     return Trainer(cfg).run()
 
 

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.harness import device_name, ensure_dataset, experiment_out, gn_sizes  # noqa: E402
+from bench.harness import device_name, ensure_dataset, experiment_out, gn_sizes, train_model  # noqa: E402
 
 # system -> the task its episodes run
 TASKS = {"pendulum": "pendulum-balance", "cartpole": "cartpole-balance", "swimmer6": "swimmer-reach",
@@ -46,16 +46,12 @@ def train(args, system: str, out: Path) -> Path:
         print(f"{system}: checkpoint {best}", flush=True)
         return best
     from gnwarp.models import ModelConfig
-    from gnwarp.train import TrainConfig, Trainer
     (out / "data").mkdir(parents=True, exist_ok=True)
     data = ensure_dataset(out / "data" / f"{system}.h5", system, args.sequences, args.seq_steps, seed=1)
-    cfg = TrainConfig(data=[str(data)], out=str(out / "checkpoints" / system), model=ModelConfig(gn=gn_sizes(*args.gn)),
-                      steps=args.train_steps, max_seconds=args.train_seconds, batch_size=args.batch, lr=1e-3,
-                      lr_decay=0.6, lr_decay_steps=max(1, args.train_steps // 4), valid_every=args.valid_every,
-                      valid_sequences=args.sequences[1], patience=None, checkpoint_every=args.train_steps,
-                      resume=False, progress=False, device="cpu")
     t0 = time.perf_counter()
-    res = Trainer(cfg).run()
+    res = train_model([str(data)], out / "checkpoints" / system, ModelConfig(gn=gn_sizes(*args.gn)),
+                      args.train_steps, lr=1e-3, decay_every=args.train_steps // 4, valid_every=args.valid_every,
+                      valid=args.sequences[1], seconds=args.train_seconds, batch_size=args.batch, device="cpu")
     print(f"{system}: trained {res['steps']} steps in {time.perf_counter() - t0:.0f} s -> {res['best']}", flush=True)
     return Path(res["best"])
 
@@ -110,8 +106,8 @@ def interval(values) -> tuple[float, float]:
     v = np.asarray(values, dtype=np.float64)
     if len(v) < 2:
         return float(v.mean()), math.nan
-    from scipy.stats import t
-    return float(v.mean()), float(t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    from gnwarp.eval.summarize import t_quantile
+    return float(v.mean()), float(t_quantile(len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
 
 
 def table(records) -> str:
