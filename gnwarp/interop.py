@@ -93,15 +93,21 @@ def cuda_available() -> bool:
 
 def vjp(output: torch.Tensor, inputs, grad: torch.Tensor) -> tuple:
     """``torch.autograd.grad(output, inputs, grad, allow_unused=True)``: the gradients (a tuple, None
-    for an input ``output`` does not depend on) of ``output`` weighted by ``grad`` (same shape). Calls torch's autograd engine the way ``torch.autograd.grad`` does, without its shape
-    check, whose first call imports sympy (about a second of a fresh process's first backward)."""
+    for an input ``output`` does not depend on) of ``output`` weighted by ``grad`` (same shape).
+    Calls torch's autograd engine the way ``torch.autograd.grad`` does, without its shape check,
+    whose first call imports sympy (about a second of a fresh process's first backward). The
+    engine entry is a private torch name: where it is missing or takes other arguments, the
+    public call runs (it raises any error of the backward itself again)."""
     if grad.shape != output.shape:
         raise ValueError(f"grad must have the output's shape {tuple(output.shape)}, got {tuple(grad.shape)}")
     inputs = tuple(inputs)
     run = getattr(torch.autograd.graph, "_engine_run_backward", None)
-    if run is None:   # a torch without it: the public call
-        return torch.autograd.grad(output, inputs, grad, allow_unused=True)
-    return run((output,), (grad,), False, False, inputs, True, accumulate_grad=False)
+    if run is not None:
+        try:
+            return run((output,), (grad,), False, False, inputs, True, accumulate_grad=False)
+        except TypeError:   # another torch's signature
+            pass
+    return torch.autograd.grad(output, inputs, grad, allow_unused=True)
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
