@@ -122,6 +122,9 @@ def map_static(layout: FeatureLayout, data_layout: FeatureLayout, static: dict, 
     if ec.shape[-1] < layout.n_ctrl_slots:  # fewer actuators per joint than the model's data had
         pad = -np.ones(ec.shape[:-1] + (layout.n_ctrl_slots - ec.shape[-1],), dtype=ec.dtype)
         out["edge_ctrl"] = np.concatenate([ec, pad], -1)
+        if "edge_ctrl_gain" in static:
+            gain = np.asarray(static["edge_ctrl_gain"][...])
+            out["edge_ctrl_gain"] = np.concatenate([gain, np.zeros(pad.shape, dtype=gain.dtype)], -1)
     return out
 
 
