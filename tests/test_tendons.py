@@ -2,6 +2,7 @@
 joint's edges), and actuators the graph cannot carry refused by generate before any simulation."""
 import warnings
 
+import h5py
 import mujoco
 import numpy as np
 import pytest
@@ -162,6 +163,23 @@ def test_a_system_and_its_dataset_give_one_graph(coupled):
     assert layout.to_dict() == ds.layout.to_dict() and meta["n_global_ctrl"] == 0
     for k, v in static.items():
         np.testing.assert_array_equal(v, ds.static[k], err_msg=k)
+
+
+def test_the_control_weights_survive_the_file_and_are_validated(tmp_path, coupled):
+    _, ds = coupled
+    path = tmp_path / "coupled.h5"
+    ds.save(path)
+    back = data.load(path)
+    np.testing.assert_array_equal(back.static["edge_ctrl_gain"], ds.static["edge_ctrl_gain"])
+    seq, t = [0, 3], [2, 5]
+    torch.testing.assert_close(back.graphs("train", seq=seq, t=t).edges, ds.graphs("train", seq=seq, t=t).edges)
+    back.close()
+    with h5py.File(path, "r+") as f:
+        g = f["static/edge_ctrl_gain"][...]
+        g[0, 1, 1] = np.nan
+        f["static/edge_ctrl_gain"][...] = g
+    with pytest.raises(data.DatasetError, match=r"/static/edge_ctrl_gain: instance 0, edge 1, slot 1 holds nan"):
+        data.load(path)
 
 
 @pytest.mark.parametrize("xml, actuator, what", [
