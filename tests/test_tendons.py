@@ -15,7 +15,7 @@ from gnwarp.data.convert import UnsupportedActuatorError, edge_controls, static_
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
-from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig
+from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig, SysIDConfig, SysIDModel
 from gnwarp.models.fused_step import FusedStep
 from gnwarp.sim.systems import from_mjcf
 from gnwarp.train import TrainConfig, load_model, train
@@ -209,6 +209,8 @@ def test_a_layout_with_controls_on_the_globals_is_refused_by_name():
     lay = FeatureLayout(["timestep"], ["body_mass"], ["direction"], n_global_ctrl=2)
     with pytest.raises(ValueError, match="2 controls of actuators not on a joint edge.*regenerate"):
         ForwardModel(ModelConfig(gn=GNCoreConfig(**TINY)), lay)
+    with pytest.raises(ValueError, match="2 on the globals.*regenerate"):
+        SysIDModel(SysIDConfig(), lay)
 
 
 def test_dmc_quadruped_tendon_actuators_are_carried():

@@ -26,7 +26,9 @@ class FeatureLayout:
     """Names of the kept static columns, and the dropped constant ones with their value.
 
     The dynamic layout is fixed: DYN_NODE_NAMES per node, ``n_ctrl_slots`` controls per edge,
-    ``n_global_ctrl`` controls on the globals (actuators not on a joint).
+    ``n_global_ctrl`` controls on the globals (actuators on no joint edge: 0 wherever
+    ``gnwarp.data.convert`` made the layout, which refuses such actuators; models refuse layouts
+    with any).
     """
     global_names: list[str]
     node_names: list[str]
