@@ -28,14 +28,18 @@ def edge_control_index(index: torch.Tensor, graph: torch.Tensor, n_ctrl: int) ->
     return graph[..., None] * n_ctrl + index.clamp(min=0), index >= 0
 
 
-def edge_control_values(ctrl: torch.Tensor, index: torch.Tensor, graph: torch.Tensor) -> torch.Tensor:
+def edge_control_values(ctrl: torch.Tensor, index: torch.Tensor, graph: torch.Tensor,
+                        gain: torch.Tensor | None = None) -> torch.Tensor:
     """Controls on edges (torch; ``gnwarp.data.convert.edge_controls`` is the numpy reference).
 
-    ``ctrl`` [N, U]: the controls of N graphs; ``index``, ``graph`` as ``edge_control_index``.
+    ``ctrl`` [N, U]: the controls of N graphs; ``index``, ``graph`` as ``edge_control_index``;
+    ``gain`` (shaped as index, or None for all 1): each slot's weight (a tendon's coefficient).
     Returns [..., K] in ctrl's dtype, 0 where no actuator; no host sync.
     """
     flat, has = edge_control_index(index, graph, ctrl.shape[-1])
     c = ctrl.reshape(-1)[flat.reshape(-1)].reshape(flat.shape)
+    if gain is not None:
+        c = c * gain.to(c.dtype)
     return torch.where(has, c, torch.zeros((), dtype=ctrl.dtype, device=ctrl.device))
 
 
@@ -48,7 +52,8 @@ class GraphBuilder:
     ``gnwarp.data.convert.static_arrays``), numpy or h5py.
     ``__call__(instance [N], body [N, B, 13], ctrl [N, U]) -> GraphsTuple`` with
     nodes = [static node features, 13 dynamic], edges = [static edge features, controls],
-    globals = static global features.
+    globals = static global features. Where ``static`` holds ``edge_ctrl_gain`` (actuators on
+    tendons), each slot's control is multiplied by its gain (``edge_gain``, else None).
     """
 
     def __init__(self, static: dict, device=None, dtype=None):
@@ -62,6 +67,7 @@ class GraphBuilder:
         self.n_node = t("n_node", torch.int64)
         self.n_edge = t("n_edge", torch.int64)
         self.edge_ctrl = t("edge_ctrl", torch.int64)
+        self.edge_gain = t("edge_ctrl_gain", self.dtype) if "edge_ctrl_gain" in static else None   # [I, E, K]
         B, E = self.s_nodes.shape[1], self.s_edges.shape[1]
         self.node_mask = torch.arange(B, device=device)[None] < self.n_node[:, None]   # [I, B]
         self.edge_mask = torch.arange(E, device=device)[None] < self.n_edge[:, None]   # [I, E]
@@ -69,11 +75,13 @@ class GraphBuilder:
         # one topology for every instance (a system's instances differ in parameters only): then
         # a batch's index arrays depend on its size alone, and are made once per size
         same = lambda a: bool((a == a[:1]).all()) if a.shape[0] else True  # noqa: E731
-        self.fixed_topology = self.uniform and same(self.senders) and same(self.receivers) and same(self.edge_ctrl)
+        self.fixed_topology = (self.uniform and same(self.senders) and same(self.receivers) and same(self.edge_ctrl)
+                               and (self.edge_gain is None or same(self.edge_gain)))
         self.n_ctrl_read = int(self.edge_ctrl.max()) + 1 if self.edge_ctrl.numel() else 0  # controls the edges read
         # per instance, the System's actuator record (``graph_builder`` of Systems); None for a dataset
         self.actuators: list | None = None
         self._topologies: dict[tuple[int, int], tuple] = {}
+        self._kernel_gain: torch.Tensor | None = None   # [I, E, K] the fused batch's weights, made once
 
     def topology(self, N: int, U: int) -> tuple:
         """(senders, receivers, n_node, n_edge, control index, has control) of N graphs of the one
@@ -131,8 +139,12 @@ class GraphBuilder:
         nodes = new(n * B, self.s_nodes.shape[2] + DYN_NODE_SIZE)
         edges = new(n * E, self.s_edges.shape[2] + self.edge_ctrl.shape[2])
         glob, target = new(n, self.s_globals.shape[1]), new(n * B, DYN_NODE_SIZE)
+        if self._kernel_gain is None:   # weights 1 where none are stored: the controls stay bit-identical
+            self._kernel_gain = (self.edge_gain if self.edge_gain is not None
+                                 else torch.ones(self.edge_ctrl.shape, device=self.edge_ctrl.device, dtype=self.dtype))
+        gain = self._kernel_gain
         Launcher(nodes)(K.sample_batch_kernel(WP_DTYPE[nodes.dtype]), n * (B + E + 1), seq, t, instance, body, ctrl,
-                        self.s_nodes, self.s_edges, self.s_globals, self.edge_ctrl, nodes, edges, glob, target)
+                        self.s_nodes, self.s_edges, self.s_globals, self.edge_ctrl, gain, nodes, edges, glob, target)
         g = GraphsTuple(nodes=nodes, edges=edges, receivers=rcv, senders=snd, globals=glob, n_node=n_node, n_edge=n_edge)
         return g, target
 
@@ -144,7 +156,10 @@ class GraphBuilder:
         N = instance.shape[0]
         if self.fixed_topology and ctrl.shape[-1] >= self.n_ctrl_read:
             snd, rcv, n_node, n_edge, cidx, has = self.topology(N, ctrl.shape[-1])
-            c = torch.where(has, ctrl.reshape(-1)[cidx], 0.0)
+            c = ctrl.reshape(-1)[cidx]
+            if self.edge_gain is not None:   # one gain for every instance (fixed_topology)
+                c = c * self.edge_gain[:1].expand(N, -1, -1).reshape(-1)
+            c = torch.where(has, c, 0.0)
             K = self.edge_ctrl.shape[-1]
             nodes = torch.cat([self.s_nodes[instance], body], -1)
             edges = torch.cat([self.s_edges[instance], c.reshape(N, -1, K)], -1)
@@ -152,7 +167,8 @@ class GraphBuilder:
                                receivers=rcv, senders=snd, globals=self.s_globals[instance],
                                n_node=n_node, n_edge=n_edge)
         graph = torch.arange(N, device=dev)[:, None]
-        c = edge_control_values(ctrl, self.edge_ctrl[instance], graph)  # [N, E, K]
+        gain = self.edge_gain[instance] if self.edge_gain is not None else None
+        c = edge_control_values(ctrl, self.edge_ctrl[instance], graph, gain)  # [N, E, K]
         nodes = torch.cat([self.s_nodes[instance], body], -1)           # [N, B, Fv+13]
         edges = torch.cat([self.s_edges[instance], c], -1)              # [N, E, Fe+K]
         n_node, n_edge = self.n_node[instance], self.n_edge[instance]
@@ -191,6 +207,9 @@ class GraphTemplate:
         self.rows = None if builder.uniform else nm.nonzero().squeeze(1)       # one sync, here only
         ec = builder.edge_ctrl[instance]                                          # [N, E, K]
         self.ctrl_index = ec.reshape(-1, K) if builder.uniform else ec.reshape(-1, K)[em.nonzero().squeeze(1)]
+        # [n_edges, K] each slot's control weight (actuators on tendons), None where all are 1
+        gain = None if builder.edge_gain is None else builder.edge_gain[instance].reshape(-1, K)
+        self.ctrl_gain = gain if gain is None or builder.uniform else gain[em.nonzero().squeeze(1)]
         self.edge_of = graph_of(self.topology.n_edge, int(self.static_edges.shape[0]))  # graph of each edge
         self.n_nodes = int(self.static_nodes.shape[0])
         self._ctrl_map: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -205,7 +224,10 @@ class GraphTemplate:
         if U not in self._ctrl_map:  # where each edge slot reads its control: once per control width
             self._ctrl_map[U] = edge_control_index(self.ctrl_index, self.edge_of, U)
         flat, has = self._ctrl_map[U]
-        c = torch.where(has, ctrl.reshape(-1)[flat], 0.0)
+        c = ctrl.reshape(-1)[flat]
+        if self.ctrl_gain is not None:
+            c = c * self.ctrl_gain
+        c = torch.where(has, c, 0.0)
         return self.topology._replace(nodes=torch.cat([self.static_nodes, dyn], -1),
                                       edges=torch.cat([self.static_edges, c], -1))
 

@@ -232,6 +232,15 @@ def check_static(static: dict, meta: dict, n_ctrl: int | None) -> list[str]:
         if any(w is not None and w != s for w, s in zip(shape, st[k].shape)):
             p.append(f"/static/{k} has shape {tuple(st[k].shape)}, expected {STATIC_SHAPES[k]} = "
                      f"{tuple('*' if w is None else w for w in shape)}")
+    if "edge_ctrl_gain" in static:   # optional: the control weights of actuators on tendons
+        gain = static["edge_ctrl_gain"]
+        if gain.dtype not in FLOATS or tuple(gain.shape) != (I, E, K):
+            p.append(f"/static/edge_ctrl_gain has shape {tuple(gain.shape)} and dtype {gain.dtype}, expected "
+                     f"[I, E, K] = {(I, E, K)} float32 (the shape of /static/edge_ctrl)")
+        elif not np.all(np.abs(gain) <= STATIC_MAX_ABS):
+            i, e, s = _first(~(np.abs(gain) <= STATIC_MAX_ABS))
+            p.append(f"/static/edge_ctrl_gain: instance {i}, edge {e}, slot {s} holds {float(gain[i, e, s])!r}, not a "
+                     f"finite control weight")
     if I < 1:
         p.append("/static holds no system instance (I = 0)")
     lay = meta.get("layout")

@@ -4,6 +4,9 @@ Bodies are nodes (the world included), joints are edges in both directions betwe
 body and its parent body. The *static* graph holds model parameters; the *dynamic* graph holds
 each body's absolute pose and world-frame velocities and, on each edge, the control of the
 actuator that drives the joint (the body states themselves are read by ``gnwarp.sim.body_state``).
+An actuator on a fixed tendon (joint wraps only) drives the edges of every joint its tendon spans,
+its control weighted there by the joint's tendon coefficient; actuators of other transmissions
+(sites, bodies, slider-cranks, spatial tendons) are refused (``check_actuators``).
 The conversion is generic over ``mujoco.MjModel``.
 
 Feature columns carry names; ``static_arrays`` pads the static graphs of several system instances
@@ -20,7 +23,7 @@ import numpy as np
 from gnwarp.data.layout import FeatureLayout, varying_columns
 from gnwarp.graphs import GraphsTuple
 
-__all__ = ["Topology", "topology", "static_global_features", "static_node_features", "static_edge_features",
+__all__ = ["UnsupportedActuatorError", "unsupported_actuators", "check_actuators", "Topology", "topology", "static_global_features", "static_node_features", "static_edge_features",
            "StaticGraph", "static_graph", "static_arrays", "edge_controls"]
 
 
@@ -45,6 +48,75 @@ def _cols(prefix: str, n: int) -> list[str]:
 
 # -- topology ---------------------------------------------------------------------------------
 
+_JOINT_TRN = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
+_TENDON_TRN = int(mujoco.mjtTrn.mjTRN_TENDON)
+_WRAP_JOINT = int(mujoco.mjtWrap.mjWRAP_JOINT)
+
+
+class UnsupportedActuatorError(ValueError):
+    """A model has an actuator whose transmission the graph cannot carry (a control on no joint edge)."""
+
+
+def _name(model: mujoco.MjModel, obj, i: int, kind: str) -> str:
+    n = mujoco.mj_id2name(model, obj, int(i))
+    return f"{kind} {i} {n!r}" if n else f"{kind} {i}"
+
+
+def _trn_name(trn: int) -> str:
+    try:
+        return mujoco.mjtTrn(trn).name.removeprefix("mjTRN_").lower()
+    except ValueError:
+        return f"type {trn}"
+
+
+def _tendon_joints(model: mujoco.MjModel, tendon: int) -> dict[int, float] | None:
+    """{joint: summed coefficient} of a fixed tendon (every wrap a joint), None for a spatial one."""
+    adr, num = int(model.tendon_adr[tendon]), int(model.tendon_num[tendon])
+    out: dict[int, float] = {}
+    for w in range(adr, adr + num):  # a tendon's few wraps, once per model
+        if int(model.wrap_type[w]) != _WRAP_JOINT:
+            return None
+        j = int(model.wrap_objid[w])
+        out[j] = out.get(j, 0.0) + float(model.wrap_prm[w])
+    return out
+
+
+def unsupported_actuators(model: mujoco.MjModel) -> list[str]:
+    """Descriptions of the actuators whose control the graph cannot carry: transmissions other than
+    a joint or a fixed tendon (site, body, slider-crank, spatial tendon), each naming the actuator,
+    its transmission and, for a tendon, the wrap that is not a joint. Empty when all are carried."""
+    out = []
+    for a in range(model.nu):  # loop over actuators once per model
+        trn = int(model.actuator_trntype[a])
+        if trn in _JOINT_TRN:
+            continue
+        act = _name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a, "actuator")
+        if trn == _TENDON_TRN:
+            t = int(model.actuator_trnid[a, 0])
+            if _tendon_joints(model, t) is not None:
+                continue
+            kinds = sorted({mujoco.mjtWrap(int(k)).name.removeprefix("mjWRAP_").lower()
+                            for k in model.wrap_type[model.tendon_adr[t]:model.tendon_adr[t] + model.tendon_num[t]]
+                            if int(k) != _WRAP_JOINT})
+            out.append(f"{act} drives spatial {_name(model, mujoco.mjtObj.mjOBJ_TENDON, t, 'tendon')} (it wraps "
+                       f"{', '.join(kinds)}, not only joints)")
+        else:
+            out.append(f"{act} has a {_trn_name(trn)} transmission")
+    return out
+
+
+def check_actuators(model: mujoco.MjModel, where: str = "model") -> None:
+    """Raise ``UnsupportedActuatorError`` naming ``where`` and every actuator whose control the graph
+    cannot carry (``unsupported_actuators``); the graph carries actuators on joints and on fixed
+    tendons (joint wraps only)."""
+    bad = unsupported_actuators(model)
+    if bad:
+        raise UnsupportedActuatorError(
+            f"{where}: {len(bad)} actuator(s) the graph cannot carry: " + "; ".join(bad) + ". Supported "
+            "transmissions: joint and jointinparent (the control on the joint's edges) and fixed tendons, whose "
+            "wraps are all joints (the control times each joint's coefficient on that joint's edges)")
+
+
 @dataclass(frozen=True)
 class Topology:
     """Graph topology of a model: one edge pair per joint; actuators mapped onto joint edges."""
@@ -54,7 +126,9 @@ class Topology:
     edge_joint: np.ndarray       # [n_edge] joint index of each edge
     edge_direction: np.ndarray   # [n_edge] +1 parent->child, -1 child->parent
     edge_ctrl: np.ndarray        # [n_edge, n_slot] ctrl index driving the edge's joint (-1: none)
-    global_ctrl: np.ndarray      # [n_gctrl] ctrl indices of actuators not on a joint (tendons, sites)
+    # [n_edge, n_slot] weight of each slot's control (a tendon's coefficient on the joint, 1 for a
+    # joint actuator, 0 where none); None when no actuator drives a tendon (every weight 1)
+    edge_ctrl_gain: np.ndarray | None = None
 
     @property
     def n_edge(self) -> int:
@@ -67,6 +141,10 @@ class Topology:
 
 
 def topology(model: mujoco.MjModel) -> Topology:
+    """The graph topology of ``model``: joint actuators on their joint's edges (earlier slots),
+    then fixed-tendon actuators on the edges of each joint their tendon spans, in actuator order.
+    Raises ``UnsupportedActuatorError`` for actuators of other transmissions."""
+    check_actuators(model)
     jb = np.asarray(model.jnt_bodyid, dtype=np.int64)
     parent = np.asarray(model.body_parentid, dtype=np.int64)[jb]
     nj = model.njnt
@@ -74,22 +152,26 @@ def topology(model: mujoco.MjModel) -> Topology:
     rcv = np.concatenate([jb, parent])
     joint = np.concatenate([np.arange(nj), np.arange(nj)])
     direction = np.concatenate([np.ones(nj), -np.ones(nj)])
-    # actuators acting directly on a joint drive that joint's edges
-    per_joint: list[list[int]] = [[] for _ in range(nj)]
-    unmapped: list[int] = []
+    per_joint: list[list[tuple[int, float]]] = [[] for _ in range(nj)]
+    tendon: list[tuple[int, dict[int, float]]] = []
     ctrladr = np.asarray(getattr(model, "actuator_ctrladr", np.arange(model.nu)), dtype=np.int64)
     for a in range(model.nu):  # loop over actuators once per model, not per state
-        trn = int(model.actuator_trntype[a])
-        if trn in (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT):
-            per_joint[int(model.actuator_trnid[a, 0])].append(int(ctrladr[a]))
-        else:
-            unmapped.append(int(ctrladr[a]))
+        if int(model.actuator_trntype[a]) in _JOINT_TRN:
+            per_joint[int(model.actuator_trnid[a, 0])].append((int(ctrladr[a]), 1.0))
+        else:  # a fixed tendon (check_actuators refused the rest)
+            tendon.append((int(ctrladr[a]), _tendon_joints(model, int(model.actuator_trnid[a, 0]))))
+    for c, coef in tendon:  # after every joint actuator: a joint's own actuator keeps the first slot
+        for j, w in coef.items():
+            if w != 0.0:
+                per_joint[j].append((c, w))
     n_slot = max([1] + [len(p) for p in per_joint])
     ectrl = -np.ones((nj, n_slot), dtype=np.int64)
+    gain = np.zeros((nj, n_slot))
     for j, p in enumerate(per_joint):
-        ectrl[j, :len(p)] = p
+        for k, (c, w) in enumerate(p):
+            ectrl[j, k], gain[j, k] = c, w
     return Topology(model.nbody, snd, rcv, joint, direction, np.concatenate([ectrl, ectrl]),
-                    np.array(unmapped, dtype=np.int64))
+                    np.concatenate([gain, gain]) if tendon else None)
 
 
 # -- static graph ------------------------------------------------------------------------------
@@ -210,8 +292,10 @@ def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict
 
     Returns (static, layout, meta): ``static`` the arrays of a dataset's ``/static`` group
     (globals [I, F_g], nodes [I, B, F_v], edges [I, E, F_e] float32; senders, receivers [I, E] and
-    edge_ctrl [I, E, K] int64, -1 = padding or none; n_node, n_edge [I]), ``layout`` the
-    ``FeatureLayout`` of the kept columns, ``meta`` {"n_global_ctrl", "full_sizes"}.
+    edge_ctrl [I, E, K] int64, -1 = padding or none; n_node, n_edge [I]; and, only where an
+    actuator drives a tendon, edge_ctrl_gain [I, E, K] float32, each slot's control weight, 0 where
+    none), ``layout`` the ``FeatureLayout`` of the kept columns, ``meta`` {"n_global_ctrl" (0:
+    every actuator is on joint edges), "full_sizes"}.
     """
     graphs = [static_graph(s.model) for s in instances]
     g0 = graphs[0]
@@ -219,7 +303,6 @@ def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict
     B = max(g.nodes.shape[0] for g in graphs)
     E = max(g.edges.shape[0] for g in graphs)
     K = max(g.topology.edge_ctrl.shape[1] for g in graphs)
-    G = max(g.topology.global_ctrl.shape[0] for g in graphs)
     Fg, Fv, Fe = g0.globals.shape[0], g0.nodes.shape[1], g0.edges.shape[1]
     glob = np.stack([g.globals for g in graphs])
     nodes = np.zeros((I, B, Fv))
@@ -227,13 +310,18 @@ def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict
     snd = -np.ones((I, E), dtype=np.int64)
     rcv = -np.ones((I, E), dtype=np.int64)
     ectrl = -np.ones((I, E, K), dtype=np.int64)
+    gained = any(g.topology.edge_ctrl_gain is not None for g in graphs)
+    gain = np.zeros((I, E, K))
     n_node = np.zeros(I, dtype=np.int64)
     n_edge = np.zeros(I, dtype=np.int64)
     for i, g in enumerate(graphs):  # one row per system instance, not per state
         nb, ne = g.nodes.shape[0], g.edges.shape[0]
         nodes[i, :nb], edges[i, :ne] = g.nodes, g.edges
         snd[i, :ne], rcv[i, :ne] = g.topology.senders, g.topology.receivers
-        ectrl[i, :ne, :g.topology.edge_ctrl.shape[1]] = g.topology.edge_ctrl
+        ec = g.topology.edge_ctrl
+        ectrl[i, :ne, :ec.shape[1]] = ec
+        gain[i, :ne, :ec.shape[1]] = (g.topology.edge_ctrl_gain if g.topology.edge_ctrl_gain is not None
+                                      else (ec >= 0).astype(np.float64))
         n_node[i], n_edge[i] = nb, ne
     node_mask = np.arange(B)[None] < n_node[:, None]
     edge_mask = np.arange(E)[None] < n_edge[:, None]
@@ -253,19 +341,24 @@ def static_arrays(instances) -> tuple[dict[str, np.ndarray], FeatureLayout, dict
         dropped={"globals": dropped(g0.global_names, kg, glob),
                  "nodes": dropped(g0.node_names, kv, nodes, node_mask),
                  "edges": dropped(g0.edge_names, ke, edges, edge_mask)},
-        n_ctrl_slots=K, n_global_ctrl=G)
+        n_ctrl_slots=K, n_global_ctrl=0)
     static = {"globals": glob[:, kg].astype(np.float32), "nodes": nodes[..., kv].astype(np.float32),
               "edges": edges[..., ke].astype(np.float32), "senders": snd, "receivers": rcv,
               "n_node": n_node, "n_edge": n_edge, "edge_ctrl": ectrl}
-    meta = {"n_global_ctrl": G, "full_sizes": {"globals": Fg, "nodes": Fv, "edges": Fe}}
+    if gained:  # only then: the static arrays of joint-actuated systems keep their format
+        static["edge_ctrl_gain"] = gain.astype(np.float32)
+    meta = {"n_global_ctrl": 0, "full_sizes": {"globals": Fg, "nodes": Fv, "edges": Fe}}
     return static, layout, meta
 
 
 # -- dynamic graph ------------------------------------------------------------------------------
 
 def edge_controls(topo: Topology, ctrl: np.ndarray) -> np.ndarray:
-    """[..., n_edge, n_slot] controls per edge from ctrl [..., nu] (0 where no actuator). The numpy
-    reference of ``gnwarp.data.builder.edge_control_values``, which input graphs are built with."""
+    """[..., n_edge, n_slot] controls per edge from ctrl [..., nu] (0 where no actuator; a tendon
+    actuator's control times the joint's coefficient). The numpy reference of
+    ``gnwarp.data.builder.edge_control_values``, which input graphs are built with."""
     idx = topo.edge_ctrl
     c = np.take(ctrl, np.maximum(idx, 0), axis=-1)
+    if topo.edge_ctrl_gain is not None:
+        c = c * topo.edge_ctrl_gain
     return np.where(idx >= 0, c, 0.0)

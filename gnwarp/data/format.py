@@ -13,6 +13,9 @@ File layout (HDF5, ``format = "gnwarp-dataset"``, ``version = 1``)::
     /static/receivers      [I, E]
     /static/n_node, n_edge [I]
     /static/edge_ctrl      [I, E, K]       ctrl index driving each edge (-1 = none)
+    /static/edge_ctrl_gain [I, E, K]       optional, only where an actuator drives a fixed tendon:
+                                           each slot's control weight (the tendon's coefficient on
+                                           the edge's joint, 1 for a joint actuator, 0 for none)
     /static/params         [I, P]          sampled relative parameters (names in meta)
     /<split>/body          [S, T+1, B, 13] node states: pos, quat (w,x,y,z), linvel, angvel
     /<split>/ctrl          [S, T, U]       controls applied over each data step

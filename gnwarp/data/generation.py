@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from gnwarp.data.convert import static_arrays
+from gnwarp.data.convert import check_actuators, static_arrays
 from gnwarp.data.checks import MAX_ABS
 from gnwarp.data.dataset import Dataset, Split
 from gnwarp.data.format import SPLITS
@@ -145,6 +145,8 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     ``System``. ``parameterized``: draw each sequence's system instance from the system's
     parameter ranges (built-in systems only). ``num_sequences``: see ``split_sizes``.
     ``backend``: "auto", "mujoco_warp" (CUDA), "mujoco_warp_cpu" or "mujoco" (MuJoCo C).
+    Raises ``gnwarp.data.convert.UnsupportedActuatorError`` (a ValueError) before simulating when
+    an actuator's transmission is one the graph cannot carry (``check_actuators``).
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, numbers.Integral) or num_steps < 1:
         raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")
@@ -167,6 +169,7 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         check_model(base_sys.model, f"system '{name}'")
     if base_sys.model.nu == 0:
         raise ValueError(f"system '{name}' has no actuators: random-control datasets need at least one")
+    check_actuators(base_sys.model, f"system '{name}'")   # before simulating: train could not use the data
     m0 = base_sys.model
     _check_memory(name, total, num_steps, (m0.nbody, m0.nq, m0.nv, m0.nu), base_sys.substeps, backend)
     if parameterized:

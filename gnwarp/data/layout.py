@@ -26,7 +26,9 @@ class FeatureLayout:
     """Names of the kept static columns, and the dropped constant ones with their value.
 
     The dynamic layout is fixed: DYN_NODE_NAMES per node, ``n_ctrl_slots`` controls per edge,
-    ``n_global_ctrl`` controls on the globals (actuators not on a joint).
+    ``n_global_ctrl`` controls on the globals (actuators on no joint edge: 0 wherever
+    ``gnwarp.data.convert`` made the layout, which refuses such actuators; models refuse layouts
+    with any).
     """
     global_names: list[str]
     node_names: list[str]
@@ -122,6 +124,9 @@ def map_static(layout: FeatureLayout, data_layout: FeatureLayout, static: dict, 
     if ec.shape[-1] < layout.n_ctrl_slots:  # fewer actuators per joint than the model's data had
         pad = -np.ones(ec.shape[:-1] + (layout.n_ctrl_slots - ec.shape[-1],), dtype=ec.dtype)
         out["edge_ctrl"] = np.concatenate([ec, pad], -1)
+        if "edge_ctrl_gain" in static:
+            gain = np.asarray(static["edge_ctrl_gain"][...])
+            out["edge_ctrl_gain"] = np.concatenate([gain, np.zeros(pad.shape, dtype=gain.dtype)], -1)
     return out
 
 

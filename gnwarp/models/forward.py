@@ -44,8 +44,10 @@ __all__ = ["input_sizes", "StepContext", "ForwardModel", "MLPForwardModel"]
 def input_sizes(layout: FeatureLayout) -> dict[str, int]:
     """Input feature widths of the full graph, read from the layout (one source of truth)."""
     if layout.n_global_ctrl:
-        raise ValueError(f"the layout has {layout.n_global_ctrl} controls of actuators not on a joint; "
-                         "GraphBuilder does not put them on the globals, so models cannot use this data")
+        raise ValueError(f"the layout has {layout.n_global_ctrl} controls of actuators not on a joint edge (a "
+                         "site, body or slider-crank transmission, or a tendon) on the globals, which no model reads; "
+                         "regenerate the data: gnwarp generate puts actuators on fixed tendons on their joints' edges "
+                         "and refuses the transmissions the graph cannot carry, naming the actuator")
     return dict(layout.sizes)
 
 

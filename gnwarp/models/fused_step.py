@@ -142,6 +142,9 @@ class FusedStep:
             return f"the states are {template.dtype}; the fused step runs float32 and float64"
         if model.dtype != template.dtype:
             return f"the model computes in {model.dtype} but the template holds {template.dtype}"
+        if getattr(template, "ctrl_gain", None) is not None:
+            return ("actuators on tendons weight the edges' controls by the tendons' coefficients; the fused encode "
+                    "writes controls unweighted")
         N, B = template.N, template.B
         E = int(template.static_edges.shape[0]) // max(N, 1)
         topo = template.topology

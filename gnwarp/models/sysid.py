@@ -99,7 +99,10 @@ class SysIDModel(nn.Module):
     def __init__(self, config: SysIDConfig, layout: FeatureLayout):
         super().__init__()
         if layout.n_global_ctrl:
-            raise ValueError("system identification needs every actuator on a joint edge")
+            raise ValueError(f"system identification needs every actuator on joint edges; the layout has "
+                             f"{layout.n_global_ctrl} on the globals (a site, body or slider-crank transmission, or a "
+                             f"tendon): regenerate the data, gnwarp generate puts actuators on fixed tendons on their "
+                             f"joints' edges and refuses the rest")
         self.sysid = dataclasses.replace(config)
         c = config.identifier
         self.gid_sizes = {k: config.gid_size(k) for k in KINDS}

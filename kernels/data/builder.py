@@ -3,7 +3,7 @@ graphs and targets from stored sequences in one launch.
 
 A batch of N (sequence, step) pairs of one topology is N copies of the system's graph: node rows
 [static node features, body state at t], edge rows [static edge features, the controls at t of the
-edge's actuator slots], one global row, and the body states at t + 1 as targets. In torch that is
+edge's actuator slots, each times its weight], one global row, and the body states at t + 1 as targets. In torch that is
 ~12 kernels (gathers of the states, controls and static features, the control routing, concats);
 here one thread writes one row.
 """
@@ -19,7 +19,8 @@ __all__ = ["sample_batch_kernel"]
 def sample_batch_kernel(dtype):
     """Kernel ``(seq_in [N] int64, t_in [N] int64, instance_in [S] int64, body_in [S, T+1, B, 13],
     ctrl_in [S, T, U], s_nodes_in [I, B, Fv], s_edges_in [I, E, Fe], s_globals_in [I, Fg],
-    edge_ctrl_in [I, E, K] int64 (-1: no actuator), nodes_out [N*B, Fv+13], edges_out [N*E, Fe+K],
+    edge_ctrl_in [I, E, K] int64 (-1: no actuator), edge_gain_in [I, E, K] (each slot's control
+    weight: a tendon's coefficient on the joint, 1 for a joint actuator), nodes_out [N*B, Fv+13], edges_out [N*E, Fe+K],
     globals_out [N, Fg], target_out [N*B, 13])`` over N * (B + E + 1) threads: graph g = tid //
     (B + E + 1) writes node row r < B, edge row r - B < E, else its global row, r = tid % (B + E +
     1); I is the instance of seq_in[g]."""
@@ -37,6 +38,7 @@ def sample_batch_kernel(dtype):
         s_edges_in: wp.array3d(dtype=T),
         s_globals_in: wp.array2d(dtype=T),
         edge_ctrl_in: wp.array3d(dtype=wp.int64),
+        edge_gain_in: wp.array3d(dtype=T),
         # Data out:
         nodes_out: wp.array2d(dtype=T),
         edges_out: wp.array2d(dtype=T),
@@ -69,7 +71,7 @@ def sample_batch_kernel(dtype):
                 c = int(edge_ctrl_in[inst, e, k])
                 v = T(0.0)
                 if c >= 0:
-                    v = ctrl_in[sq, st, c]
+                    v = ctrl_in[sq, st, c] * edge_gain_in[inst, e, k]
                 edges_out[row, fe + k] = v
         else:
             for k in range(s_globals_in.shape[1]):
