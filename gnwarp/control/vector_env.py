@@ -74,7 +74,7 @@ class TrueDynamics:
     def __init__(self, system, n: int, backend: str = "auto", device=None, **kw):
         from gnwarp.sim.env import make_env
         self.env = make_env(system, n, backend=backend, device=device, **kw)
-        self.device = self.env.device
+        self.device = torch.device(self.env.device)
         self.dtype = torch.float32
         self.backend = self.env.backend if self.device.type != "cpu" or self.env.backend == "mujoco" \
             else "mujoco_warp_cpu"
