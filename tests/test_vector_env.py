@@ -282,3 +282,25 @@ def test_mujoco_warp_cpu_backend_runs():
         np.testing.assert_allclose(ow, oc, atol=1e-3)
         np.testing.assert_allclose(rw, rc, atol=1e-3)
     assert tw.all() and tc.all()
+
+
+def test_action_repeat(pendulum_model):
+    """An env step of ``action_repeat=2`` is two control steps under its action, its reward their
+    sum; the time limit counts control steps."""
+    for dyn in ("true", pendulum_model):
+        one = make_vector_env("pendulum-balance", 2, dynamics=dyn, backend="mujoco", episode_steps=4, seed=0)
+        two = make_vector_env("pendulum-balance", 2, dynamics=dyn, backend="mujoco", episode_steps=4, seed=0,
+                              action_repeat=2)
+        assert two.dt == 2 * one.dt
+        one.reset(seed=3)
+        two.reset(seed=3)
+        u = np.array([[0.4], [-0.9]], np.float32)
+        for t in range(2):
+            r1 = one.step(u)[1] + one.step(u)[1]
+            o2, r2, _, trunc, _ = two.step(u)
+            np.testing.assert_allclose(o2, one.obs_layout(one.body_states).numpy(), atol=1e-6)
+            np.testing.assert_allclose(r2, r1, rtol=1e-5)
+            assert trunc.all() == (t == 1) and (two.elapsed == 2 * (t + 1)).all()
+        assert two.control_steps == one.control_steps == 8
+    with pytest.raises(VectorEnvError, match="multiple of action_repeat"):
+        make_vector_env("pendulum-balance", 2, backend="mujoco", episode_steps=5, action_repeat=2)

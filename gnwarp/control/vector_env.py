@@ -23,8 +23,11 @@ system here when unbound): the learned model as the environment, every env stepp
 - Rewards: the task's per-step reward, ``task.scorer`` (else ``task.reward``) on states
   [:, t:t+2] and actions [:, t:t+1] (for a reward that reads the episode's first state, such as
   swimmer-reach, the per-step rewards do not add up to the episode's reward).
-- Episodes end by time limit only: ``truncations`` is True on each env's ``episode_steps``-th
-  step (the task's ``episode_steps``, else the argument), ``terminations`` is always False.
+- Episodes end by time limit only: ``truncations`` is True once an env's episode has run
+  ``episode_steps`` control steps (the task's ``episode_steps``, else the argument);
+  ``terminations`` is always False. ``action_repeat=k``: each env step applies its action for k
+  control steps (rolled out in one call) and returns their rewards' sum; ``env.elapsed`` and
+  ``env.control_steps`` (all envs' control steps since construction) count control steps.
 - Autoreset (``metadata["autoreset_mode"]``, ``autoreset_mode=``): ``NEXT_STEP`` (default,
   Gymnasium's): the step after a truncation resets that env, ignores its action and returns its
   first observation with reward 0 and both flags False. ``SAME_STEP``: the truncating step
@@ -87,8 +90,9 @@ class TrueDynamics:
             qpos, qvel = q, v
         return self.env.reset(qpos, qvel)
 
-    def step(self, ctrl: torch.Tensor) -> torch.Tensor:
-        return self.env.step(ctrl)
+    def rollout(self, ctrl: torch.Tensor) -> torch.Tensor:
+        """Body states [N, k+1, B, 13] under ``ctrl`` [N, k, U] (the current state first)."""
+        return self.env.rollout(ctrl)
 
     def close(self) -> None:
         self.env.close()
@@ -101,7 +105,7 @@ class LearnedDynamics:
     kind = "learned"
     backend = "model"
 
-    def __init__(self, model, system, n: int):
+    def __init__(self, model, system, n: int, repeat: int = 1):
         from gnwarp.data.layout import LayoutMismatchError
         from gnwarp.sim.env import make_env
         if getattr(model, "builder", None) is None:
@@ -112,7 +116,8 @@ class LearnedDynamics:
         self.model = model
         self.device, self.dtype = model.device, model.dtype
         # controls arrive clamped (the vector env clamps them): the engine neither clamps nor checks
-        self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), 1, ctrl_policy="none", check=False)
+        self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), repeat, ctrl_policy="none",
+                                           check=False)
         self.kinematics = make_env(system, n, backend="mujoco")
         self.qpos0 = np.asarray(system.model.qpos0, dtype=np.float64)
         self.body = None
@@ -126,10 +131,11 @@ class LearnedDynamics:
         self.body = body
         return body
 
-    def step(self, ctrl: torch.Tensor) -> torch.Tensor:
+    def rollout(self, ctrl: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            self.body = self.engine.rollout(self.body, ctrl[:, None].to(self.device, self.dtype))[:, 1]
-        return self.body
+            traj = self.engine.rollout(self.body, ctrl.to(self.device, self.dtype))
+        self.body = traj[:, -1]
+        return traj
 
     def close(self) -> None:
         self.kinematics.close()
@@ -146,19 +152,21 @@ class ControlVectorEnv(VectorEnv):
     (see the module's docstring; build one with ``make_vector_env``).
 
     Besides Gymnasium's attributes: ``task``, ``system``, ``dynamics`` ("true" or "learned"),
-    ``backend``, ``device``, ``dt`` (seconds per step), ``episode_steps``, ``elapsed`` [N] (steps
-    of each env's episode), ``body_states`` [N, B, 13] (copy, on ``device``), ``targets`` [N, ...]
-    or None, ``last_actions`` [N, U] (as applied, clamped), ``ctrl_lo`` / ``ctrl_hi`` [U] (what
-    actions are clamped to), ``obs_layout`` (``ObservationLayout``) and ``obs_names``."""
+    ``backend``, ``device``, ``dt`` (seconds per env step), ``episode_steps``, ``action_repeat``,
+    ``elapsed`` [N] (control steps of each env's episode), ``control_steps`` (of all envs, in
+    all), ``body_states`` [N, B, 13] (copy, on ``device``), ``targets`` [N, ...] or None,
+    ``last_actions`` [N, U] (as applied, clamped), ``ctrl_lo`` / ``ctrl_hi`` [U] (what actions are
+    clamped to), ``obs_layout`` (``ObservationLayout``) and ``obs_names``."""
 
     def __init__(self, task: Task, system, dynamics, num_envs: int, episode_steps: int,
                  autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP, seed=None, output: str = "numpy",
-                 observation: str | Callable = "bodies"):
+                 observation: str | Callable = "bodies", action_repeat: int = 1):
         self.task, self.system, self.sim = task, system, dynamics
-        self.num_envs, self.episode_steps = num_envs, episode_steps
+        self.num_envs, self.episode_steps, self.action_repeat = num_envs, episode_steps, action_repeat
+        self.control_steps = 0
         self.autoreset_mode, self.output = autoreset_mode, output
         self.dynamics, self.backend = dynamics.kind, dynamics.backend
-        self.device, self.dt = dynamics.device, float(system.dt)
+        self.device, self.dt = dynamics.device, float(system.dt) * action_repeat
         self.metadata = {"autoreset_mode": autoreset_mode, "render_modes": [], "render_fps": 1.0 / self.dt}
         act = system.actuators
         lo, hi = act.clamp_bounds()
@@ -343,14 +351,16 @@ class ControlVectorEnv(VectorEnv):
         rewards = torch.zeros(n, device=self.device)
         if stepping.any():
             u = self._actions(actions, stepping)
-            prev = self._body
-            body = self.sim.step(u)
-            r = self._scorer(torch.stack([prev, body], 1), u.to(body.dtype)[:, None], self.targets)
+            k = self.action_repeat
+            traj = self.sim.rollout(u[:, None].expand(n, k, self.nu))
+            body = traj[:, -1]
+            r = self._scorer(traj, u.to(traj.dtype)[:, None].expand(n, k, self.nu), self.targets)
             r = torch.as_tensor(r).to(self.device, torch.float32).reshape(n)
             rewards = r if stepping.all() else torch.where(torch.as_tensor(stepping, device=self.device), r, rewards)
             self._body = body
             self.last_actions = u.float()
-            self.elapsed[stepping] += 1
+            self.elapsed[stepping] += self.action_repeat
+            self.control_steps += int(stepping.sum()) * self.action_repeat
         truncated = stepping & (self.elapsed >= self.episode_steps)
         infos = {}
         if mode == AutoresetMode.NEXT_STEP and ended.any():
@@ -367,7 +377,8 @@ class ControlVectorEnv(VectorEnv):
                 infos)
 
     def close_extras(self, **kwargs) -> None:
-        self.sim.close()
+        if getattr(self, "sim", None) is not None:   # also when construction stopped early
+            self.sim.close()
 
     def __repr__(self) -> str:
         return (f"ControlVectorEnv(task={self.task.name!r}, system={self.system.name!r}, num_envs={self.num_envs}, "
@@ -377,8 +388,8 @@ class ControlVectorEnv(VectorEnv):
 
 def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto", seed=None,
                     episode_steps: int | None = None, system=None, autoreset_mode="next_step",
-                    output: str = "numpy", observation: str | Callable = "bodies", device=None,
-                    **env_kw) -> ControlVectorEnv:
+                    output: str = "numpy", observation: str | Callable = "bodies", action_repeat: int = 1,
+                    device=None, **env_kw) -> ControlVectorEnv:
     """``num_envs`` episodes of ``task`` (a ``Task`` or its name) as a ``gymnasium.vector.VectorEnv``.
 
     ``dynamics``: "true" (the true simulator on ``backend``: "auto", "mujoco", "mujoco_warp",
@@ -390,7 +401,9 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
     generator before the first seeded reset (an int: env i gets seed + i; None: fresh entropy).
     ``autoreset_mode``: an ``AutoresetMode`` or "next_step" / "same_step" / "disabled".
     ``output``: "numpy" or "torch". ``observation``: "bodies" (``ObservationLayout``) or
-    ``f(body [N, B, 13], target) -> [N, D]``."""
+    ``f(body [N, B, 13], target) -> [N, D]``. ``action_repeat``: control steps (of ``system.dt``)
+    each env step applies its action for, its reward their sum; ``episode_steps`` counts control
+    steps (a multiple of it)."""
     from gnwarp.sim.systems import System, make
     task = get_task(task)
     num_envs = _int(num_envs, "num_envs")
@@ -406,6 +419,9 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
     if steps is None:
         raise VectorEnvError(f"task {task.name!r} has no episode_steps: pass episode_steps= (the time limit in steps)")
     steps = _int(steps, "episode_steps")
+    k = _int(action_repeat, "action_repeat")
+    if steps % k:
+        raise VectorEnvError(f"episode_steps ({steps}) must be a multiple of action_repeat ({k})")
     mode = autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else _MODES.get(str(autoreset_mode).lower())
     if mode is None:
         raise VectorEnvError(f"unknown autoreset_mode {autoreset_mode!r}; choose next_step, same_step or disabled")
@@ -423,5 +439,5 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
                                  f"got {type(dynamics).__name__}")
         if env_kw:
             raise VectorEnvError(f"options {sorted(env_kw)} are for the true simulator, not a learned model")
-        sim = LearnedDynamics(dynamics, system, num_envs)
-    return ControlVectorEnv(task, system, sim, num_envs, steps, mode, seed, output, observation)
+        sim = LearnedDynamics(dynamics, system, num_envs, k)
+    return ControlVectorEnv(task, system, sim, num_envs, steps, mode, seed, output, observation, k)
