@@ -304,3 +304,19 @@ def test_action_repeat(pendulum_model):
         assert two.control_steps == one.control_steps == 8
     with pytest.raises(VectorEnvError, match="multiple of action_repeat"):
         make_vector_env("pendulum-balance", 2, backend="mujoco", episode_steps=5, action_repeat=2)
+
+
+def test_custom_observation_and_sim_state(pendulum_model):
+    def angle_and_speed(body, target):
+        return torch.stack([body[:, 1, 3], body[:, 1, 10]], 1)   # quat w and angvel x of the pole
+    env = pendulum_env(2, observation=angle_and_speed)
+    assert env.single_observation_space.shape == (2,) and env.obs_names == ["obs0", "obs1"]
+    obs, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(obs, angle_and_speed(env.body_states, None).numpy())
+    state = env.observe()
+    assert state.qpos.shape == (2, 1) and state.qvel.shape == (2, 1)
+    torch.testing.assert_close(state.body, env.body_states)
+    learned = make_vector_env("pendulum-balance", 2, dynamics=pendulum_model, episode_steps=3)
+    learned.reset(seed=0)
+    with pytest.raises(RuntimeError, match="body states only"):
+        learned.observe()

@@ -14,7 +14,8 @@ system here when unbound): the learned model as the environment, every env stepp
 
 - Observations: ``gnwarp.control.env_observation.ObservationLayout`` (body states only, the same
   for both dynamics; ``env.obs_names`` names the entries), or ``observation=f(body, target)``.
-  The raw body states [N, B, 13] are ``env.body_states``; the targets ``env.targets``.
+  The raw body states [N, B, 13] are ``env.body_states``, the targets ``env.targets``, the true
+  simulator's qpos / qvel ``env.observe()`` (for planners with ``needs_sim_state``).
 - Actions: ``single_action_space`` is the Box of the actuators' sampling range
   (``Env.ctrlrange``; [-1, 1] for an unlimited actuator). Actions outside it are clamped to the
   actuators' control ranges as the true simulator does (``Env`` with ``ctrl_policy="clamp"``;
@@ -200,7 +201,6 @@ class ControlVectorEnv(VectorEnv):
         seeds env i with seed + i, a list one seed (or None) each."""
         n = self.num_envs
         if seed is None:
-            seeds = [None] * n
             return [r if r is not None else np.random.default_rng() for r in rngs]
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             seeds = [int(seed) + i for i in range(n)]
@@ -246,6 +246,14 @@ class ControlVectorEnv(VectorEnv):
         """The current body states [N, B, 13] of every env (a copy, on ``device``)."""
         self._need_reset()
         return self._body.clone()
+
+    def observe(self):
+        """The true simulator's state (``gnwarp.sim.env.Observation``: qpos [N, nq], qvel [N, nv],
+        body [N, B, 13]) for planners that plan on it (``needs_sim_state``); true dynamics only."""
+        self._need_reset()
+        if self.dynamics != "true":
+            raise RuntimeError("a learned model's environment has body states only (env.body_states), no qpos / qvel")
+        return self.sim.env.observe()
 
     @property
     def obs_names(self) -> list[str]:
@@ -321,7 +329,7 @@ class ControlVectorEnv(VectorEnv):
         """``actions`` [N, U] as a tensor on ``device``, finite where envs step, clamped to the
         actuators' ranges; rows of envs that do not step are zero."""
         a = actions.detach() if isinstance(actions, torch.Tensor) else torch.as_tensor(np.asarray(actions))
-        if a.dtype == torch.bool or a.is_complex() or not (a.is_floating_point() or a.dtype in (torch.int32, torch.int64)):
+        if not (a.is_floating_point() or a.dtype in (torch.int32, torch.int64)):   # bool, complex: refused
             raise VectorEnvError(f"actions must hold real numbers, got dtype {a.dtype}")
         if tuple(a.shape) != (self.num_envs, self.nu):
             raise VectorEnvError(f"actions must be [num_envs={self.num_envs}, U={self.nu}], got {tuple(a.shape)}")
@@ -428,7 +436,8 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
     if output not in OUTPUTS:
         raise VectorEnvError(f"output must be one of {OUTPUTS}, got {output!r}")
     if observation != "bodies" and not callable(observation):
-        raise VectorEnvError(f"observation must be 'bodies' or a callable (body, target) -> [N, D], got {observation!r}")
+        raise VectorEnvError(f"observation must be 'bodies' or a callable (body, target) -> [N, D], "
+                             f"got {observation!r}")
     if isinstance(dynamics, str):
         if dynamics != "true":
             raise VectorEnvError(f"dynamics must be 'true' or a Dynamics model, got {dynamics!r}")
