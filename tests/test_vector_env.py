@@ -14,7 +14,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.wrappers.vector import RecordEpisodeStatistics
 
 from gnwarp import data
-from gnwarp.control import get_task, run_episodes
+from gnwarp.control import TASKS, get_task, run_episodes
 from gnwarp.control.vector_env import VectorEnvError, make_vector_env
 from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
@@ -320,3 +320,20 @@ def test_custom_observation_and_sim_state(pendulum_model):
     learned.reset(seed=0)
     with pytest.raises(RuntimeError, match="body states only"):
         learned.observe()
+
+
+@pytest.mark.skipif("dmc-cheetah-run" not in TASKS, reason="the DeepMind Control tasks are not in this checkout")
+@pytest.mark.parametrize("name", ["cheetah-run", "swimmer-swimmer6"])
+def test_dmc_tasks_take_their_episode_steps_scorer_and_targets(name):
+    pytest.importorskip("dm_control")
+    task = get_task(name)
+    env = make_vector_env(name, 2, backend="mujoco", seed=0)
+    assert env.episode_steps == task.episode_steps == 1000 and env.system.name == task.system
+    env = make_vector_env(name, 2, backend="mujoco", seed=0, episode_steps=4)
+    env.reset(seed=0)
+    start = env.observe()
+    u = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (2, 4, env.nu)), dtype=torch.float32)
+    rewards = [env.step(u[:, t].numpy())[1] for t in range(4)]
+    out = run_episodes(Replay(u), make_env(env.system, 2, backend="mujoco"), task, 4, qpos0=start.qpos,
+                       qvel0=start.qvel, target=env.targets)
+    np.testing.assert_allclose(np.stack(rewards, 1).sum(1), out["returns"].numpy(), rtol=1e-5, atol=1e-6)
