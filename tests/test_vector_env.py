@@ -103,6 +103,17 @@ def test_seeding_is_per_env():
     assert not np.allclose(nxt, oa)
     with pytest.raises(VectorEnvError, match="one per env"):
         a.reset(seed=[1, 2])
+    # one shared generator: every env's initial state from one call of the task's initial states
+    shared = pendulum_env(3, per_env_seeds=False)
+    o1, _ = shared.reset(seed=5)
+    q, v = data.initial_states(make("pendulum"), 3, np.random.default_rng(5))
+    np.testing.assert_allclose(shared.observe().qpos.numpy(), q)
+    np.testing.assert_allclose(shared.observe().qvel.numpy(), v)
+    o2, _ = shared.reset()
+    assert not np.allclose(o1, o2)
+    np.testing.assert_array_equal(shared.reset(seed=5)[0], o1)
+    with pytest.raises(VectorEnvError, match="per_env_seeds"):
+        shared.reset(seed=[1, 2, 3])
 
 
 def test_truncation_and_next_step_autoreset():

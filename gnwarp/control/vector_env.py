@@ -38,7 +38,8 @@ system here when unbound): the learned model as the environment, every env stepp
 - Initial states: the task's ``initial(system, 1, rng)`` (else
   ``gnwarp.data.generation.initial_states``) and targets (``sample_targets``), drawn from each
   env's own generator: ``reset(seed=s)`` seeds env i with s + i (a list: one seed each), so the
-  same seed gives the same observations whatever else runs. ``options``: ``"reset_mask"`` [N]
+  same seed gives the same observations whatever else runs (``per_env_seeds=False``: one shared
+  generator, one call for every env being reset). ``options``: ``"reset_mask"`` [N]
   bool, ``"qpos"`` [N, nq] / ``"qvel"`` [N, nv] / ``"targets"`` [N, ...] to start from given
   states (rows outside the mask ignored). A partial reset of the true simulator re-sets every world
   (the others at their current qpos / qvel: on MuJoCo-Warp their solver warm start restarts).
@@ -161,8 +162,9 @@ class ControlVectorEnv(VectorEnv):
 
     def __init__(self, task: Task, system, dynamics, num_envs: int, episode_steps: int,
                  autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP, seed=None, output: str = "numpy",
-                 observation: str | Callable = "bodies", action_repeat: int = 1):
+                 observation: str | Callable = "bodies", action_repeat: int = 1, per_env_seeds: bool = True):
         self.task, self.system, self.sim = task, system, dynamics
+        self.per_env_seeds = bool(per_env_seeds)
         self.num_envs, self.episode_steps, self.action_repeat = num_envs, episode_steps, action_repeat
         self.control_steps = 0
         self.autoreset_mode, self.output = autoreset_mode, output
@@ -198,10 +200,17 @@ class ControlVectorEnv(VectorEnv):
     # -- seeding and initial states -------------------------------------------------------------
     def _generators(self, seed, rngs: list) -> list:
         """Per-env generators: ``seed`` None keeps ``rngs`` (fresh entropy where None), an int
-        seeds env i with seed + i, a list one seed (or None) each."""
+        seeds env i with seed + i, a list one seed (or None) each. With ``per_env_seeds`` off, one
+        generator shared by every env (an int seeds it)."""
         n = self.num_envs
         if seed is None:
+            if not self.per_env_seeds:
+                return rngs if rngs[0] is not None else [np.random.default_rng()] * n
             return [r if r is not None else np.random.default_rng() for r in rngs]
+        if not self.per_env_seeds:
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+                raise VectorEnvError(f"with per_env_seeds=False, seed must be None or an int, got {seed!r}")
+            return [np.random.default_rng(int(seed))] * n
         if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
             seeds = [int(seed) + i for i in range(n)]
         else:
@@ -213,22 +222,27 @@ class ControlVectorEnv(VectorEnv):
 
     def _draw(self, mask: np.ndarray, rngs: list):
         """(qpos [N, nq], qvel [N, nv], targets [N, ...] or None) with rows ``mask`` drawn from
-        each env's generator (other rows: the model's qpos0, zero velocities, no target)."""
+        each env's generator, or all in one call from the shared one (``per_env_seeds`` off);
+        other rows: the model's qpos0, zero velocities, no target."""
         system, n = self.system, self.num_envs
         qpos = np.tile(np.asarray(system.model.qpos0, dtype=np.float64), (n, 1))
         qvel = np.zeros((n, system.model.nv))
         initial = self._initial
         if initial is None:
             from gnwarp.data.generation import initial_states as initial
+        rows = np.flatnonzero(mask)
+        groups = [(rows, rngs[rows[0]])] if not self.per_env_seeds else [(rows[k:k + 1], rngs[i])
+                                                                          for k, i in enumerate(rows)]
         tgt = None
-        for i in np.flatnonzero(mask):
-            q, v = initial(system, 1, rngs[i])
-            qpos[i], qvel[i] = np.asarray(q, dtype=np.float64).reshape(-1), np.asarray(v, dtype=np.float64).reshape(-1)
+        for idx, rng in groups:
+            q, v = initial(system, len(idx), rng)
+            qpos[idx] = np.asarray(q, dtype=np.float64).reshape(len(idx), -1)
+            qvel[idx] = np.asarray(v, dtype=np.float64).reshape(len(idx), -1)
             if self.task.target is not None:
-                t = sample_targets(self.task, system, 1, seed=int(rngs[i].integers(2 ** 63 - 1)))
+                t = sample_targets(self.task, system, len(idx), seed=int(rng.integers(2 ** 63 - 1)))
                 if tgt is None:
                     tgt = torch.zeros((n,) + tuple(t.shape[1:]), dtype=torch.float32)
-                tgt[i] = t[0]
+                tgt[torch.as_tensor(idx)] = t
         return qpos, qvel, tgt
 
     # -- outputs --------------------------------------------------------------------------------
@@ -286,7 +300,8 @@ class ControlVectorEnv(VectorEnv):
             raise VectorEnvError(f"unknown reset options {sorted(unknown)}; known: reset_mask, qpos, qvel, targets")
         if seed is not None:
             fresh = self._generators(seed, [None] * n)
-            self._rngs = [f if m else r for f, r, m in zip(fresh, self._rngs, mask)]
+            self._rngs = fresh if not self.per_env_seeds else [f if m else r for f, r, m in
+                                                                 zip(fresh, self._rngs, mask)]
             if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
                 self._np_random, self._np_random_seed = seeding.np_random(int(seed))
         elif self._np_random is None:
@@ -397,7 +412,7 @@ class ControlVectorEnv(VectorEnv):
 def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto", seed=None,
                     episode_steps: int | None = None, system=None, autoreset_mode="next_step",
                     output: str = "numpy", observation: str | Callable = "bodies", action_repeat: int = 1,
-                    device=None, **env_kw) -> ControlVectorEnv:
+                    per_env_seeds: bool = True, device=None, **env_kw) -> ControlVectorEnv:
     """``num_envs`` episodes of ``task`` (a ``Task`` or its name) as a ``gymnasium.vector.VectorEnv``.
 
     ``dynamics``: "true" (the true simulator on ``backend``: "auto", "mujoco", "mujoco_warp",
@@ -411,7 +426,10 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
     ``output``: "numpy" or "torch". ``observation``: "bodies" (``ObservationLayout``) or
     ``f(body [N, B, 13], target) -> [N, D]``. ``action_repeat``: control steps (of ``system.dt``)
     each env step applies its action for, its reward their sum; ``episode_steps`` counts control
-    steps (a multiple of it)."""
+    steps (a multiple of it). ``per_env_seeds``: each env draws its initial states from its own
+    generator (default; one call of the task's ``initial`` per env), or all envs from one shared
+    generator in one call (False: faster resets of many envs; the same seed gives the same
+    observations only for the same ``num_envs``)."""
     from gnwarp.sim.systems import System, make
     task = get_task(task)
     num_envs = _int(num_envs, "num_envs")
@@ -449,4 +467,5 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
         if env_kw:
             raise VectorEnvError(f"options {sorted(env_kw)} are for the true simulator, not a learned model")
         sim = LearnedDynamics(dynamics, system, num_envs, k)
-    return ControlVectorEnv(task, system, sim, num_envs, steps, mode, seed, output, observation, k)
+    return ControlVectorEnv(task, system, sim, num_envs, steps, mode, seed, output, observation, k,
+                            bool(per_env_seeds))
