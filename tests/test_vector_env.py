@@ -348,3 +348,25 @@ def test_dmc_tasks_take_their_episode_steps_scorer_and_targets(name):
     out = run_episodes(Replay(u), make_env(env.system, 2, backend="mujoco"), task, 4, qpos0=start.qpos,
                        qvel0=start.qvel, target=env.targets)
     np.testing.assert_allclose(np.stack(rewards, 1).sum(1), out["returns"].numpy(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("dynamics", ["true", "learned"])
+def test_single_env_passes_gymnasium_check_env(dynamics, pendulum_model):
+    from gymnasium.utils.env_checker import check_env
+
+    from gnwarp.control.gym_env import make_control_env
+    env = make_control_env("pendulum-balance", dynamics="true" if dynamics == "true" else pendulum_model,
+                           backend="mujoco", episode_steps=3, seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                   # every check passes without a warning...
+        warnings.filterwarnings("ignore", message=".*(spec|infinity).*")   # ...but those of a Box(-inf, inf)
+        check_env(env, skip_render_check=True)
+    obs, info = env.reset(seed=1, options={"qpos": [0.3], "qvel": [0.0]})
+    assert obs.shape == (13,) and info == {}
+    quat_w = obs[env.vector.obs_names.index("pole.quat_w")]
+    assert np.isclose(quat_w, np.cos(0.15), atol=1e-6)   # the pole at the given angle (0.3 rad)
+    for t in range(3):
+        obs, r, term, trunc, info = env.step(np.array([0.5]))
+        assert isinstance(r, float) and term is False and trunc == (t == 2)
+    with pytest.raises(VectorEnvError, match="autoreset is disabled"):
+        env.step(np.array([0.5]))
