@@ -331,6 +331,8 @@ def test_custom_observation_and_sim_state(pendulum_model):
     learned.reset(seed=0)
     with pytest.raises(RuntimeError, match="body states only"):
         learned.observe()
+    with pytest.raises(VectorEnvError, match="bind it to acrobot"):   # bound to the pendulum: 2 bodies, not 3
+        make_vector_env("acrobot-swingup", 2, dynamics=pendulum_model, episode_steps=3)
 
 
 @pytest.mark.skipif("dmc-cheetah-run" not in TASKS, reason="the DeepMind Control tasks are not in this checkout")

@@ -108,8 +108,13 @@ class LearnedDynamics:
     backend = "model"
 
     def __init__(self, model, system, n: int, repeat: int = 1):
+        from gnwarp.control.gradient import model_systems
         from gnwarp.data.layout import LayoutMismatchError
         from gnwarp.sim.env import make_env
+        from gnwarp.sim.families import family_name
+        trained = model_systems(model)
+        if trained and not any(family_name(s) == family_name(system.name) for s in trained):
+            raise VectorEnvError(f"the model was trained on {', '.join(trained)}, not on {system.name}")
         if getattr(model, "builder", None) is None:
             try:
                 model.bind(system)
@@ -120,6 +125,9 @@ class LearnedDynamics:
         # controls arrive clamped (the vector env clamps them): the engine neither clamps nor checks
         self.engine = model.rollout_engine(torch.zeros(n, dtype=torch.int64), repeat, ctrl_policy="none",
                                            check=False)
+        if self.engine.template.B != system.nbody:
+            raise VectorEnvError(f"the model is bound to a source of {self.engine.template.B} bodies, but "
+                                 f"{system.name} has {system.nbody}: bind it to {system.name}")
         self.kinematics = make_env(system, n, backend="mujoco")
         self.qpos0 = np.asarray(system.model.qpos0, dtype=np.float64)
         self.body = None
