@@ -370,8 +370,8 @@ class ControlVectorEnv(VectorEnv):
         return a
 
     def step(self, actions):
-        """One control step of every env under ``actions`` [N, U] -> (obs [N, D], rewards [N],
-        terminations [N] (always False), truncations [N], infos)."""
+        """One env step (``action_repeat`` control steps) of every env under ``actions`` [N, U]
+        -> (obs [N, D], rewards [N], terminations [N] (always False), truncations [N], infos)."""
         self._need_reset()
         mode, n = self.autoreset_mode, self.num_envs
         ended = self._ended.copy()
