@@ -1,0 +1,70 @@
+"""bench/control_summary.py: summary.json rows from control records (intervals, protocols, pairing)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench import control_summary as cs  # noqa: E402
+from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
+
+
+def _rec(planner, returns, seed=0, experiment="control", dynamics=None, env_steps=0, task="cheetah-forward"):
+    dyn = dynamics or {"ilqg": "true_mujoco_c", "random": "none"}.get(planner, "learned")
+    return ResultRecord(experiment=experiment, task=task, planner=planner, dynamics=dyn, episodes=len(returns),
+                        episode_steps=10, returns=list(map(float, returns)), seed=seed, env_steps=env_steps)
+
+
+def test_bootstrap_interval_covers_the_mean_and_narrows_with_more_values():
+    rng = np.random.default_rng(1)
+    small, large = rng.normal(5, 1, 10), rng.normal(5, 1, 1000)
+    lo, hi = cs.bootstrap_ci(small)
+    assert lo < small.mean() < hi
+    lo2, hi2 = cs.bootstrap_ci(large)
+    assert hi2 - lo2 < (hi - lo) / 3
+    with pytest.raises(ValueError, match="two finite"):
+        cs.bootstrap_ci([1.0])
+
+
+def test_rows_seeds_protocols_and_paired_comparisons(tmp_path):
+    folder = tmp_path / cs.CONTROL
+    folder.mkdir(parents=True)
+    ilqg = [10.0, 12, 11, 13, 9, 10]
+    write_records(folder / "results.jsonl", [
+        _rec("ilqg", ilqg), _rec("random", [0.0, 1, -1, 0.5, 0, 0.2]),
+        _rec("gradient", [x - 1 for x in ilqg]),                  # 1 below iLQG on every initial state
+        _rec("gradient", [3.0, 4, 5], seed=1, experiment="loop", env_steps=600),
+        _rec("gradient", [5.0, 6, 7], seed=2, experiment="loop", env_steps=600)])
+    rows = cs.rows(tmp_path)
+    by = {(r["planner"], r["protocol"]): r for r in rows}
+    paper = by[("gradient", "paper")]
+    assert paper["over"] == "episodes" and paper["seeds"] == 1
+    assert paper["minus_ilqg_ci95"] == [-1.0, -1.0]                # paired: the constant difference
+    assert paper["discriminative"] is True
+    loop = by[("gradient", "loop")]
+    assert loop["seeds"] == 2 and loop["episodes"] == 6 and loop["over"] == "seeds" and loop["env_steps"] == 600
+    assert loop["mean"] == pytest.approx(5.0)
+    assert loop["ci95"][0] == pytest.approx(4.0) and loop["ci95"][1] == pytest.approx(6.0)   # the two seed means
+    assert "minus_ilqg_ci95" not in loop                          # other seeds: no pairing
+
+
+def test_not_discriminative_where_ilqg_is_no_better_than_random(tmp_path):
+    folder = tmp_path / cs.CONTROL
+    folder.mkdir(parents=True)
+    same = [1.0, -1, 2, -2, 0.5, -0.5]
+    write_records(folder / "r.jsonl", [_rec("ilqg", same), _rec("random", same[::-1]), _rec("gradient", same)])
+    row = next(r for r in cs.rows(tmp_path) if r["planner"] == "gradient")
+    assert row["discriminative"] is False
+
+
+def test_committed_summary_is_current():
+    assert cs.main(["--check"]) == 0, "bench/results/control/summary.json differs: run bench/control_summary.py"
+    rows = json.loads((ROOT / cs.CONTROL / "summary.json").read_text())
+    need = {"task", "planner", "dynamics", "protocol", "env_steps", "seeds", "episodes", "mean", "ci95"}
+    assert rows and all(need <= set(r) for r in rows)
