@@ -23,6 +23,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from gnwarp.control.returns import check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
@@ -44,7 +45,9 @@ class SamplingConfig:
     constant, P spans; "linear" / "cubic": P points from the first step to the last);
     noise: standard deviation of the knot noise, relative to half of each actuator's range;
     method: "best" (predictive sampling) or "mppi" (softmax of reward / (temperature x the
-    episode's reward spread)); seed: of the noise."""
+    episode's reward spread)); seed: of the noise; discount: per-step weight of the scored return
+    (``gnwarp.control.returns.planned_return``; 1: the reward as is; a ``terminal`` value is
+    weighted discount^horizon)."""
     horizon: PositiveInt = 20
     samples: PositiveInt = 64
     knots: PositiveInt = 4
@@ -53,6 +56,7 @@ class SamplingConfig:
     method: Literal[METHODS] = "best"
     temperature: PositiveFloat = 0.1
     seed: IntRange(0) = 0
+    discount: FloatRange(gt=0, le=1) = 1.0
 
     def __post_init__(self):
         check_fields(self)   # ConfigError naming the field
@@ -157,17 +161,20 @@ class SamplingPlanner:
     ``dynamics``: a ``RolloutDynamics`` (``EnvDynamics``, ``ModelDynamics``); ``reward``: a
     callable of (states [M, T+1, B, 13], actions [M, T, U]) -> [M], higher is better, or a
     ``Task`` (or its name), whose reward gets each candidate its episode's ``targets`` [N, ...];
-    ``ctrlrange`` [U, 2]: where actions are sampled and clamped (an env's ``ctrlrange``).
+    ``ctrlrange`` [U, 2]: where actions are sampled and clamped (an env's ``ctrlrange``);
+    ``terminal``: an optional ``terminal(states_last [M, B, 13]) -> [M]`` added to each
+    candidate's reward (``gnwarp.control.returns.planned_return``).
     ``optimize(obs)`` samples and scores K candidates per episode; ``act(obs, t)`` -> [N, U];
     ``step(obs)`` = both."""
 
     def __init__(self, dynamics, reward: Reward | Task | str, ctrlrange, n_episodes: int,
-                 config: SamplingConfig | None = None, targets=None):
+                 config: SamplingConfig | None = None, targets=None, terminal=None):
         if not isinstance(config, (SamplingConfig, type(None))):
             raise TypeError(f"config must be a SamplingConfig, got {type(config).__name__}")
         self.dynamics = dynamics
         self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
         self.reward = self._task_reward if self.task is not None else reward
+        self.terminal = check_terminal(terminal)
         self.settings = config or SamplingConfig()
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
@@ -202,6 +209,18 @@ class SamplingPlanner:
         if self.targets is not None:
             tgt = self.targets.to(states.device).repeat_interleave(states.shape[0] // self.n, 0)
         return self.task.reward(states, actions.to(states.device, states.dtype), tgt)
+
+    def scored(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """[M] the score of rollouts ``states`` [M, T+1, B, 13] under ``actions`` [M, T, U] (rows
+        of episodes x candidates): the reward, discounted per the settings, plus the terminal
+        value."""
+        actions = actions.to(states.device, states.dtype)
+        if self.task is not None:
+            tgt = None
+            if self.targets is not None:
+                tgt = self.targets.to(states.device).repeat_interleave(states.shape[0] // self.n, 0)
+            return planned_return(self.task.reward, states, actions, tgt, self.settings.discount, self.terminal)
+        return planned_return(self.reward, states, actions, None, self.settings.discount, self.terminal)
 
     def actions(self, knots: torch.Tensor) -> torch.Tensor:
         """Action sequences [..., T, U] of knots [..., P, U], inside the range."""
@@ -238,7 +257,7 @@ class SamplingPlanner:
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
         states = self.dynamics.rollout(obs, acts, K)
-        r = torch.as_tensor(self.reward(states, acts.to(states.device))).to(self.device, torch.float32).reshape(N, K)
+        r = torch.as_tensor(self.scored(states, acts)).to(self.device, torch.float32).reshape(N, K)
         r = torch.where(torch.isfinite(r), r, torch.full_like(r, -torch.inf))   # a diverged rollout never wins
         if cfg.method == "best":
             chosen = cand[torch.arange(N, device=self.device), r.argmax(1)]
