@@ -340,18 +340,25 @@ class GradientMPC:
                 self.progress(1)
         return self._r.clone()
 
+    def return_gradient(self, x: torch.Tensor, z: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(planned return [N], its raw gradient [N, H, U] with respect to the unconstrained
+        actions ``z`` (None: the working sequence)) from checked states ``x`` [N, B, 13]: one
+        rollout forward and its adjoint backward, no host sync."""
+        with torch.enable_grad():
+            z = (self.z if z is None else z).detach().requires_grad_(True)
+            u = self.to_actions(z)
+            r = self.planned_return(self.engine.rollout(x, u), u, self.targets)
+            (g,) = torch.autograd.grad(r.sum(), z)
+        return r.detach(), g
+
     def _iterate_once(self) -> None:
         """One planning iteration on the device buffers, in place, no host sync: rollout from
         ``_x`` under the plan, reward, its gradient w.r.t. z (the engine's adjoint loop), Adam."""
         b1, b2 = self.settings.betas
         lr = self.settings.lr
-        with torch.enable_grad():
-            z = self.z.detach().requires_grad_(True)
-            u = self.to_actions(z)
-            r = self.planned_return(self.engine.rollout(self._x, u), u, self.targets)
-            (g,) = torch.autograd.grad(-r.sum(), z)
+        r, g = self.return_gradient(self._x)
         with torch.no_grad():
-            g = condition_gradient(g, self.settings.grad_norm)
+            g = condition_gradient(-g, self.settings.grad_norm)
             self._r.copy_(r.detach())
             self._t.add_(1)
             self._m.mul_(b1).add_(g, alpha=1 - b1)
