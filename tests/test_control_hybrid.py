@@ -6,11 +6,12 @@ import pytest
 import torch
 
 from gnwarp import data
-from gnwarp.control import GradientMPC, GradientMPCConfig, PlanningError, get_planner, get_task, planner_name, \
-    run_episodes
+from gnwarp.control import (GradientMPC, GradientMPCConfig, PlanningError, Task, get_planner, get_task, planner_name,
+                            run_episodes)
 from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.returns import condition_gradient, planned_return, step_rewards
-from gnwarp.control.sampling import SamplingConfig, SamplingPlanner, model_dynamics, true_dynamics
+from gnwarp.control.sampling import (EnsembleDynamics, ModelDynamics, SamplingConfig, SamplingPlanner, model_dynamics,
+                                     score_rollouts, true_dynamics)
 from gnwarp.gn import RunOptions
 from gnwarp.interop import warp
 from gnwarp.models import ForwardModel, GNCoreConfig, ModelConfig
@@ -187,3 +188,38 @@ def test_long_horizon_gradient_stays_finite_and_conditioned(model, x0):
     p.iterate(x, 3)
     assert torch.isfinite(p.z).all() and torch.isfinite(p.planned_reward(x)).all()
     assert not torch.equal(before, p.planned_reward(x))
+
+
+def toy_member(curv: float):
+    """A toy learned dynamics of the pendulum's graph: body 1's x after step t is u_t - curv u_t^2."""
+    def rollout(x0, u):
+        s = x0[:, None].repeat(1, u.shape[1] + 1, 1, 1).clone()
+        s[:, 1:, 1, 0] = u[..., 0] - curv * u[..., 0].square()
+        return s
+    return ModelDynamics(rollout)
+
+
+def test_ensemble_scores_mean_minus_spread(x0):
+    members = [toy_member(0.0), toy_member(2.0)]      # they agree at u = 0 only
+    reward = lambda s, a: s[:, 1:, 1, 0].sum(1)      # noqa: E731
+    u = torch.linspace(-1, 1, 5).reshape(5, 1, 1)
+    for penalty in (0.0, 4.0):
+        ens = EnsembleDynamics(members, penalty)
+        got = score_rollouts(ens, x0[:1], u, 5, lambda s: reward(s, u))
+        mean, std = u[:, 0, 0] - u[:, 0, 0].square(), u[:, 0, 0].square()   # members u and u - 2u^2
+        torch.testing.assert_close(got, mean - penalty * std)
+        # a sampling planner and the hybrid (CEM: the ensemble has no gradients) pick the
+        # pessimistic optimum argmax u - (1 + penalty) u^2 = 1 / (2 (1 + penalty))
+        best = 1 / (2 * (1 + penalty))
+        sp = SamplingPlanner(ens, reward, [[-1.0, 1.0]], N, SamplingConfig(horizon=2, samples=64, knots=1, noise=0.6))
+        toy = Task("toy-x", "pendulum", 2, lambda s, a, target=None: reward(s, a))
+        hp = HybridPlanner(ens, toy, "pendulum", N, HybridConfig(horizon=2, samples=32, elites=4, iterations=3,
+                                                                 knots=1, interpolation="zero", noise=0.6))
+        assert hp.refinement == "cem"
+        for p in (sp, hp):
+            p.optimize(x0)
+            assert (p.plan[:, 0, 0] - best).abs().max() < 0.1, (penalty, p.plan[:, 0, 0])
+    with pytest.raises(ValueError, match=">= 2 RolloutDynamics"):
+        EnsembleDynamics(members[:1])
+    with pytest.raises(ValueError, match="penalty"):
+        EnsembleDynamics(members, -1.0)

@@ -12,7 +12,8 @@ Each planning step, for each of N episodes:
      the model's differentiable rollout, by a ``GradientMPC`` of N x E rows (its tanh
      parameterization, Adam, gradient conditioning ``grad_norm`` and ``terminal``);
    - on dynamics without gradients (a ``gnwarp.dynamics.RolloutDynamics`` such as
-     ``EnvDynamics``, the true simulator: the oracle): G cross-entropy (CEM) iterations in the
+     ``EnvDynamics``, the true simulator: the oracle; or an ``EnsembleDynamics`` of models,
+     scored mean - penalty x spread): G cross-entropy (CEM) iterations in the
      knot-noise space: K new candidates drawn from the elites' per-knot mean and standard
      deviation (floored at ``min_noise``), the elites' mean and the best so far among them; the
      E best of each iteration are the next elites.
@@ -38,7 +39,7 @@ import torch
 
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
 from gnwarp.control.returns import GRAD_NORMS, check_terminal, planned_return
-from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, spline_basis
+from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.dynamics import Dynamics
 from gnwarp.sim.env import Observation
@@ -243,7 +244,7 @@ class HybridPlanner:
         acts = self.sequences(eps)
         flat = acts.reshape(N * K, self.horizon, self.U)
         with torch.no_grad():
-            r = self._returns(self.dynamics.rollout(obs, flat, K), flat, K)
+            r = score_rollouts(self.dynamics, obs, flat, K, lambda states: self._returns(states, flat, K))
         r = torch.as_tensor(r).to(self.device, self.dtype).reshape(N, K)
         return acts, torch.nan_to_num(r, nan=-torch.inf, posinf=-torch.inf)
 

@@ -31,7 +31,7 @@ from gnwarp.sim.excitation import catmull_rom
 from gnwarp.validation import ConfigError, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
 __all__ = ["SamplingConfig", "SamplingPlanner", "RandomSettings", "RandomPlanner", "EnvDynamics", "ModelDynamics",
-           "true_dynamics", "model_dynamics", "spline_basis"]
+           "EnsembleDynamics", "true_dynamics", "model_dynamics", "ensemble_dynamics", "score_rollouts", "spline_basis"]
 
 Reward = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 INTERPOLATIONS = ("zero", "linear", "cubic")
@@ -136,6 +136,44 @@ class ModelDynamics:
             return self.rollout_fn(body.to(self.device).repeat_interleave(samples, 0), actions)
 
 
+class EnsembleDynamics:
+    """Several dynamics (e.g. learned models trained from different seeds) as one
+    ``RolloutDynamics`` whose candidates a planner scores pessimistically: each member rolls the
+    candidates out, the planner's score is taken of each member's states, and the candidates are
+    ranked by ``mean - penalty x std`` over the members (``combine``), so that a plan exploiting
+    one model's error is not preferred. ``rollout`` alone returns the members' mean states."""
+
+    def __init__(self, members, penalty: float = 1.0):
+        self.members = list(members)
+        if len(self.members) < 2 or not all(callable(getattr(m, "rollout", None)) for m in self.members):
+            raise ValueError(f"an ensemble needs >= 2 RolloutDynamics members (rollout(obs, actions, samples)), got "
+                             f"{[type(m).__name__ for m in self.members]}")
+        if isinstance(penalty, bool) or not isinstance(penalty, (int, float)) or not np.isfinite(penalty) \
+                or penalty < 0:
+            raise ValueError(f"penalty must be a finite number >= 0, got {penalty!r}")
+        self.penalty = float(penalty)
+        self.device = torch.device(self.members[0].device)
+
+    def rollouts(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        """[S, M, T+1, B, 13]: every member's rollouts of ``actions`` [M, T, U]."""
+        return torch.stack([m.rollout(obs, actions, samples).to(self.device) for m in self.members])
+
+    def rollout(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        return self.rollouts(obs, actions, samples).mean(0)
+
+    def combine(self, returns: torch.Tensor) -> torch.Tensor:
+        """[M] ``mean - penalty x std`` over the members of ``returns`` [S, M]."""
+        return returns.mean(0) - self.penalty * returns.std(0, unbiased=False)
+
+
+def score_rollouts(dynamics, obs, actions: torch.Tensor, samples: int, score) -> torch.Tensor:
+    """[M] ``score(states [M, T+1, B, 13]) -> [M]`` of the rollouts of ``actions`` [M, T, U]
+    through ``dynamics``; an ``EnsembleDynamics`` scores each member's and combines them."""
+    if isinstance(dynamics, EnsembleDynamics):
+        return dynamics.combine(torch.stack([score(s) for s in dynamics.rollouts(obs, actions, samples)]))
+    return score(dynamics.rollout(obs, actions, samples))
+
+
 def true_dynamics(system, n_episodes: int, samples: int, backend: str = "auto", device=None,
                   source: Env | None = None, **kw) -> EnvDynamics:
     """``EnvDynamics`` on a fresh env of ``n_episodes * samples`` worlds of ``system``; ``source``:
@@ -151,6 +189,11 @@ def model_dynamics(model, n_episodes: int, samples: int, horizon: int) -> ModelD
                                   check=False)
     return ModelDynamics(lambda x, u: engine.rollout(x.to(model.dtype), u.to(model.device, model.dtype)),
                          device=model.device)
+
+
+def ensemble_dynamics(models, n_episodes: int, samples: int, horizon: int, penalty: float = 1.0) -> EnsembleDynamics:
+    """``EnsembleDynamics`` of ``model_dynamics`` of each bound ``Dynamics`` model of ``models``."""
+    return EnsembleDynamics([model_dynamics(m, n_episodes, samples, horizon) for m in models], penalty)
 
 
 # -- planners ---------------------------------------------------------------------------------
@@ -256,8 +299,8 @@ class SamplingPlanner:
         cfg, N, K = self.settings, self.n, self.settings.samples
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
-        states = self.dynamics.rollout(obs, acts, K)
-        r = torch.as_tensor(self.scored(states, acts)).to(self.device, torch.float32).reshape(N, K)
+        r = score_rollouts(self.dynamics, obs, acts, K, lambda states: self.scored(states, acts))
+        r = torch.as_tensor(r).to(self.device, torch.float32).reshape(N, K)
         r = torch.where(torch.isfinite(r), r, torch.full_like(r, -torch.inf))   # a diverged rollout never wins
         if cfg.method == "best":
             chosen = cand[torch.arange(N, device=self.device), r.argmax(1)]
