@@ -196,7 +196,8 @@ def main(argv=None):
     ap.add_argument("--value-steps", type=int, default=100)
     ap.add_argument("--backend", default="auto", help="the true env's backend (auto, mujoco, mujoco_warp)")
     ap.add_argument("--device", default=None, help="the learned model's device (default: its checkpoint's)")
-    ap.add_argument("--out", default=None, help="records file (JSON lines; default bench/results/control/planners.jsonl)")
+    ap.add_argument("--out", default=None,
+                    help="records file (JSON lines; default bench/results/control/planners.jsonl)")
     ap.add_argument("--quick", action="store_true", help="tiny CPU smoke run")
     args = ap.parse_args(argv)
     args.planners = [p for p in args.planners.split(",") if p]

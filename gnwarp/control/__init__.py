@@ -2,9 +2,9 @@
 (``tasks``), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
 hybrid of both (``hybrid``), what planners maximize (``returns``: discount, terminal value, gradient
 conditioning), a learned terminal value (``value``), the iLQG baseline (``ilqg``), the ``Planner``
-protocol they all implement with the registry of planner names (``planner``), closed-loop episodes (``episodes``) and their planning times, the first step
-apart from the steady state (``timing``); the batched true environment they run on is
-``gnwarp.sim.env``.
+protocol they all implement with the registry of planner names (``planner``), closed-loop episodes
+(``episodes``) and their planning times, the first step apart from the steady state (``timing``);
+the batched true environment they run on is ``gnwarp.sim.env``.
 
     >>> from gnwarp import control
     >>> task = control.get_task("pendulum-balance")

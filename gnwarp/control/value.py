@@ -211,7 +211,8 @@ class TerminalValue(torch.nn.Module):
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:   # pickle, zip or torch's weights-only refusal: all mean the file is not ours
-            raise ValueFileError(f"{path} is not a readable terminal-value file: {type(e).__name__}: {e}"[:500]) from None
+            msg = f"{path} is not a readable terminal-value file: {type(e).__name__}: {e}"
+            raise ValueFileError(msg[:500]) from None
         if not isinstance(blob, dict) or blob.get("format") != VALUE_FORMAT:
             raise ValueFileError(f"{path} is not a terminal-value file (format {VALUE_FORMAT!r} expected)")
         if blob.get("version") != VALUE_VERSION:
