@@ -110,7 +110,8 @@ class GradientMPC:
     ``system``: a ``gnwarp.systems.System`` (or a built-in name); ``n``: episodes planned together;
     ``targets``: per-episode targets for tasks with one (see ``tasks.sample_targets``);
     ``terminal``: an optional ``terminal(states_last [N, B, 13]) -> [N]`` (e.g. a
-    ``gnwarp.control.value.TerminalValue``) added to the planned return, differentiated with it.
+    ``gnwarp.control.value.TerminalValue``, moved to the model's device) added to the planned
+    return, differentiated with it.
 
     A ``gnwarp.control.planner.Planner``: ``optimize(x [N, B, 13])`` runs the Adam iterations from
     the true states ``x`` (after a reset: the proposal, then the warm-up), keeps the plan (``plan`` [N, H, U])
@@ -149,7 +150,7 @@ class GradientMPC:
         if not isinstance(config, (GradientMPCConfig, type(None))):
             raise TypeError(f"config must be a GradientMPCConfig, got {type(config).__name__}")
         self.settings = config if config is not None else GradientMPCConfig()
-        self.terminal = check_terminal(terminal)
+        self.terminal = check_terminal(terminal, model.device)
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
         trained = model_systems(model)

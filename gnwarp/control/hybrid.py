@@ -115,7 +115,7 @@ class HybridPlanner:
         self.n = int(n)
         self.system = system if isinstance(system, System) else make(system)
         self.task: Task = get_task(task, self.system.name)
-        self.terminal = check_terminal(terminal)
+        self.terminal = check_terminal(terminal, getattr(dynamics, "device", None))
         self.horizon = H = cfg.horizon or self.task.horizon
         if cfg.knots > H:
             raise ConfigError("knots", f"must not exceed the horizon ({H}), got {cfg.knots}")

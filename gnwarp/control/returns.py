@@ -81,9 +81,13 @@ def condition_gradient(g: torch.Tensor, mode: str = "step", eps: float = 1e-12) 
     return g * (rms / norm.clamp_min(eps)).where(norm > eps, torch.zeros_like(norm))
 
 
-def check_terminal(terminal) -> Callable | None:
-    """``terminal`` if None or callable, else TypeError naming what it is."""
+def check_terminal(terminal, device=None) -> Callable | None:
+    """``terminal`` if None or callable, else TypeError naming what it is. A ``torch.nn.Module``
+    is moved to ``device`` (in place; a planner's rollouts stay on their device, and a captured
+    planning iteration copies nothing to the host)."""
     if terminal is not None and not callable(terminal):
         raise TypeError("terminal must be a callable terminal(states_last [M, B, 13]) -> [M] (e.g. a "
                         f"gnwarp.control.value.TerminalValue) or None, got {type(terminal).__name__}")
+    if isinstance(terminal, torch.nn.Module) and device is not None:
+        terminal.to(device)
     return terminal

@@ -217,7 +217,7 @@ class SamplingPlanner:
         self.dynamics = dynamics
         self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
         self.reward = self._task_reward if self.task is not None else reward
-        self.terminal = check_terminal(terminal)
+        self.terminal = check_terminal(terminal, dynamics.device)
         self.settings = config or SamplingConfig()
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
