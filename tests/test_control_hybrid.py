@@ -50,7 +50,7 @@ def model_return(model, x, actions, terminal=None, discount=1.0):
 
 
 def test_hybrid_refines_its_sampling_proposal_on_the_model(model, x0):
-    cfg = dict(horizon=6, samples=8, elites=2, knots=3, lr=0.1, seed=3)
+    cfg = dict(horizon=6, samples=8, elites=2, knots=3, lr=0.1, seed=3, warmup=0)
     refined = HybridPlanner(model, TASK, "pendulum", N, HybridConfig(iterations=4, **cfg))
     sampled = HybridPlanner(model, TASK, "pendulum", N, HybridConfig(iterations=0, **cfg))
     assert refined.refinement == "gradient" and not refined.needs_sim_state
@@ -223,3 +223,16 @@ def test_ensemble_scores_mean_minus_spread(x0):
         EnsembleDynamics(members[:1])
     with pytest.raises(ValueError, match="penalty"):
         EnsembleDynamics(members, -1.0)
+
+
+def test_hybrid_warms_up_at_the_first_state_only(model, x0):
+    p = HybridPlanner(model, TASK, "pendulum", N, HybridConfig(horizon=4, samples=4, elites=2, iterations=1, warmup=3,
+                                                               knots=2))
+    runs = []
+    for reset in (False, False, True):
+        if reset:
+            p.reset()
+        before = p.refiner.iterations_run
+        p.optimize(x0)
+        runs.append(p.refiner.iterations_run - before)
+    assert runs == [4, 1, 4]

@@ -54,7 +54,7 @@ def make(name: str, model, env):
         return RandomPlanner(env.ctrlrange, N, seed=entry.make_settings(seed=3).seed)
     if name == "hybrid":
         return HybridPlanner(model, "pendulum-balance", "pendulum", N,
-                             entry.make_settings(horizon=4, samples=4, elites=2, iterations=1, knots=2))
+                             entry.make_settings(horizon=4, samples=4, elites=2, iterations=1, warmup=1, knots=2))
     raise AssertionError(f"no test planner for {name}")
 
 

@@ -37,7 +37,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
+from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientMPCConfig, PlanningError
 from gnwarp.control.returns import GRAD_NORMS, check_terminal, planned_return
 from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
@@ -54,7 +54,9 @@ REFINEMENTS = ("auto", "gradient", "cem")
 class HybridConfig:
     """``horizon``: planning steps (None: the task's). ``samples``: K candidates per episode (the
     nominal included). ``elites``: E refined (<= K). ``iterations``: G refinement iterations
-    (0: sampling alone). ``knots`` / ``interpolation``: the spline of the sampling noise (as
+    (0: sampling alone). ``warmup``: extra refinement iterations at the first state after a reset
+    (None: ``4 x iterations``, as ``GradientMPC``; the nominal starts at the middle of the range
+    there, with no plan to warm-start from). ``knots`` / ``interpolation``: the spline of the sampling noise (as
     ``SamplingConfig``). ``noise``: its standard deviation relative to half of each actuator's
     range. ``refine``: "gradient" (Adam through a learned model), "cem" (derivative-free), "auto"
     (gradient on a ``Dynamics`` model, CEM on other dynamics). ``lr`` / ``betas``: Adam's, on the
@@ -65,6 +67,7 @@ class HybridConfig:
     samples: PositiveInt = 64
     elites: PositiveInt = 4
     iterations: IntRange(0) = 5
+    warmup: IntRange(0) | None = None
     knots: PositiveInt = 4
     interpolation: Literal[INTERPOLATIONS] = "linear"
     noise: FloatRange(ge=0) = 0.2
@@ -179,11 +182,12 @@ class HybridPlanner:
         self.nominal = mid.expand(self.n, self.horizon, self.U).clone()
         self.plan = None
         self.last_sampled = self.last_refined = None
+        self.started = False
 
     def optimize(self, obs) -> None:
         """One planning budget from the episodes' true states ``obs`` (body states [n, B, 13] or an
-        ``Observation``): sample, score, refine the elites; the best becomes ``plan`` and, shifted
-        one step, the next nominal."""
+        ``Observation``): sample, score, refine the elites (``iterations``; after a reset
+        ``warmup`` more); the best becomes ``plan`` and, shifted one step, the next nominal."""
         body = obs.body if isinstance(obs, Observation) else torch.as_tensor(obs)
         if body.ndim != 3 or body.shape[0] != self.n:
             raise PlanningError(f"states must be [N, B, 13] with N = {self.n} episodes, got {list(body.shape)}")
@@ -195,11 +199,14 @@ class HybridPlanner:
         rows = torch.arange(N, device=self.device)[:, None]
         best_a, best_r = acts[rows[:, 0], idx[:, 0]], r_top[:, 0]
         self.last_sampled = best_r.clone()
-        if cfg.iterations > 0:
+        warmup = cfg.warmup if cfg.warmup is not None else WARMUP_PER_ITERATION * cfg.iterations
+        G = cfg.iterations + (0 if self.started else warmup)
+        if G > 0:
             if self.refinement == "gradient":
-                best_a, best_r = self._refine_gradient(body, acts[rows, idx], best_a, best_r)
+                best_a, best_r = self._refine_gradient(body, acts[rows, idx], best_a, best_r, G)
             else:
-                best_a, best_r = self._refine_cem(obs, eps[rows, idx], best_a, best_r)
+                best_a, best_r = self._refine_cem(obs, eps[rows, idx], best_a, best_r, G)
+        self.started = True
         self.last_refined = best_r
         self.plan = best_a.detach().clone()
         self.nominal = torch.cat([self.plan[:, 1:], self.plan[:, -1:]], 1)
@@ -248,28 +255,28 @@ class HybridPlanner:
         r = torch.as_tensor(r).to(self.device, self.dtype).reshape(N, K)
         return acts, torch.nan_to_num(r, nan=-torch.inf, posinf=-torch.inf)
 
-    def _refine_gradient(self, body, elites, best_a, best_r):
-        """Adam on the elites [N, E, H, U] through the model (the refiner); the per-episode best
+    def _refine_gradient(self, body, elites, best_a, best_r, G: int):
+        """``G`` Adam steps on the elites [N, E, H, U] through the model (the refiner); the per-episode best
         of the refined elites and ``best_a`` [N, H, U] (return ``best_r`` [N])."""
         N, E = elites.shape[:2]
         g = self.refiner
         g.start_from(g.from_actions(elites.reshape(N * E, self.horizon, self.U)))
         x = g.check_state(body.repeat_interleave(E, 0))
-        g.iterate(x, self.settings.iterations)
+        g.iterate(x, G)
         r = torch.nan_to_num(g.planned_reward(x), nan=-torch.inf, posinf=-torch.inf).reshape(N, E)
         top, k = r.max(1)
         better = top > best_r
         refined = g.actions.detach().reshape(N, E, self.horizon, self.U)[torch.arange(N, device=self.device), k]
         return torch.where(better[:, None, None], refined, best_a), torch.where(better, top, best_r)
 
-    def _refine_cem(self, obs, elite_eps, best_a, best_r):
-        """CEM iterations in the knot-noise space from the elites' noise [N, E, P, U]; the best
-        sequence seen and its return."""
+    def _refine_cem(self, obs, elite_eps, best_a, best_r, G: int):
+        """``G`` CEM iterations in the knot-noise space from the elites' noise [N, E, P, U]; the
+        best sequence seen and its return."""
         cfg, N, K, E = self.settings, self.n, self.settings.samples, self.settings.elites
         floor = cfg.min_noise * 0.5 * (self.hi - self.lo)
         rows = torch.arange(N, device=self.device)
         best_eps = elite_eps[:, 0]
-        for _ in range(cfg.iterations):
+        for _ in range(G):
             mean = elite_eps.mean(1, keepdim=True)                                   # [N, 1, P, U]
             std = torch.maximum(elite_eps.std(1, keepdim=True, unbiased=False), floor)
             eps = torch.cat([mean, best_eps[:, None], self._noise((N, K - 2, cfg.knots, self.U), std, mean)], 1) \
