@@ -236,3 +236,27 @@ def test_hybrid_warms_up_at_the_first_state_only(model, x0):
         p.optimize(x0)
         runs.append(p.refiner.iterations_run - before)
     assert runs == [4, 1, 4]
+
+
+def test_grad_decay_weights_later_rewards_by_their_distance(model, x0):
+    """With grad_decay d, the gradient reaching action t from the reward of step k >= t is
+    weighted d^(k - t): against the per-step rewards' full gradients by autograd apart."""
+    H = 5
+    z = torch.randn(N, H, 1, generator=torch.Generator().manual_seed(1)) * 0.5
+    ref = GradientMPC(model, TASK, "pendulum", N, GradientMPCConfig(horizon=H))
+    x = ref.check_state(x0)
+    zz = z.clone().requires_grad_(True)
+    u = ref.to_actions(zz)
+    per = step_rewards(TASK.reward, model.rollout(x, u), u)                # [N, H]
+    parts = torch.stack([torch.autograd.grad(per[:, k].sum(), zz, retain_graph=True)[0] for k in range(H)])
+    torch.testing.assert_close(ref.return_gradient(x, z)[1], parts.sum(0), rtol=1e-4, atol=1e-6)
+    for d in (0.0, 0.5):
+        p = GradientMPC(model, TASK, "pendulum", N, GradientMPCConfig(horizon=H, grad_decay=d))
+        r, g = p.return_gradient(x, z)
+        k, t = torch.arange(H)[:, None], torch.arange(H)[None, :]
+        w = torch.where(k >= t, torch.tensor(d) ** (k - t).clamp_min(0), torch.tensor(0.0))   # [k, t]
+        want = torch.einsum("kt,kntu->ntu", w, parts)
+        torch.testing.assert_close(g, want, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(r, per.sum(1).detach(), rtol=1e-5, atol=1e-5)   # the return is unchanged
+    with pytest.raises(ConfigError, match="^grad_decay"):
+        GradientMPCConfig(grad_decay=1.5)

@@ -88,7 +88,8 @@ def make_planner(name: str, args, model, task, system, env, n: int, targets, ter
     if name == "gradient":
         if model is None:
             return None
-        cfg = GradientMPCConfig(horizon=H, iterations=args.iterations, grad_norm=args.grad_norm, **common)
+        cfg = GradientMPCConfig(horizon=H, iterations=args.iterations, grad_norm=args.grad_norm,
+                                grad_decay=args.grad_decay, **common)
         return GradientMPC(model, task, system, n, cfg, targets=targets, terminal=terminal)
     if name == "sampling":
         cfg = SamplingConfig(horizon=H, samples=args.samples, knots=min(args.knots, H), **common)
@@ -96,7 +97,8 @@ def make_planner(name: str, args, model, task, system, env, n: int, targets, ter
                else true_dynamics(system, n, args.samples, backend=args.backend, source=env))
         return SamplingPlanner(dyn, task, env.ctrlrange, n, cfg, targets=targets, terminal=terminal)
     cfg = HybridConfig(horizon=H, samples=args.samples, elites=min(args.elites, args.samples),
-                       iterations=args.iterations, knots=min(args.knots, H), grad_norm=args.grad_norm, **common)
+                       iterations=args.iterations, knots=min(args.knots, H), grad_norm=args.grad_norm,
+                       grad_decay=args.grad_decay, **common)
     dyn = model if model is not None else true_dynamics(system, n, args.samples, backend=args.backend, source=env)
     return HybridPlanner(dyn, task, system, n, cfg, targets=targets, terminal=terminal)
 
@@ -191,6 +193,7 @@ def main(argv=None):
     ap.add_argument("--knots", type=int, default=4)
     ap.add_argument("--discount", type=float, default=1.0)
     ap.add_argument("--grad-norm", choices=("none", "step"), default="step")
+    ap.add_argument("--grad-decay", type=float, default=1.0, help="soft truncated backprop window (1: full)")
     ap.add_argument("--value-gamma", type=float, default=0.99)
     ap.add_argument("--value-rounds", type=int, default=20)
     ap.add_argument("--value-steps", type=int, default=100)

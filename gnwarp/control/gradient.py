@@ -36,7 +36,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from gnwarp.control.returns import GRAD_NORMS, check_terminal, condition_gradient, planned_return
+from gnwarp.control.returns import GRAD_NORMS, check_terminal, condition_gradient, planned_return, scale_gradient
 from gnwarp.control.tasks import Task, TaskError, get_task
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
@@ -72,7 +72,11 @@ class GradientMPCConfig:
     discount^H). ``grad_norm``: "step" scales each time step's gradient to the plan's RMS step
     norm before Adam (``returns.condition_gradient``: a step whose gradient explodes through a
     long rollout neither dominates nor freezes Adam's moments); "none": the raw gradient (its
-    non-finite entries zeroed either way)."""
+    non-finite entries zeroed either way). ``grad_decay``: the state's gradient carried back
+    through each model step is multiplied by it (``returns.scale_gradient``): a soft truncated
+    backprop window of about 1 / (1 - grad_decay) steps (1: the full gradient; 0: each action
+    sees only the next step's reward); below 1 the gradient's rollout runs one model step per
+    engine call, recomputing the forward in the backward."""
     horizon: PositiveInt | None = None
     iterations: PositiveInt = 5
     warmup: IntRange(0) | None = None
@@ -85,6 +89,7 @@ class GradientMPCConfig:
     fused: Flag | None = None
     discount: FloatRange(gt=0, le=1) = 1.0
     grad_norm: Literal[GRAD_NORMS] = "none"
+    grad_decay: FloatRange(ge=0, le=1) = 1.0
 
     def __post_init__(self):
         check_fields(self)
@@ -177,6 +182,9 @@ class GradientMPC:
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
         self._inst = inst
         self.engine = self._rollout_engine(inst, graphs=not self.capture)
+        # a soft truncated window: one model step per call, the state's gradient scaled between
+        self._step_engine = (self._rollout_engine(inst, graphs=not self.capture, horizon=1)
+                             if self.settings.grad_decay < 1 else None)
         # the proposal's batched forward rollouts (made here, on the graphs bound here)
         self._proposal_engine = self._make_proposal_engine() if self.settings.proposals else None
         self.iterations_run = self.evals = self.proposal_evals = 0
@@ -194,11 +202,24 @@ class GradientMPC:
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
 
-    def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto"):
-        """The model's ``RolloutEngine`` over ``instance`` [rows] for the planning horizon: the
-        planner's actions are in range by construction, so it neither clamps nor checks them."""
-        return self.model.rollout_engine(instance, self.horizon, ctrl_policy="none", check=False, graphs=graphs,
-                                         store=store, fused=self.settings.fused)
+    def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto",
+                        horizon: int | None = None):
+        """The model's ``RolloutEngine`` over ``instance`` [rows] for ``horizon`` steps (None: the
+        planning horizon): the planner's actions are in range by construction, so it neither
+        clamps nor checks them."""
+        return self.model.rollout_engine(instance, horizon or self.horizon, ctrl_policy="none", check=False,
+                                         graphs=graphs, store=store, fused=self.settings.fused)
+
+    def gradient_rollout(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """States [N, H+1, B, 13] from ``x`` [N, B, 13] under ``u`` [N, H, U], differentiable, the
+        state's gradient scaled by ``grad_decay`` at every step back (the full engine when 1)."""
+        if self._step_engine is None:
+            return self.engine.rollout(x, u)
+        decay, states = self.settings.grad_decay, [x]
+        for t in range(self.horizon):
+            prev = states[-1] if t == 0 else scale_gradient(states[-1], decay)
+            states.append(self._step_engine.rollout(prev, u[:, t:t + 1])[:, 1])
+        return torch.stack(states, 1)
 
     @property
     def model_evals_per_step(self) -> int:
@@ -348,7 +369,7 @@ class GradientMPC:
         with torch.enable_grad():
             z = (self.z if z is None else z).detach().requires_grad_(True)
             u = self.to_actions(z)
-            r = self.planned_return(self.engine.rollout(x, u), u, self.targets)
+            r = self.planned_return(self.gradient_rollout(x, u), u, self.targets)
             (g,) = torch.autograd.grad(r.sum(), z)
         return r.detach(), g
 

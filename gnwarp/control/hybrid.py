@@ -61,7 +61,7 @@ class HybridConfig:
     range. ``refine``: "gradient" (Adam through a learned model), "cem" (derivative-free), "auto"
     (gradient on a ``Dynamics`` model, CEM on other dynamics). ``lr`` / ``betas``: Adam's, on the
     unconstrained actions (``GradientMPC``). ``min_noise``: CEM's floor of its standard deviation
-    (relative as ``noise``). ``discount``, ``grad_norm``, ``capture``, ``fused``: as
+    (relative as ``noise``). ``discount``, ``grad_norm``, ``grad_decay``, ``capture``, ``fused``: as
     ``GradientMPCConfig``. ``seed``: of the noise."""
     horizon: PositiveInt | None = None
     samples: PositiveInt = 64
@@ -77,6 +77,7 @@ class HybridConfig:
     min_noise: FloatRange(ge=0) = 0.02
     discount: FloatRange(gt=0, le=1) = 1.0
     grad_norm: Literal[GRAD_NORMS] = "none"
+    grad_decay: FloatRange(ge=0, le=1) = 1.0
     seed: IntRange(0) = 0
     capture: Flag | None = None
     fused: Flag | None = None
@@ -134,7 +135,8 @@ class HybridPlanner:
             # the refiner binds the model to the system; the sampler's engine reads that binding
             gcfg = GradientMPCConfig(horizon=H, iterations=max(1, cfg.iterations), warmup=0, proposals=0, lr=cfg.lr,
                                      init_std=0.0, betas=cfg.betas, seed=cfg.seed, capture=cfg.capture,
-                                     fused=cfg.fused, discount=cfg.discount, grad_norm=cfg.grad_norm)
+                                     fused=cfg.fused, discount=cfg.discount, grad_norm=cfg.grad_norm,
+                                     grad_decay=cfg.grad_decay)
             self.refiner = GradientMPC(dynamics, self.task, self.system, self.n * E, gcfg, terminal=self.terminal)
             self.model = dynamics
             self.dynamics = model_dynamics(dynamics, self.n, K, H)

@@ -10,6 +10,11 @@ where ``r_t = reward(states[:, t:t+2], actions[:, t:t+1])`` is the reward of ste
 module). A task whose reward reads state 0 as a reference (swimmer-reach: the direction to its
 target) reads state t instead in its per-step terms.
 
+``scale_gradient``: the identity whose backward scales the gradient, for a soft truncated
+backprop window: between model steps, the state's gradient carried back one step is multiplied
+by a decay, so the gradient of step t+k's reward reaching action t is weighted decay^k (an
+effective window of about 1 / (1 - decay) steps).
+
 ``condition_gradient``: per-time-step normalization of a gradient with respect to a plan
 [N, T, U]: each step's gradient is scaled to the plan's root-mean-square step norm, so that no
 step dominates Adam's moments (gradients through a long contact-rich rollout grow by orders of
@@ -23,7 +28,7 @@ from typing import Callable
 
 import torch
 
-__all__ = ["step_rewards", "planned_return", "condition_gradient", "check_terminal", "GRAD_NORMS"]
+__all__ = ["step_rewards", "planned_return", "condition_gradient", "check_terminal", "scale_gradient", "GRAD_NORMS"]
 
 GRAD_NORMS = ("none", "step")
 
@@ -91,3 +96,19 @@ def check_terminal(terminal, device=None) -> Callable | None:
     if isinstance(terminal, torch.nn.Module) and device is not None:
         terminal.to(device)
     return terminal
+
+
+class _ScaleGradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, scale: float):
+        ctx.scale = scale
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        return g * ctx.scale, None
+
+
+def scale_gradient(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """``x`` unchanged forward; its gradient multiplied by ``scale`` backward."""
+    return _ScaleGradient.apply(x, float(scale))
