@@ -10,6 +10,7 @@ from gnwarp import data
 from gnwarp.control import (PLANNERS, GradientMPC, GradientMPCConfig, Planner, PlanningError, get_planner, planner_name,
                             run_episodes)
 from gnwarp.sim.env import make_env
+from gnwarp.control.hybrid import HybridPlanner
 from gnwarp.control.ilqg import ILQG, ILQGSettings
 from gnwarp.control.sampling import (EnvDynamics, ModelDynamics, RandomPlanner, RandomSettings, SamplingConfig,
                                      SamplingPlanner, model_dynamics, true_dynamics)
@@ -51,12 +52,15 @@ def make(name: str, model, env):
                              entry.make_settings(horizon=4, iterations=1, warmup=2, nthread=1))
     if name == "random":
         return RandomPlanner(env.ctrlrange, N, seed=entry.make_settings(seed=3).seed)
+    if name == "hybrid":
+        return HybridPlanner(model, "pendulum-balance", "pendulum", N,
+                             entry.make_settings(horizon=4, samples=4, elites=2, iterations=1, warmup=1, knots=2))
     raise AssertionError(f"no test planner for {name}")
 
 
 def test_every_registered_planner_runs_in_run_episodes(model):
     env = make_env("pendulum", N, backend="mujoco")
-    assert set(PLANNERS) == {"gradient", "sampling", "mppi", "ilqg", "random"}
+    assert set(PLANNERS) == {"gradient", "sampling", "mppi", "ilqg", "random", "hybrid"}
     for name in PLANNERS:
         planner = make(name, model, env)
         assert isinstance(planner, Planner) and planner_name(planner) == name

@@ -31,10 +31,12 @@ true state.
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import numpy as np
 import torch
 
+from gnwarp.control.returns import GRAD_NORMS, check_terminal, condition_gradient, planned_return, scale_gradient
 from gnwarp.control.tasks import Task, TaskError, get_task
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
@@ -64,7 +66,17 @@ class GradientMPCConfig:
     actions z. ``init_std``: the random initial z ~ N(0, init_std^2) (and the proposals').
     ``seed``: of those sequences. ``capture``: replay one planning iteration from a CUDA graph
     (None: on CUDA; ignored on the CPU). ``fused``: the rollout engine's model step fused
-    (``ForwardModel.rollout_engine``; None: automatic)."""
+    (``ForwardModel.rollout_engine``; None: automatic). ``discount``: per-step weight of the
+    planned return (``gnwarp.control.returns.planned_return``; 1: the task's reward as is; < 1
+    shortens the effective horizon of the gradient and weights a ``terminal`` value by
+    discount^H). ``grad_norm``: "step" scales each time step's gradient to the plan's RMS step
+    norm before Adam (``returns.condition_gradient``: a step whose gradient explodes through a
+    long rollout neither dominates nor freezes Adam's moments); "none": the raw gradient (its
+    non-finite entries zeroed either way). ``grad_decay``: the state's gradient carried back
+    through each model step is multiplied by it (``returns.scale_gradient``): a soft truncated
+    backprop window of about 1 / (1 - grad_decay) steps (1: the full gradient; 0: each action
+    sees only the next step's reward); below 1 the gradient's rollout runs one model step per
+    engine call, recomputing the forward in the backward."""
     horizon: PositiveInt | None = None
     iterations: PositiveInt = 5
     warmup: IntRange(0) | None = None
@@ -75,6 +87,9 @@ class GradientMPCConfig:
     seed: IntRange(0) = 0
     capture: Flag | None = None
     fused: Flag | None = None
+    discount: FloatRange(gt=0, le=1) = 1.0
+    grad_norm: Literal[GRAD_NORMS] = "none"
+    grad_decay: FloatRange(ge=0, le=1) = 1.0
 
     def __post_init__(self):
         check_fields(self)
@@ -98,7 +113,10 @@ class GradientMPC:
 
     ``model``: a ForwardModel (bound here to ``system``); ``task``: a ``Task`` or its name;
     ``system``: a ``gnwarp.systems.System`` (or a built-in name); ``n``: episodes planned together;
-    ``targets``: per-episode targets for tasks with one (see ``tasks.sample_targets``).
+    ``targets``: per-episode targets for tasks with one (see ``tasks.sample_targets``);
+    ``terminal``: an optional ``terminal(states_last [N, B, 13]) -> [N]`` (e.g. a
+    ``gnwarp.control.value.TerminalValue``, moved to the model's device) added to the planned
+    return, differentiated with it.
 
     A ``gnwarp.control.planner.Planner``: ``optimize(x [N, B, 13])`` runs the Adam iterations from
     the true states ``x`` (after a reset: the proposal, then the warm-up), keeps the plan (``plan`` [N, H, U])
@@ -116,7 +134,8 @@ class GradientMPC:
 
     needs_sim_state = False   # plans from body states
 
-    def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, targets=None):
+    def __init__(self, model, task, system, n: int, config: GradientMPCConfig | None = None, targets=None,
+                 terminal=None):
         from gnwarp.sim.systems import System, make
         # a list of n Systems of one topology: episode i plans through instance i's static graph
         # (a parameterized model given each episode's true parameters, Figure 10)
@@ -136,6 +155,7 @@ class GradientMPC:
         if not isinstance(config, (GradientMPCConfig, type(None))):
             raise TypeError(f"config must be a GradientMPCConfig, got {type(config).__name__}")
         self.settings = config if config is not None else GradientMPCConfig()
+        self.terminal = check_terminal(terminal, model.device)
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
         trained = model_systems(model)
@@ -162,6 +182,9 @@ class GradientMPC:
         inst = torch.arange(n) if instances is not None else torch.zeros(n, dtype=torch.int64)
         self._inst = inst
         self.engine = self._rollout_engine(inst, graphs=not self.capture)
+        # a soft truncated window: one model step per call, the state's gradient scaled between
+        self._step_engine = (self._rollout_engine(inst, graphs=not self.capture, horizon=1)
+                             if self.settings.grad_decay < 1 else None)
         # the proposal's batched forward rollouts (made here, on the graphs bound here)
         self._proposal_engine = self._make_proposal_engine() if self.settings.proposals else None
         self.iterations_run = self.evals = self.proposal_evals = 0
@@ -179,11 +202,24 @@ class GradientMPC:
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
 
-    def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto"):
-        """The model's ``RolloutEngine`` over ``instance`` [rows] for the planning horizon: the
-        planner's actions are in range by construction, so it neither clamps nor checks them."""
-        return self.model.rollout_engine(instance, self.horizon, ctrl_policy="none", check=False, graphs=graphs,
-                                         store=store, fused=self.settings.fused)
+    def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto",
+                        horizon: int | None = None):
+        """The model's ``RolloutEngine`` over ``instance`` [rows] for ``horizon`` steps (None: the
+        planning horizon): the planner's actions are in range by construction, so it neither
+        clamps nor checks them."""
+        return self.model.rollout_engine(instance, horizon or self.horizon, ctrl_policy="none", check=False,
+                                         graphs=graphs, store=store, fused=self.settings.fused)
+
+    def gradient_rollout(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """States [N, H+1, B, 13] from ``x`` [N, B, 13] under ``u`` [N, H, U], differentiable, the
+        state's gradient scaled by ``grad_decay`` at every step back (the full engine when 1)."""
+        if self._step_engine is None:
+            return self.engine.rollout(x, u)
+        decay, states = self.settings.grad_decay, [x]
+        for t in range(self.horizon):
+            prev = states[-1] if t == 0 else scale_gradient(states[-1], decay)
+            states.append(self._step_engine.rollout(prev, u[:, t:t + 1])[:, 1])
+        return torch.stack(states, 1)
 
     @property
     def model_evals_per_step(self) -> int:
@@ -248,7 +284,12 @@ class GradientMPC:
         z = self.z if z is None else z
         with torch.no_grad():
             u = self.to_actions(z)
-            return self.task.reward(self.engine.rollout(x, u), u, self.targets)
+            return self.planned_return(self.engine.rollout(x, u), u, self.targets)
+
+    def planned_return(self, states: torch.Tensor, actions: torch.Tensor, targets=None) -> torch.Tensor:
+        """[M] what the planner maximizes of rollouts ``states`` [M, H+1, B, 13] under ``actions``
+        [M, H, U]: the task's reward (discounted per the settings) plus the terminal value."""
+        return planned_return(self.task.reward, states, actions, targets, self.settings.discount, self.terminal)
 
     def _make_proposal_engine(self) -> tuple[int, object]:
         """(sequences per episode in one batched rollout, the eager engine of that batch)."""
@@ -292,7 +333,7 @@ class GradientMPC:
                 z[0] = 0.0
             with torch.no_grad():
                 u = self.to_actions(z).reshape(per * n, H, U)
-                r = self.task.reward(engine.rollout(xs, u), u, tgt).reshape(per, n)
+                r = self.planned_return(engine.rollout(xs, u), u, tgt).reshape(per, n)
             r = torch.nan_to_num(r, nan=-torch.inf)
             top, k = r.max(0)
             better = top > best_r
@@ -321,17 +362,25 @@ class GradientMPC:
                 self.progress(1)
         return self._r.clone()
 
+    def return_gradient(self, x: torch.Tensor, z: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(planned return [N], its raw gradient [N, H, U] with respect to the unconstrained
+        actions ``z`` (None: the working sequence)) from checked states ``x`` [N, B, 13]: one
+        rollout forward and its adjoint backward, no host sync."""
+        with torch.enable_grad():
+            z = (self.z if z is None else z).detach().requires_grad_(True)
+            u = self.to_actions(z)
+            r = self.planned_return(self.gradient_rollout(x, u), u, self.targets)
+            (g,) = torch.autograd.grad(r.sum(), z)
+        return r.detach(), g
+
     def _iterate_once(self) -> None:
         """One planning iteration on the device buffers, in place, no host sync: rollout from
         ``_x`` under the plan, reward, its gradient w.r.t. z (the engine's adjoint loop), Adam."""
         b1, b2 = self.settings.betas
         lr = self.settings.lr
-        with torch.enable_grad():
-            z = self.z.detach().requires_grad_(True)
-            u = self.to_actions(z)
-            r = self.task.reward(self.engine.rollout(self._x, u), u, self.targets)
-            (g,) = torch.autograd.grad(-r.sum(), z)
+        r, g = self.return_gradient(self._x)
         with torch.no_grad():
+            g = condition_gradient(-g, self.settings.grad_norm)
             self._r.copy_(r.detach())
             self._t.add_(1)
             self._m.mul_(b1).add_(g, alpha=1 - b1)
@@ -340,6 +389,26 @@ class GradientMPC:
             c2 = (1 - torch.pow(b2, self._t)).to(self.z.dtype)
             step = (self._m / c1) / ((self._v / c2).sqrt() + 1e-8)
             self.z.sub_(lr * step)
+
+    def start_from(self, z: torch.Tensor) -> None:
+        """Make ``z`` [N, H, U] (unconstrained, see ``to_actions``) the working sequence with fresh
+        Adam moments, in place (a caller that proposes its own sequences, e.g. the hybrid planner)."""
+        z = torch.as_tensor(z)
+        if tuple(z.shape) != tuple(self.z.shape):
+            raise PlanningError(f"z must be [N, H, U] = {list(self.z.shape)}, got {list(z.shape)}")
+        self.z.copy_(z)
+        self._m.zero_()
+        self._v.zero_()
+        self._t.zero_()
+
+    def from_actions(self, actions: torch.Tensor, margin: float = 0.99) -> torch.Tensor:
+        """Unconstrained z [..., U] of ``actions`` [..., U] (inverse of ``to_actions``); actions at
+        or beyond a limit are taken ``margin`` of the half width from the middle, where tanh's
+        gradient is still usable."""
+        a = torch.as_tensor(actions).to(self.device, self.dtype)
+        limited = torch.isfinite(self.half)
+        s = ((a - self.mid) / torch.where(limited, self.half, 1.0)).clamp(-margin, margin)
+        return torch.where(limited, torch.atanh(s), a)
 
     def shift(self) -> None:
         """Drop the first step of the plan (and of Adam's moments); repeat the last (in place)."""

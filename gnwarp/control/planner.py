@@ -32,6 +32,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig
+from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.ilqg import ILQG, ILQGSettings
 from gnwarp.control.sampling import RandomPlanner, RandomSettings, SamplingConfig, SamplingPlanner
 
@@ -88,6 +89,7 @@ PLANNERS: dict[str, PlannerEntry] = {
     "mppi": PlannerEntry(SamplingPlanner, SamplingConfig, (("method", "mppi"),)),
     "ilqg": PlannerEntry(ILQG, ILQGSettings),
     "random": PlannerEntry(RandomPlanner, RandomSettings),
+    "hybrid": PlannerEntry(HybridPlanner, HybridConfig),
 }
 
 

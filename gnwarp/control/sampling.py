@@ -23,6 +23,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from gnwarp.control.returns import check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
@@ -30,7 +31,7 @@ from gnwarp.sim.excitation import catmull_rom
 from gnwarp.validation import ConfigError, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
 
 __all__ = ["SamplingConfig", "SamplingPlanner", "RandomSettings", "RandomPlanner", "EnvDynamics", "ModelDynamics",
-           "true_dynamics", "model_dynamics", "spline_basis"]
+           "EnsembleDynamics", "true_dynamics", "model_dynamics", "ensemble_dynamics", "score_rollouts", "spline_basis"]
 
 Reward = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 INTERPOLATIONS = ("zero", "linear", "cubic")
@@ -44,7 +45,9 @@ class SamplingConfig:
     constant, P spans; "linear" / "cubic": P points from the first step to the last);
     noise: standard deviation of the knot noise, relative to half of each actuator's range;
     method: "best" (predictive sampling) or "mppi" (softmax of reward / (temperature x the
-    episode's reward spread)); seed: of the noise."""
+    episode's reward spread)); seed: of the noise; discount: per-step weight of the scored return
+    (``gnwarp.control.returns.planned_return``; 1: the reward as is; a ``terminal`` value is
+    weighted discount^horizon)."""
     horizon: PositiveInt = 20
     samples: PositiveInt = 64
     knots: PositiveInt = 4
@@ -53,6 +56,7 @@ class SamplingConfig:
     method: Literal[METHODS] = "best"
     temperature: PositiveFloat = 0.1
     seed: IntRange(0) = 0
+    discount: FloatRange(gt=0, le=1) = 1.0
 
     def __post_init__(self):
         check_fields(self)   # ConfigError naming the field
@@ -132,6 +136,44 @@ class ModelDynamics:
             return self.rollout_fn(body.to(self.device).repeat_interleave(samples, 0), actions)
 
 
+class EnsembleDynamics:
+    """Several dynamics (e.g. learned models trained from different seeds) as one
+    ``RolloutDynamics`` whose candidates a planner scores pessimistically: each member rolls the
+    candidates out, the planner's score is taken of each member's states, and the candidates are
+    ranked by ``mean - penalty x std`` over the members (``combine``), so that a plan exploiting
+    one model's error is not preferred. ``rollout`` alone returns the members' mean states."""
+
+    def __init__(self, members, penalty: float = 1.0):
+        self.members = list(members)
+        if len(self.members) < 2 or not all(callable(getattr(m, "rollout", None)) for m in self.members):
+            raise ValueError(f"an ensemble needs >= 2 RolloutDynamics members (rollout(obs, actions, samples)), got "
+                             f"{[type(m).__name__ for m in self.members]}")
+        if isinstance(penalty, bool) or not isinstance(penalty, (int, float)) or not np.isfinite(penalty) \
+                or penalty < 0:
+            raise ValueError(f"penalty must be a finite number >= 0, got {penalty!r}")
+        self.penalty = float(penalty)
+        self.device = torch.device(self.members[0].device)
+
+    def rollouts(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        """[S, M, T+1, B, 13]: every member's rollouts of ``actions`` [M, T, U]."""
+        return torch.stack([m.rollout(obs, actions, samples).to(self.device) for m in self.members])
+
+    def rollout(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
+        return self.rollouts(obs, actions, samples).mean(0)
+
+    def combine(self, returns: torch.Tensor) -> torch.Tensor:
+        """[M] ``mean - penalty x std`` over the members of ``returns`` [S, M]."""
+        return returns.mean(0) - self.penalty * returns.std(0, unbiased=False)
+
+
+def score_rollouts(dynamics, obs, actions: torch.Tensor, samples: int, score) -> torch.Tensor:
+    """[M] ``score(states [M, T+1, B, 13]) -> [M]`` of the rollouts of ``actions`` [M, T, U]
+    through ``dynamics``; an ``EnsembleDynamics`` scores each member's and combines them."""
+    if isinstance(dynamics, EnsembleDynamics):
+        return dynamics.combine(torch.stack([score(s) for s in dynamics.rollouts(obs, actions, samples)]))
+    return score(dynamics.rollout(obs, actions, samples))
+
+
 def true_dynamics(system, n_episodes: int, samples: int, backend: str = "auto", device=None,
                   source: Env | None = None, **kw) -> EnvDynamics:
     """``EnvDynamics`` on a fresh env of ``n_episodes * samples`` worlds of ``system``; ``source``:
@@ -149,6 +191,11 @@ def model_dynamics(model, n_episodes: int, samples: int, horizon: int) -> ModelD
                          device=model.device)
 
 
+def ensemble_dynamics(models, n_episodes: int, samples: int, horizon: int, penalty: float = 1.0) -> EnsembleDynamics:
+    """``EnsembleDynamics`` of ``model_dynamics`` of each bound ``Dynamics`` model of ``models``."""
+    return EnsembleDynamics([model_dynamics(m, n_episodes, samples, horizon) for m in models], penalty)
+
+
 # -- planners ---------------------------------------------------------------------------------
 
 class SamplingPlanner:
@@ -157,17 +204,20 @@ class SamplingPlanner:
     ``dynamics``: a ``RolloutDynamics`` (``EnvDynamics``, ``ModelDynamics``); ``reward``: a
     callable of (states [M, T+1, B, 13], actions [M, T, U]) -> [M], higher is better, or a
     ``Task`` (or its name), whose reward gets each candidate its episode's ``targets`` [N, ...];
-    ``ctrlrange`` [U, 2]: where actions are sampled and clamped (an env's ``ctrlrange``).
+    ``ctrlrange`` [U, 2]: where actions are sampled and clamped (an env's ``ctrlrange``);
+    ``terminal``: an optional ``terminal(states_last [M, B, 13]) -> [M]`` added to each
+    candidate's reward (``gnwarp.control.returns.planned_return``).
     ``optimize(obs)`` samples and scores K candidates per episode; ``act(obs, t)`` -> [N, U];
     ``step(obs)`` = both."""
 
     def __init__(self, dynamics, reward: Reward | Task | str, ctrlrange, n_episodes: int,
-                 config: SamplingConfig | None = None, targets=None):
+                 config: SamplingConfig | None = None, targets=None, terminal=None):
         if not isinstance(config, (SamplingConfig, type(None))):
             raise TypeError(f"config must be a SamplingConfig, got {type(config).__name__}")
         self.dynamics = dynamics
         self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
         self.reward = self._task_reward if self.task is not None else reward
+        self.terminal = check_terminal(terminal, dynamics.device)
         self.settings = config or SamplingConfig()
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
@@ -203,6 +253,18 @@ class SamplingPlanner:
             tgt = self.targets.to(states.device).repeat_interleave(states.shape[0] // self.n, 0)
         return self.task.reward(states, actions.to(states.device, states.dtype), tgt)
 
+    def scored(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """[M] the score of rollouts ``states`` [M, T+1, B, 13] under ``actions`` [M, T, U] (rows
+        of episodes x candidates): the reward, discounted per the settings, plus the terminal
+        value."""
+        actions = actions.to(states.device, states.dtype)
+        if self.task is not None:
+            tgt = None
+            if self.targets is not None:
+                tgt = self.targets.to(states.device).repeat_interleave(states.shape[0] // self.n, 0)
+            return planned_return(self.task.reward, states, actions, tgt, self.settings.discount, self.terminal)
+        return planned_return(self.reward, states, actions, None, self.settings.discount, self.terminal)
+
     def actions(self, knots: torch.Tensor) -> torch.Tensor:
         """Action sequences [..., T, U] of knots [..., P, U], inside the range."""
         a = torch.einsum("tp,...pu->...tu", self._at, knots)
@@ -237,8 +299,8 @@ class SamplingPlanner:
         cfg, N, K = self.settings, self.n, self.settings.samples
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
-        states = self.dynamics.rollout(obs, acts, K)
-        r = torch.as_tensor(self.reward(states, acts.to(states.device))).to(self.device, torch.float32).reshape(N, K)
+        r = score_rollouts(self.dynamics, obs, acts, K, lambda states: self.scored(states, acts))
+        r = torch.as_tensor(r).to(self.device, torch.float32).reshape(N, K)
         r = torch.where(torch.isfinite(r), r, torch.full_like(r, -torch.inf))   # a diverged rollout never wins
         if cfg.method == "best":
             chosen = cand[torch.arange(N, device=self.device), r.argmax(1)]

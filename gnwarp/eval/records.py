@@ -32,7 +32,7 @@ __all__ = ["FORMAT", "VERSION", "PLANNERS", "DYNAMICS", "RecordError", "ResultRe
 FORMAT, VERSION = "gnwarp-result", 1
 # planner or agent names a record may carry (the planner registry's names); "none": a record of a
 # model's accuracy, where nothing plans
-PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "none")
+PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "hybrid", "none")
 # what the planner predicts with: a learned model, the true simulator on MuJoCo-Warp or MuJoCo C,
 # or nothing (random actions, model-accuracy records)
 DYNAMICS = ("learned", "true_mjwarp", "true_mujoco_c", "none")
