@@ -48,8 +48,8 @@ __all__ = ["LoopConfig", "run_loop", "LoopStateError", "RESUMABLE", "make_loop_p
 
 log = logging.getLogger("gnwarp.loop")
 
-# what a resumed loop may change (how long it runs and where); every other field must match config.json
-RESUMABLE = ("iterations", "budget_seconds", "progress", "device", "backend")
+# what a resumed loop may change (how long it runs, where, its folder moved); every other field must match config.json
+RESUMABLE = ("out", "iterations", "budget_seconds", "progress", "device", "backend")
 # TrainConfig keys the loop sets itself
 _LOOP_TRAIN_KEYS = ("data", "out", "steps", "resume", "patience", "max_seconds", "progress", "device")
 
@@ -75,11 +75,11 @@ class LoopConfig:
     """
     task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
     out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
-    system: str | None = described(None, "system to control (default: the task's)")
+    system: str | None = described(None, "system to control (unset: the task's)")
     planner: str = described("gradient", "planner name (gnwarp.control.PLANNERS) planning through the model")
     planner_settings: dict = field(default_factory=dict)
     episodes: PositiveInt = described(16, "episodes planned together each iteration")
-    episode_steps: PositiveInt | None = described(None, "control steps per episode (default: the task's episode "
+    episode_steps: PositiveInt | None = described(None, "control steps per episode (unset: the task's episode "
                                                         "length, else seq_len); a multiple of seq_len")
     iterations: Count = described(10, "iterations to finish in all (a resumed loop goes on to this many)")
     train_steps: PositiveInt = described(2000, "training steps each iteration")
@@ -275,7 +275,7 @@ def _copy_checkpoint(src: Path, dst: Path) -> None:
 
 
 def _seed_data(cfg: LoopConfig, system, out: Path):
-    """The seed data: ``data/seed.h5`` when a killed call wrote it, else simulated now (random
+    """The seed data: ``data/seed.h5`` when a killed call wrote it, else simulated here (random
     spline controls, as ``gnwarp generate``) and written."""
     from gnwarp.data.dataset import load
     from gnwarp.data.generation import generate
@@ -312,7 +312,8 @@ def _record(cfg: LoopConfig, task, system, shard, state: LoopState, model_env_st
                "model_env_steps": model_env_steps, "train_steps": state.train_steps, **seconds}
     config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": f"models/{m['model']}",
               "backend": m["backend"], "initial_qpos": m["initial_qpos"], "initial_qvel": m["initial_qvel"],
-              "targets": m["targets"], "loop": {k: v for k, v in cfg.to_dict().items() if k not in ("planner_settings",)}}
+              "targets": m["targets"],
+              "loop": {k: v for k, v in cfg.to_dict().items() if k != "planner_settings"}}
     return ResultRecord(experiment="loop", task=task.name, system=system.name, planner=cfg.planner, dynamics="learned",
                         variant="loop", seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
                         returns=returns, control_dt=float(system.dt), action_repeat=int(system.substeps),

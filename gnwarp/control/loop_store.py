@@ -79,7 +79,8 @@ def read_state(folder) -> LoopState | None:
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise LoopStateError(f"{path} is not a valid state file (not JSON: {e}){fix}") from None
     if not isinstance(d, dict) or d.get("format") != STATE_FORMAT:
-        raise LoopStateError(f"{path} is not a data-loop state file (format {d.get('format') if isinstance(d, dict) else d!r:.60}){fix}")
+        what = d.get("format") if isinstance(d, dict) else type(d).__name__
+        raise LoopStateError(f"{path} is not a data-loop state file (format {what!r:.60}){fix}")
     if d.get("version") != STATE_VERSION:
         raise LoopStateError(f"{path} has state version {d.get('version')!r}; this gnwarp reads {STATE_VERSION}{fix}")
     names = [f.name for f in dataclasses.fields(LoopState)]
@@ -95,7 +96,8 @@ def read_state(folder) -> LoopState | None:
         raise LoopStateError(f"{path}: seconds must be a number, got {d['seconds']!r}{fix}")
     state = LoopState(**{k: d[k] for k in names})
     if len(state.shards) != state.iteration:
-        raise LoopStateError(f"{path}: {state.iteration} iterations finished but {len(state.shards)} shards listed{fix}")
+        raise LoopStateError(f"{path}: {state.iteration} iterations finished but {len(state.shards)} shards "
+                             f"listed{fix}")
     for i, s in enumerate(state.shards, 1):
         if s != shard_path(i).as_posix():
             raise LoopStateError(f"{path}: shard {i} is {s!r}, expected {shard_path(i).as_posix()!r}{fix}")
@@ -143,8 +145,8 @@ def episode_dataset(template: Dataset, body, ctrl, qpos, qvel, seq_len: int, loo
     meta = json.loads(json.dumps(template.meta))
     nq, nv = int(meta["nq"]), int(meta["nv"])
     if qpos.shape[-1] != nq or qvel.shape[-1] != nv or body.shape[2] != template.static["nodes"].shape[1]:
-        raise ValueError(f"episodes of qpos [.., {qpos.shape[-1]}], qvel [.., {qvel.shape[-1]}], {body.shape[2]} bodies "
-                         f"do not fit the seed data's nq {nq}, nv {nv}, {template.static['nodes'].shape[1]} bodies")
+        raise ValueError(f"episodes of qpos [.., {qpos.shape[-1]}], qvel [.., {qvel.shape[-1]}], {body.shape[2]} "
+                         f"bodies do not fit the seed data's nq {nq}, nv {nv}, {template.static['nodes'].shape[1]} bodies")
     sizes = {"train": N * k, "valid": 0, "test": 0}
     meta.update(splits=sizes, num_steps=L, loop=loop_meta)
     for k_ in ("generation_seconds", "simulation_seconds"):
