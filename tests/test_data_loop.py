@@ -101,10 +101,13 @@ def test_a_kill_between_shard_and_training_resumes_without_planning_again(loop, 
     (out / "records.jsonl").write_text("\n".join(recs + [json.dumps(fake)]) + "\n")
     monkeypatch.undo()
     monkeypatch.setattr(data_loop, "_collect", lambda *a, **k: pytest.fail("planned iteration 3 again"))
-    r = run_loop(config(out, 3))
+    r = run_loop(config(out, 9, chunk=1))   # one iteration this call: the one whose shard is there
     recs = read_records(out / "records.jsonl")
-    assert [x.metrics["iteration"] for x in recs] == [1, 2, 3]
+    assert r["stop"] == "chunk" and [x.metrics["iteration"] for x in recs] == [1, 2, 3]
     assert r["env_steps"] == recs[-1].env_steps == SEED_SEQ * SEQ + 3 * EPISODES * STEPS
+    # a budget the last iteration's duration says the next would overrun: no iteration starts
+    r = run_loop(config(out, 9, budget_seconds=recs[-1].metrics["iteration_seconds"] / 2))
+    assert r["stop"] == "budget" and r["iterations"] == 3
 
 
 def test_a_corrupt_or_inconsistent_state_file_is_refused(loop, tmp_path):

@@ -49,7 +49,7 @@ __all__ = ["LoopConfig", "run_loop", "LoopStateError", "RESUMABLE", "make_loop_p
 log = logging.getLogger("gnwarp.loop")
 
 # what a resumed loop may change (how long it runs, where, its folder moved); every other field must match config.json
-RESUMABLE = ("out", "iterations", "budget_seconds", "progress", "device", "backend")
+RESUMABLE = ("out", "iterations", "chunk", "budget_seconds", "progress", "device", "backend")
 # TrainConfig keys the loop sets itself
 _LOOP_TRAIN_KEYS = ("data", "out", "steps", "resume", "patience", "max_seconds", "progress", "device")
 
@@ -70,8 +70,9 @@ class LoopConfig:
     ``error_horizon``: the rollout error's steps. ``train``: ``TrainConfig`` keys (model, batch
     size, learning rate, ...; not those the loop sets: data, out, steps, resume, patience,
     max_seconds, progress, device). ``seed``: of the seed data, initial states, targets and the
-    planner. ``backend``: the true simulator. ``device``: the model's. ``budget_seconds``: start
-    no iteration this call that the last one's duration says would end past it.
+    planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
+    most in one call. ``budget_seconds``: start no iteration in this call that the last one's
+    duration says would end past it (the seed data and its training are not budgeted).
     """
     task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
     out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
@@ -94,6 +95,7 @@ class LoopConfig:
     backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
         "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")
     device: Literal["auto", "cpu", "cuda"] = described("auto", "the model's device")
+    chunk: PositiveInt | None = described(None, "iterations at most in this call (unset: up to iterations)")
     budget_seconds: PositiveFloat | None = described(None, "stop before an iteration expected to end past this many "
                                                            "seconds of this call")
     progress: Flag = described(True, "progress bars")
@@ -324,7 +326,7 @@ def _record(cfg: LoopConfig, task, system, shard, state: LoopState, model_env_st
 def run_loop(config: LoopConfig) -> dict:
     """Run (or resume) the data loop in ``config.out`` until ``config.iterations`` iterations are
     finished or the time budget is spent. Returns {"iterations": finished, "env_steps",
-    "train_steps", "records": path, "stop": "iterations" | "budget", "seconds": this call's}."""
+    "train_steps", "records": path, "stop": "iterations" | "chunk" | "budget", "seconds": this call's}."""
     from tqdm.auto import tqdm
 
     from gnwarp.control.tasks import get_task
@@ -355,9 +357,12 @@ def run_loop(config: LoopConfig) -> dict:
                              "restore the state file or the data files")
     bar = tqdm(total=cfg.iterations, initial=min(state.iteration, cfg.iterations), desc=f"loop {task.name}",
                unit="it", disable=not cfg.progress, dynamic_ncols=True, position=0)
-    stop = "iterations"
+    stop, first = "iterations", state.iteration
     while state.iteration < cfg.iterations:
         spent = time.perf_counter() - t_call
+        if cfg.chunk is not None and state.iteration - first >= cfg.chunk:
+            stop = "chunk"
+            break
         if cfg.budget_seconds is not None and spent + (state.last_seconds or 0.0) > cfg.budget_seconds:
             stop = "budget"
             break

@@ -108,6 +108,9 @@ def loop_config(args) -> LoopConfig:
 def loop_command(args) -> int:
     """Run ``gnwarp loop``; prints where it stopped and writes the plot."""
     cfg = loop_config(args)
+    if not args.quiet:   # a line per iteration (returns, env steps, errors)
+        import logging
+        logging.basicConfig(level=logging.INFO, format="%(message)s")
     r = run_loop(cfg)
     line = (f"{r['iterations']} of {cfg.iterations} iterations finished ({r['stop']}), {r['env_steps']} env steps, "
             f"{r['train_steps']} training steps, {r['seconds']:.1f} s this call; records in {r['records']}")
@@ -115,6 +118,7 @@ def loop_command(args) -> int:
     if not args.no_plot and r["iterations"] > 0:
         from gnwarp.control.loop_plots import plot_loop
         print(f"wrote {plot_loop(r['records'], Path(cfg.out) / 'loop.png')}")
-    if r["stop"] == "budget":
-        print(f"the time budget stopped it: run again to go on ({', '.join(RESUMABLE)} may change)")
+    if r["stop"] in ("budget", "chunk"):
+        print(f"stopped by --{'budget-seconds' if r['stop'] == 'budget' else 'chunk'}: run again to go on "
+              f"({', '.join(RESUMABLE)} may change)")
     return 0
