@@ -172,3 +172,33 @@ def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys):
     assert "2 of 2 iterations finished" in text and (out / "loop.png").stat().st_size > 0
     assert main(["loop", "-o", str(out), "--task", "acrobot-swingup", "-q"]) == 2
     assert "holds a loop of another config" in capsys.readouterr().err
+
+
+def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):
+    """A task with ``initial`` and ``episode_steps`` (the DMC tasks' fields, read with getattr):
+    episodes start where ``initial`` puts them and last ``episode_steps`` steps."""
+    import dataclasses
+    from typing import Callable
+
+    from gnwarp.control.tasks import TASKS, Task
+
+    @dataclasses.dataclass(frozen=True)
+    class Timed(Task):
+        initial: Callable | None = None
+        episode_steps: int | None = None
+    calls = []
+
+    def initial(system, n, rng):
+        calls.append(n)
+        return np.tile([0.3], (n, 1)) + rng.uniform(-0.01, 0.01, (n, 1)), np.zeros((n, 1))
+    base = TASKS["pendulum-balance"]
+    monkeypatch.setitem(TASKS, "pendulum-timed", Timed("pendulum-timed", "pendulum", 4, base.reward,
+                                                       initial=initial, episode_steps=2 * SEQ))
+    out = tmp_path / "run"
+    run_loop(config(out, 1, task="pendulum-timed", episode_steps=None, planner="random", planner_settings={}))
+    (rec,) = read_records(out / "records.jsonl")
+    assert calls == [EPISODES] and rec.episode_steps == 2 * SEQ and rec.task == "pendulum-timed"
+    assert np.allclose(np.asarray(rec.config["initial_qpos"]), 0.3, atol=0.011)
+    shard = load(out / "data/iter-0001.h5", lazy=False)
+    assert np.allclose(shard["train"].qpos[::2, 0], np.asarray(rec.config["initial_qpos"]), atol=1e-6)
+    assert rec.env_steps == SEED_SEQ * SEQ + EPISODES * 2 * SEQ
