@@ -164,7 +164,7 @@ def test_config_refusals(loop, tmp_path):
         run_loop(config(loop[0], 2, task="acrobot-swingup"))
 
 
-def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys):
+def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys, tmp_path):
     from gnwarp.cli import main
     out = loop[0]
     assert main(["loop", "-o", str(out), "--iterations", "2", "-q"]) == 0
@@ -172,6 +172,9 @@ def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys):
     assert "2 of 2 iterations finished" in text and (out / "loop.png").stat().st_size > 0
     assert main(["loop", "-o", str(out), "--task", "acrobot-swingup", "-q"]) == 2
     assert "holds a loop of another config" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")
+    assert main(["loop", "-o", str(tmp_path / "file" / "run"), "-q"]) == 2   # refused before any work
+    assert "gnwarp loop: error:" in capsys.readouterr().err and sorted(tmp_path.iterdir()) == [tmp_path / "file"]
 
 
 def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):

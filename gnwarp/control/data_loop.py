@@ -332,13 +332,14 @@ def run_loop(config: LoopConfig) -> dict:
     from gnwarp.control.tasks import get_task
     from gnwarp.data.dataset import load
     from gnwarp.eval.records import write_records
+    from gnwarp.files import check_output_path
     cfg = config
     t_call = time.perf_counter()
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_path(cfg.out, folder=True)
     task = get_task(cfg.task)
     system = loop_system(cfg, task)
     steps = cfg.episode_length(task)
+    out.mkdir(parents=True, exist_ok=True)
     _check_folder_config(out, cfg)
     state = read_state(out)
     records = out / RECORDS_FILE

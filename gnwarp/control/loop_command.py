@@ -38,7 +38,8 @@ def add_loop_arguments(parser) -> None:
     parser.add_argument("-o", "--out", help="the loop folder (default: runs/loop); resumed where it holds a loop")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="set a config key, nested keys dotted (planner_settings.iterations=10, "
-                             "train.model.gn.latent=64); values parsed as JSON when they parse (repeatable)")
+                             "train.model.gn.latent=64); values parsed as JSON when they parse (repeatable; "
+                             "default: none)")
     add_config_flags(parser, LoopConfig, _FLAGGED)
     parser.add_argument("--no-plot", action="store_true", help="do not write <out>/loop.png")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
