@@ -198,9 +198,15 @@ def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):
     monkeypatch.setitem(TASKS, "pendulum-timed", Timed("pendulum-timed", "pendulum", 4, base.reward,
                                                        initial=initial, episode_steps=2 * SEQ))
     out = tmp_path / "run"
-    run_loop(config(out, 1, task="pendulum-timed", episode_steps=None, planner="random", planner_settings={}))
-    (rec,) = read_records(out / "records.jsonl")
-    assert calls == [EPISODES] and rec.episode_steps == 2 * SEQ and rec.task == "pendulum-timed"
+    run_loop(config(out, 1, task="pendulum-timed", episode_steps=None, planner="random", planner_settings={},
+                    eval_episodes=3))
+    rec, ev = read_records(out / "records.jsonl")
+    assert calls == [EPISODES, 3] and rec.episode_steps == 2 * SEQ and rec.task == "pendulum-timed"
+    # the evaluation episodes: a record of their own, their data neither stored nor counted
+    assert (rec.variant, ev.variant, ev.episodes, ev.metrics["iteration"]) == ("loop", "loop-eval", 3, 1)
+    assert ev.env_steps == ev.metrics["model_env_steps"] == rec.env_steps == read_state(out).env_steps
+    assert ev.config["model"] == "models/iter-0002" and (out / "models/iter-0002/model.pt").is_file()
+    assert ev.config["initial_qpos"] != rec.config["initial_qpos"][:3]
     assert np.allclose(np.asarray(rec.config["initial_qpos"]), 0.3, atol=0.011)
     shard = load(out / "data/iter-0001.h5", lazy=False)
     assert np.allclose(shard["train"].qpos[::2, 0], np.asarray(rec.config["initial_qpos"]), atol=1e-6)

@@ -66,7 +66,9 @@ class LoopConfig:
     training steps each iteration; ``initial_train_steps``: on the seed data before the first.
     ``seed_sequences`` / ``seed_valid``: random spline sequences of the seed data's train and
     valid splits; ``seq_len``: steps of a stored sequence (the seed data's and every shard's).
-    ``eval_sequences``: sequences the errors are measured on (new data and trained data each);
+    ``eval_episodes``: episodes planned with the model each iteration's training gives, their
+    returns a record of their own (variant "loop-eval"), their data kept out of the dataset and
+    of the env steps. ``eval_sequences``: sequences the errors are measured on (new data and trained data each);
     ``error_horizon``: the rollout error's steps. ``train``: ``TrainConfig`` keys (model, batch
     size, learning rate, ...; not those the loop sets: data, out, steps, resume, patience,
     max_seconds, progress, device). ``seed``: of the seed data, initial states, targets and the
@@ -88,6 +90,8 @@ class LoopConfig:
     seed_sequences: PositiveInt = described(200, "random spline sequences of the seed data's train split")
     seed_valid: Count = described(20, "random spline sequences of the seed data's valid split (validation only)")
     seq_len: PositiveInt = described(100, "steps of every stored sequence (seed data and shards)")
+    eval_episodes: Count = described(0, "evaluation episodes after each iteration's training (not added to the "
+                                        "data, not counted as env steps; 0: none)")
     eval_sequences: PositiveInt = described(32, "sequences the one-step and rollout errors are measured on")
     error_horizon: PositiveInt = described(20, "steps of the rollout error")
     train: dict = field(default_factory=dict)
@@ -179,9 +183,9 @@ def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
     write_json(path, mine)
 
 
-def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, iteration: int):
-    """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, its seed moved on by the
-    iteration. "gradient": ``GradientMPC``; "sampling" / "mppi": ``SamplingPlanner`` on
+def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0):
+    """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, ``seed`` added to its
+    settings' seed. "gradient": ``GradientMPC``; "sampling" / "mppi": ``SamplingPlanner`` on
     ``model_dynamics``; "random": ``RandomPlanner``. Any other registered planner class is built
     with its ``for_model(model, task, system, n, settings, targets)`` where it has one, else as
     ``cls(model, task, system, n, settings, targets)`` (GradientMPC's signature)."""
@@ -190,7 +194,7 @@ def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env
     entry = get_planner(cfg.planner)
     fields = dict(cfg.planner_settings)
     if "seed" in {f.name for f in dataclasses.fields(entry.settings)}:
-        fields["seed"] = int(fields.get("seed", 0)) + 100_003 * cfg.seed + iteration
+        fields["seed"] = int(fields.get("seed", 0)) + int(seed)
     settings = entry.make_settings(**fields)
     if cfg.planner == "random":
         return RandomPlanner(env.actuators, n, seed=settings.seed)
@@ -214,11 +218,11 @@ def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
             "sequences": int(len(idx)), "finite": bool(r["finite"])}
 
 
-def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration: int, steps: int, bar) -> tuple:
-    """Plan ``cfg.episodes`` episodes of ``steps`` steps with the checkpoint ``model_path`` on
-    the true simulator; measure the model's errors on them and on ``trained`` (the training
-    data). Returns the episodes as a shard ``Dataset`` (its meta["loop"]: returns, errors,
-    initial states, targets, seconds)."""
+def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
+    """``n`` episodes of ``steps`` steps planned through the checkpoint ``model_path`` on the
+    true simulator, their initial states, targets and planner seeded by ``key``. Returns
+    (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta: returns,
+    initial states, targets, seconds, backend; the model)."""
     import torch
 
     from gnwarp.control.episodes import run_episodes
@@ -226,14 +230,14 @@ def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration
     from gnwarp.data.generation import initial_states
     from gnwarp.sim.env import make_env
     from gnwarp.train.checkpoint import load_model
-    n = cfg.episodes
-    rng = np.random.default_rng([cfg.seed, iteration])
+    rng = np.random.default_rng([cfg.seed, *key])
     init = getattr(task, "initial", None)
     qpos0, qvel0 = init(system, n, rng) if init is not None else initial_states(system, n, rng)
-    targets = sample_targets(task, system, n, seed=100_003 * cfg.seed + iteration)
+    stream = int(np.random.default_rng([cfg.seed, *key]).integers(1 << 31))   # targets' and planner's seeds
+    targets = sample_targets(task, system, n, seed=stream)
     model = load_model(model_path, device=None if cfg.device == "auto" else cfg.device)
     env = make_env(system, n, backend=cfg.backend)
-    planner = make_loop_planner(cfg, model, task, system, n, targets, env, iteration)
+    planner = make_loop_planner(cfg, model, task, system, n, targets, env, stream)
     x0 = env.reset(qpos0, qvel0)
     qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
 
@@ -243,16 +247,23 @@ def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration
         bar.update(1)
     t0 = time.perf_counter()
     out = run_episodes(planner, env, task, steps, x0, target=targets, progress=progress)
-    plan_seconds = time.perf_counter() - t0
+    meta = {"returns": [float(x) for x in out["returns"].double()], "episode_steps": steps,
+            "plan_seconds": time.perf_counter() - t0, "initial_qpos": np.asarray(qpos0, np.float64).tolist(),
+            "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
+            "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
+            "backend": env.backend, "model": f"models/{model_path.name}"}
     env.close()
-    loop_meta = {"iteration": iteration, "returns": [float(x) for x in out["returns"].double()],
-                 "model": str(model_path.name), "planner": cfg.planner, "episode_steps": steps,
-                 "plan_seconds": plan_seconds, "initial_qpos": np.asarray(qpos0, np.float64).tolist(),
-                 "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
-                 "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
-                 "backend": env.backend}
-    shard = episode_dataset(trained, out["states"].numpy(), out["actions"].numpy(), np.stack(qs, 1),
-                            np.stack(vs, 1), cfg.seq_len, loop_meta)
+    return out, np.stack(qs, 1), np.stack(vs, 1), meta, model
+
+
+def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration: int, steps: int, bar):
+    """Plan ``cfg.episodes`` episodes of ``steps`` steps with the checkpoint ``model_path`` on
+    the true simulator; measure the model's errors on them and on ``trained`` (the training
+    data). Returns the episodes as a shard ``Dataset`` (its meta["loop"]: returns, errors,
+    initial states, targets, seconds)."""
+    out, qpos, qvel, meta, model = _episodes(cfg, task, system, model_path, cfg.episodes, steps, [iteration], bar)
+    loop_meta = {"iteration": iteration, "planner": cfg.planner, **meta}
+    shard = episode_dataset(trained, out["states"].numpy(), out["actions"].numpy(), qpos, qvel, cfg.seq_len, loop_meta)
     t1 = time.perf_counter()
     ev_rng = np.random.default_rng([cfg.seed, iteration, 1])
     loop_meta["errors"] = {"new": _errors(model, shard, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng),
@@ -306,18 +317,22 @@ def _trim_records(path: Path, iterations: int) -> None:
         write_records(path, keep, append=False)
 
 
-def _record(cfg: LoopConfig, task, system, shard, state: LoopState, model_env_steps: int, seconds: dict):
+def _record(cfg: LoopConfig, task, system, m: dict, state: LoopState, model_env_steps: int, seconds: dict,
+            variant: str = "loop"):
+    """The results record of an iteration's episodes (``m``: their meta: returns, initial states,
+    ...; "loop": the data episodes, "loop-eval": the evaluation episodes)."""
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name
-    m = shard.meta["loop"]
     returns = m["returns"]
-    metrics = {"iteration": m["iteration"], "mean_return": float(np.mean(returns)), "errors": m["errors"],
+    metrics = {"iteration": m["iteration"], "mean_return": float(np.mean(returns)), "errors": m.get("errors"),
                "model_env_steps": model_env_steps, "train_steps": state.train_steps, **seconds}
-    config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": f"models/{m['model']}",
+    if m.get("errors") is None:
+        del metrics["errors"]
+    config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": m["model"],
               "backend": m["backend"], "initial_qpos": m["initial_qpos"], "initial_qvel": m["initial_qvel"],
               "targets": m["targets"],
               "loop": {k: v for k, v in cfg.to_dict().items() if k != "planner_settings"}}
     return ResultRecord(experiment="loop", task=task.name, system=system.name, planner=cfg.planner, dynamics="learned",
-                        variant="loop", seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
+                        variant=variant, seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
                         returns=returns, control_dt=float(system.dt), action_repeat=int(system.substeps),
                         env_steps=state.env_steps, metrics=metrics, config=config, commit=git_commit(),
                         gpu=gpu_name(), date=time.strftime("%Y-%m-%d %H:%M:%S"))
@@ -388,13 +403,26 @@ def run_loop(config: LoopConfig) -> dict:
         model_env_steps = state.env_steps
         r = _train(cfg, concat_train(seed, shards + [shard]), state.train_steps + cfg.train_steps)
         shards.append(shard)
-        seconds = {"iteration_seconds": time.perf_counter() - t0, "plan_seconds": plan_s, "eval_seconds": eval_s,
-                   "train_seconds": time.perf_counter() - t1}
+        seconds = {"plan_seconds": plan_s, "eval_seconds": eval_s, "train_seconds": time.perf_counter() - t1}
+        # the model the next iteration plans with, and the evaluation episodes' (after a kill, the same weights)
+        next_model = out / "models" / f"iter-{i + 1:04d}"
+        _copy_checkpoint(out / "model" / "last", next_model)
+        evaluation = None
+        if cfg.eval_episodes:
+            t2 = time.perf_counter()
+            ebar = tqdm(total=steps, desc=f"evaluation {i}", unit="step", disable=not cfg.progress, leave=False,
+                        dynamic_ncols=True, position=1)
+            evaluation = _episodes(cfg, task, system, next_model, cfg.eval_episodes, steps, [i, 2], ebar)[3]
+            ebar.close()
+            seconds["evaluation_seconds"] = time.perf_counter() - t2
+        seconds["iteration_seconds"] = time.perf_counter() - t0
         new = LoopState(iteration=i, env_steps=state.env_steps + train_env_steps(shard), train_steps=int(r["steps"]),
                         shards=state.shards + [shard_path(i).as_posix()],
                         seconds=state.seconds + seconds["iteration_seconds"], last_seconds=seconds["iteration_seconds"])
-        rec = _record(cfg, task, system, shard, new, model_env_steps, seconds)
-        write_records(records, [rec])   # then the state: a record past the state is dropped on resume
+        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds)
+        recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
+                                 "loop-eval")] if evaluation is not None else [])
+        write_records(records, recs)   # then the state: a record past the state is dropped on resume
         write_state(out, new)
         state = new
         bar.update(1)

@@ -16,13 +16,16 @@ __all__ = ["loop_curves", "plot_loop"]
 
 def loop_curves(records) -> dict:
     """{"iteration" [K], "env_steps" [K], "model_env_steps" [K], "mean" [K], "returns" (K lists),
-    "errors": {"new" | "trained": {"one_step" [K], "rollout" [K]}}} from a loop's records (a list
-    of ``ResultRecord`` or a records file / loop folder), ordered by iteration."""
+    "errors": {"new" | "trained": {"one_step" [K], "rollout" [K]}}, and of the evaluation
+    episodes where the loop ran them: "eval_env_steps" [K'], "eval_mean" [K']} from a loop's
+    records (a list of ``ResultRecord`` or a records file / loop folder), ordered by iteration."""
     from gnwarp.eval.records import read_records
     if isinstance(records, (str, Path)):
         p = Path(records)
         records = read_records(p / RECORDS_FILE if p.is_dir() else p)
-    recs = sorted((r for r in records if r.experiment == "loop"), key=lambda r: r.metrics["iteration"])
+    records = [r for r in records if r.experiment == "loop"]
+    recs = sorted((r for r in records if r.variant == "loop"), key=lambda r: r.metrics["iteration"])
+    evals = sorted((r for r in records if r.variant == "loop-eval"), key=lambda r: r.metrics["iteration"])
     if not recs:
         raise ValueError("no data-loop records to plot")
 
@@ -36,6 +39,8 @@ def loop_curves(records) -> dict:
             "returns": [r.values for r in recs],
             "errors": {w: {k: np.array([err(r, w, k) for r in recs]) for k in ("one_step", "rollout")}
                        for w in ("new", "trained")},
+            "eval_env_steps": np.array([r.env_steps for r in evals]),
+            "eval_mean": np.array([np.nanmean(r.values) for r in evals]),
             "task": recs[0].task, "planner": recs[0].planner}
 
 
@@ -50,7 +55,9 @@ def plot_loop(records, path, dpi: int = 120) -> Path:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for x, rets in zip(c["env_steps"], c["returns"]):
         a.scatter(np.full(len(rets), x), rets, s=6, color="tab:blue", alpha=0.35)
-    a.plot(c["env_steps"], c["mean"], "-o", color="tab:blue", ms=3, label="mean return")
+    a.plot(c["env_steps"], c["mean"], "-o", color="tab:blue", ms=3, label="mean return (data episodes)")
+    if len(c["eval_mean"]):
+        a.plot(c["eval_env_steps"], c["eval_mean"], "-s", color="tab:green", ms=3, label="mean return (evaluation)")
     a.set_xlabel("env steps trained on")
     a.set_ylabel("return")
     a.set_title(f"{c['task']}: {c['planner']} through the learned model")

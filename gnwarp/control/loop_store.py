@@ -146,7 +146,8 @@ def episode_dataset(template: Dataset, body, ctrl, qpos, qvel, seq_len: int, loo
     nq, nv = int(meta["nq"]), int(meta["nv"])
     if qpos.shape[-1] != nq or qvel.shape[-1] != nv or body.shape[2] != template.static["nodes"].shape[1]:
         raise ValueError(f"episodes of qpos [.., {qpos.shape[-1]}], qvel [.., {qvel.shape[-1]}], {body.shape[2]} "
-                         f"bodies do not fit the seed data's nq {nq}, nv {nv}, {template.static['nodes'].shape[1]} bodies")
+                         f"bodies do not fit the seed data's nq {nq}, nv {nv}, "
+                         f"{template.static['nodes'].shape[1]} bodies")
     sizes = {"train": N * k, "valid": 0, "test": 0}
     meta.update(splits=sizes, num_steps=L, loop=loop_meta)
     for k_ in ("generation_seconds", "simulation_seconds"):
