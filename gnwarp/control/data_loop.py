@@ -68,8 +68,9 @@ class LoopConfig:
     valid splits; ``seq_len``: steps of a stored sequence (the seed data's and every shard's).
     ``eval_episodes``: episodes planned with the model each iteration's training gives, their
     returns a record of their own (variant "loop-eval"), their data kept out of the dataset and
-    of the env steps. ``eval_sequences``: sequences the errors are measured on (new data and trained data each);
-    ``error_horizon``: the rollout error's steps. ``train``: ``TrainConfig`` keys (model, batch
+    of the env steps, every ``eval_every`` iterations and at the last. ``eval_sequences``:
+    sequences the errors are measured on (new data and trained data each); ``error_horizon``: the
+    rollout error's steps. ``train``: ``TrainConfig`` keys (model, batch
     size, learning rate, ...; not those the loop sets: data, out, steps, resume, patience,
     max_seconds, progress, device). ``seed``: of the seed data, initial states, targets and the
     planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
@@ -92,6 +93,7 @@ class LoopConfig:
     seq_len: PositiveInt = described(100, "steps of every stored sequence (seed data and shards)")
     eval_episodes: Count = described(0, "evaluation episodes after each iteration's training (not added to the "
                                         "data, not counted as env steps; 0: none)")
+    eval_every: PositiveInt = described(1, "evaluation episodes every this many iterations (and at the last)")
     eval_sequences: PositiveInt = described(32, "sequences the one-step and rollout errors are measured on")
     error_horizon: PositiveInt = described(20, "steps of the rollout error")
     train: dict = field(default_factory=dict)
@@ -274,8 +276,14 @@ def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration
 
 def _train(cfg: LoopConfig, data, steps: int) -> dict:
     """Train (resuming ``<out>/model/last``) on ``data`` until ``steps`` total steps."""
+    import gc
+
     from gnwarp.train.trainer import Trainer
-    return Trainer(cfg.train_config(steps), datasets=[data]).run()
+    trainer = Trainer(cfg.train_config(steps), datasets=[data])
+    r = trainer.run()
+    del trainer   # its device copy of the data and its captured graphs go before the next iteration's
+    gc.collect()
+    return r
 
 
 def _copy_checkpoint(src: Path, dst: Path) -> None:
@@ -408,7 +416,7 @@ def run_loop(config: LoopConfig) -> dict:
         next_model = out / "models" / f"iter-{i + 1:04d}"
         _copy_checkpoint(out / "model" / "last", next_model)
         evaluation = None
-        if cfg.eval_episodes:
+        if cfg.eval_episodes and (i % cfg.eval_every == 0 or i == cfg.iterations):
             t2 = time.perf_counter()
             ebar = tqdm(total=steps, desc=f"evaluation {i}", unit="step", disable=not cfg.progress, leave=False,
                         dynamic_ncols=True, position=1)

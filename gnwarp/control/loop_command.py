@@ -42,7 +42,8 @@ def add_loop_arguments(parser) -> None:
                              "default: none)")
     add_config_flags(parser, LoopConfig, _FLAGGED)
     parser.add_argument("--no-plot", action="store_true", help="do not write <out>/loop.png")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bars (a line per iteration stays)")
     parser.set_defaults(func=loop_command)
 
 
@@ -109,9 +110,8 @@ def loop_config(args) -> LoopConfig:
 def loop_command(args) -> int:
     """Run ``gnwarp loop``; prints where it stopped and writes the plot."""
     cfg = loop_config(args)
-    if not args.quiet:   # a line per iteration (returns, env steps, errors)
-        import logging
-        logging.basicConfig(level=logging.INFO, format="%(message)s")
+    import logging
+    logging.basicConfig(level=logging.INFO, format="%(message)s")   # a line per iteration, also with -q
     r = run_loop(cfg)
     line = (f"{r['iterations']} of {cfg.iterations} iterations finished ({r['stop']}), {r['env_steps']} env steps, "
             f"{r['train_steps']} training steps, {r['seconds']:.1f} s this call; records in {r['records']}")
