@@ -177,6 +177,9 @@ def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
             saved = json.loads(path.read_text())
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise LoopStateError(f"{path} is not valid JSON ({e}); restore it or choose another out") from None
+        # a key the folder's config lacks (written before the key existed) holds its default
+        defaults = json.loads(json.dumps(LoopConfig(task=cfg.task).to_dict()))
+        saved = {**defaults, **saved}
         diff = [k for k in sorted(set(mine) | set(saved)) if k not in RESUMABLE and mine.get(k) != saved.get(k)]
         if diff:
             shown = "; ".join(f"{k}: {saved.get(k)!r} in the folder, {mine.get(k)!r} asked" for k in diff[:4])
