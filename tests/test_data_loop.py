@@ -63,6 +63,10 @@ def test_an_iteration_grows_the_dataset_and_writes_its_record(loop):
     assert rec.experiment == "loop" and rec.config["protocol"] == "loop" and rec.planner == "gradient"
     assert len(rec.config["initial_qpos"]) == EPISODES
     assert one["state"].train_steps == INITIAL + PER_ITER
+    # a checkpoint's own count (what gnwarp mpc records as env_steps) agrees
+    from gnwarp.train.checkpoint import training_env_steps
+    assert training_env_steps(out / "models/iter-0001") == seed_steps
+    assert training_env_steps(out / "models/iter-0002") == rec.env_steps
     for which in ("new", "trained"):
         assert np.isfinite(rec.metrics["errors"][which]["one_step"])
 
