@@ -670,6 +670,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                         "(MuJoCo where it renders, else matplotlib)")
     m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=_cmd_mpc)
+    lp = sub.add_parser("loop", help="the data loop: plan on the true simulator, add the data, train on, repeat")
+    if command in (None, "loop"):   # its flags are LoopConfig's, whose module loads torch
+        from gnwarp.control.loop_command import add_loop_arguments
+        add_loop_arguments(lp)
     for name, action in sub.choices.items():  # every command: its defaults shown, a description
         action.formatter_class = _Help
         action.description = action.description or next(a.help for a in sub._choices_actions if a.dest == name)

@@ -1,0 +1,446 @@
+"""The data loop (as PETS, MBPO and TD-MPC run it): plan with the learned model in closed loop on
+the true simulator, add the visited transitions to the dataset, train on, plan again.
+
+``run_loop(LoopConfig(task=..., out=...))`` works in a folder (``gnwarp.control.loop_store``
+describes it) and resumes there. First (iteration 0) it simulates random spline episodes as
+``gnwarp generate`` does (the seed data) and trains a model on them for ``initial_train_steps``.
+Then each iteration i:
+
+1. copies the training run's last checkpoint to ``models/iter-<i>`` and plans with it: N episodes
+   of E steps batched on the true simulator (``run_episodes`` on ``gnwarp.sim.make_env``), from
+   the task's own random initial states (``task.initial`` where the task has it) or the
+   generator's (``gnwarp.data.initial_states``);
+2. measures, before any training on them, the model's one-step and rollout errors on the states
+   the episodes visited, beside the same errors on the data it has trained on (the paper's
+   Figure H.1; ``gnwarp.eval.metrics.evaluate``);
+3. writes the transitions as the shard ``data/iter-<i>.h5`` (a valid dataset: ``gnwarp check``),
+   with the returns and errors in its meta["loop"];
+4. trains ``train_steps`` more steps from the last checkpoint on the seed data and every shard
+   (``Trainer`` resuming ``model/last``);
+5. appends a results record (``records.jsonl``) and writes ``state.json``.
+
+Env steps (a record's ``env_steps``) are the control steps whose data trained the weights: the
+seed data's train split and every shard, counted when they have been trained on (the seed data's
+valid split, read for validation only, is not counted). A kill at any point resumes at the last
+finished step: a shard written is kept (planning is not redone), training resumes from its last
+checkpoint, a record written for an unfinished iteration is replaced.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from gnwarp.control.loop_store import (CONFIG_FILE, RECORDS_FILE, SEED_DATA, LoopState, LoopStateError, concat_train,
+                                       episode_dataset, read_state, shard_path, subset, train_env_steps, write_json,
+                                       write_state)
+from gnwarp.validation import (ConfigError, Count, Flag, PositiveFloat, PositiveInt, check_fields, check_keys,
+                               described)
+
+__all__ = ["LoopConfig", "run_loop", "LoopStateError", "RESUMABLE", "make_loop_planner", "loop_system"]
+
+log = logging.getLogger("gnwarp.loop")
+
+# what a resumed loop may change (how long it runs, where, its folder moved); every other field must match config.json
+RESUMABLE = ("out", "iterations", "chunk", "budget_seconds", "progress", "device", "backend")
+# TrainConfig keys the loop sets itself
+_LOOP_TRAIN_KEYS = ("data", "out", "steps", "resume", "patience", "max_seconds", "progress", "device")
+
+
+@dataclass
+class LoopConfig:
+    """A data loop. ``task``: a task name (``gnwarp.control.TASKS``). ``out``: the loop folder.
+    ``system``: the system controlled (None: the task's). ``planner``: a name of
+    ``gnwarp.control.PLANNERS`` planning through the learned model; ``planner_settings``: its
+    settings' fields (e.g. {"iterations": 10, "horizon": 30}). ``episodes``: episodes planned
+    together each iteration. ``episode_steps``: control steps an episode (None: the task's
+    ``episode_steps`` where it has one, else ``seq_len``); a multiple of ``seq_len``.
+    ``iterations``: iterations to finish in all (a resumed loop goes on to it). ``train_steps``:
+    training steps each iteration; ``initial_train_steps``: on the seed data before the first.
+    ``seed_sequences`` / ``seed_valid``: random spline sequences of the seed data's train and
+    valid splits; ``seq_len``: steps of a stored sequence (the seed data's and every shard's).
+    ``eval_episodes``: episodes planned with the model each iteration's training gives, their
+    returns a record of their own (variant "loop-eval"), their data kept out of the dataset and
+    of the env steps, every ``eval_every`` iterations and at the last. ``eval_sequences``:
+    sequences the errors are measured on (new data and trained data each); ``error_horizon``: the
+    rollout error's steps. ``train``: ``TrainConfig`` keys (model, batch
+    size, learning rate, ...; not those the loop sets: data, out, steps, resume, patience,
+    max_seconds, progress, device). ``seed``: of the seed data, initial states, targets and the
+    planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
+    most in one call. ``budget_seconds``: start no iteration in this call that the last one's
+    duration says would end past it (the seed data and its training are not budgeted).
+    """
+    task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
+    out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
+    system: str | None = described(None, "system to control (unset: the task's)")
+    planner: str = described("gradient", "planner name (gnwarp.control.PLANNERS) planning through the model")
+    planner_settings: dict = field(default_factory=dict)
+    episodes: PositiveInt = described(16, "episodes planned together each iteration")
+    episode_steps: PositiveInt | None = described(None, "control steps per episode (unset: the task's episode "
+                                                        "length, else seq_len); a multiple of seq_len")
+    iterations: Count = described(10, "iterations to finish in all (a resumed loop goes on to this many)")
+    train_steps: PositiveInt = described(2000, "training steps each iteration")
+    initial_train_steps: PositiveInt = described(10000, "training steps on the seed data before the first iteration")
+    seed_sequences: PositiveInt = described(200, "random spline sequences of the seed data's train split")
+    seed_valid: Count = described(20, "random spline sequences of the seed data's valid split (validation only)")
+    seq_len: PositiveInt = described(100, "steps of every stored sequence (seed data and shards)")
+    eval_episodes: Count = described(0, "evaluation episodes after each iteration's training (not added to the "
+                                        "data, not counted as env steps; 0: none)")
+    eval_every: PositiveInt = described(1, "evaluation episodes every this many iterations (and at the last)")
+    eval_sequences: PositiveInt = described(32, "sequences the one-step and rollout errors are measured on")
+    error_horizon: PositiveInt = described(20, "steps of the rollout error")
+    train: dict = field(default_factory=dict)
+    seed: Count = described(0, "seed of the seed data, initial states, targets and planner")
+    backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
+        "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")
+    device: Literal["auto", "cpu", "cuda"] = described("auto", "the model's device")
+    chunk: PositiveInt | None = described(None, "iterations at most in this call (unset: up to iterations)")
+    budget_seconds: PositiveFloat | None = described(None, "stop before an iteration expected to end past this many "
+                                                           "seconds of this call")
+    progress: Flag = described(True, "progress bars")
+
+    def __post_init__(self):
+        check_fields(self)
+        for name in ("planner_settings", "train"):
+            if not all(isinstance(k, str) for k in getattr(self, name)):
+                raise ConfigError(name, "must be a table with string keys")
+        given = sorted(set(self.train) & set(_LOOP_TRAIN_KEYS))
+        if given:
+            raise ConfigError(f"train.{given[0]}", f"is set by the loop itself (it sets {', '.join(_LOOP_TRAIN_KEYS)})")
+        if self.episode_steps is not None and self.episode_steps % self.seq_len:
+            raise ConfigError("episode_steps", f"must be a multiple of seq_len ({self.seq_len}): episodes are stored "
+                                               f"as sequences of seq_len steps, got {self.episode_steps}")
+        from gnwarp.control.planner import get_planner
+        try:
+            entry = get_planner(self.planner)
+        except ValueError as e:
+            raise ConfigError("planner", str(e)) from None
+        if self.planner == "ilqg":
+            raise ConfigError("planner", "ilqg plans on the true simulator, not through the learned model; choose "
+                                         "another planner")
+        try:
+            entry.make_settings(**{k: v for k, v in self.planner_settings.items()})
+        except ConfigError as e:
+            raise e.within("planner_settings") from None
+        except TypeError as e:
+            raise ConfigError("planner_settings", f"{e}") from None
+        self.train_config(1)   # refused here, not after the seed data is simulated
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LoopConfig":
+        return cls(**check_keys(cls, d, "data-loop config keys"))
+
+    def train_config(self, steps: int):
+        """The ``TrainConfig`` training runs to ``steps`` total steps in ``<out>/model``."""
+        from gnwarp.train.config import TrainConfig
+        try:
+            return TrainConfig.from_dict({**self.train, "out": str(Path(self.out) / "model"), "steps": int(steps),
+                                          "resume": True, "patience": None, "max_seconds": None,
+                                          "progress": self.progress, "device": self.device})
+        except ConfigError as e:
+            raise e.within("train") from None
+
+    def episode_length(self, task) -> int:
+        """Control steps per episode: ``episode_steps``, else the task's, else ``seq_len``."""
+        steps = self.episode_steps or getattr(task, "episode_steps", None) or self.seq_len
+        if steps % self.seq_len:
+            raise ConfigError("episode_steps", f"the task's episodes of {steps} steps are no multiple of seq_len "
+                                               f"({self.seq_len}); set episode_steps or seq_len")
+        return int(steps)
+
+
+def loop_system(cfg: LoopConfig, task):
+    """The ``System`` the loop controls: ``cfg.system``, else the task's (a family: its fixed system)."""
+    from gnwarp.sim.systems import make
+    s = make(cfg.system or task.system)
+    task.check_system(s.name)
+    return s
+
+
+def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
+    """Write ``config.json`` in a new loop folder; in one that holds a loop, refuse a config that
+    differs from it in a field other than ``RESUMABLE``."""
+    path = out / CONFIG_FILE
+    mine = json.loads(json.dumps(cfg.to_dict()))
+    if path.exists():
+        try:
+            saved = json.loads(path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise LoopStateError(f"{path} is not valid JSON ({e}); restore it or choose another out") from None
+        # a key the folder's config lacks (written before the key existed) holds its default
+        defaults = json.loads(json.dumps(LoopConfig(task=cfg.task).to_dict()))
+        saved = {**defaults, **saved}
+        diff = [k for k in sorted(set(mine) | set(saved)) if k not in RESUMABLE and mine.get(k) != saved.get(k)]
+        if diff:
+            shown = "; ".join(f"{k}: {saved.get(k)!r} in the folder, {mine.get(k)!r} asked" for k in diff[:4])
+            raise ConfigError(diff[0], f"{out} holds a loop of another config ({shown}); a resumed loop may change "
+                                       f"only {', '.join(RESUMABLE)}. Choose another out")
+    write_json(path, mine)
+
+
+def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0):
+    """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, ``seed`` added to its
+    settings' seed. "gradient": ``GradientMPC``; "sampling" / "mppi": ``SamplingPlanner`` on
+    ``model_dynamics``; "random": ``RandomPlanner``. Any other registered planner class is built
+    with its ``for_model(model, task, system, n, settings, targets)`` where it has one, else as
+    ``cls(model, task, system, n, settings, targets)`` (GradientMPC's signature)."""
+    from gnwarp.control.planner import get_planner
+    from gnwarp.control.sampling import RandomPlanner, SamplingPlanner, model_dynamics
+    entry = get_planner(cfg.planner)
+    fields = dict(cfg.planner_settings)
+    if "seed" in {f.name for f in dataclasses.fields(entry.settings)}:
+        fields["seed"] = int(fields.get("seed", 0)) + int(seed)
+    settings = entry.make_settings(**fields)
+    if cfg.planner == "random":
+        return RandomPlanner(env.actuators, n, seed=settings.seed)
+    if cfg.planner in ("sampling", "mppi"):
+        dyn = model_dynamics(model.bind(system), n, settings.samples, settings.horizon)
+        return SamplingPlanner(dyn, task, env.ctrlrange, n, settings, targets)
+    build = getattr(entry.cls, "for_model", None)
+    return (build or entry.cls)(model, task, system, n, settings, targets)
+
+
+def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
+    """The model's one-step and ``horizon``-step rollout errors (normalized, ``evaluate``'s
+    "mean") on up to ``n`` random sequences of ``ds``'s ``split``."""
+    from gnwarp.eval.metrics import evaluate
+    S = len(ds[split])
+    idx = np.arange(S) if S <= n else rng.choice(S, n, replace=False)
+    h = min(int(horizon), ds[split].num_steps)
+    r = evaluate(model, subset(ds, split, idx), "test", None, (h,))
+    roll = r[f"rollout_{h}"]
+    return {"one_step": r["one_step"]["mean"], "rollout": roll["mean"], "rollout_steps": h,
+            "sequences": int(len(idx)), "finite": bool(r["finite"])}
+
+
+def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
+    """``n`` episodes of ``steps`` steps planned through the checkpoint ``model_path`` on the
+    true simulator, their initial states, targets and planner seeded by ``key``. Returns
+    (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta: returns,
+    initial states, targets, seconds, backend; the model)."""
+    import torch
+
+    from gnwarp.control.episodes import run_episodes
+    from gnwarp.control.tasks import sample_targets
+    from gnwarp.data.generation import initial_states
+    from gnwarp.sim.env import make_env
+    from gnwarp.train.checkpoint import load_model
+    rng = np.random.default_rng([cfg.seed, *key])
+    init = getattr(task, "initial", None)
+    qpos0, qvel0 = init(system, n, rng) if init is not None else initial_states(system, n, rng)
+    stream = int(np.random.default_rng([cfg.seed, *key]).integers(1 << 31))   # targets' and planner's seeds
+    targets = sample_targets(task, system, n, seed=stream)
+    model = load_model(model_path, device=None if cfg.device == "auto" else cfg.device)
+    env = make_env(system, n, backend=cfg.backend)
+    planner = make_loop_planner(cfg, model, task, system, n, targets, env, stream)
+    x0 = env.reset(qpos0, qvel0)
+    qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
+
+    def progress(t):   # every state's qpos / qvel, for the dataset
+        qs.append(np.asarray(env.qpos.cpu(), np.float32))
+        vs.append(np.asarray(env.qvel.cpu(), np.float32))
+        bar.update(1)
+    t0 = time.perf_counter()
+    out = run_episodes(planner, env, task, steps, x0, target=targets, progress=progress)
+    meta = {"returns": [float(x) for x in out["returns"].double()], "episode_steps": steps,
+            "plan_seconds": time.perf_counter() - t0, "initial_qpos": np.asarray(qpos0, np.float64).tolist(),
+            "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
+            "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
+            "backend": env.backend, "model": f"models/{model_path.name}"}
+    env.close()
+    return out, np.stack(qs, 1), np.stack(vs, 1), meta, model
+
+
+def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration: int, steps: int, bar):
+    """Plan ``cfg.episodes`` episodes of ``steps`` steps with the checkpoint ``model_path`` on
+    the true simulator; measure the model's errors on them and on ``trained`` (the training
+    data). Returns the episodes as a shard ``Dataset`` (its meta["loop"]: returns, errors,
+    initial states, targets, seconds)."""
+    out, qpos, qvel, meta, model = _episodes(cfg, task, system, model_path, cfg.episodes, steps, [iteration], bar)
+    loop_meta = {"iteration": iteration, "planner": cfg.planner, **meta}
+    shard = episode_dataset(trained, out["states"].numpy(), out["actions"].numpy(), qpos, qvel, cfg.seq_len, loop_meta)
+    t1 = time.perf_counter()
+    ev_rng = np.random.default_rng([cfg.seed, iteration, 1])
+    loop_meta["errors"] = {"new": _errors(model, shard, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng),
+                           "trained": _errors(model, trained, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng)}
+    loop_meta["eval_seconds"] = time.perf_counter() - t1
+    return shard
+
+
+def _train(cfg: LoopConfig, data, steps: int) -> dict:
+    """Train (resuming ``<out>/model/last``) on ``data`` until ``steps`` total steps."""
+    import gc
+
+    from gnwarp.train.trainer import Trainer
+    trainer = Trainer(cfg.train_config(steps), datasets=[data])
+    r = trainer.run()
+    del trainer   # its device copy of the data and its captured graphs go before the next iteration's
+    gc.collect()
+    return r
+
+
+def _copy_checkpoint(src: Path, dst: Path) -> None:
+    """Copy a checkpoint folder, atomically (a kill leaves the old one or none)."""
+    from gnwarp.files import atomic_write
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(dst, folder=True) as tmp:
+        for f in sorted(src.iterdir()):
+            shutil.copy2(f, tmp / f.name)
+
+
+def _seed_data(cfg: LoopConfig, system, out: Path):
+    """The seed data: ``data/seed.h5`` when a killed call wrote it, else simulated here (random
+    spline controls, as ``gnwarp generate``) and written."""
+    from gnwarp.data.dataset import load
+    from gnwarp.data.generation import generate
+    path = out / SEED_DATA
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ds = generate(system, {"train": cfg.seed_sequences, "valid": cfg.seed_valid, "test": 0}, num_steps=cfg.seq_len,
+                      seed=cfg.seed, backend=cfg.backend, progress=cfg.progress)
+        ds.save(path)
+    ds = load(path, lazy=False)
+    if ds["train"].num_steps != cfg.seq_len or len(ds["train"]) != cfg.seed_sequences:
+        raise LoopStateError(f"{path} holds {len(ds['train'])} x {ds['train'].num_steps} steps, the config asks for "
+                             f"{cfg.seed_sequences} x {cfg.seq_len}")
+    return ds
+
+
+def _trim_records(path: Path, iterations: int) -> None:
+    """Drop the records of iterations past ``iterations`` (written before a kill that left the
+    state behind them)."""
+    from gnwarp.eval.records import read_records, write_records
+    if not path.exists():
+        return
+    recs = read_records(path)
+    keep = [r for r in recs if int(r.metrics.get("iteration", 0)) <= iterations]
+    if len(keep) != len(recs):
+        write_records(path, keep, append=False)
+
+
+def _record(cfg: LoopConfig, task, system, m: dict, state: LoopState, model_env_steps: int, seconds: dict,
+            variant: str = "loop"):
+    """The results record of an iteration's episodes (``m``: their meta: returns, initial states,
+    ...; "loop": the data episodes, "loop-eval": the evaluation episodes)."""
+    from gnwarp.eval.records import ResultRecord, git_commit, gpu_name
+    returns = m["returns"]
+    metrics = {"iteration": m["iteration"], "mean_return": float(np.mean(returns)), "errors": m.get("errors"),
+               "model_env_steps": model_env_steps, "train_steps": state.train_steps, **seconds}
+    if m.get("errors") is None:
+        del metrics["errors"]
+    config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": m["model"],
+              "backend": m["backend"], "initial_qpos": m["initial_qpos"], "initial_qvel": m["initial_qvel"],
+              "targets": m["targets"],
+              "loop": {k: v for k, v in cfg.to_dict().items() if k != "planner_settings"}}
+    return ResultRecord(experiment="loop", task=task.name, system=system.name, planner=cfg.planner, dynamics="learned",
+                        variant=variant, seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
+                        returns=returns, control_dt=float(system.dt), action_repeat=int(system.substeps),
+                        env_steps=state.env_steps, metrics=metrics, config=config, commit=git_commit(),
+                        gpu=gpu_name(), date=time.strftime("%Y-%m-%d %H:%M:%S"))
+
+
+def run_loop(config: LoopConfig) -> dict:
+    """Run (or resume) the data loop in ``config.out`` until ``config.iterations`` iterations are
+    finished or the time budget is spent. Returns {"iterations": finished, "env_steps",
+    "train_steps", "records": path, "stop": "iterations" | "chunk" | "budget", "seconds": this call's}."""
+    from tqdm.auto import tqdm
+
+    from gnwarp.control.tasks import get_task
+    from gnwarp.data.dataset import load
+    from gnwarp.eval.records import write_records
+    from gnwarp.files import check_output_path
+    cfg = config
+    t_call = time.perf_counter()
+    out = check_output_path(cfg.out, folder=True)
+    task = get_task(cfg.task)
+    system = loop_system(cfg, task)
+    steps = cfg.episode_length(task)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_folder_config(out, cfg)
+    state = read_state(out)
+    records = out / RECORDS_FILE
+    _trim_records(records, state.iteration if state is not None else 0)
+    seed = _seed_data(cfg, system, out)
+    if state is None:   # iteration 0: the model trained on the seed data
+        log.info("training on the seed data: %d sequences x %d steps", len(seed["train"]), cfg.seq_len)
+        r = _train(cfg, concat_train(seed, []), cfg.initial_train_steps)
+        state = LoopState(iteration=0, env_steps=train_env_steps(seed), train_steps=int(r["steps"]),
+                          seconds=time.perf_counter() - t_call)
+        write_state(out, state)
+    shards = [load(out / s, lazy=False) for s in state.shards]
+    counted = train_env_steps(seed) + sum(train_env_steps(s) for s in shards)
+    if counted != state.env_steps:
+        raise LoopStateError(f"{out / 'state.json'} counts {state.env_steps} env steps, its data files hold {counted}; "
+                             "restore the state file or the data files")
+    bar = tqdm(total=cfg.iterations, initial=min(state.iteration, cfg.iterations), desc=f"loop {task.name}",
+               unit="it", disable=not cfg.progress, dynamic_ncols=True, position=0)
+    stop, first = "iterations", state.iteration
+    while state.iteration < cfg.iterations:
+        spent = time.perf_counter() - t_call
+        if cfg.chunk is not None and state.iteration - first >= cfg.chunk:
+            stop = "chunk"
+            break
+        if cfg.budget_seconds is not None and spent + (state.last_seconds or 0.0) > cfg.budget_seconds:
+            stop = "budget"
+            break
+        t0 = time.perf_counter()
+        i = state.iteration + 1
+        trained = concat_train(seed, shards)
+        path = out / shard_path(i)
+        if path.exists():   # planned before a kill: kept, not planned again
+            shard = load(path, lazy=False)
+            plan_s = eval_s = 0.0
+        else:
+            plan_model = out / "models" / f"iter-{i:04d}"
+            if not plan_model.exists():
+                _copy_checkpoint(out / "model" / "last", plan_model)
+            ebar = tqdm(total=steps, desc=f"episodes {i}", unit="step", disable=not cfg.progress, leave=False,
+                        dynamic_ncols=True, position=1)
+            shard = _collect(cfg, task, system, plan_model, trained, i, steps, ebar)
+            ebar.close()
+            shard.save(path)
+            plan_s, eval_s = shard.meta["loop"]["plan_seconds"], shard.meta["loop"]["eval_seconds"]
+        t1 = time.perf_counter()
+        model_env_steps = state.env_steps
+        r = _train(cfg, concat_train(seed, shards + [shard]), state.train_steps + cfg.train_steps)
+        shards.append(shard)
+        seconds = {"plan_seconds": plan_s, "eval_seconds": eval_s, "train_seconds": time.perf_counter() - t1}
+        # the model the next iteration plans with, and the evaluation episodes' (after a kill, the same weights)
+        next_model = out / "models" / f"iter-{i + 1:04d}"
+        _copy_checkpoint(out / "model" / "last", next_model)
+        evaluation = None
+        if cfg.eval_episodes and (i % cfg.eval_every == 0 or i == cfg.iterations):
+            t2 = time.perf_counter()
+            ebar = tqdm(total=steps, desc=f"evaluation {i}", unit="step", disable=not cfg.progress, leave=False,
+                        dynamic_ncols=True, position=1)
+            evaluation = _episodes(cfg, task, system, next_model, cfg.eval_episodes, steps, [i, 2], ebar)[3]
+            ebar.close()
+            seconds["evaluation_seconds"] = time.perf_counter() - t2
+        seconds["iteration_seconds"] = time.perf_counter() - t0
+        new = LoopState(iteration=i, env_steps=state.env_steps + train_env_steps(shard), train_steps=int(r["steps"]),
+                        shards=state.shards + [shard_path(i).as_posix()],
+                        seconds=state.seconds + seconds["iteration_seconds"], last_seconds=seconds["iteration_seconds"])
+        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds)
+        recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
+                                 "loop-eval")] if evaluation is not None else [])
+        write_records(records, recs)   # then the state: a record past the state is dropped on resume
+        write_state(out, new)
+        state = new
+        bar.update(1)
+        bar.set_postfix(ret=f"{rec.metrics['mean_return']:.4g}", env_steps=state.env_steps)
+        log.info("iteration %d: mean return %.4g, env steps %d, errors on new data %.3g (one-step) %.3g (rollout)",
+                 i, rec.metrics["mean_return"], state.env_steps, rec.metrics["errors"]["new"]["one_step"],
+                 rec.metrics["errors"]["new"]["rollout"])
+    bar.close()
+    return {"iterations": state.iteration, "env_steps": state.env_steps, "train_steps": state.train_steps,
+            "records": str(records), "stop": stop, "seconds": time.perf_counter() - t_call, "out": str(out)}
