@@ -298,7 +298,8 @@ def _cartpole(s, a, target):
     cart, pole = s[:, :, c["cart"]], s[:, :, c["pole"]]
     cart_x = (((cart[..., POS] - _const("dmc-cartpole", "cart_pos0", s)) * _const("dmc-cartpole", "slider_axis", s))
               .sum(-1) + c["slider_qpos0"])
-    axis = quat_rotate(quat_normalize(pole[..., QUAT]), _const("dmc-cartpole", "hinge_axis", s).expand_as(pole[..., POS]))
+    hinge_axis = _const("dmc-cartpole", "hinge_axis", s).expand_as(pole[..., POS])
+    axis = quat_rotate(quat_normalize(pole[..., QUAT]), hinge_axis)
     hinge_vel = ((pole[..., ANGVEL] - cart[..., ANGVEL]) * axis).sum(-1)
     upright = (upright_zz(pole[..., QUAT]) + 1) / 2
     centered = (1 + tolerance(cart_x, margin=2)) / 2
