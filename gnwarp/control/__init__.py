@@ -1,5 +1,6 @@
 """Control with learned models (supplementary F): tasks and their rewards on graph states
-(``tasks``), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
+(``tasks``: the paper's; ``dmc``: the DeepMind Control Suite's, "dmc-<domain>-<task>"; ``task_base``:
+the ``Task`` record), gradient MPC through a learned model (``gradient``), sampling MPC (``sampling``), the
 iLQG baseline (``ilqg``), the ``Planner`` protocol they all implement with the registry of planner
 names (``planner``), closed-loop episodes (``episodes``) and their planning times, the first step
 apart from the steady state (``timing``); the batched true environment they run on is
