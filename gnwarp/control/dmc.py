@@ -328,7 +328,8 @@ def _acrobot(s, a, target):
 
 
 def _summed(step):
-    """A per-step reward as a Task reward: summed over the T steps after state 0 -> [N]."""
+    """A per-step reward as a Task reward: summed over the T steps after state 0 -> [N]. The
+    per-step rewards [N, T] stay reachable as ``reward.step(states[:, 1:], actions, target)``."""
     def reward(states, actions, target=None):
         return step(_after(states), actions, target).sum(1)
     reward.step = step
@@ -387,17 +388,14 @@ def _cheetah_initial(system, n, rng):
 
 def settle(model: mujoco.MjModel, qpos: np.ndarray, nstep: int) -> tuple[np.ndarray, np.ndarray]:
     """(qpos, qvel) [n, nq], [n, nv] after ``nstep`` physics steps at zero control from ``qpos``
-    at rest, taken as the suite's ``physics.step(nstep)`` inside its reset (after ``mj_forward``
-    at qpos0 with actuation off)."""
+    at rest, taken as the suite's ``physics.step(nstep)`` inside its reset: after ``mj_forward``
+    at qpos0 (the suite's runs with actuation off, the same at the reset's zero control of motors),
+    the first step finishes (``mj_step2``) from the stages computed there."""
     d = mujoco.MjData(model)
     out_q, out_v = np.empty_like(qpos), np.empty((len(qpos), model.nv))
     for k, q in enumerate(qpos):
         mujoco.mj_resetData(model, d)
-        model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
-        try:
-            mujoco.mj_forward(model, d)
-        finally:
-            model.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
+        mujoco.mj_forward(model, d)
         d.qpos[:] = q
         if model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
             mujoco.mj_step(model, d, nstep)
