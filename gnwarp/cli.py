@@ -367,6 +367,7 @@ def _cmd_mpc(args) -> int:
     # refused before anything is loaded
     config = GradientMPCConfig(horizon=args.horizon, iterations=args.iterations, warmup=args.warmup,
                                proposals=args.proposals, lr=args.lr, seed=args.seed)
+    args.steps = args.steps if args.steps is not None else (getattr(task, "episode_steps", None) or 100)
     if args.episodes < 1 or args.steps < 1:
         raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
     records = Path(args.records or f"mpc-{task.name}.jsonl")
@@ -388,7 +389,7 @@ def _cmd_mpc(args) -> int:
                disable=args.quiet, dynamic_ncols=True)
     planner.progress = bar.update
     env = make_env(system, n, backend=args.backend)
-    qpos, qvel = initial_states(system, n, np.random.default_rng(args.seed))
+    qpos, qvel = (getattr(task, "initial", None) or initial_states)(system, n, np.random.default_rng(args.seed))
     t0 = time.perf_counter()
     out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target)
     secs = time.perf_counter() - t0
@@ -642,12 +643,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                            "state apart, with the real-time factor (control timestep / steady time).",
                            "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
     m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
-    m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance)")
+    m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance, cheetah-run)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
     m.add_argument("--episodes", type=int, default=8, help="episodes planned together")
-    m.add_argument("--steps", type=int, default=100,
-                   help="control steps per episode (every state is kept in memory: a run that cannot fit in "
-                        "the available memory is refused before it starts)")
+    m.add_argument("--steps", type=int, default=None,
+                   help="control steps per episode (default: the task's episode length, DMC's 1000, else 100; every "
+                        "state is kept in memory: a run that cannot fit in the available memory is refused first)")
     m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
     m.add_argument("--iterations", type=int, default=5, help="gradient iterations per control step")
     m.add_argument("--warmup", type=int, help="extra iterations at the first state (default: 4 x iterations; the "

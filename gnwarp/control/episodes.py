@@ -60,7 +60,7 @@ def run_episodes(planner: Planner, env, task, steps: int, x0=None, *, target=Non
     if isinstance(task, Task):
         tgt = target if target is not None else planner.targets
         tgt = None if tgt is None else torch.as_tensor(tgt).detach().cpu().float()
-        score = lambda s, a: task.reward(s, a, tgt)  # noqa: E731
+        score = lambda s, a: task.scorer(s, a, tgt)  # noqa: E731  (exact, where planners optimize a surrogate)
     else:
         score = getattr(task, "reward", task)
     sim_state = bool(planner.needs_sim_state)

@@ -1,4 +1,5 @@
-"""Control tasks of the paper (supplementary F.2): rewards of body-state trajectories.
+"""Control tasks of the paper (supplementary F.2) and of the DeepMind Control Suite
+(``gnwarp.control.dmc``, named "dmc-<domain>-<task>"): rewards of body-state trajectories.
 
 A reward reads graph states, the 13 numbers of every body (``gnwarp.state``: pos 0:3, quat 3:7
 (w, x, y, z), linvel 7:10, angvel 10:13, node 0 the world), so the same function scores a learned
@@ -15,7 +16,6 @@ which the swimmer's target direction is measured from). Rewards are to be maximi
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 from typing import Callable
 
@@ -23,19 +23,13 @@ import mujoco
 import numpy as np
 import torch
 
+from gnwarp.control.dmc import dmc_tasks, sample_dmc_targets
+from gnwarp.control.task_base import Reward, Task, TaskError
 from gnwarp.sim.body_state import body_states
-from gnwarp.sim.families import family_name
 from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul
 
 __all__ = ["Task", "TASKS", "get_task", "task_names", "upright_angle", "body_index",
-           "sample_targets", "TaskError"]
-
-
-class TaskError(ValueError):
-    """An unknown task, a task for another system, or a target of the wrong shape."""
-
-
-Reward = Callable[..., torch.Tensor]
+           "sample_targets", "TaskError", "Reward"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -156,35 +150,6 @@ def _jaco_pose(full: bool) -> Reward:
 
 # -- tasks -----------------------------------------------------------------------------------------
 
-@dataclasses.dataclass(frozen=True)
-class Task:
-    """A control task: ``reward(states [N, T+1, B, 13], actions [N, T, U], target=None) -> [N]``
-    (to maximize, summed over steps) for ``system`` (a built-in name; a family such as
-    "swimmer" fits every SwimmerN), planned over ``horizon`` steps. ``target``: what a per-episode
-    target is ("position" for the swimmer, "pose" / "poses" for the JACO, None without one)."""
-    name: str
-    system: str
-    horizon: int
-    reward: Reward
-    target: str | None = None
-    doc: str = ""
-
-    def __post_init__(self):
-        if not callable(self.reward):
-            raise TaskError(f"task {self.name!r}: reward must be callable, got {type(self.reward).__name__}")
-        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
-            raise TaskError(f"task {self.name!r}: horizon must be an integer >= 1, got {self.horizon!r}")
-
-    def fits(self, system: str) -> bool:
-        """Whether the task applies to system ``system`` (e.g. "swimmer6" for a "swimmer" task)."""
-        return system == self.system or family_name(system) == self.system
-
-    def check_system(self, system: str, what: str = "system") -> None:
-        """``TaskError`` unless the task applies to ``system``."""
-        if not self.fits(system):
-            raise TaskError(f"task {self.name!r} is for {self.system}, but the {what} is {system}")
-
-
 def _tasks() -> dict[str, Task]:
     t = [
         Task("pendulum-balance", "pendulum", 50, _balance(("pole",), "pendulum"),
@@ -215,6 +180,7 @@ def _tasks() -> dict[str, Task]:
         Task("jaco-full-pose", "jaco", 20, _jaco_pose(True), target="poses",
              doc="minus the pose loss of every body to target poses"),
     ]
+    t += dmc_tasks()   # the DeepMind Control Suite's, "dmc-<domain>-<task>" (gnwarp.control.dmc)
     return {x.name: x for x in t}
 
 
@@ -225,9 +191,16 @@ def task_names() -> list[str]:
     return list(TASKS)
 
 
+_ALIASES = {"swimmer6": "dmc-swimmer-swimmer6"}
+
+
 def get_task(name, system: str | None = None) -> Task:
-    """The task ``name`` (a ``Task`` passes through); with ``system``, also check it applies to
-    that system. ``TaskError`` names the known tasks or the mismatch."""
+    """The task ``name`` (a ``Task`` passes through); a name that is no task resolves to
+    "dmc-" + name where that is one ("cheetah-run" -> "dmc-cheetah-run"; the paper's own names,
+    e.g. "cartpole-balance", stay the paper's). With ``system``, also check it applies to that
+    system. ``TaskError`` names the known tasks or the mismatch."""
+    if isinstance(name, str) and name not in TASKS:
+        name = _ALIASES.get(name, "dmc-" + name if "dmc-" + name in TASKS else name)
     task = name if isinstance(name, Task) else TASKS.get(name)
     if task is None:
         raise TaskError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}")
@@ -240,11 +213,14 @@ def sample_targets(task: Task, system, n: int, seed: int = 0, distance: float = 
     """Per-episode targets of ``task`` for ``system`` (a ``System``), float32, or None.
 
     Swimmer: positions [n, 3] ``distance`` m (default 1) from the origin in a random direction. JACO: the body states
-    [n, B, 13] of random joint configurations (``gnwarp.data.initial_states``), reachable poses.
+    [n, B, 13] of random joint configurations (``gnwarp.data.initial_states``), reachable poses. DMC's reacher and
+    swimmer: positions [n, 3] as the suite draws them (``gnwarp.control.dmc.sample_dmc_targets``; ``distance`` unused).
     """
     if task.target is None:
         return None
     rng = np.random.default_rng(seed)
+    if task.suite == "dmc":
+        return torch.tensor(sample_dmc_targets(task.name, n, rng), dtype=torch.float32)
     if task.target == "position":
         a = rng.uniform(-np.pi, np.pi, n)
         return torch.tensor(distance * np.stack([np.cos(a), np.sin(a), np.zeros(n)], -1), dtype=torch.float32)

@@ -12,8 +12,9 @@ MuJoCo-Warp, and the random excitation controls datasets are recorded under.
     >>> body = env.reset(np.tile(m.qpos0, (8, 1)))                              # [8, nbody, 13]
     >>> body = env.step(u[:, 0])                                                # one data step
 
-Modules: ``systems`` (registry) over ``families`` (one record per built-in family) and
-``builders`` (MjSpec of each system), ``actuators`` (control ranges, limits, clamping), ``excitation``
+Modules: ``systems`` (registry) over ``families`` (one record per built-in family),
+``builders`` (MjSpec of each system) and ``dmc`` (the DeepMind Control Suite's domains,
+"dmc-cheetah" ...), ``actuators`` (control ranges, limits, clamping), ``excitation``
 (random spline controls), ``backends`` (``simulate``) over ``mujoco_c`` and ``mujoco_warp``,
 ``common`` (the backends' names and choice, what they share), ``env`` (persistent batched
 environments; MuJoCo-Warp datasets run on them too), ``body_state`` (the MuJoCo C body-state reader).

@@ -14,6 +14,7 @@ follow the sizes; child bodies move with the length of their parent so the chain
     >>> pendulum = make("pendulum", seed=3)               # factors sampled with default_rng(3)
     >>> pendulum = make("pendulum", params={"length": 0.5})   # exactly these factors
     >>> custom = from_mjcf("my_robot.xml", dt=0.02, substeps=4)
+    >>> cheetah = make("dmc-cheetah")   # DMC's own MJCF (gnwarp.sim.dmc; the [dmc] extra)
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import dataclasses
 import math
 import numbers
 import pathlib
+import warnings
 
 import mujoco
 import numpy as np
@@ -36,6 +38,7 @@ __all__ = [
     "param_places",
     "sample_params",
     "from_mjcf",
+    "from_mjcf_string",
     "check_model",
     "describe",
     "MASS_RANGE",
@@ -67,7 +70,8 @@ class System:
       parameterized: whether this is an instance of a parameterized variant.
       translation_invariant: whether the dynamics do not depend on the horizontal position
         (swimmer, cheetah, walker; paper D.4 re-centers these before prediction).
-      source: "builtin" or the path of the MJCF file.
+      source: "builtin", "dm_control" (a DMC domain, ``gnwarp.sim.dmc``), or the path of the MJCF
+        file ("string" for MJCF text).
       spec: the `mujoco.MjSpec` the model was compiled from (to derive variants of the model,
         e.g. with sensors added, without re-parsing).
     """
@@ -134,8 +138,12 @@ def param_ranges(name: str) -> dict[str, tuple[float, float]]:
 
     Factors are relative to the fixed system (1.0), except the cheetah's base angles (absolute,
     radians, fixed value 0) and the swimmer's integer "n_links" ("swimmer" samples it in 3..9;
-    "swimmer<N>" fixes it to N).
+    "swimmer<N>" fixes it to N). DMC systems ("dmc-cheetah", ...) have none ({}).
     """
+    from gnwarp.sim import dmc
+    if dmc.is_dmc(name):
+        dmc.domain(name)   # an unknown DMC name raises
+        return {}
     fam, n = parse_name(name)
     return {key: rng for key, _, rng in fam.ranges(n)}
 
@@ -175,6 +183,9 @@ def sample_params(name: str, rng: np.random.Generator) -> dict[str, float]:
 
     Returns the full parameter dict of one instance, as stored in `System.params`.
     """
+    from gnwarp.sim import dmc
+    if dmc.is_dmc(name):
+        raise ValueError(f"{dmc.domain(name).name} has no parameterized variant (DMC's domains are fixed)")
     fam, n = parse_name(name)
     ranges = fam.ranges(n)
     if not ranges:
@@ -238,7 +249,9 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
 
     Args:
       name: one of `names()`; the swimmer as "swimmer<N>" (N = 3..15), "swimmer" means swimmer6
-        when fixed and samples N in 3..9 when parameterized.
+        when fixed and samples N in 3..9 when parameterized; or a DMC system
+        (``gnwarp.sim.dmc.dmc_names()``: "dmc-cheetah", ...; fixed only) whose ``dt`` is DMC's
+        control timestep.
       params: exact parameters of a parameterized instance (see `param_ranges`); missing ones
         take the fixed system's value.
       seed: with params=None, samples the parameters with `np.random.default_rng(seed)`.
@@ -247,6 +260,9 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
       the fixed system if neither params nor seed is given, else a parameterized instance whose
       full parameter dict is `System.params`.
     """
+    from gnwarp.sim import dmc
+    if dmc.is_dmc(name):
+        return _make_dmc(name, params, seed)
     fam, n = parse_name(name)
     if params is not None and seed is not None:
         raise ValueError(f"{name}: give either params or seed, not both")
@@ -263,6 +279,41 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
     return System(name=system_name, model=model, dt=fam.dt, substeps=fam.substeps,
                   params=full if parameterized else {}, parameterized=parameterized,
                   translation_invariant=fam.translation_invariant, spec=spec)
+
+
+def _check_timing(where, dt, substeps) -> None:
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"{where}: substeps must be a positive integer, got {substeps!r}")
+    if dt is not None and not (isinstance(dt, numbers.Real) and not isinstance(dt, bool)
+                               and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"{where}: dt must be a positive number of seconds, got {dt!r}")
+
+
+def _compile_checked(load, where: str, dt: float | None, substeps: int, numbers_check=None):
+    """(spec, model, dt) of an MJCF model: ``load()`` gives its ``MjSpec``; the physics timestep
+    becomes dt / substeps when ``dt`` is given; ``numbers_check()`` refuses NaN / Inf in the text
+    before ``check_model`` and the joint and actuator checks run. ValueError names ``where``."""
+    try:
+        spec = load()
+        if dt is not None:
+            spec.option.timestep = float(dt) / int(substeps)
+        with warnings.catch_warnings():  # a deprecated compiler attribute (DMC's settotalmass) still compiles
+            warnings.filterwarnings("ignore", message="compiler attribute")
+            model = spec.compile()
+    except Exception as err:  # mujoco reports every parse and compile error as ValueError
+        raise ValueError(f"{where}: not a valid MJCF model: {err}".rstrip()) from err
+    if numbers_check is not None:
+        numbers_check()  # MuJoCo reads "nan" as "not given" in places (geom mass): refuse it
+    check_model(model, where)
+    if model.njnt == 0:
+        raise ValueError(f"{where}: the model has no joints; gnwarp needs at least one joint "
+                         "(joints are the graph's edges)")
+    if model.nu == 0:
+        raise ValueError(f"{where}: the model has no actuators; gnwarp needs at least one "
+                         "actuator (actions drive the dynamics)")
+    if dt is None:
+        dt = float(model.opt.timestep) * int(substeps)
+    return spec, model, float(dt)
 
 
 def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
@@ -284,30 +335,52 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"MJCF file not found: {path}")
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"{path}: substeps must be a positive integer, got {substeps!r}")
-    if dt is not None and not (isinstance(dt, numbers.Real) and not isinstance(dt, bool)
-                               and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"{path}: dt must be a positive number of seconds, got {dt!r}")
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-        if dt is not None:
-            spec.option.timestep = float(dt) / int(substeps)
-        model = spec.compile()
-    except Exception as err:  # mujoco reports every parse and compile error as ValueError
-        raise ValueError(f"{path}: not a valid MJCF model: {err}".rstrip()) from err
-    _check_mjcf_numbers(path)  # MuJoCo reads "nan" as "not given" in places (geom mass): refuse it
-    check_model(model, str(path))
-    if model.njnt == 0:
-        raise ValueError(f"{path}: the model has no joints; gnwarp needs at least one joint "
-                         "(joints are the graph's edges)")
-    if model.nu == 0:
-        raise ValueError(f"{path}: the model has no actuators; gnwarp needs at least one "
-                         "actuator (actions drive the dynamics)")
-    if dt is None:
-        dt = float(model.opt.timestep) * int(substeps)
-    return System(name=path.stem, model=model, dt=float(dt), substeps=int(substeps),
-                  source=str(path), spec=spec)
+    _check_timing(path, dt, substeps)
+    spec, model, dt = _compile_checked(lambda: mujoco.MjSpec.from_file(str(path)), str(path), dt, substeps,
+                                       lambda: _check_mjcf_numbers(path))
+    return System(name=path.stem, model=model, dt=dt, substeps=int(substeps), source=str(path), spec=spec)
+
+
+def from_mjcf_string(xml: str, assets: dict | None = None, name: str = "model", dt: float | None = None,
+                     substeps: int = 1, source: str = "string", translation_invariant: bool = False) -> System:
+    """Loads MJCF text (with ``assets``: {file name: bytes} for its includes, meshes and textures)
+    as a fixed system called ``name``; ``dt`` and ``substeps`` as ``from_mjcf``. The same checks
+    and errors as ``from_mjcf``, naming ``name``."""
+    if not isinstance(xml, str):
+        raise ValueError(f"{name}: MJCF text must be a string, got {type(xml).__name__}")
+    _check_timing(name, dt, substeps)
+    spec, model, dt = _compile_checked(lambda: mujoco.MjSpec.from_string(xml, assets or {}), name, dt, substeps,
+                                       lambda: _check_mjcf_text(xml, name))
+    return System(name=name, model=model, dt=dt, substeps=int(substeps), source=source, spec=spec,
+                  translation_invariant=bool(translation_invariant))
+
+
+def _make_dmc(name: str, params, seed) -> System:
+    """A DMC domain's system (``gnwarp.sim.dmc``): its own MJCF at DMC's control timestep."""
+    from gnwarp.sim import dmc
+    d = dmc.domain(name)
+    if params is not None or seed is not None:
+        raise ValueError(f"{d.name} has no parameterized variant (DMC's domains are fixed); use make({d.name!r})")
+    xml, assets = dmc.model_source(d.name)
+    system = from_mjcf_string(xml, assets, name=d.name, dt=d.control_dt, substeps=d.substeps, source="dm_control",
+                              translation_invariant=d.translation_invariant)
+    _fold_total_mass(system)
+    return system
+
+
+def _fold_total_mass(system: System) -> None:
+    """Write the masses and inertias that MuJoCo's deprecated ``settotalmass`` scaling gave
+    (DMC's cheetah) into the spec as explicit inertials, so that recompiling it (the MuJoCo C
+    backend's sensor model) gives the same bodies without the deprecation warning."""
+    spec, m = system.spec, system.model
+    if spec is None or not spec.compiler.settotalmass > 0:
+        return
+    for i, b in enumerate(spec.bodies):
+        if i == 0:
+            continue
+        b.mass, b.ipos, b.iquat = float(m.body_mass[i]), m.body_ipos[i].copy(), m.body_iquat[i].copy()
+        b.inertia, b.explicitinertial = m.body_inertia[i].copy(), True
+    spec.compiler.settotalmass = -1
 
 
 # Attributes that hold names or text, never numbers (a body may be called "inf").
@@ -321,7 +394,12 @@ _TEXT_ATTRIBUTES = frozenset({
 })
 
 
-def _check_mjcf_numbers(path: pathlib.Path, _seen=None) -> None:
+def _check_mjcf_text(xml: str, where: str) -> None:
+    """``_check_mjcf_numbers`` on MJCF text (its includes come as assets, unchecked here)."""
+    _check_mjcf_numbers(pathlib.Path(where), text=xml.encode("utf-8"))
+
+
+def _check_mjcf_numbers(path: pathlib.Path, _seen=None, text: bytes | None = None) -> None:
     """Raise ValueError when a numeric attribute of the MJCF file (or a file it includes) holds
     NaN or Inf, naming the element, its name, the attribute and the line."""
     import xml.parsers.expat
@@ -351,12 +429,12 @@ def _check_mjcf_numbers(path: pathlib.Path, _seen=None) -> None:
 
     parser.StartElementHandler = start
     try:
-        parser.Parse(path.read_bytes(), True)
+        parser.Parse(path.read_bytes() if text is None else text, True)
     except (xml.parsers.expat.ExpatError, OSError):
         return  # MuJoCo parsed it: nothing more to say here
     if found:
         raise ValueError(found[0])
-    for inc in includes:
+    for inc in includes if text is None else ():
         p = path.parent / inc
         if p.is_file():
             _check_mjcf_numbers(p, seen)
