@@ -221,7 +221,9 @@ class SamplingPlanner:
         self.settings = config or SamplingConfig()
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
-        cr = torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)).reshape(-1, 2).to(self.device, torch.float32)
+        cr = (ctrlrange.detach().double() if isinstance(ctrlrange, torch.Tensor)   # e.g. a CUDA env's ctrlrange
+              else torch.as_tensor(np.asarray(ctrlrange, dtype=np.float64)))
+        cr = cr.reshape(-1, 2).to(self.device, torch.float32)
         if not bool(torch.isfinite(cr).all()) or bool((cr[:, 1] < cr[:, 0]).any()):
             raise ValueError(f"ctrlrange must be finite [U, 2] with lower <= upper, got {cr.tolist()}")
         self.lo, self.hi = cr[:, 0], cr[:, 1]
