@@ -60,10 +60,10 @@ def test_train_help_lists_every_config_key_with_its_default():
 
 
 def test_quick_preset_is_a_valid_cpu_sized_config():
-    from gnwarp.cli import _apply_overrides, _merged
+    from gnwarp.cli.common import apply_overrides, merged
     from gnwarp.demo import DemoConfig, quick_train_keys
     quick = quick_train_keys()
-    cfg = TrainConfig.from_dict(_apply_overrides(_merged(quick, {"model": {"core": "gn"}}), ["steps=50"]))
+    cfg = TrainConfig.from_dict(apply_overrides(merged(quick, {"model": {"core": "gn"}}), ["steps=50"]))
     assert cfg.steps == 50 and cfg.model.gn.latent == DemoConfig().gn.latent < GNCoreConfig().latent
     assert cfg.max_seconds == DemoConfig().train_seconds and cfg.model.gn.blocks == 2
 
@@ -102,15 +102,15 @@ def test_unwritable_output_is_refused_before_work(argv, tmp_path, capsys):
 
 
 def test_size_that_cannot_fit_is_refused_naming_the_limit():
-    from gnwarp.cli import _episode_bytes
-    need = _episode_bytes(8, 10**12, 2, 1)
+    from gnwarp.cli.mpc import episode_bytes
+    need = episode_bytes(8, 10**12, 2, 1)
     assert need > 8 * 10**12 * 2 * 13 * 4
     avail = available_memory()
     assert avail is not None and avail > 0
     with pytest.raises(ValueError, match=r"8 episodes .* needs about .* GiB of memory; this machine has .* GiB "
                                          r"available\. Use fewer"):
         check_memory(need, "8 episodes x 1000000000000 steps", "Use fewer --steps")
-    check_memory(_episode_bytes(8, 100, 2, 1), "a small run")  # fits: no error
+    check_memory(episode_bytes(8, 100, 2, 1), "a small run")  # fits: no error
 
 
 @pytest.fixture(scope="module")
