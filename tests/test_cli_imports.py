@@ -33,6 +33,9 @@ def test_lazy_public_names_resolve():
     from gnwarp.gn.options import IMPLS
     from gnwarp.cli import IMPLS as CLI_IMPLS
     assert CLI_IMPLS == IMPLS  # the command line's copy of the implementations' names
+    from gnwarp.cli.mpc import PLANNERS as CLI_PLANNERS
+    from gnwarp.control.planner import MODEL_PLANNERS
+    assert CLI_PLANNERS == MODEL_PLANNERS  # and of the planners through a model
     assert gnwarp.GraphNetwork is GraphNetwork
     assert gnwarp.systems.names() and gnwarp.data.__name__ == "gnwarp.data"
     assert set(gnwarp.__all__) <= set(dir(gnwarp))

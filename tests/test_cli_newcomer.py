@@ -168,3 +168,72 @@ def test_no_cuda_warning_on_a_cpu_machine(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "wrote" in r.stdout
     assert "CUDA" not in r.stdout + r.stderr
+
+
+def _mpc_argv(model, records, *extra):
+    return ["mpc", "--model", str(model), "--task", "pendulum-balance", "--episodes", "2", "--steps", "2",
+            "--horizon", "3", "--backend", "mujoco", "--video", "none", "--records", str(records), "-q", *extra]
+
+
+@pytest.mark.parametrize("planner, extra", [
+    ("hybrid", ["--iterations", "1", "--warmup", "1", "--set", "samples=4", "--set", "elites=2", "--terminal", "V"]),
+    ("sampling", ["--set", "samples=5", "--set", "noise=0.3"]),
+    ("mppi", ["--set", "samples=4", "--seed", "2"]),
+])
+def test_mpc_plans_with_each_model_planner(tiny_model, tmp_path, capsys, planner, extra):
+    """``--planner`` plans through the model with the settings of the flags and ``--set``; the
+    record's returns are those of the same planner made by ``make_planner`` and run by hand."""
+    from gnwarp.control import run_episodes
+    from gnwarp.control.planner import make_planner, planner_settings
+    from gnwarp.control.value import TerminalValue
+    from gnwarp.data.generation import initial_states
+    from gnwarp.eval.records import read_records
+    from gnwarp.sim import make_env, systems
+    from gnwarp.train import load_model
+    import numpy as np
+    pend = systems.make("pendulum")
+    value = TerminalValue.for_system(pend, hidden=(8,))
+    value.save(tmp_path / "v.pt")
+    extra = [str(tmp_path / "v.pt") if x == "V" else x for x in extra]
+    records = tmp_path / "r.jsonl"
+    assert main(_mpc_argv(tiny_model, records, "--planner", planner, *extra)) == 0
+    assert "true return" in capsys.readouterr().out
+    (rec,) = read_records(records)
+    assert rec.planner == planner and rec.config["horizon"] == 3 and len(rec.returns) == 2
+    assert rec.variant == ("terminal" if "--terminal" in extra else "")
+    fields = rec.config["settings"]
+    assert fields["horizon"] == 3 and fields["samples"] == int(next(s for s in extra if s.startswith("samples="))[8:])
+    seed = int(extra[extra.index("--seed") + 1]) if "--seed" in extra else 0
+    assert fields["seed"] == seed and fields.get("method", "best") == ("mppi" if planner == "mppi" else "best")
+    # the same planner by hand
+    settings = planner_settings(planner, {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+    model = load_model(tiny_model, device="cpu")
+    term = TerminalValue.load(tmp_path / "v.pt") if "--terminal" in extra else None
+    p = make_planner(planner, model, "pendulum-balance", pend, 2, settings, None, term)
+    qpos, qvel = initial_states(pend, 2, np.random.default_rng(seed))
+    env = make_env(pend, 2, backend="mujoco")
+    out = run_episodes(p, env, "pendulum-balance", 2, env.reset(qpos, qvel))
+    np.testing.assert_allclose(rec.returns, out["returns"].double().numpy(), rtol=1e-6)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--planner", "nope"], "--planner 'nope': gnwarp mpc plans through a learned model with one of gradient, "
+                            "hybrid, sampling, mppi"),
+    (["--planner", "ilqg"], "--planner 'ilqg' (it does not plan through a learned model)"),
+    (["--planner", "hybrid", "--set", "nope=1"], "nope: is not a setting of planner 'hybrid'; HybridConfig has "
+                                                 "horizon, samples, elites"),
+    (["--planner", "sampling", "--proposals", "3"], "--proposals does not apply to planner 'sampling' (SamplingConfig "
+                                                    "has no proposals; its settings: horizon, samples"),
+    (["--set", "iterations=0"], "iterations: must be"),
+    (["--set", "iterations=2", "--iterations", "3"], "--set iterations=2 and --iterations both set iterations"),
+    (["--set", "lr"], "--set: expects KEY=VALUE (a field of GradientMPCConfig), got 'lr'"),
+    (["--planner", "mppi", "--set", "method=best"], "registered with method='mppi'"),
+    (["--terminal", "{tmp}/none.pt"], "--terminal: no terminal-value file at"),
+])
+def test_mpc_refuses_bad_planners_and_settings_before_loading(tmp_path, capsys, extra, message):
+    argv = _mpc_argv(tmp_path / "no-model", tmp_path / "r.jsonl", *[x.format(tmp=tmp_path) for x in extra])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "gnwarp mpc: error:" in err and message in err and "no-model" not in err
+    assert "from --set iterations=0" in err if "iterations=0" in extra else True
+    assert not (tmp_path / "r.jsonl").exists()
