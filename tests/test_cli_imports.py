@@ -5,7 +5,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAVY = ("torch", "warp", "mujoco", "mujoco_warp")
+HEAVY = ("torch", "warp", "mujoco", "mujoco_warp", "dm_control")
 
 
 def _loaded(code: str) -> list[str]:
@@ -21,7 +21,7 @@ def test_import_cli_and_top_level_help_load_no_heavy_module():
     assert _loaded("import gnwarp.cli") == []
     assert _loaded("import gnwarp") == []
     help_code = ("import contextlib, io\nfrom gnwarp.cli import main\n"
-                 "for argv in (['--help'], ['mpc', '--help'], ['generate', '--help']):\n"
+                 "for argv in (['--help'], ['mpc', '--help'], ['generate', '--help'], ['systems', '--help']):\n"
                  "    with contextlib.redirect_stdout(io.StringIO()):\n"
                  "        try:\n            main(argv)\n        except SystemExit:\n            pass")
     assert _loaded(help_code) == []

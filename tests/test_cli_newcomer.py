@@ -237,3 +237,25 @@ def test_mpc_refuses_bad_planners_and_settings_before_loading(tmp_path, capsys, 
     assert "gnwarp mpc: error:" in err and message in err and "no-model" not in err
     assert "from --set iterations=0" in err if "iterations=0" in extra else True
     assert not (tmp_path / "r.jsonl").exists()
+
+
+def test_systems_lists_the_dmc_domains_where_dm_control_is_installed(monkeypatch, capsys):
+    """`gnwarp systems`: the built-in systems, then the DMC domains marked as such (with
+    dm-control); without it, the built-in ones and a line on how to get the others."""
+    import gnwarp.cli.data as cli_data
+    from gnwarp.sim import systems
+    from gnwarp.sim.dmc import dmc_names
+    monkeypatch.setattr(cli_data, "dm_control_installed", lambda: False)
+    assert main(["systems"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert [r.split()[0] for r in rows[1:-1]] == [systems.make(n).name for n in systems.names()]
+    assert "dm-control" in rows[-1]
+    pytest.importorskip("dm_control")
+    monkeypatch.undo()
+    assert main(["systems"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    dmc = {r.split()[0]: r for r in rows[1:] if r.startswith("dmc-")}
+    assert list(dmc) == dmc_names() and all("DMC domain" in r for r in dmc.values())
+    assert not any("DMC domain" in r for r in rows[1:] if not r.startswith("dmc-"))
+    cheetah = dmc["dmc-cheetah"].split()
+    assert cheetah[1:5] == ["8", "9", "9", "6"]   # bodies, nq, nv, nu of DMC's own cheetah
