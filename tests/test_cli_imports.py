@@ -5,7 +5,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAVY = ("torch", "warp", "mujoco", "mujoco_warp")
+HEAVY = ("torch", "warp", "mujoco", "mujoco_warp", "dm_control")
 
 
 def _loaded(code: str) -> list[str]:
@@ -21,7 +21,7 @@ def test_import_cli_and_top_level_help_load_no_heavy_module():
     assert _loaded("import gnwarp.cli") == []
     assert _loaded("import gnwarp") == []
     help_code = ("import contextlib, io\nfrom gnwarp.cli import main\n"
-                 "for argv in (['--help'], ['mpc', '--help'], ['generate', '--help']):\n"
+                 "for argv in (['--help'], ['mpc', '--help'], ['generate', '--help'], ['systems', '--help']):\n"
                  "    with contextlib.redirect_stdout(io.StringIO()):\n"
                  "        try:\n            main(argv)\n        except SystemExit:\n            pass")
     assert _loaded(help_code) == []
@@ -33,6 +33,9 @@ def test_lazy_public_names_resolve():
     from gnwarp.gn.options import IMPLS
     from gnwarp.cli import IMPLS as CLI_IMPLS
     assert CLI_IMPLS == IMPLS  # the command line's copy of the implementations' names
+    from gnwarp.cli.mpc import PLANNERS as CLI_PLANNERS
+    from gnwarp.control.planner import MODEL_PLANNERS
+    assert CLI_PLANNERS == MODEL_PLANNERS  # and of the planners through a model
     assert gnwarp.GraphNetwork is GraphNetwork
     assert gnwarp.systems.names() and gnwarp.data.__name__ == "gnwarp.data"
     assert set(gnwarp.__all__) <= set(dir(gnwarp))

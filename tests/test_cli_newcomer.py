@@ -60,10 +60,10 @@ def test_train_help_lists_every_config_key_with_its_default():
 
 
 def test_quick_preset_is_a_valid_cpu_sized_config():
-    from gnwarp.cli import _apply_overrides, _merged
+    from gnwarp.cli.common import apply_overrides, merged
     from gnwarp.demo import DemoConfig, quick_train_keys
     quick = quick_train_keys()
-    cfg = TrainConfig.from_dict(_apply_overrides(_merged(quick, {"model": {"core": "gn"}}), ["steps=50"]))
+    cfg = TrainConfig.from_dict(apply_overrides(merged(quick, {"model": {"core": "gn"}}), ["steps=50"]))
     assert cfg.steps == 50 and cfg.model.gn.latent == DemoConfig().gn.latent < GNCoreConfig().latent
     assert cfg.max_seconds == DemoConfig().train_seconds and cfg.model.gn.blocks == 2
 
@@ -102,15 +102,15 @@ def test_unwritable_output_is_refused_before_work(argv, tmp_path, capsys):
 
 
 def test_size_that_cannot_fit_is_refused_naming_the_limit():
-    from gnwarp.cli import _episode_bytes
-    need = _episode_bytes(8, 10**12, 2, 1)
+    from gnwarp.cli.mpc import episode_bytes
+    need = episode_bytes(8, 10**12, 2, 1)
     assert need > 8 * 10**12 * 2 * 13 * 4
     avail = available_memory()
     assert avail is not None and avail > 0
     with pytest.raises(ValueError, match=r"8 episodes .* needs about .* GiB of memory; this machine has .* GiB "
                                          r"available\. Use fewer"):
         check_memory(need, "8 episodes x 1000000000000 steps", "Use fewer --steps")
-    check_memory(_episode_bytes(8, 100, 2, 1), "a small run")  # fits: no error
+    check_memory(episode_bytes(8, 100, 2, 1), "a small run")  # fits: no error
 
 
 @pytest.fixture(scope="module")
@@ -168,3 +168,94 @@ def test_no_cuda_warning_on_a_cpu_machine(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "wrote" in r.stdout
     assert "CUDA" not in r.stdout + r.stderr
+
+
+def _mpc_argv(model, records, *extra):
+    return ["mpc", "--model", str(model), "--task", "pendulum-balance", "--episodes", "2", "--steps", "2",
+            "--horizon", "3", "--backend", "mujoco", "--video", "none", "--records", str(records), "-q", *extra]
+
+
+@pytest.mark.parametrize("planner, extra", [
+    ("hybrid", ["--iterations", "1", "--warmup", "1", "--set", "samples=4", "--set", "elites=2", "--terminal", "V"]),
+    ("sampling", ["--set", "samples=5", "--set", "noise=0.3"]),
+    ("mppi", ["--set", "samples=4", "--seed", "2"]),
+])
+def test_mpc_plans_with_each_model_planner(tiny_model, tmp_path, capsys, planner, extra):
+    """``--planner`` plans through the model with the settings of the flags and ``--set``; the
+    record's returns are those of the same planner made by ``make_planner`` and run by hand."""
+    from gnwarp.control import run_episodes
+    from gnwarp.control.planner import make_planner, planner_settings
+    from gnwarp.control.value import TerminalValue
+    from gnwarp.data.generation import initial_states
+    from gnwarp.eval.records import read_records
+    from gnwarp.sim import make_env, systems
+    from gnwarp.train import load_model
+    import numpy as np
+    pend = systems.make("pendulum")
+    value = TerminalValue.for_system(pend, hidden=(8,))
+    value.save(tmp_path / "v.pt")
+    extra = [str(tmp_path / "v.pt") if x == "V" else x for x in extra]
+    records = tmp_path / "r.jsonl"
+    assert main(_mpc_argv(tiny_model, records, "--planner", planner, *extra)) == 0
+    assert "true return" in capsys.readouterr().out
+    (rec,) = read_records(records)
+    assert rec.planner == planner and rec.config["horizon"] == 3 and len(rec.returns) == 2
+    assert rec.variant == ("terminal" if "--terminal" in extra else "")
+    fields = rec.config["settings"]
+    assert fields["horizon"] == 3 and fields["samples"] == int(next(s for s in extra if s.startswith("samples="))[8:])
+    seed = int(extra[extra.index("--seed") + 1]) if "--seed" in extra else 0
+    assert fields["seed"] == seed and fields.get("method", "best") == ("mppi" if planner == "mppi" else "best")
+    # the same planner by hand
+    settings = planner_settings(planner, {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+    model = load_model(tiny_model, device="cpu")
+    term = TerminalValue.load(tmp_path / "v.pt") if "--terminal" in extra else None
+    p = make_planner(planner, model, "pendulum-balance", pend, 2, settings, None, term)
+    qpos, qvel = initial_states(pend, 2, np.random.default_rng(seed))
+    env = make_env(pend, 2, backend="mujoco")
+    out = run_episodes(p, env, "pendulum-balance", 2, env.reset(qpos, qvel))
+    np.testing.assert_allclose(rec.returns, out["returns"].double().numpy(), rtol=1e-6)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--planner", "nope"], "--planner 'nope': gnwarp mpc plans through a learned model with one of gradient, "
+                            "hybrid, sampling, mppi"),
+    (["--planner", "ilqg"], "--planner 'ilqg' (it does not plan through a learned model)"),
+    (["--planner", "hybrid", "--set", "nope=1"], "nope: is not a setting of planner 'hybrid'; HybridConfig has "
+                                                 "horizon, samples, elites"),
+    (["--planner", "sampling", "--proposals", "3"], "--proposals does not apply to planner 'sampling' (SamplingConfig "
+                                                    "has no proposals; its settings: horizon, samples"),
+    (["--set", "iterations=0"], "iterations: must be"),
+    (["--set", "iterations=2", "--iterations", "3"], "--set iterations=2 and --iterations both set iterations"),
+    (["--set", "lr"], "--set: expects KEY=VALUE (a field of GradientMPCConfig), got 'lr'"),
+    (["--planner", "mppi", "--set", "method=best"], "registered with method='mppi'"),
+    (["--terminal", "{tmp}/none.pt"], "--terminal: no terminal-value file at"),
+])
+def test_mpc_refuses_bad_planners_and_settings_before_loading(tmp_path, capsys, extra, message):
+    argv = _mpc_argv(tmp_path / "no-model", tmp_path / "r.jsonl", *[x.format(tmp=tmp_path) for x in extra])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "gnwarp mpc: error:" in err and message in err and "no-model" not in err
+    assert "from --set iterations=0" in err if "iterations=0" in extra else True
+    assert not (tmp_path / "r.jsonl").exists()
+
+
+def test_systems_lists_the_dmc_domains_where_dm_control_is_installed(monkeypatch, capsys):
+    """`gnwarp systems`: the built-in systems, then the DMC domains marked as such (with
+    dm-control); without it, the built-in ones and a line on how to get the others."""
+    import gnwarp.cli.data as cli_data
+    from gnwarp.sim import systems
+    from gnwarp.sim.dmc import dmc_names
+    monkeypatch.setattr(cli_data, "dm_control_installed", lambda: False)
+    assert main(["systems"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert [r.split()[0] for r in rows[1:-1]] == [systems.make(n).name for n in systems.names()]
+    assert "dm-control" in rows[-1]
+    pytest.importorskip("dm_control")
+    monkeypatch.undo()
+    assert main(["systems"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    dmc = {r.split()[0]: r for r in rows[1:] if r.startswith("dmc-")}
+    assert list(dmc) == dmc_names() and all("DMC domain" in r for r in dmc.values())
+    assert not any("DMC domain" in r for r in rows[1:] if not r.startswith("dmc-"))
+    cheetah = dmc["dmc-cheetah"].split()
+    assert cheetah[1:5] == ["8", "9", "9", "6"]   # bodies, nq, nv, nu of DMC's own cheetah

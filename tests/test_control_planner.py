@@ -182,3 +182,43 @@ def test_one_sampling_planner_on_true_and_learned_dynamics(pendulum, model):
         p = SamplingPlanner(dyn, "pendulum-balance", env.ctrlrange, N, still)
         env.reset(Q0, V0)
         assert torch.equal(p.step(env.observe()), torch.zeros(N, 1))
+
+
+def test_make_planner_builds_what_the_classes_build(pendulum, model):
+    """``make_planner`` through a learned model gives the same episodes as the classes built by
+    hand (gradient, hybrid, sampling on ``model_dynamics``), on the true dynamics too; settings
+    are checked by name."""
+    from gnwarp.control.planner import MODEL_PLANNERS, make_planner, planner_settings
+    assert set(MODEL_PLANNERS) <= set(PLANNERS)
+    model.bind(pendulum)
+    env = make_env("pendulum", N, backend="mujoco")
+    small = {"gradient": dict(horizon=4, iterations=1, warmup=2), "sampling": dict(horizon=4, samples=4, knots=2),
+             "hybrid": dict(horizon=4, samples=4, elites=2, iterations=1, warmup=1, knots=2)}
+    small["mppi"] = small["sampling"]
+    by_hand = {
+        "gradient": lambda s: GradientMPC(model, "pendulum-balance", "pendulum", N, s),
+        "hybrid": lambda s: HybridPlanner(model, "pendulum-balance", "pendulum", N, s),
+        "sampling": lambda s: SamplingPlanner(model_dynamics(model, N, 4, 4), "pendulum-balance", env.ctrlrange, N, s)}
+    by_hand["mppi"] = by_hand["sampling"]
+    for name in MODEL_PLANNERS:
+        made = make_planner(name, model, "pendulum-balance", "pendulum", N, small[name])
+        assert planner_name(made) == name and made.settings == planner_settings(name, small[name])
+        ref = by_hand[name](get_planner(name).make_settings(**small[name]))
+        a = run_episodes(made, env, "pendulum-balance", 2, qpos0=Q0, qvel0=V0)
+        b = run_episodes(ref, env, "pendulum-balance", 2, qpos0=Q0, qvel0=V0)
+        torch.testing.assert_close(a["actions"], b["actions"], msg=name)
+    oracle = make_planner("sampling", true_dynamics("pendulum", N, 4, backend="mujoco"), "pendulum-balance",
+                          "pendulum", N, small["sampling"])
+    assert oracle.needs_sim_state and isinstance(oracle.dynamics, EnvDynamics)
+    assert planner_name(make_planner("random", model, "pendulum-balance", "pendulum", N, {"seed": 2})) == "random"
+    with pytest.raises(ConfigError, match="nope: is not a setting of planner 'hybrid'; HybridConfig has horizon, "
+                                          "samples, elites"):
+        planner_settings("hybrid", {"nope": 1})
+    with pytest.raises(ValueError, match="registered with method='mppi'"):
+        planner_settings("mppi", {"method": "best"})
+    with pytest.raises(ValueError, match="unknown planner 'nope'; registered: gradient"):
+        make_planner("nope", model, "pendulum-balance", "pendulum", N)
+    with pytest.raises(PlanningError, match="'gradient' differentiates a learned Dynamics model; EnvDynamics"):
+        make_planner("gradient", true_dynamics("pendulum", N, 4, backend="mujoco"), "pendulum-balance", "pendulum", N)
+    with pytest.raises(ValueError, match="'ilqg' .* is not built through a dynamics model"):
+        make_planner("ilqg", model, "pendulum-balance", "pendulum", N)

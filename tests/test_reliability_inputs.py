@@ -85,7 +85,7 @@ def test_config_errors_name_the_key_alike_everywhere(raw, item, path, words, tmp
 def test_toml_config_values_and_syntax_errors(tmp_path, capsys):
     good = tmp_path / "good.toml"
     good.write_text('steps = 10\nlr_decay_steps = "slow"\n[model.gn]\nlatent = 16\nedge_hidden = [32, 32]\n')
-    raw = cli._read_config(str(good))
+    raw = cli.common.read_config(str(good))
     cfg = TrainConfig.from_dict(raw)
     assert cfg.model.gn.edge_hidden == (32, 32) and cfg.decay_steps == 200_000
     bad = tmp_path / "bad.toml"
@@ -104,10 +104,10 @@ def test_toml_config_values_and_syntax_errors(tmp_path, capsys):
     lst = tmp_path / "list.json"
     lst.write_text("[1, 2]")
     with pytest.raises(ConfigError, match="a table of TrainConfig keys"):
-        cli._read_config(str(lst))
+        cli.common.read_config(str(lst))
     for item, words in (("steps", "KEY=VALUE"), ("model..gn=1", "malformed key"), ("steps.x=1", "steps")):
         with pytest.raises(ConfigError, match=words):
-            TrainConfig.from_dict(cli._apply_overrides({}, [item]))
+            TrainConfig.from_dict(cli.common.apply_overrides({}, [item]))
 
 
 def test_configs_keep_their_python_api():

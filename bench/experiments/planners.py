@@ -79,28 +79,23 @@ def quick_model(system):
 
 def make_planner(name: str, args, model, task, system, env, n: int, targets, terminal):
     """The planner ``name`` through the learned ``model`` (None: the true simulator), or None
-    where it cannot run (gradient MPC on the true simulator)."""
-    from gnwarp.control import GradientMPC, GradientMPCConfig
-    from gnwarp.control.hybrid import HybridConfig, HybridPlanner
-    from gnwarp.control.sampling import SamplingConfig, SamplingPlanner, model_dynamics, true_dynamics
+    where it cannot run (gradient MPC on the true simulator): ``gnwarp.control.planner.make_planner``
+    with this script's settings."""
+    from gnwarp.control.planner import make_planner as build
+    from gnwarp.control.sampling import true_dynamics
+    if name == "gradient" and model is None:
+        return None
     H = args.horizon or task.horizon
-    common = dict(discount=args.discount)
+    settings = {"horizon": H, "discount": args.discount}
     if name == "gradient":
-        if model is None:
-            return None
-        cfg = GradientMPCConfig(horizon=H, iterations=args.iterations, grad_norm=args.grad_norm,
-                                grad_decay=args.grad_decay, **common)
-        return GradientMPC(model, task, system, n, cfg, targets=targets, terminal=terminal)
-    if name == "sampling":
-        cfg = SamplingConfig(horizon=H, samples=args.samples, knots=min(args.knots, H), **common)
-        dyn = (model_dynamics(model, n, args.samples, H) if model is not None
-               else true_dynamics(system, n, args.samples, backend=args.backend, source=env))
-        return SamplingPlanner(dyn, task, env.ctrlrange, n, cfg, targets=targets, terminal=terminal)
-    cfg = HybridConfig(horizon=H, samples=args.samples, elites=min(args.elites, args.samples),
-                       iterations=args.iterations, knots=min(args.knots, H), grad_norm=args.grad_norm,
-                       grad_decay=args.grad_decay, **common)
+        settings.update(iterations=args.iterations, grad_norm=args.grad_norm, grad_decay=args.grad_decay)
+    elif name == "sampling":
+        settings.update(samples=args.samples, knots=min(args.knots, H))
+    else:
+        settings.update(samples=args.samples, elites=min(args.elites, args.samples), iterations=args.iterations,
+                        knots=min(args.knots, H), grad_norm=args.grad_norm, grad_decay=args.grad_decay)
     dyn = model if model is not None else true_dynamics(system, n, args.samples, backend=args.backend, source=env)
-    return HybridPlanner(dyn, task, system, n, cfg, targets=targets, terminal=terminal)
+    return build(name, dyn, task, system, n, settings, targets, terminal, ctrlrange=env.ctrlrange)
 
 
 def dynamics_name(args, env) -> str:

@@ -190,24 +190,14 @@ def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
 
 def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0):
     """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, ``seed`` added to its
-    settings' seed. "gradient": ``GradientMPC``; "sampling" / "mppi": ``SamplingPlanner`` on
-    ``model_dynamics``; "random": ``RandomPlanner``. Any other registered planner class is built
-    with its ``for_model(model, task, system, n, settings, targets)`` where it has one, else as
-    ``cls(model, task, system, n, settings, targets)`` (GradientMPC's signature)."""
-    from gnwarp.control.planner import get_planner
-    from gnwarp.control.sampling import RandomPlanner, SamplingPlanner, model_dynamics
+    settings' seed: ``gnwarp.control.planner.make_planner`` with ``cfg.planner_settings``, the
+    sampling planners drawing in ``env.ctrlrange``."""
+    from gnwarp.control.planner import get_planner, make_planner
     entry = get_planner(cfg.planner)
     fields = dict(cfg.planner_settings)
     if "seed" in {f.name for f in dataclasses.fields(entry.settings)}:
         fields["seed"] = int(fields.get("seed", 0)) + int(seed)
-    settings = entry.make_settings(**fields)
-    if cfg.planner == "random":
-        return RandomPlanner(env.actuators, n, seed=settings.seed)
-    if cfg.planner in ("sampling", "mppi"):
-        dyn = model_dynamics(model.bind(system), n, settings.samples, settings.horizon)
-        return SamplingPlanner(dyn, task, env.ctrlrange, n, settings, targets)
-    build = getattr(entry.cls, "for_model", None)
-    return (build or entry.cls)(model, task, system, n, settings, targets)
+    return make_planner(cfg.planner, model, task, system, n, fields, targets, ctrlrange=env.ctrlrange)
 
 
 def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:

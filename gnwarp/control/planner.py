@@ -23,6 +23,7 @@ A trained policy plugs in as a planner whose ``optimize`` does nothing.
     >>> planner = entry.cls(dynamics, task, ctrlrange, n, entry.make_settings(samples=32))
     >>> isinstance(planner, Planner), planner_name(planner)
     (True, 'mppi')
+    >>> planner = make_planner("hybrid", model, task, system, n, {"samples": 32}, targets)   # through a model
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.ilqg import ILQG, ILQGSettings
 from gnwarp.control.sampling import RandomPlanner, RandomSettings, SamplingConfig, SamplingPlanner
 
-__all__ = ["Planner", "PlannerEntry", "PLANNERS", "planner_name", "get_planner"]
+__all__ = ["Planner", "PlannerEntry", "PLANNERS", "MODEL_PLANNERS", "planner_name", "get_planner", "planner_settings",
+           "make_planner"]
 
 
 @runtime_checkable
@@ -106,3 +108,73 @@ def planner_name(planner) -> str:
         if entry.matches(planner):
             return name
     raise ValueError(f"{type(planner).__name__} is not a registered planner ({', '.join(PLANNERS)})")
+
+
+# the registered planners that plan through a learned model (``make_planner`` on a ``Dynamics``)
+MODEL_PLANNERS = ("gradient", "hybrid", "sampling", "mppi")
+
+
+def planner_settings(name: str, settings=None):
+    """The settings of the registered planner ``name``: ``settings`` None (its defaults), a dict
+    of its settings dataclass's fields, or an instance of that dataclass (checked against the
+    fields the name fixes). An unknown key raises ``ConfigError`` naming the fields there are."""
+    from gnwarp.validation import ConfigError
+    entry = get_planner(name)
+    names = [f.name for f in dataclasses.fields(entry.settings)]
+    if settings is None:
+        settings = {}
+    elif isinstance(settings, entry.settings):
+        settings = {k: getattr(settings, k) for k in names}
+    elif not isinstance(settings, dict):
+        raise TypeError(f"settings of planner {name!r} must be a dict or a {entry.settings.__name__}, "
+                        f"got {type(settings).__name__}")
+    unknown = [k for k in settings if k not in names]
+    if unknown:
+        raise ConfigError(unknown[0], f"is not a setting of planner {name!r}; {entry.settings.__name__} has "
+                                      f"{', '.join(names)}")
+    return entry.make_settings(**dict(settings))
+
+
+def make_planner(name: str, dynamics, task, system, n: int, settings=None, targets=None, terminal=None,
+                 ctrlrange=None):
+    """The registered planner ``name`` for ``n`` episodes of ``system`` (a ``System`` or a
+    built-in name) on ``task`` (a ``Task`` or its name), planning through ``dynamics``.
+
+    ``dynamics``: a learned ``gnwarp.dynamics.Dynamics`` model (bound here to ``system``) or a
+    ``RolloutDynamics`` (``sampling.true_dynamics``: the true simulator; not for "gradient", which
+    differentiates a model). "gradient": ``GradientMPC``; "hybrid": ``HybridPlanner``;
+    "sampling" / "mppi": ``SamplingPlanner`` on ``sampling.model_dynamics`` of the model (of
+    ``samples`` x ``horizon`` rollouts) or on the given rollout dynamics; "random":
+    ``RandomPlanner``. ``settings``: as ``planner_settings`` takes them. ``targets`` [n, ...]: the
+    task's per-episode targets; ``terminal``: an optional ``terminal(states_last [M, B, 13]) ->
+    [M]`` added to planned returns (a ``gnwarp.control.value.TerminalValue``); ``ctrlrange``
+    [U, 2]: where sampling planners draw actions (None: the system's actuators' sample range,
+    an env's ``ctrlrange``)."""
+    from gnwarp.control.gradient import PlanningError
+    from gnwarp.control.sampling import model_dynamics
+    from gnwarp.dynamics import Dynamics
+    from gnwarp.sim.systems import System, make
+    entry = get_planner(name)
+    settings = planner_settings(name, settings)
+    learned = isinstance(dynamics, Dynamics)
+
+    def one_system():
+        return system if isinstance(system, System) else make(system)
+
+    if entry.cls is GradientMPC and not learned:
+        raise PlanningError(f"planner 'gradient' differentiates a learned Dynamics model; {type(dynamics).__name__} "
+                            "has no gradients (plan on it with sampling, mppi or hybrid)")
+    if entry.cls in (GradientMPC, HybridPlanner):
+        return entry.cls(dynamics, task, system, n, settings, targets, terminal)
+    if entry.cls is SamplingPlanner:
+        sys_ = one_system()
+        dyn = model_dynamics(dynamics.bind(sys_), n, settings.samples, settings.horizon) if learned else dynamics
+        cr = ctrlrange if ctrlrange is not None else sys_.actuators.sample_range()
+        return SamplingPlanner(dyn, task, cr, n, settings, targets, terminal)
+    if entry.cls is RandomPlanner:
+        return RandomPlanner(ctrlrange if ctrlrange is not None else one_system().actuators, n, seed=settings.seed)
+    build = getattr(entry.cls, "for_model", None)
+    if build is None:
+        raise ValueError(f"planner {name!r} ({entry.cls.__name__}) is not built through a dynamics model; "
+                         f"make_planner builds {', '.join(MODEL_PLANNERS)} and random")
+    return build(dynamics, task, system, n, settings, targets)

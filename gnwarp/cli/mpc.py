@@ -1,0 +1,274 @@
+"""``gnwarp mpc``: plan through a learned model, in closed loop on the true simulator; the
+results record, timings and video."""
+from __future__ import annotations
+
+import time
+
+from gnwarp.cli.common import IMPLS, paragraphs, parse_value
+
+__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "timing_line", "check_outputs", "PLANNERS",
+           "SETTING_FLAGS"]
+
+# the registered planners that plan through a learned model (``gnwarp.control.planner.MODEL_PLANNERS``,
+# whose module imports torch; a test keeps the two equal)
+PLANNERS = ("gradient", "hybrid", "sampling", "mppi")
+# the flags that set a planner's settings field of the same name, where its settings have one
+SETTING_FLAGS = ("horizon", "iterations", "warmup", "proposals", "lr")
+
+
+def episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
+    """Host memory ``run_episodes`` holds for ``n`` episodes of ``steps`` steps: float32 states
+    [n, steps+1, bodies, 13] and actions [n, steps, nu], each per step and stacked, and about
+    500 bytes of Python objects a step."""
+    return 2 * 4 * (n * (steps + 1) * bodies * 13 + n * steps * nu) + 500 * steps
+
+
+def mpc_settings(args, task):
+    """The settings dataclass of planner ``args.planner``: the flags of ``SETTING_FLAGS`` given
+    (each where the settings have that field; elsewhere ValueError), ``--seed``, then ``--set
+    KEY=VALUE``; the horizon defaults to the task's, and ``knots`` to at most the horizon. An
+    unknown key raises ``ConfigError`` naming the planner's fields, a bad value where it came from."""
+    import dataclasses
+
+    from gnwarp.control.planner import MODEL_PLANNERS, get_planner, planner_settings
+    from gnwarp.validation import ConfigError
+    name = args.planner
+    if name not in MODEL_PLANNERS:
+        why = " (it does not plan through a learned model)" if name in ("ilqg", "random") else ""
+        raise ValueError(f"--planner {name!r}{why}: gnwarp mpc plans through a learned model with one of "
+                         f"{', '.join(MODEL_PLANNERS)}")
+    entry = get_planner(name)
+    fields = {f.name: f for f in dataclasses.fields(entry.settings)}
+    given, source = {}, {}
+    for flag in SETTING_FLAGS:
+        value = getattr(args, flag)
+        if value is None:
+            continue
+        if flag not in fields:
+            raise ValueError(f"--{flag} does not apply to planner {name!r} ({entry.settings.__name__} has no "
+                             f"{flag}; its settings: {', '.join(fields)})")
+        given[flag], source[flag] = value, f"--{flag}"
+    given["seed"], source["seed"] = args.seed, "--seed"
+    for item in args.set or []:
+        key, eq, text = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ConfigError("--set", f"expects KEY=VALUE (a field of {entry.settings.__name__}), got {item!r}")
+        if key in source and source[key] != "--seed":
+            raise ValueError(f"--set {item} and {source[key]} both set {key}: give one")
+        given[key], source[key] = parse_value(text), f"--set {item}"
+    if "horizon" not in given:   # the task's (SamplingConfig's own default is a fixed 20)
+        given["horizon"] = task.horizon
+    if "knots" in fields and "knots" not in given:
+        given["knots"] = min(fields["knots"].default, given["horizon"])
+    try:
+        return planner_settings(name, given)
+    except ConfigError as e:   # the key, the value's source and the planner's fields
+        raise ConfigError(e.path, f"{e.reason} (planner {name!r}, from {source.get(e.path, 'the defaults')})") from None
+
+
+def planner_summary(planner, name: str) -> str:
+    """What the planner spends a control step on, in words."""
+    s = planner.settings
+    if name == "gradient":
+        return (f"horizon {planner.horizon}, {s.iterations} iterations a step: {planner.model_evals_per_step} model "
+                "steps an episode")
+    if name == "hybrid":
+        return (f"hybrid: horizon {planner.horizon}, {s.samples} sampled sequences, the best {s.elites} refined by "
+                f"{s.iterations} {planner.refinement} iterations a step")
+    return f"{name}: horizon {s.horizon}, {s.samples} sampled sequences a step"
+
+
+def mpc_command(args) -> int:
+    """``gnwarp mpc``: a registered planner (``--planner``) through a learned model, in closed
+    loop on the true simulator."""
+    import dataclasses
+    import types
+    from pathlib import Path
+
+    import numpy as np
+
+    from gnwarp.control import control_timestep, get_task, plan_timing, run_episodes, sample_targets
+    from gnwarp.control.gradient import model_systems
+    from gnwarp.control.planner import make_planner, planner_name
+    from gnwarp.data.generation import initial_states
+    from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
+    from gnwarp.sim import make_env, systems
+    from gnwarp.sim.families import family_name
+    from gnwarp.train import load_model
+    from gnwarp.train.checkpoint import training_env_steps
+    from gnwarp.validation import check_memory
+
+    task = get_task(args.task)
+    # refused before anything is loaded
+    settings = mpc_settings(args, task)
+    args.steps = args.steps if args.steps is not None else (getattr(task, "episode_steps", None) or 100)
+    if args.episodes < 1 or args.steps < 1:
+        raise ValueError(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}")
+    if args.terminal is not None and not Path(args.terminal).is_file():
+        raise FileNotFoundError(f"--terminal: no terminal-value file at {args.terminal}")
+    records = Path(args.records or f"mpc-{task.name}.jsonl")
+    video = None if args.video == "none" else Path(args.video or f"mpc-{task.name}.gif")
+    check_outputs(records, video)   # before planning, not after
+    model = load_model(args.model, device=args.device, **({"impl": args.impl} if args.impl else {}))
+    # the system: --system, else the one the model was trained on that fits the task
+    name = args.system or next((s for s in model_systems(model) if family_name(s) == task.system),
+                               "swimmer6" if task.system == "swimmer" else task.system)
+    system = systems.make(name)
+    n = args.episodes
+    check_memory(episode_bytes(n, args.steps, system.nbody, system.nu),
+                 f"{n} episodes x {args.steps} steps x {system.nbody} bodies (every state kept)",
+                 "Use fewer --steps or --episodes")
+    terminal = None
+    if args.terminal is not None:
+        from gnwarp.control.value import TerminalValue
+        terminal = TerminalValue.load(args.terminal, device=model.device)
+        if terminal.nbody != system.nbody:
+            raise ValueError(f"--terminal {args.terminal}: a value of states of {terminal.nbody} bodies; "
+                             f"{system.name} has {system.nbody}")
+    target = sample_targets(task, system, n, args.seed)
+    planner = make_planner(args.planner, model, task, system, n, settings, target, terminal)
+    kind = planner_name(planner)
+    gradient = kind == "gradient"
+    from tqdm.auto import tqdm  # gradient MPC: one bar over every planning iteration, the warm-up included
+    bar = tqdm(total=planner.warmup + settings.iterations * args.steps if gradient else args.steps,
+               desc=f"mpc {task.name}", unit="it" if gradient else "step", disable=args.quiet, dynamic_ncols=True)
+    episode_kw = {}
+    if gradient:
+        planner.progress = bar.update
+    else:
+        episode_kw["progress"] = lambda done: bar.update(done - bar.n)
+    env = make_env(system, n, backend=args.backend)
+    qpos, qvel = (getattr(task, "initial", None) or initial_states)(system, n, np.random.default_rng(args.seed))
+    t0 = time.perf_counter()
+    out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target, **episode_kw)
+    secs = time.perf_counter() - t0
+    bar.close()
+    r = out["returns"]
+    timing = plan_timing(out["plan_seconds"], control_timestep(system))
+    print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
+          f"over {n} episodes of {args.steps} steps ({planner_summary(planner, kind)})")
+    print(timing_line(timing, planner, n))
+    metrics = {k: timing[k] for k in ("first_step_ms", "steady_ms", "real_time_factor", "steady_after", "mean_ms")}
+    if gradient:
+        metrics.update(model_evals_per_step=planner.model_evals_per_step, warmup_iterations=planner.warmup,
+                       proposal_evals=planner.proposal_evals)
+    metrics.update(episode_steps_per_s=n * args.steps / secs, plan_ms=[1e3 * float(t) for t in out["plan_seconds"]])
+    if timing["steady_ms"]:
+        metrics["steady_episode_steps_per_s"] = 1e3 * n / timing["steady_ms"]
+    fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
+    horizon = getattr(planner, "horizon", None) or settings.horizon
+    record = ResultRecord(
+        experiment="mpc", task=task.name, system=system.name, planner=kind, dynamics="learned", seed=args.seed,
+        episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()], control_dt=float(system.dt),
+        action_repeat=int(system.substeps), env_steps=training_env_steps(args.model),
+        metrics=metrics, variant="terminal" if terminal is not None else "",
+        config={"model": str(args.model), "horizon": horizon, "iterations": fields.get("iterations"),
+                "warmup": planner.warmup if gradient else fields.get("warmup"), "proposals": fields.get("proposals"),
+                "lr": fields.get("lr"), "backend": args.backend, "settings": fields,
+                "terminal": None if args.terminal is None else str(args.terminal),
+                "initial_qpos": np.asarray(qpos).tolist(), "initial_qvel": np.asarray(qvel).tolist(),
+                "targets": None if target is None else target.cpu().double().numpy().tolist()},
+        commit=git_commit(), gpu=gpu_name(model.device), date=time.strftime("%Y-%m-%d %H:%M:%S"))
+    write_records(records, [record])
+    print(f"wrote {records}")
+    if video is not None:
+        from gnwarp.eval.animation import animate
+        k = min(3, n)
+        shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
+                                     static={"n_node": np.full(k, system.nbody)})
+        what = "gradient MPC" if gradient else f"{kind} planner"
+        animate(out["states"][:k].numpy(), {}, shim, np.zeros(k, dtype=np.int64), video, dt=system.dt,
+                title=f"{task.name}: {what}, true simulator", renderer=args.renderer)
+        print(f"wrote {video}")
+    return 0
+
+
+def timing_line(timing: dict, planner, n: int) -> str:
+    """The first control step and the steady state apart, and the real-time factor, in words."""
+    first = f"first control step {timing['first_step_ms']:.1f} ms"
+    if hasattr(planner, "proposal_evals"):   # gradient MPC: its warm-up and where it started
+        proposed = planner.proposal_evals // planner.horizon
+        start = f"the best of {proposed} proposed sequences" if proposed else "a random sequence"
+        first += f" ({planner.warmup} warm-up iterations from {start})"
+    if timing["steady_ms"] is None:
+        return f"{first}; no steady state (one step)"
+    after = timing["steady_after"]
+    return (f"{first}; steady {timing['steady_ms']:.2f} ms a control step (median of steps {after + 1}-"
+            f"{timing['steps']}), real-time factor {timing['real_time_factor']:.3g} (control step "
+            f"{timing['control_dt_ms']:.3g} ms), {1e3 * n / timing['steady_ms']:.0f} episode-steps/s")
+
+
+def check_outputs(records, video) -> None:
+    """Refuse output paths that cannot be written (``files.check_output_path``) and a records file
+    that is not one, before any work, with ``OSError`` / ``RecordError`` naming them."""
+    from gnwarp.eval.records import read_records
+    from gnwarp.files import check_output_path
+    for what, path in (("--records", records), ("--video", video)):
+        if path is not None:
+            try:
+                check_output_path(path)
+            except OSError as e:
+                raise type(e)(f"{what} {path}: {e}") from None
+    if records.exists():
+        read_records(records)   # appended to: it must hold valid records
+
+
+def add_mpc(sub) -> None:
+    m = sub.add_parser("mpc", help="MPC through a learned model (gradient, hybrid, sampling, mppi), run in closed "
+                                   "loop on the true simulator",
+                       description=paragraphs(
+                           "Plan actions through a learned model, apply them on the true simulator, print the "
+                           "true returns, append them as a results record to --records and write a video of "
+                           "the first episodes. Output paths and planner settings are checked before planning.",
+                           "--planner: gradient (the default: gradient steps on the task reward of the model's "
+                           "rollouts, paper F.1.1; its first state warms up, 4 x iterations by default, after "
+                           "a proposal of sampled sequences), hybrid (sampled sequences, the best refined by "
+                           "gradient steps), sampling (predictive sampling) or mppi, all through the model. "
+                           "--horizon, --iterations, --warmup, --proposals and --lr set the planner's settings "
+                           "field of that name where it has one; --set KEY=VALUE sets any field "
+                           "(GradientMPCConfig, HybridConfig, SamplingConfig). --terminal adds a learned "
+                           "terminal value to every planned return.",
+                           "A progress bar counts gradient MPC's planning iterations (other planners': control "
+                           "steps). Prints the first control step and the steady state apart, with the real-time "
+                           "factor (control timestep / steady time).",
+                           "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
+    m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
+    m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance, cheetah-run)")
+    m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
+    m.add_argument("--planner", default="gradient", metavar="NAME",
+                   help=f"planner through the model: {', '.join(PLANNERS)} (gnwarp.control.PLANNERS)")
+    m.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a field of the planner's settings (repeatable; values parsed as JSON when they parse, "
+                        "e.g. --set samples=128 --set noise=0.3; default: none)")
+    m.add_argument("--terminal", metavar="VALUE_FILE",
+                   help="a terminal value (gnwarp.control.value.TerminalValue.save) added to planned returns "
+                        "(default: none)")
+    m.add_argument("--episodes", type=int, default=8, help="episodes planned together")
+    m.add_argument("--steps", type=int, default=None,
+                   help="control steps per episode (default: the task's episode length, DMC's 1000, else 100; every "
+                        "state is kept in memory: a run that cannot fit in the available memory is refused first)")
+    m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
+    m.add_argument("--iterations", type=int, help="gradient iterations per control step (gradient, hybrid; "
+                                                   "default: the planner's, 5)")
+    m.add_argument("--warmup", type=int, help="extra iterations at the first state (gradient, hybrid; default: 4 x "
+                                              "iterations; the paper: iterations x horizon, with --proposals 0)")
+    m.add_argument("--proposals", type=int,
+                   help="random action sequences rolled out at the first state (beside the mid one); Adam starts "
+                        "from the best (0: from a random sequence; gradient only; default: 30)")
+    m.add_argument("--lr", type=float, help="Adam's step size (gradient, hybrid; default: the planner's, 0.1 and "
+                                            "0.05)")
+    m.add_argument("--seed", type=int, default=0, help="initial states, targets and the planner's seed")
+    m.add_argument("--backend", default="auto", choices=["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"],
+                   help="true simulator (default: MuJoCo-Warp on a GPU, else MuJoCo C)")
+    m.add_argument("--device", default=None, help="the model's device: cpu, cuda, ... (default: CUDA when present)")
+    m.add_argument("--impl", choices=IMPLS, default=None, help="GN implementation (default: the checkpoint's)")
+    m.add_argument("-o", "--out", "--records", dest="records", metavar="PATH",
+                   help="results records file (JSON lines, appended; default: mpc-<task>.jsonl): per-episode "
+                        "returns, initial states, targets and settings (gnwarp.eval.records)")
+    m.add_argument("--video", help="video path (default: mpc-<task>.gif; 'none': no video)")
+    m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"],
+                   help="how the video is drawn: MuJoCo's renderer (EGL/OSMesa), matplotlib, or auto "
+                        "(MuJoCo where it renders, else matplotlib)")
+    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=mpc_command)
