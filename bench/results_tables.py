@@ -233,6 +233,44 @@ def control_table(root: Path, doc: Path) -> list[str]:
         ["task"] + [c for c, _ in cols] + ["GN-MPC / iLQG"], rows)
 
 
+@table("control-dmc")
+def control_dmc(root: Path, doc: Path) -> list[str]:
+    """DeepMind Control tasks: every summary row of a "dmc-" task (``bench/control_summary.py``)."""
+    rows = [r for r in json.loads((root / RESULTS / "control" / "summary.json").read_text())
+            if r["task"].startswith("dmc-") and r["protocol"] == "paper"]
+    out = []
+    for r in rows:
+        recs = read_records(root / r["source"])
+        ms = [x.metrics.get("plan_ms_steady") for x in recs if x.task == r["task"] and x.planner == r["planner"]
+              and x.dynamics == r["dynamics"] and x.variant == r["variant"]]
+        ms = [m for m in ms if m is not None]
+        out.append([r["task"], r["planner"] + (f" ({r['variant']})" if r["variant"] else ""), r["dynamics"],
+                    str(r["seeds"]), str(r["episodes"]), _num(r["mean"], 3),
+                    f"[{_num(r['ci95'][0], 3)}, {_num(r['ci95'][1], 3)}]", r["over"],
+                    _num(statistics.median(ms), 3) if ms else "-"])
+    return [_note("mean return over all episodes (0-1000 scale), its 95% bootstrap interval over the seeds' means "
+                  "(or over the episodes of one seed)", "`summary.json` (from the records under `dmc/`)"), ""] + _md(
+        ["task", "planner", "dynamics", "seeds", "episodes", "mean", "95% interval", "over", "plan ms / step"], out)
+
+
+@table("control-loop")
+def control_loop(root: Path, doc: Path) -> list[str]:
+    """The data loop on cheetah-run: one row per iteration."""
+    recs = read_records(root / RESULTS / "control" / "loop_cheetah_run" / "records.jsonl")
+    out = []
+    for r in recs:
+        e = r.metrics.get("errors", {})
+        new, old = e.get("new", {}), e.get("trained", {})
+        out.append([str(r.metrics.get("iteration")), str(r.env_steps), _num(statistics.fmean(r.returns), 3),
+                    _num(new.get("one_step"), 2), _num(new.get("rollout"), 2), _num(old.get("one_step"), 2),
+                    _num(old.get("rollout"), 2)])
+    return [_note("per iteration: the mean true return of its episodes (16, planned before training on them) and "
+                  "the model's normalized one-step and 20-step rollout errors on those new states and on its "
+                  "training data, before it trains on them", "`loop_cheetah_run/records.jsonl`"), ""] + _md(
+        ["iteration", "env steps", "mean return", "new: one-step", "new: rollout", "trained: one-step",
+         "trained: rollout"], out)
+
+
 @table("control-fig10")
 def control_fig10(root: Path, doc: Path) -> list[str]:
     gs = _groups(root, "control/fig10/results.jsonl")
