@@ -54,16 +54,10 @@ def task_and_system(name: str):
 
 
 def initial(task, system, n: int, seed: int):
-    """(qpos [n, nq], qvel [n, nv]) of the task's random initial states, and its targets."""
-    from gnwarp.control import sample_targets
-    rng = np.random.default_rng(seed)
-    init = getattr(task, "initial", None)
-    if init is not None:
-        qpos, qvel = init(system, n, rng)
-    else:
-        from gnwarp.data.generation import initial_states
-        qpos, qvel = initial_states(system, n, rng)
-    return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64), sample_targets(task, system, n, seed=seed)
+    """(qpos [n, nq], qvel [n, nv]) of the task's random initial states, and its targets
+    (``gnwarp.control.episode_starts``: targets independent of the initial states)."""
+    from gnwarp.control import episode_starts
+    return episode_starts(task, system, n, seed)
 
 
 def quick_model(system):

@@ -88,10 +88,9 @@ def mpc_command(args) -> int:
 
     import numpy as np
 
-    from gnwarp.control import control_timestep, get_task, plan_timing, run_episodes, sample_targets
+    from gnwarp.control import control_timestep, episode_starts, get_task, plan_timing, run_episodes
     from gnwarp.control.gradient import model_systems
     from gnwarp.control.planner import make_planner, planner_name
-    from gnwarp.data.generation import initial_states
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
     from gnwarp.sim import make_env, systems
     from gnwarp.sim.families import family_name
@@ -126,7 +125,7 @@ def mpc_command(args) -> int:
         if terminal.nbody != system.nbody:
             raise ValueError(f"--terminal {args.terminal}: a value of states of {terminal.nbody} bodies; "
                              f"{system.name} has {system.nbody}")
-    target = sample_targets(task, system, n, args.seed)
+    qpos, qvel, target = episode_starts(task, system, n, args.seed)
     planner = make_planner(args.planner, model, task, system, n, settings, target, terminal)
     kind = planner_name(planner)
     gradient = kind == "gradient"
@@ -139,7 +138,6 @@ def mpc_command(args) -> int:
     else:
         episode_kw["progress"] = lambda done: bar.update(done - bar.n)
     env = make_env(system, n, backend=args.backend)
-    qpos, qvel = (getattr(task, "initial", None) or initial_states)(system, n, np.random.default_rng(args.seed))
     t0 = time.perf_counter()
     out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target, **episode_kw)
     secs = time.perf_counter() - t0

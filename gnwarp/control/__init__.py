@@ -18,12 +18,12 @@ from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
 from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
-from gnwarp.control.tasks import TASKS, Task, TaskError, get_task, sample_targets, task_names
+from gnwarp.control.tasks import TASKS, Task, TaskError, episode_starts, get_task, sample_targets, task_names
 from gnwarp.control.timing import control_timestep, plan_timing
 from gnwarp.control.value import TerminalValue, fit_terminal_value
 from gnwarp.control.vector_env import ControlVectorEnv, make_vector_env
 
-__all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "GradientMPC",
+__all__ = ["Task", "TASKS", "TaskError", "get_task", "task_names", "sample_targets", "episode_starts", "GradientMPC",
            "GradientMPCConfig", "PlanningError", "Planner", "PLANNERS", "get_planner", "planner_name", "run_episodes",
            "identify_on_env", "plan_timing", "control_timestep", "HybridPlanner", "HybridConfig", "TerminalValue",
            "fit_terminal_value", "make_vector_env", "ControlVectorEnv"]

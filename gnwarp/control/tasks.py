@@ -29,7 +29,7 @@ from gnwarp.sim.body_state import body_states
 from gnwarp.state import LINVEL, POS, QUAT, quat_conj, quat_mul
 
 __all__ = ["Task", "TASKS", "get_task", "task_names", "upright_angle", "body_index",
-           "sample_targets", "TaskError", "Reward"]
+           "sample_targets", "episode_starts", "TaskError", "Reward"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -236,3 +236,23 @@ def sample_targets(task: Task, system, n: int, seed: int = 0, distance: float = 
         out.append(body_states(m, d))
     poses = torch.tensor(np.stack(out), dtype=torch.float32)
     return poses[:, body_index(system.name, "hand")[0]] if task.target == "pose" else poses
+
+
+def episode_starts(task: Task, system, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor | None]:
+    """(qpos [n, nq], qvel [n, nv] float64, targets [n, ...] float32 or None) of ``n`` episodes of
+    ``task`` on ``system`` (a ``System``): the task's ``initial`` (else
+    ``gnwarp.data.generation.initial_states``) from a generator seeded with ``seed``, then the
+    targets (``sample_targets``) seeded by a number drawn from that generator, so that targets
+    are independent of the initial states (the same seed for both would tie, e.g., reacher's
+    target angle to its shoulder angle)."""
+    rng = np.random.default_rng(seed)
+    init = task.initial
+    if init is None:
+        from gnwarp.data.generation import initial_states as init
+    qpos, qvel = init(system, n, rng)
+    qpos = np.asarray(qpos, dtype=np.float64).reshape(n, -1)
+    qvel = np.asarray(qvel, dtype=np.float64).reshape(n, -1)
+    targets = None
+    if task.target is not None:
+        targets = sample_targets(task, system, n, seed=int(rng.integers(2 ** 63 - 1)))
+    return qpos, qvel, targets
