@@ -22,6 +22,7 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from gnwarp.control.returns import check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
@@ -310,6 +311,8 @@ class SamplingPlanner:
             top = r.max(1, keepdim=True).values
             spread = (top - r.masked_fill(~torch.isfinite(r), torch.inf).min(1, keepdim=True).values).clamp_min(1e-9)
             w = torch.softmax((r - top) / (cfg.temperature * spread), 1)
+            # an episode whose every rollout diverged keeps its nominal (candidate 0), not NaN weights
+            w = torch.where(torch.isfinite(top), w, F.one_hot(torch.zeros_like(r[:, 0], dtype=torch.int64), K).to(w))
             chosen = torch.einsum("nk,nkpu->npu", w, cand)
         self.last_rewards = r
         self.plan = self.actions(chosen)
