@@ -72,6 +72,10 @@ def _row(key: tuple, recs: list, source: str) -> dict:
     row = {"task": task, "planner": planner, "dynamics": dynamics, "protocol": protocol,
            "env_steps": env_steps, "seeds": len(seeds), "episodes": sum(r.episodes for r in recs)}
     if with_values and len(with_values) == len(recs):
+        bad = [r.seed for r in recs if not np.isfinite(np.asarray(r.returns, dtype=np.float64)).all()]
+        if bad:
+            raise ValueError(f"{source}: {task} / {planner} / {dynamics}: the returns of seed(s) {bad} hold NaN or "
+                             "Inf (a diverged episode): rerun or drop those records")
         per_seed = [float(np.mean(r.returns)) for r in recs]
         pooled = [float(x) for r in recs for x in r.returns]
         mean = float(np.mean(pooled))

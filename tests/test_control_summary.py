@@ -68,3 +68,12 @@ def test_committed_summary_is_current():
     rows = json.loads((ROOT / cs.CONTROL / "summary.json").read_text())
     need = {"task", "planner", "dynamics", "protocol", "env_steps", "seeds", "episodes", "mean", "ci95"}
     assert rows and all(need <= set(r) for r in rows)
+
+
+def test_a_diverged_episode_is_named_not_summarized(tmp_path):
+    folder = tmp_path / cs.CONTROL
+    folder.mkdir(parents=True)
+    write_records(folder / "results.jsonl", [_rec("gradient", [1.0, float("nan"), 2.0], seed=3)])
+    with pytest.raises(ValueError, match=r"results\.jsonl: cheetah-forward / gradient / learned: the returns of "
+                                         r"seed\(s\) \[3\] hold NaN"):
+        cs.rows(tmp_path)
