@@ -42,3 +42,15 @@ def test_mpc_command_draws_targets_with_episode_starts():
     from gnwarp.cli import mpc
     src = inspect.getsource(mpc.mpc_command)
     assert "episode_starts(" in src and "sample_targets(" not in src
+
+
+def test_vector_env_draws_each_env_as_episode_starts_of_its_seed():
+    from gnwarp.control import make_vector_env
+    env = make_vector_env("reacher-easy", 3, backend="mujoco")
+    env.reset(seed=11)
+    q = env.observe().qpos.double().numpy()
+    for i in range(3):
+        qpos, _, target = episode_starts(env.task, env.system, 1, seed=11 + i)
+        np.testing.assert_allclose(q[i], qpos[0], atol=1e-6)
+        np.testing.assert_array_equal(env.targets[i].numpy(), target[0].numpy())
+    env.close()

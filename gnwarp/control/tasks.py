@@ -238,14 +238,14 @@ def sample_targets(task: Task, system, n: int, seed: int = 0, distance: float = 
     return poses[:, body_index(system.name, "hand")[0]] if task.target == "pose" else poses
 
 
-def episode_starts(task: Task, system, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor | None]:
+def episode_starts(task: Task, system, n: int, seed) -> tuple[np.ndarray, np.ndarray, torch.Tensor | None]:
     """(qpos [n, nq], qvel [n, nv] float64, targets [n, ...] float32 or None) of ``n`` episodes of
     ``task`` on ``system`` (a ``System``): the task's ``initial`` (else
-    ``gnwarp.data.generation.initial_states``) from a generator seeded with ``seed``, then the
-    targets (``sample_targets``) seeded by a number drawn from that generator, so that targets
-    are independent of the initial states (the same seed for both would tie, e.g., reacher's
-    target angle to its shoulder angle)."""
-    rng = np.random.default_rng(seed)
+    ``gnwarp.data.generation.initial_states``) from a generator (``seed``: an int, or a numpy
+    ``Generator`` drawn from in place), then the targets (``sample_targets``) seeded by a number
+    drawn from that generator, so that targets are independent of the initial states (the same
+    seed for both would tie, e.g., reacher's target angle to its shoulder angle)."""
+    rng = np.random.default_rng(seed)   # a Generator passes through
     init = task.initial
     if init is None:
         from gnwarp.data.generation import initial_states as init

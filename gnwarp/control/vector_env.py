@@ -58,7 +58,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from gnwarp.control.env_observation import ObservationLayout
-from gnwarp.control.tasks import Task, get_task, sample_targets
+from gnwarp.control.tasks import Task, episode_starts, get_task, sample_targets
 
 __all__ = ["make_vector_env", "ControlVectorEnv", "VectorEnvError", "AutoresetMode", "OUTPUTS"]
 
@@ -188,7 +188,6 @@ class ControlVectorEnv(VectorEnv):
         self.single_action_space = gym.spaces.Box(box[:, 0], box[:, 1], dtype=np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._scorer = getattr(task, "scorer", None) or task.reward
-        self._initial = getattr(task, "initial", None)
         self.obs_layout = ObservationLayout(system, task, None if observation == "bodies" else observation)
         self._rngs = self._generators(seed, [None] * num_envs)
         self._body = None
@@ -235,19 +234,13 @@ class ControlVectorEnv(VectorEnv):
         system, n = self.system, self.num_envs
         qpos = np.tile(np.asarray(system.model.qpos0, dtype=np.float64), (n, 1))
         qvel = np.zeros((n, system.model.nv))
-        initial = self._initial
-        if initial is None:
-            from gnwarp.data.generation import initial_states as initial
         rows = np.flatnonzero(mask)
         groups = [(rows, rngs[rows[0]])] if not self.per_env_seeds else [(rows[k:k + 1], rngs[i])
                                                                           for k, i in enumerate(rows)]
         tgt = None
         for idx, rng in groups:
-            q, v = initial(system, len(idx), rng)
-            qpos[idx] = np.asarray(q, dtype=np.float64).reshape(len(idx), -1)
-            qvel[idx] = np.asarray(v, dtype=np.float64).reshape(len(idx), -1)
-            if self.task.target is not None:
-                t = sample_targets(self.task, system, len(idx), seed=int(rng.integers(2 ** 63 - 1)))
+            qpos[idx], qvel[idx], t = episode_starts(self.task, system, len(idx), rng)
+            if t is not None:
                 if tgt is None:
                     tgt = torch.zeros((n,) + tuple(t.shape[1:]), dtype=torch.float32)
                 tgt[torch.as_tensor(idx)] = t
