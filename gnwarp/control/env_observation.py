@@ -5,7 +5,8 @@ the same observation for the same states, and a policy trained on one runs on th
 Layout, per environment, bodies 1 .. B-1 in the model's body order (node 0, the world, dropped),
 13 numbers each (``gnwarp.state``: pos x, y, z, quat w, x, y, z, linvel, angvel, world frame):
 
-- a translation-invariant system (``System.translation_invariant``: swimmer, cheetah, walker):
+- a translation-invariant system (``System.translation_invariant``: swimmer, cheetah, walker;
+  DMC's cheetah, walker, hopper, swimmer6):
   horizontal positions (x, y) relative to the root body (node 1), whose own x, y are left out,
   so the policy never sees where in the plane the system is (13 (B-1) - 2 numbers);
 - any other system: the 13 numbers of every body as they are (13 (B-1) numbers);
