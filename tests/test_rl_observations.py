@@ -13,6 +13,7 @@ import torch
 
 from gnwarp.control import dmc as cdmc
 from gnwarp.control.tasks import get_task, sample_targets
+from gnwarp.rl.obs_reward import ObservationReward, forward_kinematics
 from gnwarp.rl.observations import DMCObservation, joint_coordinates, observation_domain, wrap_angle
 from gnwarp.sim import dmc, systems
 from gnwarp.sim.body_state import body_states
@@ -83,19 +84,21 @@ def _trajectories(name, suite_physics, E=3, T=8, seed=0):
             v.append(d.qvel.copy())
             physics.data.qpos[:], physics.data.qvel[:] = d.qpos, d.qvel
             physics.forward()
-            o.append(np.concatenate([np.atleast_1d(x).ravel() for x in suite_task.get_observation(physics).values()]))
+            o.append(np.concatenate([np.atleast_1d(x).ravel() for x in suite_task.get_observation(physics).values()]
+                                    + [[suite_task.get_reward(physics)]]))
         body.append(b)
         qp.append(p)
         qv.append(v)
         ref.append(o)
     t = None if target is None else torch.tensor(target)
+    ref = torch.tensor(np.array(ref))
     return (torch.tensor(np.array(body)), torch.tensor(np.array(qp)), torch.tensor(np.array(qv)), t,
-            torch.tensor(np.array(ref)))
+            ref[..., :-1], ref[..., -1])
 
 
 @pytest.mark.parametrize("name", list(SUITE_TASKS))
 def test_observation_equals_the_suites(suite_physics, name):
-    body, qpos, qvel, target, ref = _trajectories(name, suite_physics)
+    body, qpos, qvel, target, ref, _ = _trajectories(name, suite_physics)
     obs = DMCObservation(name)
     out = obs(body, target)                        # [E, T+1, B, 13] with targets [E, 3]
     assert out.dtype == torch.float64 and out.shape == ref.shape == (*body.shape[:2], obs.size)
@@ -113,12 +116,30 @@ def test_observation_equals_the_suites(suite_physics, name):
 
 @pytest.mark.parametrize("name", list(SUITE_TASKS))
 def test_joint_coordinates_are_mujocos(suite_physics, name):
-    body, qpos, qvel, _, _ = _trajectories(name, suite_physics, E=2, T=4, seed=1)
+    body, qpos, qvel, _, _, _ = _trajectories(name, suite_physics, E=2, T=4, seed=1)
     m = systems.make(get_task(name).system).model
     p, v = joint_coordinates(m, body)
     hinge = torch.tensor(m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
     dp = torch.where(hinge, wrap_angle(p - qpos), p - qpos)
     assert dp.abs().max() < 1e-10 and (v - qvel).abs().max() < 1e-10
+
+    fk = forward_kinematics(m, qpos, qvel)
+    assert (fk[..., 1:, :] - body[..., 1:, :]).abs().max() < 1e-10
+
+
+@pytest.mark.parametrize("name", list(SUITE_TASKS))
+def test_reward_from_the_observation_is_the_suites(suite_physics, name):
+    body, _, _, target, ref, reward = _trajectories(name, suite_physics, seed=3)
+    obs = DMCObservation(name)
+    x = obs(body, target).flatten(0, 1)
+    x.requires_grad_(True)
+    r = ObservationReward(name, obs)(x, None, x)
+    assert (r.detach() - reward.flatten()).abs().max() < 1e-9, name
+    assert reward.max() > 1e-3                     # not all zero on these trajectories
+    r.sum().backward()
+    assert torch.isfinite(x.grad).all()
+    # from the suite's own observation vector too (the walker's pitch from its orientations)
+    assert (ObservationReward(name)(ref.flatten(0, 1), None, ref.flatten(0, 1)) - reward.flatten()).abs().max() < 1e-9
 
 
 def test_float32_and_a_learned_models_batch_shape():
@@ -151,4 +172,8 @@ def test_names_and_errors():
         "<mujoco><worldbody><body><joint type='ball'/><geom size='.1'/></body></worldbody></mujoco>")
     with pytest.raises(ValueError, match="neither a slide nor a hinge"):
         joint_coordinates(ball, torch.zeros(2, 13))
+    with pytest.raises(ValueError, match="needs the walker observation, got cheetah"):
+        ObservationReward("walker-stand", DMCObservation("cheetah"))
+    with pytest.raises(ValueError, match="no DMC observation"):
+        ObservationReward("reacher-easy")
     assert math.isclose(float(wrap_angle(torch.tensor(3 * math.pi / 2, dtype=torch.float64))), -math.pi / 2)
