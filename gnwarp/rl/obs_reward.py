@@ -36,16 +36,18 @@ def _axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cos(h)[..., None], torch.sin(h)[..., None] * axis], -1)
 
 
-def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
+def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Tensor,
+                       coords: JointCoordinates | None = None) -> torch.Tensor:
     """Body states [..., B, 13] (world first) of a tree of slide and hinge joints at joint
     coordinates qpos [..., nq], qvel [..., nv] (the joints ``JointCoordinates`` reads), composed as
-    MuJoCo's kinematics: slides along their axes, then one hinge about its anchor. Differentiable."""
-    coords = JointCoordinates(model)                     # validates the joint structure
+    MuJoCo's kinematics: slides along their axes, then one hinge about its anchor. Differentiable.
+    ``coords``: the model's ``JointCoordinates`` to reuse (its constants stay on the device)."""
+    coords = coords if coords is not None else JointCoordinates(model)   # validates the joint structure
     if qpos.shape[-1] != coords.nq or qvel.shape[-1] != coords.nv or qpos.shape[:-1] != qvel.shape[:-1]:
         raise ValueError(f"qpos [..., {coords.nq}] and qvel [..., {coords.nv}] with the same leading shape expected, "
                      f"got {tuple(qpos.shape)} and {tuple(qvel.shape)}")
     lead = qpos.shape[:-1]
-    c3 = lambda v: qpos.new_tensor(v).expand(*lead, len(v))   # noqa: E731
+    c3 = lambda v: coords.constant(tuple(v), qpos).expand(*lead, len(v))   # noqa: E731
     zero = qpos.new_zeros(*lead, 3)
     pos, quat = [zero], [c3((1.0, 0.0, 0.0, 0.0))]
     lin, ang = [zero], [zero]
@@ -65,7 +67,7 @@ def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Te
             qa, da, axis, ref, hpos = hinge
             anchor = x + quat_rotate(q0, c3(hpos))
             v_anchor = v + torch.linalg.cross(wp, anchor - x, dim=-1)
-            q = quat_mul(q0, _axis_angle(qpos.new_tensor(axis), qpos[..., qa] - ref))
+            q = quat_mul(q0, _axis_angle(coords.constant(tuple(axis), qpos), qpos[..., qa] - ref))
             w = wp + quat_rotate(q0, c3(axis)) * qvel[..., da, None]
             x = anchor - quat_rotate(q, c3(hpos))
             v = v_anchor + torch.linalg.cross(w, x - anchor, dim=-1)
@@ -154,6 +156,6 @@ class ObservationReward:
             dist = torch.where(sq > 0, torch.where(sq > 0, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
             return tolerance(dist, bounds=(0, self.target_size), margin=5 * self.target_size, sigmoid="long_tail")
         qpos, qvel = self.joints(next_obs)
-        body = forward_kinematics(self.model, qpos, qvel)
+        body = forward_kinematics(self.model, qpos, qvel, ob.coords)
         a = action if action is not None else next_obs.new_zeros(next_obs.shape[0], self.model.nu)
         return self.step(body[:, None], a[:, None], None)[:, 0]

@@ -102,6 +102,15 @@ class JointCoordinates:
                     raise ValueError(f"body {_name(model, mujoco.mjtObj.mjOBJ_BODY, b, 'body')!r}: its slide axes "
                                      "are not orthonormal")
             self.bodies.append((b, self.parent[b], tuple(model.body_pos[b]), tuple(model.body_quat[b]), slides, hinge))
+        self._cache: dict = {}
+
+    def constant(self, values: tuple, like: torch.Tensor) -> torch.Tensor:
+        """``values`` as a tensor of ``like``'s dtype and device, made once (no host copy per call)."""
+        key = (values, like.device, like.dtype)
+        t = self._cache.get(key)
+        if t is None:
+            t = self._cache[key] = torch.tensor(values, dtype=like.dtype, device=like.device)
+        return t
 
     def __call__(self, body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if body.ndim < 2 or body.shape[-2] != self.nbody or body.shape[-1] != DYN_NODE_SIZE:
@@ -109,7 +118,7 @@ class JointCoordinates:
         lead = body.shape[:-2]
         qpos = body.new_zeros(*lead, self.nq)
         qvel = body.new_zeros(*lead, self.nv)
-        const = lambda v: body.new_tensor(v).expand(*lead, len(v))   # noqa: E731
+        const = lambda v: self.constant(tuple(v), body).expand(*lead, len(v))   # noqa: E731
         quat = quat_normalize(body[..., QUAT])
         for b, p, bpos, bquat, slides, hinge in self.bodies:
             xp, qp, vp, wp = body[..., p, POS], quat[..., p, :], body[..., p, LINVEL], body[..., p, ANGVEL]
@@ -223,7 +232,7 @@ class DMCObservation:
         quat = quat_normalize(body[..., QUAT])
         head = body[..., self.head, :]
         qh = quat[..., self.head, :]
-        nose = head[..., POS] + quat_rotate(qh, body.new_tensor(self.nose).expand(*lead, 3))
+        nose = head[..., POS] + quat_rotate(qh, self.coords.constant(self.nose, body).expand(*lead, 3))
         to_target = quat_rotate(quat_conj(qh), t - nose)[..., :2]
         inv = quat_conj(quat[..., 1:, :])
         v = quat_rotate(inv, body[..., 1:, LINVEL])
