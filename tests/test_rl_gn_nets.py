@@ -2,6 +2,7 @@
 kernels against the torch reference (forward and gradients), shapes and errors."""
 from __future__ import annotations
 
+import copy
 import warnings
 
 import pytest
@@ -137,6 +138,18 @@ def test_shapes_and_the_mlp_option(graphs):
     assert torch.allclose(pol(obs)[1], torch.full((5, og.nu), torch.log(torch.tensor(0.3)).item()), atol=1e-5)
     model = GNObservationModel(og, latent=8, hidden=(8,), impl="torch")
     assert model(obs, act).shape == obs.shape
+
+
+def test_copies_share_the_graph_and_give_the_same_outputs(graphs):
+    og = graphs["swimmer6"]
+    obs, act = _batch(og, dtype=torch.float32)
+    q = GNQFunction(og, latent=8, hidden=(8,))
+    before = q(obs, act)                       # caches a graph index
+    twin = copy.deepcopy(q)                    # as agents make their target networks
+    assert twin.graph is q.graph and torch.equal(twin(obs, act), before)
+    q.gn.set_options(deterministic=True)       # another index for deterministic kernels
+    assert all(b.deterministic for b in q.gn.blocks)
+    assert torch.allclose(q(obs, act), before, atol=1e-6)
 
 
 def test_errors(graphs):

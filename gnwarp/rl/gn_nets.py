@@ -16,7 +16,7 @@ Each is a stack of ``blocks`` full GN blocks (``gnwarp.gn.GraphNetwork``, edge -
 global updates): the first reads the observation graph, the middle ones map ``latent`` widths to
 ``latent`` widths, the last gives the outputs; every MLP has ``hidden`` layers. Run options
 (``impl="warp"`` kernels or the ``"torch"`` reference, ``path``, ``precision``) go to every
-block; ``net.impl = "torch"`` switches them all. ``make_networks("gn" | "mlp", ...)`` builds the
+block; ``net.gn.impl = "torch"`` or ``net.gn.set_options(...)`` changes them all. ``make_networks("gn" | "mlp", ...)`` builds the
 policy and Q-function of either kind (``"mlp"``: MLPs on the flat observation).
 
     >>> og = ObservationGraph("swimmer6")
@@ -80,10 +80,16 @@ class GNStack(nn.Module):
         for b in self.blocks:
             b.impl = value
 
+    def set_options(self, **kw) -> None:
+        """Change run options (``RunOptions`` fields: ``impl``, ``path``, ``precision``,
+        ``deterministic``, ...) of every block."""
+        for b in self.blocks:
+            b.options = b.options.replace(**kw)
+
     def forward(self, graph):
         index = None
         if self.blocks[0].impl == "warp":
-            key = (int(graph.n_node.shape[0]), str(graph.senders.device))
+            key = (int(graph.n_node.shape[0]), str(graph.senders.device), self.blocks[0].deterministic)
             index = self._index.get(key)
             if index is None:   # one validation (a host sync) per batch size: the topology is fixed
                 index = self.blocks[0].graph_index(graph)

@@ -133,6 +133,10 @@ class ObservationGraph:
     def n_edge(self) -> int:
         return 2 * self.n_joint
 
+    def __deepcopy__(self, memo):
+        # a fixed description of the model (its MjSpec does not copy): copies of networks share it
+        return self
+
     def __repr__(self) -> str:
         return (f"ObservationGraph({self.observation.domain!r}, nodes={self.n_node}x{self.node_size}, "
                 f"edges={self.n_edge}x({len(self.edge_obs_names)}+[force]+direction), globals={self.global_size})")

@@ -119,6 +119,10 @@ class ObservationReward:
             self.rootz = [j for j in range(m.njnt) if m.jnt_bodyid[j] == 1 and m.jnt_type[j] != hinge
                           and abs(float(m.jnt_axis[j, 2]) - 1) < 1e-12]
 
+    def __deepcopy__(self, memo):
+        # a fixed description of the model (its MjSpec does not copy): copies of networks share it
+        return self
+
     def __repr__(self) -> str:
         return f"ObservationReward({self.task.name!r})"
 

@@ -203,6 +203,10 @@ class DMCObservation:
             k += len(names)
         self.size = len(self.names)
 
+    def __deepcopy__(self, memo):
+        # a fixed description of the model (its MjSpec does not copy): copies of networks share it
+        return self
+
     def __repr__(self) -> str:
         return f"DMCObservation({self.domain!r}, size={self.size})"
 
