@@ -140,6 +140,25 @@ def test_shapes_and_the_mlp_option(graphs):
     assert model(obs, act).shape == obs.shape
 
 
+def test_observation_model_normalization(graphs):
+    og = graphs["swimmer6"]
+    obs, act = _batch(og, n=6, dtype=torch.float32)
+    step = torch.linspace(0.01, 2.0, og.obs_size)
+    model = GNObservationModel(og, latent=8, hidden=(8,), impl="torch")
+    model.normalize_from(obs, obs + step * torch.randn(6, og.obs_size))
+    assert torch.allclose(model.obs_mean, obs.mean(0)) and (model.delta_std > 0).all()
+    last = model.gn.blocks[-1]
+    with torch.no_grad():                       # every output 1: the change is delta_std in each place
+        for mlp in (last.node_mlp, last.edge_mlp, last.global_mlp):
+            mlp.layers[-1].weight.zero_()
+            mlp.layers[-1].bias.fill_(1)
+    assert torch.allclose(model(obs, act) - obs, model.delta_std.expand(6, -1), atol=1e-6)
+    state = model.state_dict()
+    assert {"obs_mean", "obs_std", "delta_std"} <= set(state)
+    with pytest.raises(ValueError, match=r"\[B >= 2, 25\]"):
+        model.normalize_from(obs[:1], obs[:1])
+
+
 def test_copies_share_the_graph_and_give_the_same_outputs(graphs):
     og = graphs["swimmer6"]
     obs, act = _batch(og, dtype=torch.float32)
