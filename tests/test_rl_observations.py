@@ -1,0 +1,179 @@
+"""The DMC observations from body states against the suite's own ``get_observation`` on MuJoCo C
+trajectories (float64), and the joint coordinates against MuJoCo's qpos / qvel."""
+from __future__ import annotations
+
+import importlib
+import math
+import warnings
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from gnwarp.control import dmc as cdmc
+from gnwarp.control.tasks import get_task, sample_targets
+from gnwarp.rl.obs_reward import ObservationReward, forward_kinematics
+from gnwarp.rl.observations import DMCObservation, joint_coordinates, observation_domain, wrap_angle
+from gnwarp.sim import dmc, systems
+from gnwarp.sim.body_state import body_states
+
+pytest.importorskip("dm_control")
+
+
+@pytest.fixture(scope="module")
+def suite_physics():
+    """dm_control's suite Physics on this MuJoCo: its index tables lose the fields MuJoCo no longer
+    has (flex_vertedge, ...), restored afterwards."""
+    from dm_control.mujoco.wrapper.mjbindings import sizes
+    m = mujoco.MjModel.from_xml_string("<mujoco/>")
+    d = mujoco.MjData(m)
+    gone = {}
+    for struct, obj in (("mjmodel", m), ("mjdata", d)):
+        for field in list(sizes.array_sizes[struct]):
+            if not hasattr(obj, field):
+                gone[struct, field] = sizes.array_sizes[struct].pop(field)
+
+    def make(system):
+        d = dmc.domain(system)
+        module = importlib.import_module(f"dm_control.suite.{d.module}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return module, module.Physics.from_xml_string(*module.get_model_and_assets(*d.args))
+    yield make
+    for (struct, field), v in gone.items():
+        sizes.array_sizes[struct][field] = v
+
+
+SUITE_TASKS = {
+    "dmc-swimmer-swimmer6": lambda m: m.Swimmer(random=0),
+    "dmc-cheetah-run": lambda m: m.Cheetah(random=0),
+    "dmc-walker-walk": lambda m: m.PlanarWalker(move_speed=1, random=0),
+}
+
+
+def _trajectories(name, suite_physics, E=3, T=8, seed=0):
+    """Body states [E, T+1, B, 13], qpos [E, T+1, nq], qvel, targets [E, 3] (or None) and the suite's
+    flat observations [E, T+1, D] (its dict order) at the same states."""
+    rng = np.random.default_rng(seed)
+    task = get_task(name)
+    system = systems.make(task.system)
+    m, d = system.model, mujoco.MjData(system.model)
+    module, physics = suite_physics(task.system)
+    suite_task = SUITE_TASKS[name](module)
+    qpos0, qvel0 = task.initial(system, E, rng)
+    qvel0 = qvel0 + rng.normal(0, 1.0, qvel0.shape)       # moving from the start: every velocity nonzero
+    target = sample_targets(task, system, E, seed=seed)
+    target = None if target is None else target.double().numpy()
+    body, qp, qv, ref = [], [], [], []
+    for k in range(E):
+        if target is not None:
+            physics.named.model.geom_pos["target", "x"] = target[k, 0]
+            physics.named.model.geom_pos["target", "y"] = target[k, 1]
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:] = qpos0[k], qvel0[k]
+        mujoco.mj_forward(m, d)
+        b, p, v, o = [], [], [], []
+        for t in range(T + 1):
+            if t:
+                d.ctrl[:] = rng.uniform(-1, 1, m.nu)
+                mujoco.mj_step(m, d, system.substeps)
+                mujoco.mj_forward(m, d)
+            b.append(body_states(m, d))
+            p.append(d.qpos.copy())
+            v.append(d.qvel.copy())
+            physics.data.qpos[:], physics.data.qvel[:] = d.qpos, d.qvel
+            physics.forward()
+            o.append(np.concatenate([np.atleast_1d(x).ravel() for x in suite_task.get_observation(physics).values()]
+                                    + [[suite_task.get_reward(physics)]]))
+        body.append(b)
+        qp.append(p)
+        qv.append(v)
+        ref.append(o)
+    t = None if target is None else torch.tensor(target)
+    ref = torch.tensor(np.array(ref))
+    return (torch.tensor(np.array(body)), torch.tensor(np.array(qp)), torch.tensor(np.array(qv)), t,
+            ref[..., :-1], ref[..., -1])
+
+
+@pytest.mark.parametrize("name", list(SUITE_TASKS))
+def test_observation_equals_the_suites(suite_physics, name):
+    body, qpos, qvel, target, ref, _ = _trajectories(name, suite_physics)
+    obs = DMCObservation(name)
+    out = obs(body, target)                        # [E, T+1, B, 13] with targets [E, 3]
+    assert out.dtype == torch.float64 and out.shape == ref.shape == (*body.shape[:2], obs.size)
+    assert len(obs.names) == obs.size
+    diff = out - ref
+    if obs.domain == "cheetah":                    # rooty, an unlimited hinge: equal up to 2 pi turns
+        i = obs.names.index("position.rooty")
+        diff[..., i] = wrap_angle(diff[..., i])
+    assert diff.abs().max() < 1e-10, (name, diff.abs().amax((0, 1)))
+    # the same per step, with the target given per env
+    flat = obs(body[:, 3], None if target is None else target[:, :2])
+    assert torch.allclose(flat, out[:, 3], atol=1e-12)
+    assert ref.abs().amax((0, 1)).min() > 1e-4     # no entry is trivially zero on these trajectories
+
+
+@pytest.mark.parametrize("name", list(SUITE_TASKS))
+def test_joint_coordinates_are_mujocos(suite_physics, name):
+    body, qpos, qvel, _, _, _ = _trajectories(name, suite_physics, E=2, T=4, seed=1)
+    m = systems.make(get_task(name).system).model
+    p, v = joint_coordinates(m, body)
+    hinge = torch.tensor(m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
+    dp = torch.where(hinge, wrap_angle(p - qpos), p - qpos)
+    assert dp.abs().max() < 1e-10 and (v - qvel).abs().max() < 1e-10
+
+    fk = forward_kinematics(m, qpos, qvel)
+    assert (fk[..., 1:, :] - body[..., 1:, :]).abs().max() < 1e-10
+
+
+@pytest.mark.parametrize("name", list(SUITE_TASKS))
+def test_reward_from_the_observation_is_the_suites(suite_physics, name):
+    body, _, _, target, ref, reward = _trajectories(name, suite_physics, seed=3)
+    obs = DMCObservation(name)
+    x = obs(body, target).flatten(0, 1)
+    x.requires_grad_(True)
+    r = ObservationReward(name, obs)(x, None, x)
+    assert (r.detach() - reward.flatten()).abs().max() < 1e-9, name
+    assert reward.max() > 1e-3                     # not all zero on these trajectories
+    r.sum().backward()
+    assert torch.isfinite(x.grad).all()
+    # from the suite's own observation vector too (the walker's pitch from its orientations)
+    assert (ObservationReward(name)(ref.flatten(0, 1), None, ref.flatten(0, 1)) - reward.flatten()).abs().max() < 1e-9
+
+
+def test_float32_and_a_learned_models_batch_shape():
+    obs = DMCObservation("dmc-walker")
+    m = obs.system.model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(2)
+    d.qpos[:] = cdmc.randomize_joints(m, 1, rng)[0]
+    d.qvel[:] = rng.normal(0, 1, m.nv)
+    mujoco.mj_forward(m, d)
+    b = torch.tensor(body_states(m, d))
+    x64 = obs(b[None])
+    x32 = obs(b[None].float())
+    assert x32.dtype == torch.float32 and torch.allclose(x32.double(), x64, atol=1e-5)
+
+
+def test_names_and_errors():
+    assert observation_domain("swimmer6") == observation_domain("dmc-swimmer6") == "swimmer6"
+    assert observation_domain("dmc-walker-run") == "walker"
+    assert DMCObservation("cheetah").size == 17 and DMCObservation("walker").size == 24
+    sw = DMCObservation("dmc-swimmer-swimmer6")
+    assert sw.size == 25 and sw.parts["to_target"] == slice(5, 7)
+    with pytest.raises(ValueError, match="no DMC observation"):
+        DMCObservation("hopper")
+    with pytest.raises(ValueError, match="needs the episode's target"):
+        sw(torch.zeros(2, 7, 13))
+    with pytest.raises(ValueError, match=r"\[\.\.\., 7, 13\]"):
+        sw(torch.zeros(2, 6, 13), torch.zeros(2, 3))
+    ball = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint type='ball'/><geom size='.1'/></body></worldbody></mujoco>")
+    with pytest.raises(ValueError, match="neither a slide nor a hinge"):
+        joint_coordinates(ball, torch.zeros(2, 13))
+    with pytest.raises(ValueError, match="needs the walker observation, got cheetah"):
+        ObservationReward("walker-stand", DMCObservation("cheetah"))
+    with pytest.raises(ValueError, match="no DMC observation"):
+        ObservationReward("reacher-easy")
+    assert math.isclose(float(wrap_angle(torch.tensor(3 * math.pi / 2, dtype=torch.float64))), -math.pi / 2)
