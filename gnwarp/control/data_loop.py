@@ -17,6 +17,9 @@ Then each iteration i:
    with the returns and errors in its meta["loop"];
 4. trains ``train_steps`` more steps from the last checkpoint on the seed data and every shard
    (``Trainer`` resuming ``model/last``);
+   with ``value`` set, fits the learned terminal value on every stored episode
+   (``gnwarp.control.loop_value``: ``value/iter-<i+1>.pt``, which the next iteration's planner
+   adds at its horizon);
 5. appends a results record (``records.jsonl``) and writes ``state.json``.
 
 Env steps (a record's ``env_steps``) are the control steps whose data trained the weights: the
@@ -41,6 +44,7 @@ import numpy as np
 from gnwarp.control.loop_store import (CONFIG_FILE, RECORDS_FILE, SEED_DATA, LoopState, LoopStateError, concat_train,
                                        episode_dataset, read_state, shard_path, subset, train_env_steps, write_json,
                                        write_state)
+from gnwarp.control.loop_value import ValueSettings, check_value_discount, fit_loop_value, load_loop_value
 from gnwarp.validation import (ConfigError, Count, Flag, PositiveFloat, PositiveInt, check_fields, check_keys,
                                described)
 
@@ -76,6 +80,9 @@ class LoopConfig:
     planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
     most in one call. ``budget_seconds``: start no iteration in this call that the last one's
     duration says would end past it (the seed data and its training are not budgeted).
+    ``value``: a learned terminal value (``gnwarp.control.loop_value.ValueSettings``; a table,
+    ``{}`` its defaults) fitted after each iteration's training and added by the planner at its
+    horizon; None: none (the ablation). Its gamma must equal ``planner_settings.discount``.
     """
     task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
     out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
@@ -105,6 +112,8 @@ class LoopConfig:
     budget_seconds: PositiveFloat | None = described(None, "stop before an iteration expected to end past this many "
                                                            "seconds of this call")
     progress: Flag = described(True, "progress bars")
+    value: ValueSettings | None = described(None, "learned terminal value settings (a table; {}: defaults; unset: "
+                                                  "no value)")
 
     def __post_init__(self):
         check_fields(self)
@@ -126,11 +135,13 @@ class LoopConfig:
             raise ConfigError("planner", "ilqg plans on the true simulator, not through the learned model; choose "
                                          "another planner")
         try:
-            entry.make_settings(**{k: v for k, v in self.planner_settings.items()})
+            settings = entry.make_settings(**{k: v for k, v in self.planner_settings.items()})
         except ConfigError as e:
             raise e.within("planner_settings") from None
         except TypeError as e:
             raise ConfigError("planner_settings", f"{e}") from None
+        if self.value is not None:
+            check_value_discount(self.value, self.planner, settings)
         self.train_config(1)   # refused here, not after the seed data is simulated
 
     def to_dict(self) -> dict:
@@ -188,16 +199,17 @@ def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
     write_json(path, mine)
 
 
-def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0):
+def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0, terminal=None):
     """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, ``seed`` added to its
     settings' seed: ``gnwarp.control.planner.make_planner`` with ``cfg.planner_settings``, the
-    sampling planners drawing in ``env.ctrlrange``."""
+    sampling planners drawing in ``env.ctrlrange``; ``terminal``: the value at its horizon."""
     from gnwarp.control.planner import get_planner, make_planner
     entry = get_planner(cfg.planner)
     fields = dict(cfg.planner_settings)
     if "seed" in {f.name for f in dataclasses.fields(entry.settings)}:
         fields["seed"] = int(fields.get("seed", 0)) + int(seed)
-    return make_planner(cfg.planner, model, task, system, n, fields, targets, ctrlrange=env.ctrlrange)
+    return make_planner(cfg.planner, model, task, system, n, fields, targets, terminal=terminal,
+                        ctrlrange=env.ctrlrange)
 
 
 def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
@@ -215,9 +227,10 @@ def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
 
 def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
     """``n`` episodes of ``steps`` steps planned through the checkpoint ``model_path`` on the
-    true simulator, their initial states, targets and planner seeded by ``key``. Returns
-    (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta: returns,
-    initial states, targets, seconds, backend; the model)."""
+    true simulator, their initial states, targets and planner seeded by ``key``, the planner
+    adding the loop's value of the same iteration (``value/<model_path's name>.pt``) where it has
+    one. Returns (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta:
+    returns, initial states, targets, seconds, backend, model, value; the model)."""
     import torch
 
     from gnwarp.control.episodes import run_episodes
@@ -232,7 +245,9 @@ def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: in
     targets = sample_targets(task, system, n, seed=stream)
     model = load_model(model_path, device=None if cfg.device == "auto" else cfg.device)
     env = make_env(system, n, backend=cfg.backend)
-    planner = make_loop_planner(cfg, model, task, system, n, targets, env, stream)
+    j = int(model_path.name.split("-")[-1])
+    value = load_loop_value(cfg, model_path.parent.parent, j)
+    planner = make_loop_planner(cfg, model, task, system, n, targets, env, stream, terminal=value)
     x0 = env.reset(qpos0, qvel0)
     qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
 
@@ -247,6 +262,8 @@ def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: in
             "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
             "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
             "backend": env.backend, "model": f"models/{model_path.name}"}
+    if value is not None:
+        meta["value"] = f"value/{model_path.name}.pt"
     env.close()
     return out, np.stack(qs, 1), np.stack(vs, 1), meta, model
 
@@ -319,19 +336,24 @@ def _trim_records(path: Path, iterations: int) -> None:
 
 
 def _record(cfg: LoopConfig, task, system, m: dict, state: LoopState, model_env_steps: int, seconds: dict,
-            variant: str = "loop"):
+            variant: str = "loop", fitted: dict | None = None):
     """The results record of an iteration's episodes (``m``: their meta: returns, initial states,
-    ...; "loop": the data episodes, "loop-eval": the evaluation episodes)."""
+    ...; "loop": the data episodes, "loop-eval": the evaluation episodes; ``fitted``: the value
+    fit after the iteration's training, ``fit_loop_value``'s metrics)."""
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name
     returns = m["returns"]
     metrics = {"iteration": m["iteration"], "mean_return": float(np.mean(returns)), "errors": m.get("errors"),
                "model_env_steps": model_env_steps, "train_steps": state.train_steps, **seconds}
     if m.get("errors") is None:
         del metrics["errors"]
+    if fitted is not None:
+        metrics["value"] = fitted
     config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": m["model"],
               "backend": m["backend"], "initial_qpos": m["initial_qpos"], "initial_qvel": m["initial_qvel"],
               "targets": m["targets"],
               "loop": {k: v for k, v in cfg.to_dict().items() if k != "planner_settings"}}
+    if m.get("value") is not None:
+        config["value"] = m["value"]   # the value file the episodes planned with
     return ResultRecord(experiment="loop", task=task.name, system=system.name, planner=cfg.planner, dynamics="learned",
                         variant=variant, seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
                         returns=returns, control_dt=float(system.dt), action_repeat=int(system.substeps),
@@ -355,6 +377,10 @@ def run_loop(config: LoopConfig) -> dict:
     task = get_task(cfg.task)
     system = loop_system(cfg, task)
     steps = cfg.episode_length(task)
+    gamma = None
+    if cfg.value is not None:
+        from gnwarp.control.planner import planner_settings
+        gamma = check_value_discount(cfg.value, cfg.planner, planner_settings(cfg.planner, cfg.planner_settings))
     out.mkdir(parents=True, exist_ok=True)
     _check_folder_config(out, cfg)
     state = read_state(out)
@@ -408,6 +434,10 @@ def run_loop(config: LoopConfig) -> dict:
         # the model the next iteration plans with, and the evaluation episodes' (after a kill, the same weights)
         next_model = out / "models" / f"iter-{i + 1:04d}"
         _copy_checkpoint(out / "model" / "last", next_model)
+        fitted = None
+        if cfg.value is not None:   # from value/iter-<i> (not a file a killed call wrote): each episode fitted once
+            fitted = fit_loop_value(cfg, task, system, out, shards, i + 1, gamma)
+            seconds["value_seconds"] = fitted.pop("seconds")
         evaluation = None
         if cfg.eval_episodes and (i % cfg.eval_every == 0 or i == cfg.iterations):
             t2 = time.perf_counter()
@@ -420,7 +450,7 @@ def run_loop(config: LoopConfig) -> dict:
         new = LoopState(iteration=i, env_steps=state.env_steps + train_env_steps(shard), train_steps=int(r["steps"]),
                         shards=state.shards + [shard_path(i).as_posix()],
                         seconds=state.seconds + seconds["iteration_seconds"], last_seconds=seconds["iteration_seconds"])
-        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds)
+        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds, fitted=fitted)
         recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
                                  "loop-eval")] if evaluation is not None else [])
         write_records(records, recs)   # then the state: a record past the state is dropped on resume
