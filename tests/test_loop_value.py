@@ -173,3 +173,33 @@ def test_a_folder_config_without_the_value_key_reads_it_unset(vloop, tmp_path):
         run_loop(vconfig(run, 1))
     # the same folder under the config it holds (no value): nothing to do at iteration 1
     assert run_loop(vconfig(run, 1, value=None))["iterations"] == 1
+
+
+def test_an_ensemble_trains_each_member_and_plans_over_all(vloop, tmp_path, monkeypatch):
+    """Two members from the hybrid loop's seed data (member 0's model trained there, member 1's
+    trained here from its own seed), the sampling planner over both, with the value."""
+    from gnwarp.control.sampling import EnsembleDynamics
+    from gnwarp.train.checkpoint import load_model
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copytree(vloop[1] / "after0" / "data", run / "data")
+    shutil.copytree(vloop[1] / "after0" / "model", run / "model")
+    got = []
+    from gnwarp.control import planner as planner_module
+    build = planner_module.make_planner
+
+    def spy(name, dynamics, *a, **k):
+        got.append(dynamics)
+        return build(name, dynamics, *a, **k)
+    monkeypatch.setattr(planner_module, "make_planner", spy)
+    sampling = {"samples": 4, "horizon": 3, "knots": 2, "discount": GAMMA}
+    run_loop(vconfig(run, 2, planner="sampling", planner_settings=sampling, ensemble=2, ensemble_penalty=0.5))
+    assert len(got) == 2 and all(isinstance(d, EnsembleDynamics) and len(d.members) == 2 for d in got)
+    assert got[0].penalty == 0.5
+    for j in (1, 2, 3):
+        a, b = load_model(run / f"models/iter-{j:04d}"), load_model(run / f"models/iter-{j:04d}-m1")
+        pa, pb = (torch.cat([p.detach().flatten() for p in m.parameters()]) for m in (a, b))
+        assert pa.shape == pb.shape and not torch.allclose(pa, pb)   # other seeds, other weights
+    assert read_state(run).train_steps == read_state(vloop[0]).train_steps and (run / "model-1/last").is_dir()
+    with pytest.raises(ConfigError, match="ensemble: planner 'gradient' plans through one model"):
+        config(tmp_path, 1, ensemble=2)
