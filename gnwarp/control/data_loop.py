@@ -17,6 +17,9 @@ Then each iteration i:
    with the returns and errors in its meta["loop"];
 4. trains ``train_steps`` more steps from the last checkpoint on the seed data and every shard
    (``Trainer`` resuming ``model/last``);
+   with ``value`` set, fits the learned terminal value on every stored episode
+   (``gnwarp.control.loop_value``: ``value/iter-<i+1>.pt``, which the next iteration's planner
+   adds at its horizon);
 5. appends a results record (``records.jsonl``) and writes ``state.json``.
 
 Env steps (a record's ``env_steps``) are the control steps whose data trained the weights: the
@@ -41,15 +44,19 @@ import numpy as np
 from gnwarp.control.loop_store import (CONFIG_FILE, RECORDS_FILE, SEED_DATA, LoopState, LoopStateError, concat_train,
                                        episode_dataset, read_state, shard_path, subset, train_env_steps, write_json,
                                        write_state)
-from gnwarp.validation import (ConfigError, Count, Flag, PositiveFloat, PositiveInt, check_fields, check_keys,
-                               described)
+from gnwarp.control.loop_value import ValueSettings, check_value_discount, fit_loop_value, load_loop_value
+from gnwarp.validation import (ConfigError, Count, Flag, FloatRange, PositiveFloat, PositiveInt, check_fields,
+                               check_keys, described)
 
-__all__ = ["LoopConfig", "run_loop", "LoopStateError", "RESUMABLE", "make_loop_planner", "loop_system"]
+__all__ = ["LoopConfig", "run_loop", "LoopStateError", "RESUMABLE", "make_loop_planner", "loop_system",
+           "ENSEMBLE_PLANNERS", "member_folder", "member_checkpoint"]
 
 log = logging.getLogger("gnwarp.loop")
 
 # what a resumed loop may change (how long it runs, where, its folder moved); every other field must match config.json
 RESUMABLE = ("out", "iterations", "chunk", "budget_seconds", "progress", "device", "backend")
+# the planners that plan over an ensemble of models (scoring candidates through each)
+ENSEMBLE_PLANNERS = ("sampling", "mppi", "hybrid")
 # TrainConfig keys the loop sets itself
 _LOOP_TRAIN_KEYS = ("data", "out", "steps", "resume", "patience", "max_seconds", "progress", "device")
 
@@ -76,6 +83,14 @@ class LoopConfig:
     planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
     most in one call. ``budget_seconds``: start no iteration in this call that the last one's
     duration says would end past it (the seed data and its training are not budgeted).
+    ``value``: a learned terminal value (``gnwarp.control.loop_value.ValueSettings``; a table,
+    ``{}`` its defaults) fitted after each iteration's training and added by the planner at its
+    horizon; None: none (the ablation). Its gamma must equal ``planner_settings.discount``.
+    ``ensemble``: models trained on the same data from different seeds (member k > 0 in
+    ``model-<k>``, training seed ``train.seed + k``), the sampling planners (sampling, mppi,
+    hybrid: CEM refinement) planning over all of them, candidates ranked by mean -
+    ``ensemble_penalty`` x spread of their returns (``gnwarp.control.sampling.EnsembleDynamics``);
+    errors are member 0's.
     """
     task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
     out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
@@ -105,6 +120,12 @@ class LoopConfig:
     budget_seconds: PositiveFloat | None = described(None, "stop before an iteration expected to end past this many "
                                                            "seconds of this call")
     progress: Flag = described(True, "progress bars")
+    ensemble: PositiveInt = described(1, "models trained on the same data from different seeds, planned over "
+                                         "together (sampling, mppi, hybrid; 1: one model)")
+    ensemble_penalty: FloatRange(ge=0) = described(1.0, "ensemble candidates ranked by mean - this x spread of "
+                                                        "their returns over the models")
+    value: ValueSettings | None = described(None, "learned terminal value settings (a table; {}: defaults; unset: "
+                                                  "no value)")
 
     def __post_init__(self):
         check_fields(self)
@@ -126,11 +147,16 @@ class LoopConfig:
             raise ConfigError("planner", "ilqg plans on the true simulator, not through the learned model; choose "
                                          "another planner")
         try:
-            entry.make_settings(**{k: v for k, v in self.planner_settings.items()})
+            settings = entry.make_settings(**{k: v for k, v in self.planner_settings.items()})
         except ConfigError as e:
             raise e.within("planner_settings") from None
         except TypeError as e:
             raise ConfigError("planner_settings", f"{e}") from None
+        if self.value is not None:
+            check_value_discount(self.value, self.planner, settings)
+        if self.ensemble > 1 and self.planner not in ENSEMBLE_PLANNERS:
+            raise ConfigError("ensemble", f"planner {self.planner!r} plans through one model; an ensemble plans "
+                                          f"with {', '.join(ENSEMBLE_PLANNERS)}")
         self.train_config(1)   # refused here, not after the seed data is simulated
 
     def to_dict(self) -> dict:
@@ -140,11 +166,14 @@ class LoopConfig:
     def from_dict(cls, d: dict) -> "LoopConfig":
         return cls(**check_keys(cls, d, "data-loop config keys"))
 
-    def train_config(self, steps: int):
-        """The ``TrainConfig`` training runs to ``steps`` total steps in ``<out>/model``."""
+    def train_config(self, steps: int, member: int = 0):
+        """The ``TrainConfig`` training ensemble ``member`` to ``steps`` total steps in
+        ``<out>/model`` (member k > 0: ``<out>/model-<k>``, seed ``train.seed + k``)."""
         from gnwarp.train.config import TrainConfig
+        extra = {} if member == 0 else {"seed": int(self.train.get("seed", 0)) + int(member)}
         try:
-            return TrainConfig.from_dict({**self.train, "out": str(Path(self.out) / "model"), "steps": int(steps),
+            return TrainConfig.from_dict({**self.train, **extra, "out": str(Path(self.out) / member_folder(member)),
+                                          "steps": int(steps),
                                           "resume": True, "patience": None, "max_seconds": None,
                                           "progress": self.progress, "device": self.device})
         except ConfigError as e:
@@ -157,6 +186,16 @@ class LoopConfig:
             raise ConfigError("episode_steps", f"the task's episodes of {steps} steps are no multiple of seq_len "
                                                f"({self.seq_len}); set episode_steps or seq_len")
         return int(steps)
+
+
+def member_folder(member: int) -> str:
+    """The training run of ensemble ``member``, relative to the loop folder."""
+    return "model" if member == 0 else f"model-{member}"
+
+
+def member_checkpoint(out, j: int, member: int) -> Path:
+    """The checkpoint ensemble ``member`` plans with at iteration ``j``."""
+    return Path(out) / "models" / (f"iter-{j:04d}" if member == 0 else f"iter-{j:04d}-m{member}")
 
 
 def loop_system(cfg: LoopConfig, task):
@@ -188,16 +227,24 @@ def _check_folder_config(out: Path, cfg: LoopConfig) -> None:
     write_json(path, mine)
 
 
-def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0):
-    """The planner ``cfg.planner`` through ``model`` for ``n`` episodes, ``seed`` added to its
-    settings' seed: ``gnwarp.control.planner.make_planner`` with ``cfg.planner_settings``, the
-    sampling planners drawing in ``env.ctrlrange``."""
-    from gnwarp.control.planner import get_planner, make_planner
+def make_loop_planner(cfg: LoopConfig, model, task, system, n: int, targets, env, seed: int = 0, terminal=None):
+    """The planner ``cfg.planner`` through ``model`` (a learned model, or a list of them: an
+    ensemble, ``gnwarp.control.sampling.ensemble_dynamics``) for ``n`` episodes, ``seed`` added to
+    its settings' seed: ``gnwarp.control.planner.make_planner`` with ``cfg.planner_settings``,
+    the sampling planners drawing in ``env.ctrlrange``; ``terminal``: the value at its horizon."""
+    from gnwarp.control.planner import get_planner, make_planner, planner_settings
     entry = get_planner(cfg.planner)
     fields = dict(cfg.planner_settings)
     if "seed" in {f.name for f in dataclasses.fields(entry.settings)}:
         fields["seed"] = int(fields.get("seed", 0)) + int(seed)
-    return make_planner(cfg.planner, model, task, system, n, fields, targets, ctrlrange=env.ctrlrange)
+    if isinstance(model, (list, tuple)):
+        from gnwarp.control.sampling import ensemble_dynamics
+        from gnwarp.control.tasks import get_task
+        settings = planner_settings(cfg.planner, fields)
+        horizon = settings.horizon or get_task(task, system.name).horizon
+        model = ensemble_dynamics([m.bind(system) for m in model], n, settings.samples, horizon, cfg.ensemble_penalty)
+    return make_planner(cfg.planner, model, task, system, n, fields, targets, terminal=terminal,
+                        ctrlrange=env.ctrlrange)
 
 
 def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
@@ -215,9 +262,10 @@ def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
 
 def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
     """``n`` episodes of ``steps`` steps planned through the checkpoint ``model_path`` on the
-    true simulator, their initial states, targets and planner seeded by ``key``. Returns
-    (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta: returns,
-    initial states, targets, seconds, backend; the model)."""
+    true simulator, their initial states, targets and planner seeded by ``key``, the planner
+    adding the loop's value of the same iteration (``value/<model_path's name>.pt``) where it has
+    one. Returns (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta:
+    returns, initial states, targets, seconds, backend, model, value; the model)."""
     import torch
 
     from gnwarp.control.episodes import run_episodes
@@ -230,9 +278,15 @@ def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: in
     qpos0, qvel0 = init(system, n, rng) if init is not None else initial_states(system, n, rng)
     stream = int(np.random.default_rng([cfg.seed, *key]).integers(1 << 31))   # targets' and planner's seeds
     targets = sample_targets(task, system, n, seed=stream)
-    model = load_model(model_path, device=None if cfg.device == "auto" else cfg.device)
+    device = None if cfg.device == "auto" else cfg.device
+    model = load_model(model_path, device=device)
+    j = int(model_path.name.split("-")[-1])
+    members = [model] + [load_model(member_checkpoint(model_path.parent.parent, j, k), device=device)
+                         for k in range(1, cfg.ensemble)]
     env = make_env(system, n, backend=cfg.backend)
-    planner = make_loop_planner(cfg, model, task, system, n, targets, env, stream)
+    value = load_loop_value(cfg, model_path.parent.parent, j)
+    planner = make_loop_planner(cfg, members if cfg.ensemble > 1 else model, task, system, n, targets, env, stream,
+                                terminal=value)
     x0 = env.reset(qpos0, qvel0)
     qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
 
@@ -247,6 +301,8 @@ def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: in
             "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
             "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
             "backend": env.backend, "model": f"models/{model_path.name}"}
+    if value is not None:
+        meta["value"] = f"value/{model_path.name}.pt"
     env.close()
     return out, np.stack(qs, 1), np.stack(vs, 1), meta, model
 
@@ -268,15 +324,27 @@ def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration
 
 
 def _train(cfg: LoopConfig, data, steps: int) -> dict:
-    """Train (resuming ``<out>/model/last``) on ``data`` until ``steps`` total steps."""
+    """Train every ensemble member (resuming its ``last``) on ``data`` until ``steps`` total
+    steps; returns member 0's result."""
     import gc
 
     from gnwarp.train.trainer import Trainer
-    trainer = Trainer(cfg.train_config(steps), datasets=[data])
-    r = trainer.run()
-    del trainer   # its device copy of the data and its captured graphs go before the next iteration's
-    gc.collect()
-    return r
+    results = []
+    for k in range(cfg.ensemble):
+        trainer = Trainer(cfg.train_config(steps, k), datasets=[data])
+        results.append(trainer.run())
+        del trainer   # its device copy of the data and its captured graphs go before the next's
+        gc.collect()
+    return results[0]
+
+
+def _copy_members(cfg: LoopConfig, out: Path, j: int, keep: bool = False) -> None:
+    """Copy every member's last checkpoint to what iteration ``j`` plans with (``keep``: not
+    over a copy already there)."""
+    for k in range(cfg.ensemble):
+        dst = member_checkpoint(out, j, k)
+        if not (keep and dst.exists()):
+            _copy_checkpoint(out / member_folder(k) / "last", dst)
 
 
 def _copy_checkpoint(src: Path, dst: Path) -> None:
@@ -319,19 +387,24 @@ def _trim_records(path: Path, iterations: int) -> None:
 
 
 def _record(cfg: LoopConfig, task, system, m: dict, state: LoopState, model_env_steps: int, seconds: dict,
-            variant: str = "loop"):
+            variant: str = "loop", fitted: dict | None = None):
     """The results record of an iteration's episodes (``m``: their meta: returns, initial states,
-    ...; "loop": the data episodes, "loop-eval": the evaluation episodes)."""
+    ...; "loop": the data episodes, "loop-eval": the evaluation episodes; ``fitted``: the value
+    fit after the iteration's training, ``fit_loop_value``'s metrics)."""
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name
     returns = m["returns"]
     metrics = {"iteration": m["iteration"], "mean_return": float(np.mean(returns)), "errors": m.get("errors"),
                "model_env_steps": model_env_steps, "train_steps": state.train_steps, **seconds}
     if m.get("errors") is None:
         del metrics["errors"]
+    if fitted is not None:
+        metrics["value"] = fitted
     config = {"protocol": "loop", "planner_settings": cfg.planner_settings, "model": m["model"],
               "backend": m["backend"], "initial_qpos": m["initial_qpos"], "initial_qvel": m["initial_qvel"],
               "targets": m["targets"],
               "loop": {k: v for k, v in cfg.to_dict().items() if k != "planner_settings"}}
+    if m.get("value") is not None:
+        config["value"] = m["value"]   # the value file the episodes planned with
     return ResultRecord(experiment="loop", task=task.name, system=system.name, planner=cfg.planner, dynamics="learned",
                         variant=variant, seed=cfg.seed, episodes=len(returns), episode_steps=int(m["episode_steps"]),
                         returns=returns, control_dt=float(system.dt), action_repeat=int(system.substeps),
@@ -355,6 +428,10 @@ def run_loop(config: LoopConfig) -> dict:
     task = get_task(cfg.task)
     system = loop_system(cfg, task)
     steps = cfg.episode_length(task)
+    gamma = None
+    if cfg.value is not None:
+        from gnwarp.control.planner import planner_settings
+        gamma = check_value_discount(cfg.value, cfg.planner, planner_settings(cfg.planner, cfg.planner_settings))
     out.mkdir(parents=True, exist_ok=True)
     _check_folder_config(out, cfg)
     state = read_state(out)
@@ -391,9 +468,8 @@ def run_loop(config: LoopConfig) -> dict:
             shard = load(path, lazy=False)
             plan_s = eval_s = 0.0
         else:
-            plan_model = out / "models" / f"iter-{i:04d}"
-            if not plan_model.exists():
-                _copy_checkpoint(out / "model" / "last", plan_model)
+            plan_model = member_checkpoint(out, i, 0)
+            _copy_members(cfg, out, i, keep=True)
             ebar = tqdm(total=steps, desc=f"episodes {i}", unit="step", disable=not cfg.progress, leave=False,
                         dynamic_ncols=True, position=1)
             shard = _collect(cfg, task, system, plan_model, trained, i, steps, ebar)
@@ -406,8 +482,12 @@ def run_loop(config: LoopConfig) -> dict:
         shards.append(shard)
         seconds = {"plan_seconds": plan_s, "eval_seconds": eval_s, "train_seconds": time.perf_counter() - t1}
         # the model the next iteration plans with, and the evaluation episodes' (after a kill, the same weights)
-        next_model = out / "models" / f"iter-{i + 1:04d}"
-        _copy_checkpoint(out / "model" / "last", next_model)
+        next_model = member_checkpoint(out, i + 1, 0)
+        _copy_members(cfg, out, i + 1)
+        fitted = None
+        if cfg.value is not None:   # from value/iter-<i> (not a file a killed call wrote): each episode fitted once
+            fitted = fit_loop_value(cfg, task, system, out, shards, i + 1, gamma)
+            seconds["value_seconds"] = fitted.pop("seconds")
         evaluation = None
         if cfg.eval_episodes and (i % cfg.eval_every == 0 or i == cfg.iterations):
             t2 = time.perf_counter()
@@ -420,7 +500,7 @@ def run_loop(config: LoopConfig) -> dict:
         new = LoopState(iteration=i, env_steps=state.env_steps + train_env_steps(shard), train_steps=int(r["steps"]),
                         shards=state.shards + [shard_path(i).as_posix()],
                         seconds=state.seconds + seconds["iteration_seconds"], last_seconds=seconds["iteration_seconds"])
-        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds)
+        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds, fitted=fitted)
         recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
                                  "loop-eval")] if evaluation is not None else [])
         write_records(records, recs)   # then the state: a record past the state is dropped on resume

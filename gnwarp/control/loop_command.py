@@ -17,7 +17,7 @@ from gnwarp.validation import ConfigError, add_config_flags, config_flags_given
 __all__ = ["add_loop_arguments", "loop_command", "LOOP_DESCRIPTION"]
 
 # the fields with a flag of their own (the nested tables go through a config file or --set)
-_FLAGGED = [n for n in LoopConfig.__dataclass_fields__ if n not in ("out", "progress", "planner_settings", "train")]
+_FLAGGED = [n for n in LoopConfig.__dataclass_fields__ if n not in ("out", "progress", "planner_settings", "train", "value")]
 
 LOOP_DESCRIPTION = (
     "The data loop: plan with the learned model in closed loop on the true simulator (many episodes batched), "

@@ -8,8 +8,12 @@ A loop folder (``gnwarp.control.data_loop``) holds::
     data/iter-0001.h5 ...  the transitions each iteration's episodes visited (train split), one
                            dataset file per iteration, its meta["loop"] the iteration's returns
                            and the model's errors on them before training
-    models/iter-0001 ...   the checkpoint each iteration planned with
-    model/                 the training run (``Trainer``: last, best, log.csv)
+    models/iter-0001 ...   the checkpoint each iteration planned with (ensemble member k > 0:
+                           models/iter-0001-m<k>)
+    model/                 the training run (``Trainer``: last, best, log.csv); model-<k>/:
+                           ensemble member k's
+    value/iter-0002.pt ... the learned terminal value each iteration planned with (where the
+                           loop has one; ``gnwarp.control.loop_value``)
     records.jsonl          one results record per iteration (``gnwarp.eval.records``)
 
 Every file is written whole or not at all (a temporary renamed into place), so a kill at any
