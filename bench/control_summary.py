@@ -40,7 +40,7 @@ from gnwarp.eval.records import RecordError, read_records  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
-__all__ = ["bootstrap_ci", "protocol_of", "rows", "main"]
+__all__ = ["bootstrap_ci", "protocol_of", "variant_of", "rows", "main"]
 
 CONTROL = Path("bench") / "results" / "control"
 BOOTSTRAP = 10_000
@@ -97,6 +97,19 @@ def _row(key: tuple, recs: list, source: str) -> dict:
     return row
 
 
+def variant_of(rec) -> str:
+    """The record's variant, with the data loop's terminal value and ensemble named (its records
+    all carry variant "loop" or "loop-eval"; the ablation rows must not pool)."""
+    loop = rec.config.get("loop") if isinstance(rec.config, dict) else None
+    v = rec.variant
+    if isinstance(loop, dict):
+        if loop.get("value"):
+            v += ", terminal value"
+        if int(loop.get("ensemble") or 1) > 1:
+            v += f", ensemble of {int(loop['ensemble'])}"
+    return v
+
+
 def _paired(row: dict, recs: list, by: dict, key: tuple) -> None:
     """Add the paired comparisons of the module docstring to ``row`` where they exist."""
     def peer(planner):
@@ -132,7 +145,7 @@ def rows(root: Path = ROOT) -> list[dict]:
             continue   # a benchmark's own rows (timings), not results records
         by: dict[tuple, dict] = {}
         for r in recs:
-            key = (r.task, r.planner, r.dynamics, protocol_of(r), r.env_steps, r.variant, r.episode_steps)
+            key = (r.task, r.planner, r.dynamics, protocol_of(r), r.env_steps, variant_of(r), r.episode_steps)
             by.setdefault(key, {})[r.seed] = r   # a rerun of a seed: the last one stands
         mixed = {k: v for k, v in by.items()
                  if len({x.returns is None for x in v.values()}) > 1}

@@ -77,3 +77,16 @@ def test_a_diverged_episode_is_named_not_summarized(tmp_path):
     with pytest.raises(ValueError, match=r"results\.jsonl: cheetah-forward / gradient / learned: the returns of "
                                          r"seed\(s\) \[3\] hold NaN"):
         cs.rows(tmp_path)
+
+
+def test_loop_value_and_ensemble_rows_do_not_pool(tmp_path):
+    folder = tmp_path / cs.CONTROL
+    folder.mkdir(parents=True)
+    recs = []
+    for value, ensemble, rets in ((None, 1, [1.0, 2.0]), ({"gamma": 0.99}, 1, [5.0, 6.0]), (None, 2, [9.0, 9.5])):
+        r = _rec("sampling", rets, experiment="loop", env_steps=100)
+        r.variant, r.config = "loop", {"protocol": "loop", "loop": {"value": value, "ensemble": ensemble}}
+        recs.append(r)
+    write_records(folder / "records.jsonl", recs)
+    got = {r["variant"]: r["mean"] for r in cs.rows(tmp_path)}
+    assert got == {"loop": 1.5, "loop, terminal value": 5.5, "loop, ensemble of 2": 9.25}
