@@ -44,6 +44,12 @@ def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return low, high
 
 
+def _adam(net, lr: float) -> torch.optim.Adam | None:
+    """Adam on ``net``'s trainable parameters (None for a network without any: a fixed one)."""
+    params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
+    return torch.optim.Adam(params, lr=lr) if params else None
+
+
 class Agent:
     """What both agents share: the action box (``low``, ``high`` [U]), the policy and its target,
     the Q-function and its target, their Adam optimizers, the generator, the counters ``updates``
@@ -62,8 +68,8 @@ class Agent:
         self.policy_target, self.q_target = copy.deepcopy(self.policy), copy.deepcopy(self.q)
         for p in (*self.policy_target.parameters(), *self.q_target.parameters()):
             p.requires_grad_(False)
-        self.policy_opt = torch.optim.Adam(self.policy.parameters(), lr=settings.policy_lr)
-        self.q_opt = torch.optim.Adam(self.q.parameters(), lr=settings.q_lr)
+        self.policy_opt = _adam(self.policy, settings.policy_lr)
+        self.q_opt = _adam(self.q, settings.q_lr)
         self.generator = torch.Generator(self.device).manual_seed(settings.seed)
         self.updates, self.env_steps = 0, 0
 
@@ -117,6 +123,8 @@ class Agent:
         raise NotImplementedError
 
     def _step(self, opt, loss, params) -> None:
+        if opt is None:
+            return
         grads = torch.autograd.grad(loss, params, allow_unused=True)
         for p, g in zip(params, grads):
             p.grad = g
@@ -141,9 +149,9 @@ class Agent:
         target networks. Returns {"q_loss", "policy_loss", ...} as 0-dim tensors (no host sync)."""
         self._check_batch(batch)
         q_loss = self.q_loss(batch)
-        self._step(self.q_opt, q_loss, list(self.q.parameters()))
+        self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
         pi_loss = self.policy_loss(batch.obs)
-        self._step(self.policy_opt, pi_loss, list(self.policy.parameters()))
+        self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
         metrics.update(self._extra_update(batch))
         self.updates += 1
@@ -166,7 +174,7 @@ class Agent:
     def state_dict(self) -> dict:
         """Everything needed to continue bit for bit: networks, targets, optimizers, counters,
         the generator's state and the settings."""
-        d = {k: m.state_dict() for k, m in self._modules().items()}
+        d = {k: m.state_dict() for k, m in self._modules().items() if m is not None}
         d.update(settings=self.settings.to_dict(), updates=self.updates, env_steps=self.env_steps,
                  generator=self.generator.get_state())
         return d
@@ -177,7 +185,8 @@ class Agent:
             diff = sorted(k for k, v in state["settings"].items() if self.settings.to_dict().get(k) != v)
             raise ConfigError(diff[0] if diff else "", f"the saved agent has other settings ({diff})")
         for k, m in self._modules().items():
-            m.load_state_dict(state[k])
+            if m is not None:
+                m.load_state_dict(state[k])
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
         self.generator.set_state(state["generator"])
 
@@ -233,9 +242,7 @@ class SVG(Agent):
         super().__init__(settings, obs_dim, action_low, action_high, policy, q, device, dtype)
         self.model, self.reward = (model, reward) if self.horizon >= 1 else (None, None)
         self.model_loss = model_loss or mse_model_loss
-        params = list(self.model.parameters()) if isinstance(self.model, nn.Module) else []
-        self.model_params = [p for p in params if p.requires_grad] if settings.train_model else []
-        self.model_opt = torch.optim.Adam(self.model_params, lr=settings.model_lr) if self.model_params else None
+        self.model_opt = _adam(self.model, settings.model_lr) if settings.train_model else None
 
     def _sample(self, net, obs: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         mean, log_std = net(obs)
@@ -278,7 +285,7 @@ class SVG(Agent):
         if self.model_opt is None:
             return {}
         loss = self.model_loss(self.model, batch)
-        self._step(self.model_opt, loss, self.model_params)
+        self._step(self.model_opt, loss, self.model_opt.param_groups[0]["params"])
         return {"model_loss": loss.detach()}
 
     def _modules(self) -> dict[str, object]:

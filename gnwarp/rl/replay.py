@@ -187,7 +187,7 @@ class ReplayBuffer:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()``'s contents; a buffer of other sizes is refused."""
-        for key in ("rows", "num_envs", "obs_dim", "action_dim"):
+        for key in ("num_envs", "obs_dim", "action_dim", "rows"):
             if int(state[key]) != getattr(self, key):
                 raise ReplayError(f"the saved buffer has {key}={state[key]}; this one {getattr(self, key)}")
         for name in _FIELDS:
