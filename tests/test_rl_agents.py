@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from gnwarp.rl.agents import DDPG, SVG, make_agent
-from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions
+from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions, reached_obs
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
 
@@ -314,13 +314,15 @@ def test_short_run_on_a_vector_env(agent):
     for step in range(75):                                          # 300 env steps
         a = ag.act(obs)
         nxt, r, term, trunc, infos = env.step(a.numpy())
-        final = np.where(infos["_final_obs"][:, None], infos["final_obs"], nxt) if "final_obs" in infos else nxt
-        buf.add(obs, a, r, final, term, trunc)
+        buf.add(obs, a, r, reached_obs(nxt, infos), term, trunc)
         obs = nxt
         if ag.env_steps >= s.update_after:
             m = ag.update(buf.sample(s.batch_size, gen))
             assert all(torch.isfinite(v) for v in m.values()), m
     env.close()
+    T = buf.filled      # next_obs is the step's own; a truncated one is not the next episode's first
+    ends, same = buf.truncated[:T - 1], (buf.next_obs[:T - 1] == buf.obs[1:T]).all(-1)
+    assert same[~ends].all() and not same[ends].any()
     assert ag.updates == 66 and int(buf.truncated.sum()) == 12 and not buf.terminated.any()
     assert all(torch.isfinite(p).all() for p in ag.policy.parameters())
     assert ag.act(obs, deterministic=True).abs().max() <= 2.0 + 1e-6

@@ -141,8 +141,7 @@ class Agent:
                         tgt.load_state_dict(net.state_dict())
             else:
                 for net, tgt in pairs:
-                    for p, t in zip(net.parameters(), tgt.parameters()):
-                        t.lerp_(p, 1 - s.polyak)
+                    torch._foreach_lerp_(list(tgt.parameters()), list(net.parameters()), 1 - s.polyak)
 
     def update(self, batch: Transitions) -> dict[str, torch.Tensor]:
         """One gradient step of Q (eq. 3), then of the policy, then (SVG(N)) of the model, then the

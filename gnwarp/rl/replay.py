@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import torch
 
-__all__ = ["ReplayBuffer", "Transitions", "ReplayError"]
+__all__ = ["ReplayBuffer", "Transitions", "ReplayError", "reached_obs"]
 
 
 class ReplayError(ValueError):
@@ -36,6 +36,19 @@ class Transitions:
 
     def __len__(self) -> int:
         return self.obs.shape[0]
+
+
+def reached_obs(next_obs, infos: dict):
+    """The observations a vector env's step reached [E, D]: ``next_obs`` [E, D] with the rows that
+    ended an episode replaced by ``infos["final_obs"]`` (Gymnasium's "same_step" autoreset, where
+    ``next_obs`` holds the next episode's first observation there). NumPy or torch, as given."""
+    if "final_obs" not in infos:
+        return next_obs
+    ended, final = infos["_final_obs"], infos["final_obs"]
+    if isinstance(next_obs, torch.Tensor):
+        ended = torch.as_tensor(ended, device=next_obs.device)
+        return torch.where(ended[:, None], torch.as_tensor(final, device=next_obs.device), next_obs)
+    return np.where(np.asarray(ended)[:, None], final, next_obs)
 
 
 _FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
