@@ -24,7 +24,7 @@ from gnwarp.rl.replay import Transitions
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
 
-__all__ = ["DDPG", "SVG", "make_agent", "mse_model_loss"]
+__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss"]
 
 
 def mse_model_loss(model, batch: Transitions) -> torch.Tensor:
@@ -47,7 +47,10 @@ def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
 def _adam(net, lr: float) -> torch.optim.Adam | None:
     """Adam on ``net``'s trainable parameters (None for a network without any: a fixed one)."""
     params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
-    return torch.optim.Adam(params, lr=lr) if params else None
+    if not params:
+        return None
+    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound)
+    return torch.optim.Adam(params, lr=lr, fused=all(p.is_cuda for p in params))
 
 
 class Agent:
@@ -68,6 +71,8 @@ class Agent:
         self.policy_target, self.q_target = copy.deepcopy(self.policy), copy.deepcopy(self.q)
         for p in (*self.policy_target.parameters(), *self.q_target.parameters()):
             p.requires_grad_(False)
+        self._online = [*self.policy.parameters(), *self.q.parameters()]
+        self._targets = [*self.policy_target.parameters(), *self.q_target.parameters()]
         self.policy_opt = _adam(self.policy, settings.policy_lr)
         self.q_opt = _adam(self.q, settings.q_lr)
         self.generator = torch.Generator(self.device).manual_seed(settings.seed)
@@ -133,15 +138,13 @@ class Agent:
 
     def _update_targets(self) -> None:
         s = self.settings
-        pairs = ((self.policy, self.policy_target), (self.q, self.q_target))
         with torch.no_grad():
             if s.target_update == "hard":
                 if self.updates % s.target_period == 0:
-                    for net, tgt in pairs:
+                    for net, tgt in ((self.policy, self.policy_target), (self.q, self.q_target)):
                         tgt.load_state_dict(net.state_dict())
-            else:
-                for net, tgt in pairs:
-                    torch._foreach_lerp_(list(tgt.parameters()), list(net.parameters()), 1 - s.polyak)
+            elif self._online:
+                torch._foreach_lerp_(self._targets, self._online, 1 - s.polyak)
 
     def update(self, batch: Transitions) -> dict[str, torch.Tensor]:
         """One gradient step of Q (eq. 3), then of the policy, then (SVG(N)) of the model, then the
