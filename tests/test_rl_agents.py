@@ -328,3 +328,29 @@ def test_short_run_on_a_vector_env(agent):
     assert ag.act(obs, deterministic=True).abs().max() <= 2.0 + 1e-6
     if agent == "svg1":
         assert "model_loss" in m
+
+
+def test_model_trains_jointly_on_its_own_batch():
+    seen = []
+
+    def seq_loss(model, batch):          # a two-step loss on sequences [B, 2]
+        seen.append(tuple(batch.obs.shape))
+        x1 = model(batch.obs[:, 0], batch.action[:, 0])
+        x2 = model(x1, batch.action[:, 1])
+        return (x1 - batch.next_obs[:, 0]).pow(2).mean() + (x2 - batch.next_obs[:, 1]).pow(2).mean()
+
+    model = TinyModel(0)
+    ag = SVG(AgentSettings(agent="svg1", hidden=(8,), max_grad_norm=1.0, model_lr=0.02), D, [-1] * U, [1] * U, model=model,
+             reward=lambda x, a, x2: -(x2 ** 2).sum(-1), model_loss=seq_loss)
+    buf = ReplayBuffer(40, D, U, num_envs=2)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(10):
+        x, a = torch.randn(2, D, generator=g), torch.rand(2, U, generator=g) - 0.5
+        buf.add(x, a, torch.zeros(2), x + 0.1 * a.sum(-1, keepdim=True), torch.zeros(2, dtype=torch.bool),
+                torch.zeros(2, dtype=torch.bool))
+    before = copy.deepcopy(model.state_dict())
+    losses = [ag.update(buf.sample(16, g), buf.sample_sequences(16, 2, g))["model_loss"] for _ in range(30)]
+    assert seen[0] == (16, 2, D) and losses[-1] < 0.5 * losses[0]
+    assert not torch.equal(before["lin.weight"], model.lin.weight)
+    q_only = DDPG(AgentSettings(hidden=(8,)), D, [-1] * U, [1] * U)
+    assert "model_loss" not in q_only.update(buf.sample(8, g))

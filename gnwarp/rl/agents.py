@@ -133,6 +133,8 @@ class Agent:
         grads = torch.autograd.grad(loss, params, allow_unused=True)
         for p, g in zip(params, grads):
             p.grad = g
+        if self.settings.max_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(params, self.settings.max_grad_norm)
         opt.step()
         opt.zero_grad(set_to_none=True)
 
@@ -146,16 +148,18 @@ class Agent:
             elif self._online:
                 torch._foreach_lerp_(self._targets, self._online, 1 - s.polyak)
 
-    def update(self, batch: Transitions) -> dict[str, torch.Tensor]:
-        """One gradient step of Q (eq. 3), then of the policy, then (SVG(N)) of the model, then the
-        target networks. Returns {"q_loss", "policy_loss", ...} as 0-dim tensors (no host sync)."""
+    def update(self, batch: Transitions, model_batch: Transitions | None = None) -> dict[str, torch.Tensor]:
+        """One gradient step of Q (eq. 3) and of the policy on ``batch`` (transitions [B]), then
+        (SVG(N)) of the model on ``model_batch`` (any shape its ``model_loss`` takes, e.g.
+        sequences [B, L]; None: ``batch``), then the target networks. Returns {"q_loss",
+        "policy_loss", "model_loss"...} as 0-dim tensors (no host sync)."""
         self._check_batch(batch)
         q_loss = self.q_loss(batch)
         self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
         pi_loss = self.policy_loss(batch.obs)
         self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
-        metrics.update(self._extra_update(batch))
+        metrics.update(self._extra_update(batch if model_batch is None else model_batch))
         self.updates += 1
         self._update_targets()
         return metrics

@@ -44,7 +44,8 @@ class AgentSettings:
     objective (0: the plain value gradient). ``squash``: "tanh" maps the policy's unbounded output
     into the action box; "none" takes it as the action (clamped to the box only when acting).
     ``train_model``: SVG(N) trains its model jointly on the replayed transitions (when it has
-    parameters). ``seed``: of the agent's generator (random actions, exploration and policy noise)."""
+    parameters). ``max_grad_norm``: each network's gradient norm is clipped to it before its Adam
+    step (None: not clipped). ``seed``: of the agent's generator (random actions, exploration and policy noise)."""
     agent: str = "ddpg"
     preset: Literal["spinningup", "paper"] = "spinningup"
     gamma: FloatRange(ge=0, le=1) = 0.99
@@ -64,6 +65,7 @@ class AgentSettings:
     entropy_weight: FloatRange(ge=0) = 0.0
     squash: Literal["tanh", "none"] = "tanh"
     train_model: Flag = True
+    max_grad_norm: PositiveFloat | None = None
     seed: Count = 0
 
     def __post_init__(self):
