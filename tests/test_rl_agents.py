@@ -340,8 +340,9 @@ def test_model_trains_jointly_on_its_own_batch():
         return (x1 - batch.next_obs[:, 0]).pow(2).mean() + (x2 - batch.next_obs[:, 1]).pow(2).mean()
 
     model = TinyModel(0)
-    ag = SVG(AgentSettings(agent="svg1", hidden=(8,), max_grad_norm=1.0, model_lr=0.02), D, [-1] * U, [1] * U, model=model,
-             reward=lambda x, a, x2: -(x2 ** 2).sum(-1), model_loss=seq_loss)
+    s = AgentSettings(agent="svg1", hidden=(8,), max_grad_norm=1.0, model_lr=0.02)
+    ag = SVG(s, D, [-1] * U, [1] * U, model=model, reward=lambda x, a, x2: -(x2 ** 2).sum(-1),
+             model_loss=seq_loss)
     buf = ReplayBuffer(40, D, U, num_envs=2)
     g = torch.Generator().manual_seed(0)
     for _ in range(10):

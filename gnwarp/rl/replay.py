@@ -54,6 +54,13 @@ def reached_obs(next_obs, infos: dict):
 _FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
 
 
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """Whether two devices are one ("cuda" is the current CUDA device)."""
+    def index(d):
+        return torch.cuda.current_device() if d.type == "cuda" and d.index is None else d.index
+    return a.type == b.type and index(a) == index(b)
+
+
 class ReplayBuffer:
     """``capacity`` transitions (rounded down to a multiple of ``num_envs``) of ``num_envs`` envs
     stepped together, stored per env in time order ([capacity // num_envs, num_envs, ...] rings,
@@ -137,7 +144,7 @@ class ReplayBuffer:
     def _check_batch(self, batch: int, generator) -> None:
         if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
             raise ReplayError(f"batch must be an integer >= 1, got {batch!r}")
-        if generator is not None and generator.device != self.device:
+        if generator is not None and not _same_device(generator.device, self.device):
             raise ReplayError(f"the generator is on {generator.device}; the buffer on {self.device}")
         if self.filled == 0:
             raise ReplayError("the replay buffer is empty: add transitions before sampling")
