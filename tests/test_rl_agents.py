@@ -4,6 +4,7 @@ replay buffer's checks, sampling and state, exact resume, settings errors, and s
 vector environment."""
 import copy
 import io
+import types
 import warnings
 
 import numpy as np
@@ -12,7 +13,8 @@ import torch
 from torch import nn
 
 from gnwarp.rl.agents import DDPG, SVG, make_agent
-from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions, reached_obs
+from gnwarp.rl.loop import LoopState, run_env_steps
+from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
 
@@ -302,7 +304,8 @@ def test_short_run_on_a_vector_env(agent):
         from gnwarp.control import make_vector_env
         env = make_vector_env("pendulum-balance", 4, episode_steps=20, backend="mujoco", autoreset_mode="same_step")
     obs_dim, act = env.single_observation_space.shape[0], env.single_action_space
-    s = AgentSettings(agent=agent, hidden=(32, 32), batch_size=32, start_steps=40, update_after=40, seed=0)
+    s = AgentSettings(agent=agent, hidden=(32, 32), batch_size=32, start_steps=40, update_after=40, seed=0,
+                      updates_per_step=0.25)
     model = TinyModel(0) if agent == "svg1" else None
     if model is not None:
         model.lin = nn.Linear(obs_dim + act.shape[0], obs_dim)
@@ -310,24 +313,25 @@ def test_short_run_on_a_vector_env(agent):
     ag = make_agent(s, obs_dim, act.low, act.high, model=model, reward=reward)
     buf = ReplayBuffer(10_000, obs_dim, act.shape[0], num_envs=4)
     gen = torch.Generator().manual_seed(0)
-    obs, _ = env.reset(seed=0)
-    for step in range(75):                                          # 300 env steps
-        a = ag.act(obs)
-        nxt, r, term, trunc, infos = env.step(a.numpy())
-        buf.add(obs, a, r, reached_obs(nxt, infos), term, trunc)
-        obs = nxt
-        if ag.env_steps >= s.update_after:
-            m = ag.update(buf.sample(s.batch_size, gen))
-            assert all(torch.isfinite(v) for v in m.values()), m
+    state = LoopState(env.reset(seed=0)[0], 4)
+    first = run_env_steps(ag, env, buf, state, 40, gen)             # 160 env steps
+    out = run_env_steps(ag, env, buf, state, 35, gen, model_sequence=2 if agent == "svg1" else None)
+    assert len(first["returns"]) == 8 and len(out["returns"]) == 4 and np.isfinite(first["returns"]).all()
+    assert first["updates"] + out["updates"] == 66 and all(np.isfinite(v) for v in out["metrics"].values())
+    m = out["metrics"]
     env.close()
     T = buf.filled      # next_obs is the step's own; a truncated one is not the next episode's first
     ends, same = buf.truncated[:T - 1], (buf.next_obs[:T - 1] == buf.obs[1:T]).all(-1)
     assert same[~ends].all() and not same[ends].any()
     assert ag.updates == 66 and int(buf.truncated.sum()) == 12 and not buf.terminated.any()
     assert all(torch.isfinite(p).all() for p in ag.policy.parameters())
-    assert ag.act(obs, deterministic=True).abs().max() <= 2.0 + 1e-6
+    assert ag.act(state.obs, deterministic=True).abs().max() <= 2.0 + 1e-6
     if agent == "svg1":
         assert "model_loss" in m
+    from gymnasium.vector import AutoresetMode
+    with pytest.raises(ValueError, match="same_step"):
+        run_env_steps(ag, types.SimpleNamespace(metadata={"autoreset_mode": AutoresetMode.NEXT_STEP}), buf, state, 1,
+                      gen)
 
 
 def test_model_trains_jointly_on_its_own_batch():
