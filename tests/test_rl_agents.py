@@ -328,6 +328,8 @@ def test_short_run_on_a_vector_env(agent):
     assert ag.act(state.obs, deterministic=True).abs().max() <= 2.0 + 1e-6
     if agent == "svg1":
         assert "model_loss" in m
+    back = LoopState.from_state_dict(state.state_dict())
+    assert np.array_equal(back.obs, state.obs) and np.array_equal(back.episode_return, state.episode_return)
     from gymnasium.vector import AutoresetMode
     with pytest.raises(ValueError, match="same_step"):
         run_env_steps(ag, types.SimpleNamespace(metadata={"autoreset_mode": AutoresetMode.NEXT_STEP}), buf, state, 1,
