@@ -361,3 +361,13 @@ def test_model_trains_jointly_on_its_own_batch():
     assert not torch.equal(before["lin.weight"], model.lin.weight)
     q_only = DDPG(AgentSettings(hidden=(8,)), D, [-1] * U, [1] * U)
     assert "model_loss" not in q_only.update(buf.sample(8, g))
+
+
+def test_sequence_starts_follow_adds():
+    buf = ReplayBuffer(8, obs_dim=1, action_dim=1, num_envs=1)
+    for t in range(3):
+        _add_step(buf, t, done_every=2)          # step 1 ends an episode: only step 0 starts a pair
+    g = torch.Generator().manual_seed(0)
+    assert set(buf.sample_sequences(50, 2, g).reward[:, 0].tolist()) == {0.0}
+    _add_step(buf, 3, done_every=2)              # adds the start at step 2
+    assert set(buf.sample_sequences(50, 2, g).reward[:, 0].tolist()) == {0.0, 20.0}

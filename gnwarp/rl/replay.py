@@ -92,6 +92,7 @@ class ReplayBuffer:
         self.ptr = 0      # the row the next add writes
         self.filled = 0   # rows holding data (<= rows)
         self.added = 0    # steps added in all (transitions: added x num_envs)
+        self._starts = None   # (length, added, ptr), cumulative count of valid starts, their number
 
     @property
     def capacity(self) -> int:
@@ -178,17 +179,19 @@ class ReplayBuffer:
     def sample_sequences(self, batch: int, length: int, generator: torch.Generator | None = None) -> Transitions:
         """``batch`` sequences of ``length`` consecutive steps of one env, drawn uniformly with
         replacement among those within one episode (only the last step may end it). Returns
-        ``Transitions`` of shape [batch, length]. One host sync (to refuse a buffer with no such
-        sequence)."""
+        ``Transitions`` of shape [batch, length]. The valid starts are counted once per ``add`` (one
+        host sync, to refuse a buffer with no such sequence) and reused by later calls."""
         self._check_batch(batch, generator)
         if isinstance(length, bool) or not isinstance(length, (int, np.integer)) or length < 1:
             raise ReplayError(f"length must be an integer >= 1, got {length!r}")
         if length > self.filled:
             raise ReplayError(f"sequences of {length} steps need {length} stored steps per env; "
                               f"{self.filled} are stored")
-        ok = self.valid_starts(length).flatten()
-        c = ok.long().cumsum(0)
-        total = int(c[-1])
+        key = (length, self.added, self.ptr)
+        if self._starts is None or self._starts[0] != key:   # the valid starts change only with add
+            c = self.valid_starts(length).flatten().long().cumsum(0)
+            self._starts = (key, c, int(c[-1]))
+        _, c, total = self._starts
         if total == 0:
             raise ReplayError(f"no stored sequence of {length} steps lies within one episode")
         u = torch.randint(0, total, (batch,), generator=generator, device=self.device)
@@ -213,3 +216,4 @@ class ReplayBuffer:
         for name in _FIELDS:
             getattr(self, name).copy_(state[name])
         self.ptr, self.filled, self.added = int(state["ptr"]), int(state["filled"]), int(state["added"])
+        self._starts = None
