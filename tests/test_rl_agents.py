@@ -14,6 +14,7 @@ from torch import nn
 
 from gnwarp.rl.agents import DDPG, SVG, make_agent
 from gnwarp.rl.loop import LoopState, run_env_steps
+from gnwarp.rl.planner import PolicyPlanner
 from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
@@ -319,6 +320,13 @@ def test_short_run_on_a_vector_env(agent):
     assert len(first["returns"]) == 8 and len(out["returns"]) == 4 and np.isfinite(first["returns"]).all()
     assert first["updates"] + out["updates"] == 66 and all(np.isfinite(v) for v in out["metrics"].values())
     m = out["metrics"]
+    from gnwarp.control import Planner
+    planner = PolicyPlanner(ag, env.obs_layout, 4, env.targets)
+    assert isinstance(planner, Planner) and not planner.needs_sim_state
+    got = planner.step(env.body_states)
+    assert torch.equal(got, ag.act(state.obs, deterministic=True)) and got.abs().max() > 0
+    with pytest.raises(ValueError, match="N=4"):
+        planner.act(env.body_states[:2])
     env.close()
     T = buf.filled      # next_obs is the step's own; a truncated one is not the next episode's first
     ends, same = buf.truncated[:T - 1], (buf.next_obs[:T - 1] == buf.obs[1:T]).all(-1)
