@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from gnwarp.rl.agents import DDPG, SVG, make_agent
-from gnwarp.rl.loop import LoopState, run_env_steps
+from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.planner import PolicyPlanner
 from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions
 from gnwarp.rl.settings import AgentSettings
@@ -314,7 +314,7 @@ def test_short_run_on_a_vector_env(agent):
     ag = make_agent(s, obs_dim, act.low, act.high, model=model, reward=reward)
     buf = ReplayBuffer(10_000, obs_dim, act.shape[0], num_envs=4)
     gen = torch.Generator().manual_seed(0)
-    state = LoopState(env.reset(seed=0)[0], 4)
+    state = CollectorState(env.reset(seed=0)[0], 4)
     first = run_env_steps(ag, env, buf, state, 40, gen)             # 160 env steps
     out = run_env_steps(ag, env, buf, state, 35, gen, model_sequence=2 if agent == "svg1" else None)
     assert len(first["returns"]) == 8 and len(out["returns"]) == 4 and np.isfinite(first["returns"]).all()
@@ -336,7 +336,7 @@ def test_short_run_on_a_vector_env(agent):
     assert ag.act(state.obs, deterministic=True).abs().max() <= 2.0 + 1e-6
     if agent == "svg1":
         assert "model_loss" in m
-    back = LoopState.from_state_dict(state.state_dict())
+    back = CollectorState.from_state_dict(state.state_dict())
     assert np.array_equal(back.obs, state.obs) and np.array_equal(back.episode_return, state.episode_return)
     from gymnasium.vector import AutoresetMode
     with pytest.raises(ValueError, match="same_step"):

@@ -1,7 +1,7 @@
 """The off-policy training loop's inner part: act in a vector environment, store the steps in the
 replay buffer, take the settings' share of gradient updates, and count finished episodes' returns.
 
-    >>> state = LoopState(obs=env.reset(seed=0)[0], num_envs=env.num_envs)
+    >>> state = CollectorState(obs=env.reset(seed=0)[0], num_envs=env.num_envs)
     >>> out = run_env_steps(agent, env, buffer, state, steps=1000, generator=gen)
     >>> out["returns"], out["metrics"]          # finished episodes' returns, the last update's losses
 
@@ -17,11 +17,11 @@ import torch
 
 from gnwarp.rl.replay import ReplayBuffer, reached_obs
 
-__all__ = ["LoopState", "run_env_steps"]
+__all__ = ["CollectorState", "run_env_steps"]
 
 
 @dataclasses.dataclass
-class LoopState:
+class CollectorState:
     """What the loop carries between calls: the envs' current observations ``obs`` [E, D],
     each env's return so far ``episode_return`` [E] and the fraction of an update owed ``owed``."""
     obs: object
@@ -38,7 +38,7 @@ class LoopState:
         return dict(obs=obs, num_envs=self.num_envs, episode_return=self.episode_return.copy(), owed=self.owed)
 
     @classmethod
-    def from_state_dict(cls, d: dict, device=None) -> "LoopState":
+    def from_state_dict(cls, d: dict, device=None) -> "CollectorState":
         obs = d["obs"].to(device) if isinstance(d["obs"], torch.Tensor) and device is not None else d["obs"]
         return cls(obs, int(d["num_envs"]), np.array(d["episode_return"]), float(d["owed"]))
 
@@ -47,7 +47,7 @@ def _numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def run_env_steps(agent, env, buffer: ReplayBuffer, state: LoopState, steps: int, generator: torch.Generator,
+def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps: int, generator: torch.Generator,
                   model_sequence: int | None = None) -> dict:
     """``steps`` steps of the vector ``env`` (``steps x num_envs`` env steps) with ``agent.act``:
     each step stored in ``buffer``; once ``agent.env_steps >= update_after``,
