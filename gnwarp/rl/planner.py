@@ -17,7 +17,7 @@ __all__ = ["PolicyPlanner"]
 class PolicyPlanner:
     """``agent`` (``gnwarp.rl.agents``: its ``act(obs, deterministic=True)``) acting on
     ``observation(body [N, B, 13], targets) -> obs [N, D]`` (a vector env's ``obs_layout``, so the
-    policy sees what it was trained on); ``n`` episodes; ``targets`` [N, ...] of the task (None for
+    policy sees the observations it learned from); ``n`` episodes; ``targets`` [N, ...] of the task (None for
     a task without)."""
 
     needs_sim_state = False
