@@ -1,0 +1,125 @@
+"""Benchmark: gradient updates per second of the RL agents (``gnwarp.rl.agents``) with MLP
+networks, and actions per second of their policies, on one device.
+
+Swimmer6's sizes (25 observation features, 5 actions), the spinningup preset's 256 x 2 MLPs; per
+agent (DDPG, SVG(0), SVG(N) through a 256 x 2 MLP model trained jointly, a stand-in for the GN
+model) and batch size: a replay buffer of random transitions, then ``--updates`` updates, each
+sampling its batch (updates / s, after a warm-up); and ``act`` on ``--envs`` observations at a
+time (env steps / s of the policy alone).
+
+    python bench/rl_agents.py [--agents ddpg,svg0,svg1,svg2] [--batches 100,256] [--updates 500]
+    python bench/rl_agents.py --quick       # tiny sizes on the CPU: a smoke test of the script
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+
+from bench.harness import device_name, experiment_out, save_results  # noqa: E402
+from gnwarp.rl.agents import make_agent  # noqa: E402
+from gnwarp.rl.networks import mlp  # noqa: E402
+from gnwarp.rl.replay import ReplayBuffer  # noqa: E402
+from gnwarp.rl.settings import AgentSettings  # noqa: E402
+
+OBS, ACT = 25, 5   # DMC swimmer6: to_target 2, joints 5, body velocities 6 x 3; 5 joint forces
+
+
+class MLPModel(nn.Module):
+    """``next_obs = obs + mlp([obs, action])``: a stand-in for the learned model."""
+
+    def __init__(self, hidden):
+        super().__init__()
+        self.net = mlp(OBS + ACT, hidden, OBS)
+
+    def forward(self, obs, action):
+        return obs + self.net(torch.cat([obs, action], -1))
+
+
+def reward(obs, action, next_obs):
+    return -next_obs[:, :2].pow(2).sum(-1).sqrt()   # distance to the target
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def filled_buffer(dev, envs: int, steps: int, gen: torch.Generator) -> ReplayBuffer:
+    buf = ReplayBuffer(envs * steps, OBS, ACT, num_envs=envs, device=dev)
+    for t in range(steps):
+        r = lambda *s: torch.randn(*s, generator=gen, device=dev)  # noqa: E731
+        buf.add(r(envs, OBS), r(envs, ACT).clamp(-1, 1), r(envs), r(envs, OBS),
+                torch.zeros(envs, dtype=torch.bool, device=dev),
+                torch.full((envs,), (t + 1) % 1000 == 0, dtype=torch.bool, device=dev))
+    return buf
+
+
+def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int) -> dict:
+    s = AgentSettings(agent=name, hidden=hidden, batch_size=batch, start_steps=0)
+    model = MLPModel(hidden).to(dev) if s.horizon else None
+    agent = make_agent(s, OBS, [-1.0] * ACT, [1.0] * ACT, model=model, reward=reward if model else None, device=dev)
+    gen = torch.Generator(dev).manual_seed(0)
+    for _ in range(5):
+        agent.update(buf.sample(batch, gen))
+    _sync(dev)
+    t0 = time.perf_counter()
+    for _ in range(updates):
+        m = agent.update(buf.sample(batch, gen))
+    _sync(dev)
+    ups = updates / (time.perf_counter() - t0)
+    obs = torch.randn(envs, OBS, device=dev)
+    for _ in range(3):
+        agent.act(obs)
+    _sync(dev)
+    t0 = time.perf_counter()
+    for _ in range(updates):
+        agent.act(obs)
+    _sync(dev)
+    aps = envs * updates / (time.perf_counter() - t0)
+    assert all(torch.isfinite(v) for v in m.values()), m
+    return dict(agent=name, batch=batch, hidden=list(hidden), updates=updates, updates_per_s=round(ups, 1),
+                envs=envs, act_env_steps_per_s=round(aps))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--agents", default="ddpg,svg0,svg1,svg2")
+    ap.add_argument("--batches", default="100,256")
+    ap.add_argument("--updates", type=int, default=500)
+    ap.add_argument("--envs", type=int, default=16)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--out", default=None, help="default: bench/results/rl (--quick: a temporary folder)")
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args(argv)
+    hidden = (256, 256)
+    if args.quick:
+        args.device, args.batches, args.updates, hidden = "cpu", "16", 5, (16, 16)
+    dev = torch.device(args.device)
+    gen = torch.Generator(dev).manual_seed(0)
+    buf = filled_buffer(dev, args.envs, 64 if args.quick else 4096, gen)
+    name, rows = device_name(dev), []
+    for agent in args.agents.split(","):
+        for batch in (int(b) for b in args.batches.split(",")):
+            row = dict(device=name, **time_agent(agent, batch, hidden, dev, buf, args.updates, args.envs))
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    lines = [f"# RL agents: gradient updates per second, on {name}", "",
+             f"`python bench/rl_agents.py` ({time.strftime('%Y-%m-%d')}): swimmer6 sizes ({OBS} observations, "
+             f"{ACT} actions), MLPs {'x'.join(map(str, hidden))}, SVG(N)'s model an MLP of the same widths "
+             "trained jointly; each update samples its batch from the replay buffer; acting: "
+             f"`act` on {args.envs} observations.", "",
+             "| agent | batch | updates / s | acting, env steps / s |", "|---|---|---|---|"]
+    lines += [f"| {r['agent']} | {r['batch']} | {r['updates_per_s']} | {r['act_env_steps_per_s']} |" for r in rows]
+    save_results(experiment_out("rl", args.out, args.quick), "rl_agents", name, args.quick, rows, lines)
+
+
+if __name__ == "__main__":
+    main()

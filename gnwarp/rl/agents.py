@@ -1,0 +1,314 @@
+"""Off-policy agents of supplementary F.3 on torch: ``DDPG`` (deterministic policy gradient, eq. 4)
+and ``SVG`` (SVG(0): Gaussian policy, reparameterized gradient of Q, eq. 5; SVG(N), N >= 1: the
+reparameterized gradient of sum_{k<N} gamma^k r_{t+k} + gamma^N Q(x_{t+N}, a_{t+N}) through a
+differentiable model, every a_{t+k} ~ pi(.|x_{t+k})). Both learn Q by the one-step Bellman error
+of eq. 3 against target networks; a time-limit truncation bootstraps, a termination does not.
+
+    >>> agent = make_agent(AgentSettings(agent="svg1"), obs_dim, low, high, model=model, reward=reward)
+    >>> action = agent.act(obs)                       # [E, U] on the agent's device
+    >>> metrics = agent.update(buffer.sample(agent.settings.batch_size, gen))
+
+Networks follow the protocols of ``gnwarp.rl.networks`` (MLPs by default; pass ``policy=`` /
+``q=`` for others).
+"""
+from __future__ import annotations
+
+import copy
+from typing import Callable
+
+import torch
+from torch import nn
+
+from gnwarp.rl.networks import DeterministicPolicy, GaussianPolicy, QFunction
+from gnwarp.rl.replay import Transitions
+from gnwarp.rl.settings import AgentSettings
+from gnwarp.validation import ConfigError
+
+__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss"]
+
+
+def mse_model_loss(model, batch: Transitions) -> torch.Tensor:
+    """The default joint model loss: mean squared error of ``model(obs, action)`` against the
+    observed ``next_obs``."""
+    return (model(batch.obs, batch.action) - batch.next_obs).pow(2).mean()
+
+
+def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    low = torch.as_tensor(low, dtype=dtype, device=device).reshape(-1)
+    high = torch.as_tensor(high, dtype=dtype, device=device).reshape(-1)
+    if low.shape != high.shape or low.numel() == 0:
+        raise ConfigError("action_low", f"action_low {tuple(low.shape)} and action_high {tuple(high.shape)} "
+                                        "must be equal, non-empty shapes")
+    if not (torch.isfinite(low).all() and torch.isfinite(high).all() and (high > low).all()):
+        raise ConfigError("action_low", "the action box needs finite bounds with high > low in every entry")
+    return low, high
+
+
+def _adam(net, lr: float) -> torch.optim.Adam | None:
+    """Adam on ``net``'s trainable parameters (None for a network without any: a fixed one)."""
+    params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
+    if not params:
+        return None
+    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound)
+    return torch.optim.Adam(params, lr=lr, fused=all(p.is_cuda for p in params))
+
+
+class Agent:
+    """What both agents share: the action box (``low``, ``high`` [U]), the policy and its target,
+    the Q-function and its target, their Adam optimizers, the generator, the counters ``updates``
+    (gradient steps) and ``env_steps`` (actions taken by ``act`` when not deterministic)."""
+
+    def __init__(self, settings: AgentSettings, obs_dim: int, action_low, action_high, policy: nn.Module,
+                 q: nn.Module | None, device, dtype):
+        self.settings, self.obs_dim = settings, int(obs_dim)
+        self.device, self.dtype = torch.device(device), dtype
+        self.low, self.high = _bounds(action_low, action_high, self.device, dtype)
+        self.action_dim = self.low.numel()
+        self.mid, self.half = (self.high + self.low) / 2, (self.high - self.low) / 2
+        hidden = settings.hidden
+        self.policy = policy.to(self.device, dtype)
+        self.q = (q if q is not None else QFunction(self.obs_dim, self.action_dim, hidden)).to(self.device, dtype)
+        self.policy_target, self.q_target = copy.deepcopy(self.policy), copy.deepcopy(self.q)
+        for p in (*self.policy_target.parameters(), *self.q_target.parameters()):
+            p.requires_grad_(False)
+        self._online = [*self.policy.parameters(), *self.q.parameters()]
+        self._targets = [*self.policy_target.parameters(), *self.q_target.parameters()]
+        self.policy_opt = _adam(self.policy, settings.policy_lr)
+        self.q_opt = _adam(self.q, settings.q_lr)
+        self.generator = torch.Generator(self.device).manual_seed(settings.seed)
+        self.updates, self.env_steps = 0, 0
+
+    # -- actions --------------------------------------------------------------------------------
+    def squash(self, u: torch.Tensor) -> torch.Tensor:
+        """The unbounded policy output ``u`` [..., U] as an action: into the box by tanh, or as is."""
+        return self.mid + self.half * torch.tanh(u) if self.settings.squash == "tanh" else u
+
+    def _obs(self, obs) -> torch.Tensor:
+        obs = torch.as_tensor(obs, device=self.device, dtype=self.dtype)
+        if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
+            raise ValueError(f"obs has shape {tuple(obs.shape)}; expected [envs, {self.obs_dim}]")
+        return obs
+
+    def _random_actions(self, n: int) -> torch.Tensor:
+        u = torch.rand(n, self.action_dim, generator=self.generator, device=self.device, dtype=self.dtype)
+        return self.low + (self.high - self.low) * u
+
+    def _noise(self, *shape) -> torch.Tensor:
+        return torch.randn(*shape, self.action_dim, generator=self.generator, device=self.device, dtype=self.dtype)
+
+    @torch.no_grad()
+    def act(self, obs, deterministic: bool = False) -> torch.Tensor:
+        """Actions [E, U] (in the action box) for observations ``obs`` [E, D]: the policy's mean
+        when ``deterministic``; else exploring (uniform random for the first ``start_steps`` env
+        steps), counting E env steps."""
+        obs = self._obs(obs)
+        if deterministic:
+            return self._explore(obs, False)
+        n = obs.shape[0]
+        a = self._random_actions(n) if self.env_steps < self.settings.start_steps else self._explore(obs, True)
+        self.env_steps += n
+        return a
+
+    # -- learning -------------------------------------------------------------------------------
+    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def q_target_values(self, batch: Transitions) -> torch.Tensor:
+        """y = r + gamma (1 - terminated) Q'(x', a') [B] (eq. 3): a truncated step bootstraps."""
+        with torch.no_grad():
+            a2 = self.target_action(batch.next_obs)
+            q2 = self.q_target(batch.next_obs, a2)
+            return batch.reward + self.settings.gamma * (~batch.terminated).to(q2.dtype) * q2
+
+    def q_loss(self, batch: Transitions) -> torch.Tensor:
+        """Mean squared Bellman error of the online Q on ``batch`` (eq. 3)."""
+        return (self.q(batch.obs, batch.action) - self.q_target_values(batch)).pow(2).mean()
+
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _step(self, opt, loss, params) -> None:
+        if opt is None:
+            return
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
+        for p, g in zip(params, grads):
+            p.grad = g
+        if self.settings.max_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(params, self.settings.max_grad_norm)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+
+    def _update_targets(self) -> None:
+        s = self.settings
+        with torch.no_grad():
+            if s.target_update == "hard":
+                if self.updates % s.target_period == 0:
+                    for net, tgt in ((self.policy, self.policy_target), (self.q, self.q_target)):
+                        tgt.load_state_dict(net.state_dict())
+            elif self._online:
+                torch._foreach_lerp_(self._targets, self._online, 1 - s.polyak)
+
+    def update(self, batch: Transitions, model_batch: Transitions | None = None) -> dict[str, torch.Tensor]:
+        """One gradient step of Q (eq. 3) and of the policy on ``batch`` (transitions [B]), then
+        (SVG(N)) of the model on ``model_batch`` (any shape its ``model_loss`` takes, e.g.
+        sequences [B, L]; None: ``batch``), then the target networks. Returns {"q_loss",
+        "policy_loss", "model_loss"...} as 0-dim tensors (no host sync)."""
+        self._check_batch(batch)
+        q_loss = self.q_loss(batch)
+        self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
+        pi_loss = self.policy_loss(batch.obs)
+        self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
+        metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
+        metrics.update(self._extra_update(batch if model_batch is None else model_batch))
+        self.updates += 1
+        self._update_targets()
+        return metrics
+
+    def _extra_update(self, batch: Transitions) -> dict[str, torch.Tensor]:
+        return {}
+
+    def _check_batch(self, batch: Transitions) -> None:
+        if batch.obs.ndim != 2 or batch.obs.shape[1] != self.obs_dim or batch.action.shape[-1] != self.action_dim:
+            raise ValueError(f"a batch of obs {tuple(batch.obs.shape)} and actions {tuple(batch.action.shape)}; "
+                             f"expected [B, {self.obs_dim}] and [B, {self.action_dim}] (single transitions)")
+
+    # -- saving ---------------------------------------------------------------------------------
+    def _modules(self) -> dict[str, object]:
+        return {"policy": self.policy, "q": self.q, "policy_target": self.policy_target, "q_target": self.q_target,
+                "policy_opt": self.policy_opt, "q_opt": self.q_opt}
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue bit for bit: networks, targets, optimizers, counters,
+        the generator's state and the settings."""
+        d = {k: m.state_dict() for k, m in self._modules().items() if m is not None}
+        d.update(settings=self.settings.to_dict(), updates=self.updates, env_steps=self.env_steps,
+                 generator=self.generator.get_state())
+        return d
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()``; one saved with other settings is refused."""
+        if state["settings"] != self.settings.to_dict():
+            diff = sorted(k for k, v in state["settings"].items() if self.settings.to_dict().get(k) != v)
+            raise ConfigError(diff[0] if diff else "", f"the saved agent has other settings ({diff})")
+        for k, m in self._modules().items():
+            if m is not None:
+                m.load_state_dict(state[k])
+        self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
+        self.generator.set_state(state["generator"])
+
+
+class DDPG(Agent):
+    """DDPG (F.3.1): deterministic policy ``policy(obs) -> u`` (default: an MLP), action
+    ``squash(u)``; exploration adds Gaussian noise of ``action_noise`` x the box's half width."""
+
+    def __init__(self, settings: AgentSettings, obs_dim: int, action_low, action_high, policy=None, q=None,
+                 device="cpu", dtype=torch.float32):
+        if settings.kind != "ddpg":
+            raise ConfigError("agent", f"DDPG got settings of agent {settings.agent!r}")
+        low = torch.as_tensor(action_low).reshape(-1)
+        policy = policy if policy is not None else DeterministicPolicy(obs_dim, low.numel(), settings.hidden)
+        super().__init__(settings, obs_dim, action_low, action_high, policy, q, device, dtype)
+
+    def _explore(self, obs: torch.Tensor, noisy: bool) -> torch.Tensor:
+        a = self.squash(self.policy(obs))
+        if noisy and self.settings.action_noise > 0:
+            a = a + self.settings.action_noise * self.half * self._noise(obs.shape[0])
+        return torch.maximum(torch.minimum(a, self.high), self.low)
+
+    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.squash(self.policy_target(obs))
+
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """-mean_B Q(x, squash(mu(x))) (eq. 4); ``noise`` is unused."""
+        return -self.q(obs, self.squash(self.policy(obs))).mean()
+
+
+class SVG(Agent):
+    """SVG(N) with a Q-function (F.3.2): a Gaussian policy ``policy(obs) -> (mean, log_std)``
+    (default: an MLP), actions ``squash(mean + exp(log_std) eps)``. N = ``settings.horizon``; for
+    N >= 1 ``model(obs, action) -> next_obs`` and ``reward(obs, action, next_obs) -> [B]`` must be
+    differentiable torch callables on the agent's device and dtype. With ``train_model`` and a
+    model with parameters, each update also takes an Adam step of ``model_loss(model, batch)``
+    (default ``mse_model_loss``) on the model."""
+
+    def __init__(self, settings: AgentSettings, obs_dim: int, action_low, action_high, model=None,
+                 reward: Callable | None = None, policy=None, q=None, model_loss: Callable | None = None,
+                 device="cpu", dtype=torch.float32):
+        if settings.kind != "svg":
+            raise ConfigError("agent", f"SVG got settings of agent {settings.agent!r}")
+        self.horizon = settings.horizon
+        if self.horizon >= 1 and (model is None or reward is None):
+            missing = " and ".join(n for n, v in (("model", model), ("reward", reward)) if v is None)
+            raise ConfigError("agent", f"{settings.agent} predicts {self.horizon} steps ahead and needs a "
+                                       f"differentiable {missing}: give model(obs, action) -> next_obs and "
+                                       "reward(obs, action, next_obs), or use svg0")
+        low = torch.as_tensor(action_low).reshape(-1)
+        policy = policy if policy is not None else GaussianPolicy(obs_dim, low.numel(), settings.hidden,
+                                                                  init_std=settings.init_std)
+        super().__init__(settings, obs_dim, action_low, action_high, policy, q, device, dtype)
+        self.model, self.reward = (model, reward) if self.horizon >= 1 else (None, None)
+        self.model_loss = model_loss or mse_model_loss
+        self.model_opt = _adam(self.model, settings.model_lr) if settings.train_model else None
+
+    def _sample(self, net, obs: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+        mean, log_std = net(obs)
+        return self.squash(mean + log_std.exp() * eps)
+
+    def _explore(self, obs: torch.Tensor, noisy: bool) -> torch.Tensor:
+        if not noisy:
+            return self.squash(self.policy(obs)[0])
+        return torch.maximum(torch.minimum(self._sample(self.policy, obs, self._noise(obs.shape[0])), self.high),
+                             self.low)
+
+    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
+        return self._sample(self.policy_target, obs, self._noise(obs.shape[0]))
+
+    def policy_objective(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """J [B]: sum_{k<N} gamma^k r_k + gamma^N Q(x_N, a_N) from x_0 = ``obs`` [B, D], with
+        a_k = squash(mean(x_k) + std(x_k) ``noise[k]``) and x_{k+1} = model(x_k, a_k); ``noise``
+        [N + 1, B, U] (None: drawn from the agent's generator). N = 0: Q(x_0, a_0) (eq. 5)."""
+        n, gamma = self.horizon, self.settings.gamma
+        if noise is None:
+            noise = self._noise(n + 1, obs.shape[0])
+        elif noise.shape != (n + 1, obs.shape[0], self.action_dim):
+            raise ValueError(f"noise has shape {tuple(noise.shape)}; expected {(n + 1, obs.shape[0], self.action_dim)}")
+        x, total = obs, 0.0
+        for k in range(n):
+            a = self._sample(self.policy, x, noise[k])
+            x2 = self.model(x, a)
+            total = total + gamma ** k * self.reward(x, a, x2)
+            x = x2
+        return total + gamma ** n * self.q(x, self._sample(self.policy, x, noise[n]))
+
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """-mean_B J (``policy_objective``) - entropy_weight x the policy's mean log-std at ``obs``."""
+        loss = -self.policy_objective(obs, noise).mean()
+        if self.settings.entropy_weight > 0:
+            loss = loss - self.settings.entropy_weight * self.policy(obs)[1].sum(-1).mean()
+        return loss
+
+    def _extra_update(self, batch: Transitions) -> dict[str, torch.Tensor]:
+        if self.model_opt is None:
+            return {}
+        loss = self.model_loss(self.model, batch)
+        self._step(self.model_opt, loss, self.model_opt.param_groups[0]["params"])
+        return {"model_loss": loss.detach()}
+
+    def _modules(self) -> dict[str, object]:
+        d = super()._modules()
+        if isinstance(self.model, nn.Module):
+            d["model"] = self.model
+        if self.model_opt is not None:
+            d["model_opt"] = self.model_opt
+        return d
+
+
+def make_agent(settings: AgentSettings, obs_dim: int, action_low, action_high, model=None, reward=None,
+               **kwargs) -> Agent:
+    """The agent ``settings.agent`` names: ``DDPG`` or ``SVG`` (``model`` and ``reward`` for
+    svg<N>, N >= 1). ``kwargs``: ``policy``, ``q``, ``device``, ``dtype`` (and SVG's ``model_loss``)."""
+    if settings.kind == "ddpg":
+        if kwargs.pop("model_loss", None) is not None:
+            raise ConfigError("agent", "ddpg trains no model: model_loss is for svg<N>")
+        return DDPG(settings, obs_dim, action_low, action_high, **kwargs)
+    return SVG(settings, obs_dim, action_low, action_high, model=model, reward=reward, **kwargs)

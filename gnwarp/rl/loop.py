@@ -1,0 +1,84 @@
+"""The off-policy training loop's inner part: act in a vector environment, store the steps in the
+replay buffer, take the settings' share of gradient updates, and count finished episodes' returns.
+
+    >>> state = CollectorState(obs=env.reset(seed=0)[0], num_envs=env.num_envs)
+    >>> out = run_env_steps(agent, env, buffer, state, steps=1000, generator=gen)
+    >>> out["returns"], out["metrics"]          # finished episodes' returns, the last update's losses
+
+The env must autoreset in "same_step" mode (every step a real transition; ``reached_obs`` gives
+the final observation of an ended episode).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from gnwarp.rl.replay import ReplayBuffer, reached_obs
+
+__all__ = ["CollectorState", "run_env_steps"]
+
+
+@dataclasses.dataclass
+class CollectorState:
+    """What the loop carries between calls: the envs' current observations ``obs`` [E, D],
+    each env's return so far ``episode_return`` [E] and the fraction of an update owed ``owed``."""
+    obs: object
+    num_envs: int
+    episode_return: np.ndarray | None = None
+    owed: float = 0.0
+
+    def __post_init__(self):
+        if self.episode_return is None:
+            self.episode_return = np.zeros(self.num_envs)
+
+    def state_dict(self) -> dict:
+        obs = self.obs.cpu() if isinstance(self.obs, torch.Tensor) else np.array(self.obs)
+        return dict(obs=obs, num_envs=self.num_envs, episode_return=self.episode_return.copy(), owed=self.owed)
+
+    @classmethod
+    def from_state_dict(cls, d: dict, device=None) -> "CollectorState":
+        obs = d["obs"].to(device) if isinstance(d["obs"], torch.Tensor) and device is not None else d["obs"]
+        return cls(obs, int(d["num_envs"]), np.array(d["episode_return"]), float(d["owed"]))
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps: int, generator: torch.Generator,
+                  model_sequence: int | None = None) -> dict:
+    """``steps`` steps of the vector ``env`` (``steps x num_envs`` env steps) with ``agent.act``:
+    each step stored in ``buffer``; once ``agent.env_steps >= update_after``,
+    ``updates_per_step x num_envs`` updates per step on batches of ``batch_size`` from ``buffer``
+    (drawn with ``generator``; ``model_sequence``: the model's batch as sequences of that many
+    steps). ``state`` is advanced in place. Returns {"returns": [finished episodes' returns],
+    "metrics": the last update's losses (floats) or {}, "updates": updates taken}."""
+    from gymnasium.vector import AutoresetMode
+    mode = getattr(env, "metadata", {}).get("autoreset_mode")
+    if mode is not None and AutoresetMode(mode) != AutoresetMode.SAME_STEP:
+        raise ValueError(f"the env autoresets in {mode} mode; make it with autoreset_mode=\"same_step\"")
+    s = agent.settings
+    returns, metrics, updates = [], {}, 0
+    torch_env = isinstance(state.obs, torch.Tensor)
+    for _ in range(int(steps)):
+        action = agent.act(state.obs)
+        next_obs, reward, terminated, truncated, infos = env.step(action if torch_env else _numpy(action))
+        buffer.add(state.obs, action, reward, reached_obs(next_obs, infos), terminated, truncated)
+        state.episode_return += _numpy(reward)
+        ended = _numpy(terminated) | _numpy(truncated)
+        returns += state.episode_return[ended].tolist()
+        state.episode_return[ended] = 0.0
+        state.obs = next_obs
+        if agent.env_steps >= s.update_after:
+            state.owed += s.updates_per_step * state.num_envs
+            while state.owed >= 1:
+                model_batch = (buffer.sample_sequences(s.batch_size, model_sequence, generator)
+                               if model_sequence else None)
+                m = agent.update(buffer.sample(s.batch_size, generator), model_batch)
+                state.owed -= 1
+                updates += 1
+            if updates:
+                metrics = m
+    return {"returns": returns, "metrics": {k: float(v) for k, v in metrics.items()}, "updates": updates}

@@ -1,0 +1,72 @@
+"""MLP networks of the agents and the protocols any other network (the observation-graph ones)
+follows to take their place:
+
+- a deterministic policy: ``policy(obs [B, D]) -> u [B, U]``, unbounded (the agent squashes it
+  into the action box);
+- a Gaussian policy: ``policy(obs [B, D]) -> (mean [B, U], log_std [B, U])`` of the unbounded
+  action (the agent samples ``mean + exp(log_std) * eps`` and squashes it);
+- a Q-function: ``q(obs [B, D], action [B, U]) -> [B]``;
+- a model (SVG(N)): ``model(obs [B, D], action [B, U]) -> next_obs [B, D]``, differentiable in both.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["mlp", "DeterministicPolicy", "GaussianPolicy", "QFunction"]
+
+
+def mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
+    """Linear layers ``inputs -> hidden... -> outputs`` with ReLU between them (none after the last)."""
+    widths = (inputs, *hidden, outputs)
+    layers: list[nn.Module] = []
+    for i in range(len(widths) - 1):
+        layers.append(nn.Linear(widths[i], widths[i + 1]))
+        if i < len(widths) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class DeterministicPolicy(nn.Module):
+    """``obs [B, D] -> u [B, U]``: an MLP of ``hidden`` widths."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]):
+        super().__init__()
+        self.net = mlp(obs_dim, hidden, action_dim)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs)
+
+
+class GaussianPolicy(nn.Module):
+    """``obs [B, D] -> (mean [B, U], log_std [B, U])``: an MLP of ``hidden`` widths with two heads;
+    ``log_std`` squashed smoothly into [``log_std_min``, ``log_std_max``], starting near
+    ``log(init_std)``."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...], init_std: float = 0.5,
+                 log_std_min: float = -5.0, log_std_max: float = 1.0):
+        super().__init__()
+        if not log_std_min < torch.log(torch.tensor(init_std)).item() < log_std_max:
+            raise ValueError(f"init_std {init_std} lies outside exp([{log_std_min}, {log_std_max}])")
+        self.net = mlp(obs_dim, hidden, 2 * action_dim)
+        self.lo, self.hi = float(log_std_min), float(log_std_max)
+        # the head's bias puts log_std at log(init_std) for a zero last layer output
+        t = (2 * (torch.log(torch.tensor(init_std)).item() - self.lo) / (self.hi - self.lo)) - 1
+        with torch.no_grad():
+            self.net[-1].bias[action_dim:] = torch.atanh(torch.tensor(t))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, raw = self.net(obs).chunk(2, dim=-1)
+        log_std = self.lo + 0.5 * (self.hi - self.lo) * (torch.tanh(raw) + 1)
+        return mean, log_std
+
+
+class QFunction(nn.Module):
+    """``(obs [B, D], action [B, U]) -> [B]``: an MLP of ``hidden`` widths on their concatenation."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]):
+        super().__init__()
+        self.net = mlp(obs_dim + action_dim, hidden, 1)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)

@@ -1,0 +1,219 @@
+"""A replay buffer of vector-environment transitions on torch: a fixed-capacity ring on one device,
+filled a step of all envs at a time, sampled uniformly as single transitions or as sequences that
+never cross an episode's end (SVG(N)'s and a model's multi-step data).
+
+    >>> buf = ReplayBuffer(100_000, obs_dim=13, action_dim=1, num_envs=4)
+    >>> buf.add(obs, action, reward, next_obs, terminated, truncated)   # [4, 13], [4, 1], [4] ...
+    >>> batch = buf.sample(256, generator)                              # Transitions, [256, ...]
+    >>> seq = buf.sample_sequences(256, 3, generator)                   # [256, 3, ...]
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+__all__ = ["ReplayBuffer", "Transitions", "ReplayError", "reached_obs"]
+
+
+class ReplayError(ValueError):
+    """A refused replay-buffer call: shapes, dtypes, non-finite values, sampling beyond what is stored."""
+
+
+@dataclasses.dataclass
+class Transitions:
+    """A batch of transitions: ``obs`` / ``next_obs`` [..., D], ``action`` [..., U], ``reward``,
+    ``terminated``, ``truncated`` [...] (bool). ``next_obs`` is the observation the step reached,
+    the episode's last one at a truncation (not the next episode's first). Leading shape [B] from
+    ``sample``, [B, L] from ``sample_sequences`` (``next_obs[:, k] == obs[:, k + 1]``)."""
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_obs: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+
+def reached_obs(next_obs, infos: dict):
+    """The observations a vector env's step reached [E, D]: ``next_obs`` [E, D] with the rows that
+    ended an episode replaced by ``infos["final_obs"]`` (Gymnasium's "same_step" autoreset, where
+    ``next_obs`` holds the next episode's first observation there). NumPy or torch, as given."""
+    if "final_obs" not in infos:
+        return next_obs
+    ended, final = infos["_final_obs"], infos["final_obs"]
+    if isinstance(next_obs, torch.Tensor):
+        ended = torch.as_tensor(ended, device=next_obs.device)
+        return torch.where(ended[:, None], torch.as_tensor(final, device=next_obs.device), next_obs)
+    return np.where(np.asarray(ended)[:, None], final, next_obs)
+
+
+_FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """Whether two devices are one ("cuda" is the current CUDA device)."""
+    def index(d):
+        return torch.cuda.current_device() if d.type == "cuda" and d.index is None else d.index
+    return a.type == b.type and index(a) == index(b)
+
+
+class ReplayBuffer:
+    """``capacity`` transitions (rounded down to a multiple of ``num_envs``) of ``num_envs`` envs
+    stepped together, stored per env in time order ([capacity // num_envs, num_envs, ...] rings,
+    so a sequence is contiguous rows of one env); the oldest step of all envs is overwritten
+    first. ``dtype`` of observations, actions and rewards; ``device`` where everything lives.
+    ``check_finite``: refuse NaN / Inf in ``add`` (one host sync per call)."""
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, num_envs: int = 1, device="cpu",
+                 dtype: torch.dtype = torch.float32, check_finite: bool = True):
+        for name, v, lo in (("capacity", capacity, 1), ("obs_dim", obs_dim, 1), ("action_dim", action_dim, 1),
+                            ("num_envs", num_envs, 1)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ReplayError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if capacity < num_envs:
+            raise ReplayError(f"capacity {capacity} holds less than one step of {num_envs} envs")
+        if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise ReplayError(f"dtype must be a torch floating dtype, got {dtype!r}")
+        self.num_envs, self.obs_dim, self.action_dim = int(num_envs), int(obs_dim), int(action_dim)
+        self.rows = int(capacity) // self.num_envs          # time steps kept per env
+        self.device, self.dtype, self.check_finite = torch.device(device), dtype, check_finite
+        T, E = self.rows, self.num_envs
+        z = dict(device=self.device)
+        self.obs = torch.zeros(T, E, obs_dim, dtype=dtype, **z)
+        self.action = torch.zeros(T, E, action_dim, dtype=dtype, **z)
+        self.reward = torch.zeros(T, E, dtype=dtype, **z)
+        self.next_obs = torch.zeros(T, E, obs_dim, dtype=dtype, **z)
+        self.terminated = torch.zeros(T, E, dtype=torch.bool, **z)
+        self.truncated = torch.zeros(T, E, dtype=torch.bool, **z)
+        self.ptr = 0      # the row the next add writes
+        self.filled = 0   # rows holding data (<= rows)
+        self.added = 0    # steps added in all (transitions: added x num_envs)
+        self._starts = None   # (length, added, ptr), cumulative count of valid starts, their number
+
+    @property
+    def capacity(self) -> int:
+        return self.rows * self.num_envs
+
+    def __len__(self) -> int:
+        """Transitions stored."""
+        return self.filled * self.num_envs
+
+    # -- adding ---------------------------------------------------------------------------------
+    def _values(self, name: str, v, shape: tuple, flag: bool = False) -> torch.Tensor:
+        if isinstance(v, np.ndarray) or np.isscalar(v) or isinstance(v, (list, tuple)):
+            v = torch.as_tensor(np.asarray(v))
+        if not isinstance(v, torch.Tensor):
+            raise ReplayError(f"{name} must be a tensor or array, got {type(v).__name__}")
+        if tuple(v.shape) != shape:
+            raise ReplayError(f"{name} has shape {tuple(v.shape)}; expected {shape} "
+                              f"(num_envs={self.num_envs}, obs_dim={self.obs_dim}, action_dim={self.action_dim})")
+        if flag:
+            if v.dtype != torch.bool:
+                raise ReplayError(f"{name} must be boolean, got {v.dtype}")
+            return v.to(self.device)
+        if v.dtype == torch.bool or v.is_complex() or not (v.is_floating_point() or v.dtype in (
+                torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)):
+            raise ReplayError(f"{name} must hold real numbers, got {v.dtype}")
+        v = v.to(self.device, self.dtype)
+        if self.check_finite and not bool(torch.isfinite(v).all()):
+            bad = (~torch.isfinite(v.reshape(self.num_envs, -1))).any(-1).nonzero().flatten().tolist()
+            raise ReplayError(f"{name} has NaN or Inf values (envs {bad})")
+        return v
+
+    def add(self, obs, action, reward, next_obs, terminated, truncated) -> None:
+        """Store one step of every env: ``obs`` / ``next_obs`` [E, D], ``action`` [E, U], ``reward``
+        [E], ``terminated`` / ``truncated`` [E] bool (tensors on any device or NumPy arrays).
+        ``next_obs`` must be the step's own final observation where it ends an episode (a vector
+        env's ``infos["final_obs"]`` in "same_step" autoreset); under "next_step" autoreset, skip
+        the reset step's transition."""
+        E, D, U = self.num_envs, self.obs_dim, self.action_dim
+        vals = (self._values("obs", obs, (E, D)), self._values("action", action, (E, U)),
+                self._values("reward", reward, (E,)), self._values("next_obs", next_obs, (E, D)),
+                self._values("terminated", terminated, (E,), flag=True),
+                self._values("truncated", truncated, (E,), flag=True))
+        for name, v in zip(_FIELDS, vals):
+            getattr(self, name)[self.ptr] = v
+        self.ptr = (self.ptr + 1) % self.rows
+        self.filled = min(self.filled + 1, self.rows)
+        self.added += 1
+
+    # -- sampling -------------------------------------------------------------------------------
+    def _check_batch(self, batch: int, generator) -> None:
+        if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+            raise ReplayError(f"batch must be an integer >= 1, got {batch!r}")
+        if generator is not None and not _same_device(generator.device, self.device):
+            raise ReplayError(f"the generator is on {generator.device}; the buffer on {self.device}")
+        if self.filled == 0:
+            raise ReplayError("the replay buffer is empty: add transitions before sampling")
+
+    def _gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
+        return Transitions(*(getattr(self, name)[rows, envs] for name in _FIELDS))
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> Transitions:
+        """``batch`` transitions drawn uniformly with replacement from those stored (``generator``
+        on the buffer's device; None: torch's default). Returns ``Transitions`` of shape [batch]."""
+        self._check_batch(batch, generator)
+        i = torch.randint(0, self.filled * self.num_envs, (batch,), generator=generator, device=self.device)
+        return self._gather(i // self.num_envs, i % self.num_envs)
+
+    def valid_starts(self, length: int) -> torch.Tensor:
+        """[filled, E] bool, in time order from the oldest stored step: True where a sequence of
+        ``length`` steps starting there is stored and no step but its last ends an episode."""
+        n = self.filled
+        order = (self.ptr - n + torch.arange(n, device=self.device)) % self.rows   # oldest first
+        ok = torch.zeros(n, self.num_envs, dtype=torch.bool, device=self.device)
+        if length > n:
+            return ok
+        done = (self.terminated | self.truncated)[order]
+        # a start s is valid when steps s .. s + length - 2 hold no episode end
+        c = torch.cat([torch.zeros(1, self.num_envs, dtype=torch.int64, device=self.device),
+                       done.long().cumsum(0)])
+        m = n - length + 1
+        ok[:m] = (c[length - 1:length - 1 + m] - c[:m]) == 0
+        return ok
+
+    def sample_sequences(self, batch: int, length: int, generator: torch.Generator | None = None) -> Transitions:
+        """``batch`` sequences of ``length`` consecutive steps of one env, drawn uniformly with
+        replacement among those within one episode (only the last step may end it). Returns
+        ``Transitions`` of shape [batch, length]. The valid starts are counted once per ``add`` (one
+        host sync, to refuse a buffer with no such sequence) and reused by later calls."""
+        self._check_batch(batch, generator)
+        if isinstance(length, bool) or not isinstance(length, (int, np.integer)) or length < 1:
+            raise ReplayError(f"length must be an integer >= 1, got {length!r}")
+        if length > self.filled:
+            raise ReplayError(f"sequences of {length} steps need {length} stored steps per env; "
+                              f"{self.filled} are stored")
+        key = (length, self.added, self.ptr)
+        if self._starts is None or self._starts[0] != key:   # the valid starts change only with add
+            c = self.valid_starts(length).flatten().long().cumsum(0)
+            self._starts = (key, c, int(c[-1]))
+        _, c, total = self._starts
+        if total == 0:
+            raise ReplayError(f"no stored sequence of {length} steps lies within one episode")
+        u = torch.randint(0, total, (batch,), generator=generator, device=self.device)
+        flat = torch.searchsorted(c, u, right=True)        # the (u+1)-th valid start
+        start, env = flat // self.num_envs, flat % self.num_envs
+        rows = (self.ptr - self.filled + start[:, None] + torch.arange(length, device=self.device)) % self.rows
+        return self._gather(rows, env[:, None].expand(-1, length))
+
+    # -- saving ---------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything needed to resume exactly: the rings (tensors) and the counters."""
+        d = {name: getattr(self, name) for name in _FIELDS}
+        d.update(ptr=self.ptr, filled=self.filled, added=self.added, rows=self.rows, num_envs=self.num_envs,
+                 obs_dim=self.obs_dim, action_dim=self.action_dim)
+        return d
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()``'s contents; a buffer of other sizes is refused."""
+        for key in ("num_envs", "obs_dim", "action_dim", "rows"):
+            if int(state[key]) != getattr(self, key):
+                raise ReplayError(f"the saved buffer has {key}={state[key]}; this one {getattr(self, key)}")
+        for name in _FIELDS:
+            getattr(self, name).copy_(state[name])
+        self.ptr, self.filled, self.added = int(state["ptr"]), int(state["filled"]), int(state["added"])
+        self._starts = None
