@@ -84,7 +84,7 @@ def test_code_blocks_run(path, tmp_path):
 
 
 PATH_RE = re.compile(r"`((?:gnwarp/|kernels/|bench/|tests/|examples/)?[\w/]+\.py)`")
-STAGE_DIRS = ("sim", "data", "gn", "models", "eval", "train", "control")
+STAGE_DIRS = ("sim", "data", "gn", "models", "eval", "train", "control", "rl", "cli")
 NAME_RE = re.compile(r"`(gnwarp(?:\.\w+)+)")
 # the result folders' READMEs name scripts, modules and files too (their code blocks are not run)
 NAMED = DOCS + sorted((ROOT / "bench" / "results").glob("*/README.md"))
