@@ -17,6 +17,7 @@ from gnwarp.cli.common import IMPLS, Help
 from gnwarp.cli.data import add_check, add_generate, add_systems
 from gnwarp.cli.evaluate import add_demo, add_evaluate
 from gnwarp.cli.mpc import add_mpc
+from gnwarp.cli.rl import add_rl
 from gnwarp.cli.train import add_train
 
 # each command's module imports what the command needs inside its function, so --help loads
@@ -26,9 +27,9 @@ __all__ = ["main", "build_parser", "IMPLS"]
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The command line's parser. ``command``: the command about to run; the train command's
-    config-key list and system-ID options (which import the training stack) and the loop
-    command's flags (LoopConfig's) are added only for that command or for None (every command
-    in full)."""
+    config-key list and system-ID options (which import the training stack) and the loop and rl
+    commands' flags (LoopConfig's, RLConfig's) are added only for that command or for None (every
+    command in full)."""
     p = argparse.ArgumentParser(prog="gnwarp", description=__doc__, formatter_class=Help)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_systems(sub)
@@ -42,6 +43,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     if command in (None, "loop"):   # its flags are LoopConfig's, whose module loads torch
         from gnwarp.control.loop_command import add_loop_arguments
         add_loop_arguments(lp)
+    add_rl(sub, full=command in (None, "rl"))   # its flags are RLConfig's
     for name, action in sub.choices.items():  # every command: its defaults shown, a description
         action.formatter_class = Help
         action.description = action.description or next(a.help for a in sub._choices_actions if a.dest == name)

@@ -30,9 +30,10 @@ __all__ = ["FORMAT", "VERSION", "PLANNERS", "DYNAMICS", "RecordError", "ResultRe
            "read_records", "git_commit", "gpu_name"]
 
 FORMAT, VERSION = "gnwarp-result", 1
-# planner or agent names a record may carry (the planner registry's names); "none": a record of a
-# model's accuracy, where nothing plans
-PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "hybrid", "none")
+# planner or agent names a record may carry (the planner registry's names; "policy": a trained
+# agent's policy, gnwarp.rl.planner.PolicyPlanner); "none": a record of a model's accuracy, where
+# nothing plans
+PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "hybrid", "policy", "none")
 # what the planner predicts with: a learned model, the true simulator on MuJoCo-Warp or MuJoCo C,
 # or nothing (random actions, model-accuracy records)
 DYNAMICS = ("learned", "true_mjwarp", "true_mujoco_c", "none")

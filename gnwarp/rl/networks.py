@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["mlp", "DeterministicPolicy", "GaussianPolicy", "QFunction"]
+__all__ = ["mlp", "DeterministicPolicy", "GaussianPolicy", "QFunction", "ObservationModel"]
 
 
 def mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
@@ -70,3 +70,30 @@ class QFunction(nn.Module):
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class ObservationModel(nn.Module):
+    """A model ``(obs [B, D], action [B, U]) -> next_obs [B, D]``: ``obs`` plus an MLP's change of
+    the normalized ``(obs - obs_mean) / obs_std`` and the action, in units of ``delta_std``
+    (buffers [D], saved with the weights; 0 and 1 until ``normalize_from`` sets them)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]):
+        super().__init__()
+        self.net = mlp(obs_dim + action_dim, hidden, obs_dim)
+        self.register_buffer("obs_mean", torch.zeros(obs_dim))
+        self.register_buffer("obs_std", torch.ones(obs_dim))
+        self.register_buffer("delta_std", torch.ones(obs_dim))
+
+    @torch.no_grad()
+    def normalize_from(self, obs: torch.Tensor, next_obs: torch.Tensor, min_std: float = 1e-6) -> None:
+        """Set ``obs_mean``, ``obs_std`` and ``delta_std`` from transitions obs, next_obs [B >= 2, D]."""
+        if obs.shape != next_obs.shape or obs.ndim != 2 or obs.shape[1] != self.obs_mean.numel() or obs.shape[0] < 2:
+            raise ValueError(f"obs and next_obs must both be [B >= 2, {self.obs_mean.numel()}], "
+                             f"got {tuple(obs.shape)} and {tuple(next_obs.shape)}")
+        self.obs_mean.copy_(obs.mean(0))
+        self.obs_std.copy_(obs.std(0).clamp_min(min_std))
+        self.delta_std.copy_((next_obs - obs).std(0).clamp_min(min_std))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([(obs - self.obs_mean) / self.obs_std, action], -1)
+        return obs + self.net(x) * self.delta_std

@@ -1,0 +1,313 @@
+"""A reinforcement-learning run (``run_rl``): an agent trained off-policy in a Gymnasium vector
+env of the true simulator, evaluated with its deterministic policy in a separate batched env,
+resumable across calls.
+
+    >>> r = run_rl(RLConfig(task="swimmer6", agent="svg1", out="runs/rl/svg1-s0", budget_seconds=540))
+    >>> r["stop"], r["env_steps"]          # "budget": call again (same folder) to go on
+
+Training goes in rounds: all ``num_envs`` envs start an episode together from initial states of
+a seed fixed by (seed, round) and run it to its time limit. A call stops only between rounds,
+so the envs (whose simulator state is not saved) restart exactly as an uninterrupted run would
+go on, and a resumed run equals an uninterrupted one bit for bit on the CPU.
+
+The folder holds ``config.json``, ``checkpoint.pt`` (agent, replay buffer, loop state, counters,
+random generators; written after each evaluation and at the end of a call), ``progress.csv`` (a
+row per round), ``records.jsonl`` (a ``ResultRecord`` per evaluation: experiment "rl", planner
+"policy") and ``tb/`` (TensorBoard, where it imports).
+"""
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
+from gnwarp.files import atomic_write
+from gnwarp.rl.config import CONFIG_FILE, RESUMABLE, RLConfig
+from gnwarp.rl.loop import CollectorState, run_env_steps
+from gnwarp.rl.replay import ReplayBuffer
+from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
+from gnwarp.validation import ConfigError
+
+__all__ = ["run_rl", "build_run", "evaluate_policy", "round_seed", "check_task"]
+
+_PIECE = 50   # vector steps between progress-bar updates
+
+
+def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
+    """The reset seed of training round ``k`` (or of every evaluation): env i gets it + i."""
+    return int(np.random.SeedSequence([int(seed), 2 if evaluation else 1, int(k)]).generate_state(1)[0])
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device", "cuda asked for, but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def _backend(cfg: RLConfig) -> str:
+    if cfg.backend != "auto":
+        return cfg.backend
+    return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
+
+
+def check_task(cfg: RLConfig):
+    """The task of ``cfg`` (``gnwarp.control.tasks.Task``), after checking that it has what the
+    run needs: the suite's observation (observation "dmc") and, for svg<N> N >= 1, an
+    ``ObservationReward``. ``ConfigError`` naming the key otherwise."""
+    from gnwarp.control.tasks import get_task
+    try:
+        task = get_task(cfg.task)
+    except (KeyError, ValueError) as e:
+        raise ConfigError("task", str(e).strip("'\"")) from None
+    if cfg.observation == "dmc":
+        from gnwarp.rl.observations import observation_domain
+        try:
+            observation_domain(task.name)
+        except ValueError as e:
+            raise ConfigError("observation", f"task {task.name!r} has no DMC observation ({e}); "
+                                             "use observation bodies (mlp networks, ddpg or svg0)") from None
+    if cfg.horizon >= 1:
+        from gnwarp.rl.obs_reward import ObservationReward
+        try:
+            ObservationReward(task.name)
+        except ValueError as e:
+            raise ConfigError("agent", f"{cfg.agent} needs the reward of predicted observations, which task "
+                                       f"{task.name!r} lacks ({e}); use svg0 or ddpg") from None
+    return task
+
+
+def build_run(cfg: RLConfig) -> dict:
+    """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
+    "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
+    ``cfg.seed``."""
+    from gnwarp.control.vector_env import make_vector_env
+    from gnwarp.rl.agents import make_agent
+    task = check_task(cfg)
+    device = _device(cfg.device)
+    settings = cfg.agent_config()
+    obs_fn = "bodies"
+    if cfg.observation == "dmc":
+        from gnwarp.rl.observations import DMCObservation
+        obs_fn = DMCObservation(task.name)
+    env_kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
+    eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
+    D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
+    torch.manual_seed(cfg.seed)
+    nets, model, reward = {}, None, None
+    gaussian = settings.kind == "svg"
+    if cfg.networks == "gn":
+        from gnwarp.rl.gn_nets import GNObservationModel, make_networks
+        from gnwarp.rl.obs_graph import ObservationGraph
+        og = ObservationGraph(obs_fn)
+        std = dict(init_std=settings.init_std) if gaussian else {}
+        policy, q = make_networks("gn", og, gaussian=gaussian, hidden=cfg.hidden or (64,), latent=cfg.latent,
+                                  blocks=cfg.blocks, impl=cfg.gn_impl, **std)
+        nets = dict(policy=policy, q=q)
+        if cfg.horizon >= 1:
+            model = GNObservationModel(og, cfg.latent, cfg.model_hidden or (64,), cfg.blocks, impl=cfg.gn_impl)
+    elif cfg.horizon >= 1:
+        from gnwarp.rl.networks import ObservationModel
+        model = ObservationModel(D, U, cfg.model_hidden or settings.hidden)
+    if cfg.horizon >= 1:
+        from gnwarp.rl.obs_reward import ObservationReward
+        reward_fn = ObservationReward(task.name)
+        model = model.to(device)
+
+        def reward(obs, action, next_obs):   # in the agent's dtype whatever the reward computes in
+            return reward_fn(obs, action, next_obs).to(obs.dtype)
+    agent = make_agent(settings, D, env.single_action_space.low, env.single_action_space.high, model=model,
+                       reward=reward, device=device, **nets)
+    buffer = ReplayBuffer(cfg.buffer_size, D, U, num_envs=cfg.num_envs, device=device)
+    generator = torch.Generator(device).manual_seed(cfg.seed)
+    return dict(task=task, env=env, eval_env=eval_env, agent=agent, buffer=buffer, generator=generator,
+                device=device, model=model)
+
+
+@torch.no_grad()
+def evaluate_policy(agent, env, seed: int) -> list[float]:
+    """One episode in each env of ``env`` (reset with ``seed``) with the agent's deterministic
+    policy; their returns."""
+    obs, _ = env.reset(seed=seed)
+    total = torch.zeros(env.num_envs, dtype=torch.float64)
+    for _ in range(env.episode_steps):
+        obs, reward, _, _, _ = env.step(agent.act(obs, deterministic=True))
+        total += torch.as_tensor(reward, dtype=torch.float64).cpu()
+    return total.tolist()
+
+
+def _rng_states() -> dict:
+    d = dict(torch=torch.get_rng_state(), numpy=np.random.get_state(), python=random.getstate())
+    if torch.cuda.is_available():
+        d["cuda"] = torch.cuda.get_rng_state_all()
+    return d
+
+
+def _set_rng_states(d: dict) -> None:
+    torch.set_rng_state(d["torch"])
+    np.random.set_state(d["numpy"])
+    random.setstate(d["python"])
+    if "cuda" in d and torch.cuda.is_available() and len(d["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(d["cuda"])
+
+
+def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
+    """Make ``cfg.out``; compare a saved config with ``cfg`` (only ``RESUMABLE`` keys may
+    differ) and save ``cfg``. Returns (folder, whether a checkpoint is there to resume)."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    resume = (out / CHECKPOINT).is_file()
+    saved = out / CONFIG_FILE
+    if resume and saved.is_file():
+        old = json.loads(saved.read_text())
+        new = json.loads(json.dumps(cfg.to_dict()))
+        diff = sorted(k for k in set(old) | set(new) if k not in RESUMABLE and k != "out" and old.get(k) != new.get(k))
+        if diff:
+            raise ConfigError(diff[0], f"differs from the run in {out} ({old.get(diff[0])!r} there, "
+                                       f"{new.get(diff[0])!r} here); only {', '.join(RESUMABLE)} may change "
+                                       "when resuming (or use another folder)")
+    with atomic_write(saved) as tmp:
+        Path(tmp).write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
+    return out, resume
+
+
+def _normalize_model(model, buffer: ReplayBuffer) -> bool:
+    """Set the model's normalization from the stored transitions (at least 2); whether it did."""
+    n = buffer.filled
+    if model is None or not hasattr(model, "normalize_from") or n * buffer.num_envs < 2:
+        return False
+    model.normalize_from(buffer.obs[:n].reshape(-1, buffer.obs_dim), buffer.next_obs[:n].reshape(-1, buffer.obs_dim))
+    return True
+
+
+def run_rl(cfg: RLConfig) -> dict:
+    """Train (or go on training) the run of ``cfg`` in ``cfg.out`` until ``cfg.env_steps``, the
+    ``chunk`` or the ``budget_seconds``. Returns {"stop": "done" | "chunk" | "budget",
+    "env_steps", "updates", "rounds", "seconds" (this call), "records" (path), "last_eval"
+    (the last evaluation's returns or None)}."""
+    from tqdm.auto import tqdm
+    started = time.perf_counter()
+    check_task(cfg)
+    out, resume = _prepare_folder(cfg)
+    parts = build_run(cfg)
+    env, eval_env, agent, buffer, gen = (parts[k] for k in ("env", "eval_env", "agent", "buffer", "generator"))
+    task, model = parts["task"], parts["model"]
+    E, T = cfg.num_envs, env.episode_steps
+    per_round = E * T
+    total_rounds = math.ceil(cfg.env_steps / per_round)
+    state = CollectorState(None, E)
+    c = dict(round=0, episodes=0, seconds=0.0, last_eval=None, normalized=False)
+    keep_until = None
+    if resume:
+        ck = load_checkpoint(out / CHECKPOINT)
+        agent.load_state_dict(ck["agent"])
+        buffer.load_state_dict(ck["buffer"])
+        gen.set_state(ck["generator"])
+        state = CollectorState.from_state_dict(ck["collector"], parts["device"])
+        c = ck["counters"]
+        _set_rng_states(ck["rng"])
+        keep_until = agent.env_steps
+    records_path = out / RECORDS_FILE
+    cut_records(records_path, keep_until)
+    log = RunLog(out, keep_until, cfg.tensorboard)
+    meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
+    dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
+
+    def checkpoint():
+        save_checkpoint(out / CHECKPOINT, dict(
+            agent=agent.state_dict(), buffer=buffer.state_dict(), generator=gen.get_state(),
+            collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
+            env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
+
+    def evaluate():
+        returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True))
+        c["last_eval"] = agent.env_steps
+        rec = ResultRecord(
+            experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
+            variant=f"{cfg.agent}/{cfg.preset}/{cfg.networks}", system=env.system.name, seed=cfg.seed,
+            episodes=len(returns), episode_steps=eval_env.episode_steps, control_dt=float(env.dt),
+            returns=returns, env_steps=agent.env_steps,
+            metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
+            config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
+                        num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes,
+                        agent_settings=agent.settings.to_dict()),
+            date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
+        write_records(records_path, [rec])
+        return returns
+
+    last_eval = None
+    if c["last_eval"] is None:
+        last_eval = evaluate()
+        checkpoint()
+    bar = tqdm(total=total_rounds * per_round, initial=min(agent.env_steps, total_rounds * per_round), unit="step",
+               unit_scale=True, desc=f"{cfg.agent} {task.name}", disable=not cfg.progress, dynamic_ncols=True)
+    rounds_cap = math.ceil(cfg.chunk / per_round) if cfg.chunk else None
+    done_here, last_round_s, stop = 0, 0.0, "done"
+    try:
+        while c["round"] < total_rounds:
+            elapsed = time.perf_counter() - started
+            if rounds_cap is not None and done_here >= rounds_cap:
+                stop = "chunk"
+                break
+            if cfg.budget_seconds is not None and done_here and elapsed + last_round_s > cfg.budget_seconds:
+                stop = "budget"
+                break
+            t0 = time.perf_counter()
+            state.obs, _ = env.reset(seed=round_seed(cfg.seed, c["round"]))
+            state.episode_return[:] = 0.0
+            left, returns, metrics = T, [], {}
+            while left > 0:
+                piece = min(left, _PIECE)
+                s = agent.settings
+                if model is not None and not c["normalized"] and agent.env_steps < s.update_after:
+                    # the model's normalization from the data before its first update
+                    before = math.ceil((s.update_after - agent.env_steps) / E) - 1
+                    if before < piece:
+                        if before > 0:
+                            returns += run_env_steps(agent, env, buffer, state, before, gen)["returns"]
+                            left -= before
+                            bar.update(before * E)
+                        _normalize_model(model, buffer)
+                        c["normalized"] = True   # once, before the first update
+                        continue
+                r = run_env_steps(agent, env, buffer, state, piece, gen)
+                returns += r["returns"]
+                metrics = r["metrics"] or metrics
+                left -= piece
+                bar.update(piece * E)
+            c["round"] += 1
+            c["episodes"] += len(returns)
+            last_round_s = time.perf_counter() - t0
+            c["seconds"] += last_round_s
+            done_here += 1
+            row = dict(env_steps=agent.env_steps, round=c["round"], updates=agent.updates, episodes=c["episodes"],
+                       seconds=c["seconds"], train_return=float(np.mean(returns)) if returns else None, **metrics)
+            evaluating = (agent.env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every
+                          or c["round"] == total_rounds)
+            if evaluating:
+                last_eval = evaluate()
+                row.update(eval_median=float(np.median(last_eval)), eval_mean=float(np.mean(last_eval)))
+            log.add(row)
+            bar.set_postfix(ret=f"{row['train_return'] or 0:.1f}",
+                            eval=f"{np.median(last_eval):.1f}" if last_eval else "-", refresh=False)
+            if evaluating:
+                checkpoint()
+        if c["round"] >= total_rounds:
+            stop = "done"
+        checkpoint()
+    finally:
+        bar.close()
+        log.close()
+        env.close()
+        eval_env.close()
+    return dict(stop=stop, env_steps=agent.env_steps, updates=agent.updates, rounds=c["round"],
+                seconds=time.perf_counter() - started, records=str(records_path), last_eval=last_eval)

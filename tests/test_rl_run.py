@@ -1,0 +1,162 @@
+"""The reinforcement-learning run (gnwarp.rl.run, ``gnwarp rl``): its files, exact resume across
+calls, refused settings, the command line."""
+import csv
+import json
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from gnwarp.eval.records import read_records
+from gnwarp.rl.config import RLConfig
+from gnwarp.rl.run import run_rl
+from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE
+from gnwarp.validation import ConfigError
+
+warnings.filterwarnings("ignore", message=".*glfw.*")
+
+TINY = dict(task="pendulum-balance", agent="svg0", observation="bodies", num_envs=2, episode_steps=10, env_steps=100,
+            hidden=(16,), buffer_size=1000, batch_size=8, start_steps=20, update_after=20, eval_every=40, eval_episodes=3,
+            progress=False, device="cpu", backend="mujoco", tensorboard=False)
+
+
+def _tensors_equal(a, b, where=""):
+    if isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), where
+    elif isinstance(a, np.ndarray):
+        assert np.array_equal(a, b), where
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _tensors_equal(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _tensors_equal(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, where
+
+
+def _eval_returns(folder):
+    return [(r.env_steps, r.returns) for r in read_records(folder / RECORDS_FILE)]
+
+
+def test_tiny_run_writes_checkpoint_records_and_log(tmp_path):
+    r = run_rl(RLConfig(**TINY, out=str(tmp_path / "a")))
+    assert r["stop"] == "done" and r["env_steps"] == 100 and r["rounds"] == 5
+    assert r["updates"] == 100 - 20 + 2    # one update per env step from the step reaching update_after
+    out = tmp_path / "a"
+    assert (out / CHECKPOINT).is_file() and (out / "config.json").is_file()
+    recs = read_records(out / RECORDS_FILE)
+    # before training, at the first episode end past each multiple of eval_every, at the end
+    assert [x.env_steps for x in recs] == [0, 40, 80, 100]
+    assert all(x.experiment == "rl" and x.planner == "policy" and x.episodes == 3 and x.episode_steps == 10
+               and x.config["agent"] == "svg0" and x.config["networks"] == "mlp" for x in recs)
+    rows = list(csv.DictReader(open(out / LOG_FILE)))
+    assert [int(x["env_steps"]) for x in rows] == [20, 40, 60, 80, 100]
+    assert rows[-1]["eval_median"] and not rows[0]["eval_median"] and float(rows[-1]["q_loss"]) >= 0
+
+
+def test_resume_equals_uninterrupted_bit_for_bit(tmp_path):
+    cfg = dict(TINY, agent="ddpg", env_steps=80)
+    run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
+    first = run_rl(RLConfig(**cfg, out=str(tmp_path / "parts"), chunk=25))   # rounds to 2 whole rounds
+    assert first["stop"] == "chunk" and first["env_steps"] == 40
+    second = run_rl(RLConfig(**cfg, out=str(tmp_path / "parts")))
+    assert second["stop"] == "done" and second["env_steps"] == 80
+    a = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=False)
+    b = torch.load(tmp_path / "parts" / CHECKPOINT, weights_only=False)
+    for key in ("agent", "buffer", "generator", "rng", "collector"):
+        _tensors_equal(a[key], b[key], key)
+    assert _eval_returns(tmp_path / "whole") == _eval_returns(tmp_path / "parts")
+    rows = [list(csv.DictReader(open(tmp_path / f / LOG_FILE))) for f in ("whole", "parts")]
+    assert [r["q_loss"] for r in rows[0]] == [r["q_loss"] for r in rows[1]]
+
+
+def test_killed_run_drops_rows_past_its_checkpoint(tmp_path):
+    out = tmp_path / "k"
+    run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(out)))
+    saved = (out / CHECKPOINT).read_bytes()
+    run_rl(RLConfig(**{**TINY, "env_steps": 80}, out=str(out)))
+    (out / CHECKPOINT).write_bytes(saved)          # as if killed after the rows of 60 and 80 steps
+    run_rl(RLConfig(**{**TINY, "env_steps": 80}, out=str(out)))
+    assert [x.env_steps for x in read_records(out / RECORDS_FILE)] == [0, 40, 80]
+    assert [int(x["env_steps"]) for x in csv.DictReader(open(out / LOG_FILE))] == [20, 40, 60, 80]
+
+
+def test_svg1_gn_on_swimmer6(tmp_path):
+    pytest.importorskip("dm_control")
+    cfg = RLConfig(task="swimmer6", agent="svg1", networks="gn", gn_impl="torch", num_envs=2, episode_steps=6,
+                   env_steps=12, latent=8, hidden=(8,), model_hidden=(8,), blocks=1, batch_size=4, start_steps=6,
+                   update_after=8, buffer_size=100, eval_every=12, eval_episodes=2, progress=False, device="cpu", backend="mujoco",
+                   tensorboard=False, out=str(tmp_path / "s"))
+    r = run_rl(cfg)
+    assert r["env_steps"] == 12 and r["updates"] == 12 - 8 + 2
+    ck = torch.load(tmp_path / "s" / CHECKPOINT, weights_only=False)
+    model = ck["agent"]["model"]
+    assert float(model["delta_std"].min()) > 0 and not torch.all(model["obs_std"] == 1)   # normalized from data
+    recs = read_records(tmp_path / "s" / RECORDS_FILE)
+    assert recs[-1].task == "dmc-swimmer-swimmer6" and recs[-1].config["networks"] == "gn"
+
+
+@pytest.mark.parametrize("kw, key, words", [
+    (dict(agent="td3"), "agent", "unknown agent"),
+    (dict(agent="svg6"), "agent", "svg0 .. svg5"),
+    (dict(agent="svg-1"), "agent", "N = -1"),
+    (dict(eval_episodes=0), "eval_episodes", ""),
+    (dict(networks="gn"), "networks", "observation"),
+    (dict(agent="svg1"), "observation", "ObservationReward"),
+    (dict(agent_settings={"gama": 0.9}), "agent_settings", "gama"),
+    (dict(agent_settings={"seed": 3}), "agent_settings.seed", ""),
+])
+def test_bad_settings_refused(kw, key, words):
+    with pytest.raises(ConfigError) as e:
+        RLConfig(**{**TINY, **kw})
+    assert e.value.path == key and words in str(e.value)
+
+
+def test_svgn_on_a_task_without_observation_reward_refused(tmp_path):
+    cfg = RLConfig(**{**TINY, "agent": "svg1", "observation": "dmc"}, out=str(tmp_path / "x"))
+    with pytest.raises(ConfigError, match="observation"):
+        run_rl(cfg)
+    assert not (tmp_path / "x").exists()
+
+
+def test_resume_with_other_settings_refused(tmp_path):
+    run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(tmp_path / "r")))
+    with pytest.raises(ConfigError, match="batch_size"):
+        run_rl(RLConfig(**{**TINY, "batch_size": 16}, out=str(tmp_path / "r")))
+
+
+def test_cli_runs_and_resumes(tmp_path, capsys):
+    from gnwarp.cli import main
+    out = str(tmp_path / "cli")
+    argv = ["rl", "--task", "pendulum-balance", "--agent", "svg0", "--observation", "bodies", "--num-envs", "2",
+            "--episode-steps", "10", "--env-steps", "60", "--hidden", "16", "--batch-size", "8", "--start-steps",
+            "20", "--update-after", "20", "--eval-every", "40", "--eval-episodes", "2", "--device", "cpu",
+            "--backend", "mujoco", "--chunk", "20", "--no-tensorboard", "--buffer-size", "1000", "-q", "-o", out, "--set", "agent_settings.gamma=0.9"]
+    assert main(argv) == 0
+    assert "run again" in capsys.readouterr().out
+    assert main(["rl", "-o", out, "-q"]) == 0                  # the folder's config, to its end
+    recs = read_records(tmp_path / "cli" / RECORDS_FILE)
+    assert recs[-1].env_steps == 60 and recs[-1].config["agent_settings"]["gamma"] == 0.9
+    assert json.loads((tmp_path / "cli" / "config.json").read_text())["chunk"] is None
+    assert main(["rl", "-o", out, "--agent", "td3"]) == 2
+    assert "unknown agent" in capsys.readouterr().err
+
+
+def test_svg1_resume_equals_uninterrupted(tmp_path):
+    pytest.importorskip("dm_control")
+    # the first chunk ends before update_after: the model is normalized after the resume
+    cfg = dict(task="swimmer6", agent="svg1", num_envs=2, episode_steps=4, env_steps=24, hidden=(8,),
+               model_hidden=(8,), batch_size=4, start_steps=4, update_after=12, buffer_size=100, eval_every=8,
+               eval_episodes=2, progress=False, device="cpu", backend="mujoco", tensorboard=False)
+    run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
+    assert run_rl(RLConfig(**cfg, out=str(tmp_path / "parts"), chunk=8))["stop"] == "chunk"
+    run_rl(RLConfig(**cfg, out=str(tmp_path / "parts")))
+    a, b = (torch.load(tmp_path / f / CHECKPOINT, weights_only=False) for f in ("whole", "parts"))
+    assert a["agent"]["updates"] == 24 - 12 + 2
+    _tensors_equal(a["agent"], b["agent"], "agent")
+    assert not torch.all(a["agent"]["model"]["obs_std"] == 1)
+    assert _eval_returns(tmp_path / "whole") == _eval_returns(tmp_path / "parts")
