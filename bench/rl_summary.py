@@ -1,0 +1,145 @@
+"""``bench/results/rl/summary.json`` and learning-curve plots, generated from the RL records.
+
+Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp rl`` writes
+``records.jsonl`` in its run folder: copy or concatenate those under ``bench/results/rl/``) and
+writes a list of rows, one per (task, agent, preset, networks, env_steps)::
+
+    {"task", "agent", "preset", "networks", "env_steps", "seeds", "eval_episodes", "median",
+     "q25", "q75", "mean", "se"}
+
+Each seed counts once per point: its evaluation's mean return (over its deterministic episodes;
+a rerun of a seed at the same env steps: the last record stands). ``median``, ``q25``, ``q75``:
+of those seed means (linear interpolation); ``mean`` and its standard error ``se`` (sample
+standard deviation / sqrt(seeds); null for one seed). ``eval_episodes``: the fewest episodes
+of any seed at that point.
+
+Plots (``learning_curves_<task>.png``): per task, each (agent, preset, networks) against env
+steps: the median with its 25-75% band (left) and the mean with +- one standard error (right).
+
+    PYTHONPATH=. python3 bench/rl_summary.py              # rewrite summary.json and the plots
+    PYTHONPATH=. python3 bench/rl_summary.py --check      # exit 1 where summary.json differs
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from gnwarp.eval.records import RecordError, read_records  # noqa: E402
+from gnwarp.files import atomic_write  # noqa: E402
+
+__all__ = ["RL", "rows", "point", "plot_curves", "main"]
+
+RL = Path("bench") / "results" / "rl"
+
+
+def point(seed_means: list[float]) -> dict:
+    """{"median", "q25", "q75", "mean", "se"} of per-seed mean returns (se None for one seed)."""
+    v = np.asarray(seed_means, dtype=np.float64)
+    if v.size == 0 or not np.isfinite(v).all():
+        raise ValueError(f"a learning-curve point needs finite per-seed returns, got {v.tolist()}")
+    q25, med, q75 = np.percentile(v, [25, 50, 75])
+    se = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else None
+    return dict(median=float(med), q25=float(q25), q75=float(q75), mean=float(v.mean()), se=se)
+
+
+def _group(rec) -> tuple:
+    c = rec.config
+    agent, preset, networks = (rec.variant.split("/") + ["", "", ""])[:3]
+    return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"))
+
+
+def rows(root: Path = ROOT) -> list[dict]:
+    """The summary's rows from every records file under ``bench/results/rl`` of ``root``
+    (records of experiment "rl" only), sorted by task, agent, preset, networks, env steps."""
+    by: dict[tuple, dict] = {}
+    for path in sorted((root / RL).rglob("*.jsonl")):
+        try:
+            recs = read_records(path)
+        except RecordError:
+            continue   # a benchmark's own rows (timings), not results records
+        for r in recs:
+            if r.experiment != "rl" or r.returns is None or r.env_steps is None:
+                continue
+            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = r
+    out = []
+    for key in sorted(by):
+        seeds = by[key]
+        means = [float(np.nanmean(r.values)) for r in seeds.values()]
+        task, agent, preset, networks, steps = key
+        out.append(dict(task=task, agent=agent, preset=preset, networks=networks, env_steps=steps,
+                        seeds=len(seeds), eval_episodes=min(r.episodes for r in seeds.values()), **point(means)))
+    return out
+
+
+def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
+    """A learning-curve figure per task in ``folder``; the paths written."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    written = []
+    for task in sorted({r["task"] for r in summary}):
+        fig, (ax_med, ax_mean) = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        runs = sorted({(r["agent"], r["preset"], r["networks"]) for r in summary if r["task"] == task})
+        for run in runs:
+            pts = sorted((r for r in summary if r["task"] == task and (r["agent"], r["preset"], r["networks"]) == run),
+                         key=lambda r: r["env_steps"])
+            x = np.array([p["env_steps"] for p in pts], dtype=float)
+            label = f"{run[0]} ({run[1]}, {run[2]}; {max(p['seeds'] for p in pts)} seeds)"
+            line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
+            ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)
+            mean = np.array([p["mean"] for p in pts])
+            se = np.array([p["se"] if p["se"] is not None else 0.0 for p in pts])
+            ax_mean.plot(x, mean, color=line.get_color(), label=label)
+            ax_mean.fill_between(x, mean - se, mean + se, color=line.get_color(), alpha=0.2)
+        ax_med.set_title(f"{task}: median, 25-75% over seeds")
+        ax_mean.set_title(f"{task}: mean +- standard error over seeds")
+        for ax in (ax_med, ax_mean):
+            ax.set_xlabel("environment steps")
+            ax.grid(alpha=0.3)
+        ax_med.set_ylabel("evaluation return")
+        ax_med.legend(fontsize=8)
+        fig.tight_layout()
+        path = folder / f"learning_curves_{task}.png"
+        with atomic_write(path) as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--check", action="store_true", help="exit 1 where summary.json differs from the records")
+    ap.add_argument("--no-plot", action="store_true", help="summary.json only")
+    ap.add_argument("--root", default=str(ROOT), help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    root = Path(a.root)
+    summary = rows(root)
+    text = json.dumps(summary, indent=1, allow_nan=False) + "\n"
+    path = root / RL / "summary.json"
+    if a.check:
+        if not path.exists() or path.read_text() != text:
+            print(f"{path} differs from its records: run python3 bench/rl_summary.py", file=sys.stderr)
+            return 1
+        return 0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(text)
+    print(f"wrote {path}")
+    if not a.no_plot and summary:
+        for p in plot_curves(summary, path.parent):
+            print(f"wrote {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

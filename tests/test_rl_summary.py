@@ -1,0 +1,60 @@
+"""bench/rl_summary.py: summary.json rows and learning-curve plots from synthetic RL records."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench import rl_summary as rs  # noqa: E402
+from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
+
+
+def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl"):
+    return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
+                        dynamics="true_mjwarp", variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
+                        episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
+                        config=dict(agent=agent, preset=preset, networks=networks))
+
+
+def test_point_statistics_against_numpy():
+    v = [100.0, 300.0, 200.0, 400.0]
+    p = rs.point(v)
+    assert p["median"] == 250.0 and p["q25"] == 175.0 and p["q75"] == 325.0 and p["mean"] == 250.0
+    assert p["se"] == pytest.approx(np.std(v, ddof=1) / 2)
+    assert rs.point([5.0])["se"] is None
+    with pytest.raises(ValueError, match="finite"):
+        rs.point([])
+
+
+def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
+    folder = tmp_path / rs.RL
+    (folder / "svg1-s0").mkdir(parents=True)
+    (folder / "svg1-s1").mkdir()
+    write_records(folder / "svg1-s0" / "records.jsonl", [
+        _rec("svg1", 0, 0, [1.0, 3.0]), _rec("svg1", 0, 1000, [10.0, 30.0]), _rec("svg1", 0, 1000, [40.0, 60.0])])
+    write_records(folder / "svg1-s1" / "records.jsonl", [
+        _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0]),
+        _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control")])
+    (folder / "rl_agents_gpu.jsonl").write_text(json.dumps({"agent": "ddpg", "updates_per_s": 200}) + "\n")
+    assert rs.main(["--root", str(tmp_path)]) == 0
+    summary = json.loads((folder / "summary.json").read_text())
+    keys = {"task", "agent", "preset", "networks", "env_steps", "seeds", "eval_episodes", "median", "q25", "q75",
+            "mean", "se"}
+    assert all(set(r) == keys for r in summary)
+    got = {(r["agent"], r["env_steps"]): r for r in summary}
+    assert set(got) == {("ddpg", 1000), ("svg1", 0), ("svg1", 1000)}
+    late = got[("svg1", 1000)]   # seed 0's rerun (mean 50) stands; seed 1's mean 80; the control record is skipped
+    assert late["seeds"] == 2 and late["eval_episodes"] == 2
+    assert late["mean"] == 65.0 and late["median"] == 65.0 and late["se"] == pytest.approx(15.0)
+    assert got[("svg1", 0)]["eval_episodes"] == 2 and got[("svg1", 0)]["mean"] == 4.5
+    assert got[("ddpg", 1000)]["se"] is None
+    assert (folder / "learning_curves_dmc-swimmer-swimmer6.png").stat().st_size > 1000
+    assert rs.main(["--root", str(tmp_path), "--check"]) == 0
+    write_records(folder / "svg1-s1" / "records.jsonl", [_rec("svg1", 2, 1000, [0.0, 0.0])])
+    assert rs.main(["--root", str(tmp_path), "--check"]) == 1
