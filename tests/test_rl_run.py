@@ -85,6 +85,11 @@ def test_killed_run_drops_rows_past_its_checkpoint(tmp_path):
     assert [int(x["env_steps"]) for x in csv.DictReader(open(out / LOG_FILE))] == [20, 40, 60, 80]
 
 
+def test_budget_stops_at_a_round_end(tmp_path):
+    r = run_rl(RLConfig(**TINY, out=str(tmp_path / "b"), budget_seconds=1e-3))
+    assert r["stop"] == "budget" and r["env_steps"] == 20 and r["rounds"] == 1
+
+
 def test_svg1_gn_on_swimmer6(tmp_path):
     pytest.importorskip("dm_control")
     cfg = RLConfig(task="swimmer6", agent="svg1", networks="gn", gn_impl="torch", num_envs=2, episode_steps=6,

@@ -286,11 +286,11 @@ def run_rl(cfg: RLConfig) -> dict:
                 bar.update(piece * E)
             c["round"] += 1
             c["episodes"] += len(returns)
-            last_round_s = time.perf_counter() - t0
-            c["seconds"] += last_round_s
+            train_s = time.perf_counter() - t0
+            c["seconds"] += train_s
             done_here += 1
             row = dict(env_steps=agent.env_steps, round=c["round"], updates=agent.updates, episodes=c["episodes"],
-                       seconds=c["seconds"], train_return=float(np.mean(returns)) if returns else None, **metrics)
+                       seconds=c["seconds"], round_seconds=train_s, train_return=float(np.mean(returns)) if returns else None, **metrics)
             evaluating = (agent.env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every
                           or c["round"] == total_rounds)
             if evaluating:
@@ -301,6 +301,7 @@ def run_rl(cfg: RLConfig) -> dict:
                             eval=f"{np.median(last_eval):.1f}" if last_eval else "-", refresh=False)
             if evaluating:
                 checkpoint()
+            last_round_s = time.perf_counter() - t0   # with its evaluation and checkpoint: the budget's unit
         if c["round"] >= total_rounds:
             stop = "done"
         checkpoint()

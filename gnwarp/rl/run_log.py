@@ -16,7 +16,7 @@ __all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "LOG_COLUMNS", "save_checkp
            "RunLog", "cut_records"]
 
 CHECKPOINT, LOG_FILE, RECORDS_FILE = "checkpoint.pt", "progress.csv", "records.jsonl"
-LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "train_return", "eval_median", "eval_mean",
+LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_seconds", "train_return", "eval_median", "eval_mean",
                "q_loss", "policy_loss", "model_loss")
 
 
