@@ -15,7 +15,7 @@ from gnwarp.validation import (ConfigError, Count, Flag, PositiveFloat, Positive
 
 __all__ = ["RLConfig", "RESUMABLE", "MAX_RL_HORIZON", "CONFIG_FILE"]
 
-MAX_RL_HORIZON = 5     # SVG(N) runs accept N <= this (the paper's SVG(5+) was no better)
+MAX_RL_HORIZON = 5     # SVG(N) runs accept N <= this (the paper's SVG(5+) did no better)
 CONFIG_FILE = "config.json"
 # keys a resumed run may change; the others must equal the folder's config.json
 RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard")

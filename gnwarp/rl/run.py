@@ -103,7 +103,7 @@ def build_run(cfg: RLConfig) -> dict:
     eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
     torch.manual_seed(cfg.seed)
-    nets, model, reward = {}, None, None
+    nets, model, reward_fn = {}, None, None
     gaussian = settings.kind == "svg"
     if cfg.networks == "gn":
         from gnwarp.rl.gn_nets import GNObservationModel, make_networks
@@ -123,10 +123,10 @@ def build_run(cfg: RLConfig) -> dict:
         reward_fn = ObservationReward(task.name)
         model = model.to(device)
 
-        def reward(obs, action, next_obs):   # in the agent's dtype whatever the reward computes in
-            return reward_fn(obs, action, next_obs).to(obs.dtype)
+    def reward(obs, action, next_obs):   # in the agent's dtype whatever the reward computes in
+        return reward_fn(obs, action, next_obs).to(obs.dtype)
     agent = make_agent(settings, D, env.single_action_space.low, env.single_action_space.high, model=model,
-                       reward=reward, device=device, **nets)
+                       reward=reward if reward_fn is not None else None, device=device, **nets)
     buffer = ReplayBuffer(cfg.buffer_size, D, U, num_envs=cfg.num_envs, device=device)
     generator = torch.Generator(device).manual_seed(cfg.seed)
     return dict(task=task, env=env, eval_env=eval_env, agent=agent, buffer=buffer, generator=generator,

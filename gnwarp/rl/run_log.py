@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from gnwarp.eval.records import ResultRecord, read_records, write_records
+from gnwarp.eval.records import read_records, write_records
 from gnwarp.files import atomic_write
 
 __all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "LOG_COLUMNS", "save_checkpoint", "load_checkpoint",
@@ -67,10 +67,10 @@ class RunLog:
     def add(self, row: dict) -> None:
         """Append one row (missing columns blank); floats rounded to 6 significant digits."""
         row = {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if v is not None}
-        new = not self.path.is_file()
+        fresh = not self.path.is_file()
         with open(self.path, "a", newline="") as f:
             w = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
-            if new:
+            if fresh:
                 w.writeheader()
             w.writerow(row)
         if self.writer is not None:
