@@ -165,3 +165,16 @@ def test_svg1_resume_equals_uninterrupted(tmp_path):
     _tensors_equal(a["agent"], b["agent"], "agent")
     assert not torch.all(a["agent"]["model"]["obs_std"] == 1)
     assert _eval_returns(tmp_path / "whole") == _eval_returns(tmp_path / "parts")
+
+
+def test_rl_help_loads_no_heavy_module():
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    code = ("import contextlib, io, sys\nfrom gnwarp.cli import main\nwith contextlib.redirect_stdout(io.StringIO()):\n"
+            "    try:\n        main(['rl', '--help'])\n    except SystemExit:\n        pass\n"
+            "print(' '.join(m for m in ('torch', 'warp', 'mujoco') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0 and out.stdout.strip() == "", out.stderr
