@@ -58,3 +58,11 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     assert rs.main(["--root", str(tmp_path), "--check"]) == 0
     write_records(folder / "svg1-s1" / "records.jsonl", [_rec("svg1", 2, 1000, [0.0, 0.0])])
     assert rs.main(["--root", str(tmp_path), "--check"]) == 1
+
+
+def test_seed_lists_of_the_side_by_side_runner():
+    from bench import rl_seeds
+    assert rl_seeds.seeds_of("0-5") == [0, 1, 2, 3, 4, 5] and rl_seeds.seeds_of("0,2,7") == [0, 2, 7]
+    for bad in ("", "1,1", "-1"):
+        with pytest.raises(ValueError, match="seeds"):
+            rl_seeds.seeds_of(bad)
