@@ -85,9 +85,18 @@ def test_step_is_optimize_then_act(model):
             assert torch.equal(u, b.act(state, 0)), name
             assert torch.equal(b.act(state, 0), b.act(state, 0)), name   # acting costs no planning
             env.step(u)
-        with pytest.raises((RuntimeError, ValueError), match="optimize"):
+        with pytest.raises(PlanningError, match="optimize"):   # one error type for every planner
             b.reset(N)
             b.act(state, 0)
+        b.optimize(state)
+        for bad in (-1, 1.5, True):
+            with pytest.raises(PlanningError, match="time must be an integer >= 0"):
+                b.act(state, bad)
+
+
+def test_planning_error_stays_importable_from_gradient():
+    from gnwarp.control import gradient, plans
+    assert gradient.PlanningError is plans.PlanningError is PlanningError
 
 
 def test_act_reads_the_plan_at_a_later_time(model):

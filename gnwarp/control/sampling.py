@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gnwarp.control.plans import ActsOnPlan
 from gnwarp.control.returns import check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
@@ -199,7 +200,7 @@ def ensemble_dynamics(models, n_episodes: int, samples: int, horizon: int, penal
 
 # -- planners ---------------------------------------------------------------------------------
 
-class SamplingPlanner:
+class SamplingPlanner(ActsOnPlan):
     """Predictive sampling / MPPI over ``n_episodes`` episodes at once (a ``Planner``).
 
     ``dynamics``: a ``RolloutDynamics`` (``EnvDynamics``, ``ModelDynamics``); ``reward``: a
@@ -318,17 +319,9 @@ class SamplingPlanner:
         self.plan = self.actions(chosen)
         self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
 
-    def act(self, obs, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from."""
-        return _plan_action(self.plan, time)
-
-    def step(self, obs) -> torch.Tensor:
-        """``optimize(obs)`` then ``act(obs, 0)``: the first actions [N, U]."""
-        self.optimize(obs)
-        return self.act(obs, 0)
 
 
-class RandomPlanner:
+class RandomPlanner(ActsOnPlan):
     """The random-actions baseline (a ``Planner``): uniform in ``ctrlrange`` [U, 2], independent
     each step: ``optimize`` draws them, ``act`` returns them. ``seed``: ``RandomSettings.seed``.
 
@@ -365,14 +358,6 @@ class RandomPlanner:
         u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
         self.plan = (self.lo + u * (self.hi - self.lo))[:, None]
 
-    def act(self, obs, time: int = 0) -> torch.Tensor:
-        """The actions [N, U] the last ``optimize`` drew (``time`` does not matter)."""
-        return _plan_action(self.plan, 0)
-
-    def step(self, obs) -> torch.Tensor:
-        """``optimize(obs)`` then ``act(obs, 0)``: fresh random actions [N, U]."""
-        self.optimize(obs)
-        return self.act(obs, 0)
 
 
 def _episodes(n) -> int:
@@ -386,12 +371,3 @@ def _targets(targets, n: int, device) -> torch.Tensor:
     if t.shape[:1] != (n,):
         raise ValueError(f"targets must have one entry per episode ({n}), got shape {tuple(t.shape)}")
     return t
-
-
-def _plan_action(plan: torch.Tensor | None, time) -> torch.Tensor:
-    """plan [N, T, U] at data step ``time`` (clamped to the last): [N, U]; an error before any plan."""
-    if plan is None:
-        raise RuntimeError("no plan to act on: call optimize(state) (or step) first")
-    if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
-        raise ValueError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
-    return plan[:, min(int(time), plan.shape[1] - 1)]
