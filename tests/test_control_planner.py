@@ -231,3 +231,29 @@ def test_make_planner_builds_what_the_classes_build(pendulum, model):
         make_planner("gradient", true_dynamics("pendulum", N, 4, backend="mujoco"), "pendulum-balance", "pendulum", N)
     with pytest.raises(ValueError, match="'ilqg' .* is not built through a dynamics model"):
         make_planner("ilqg", model, "pendulum-balance", "pendulum", N)
+
+
+def test_every_planner_defaults_to_the_tasks_horizon():
+    """Sampling, like gradient and hybrid, plans the task's horizon unless given one (cartpole
+    balance: 100 steps), on a learned model too; an explicit horizon stays; a reward callable,
+    which has no horizon, needs one."""
+    from gnwarp.control.planner import make_planner
+    from gnwarp.control.tasks import get_task
+    cart = data.generate("cartpole", (2, 1, 1), num_steps=4, seed=0, backend="mujoco", progress=False)
+    torch.manual_seed(0)
+    net = ForwardModel(ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="torch")), cart.layout)
+    task = get_task("cartpole-balance")
+    assert SamplingConfig().horizon is None
+    for name, settings in (("sampling", {"samples": 2}), ("hybrid", {"samples": 2, "elites": 1}),
+                           ("gradient", {})):
+        p = make_planner(name, net, task.name, "cartpole", 1, settings)
+        assert p.horizon == task.horizon == 100, name
+    s = make_planner("mppi", net, task.name, "cartpole", 1, {"samples": 2, "horizon": 7})
+    assert s.horizon == s.settings.horizon == 7
+    env = make_env("cartpole", 1, backend="mujoco")
+    with pytest.raises(ConfigError, match="horizon: None means the task's horizon"):
+        SamplingPlanner(true_dynamics("cartpole", 1, 2, backend="mujoco"), lambda s, a: s.sum((1, 2, 3)),
+                        env.ctrlrange, 1, SamplingConfig(samples=2))
+    with pytest.raises(ConfigError, match="knots: must not exceed the horizon"):
+        SamplingPlanner(true_dynamics("cartpole", 1, 2, backend="mujoco"), "cartpole-balance", env.ctrlrange, 1,
+                        SamplingConfig(samples=2, knots=101))

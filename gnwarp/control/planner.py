@@ -152,6 +152,7 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
     an env's ``ctrlrange``)."""
     from gnwarp.control.plans import PlanningError
     from gnwarp.control.sampling import model_dynamics
+    from gnwarp.control.tasks import get_task
     from gnwarp.dynamics import Dynamics
     from gnwarp.sim.systems import System, make
     entry = get_planner(name)
@@ -168,6 +169,7 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
         return entry.cls(dynamics, task, system, n, settings, targets, terminal)
     if entry.cls is SamplingPlanner:
         sys_ = one_system()
+        settings = settings.for_task(get_task(task))
         dyn = model_dynamics(dynamics.bind(sys_), n, settings.samples, settings.horizon) if learned else dynamics
         cr = ctrlrange if ctrlrange is not None else sys_.actuators.sample_range()
         return SamplingPlanner(dyn, task, cr, n, settings, targets, terminal)

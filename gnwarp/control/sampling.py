@@ -17,7 +17,7 @@ planner in closed loop.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Literal
 
 import numpy as np
@@ -42,7 +42,7 @@ METHODS = ("best", "mppi")
 
 @dataclass
 class SamplingConfig:
-    """horizon: data steps planned ahead (T); samples: candidates per episode (K, the nominal
+    """horizon: data steps planned ahead (T; None: the task's, as the other planners); samples: candidates per episode (K, the nominal
     included); knots: spline knots P over the horizon (``interpolation`` "zero": piecewise
     constant, P spans; "linear" / "cubic": P points from the first step to the last);
     noise: standard deviation of the knot noise, relative to half of each actuator's range;
@@ -50,7 +50,7 @@ class SamplingConfig:
     episode's reward spread)); seed: of the noise; discount: per-step weight of the scored return
     (``gnwarp.control.returns.planned_return``; 1: the reward as is; a ``terminal`` value is
     weighted discount^horizon)."""
-    horizon: PositiveInt = 20
+    horizon: PositiveInt | None = None
     samples: PositiveInt = 64
     knots: PositiveInt = 4
     interpolation: Literal[INTERPOLATIONS] = "zero"
@@ -64,8 +64,18 @@ class SamplingConfig:
         check_fields(self)   # ConfigError naming the field
         if self.interpolation != "zero" and self.knots < 2:
             raise ConfigError("knots", f"{self.interpolation} interpolation needs knots >= 2, got {self.knots}")
-        if self.knots > self.horizon:
+        if self.horizon is not None and self.knots > self.horizon:
             raise ConfigError("knots", f"must not exceed the horizon ({self.horizon}), got {self.knots}")
+
+    def for_task(self, task: Task | None) -> "SamplingConfig":
+        """These settings with the horizon set: their own, else ``task``'s (``ConfigError`` when
+        both are None: a reward callable has no horizon of its own)."""
+        if self.horizon is not None:
+            return self
+        if task is None:
+            raise ConfigError("horizon", "None means the task's horizon, and a reward callable has none: give "
+                                         "SamplingConfig(horizon=...)")
+        return replace(self, horizon=task.horizon)
 
 
 @dataclass
@@ -220,7 +230,8 @@ class SamplingPlanner(ActsOnPlan):
         self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
         self.reward = self._task_reward if self.task is not None else reward
         self.terminal = check_terminal(terminal, dynamics.device)
-        self.settings = config or SamplingConfig()
+        self.settings = (config or SamplingConfig()).for_task(self.task)
+        self.horizon = self.settings.horizon
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
         cr = (ctrlrange.detach().double() if isinstance(ctrlrange, torch.Tensor)   # e.g. a CUDA env's ctrlrange
