@@ -95,8 +95,8 @@ def test_step_is_optimize_then_act(model):
 
 
 def test_planning_error_stays_importable_from_gradient():
-    from gnwarp.control import gradient, plans
-    assert gradient.PlanningError is plans.PlanningError is PlanningError
+    from gnwarp.control import gradient, returns
+    assert gradient.PlanningError is returns.PlanningError is PlanningError
 
 
 def test_act_reads_the_plan_at_a_later_time(model):

@@ -16,7 +16,7 @@ from the steady state (``timing``), Gymnasium vector environments on the true or
 """
 from gnwarp.control.episodes import identify_on_env, run_episodes
 from gnwarp.control.gradient import GradientMPC, GradientMPCConfig
-from gnwarp.control.plans import PlanningError
+from gnwarp.control.returns import PlanningError
 from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
 from gnwarp.control.tasks import TASKS, Task, TaskError, episode_starts, get_task, sample_targets, task_names

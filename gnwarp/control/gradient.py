@@ -35,8 +35,8 @@ from typing import Literal
 
 import torch
 
-from gnwarp.control.plans import ActsOnPlan, PlanningError
-from gnwarp.control.returns import GRAD_NORMS, check_terminal, condition_gradient, planned_return, scale_gradient
+from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, condition_gradient,
+                                    planned_return, scale_gradient)
 from gnwarp.control.tasks import Task, TaskError, get_task
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE

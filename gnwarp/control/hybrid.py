@@ -38,8 +38,7 @@ import numpy as np
 import torch
 
 from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientMPCConfig
-from gnwarp.control.plans import ActsOnPlan, PlanningError
-from gnwarp.control.returns import GRAD_NORMS, check_terminal, planned_return
+from gnwarp.control.returns import GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, planned_return
 from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.dynamics import Dynamics

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 import torch
 
-from gnwarp.control.plans import plan_action
+from gnwarp.control.returns import plan_action
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.body_state import body_states
 from gnwarp.validation import ConfigError, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields

@@ -150,7 +150,7 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
     [M]`` added to planned returns (a ``gnwarp.control.value.TerminalValue``); ``ctrlrange``
     [U, 2]: where sampling planners draw actions (None: the system's actuators' sample range,
     an env's ``ctrlrange``)."""
-    from gnwarp.control.plans import PlanningError
+    from gnwarp.control.returns import PlanningError
     from gnwarp.control.sampling import model_dynamics
     from gnwarp.control.tasks import get_task
     from gnwarp.dynamics import Dynamics

@@ -24,8 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gnwarp.control.plans import ActsOnPlan
-from gnwarp.control.returns import check_terminal, planned_return
+from gnwarp.control.returns import ActsOnPlan, check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
