@@ -14,13 +14,17 @@ per-episode returns of two or more seeds, a percentile bootstrap over the seeds'
 a reported mean and std give a t interval ("reported"); one value alone gives [mean, mean].
 
 Paired comparisons, where a row's records hold per-episode returns from the same initial states
-(same file, task, seed and number of episodes) as iLQG's and the random planner's:
+(same file, task, protocol, episode length, seed and number of episodes) as iLQG's and the random
+planner's (iLQG on the true MuJoCo C dynamics first where it ran on several):
 ``"minus_ilqg_ci95"`` (the row's returns minus iLQG's, episode by episode, bootstrapped) and
 ``"discriminative"`` (whether iLQG minus random excludes 0: where it does not, the task does not
 separate a planner from random actions).
 
     PYTHONPATH=. python3 bench/control_summary.py            # rewrite summary.json
     PYTHONPATH=. python3 bench/control_summary.py --check    # exit 1 where it differs from the records
+
+A ``.jsonl`` file under the folder that holds no results records (a benchmark's own rows) is
+skipped and named on stderr.
 """
 from __future__ import annotations
 
@@ -112,20 +116,20 @@ def variant_of(rec) -> str:
 
 def _paired(row: dict, recs: list, by: dict, key: tuple) -> None:
     """Add the paired comparisons of the module docstring to ``row`` where they exist."""
-    def peer(planner):
-        for k, seeds in by.items():
-            if (k[0], k[1], k[6]) == (key[0], planner, key[6]):
-                return seeds
-        return None
-    ilqg, rand = peer("ilqg"), peer("random")
     if len(recs) != 1 or recs[0].returns is None:
         return
     r = recs[0]
 
-    def match(seeds):
-        p = None if seeds is None else seeds.get(r.seed)
-        return p if p is not None and p.returns is not None and len(p.returns) == len(r.returns) else None
-    i, z = match(ilqg), match(rand)
+    def peer(planner):
+        """The record of ``planner`` from the same initial states: same task, protocol, episode
+        length, seed and number of episodes; iLQG on the true MuJoCo C dynamics first."""
+        keys = [k for k in by if (k[0], k[1], k[3], k[6]) == (key[0], planner, key[3], key[6])]
+        for k in sorted(keys, key=lambda k: k[2] != "true_mujoco_c"):
+            p = by[k].get(r.seed)
+            if p is not None and p.returns is not None and len(p.returns) == len(r.returns):
+                return p
+        return None
+    i, z = peer("ilqg"), peer("random")
     if i is not None and r.planner != "ilqg":
         d = np.asarray(r.returns, dtype=np.float64) - np.asarray(i.returns, dtype=np.float64)
         lo, hi = bootstrap_ci(d)
@@ -141,8 +145,9 @@ def rows(root: Path = ROOT) -> list[dict]:
     for path in sorted((root / CONTROL).rglob("*.jsonl")):
         try:
             recs = read_records(path)
-        except RecordError:
-            continue   # a benchmark's own rows (timings), not results records
+        except RecordError as e:   # a benchmark's own rows (timings), not results records
+            print(f"control_summary: skipped {path.relative_to(root)}: {e}", file=sys.stderr)
+            continue
         by: dict[tuple, dict] = {}
         for r in recs:
             key = (r.task, r.planner, r.dynamics, protocol_of(r), r.env_steps, variant_of(r), r.episode_steps)

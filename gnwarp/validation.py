@@ -24,7 +24,8 @@ import pydantic
 from pydantic import BeforeValidator, Field, Strict
 
 __all__ = ["ConfigError", "Allowed", "check_fields", "check_keys", "allowed_values", "MAX_WIDTH", "MAX_LAYERS", "IntRange", "FloatRange", "Flag", "Count", "PositiveInt", "PositiveFloat", "InputWidth", "Width", "Widths", "LayerCount", "described", "flag_name",
-           "add_config_flags", "config_flags_given", "config_from_flags", "config_keys", "available_memory", "check_memory"]
+           "add_config_flags", "config_flags_given", "config_from_flags", "config_keys", "read_config_file", "parse_value", "apply_overrides", "available_memory",
+           "check_memory"]
 
 
 class ConfigError(ValueError):
@@ -291,6 +292,69 @@ def config_from_flags(cls, args, names: Sequence[str] | None = None, **fields):
     except ConfigError as e:
         head = e.path.split(".")[0]
         raise ConfigError(flag_name(head) if head in given else e.path, e.reason) from None
+
+
+def read_config_file(path, what: str = "config keys") -> dict:
+    """A JSON or TOML (``.toml``) config file as a dict; ``what`` names what its table holds (for
+    the error). A file that is missing raises FileNotFoundError; one that does not parse, or holds
+    no table, raises ``ConfigError`` naming the file and the line."""
+    import json
+    from pathlib import Path
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"no config file at {p}")
+    try:
+        text = p.read_text()
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(p), f"not a text file ({e.reason} at byte {e.start})") from None
+    if p.suffix == ".toml":
+        try:
+            import tomllib
+        except ImportError:  # Python 3.10
+            import tomli as tomllib
+        try:
+            d = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(str(p), f"not valid TOML: {e}") from None
+    else:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ConfigError(str(p), f"not valid JSON: {e.msg} (at line {e.lineno}, column {e.colno}); "
+                                      "TOML files need the .toml suffix") from None
+    if not isinstance(d, dict):
+        raise ConfigError(str(p), f"a config file holds a table of {what}, got a {type(d).__name__}")
+    return d
+
+
+def parse_value(text: str):
+    """A ``--set`` value: JSON when it parses (numbers, true/false/null, lists), else the string;
+    the config's validation then checks it like any other value."""
+    import json
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def apply_overrides(cfg: dict, items: Sequence[str] | None) -> dict:
+    """``KEY=VALUE`` overrides (``--set``) into the nested dict ``cfg`` (changed in place and
+    returned); dotted keys reach nested tables (``model.gn.latent=64``)."""
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError("--set", f"expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        *parents, leaf = key.strip().split(".")
+        if not all(k.strip() for k in parents + [leaf]):
+            raise ConfigError("--set", f"malformed key {key!r} in {item!r} (keys are dotted names: model.gn.latent)")
+        d = cfg
+        for i, k in enumerate(parents):
+            d = d.setdefault(k, {})
+            if not isinstance(d, dict):
+                raise ConfigError(".".join(parents[:i + 1]), f"is not a nested config, so --set {key} cannot "
+                                                             "set a key inside it")
+        d[leaf] = parse_value(value)
+    return cfg
 
 
 def _field_docs(cls) -> dict[str, str]:

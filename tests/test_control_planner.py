@@ -85,9 +85,18 @@ def test_step_is_optimize_then_act(model):
             assert torch.equal(u, b.act(state, 0)), name
             assert torch.equal(b.act(state, 0), b.act(state, 0)), name   # acting costs no planning
             env.step(u)
-        with pytest.raises((RuntimeError, ValueError), match="optimize"):
+        with pytest.raises(PlanningError, match="optimize"):   # one error type for every planner
             b.reset(N)
             b.act(state, 0)
+        b.optimize(state)
+        for bad in (-1, 1.5, True):
+            with pytest.raises(PlanningError, match="time must be an integer >= 0"):
+                b.act(state, bad)
+
+
+def test_planning_error_stays_importable_from_gradient():
+    from gnwarp.control import gradient, returns
+    assert gradient.PlanningError is returns.PlanningError is PlanningError
 
 
 def test_act_reads_the_plan_at_a_later_time(model):
@@ -222,3 +231,29 @@ def test_make_planner_builds_what_the_classes_build(pendulum, model):
         make_planner("gradient", true_dynamics("pendulum", N, 4, backend="mujoco"), "pendulum-balance", "pendulum", N)
     with pytest.raises(ValueError, match="'ilqg' .* is not built through a dynamics model"):
         make_planner("ilqg", model, "pendulum-balance", "pendulum", N)
+
+
+def test_every_planner_defaults_to_the_tasks_horizon():
+    """Sampling, like gradient and hybrid, plans the task's horizon unless given one (cartpole
+    balance: 100 steps), on a learned model too; an explicit horizon stays; a reward callable,
+    which has no horizon, needs one."""
+    from gnwarp.control.planner import make_planner
+    from gnwarp.control.tasks import get_task
+    cart = data.generate("cartpole", (2, 1, 1), num_steps=4, seed=0, backend="mujoco", progress=False)
+    torch.manual_seed(0)
+    net = ForwardModel(ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="torch")), cart.layout)
+    task = get_task("cartpole-balance")
+    assert SamplingConfig().horizon is None
+    for name, settings in (("sampling", {"samples": 2}), ("hybrid", {"samples": 2, "elites": 1}),
+                           ("gradient", {})):
+        p = make_planner(name, net, task.name, "cartpole", 1, settings)
+        assert p.horizon == task.horizon == 100, name
+    s = make_planner("mppi", net, task.name, "cartpole", 1, {"samples": 2, "horizon": 7})
+    assert s.horizon == s.settings.horizon == 7
+    env = make_env("cartpole", 1, backend="mujoco")
+    with pytest.raises(ConfigError, match="horizon: None means the task's horizon"):
+        SamplingPlanner(true_dynamics("cartpole", 1, 2, backend="mujoco"), lambda s, a: s.sum((1, 2, 3)),
+                        env.ctrlrange, 1, SamplingConfig(samples=2))
+    with pytest.raises(ConfigError, match="knots: must not exceed the horizon"):
+        SamplingPlanner(true_dynamics("cartpole", 1, 2, backend="mujoco"), "cartpole-balance", env.ctrlrange, 1,
+                        SamplingConfig(samples=2, knots=101))

@@ -90,3 +90,28 @@ def test_loop_value_and_ensemble_rows_do_not_pool(tmp_path):
     write_records(folder / "records.jsonl", recs)
     got = {r["variant"]: r["mean"] for r in cs.rows(tmp_path)}
     assert got == {"loop": 1.5, "loop, terminal value": 5.5, "loop, ensemble of 2": 9.25}
+
+
+def test_pairing_stays_within_the_protocol_and_prefers_ilqg_on_mujoco_c(tmp_path, capsys):
+    """A loop row pairs with the loop's iLQG / random records, not the paper protocol's of the
+    same task and episode length; of iLQG on two dynamics, the true MuJoCo C one pairs; a file
+    of no results records is named on stderr."""
+    folder = tmp_path / cs.CONTROL
+    folder.mkdir(parents=True)
+    base = [10.0, 12, 11, 13, 9, 10]
+    write_records(folder / "results.jsonl", [
+        _rec("ilqg", [x + 5 for x in base], dynamics="true_mjwarp"),   # listed first, not preferred
+        _rec("ilqg", base), _rec("random", [0.0, 1, -1, 0.5, 0, 0.2]),
+        _rec("gradient", [x - 1 for x in base]),
+        _rec("gradient", [x - 2 for x in base], experiment="loop", env_steps=600),
+        _rec("ilqg", [x - 4 for x in base], experiment="loop"),
+        _rec("random", [x - 4 for x in base], experiment="loop")])
+    (folder / "timings.jsonl").write_text('{"batch": 8, "ms": 1.5}\n')
+    rows = cs.rows(tmp_path)
+    assert "skipped " + str(Path(cs.CONTROL) / "timings.jsonl") in capsys.readouterr().err
+    by = {(r["planner"], r["protocol"], r["dynamics"]): r for r in rows}
+    assert by[("gradient", "paper", "learned")]["minus_ilqg_ci95"] == [-1.0, -1.0]     # MuJoCo C's iLQG
+    assert by[("gradient", "paper", "learned")]["discriminative"] is True
+    loop = by[("gradient", "loop", "learned")]
+    assert loop["minus_ilqg_ci95"] == [2.0, 2.0]                                       # the loop's iLQG
+    assert loop["discriminative"] is False                                             # its iLQG = its random

@@ -26,6 +26,18 @@ def walks(E=16, T=30, seed=0):
     return x, -x[:, 1:, 1, 1].square()
 
 
+def test_a_value_recentres_the_axes_its_system_records():
+    """``TerminalValue.for_system`` reads the system's own ``translation_axes``: a user MJCF
+    system that records one gets it (its name is in no table), a built-in one its family's."""
+    from gnwarp.sim import systems
+    xml = ('<mujoco><worldbody><body name="b"><joint name="x" type="slide" axis="1 0 0"/><geom size="0.1"/>'
+           '</body></worldbody><actuator><motor joint="x"/></actuator></mujoco>')
+    sliding = systems.from_mjcf_string(xml, name="slider", dt=0.01, translation_axes=(0, 1))
+    assert TerminalValue.for_system(sliding).recentre == (0, 1) == default_recentre(sliding)
+    assert TerminalValue.for_system(systems.from_mjcf_string(xml, name="slider", dt=0.01)).recentre == ()
+    assert TerminalValue.for_system(systems.make("cheetah")).recentre == (0,)
+
+
 def test_fit_reduces_the_td_error():
     x, r = walks()
     torch.manual_seed(0)

@@ -215,3 +215,28 @@ def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):
     shard = load(out / "data/iter-0001.h5", lazy=False)
     assert np.allclose(shard["train"].qpos[::2, 0], np.asarray(rec.config["initial_qpos"]), atol=1e-6)
     assert rec.env_steps == SEED_SEQ * SEQ + EPISODES * 2 * SEQ
+
+
+def test_the_command_reads_its_config_like_train_does(tmp_path):
+    """``gnwarp loop`` and ``gnwarp train`` share one config reader: TOML tables, --set into nested
+    keys, and the same refusals (a file that is not text, a key inside a value that is no table)."""
+    import argparse
+
+    from gnwarp.cli.common import apply_overrides, read_config
+    from gnwarp.control.loop_command import add_loop_arguments, loop_config
+    parser = argparse.ArgumentParser()
+    add_loop_arguments(parser)
+    toml = tmp_path / "loop.toml"
+    toml.write_text('task = "pendulum-balance"\nepisodes = 3\n[planner_settings]\niterations = 4\n')
+    args = parser.parse_args([str(toml), "-o", str(tmp_path / "run"), "--set", "planner_settings.horizon=6",
+                              "--episodes", "5"])
+    cfg = loop_config(args)
+    assert (cfg.task, cfg.episodes, cfg.planner_settings) == ("pendulum-balance", 5, {"iterations": 4, "horizon": 6})
+    binary = tmp_path / "bad.json"
+    binary.write_bytes(b"\xff\xfe\x00")
+    for read in (lambda p: loop_config(parser.parse_args([p, "-o", str(tmp_path / "run")])), read_config):
+        with pytest.raises(ConfigError, match="bad.json: not a text file"):
+            read(str(binary))
+    for apply in (lambda d, items: loop_config(parser.parse_args([str(toml), "--set", items[0]])), apply_overrides):
+        with pytest.raises(ConfigError, match="task: is not a nested config"):
+            apply({"task": "x"}, ["task.x=1"])

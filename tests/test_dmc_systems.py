@@ -35,6 +35,8 @@ def test_timesteps_and_episode_lengths_are_the_suites(built):
         assert d.episode_steps == round(module._DEFAULT_TIME_LIMIT / control_dt) == 1000, name
         assert system.source == "dm_control" and system.name == name
         assert system.translation_invariant == (d.module in ("cheetah", "walker", "hopper", "swimmer"))
+        assert system.translation_axes == systems.translation_axes(name) == \
+            {"swimmer": (0, 1)}.get(d.module, (0,) if system.translation_invariant else ()), name
     assert (built["dmc-walker"].dt, built["dmc-walker"].substeps) == (0.025, 10)
     assert (built["dmc-swimmer6"].nu, built["dmc-swimmer6"].nbody) == (5, 7)
 

@@ -100,6 +100,13 @@ def test_legged_systems_touch_the_floor(name):
 def test_translation_invariance_flags():
     invariant = {n for n in TABLE if systems.make(n).translation_invariant}
     assert invariant == {"swimmer3", "swimmer6", "swimmer15", "cheetah", "walker"}
+    for n in TABLE:   # one record: the family's axes, read the same way without building the system
+        s = systems.make(n)
+        assert s.translation_axes == systems.translation_axes(n) == {"cheetah": (0,), "walker": (0,)}.get(
+            n, (0, 1) if n.startswith("swimmer") else ()), n
+    assert systems.translation_axes("my_robot") == ()
+    with pytest.raises(ValueError, match="translation_axes must hold distinct horizontal axes"):
+        systems.from_mjcf_string("<mujoco/>", translation_axes=(2,))
 
 
 def test_dm_control_details():

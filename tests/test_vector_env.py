@@ -372,3 +372,86 @@ def test_single_env_passes_gymnasium_check_env(dynamics, pendulum_model):
         assert isinstance(r, float) and term is False and trunc == (t == 2)
     with pytest.raises(VectorEnvError, match="autoreset is disabled"):
         env.step(np.array([0.5]))
+
+
+def test_deferred_action_checks_name_the_env_and_step():
+    """Device actions with ``defer_action_checks`` (on by itself for output="torch" on CUDA,
+    forced here on the CPU): a NaN row steps with zero actions, is flagged on the device, and the
+    flag read every ``action_check_every`` steps (or at the episode's end, or reset) raises naming
+    the env and the step; host actions are still checked at once."""
+    env = pendulum_env(3, steps=8, output="torch", action_check_every=3)
+    assert env.defer_action_checks is False            # CPU: every check at once, as before
+    env.reset(seed=0)
+    with pytest.raises(VectorEnvError, match="env 1 hold NaN"):
+        env.step(torch.tensor([[0.1], [np.nan], [0.2]]))
+    env.defer_action_checks = True
+    ref = pendulum_env(3, steps=8, output="torch")
+    env.reset(seed=0)
+    ref.reset(seed=0)
+    good = torch.tensor([[0.1], [0.3], [0.2]])
+    env.step(good)
+    ref.step(good)
+    env.step(torch.tensor([[0.1], [np.inf], [0.2]]))   # env step 1: no sync, no error yet
+    ref.step(torch.tensor([[0.1], [0.0], [0.2]]))
+    torch.testing.assert_close(env.body_states, ref.body_states)   # the bad row stepped with zero actions
+    with pytest.raises(VectorEnvError, match=r"env 1 held NaN or Inf at env step 1 .*every 3 steps"):
+        env.step(good)                                   # env step 2: the third, the flag is read
+    env.step(torch.tensor([[np.nan], [0.0], [0.0]]))
+    with pytest.raises(VectorEnvError, match="env 0 held NaN or Inf at env step 3"):
+        env.reset()                                      # a reset reads it too
+    with pytest.raises(VectorEnvError, match="env 0 hold NaN"):
+        env.step(np.array([[np.nan], [0.0], [0.0]]))     # host actions: at once
+    with pytest.raises(ValueError, match="action_check_every must be an integer >= 1"):
+        pendulum_env(2, action_check_every=0)
+
+
+class Exploding(torch.nn.Module):
+    """A Dynamics wrapper whose rollouts turn NaN in env 1 from the second step on."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model, self.steps = model, 0
+
+    def __getattr__(self, name):
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            return getattr(self.model, name)
+
+    def rollout_engine(self, *args, **kw):
+        engine, outer = self.model.rollout_engine(*args, **kw), self
+
+        class Engine:
+            template = engine.template
+
+            def rollout(self, x, u):
+                traj = engine.rollout(x, u)
+                outer.steps += 1
+                if outer.steps >= 2:
+                    traj = traj.clone()
+                    traj[1, -1, 1, 0] = float("nan")
+                return traj
+        return Engine()
+
+
+@pytest.mark.parametrize("output", ["numpy", "torch"])
+def test_a_diverged_learned_env_is_reported(pendulum_model, output):
+    env = make_vector_env("pendulum-balance", 3, dynamics=Exploding(pendulum_model), episode_steps=6, seed=0,
+                          output=output)
+    env.reset(seed=0)
+    u = np.zeros((3, 1), np.float32) if output == "numpy" else torch.zeros(3, 1)
+    _, _, _, _, infos = env.step(u)
+    assert not infos["diverged"].any() and infos["_diverged"].all()
+    obs, r, _, _, infos = env.step(u)
+    flags = np.asarray(infos["diverged"].cpu() if output == "torch" else infos["diverged"])
+    assert flags.tolist() == [False, True, False] and not np.isfinite(np.asarray(obs[1])).all()
+    env.sim.engine = pendulum_model.rollout_engine(torch.zeros(3, dtype=torch.int64), 1, ctrl_policy="none",
+                                                   check=False)
+    _, _, _, _, infos = env.step(u)                      # stays diverged until reset
+    assert np.asarray(infos["diverged"].cpu() if output == "torch" else infos["diverged"]).tolist()[1]
+    env.reset(options={"reset_mask": np.array([False, True, False])})
+    _, _, _, _, infos = env.step(u)
+    assert not np.asarray(infos["diverged"].cpu() if output == "torch" else infos["diverged"]).any()
+    true = pendulum_env(3)
+    true.reset(seed=0)
+    assert true.step(np.zeros((3, 1)))[4] == {}          # the true simulator reports no such key

@@ -50,69 +50,22 @@ def flat(d: dict, prefix: str = "") -> list[str]:
 
 
 def parse_value(text: str):
-    """A --set value: JSON when it parses (numbers, true/false/null, lists), else the string; the
-    config's validation then checks it like any other value."""
-    import json
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
+    """A --set value (``gnwarp.validation.parse_value``): JSON when it parses, else the string."""
+    from gnwarp.validation import parse_value as parse
+    return parse(text)
 
 
 def read_config(path: str | None) -> dict:
-    """A JSON or TOML (``.toml``) config file as a dict; a file that does not parse raises
-    ``ConfigError`` naming the file and the line."""
-    import json
-    from pathlib import Path
-
-    from gnwarp.validation import ConfigError
-    if path is None:
-        return {}
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"no config file at {p}")
-    try:
-        text = p.read_text()
-    except UnicodeDecodeError as e:
-        raise ConfigError(str(p), f"not a text file ({e.reason} at byte {e.start})") from None
-    if p.suffix == ".toml":
-        try:
-            import tomllib
-        except ImportError:  # Python 3.10
-            import tomli as tomllib
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(str(p), f"not valid TOML: {e}") from None
-    else:
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ConfigError(str(p), f"not valid JSON: {e.msg} (at line {e.lineno}, column {e.colno}); "
-                                      "TOML files need the .toml suffix") from None
-    if not isinstance(d, dict):
-        raise ConfigError(str(p), f"a config file holds a table of TrainConfig keys, got a {type(d).__name__}")
-    return d
+    """A JSON or TOML (``.toml``) config file of TrainConfig keys as a dict ({} for None); the
+    reader is ``gnwarp.validation.read_config_file``."""
+    from gnwarp.validation import read_config_file
+    return {} if path is None else read_config_file(path, "TrainConfig keys")
 
 
 def apply_overrides(cfg: dict, items: list[str]) -> dict:
-    """``key=value`` overrides into a nested dict; dotted keys reach nested configs (model.gn.latent=64)."""
-    from gnwarp.validation import ConfigError
-    for item in items or []:
-        if "=" not in item:
-            raise ConfigError("--set", f"expects KEY=VALUE, got {item!r}")
-        key, value = item.split("=", 1)
-        *parents, leaf = key.strip().split(".")
-        if not all(k.strip() for k in parents + [leaf]):
-            raise ConfigError("--set", f"malformed key {key!r} in {item!r} (keys are dotted names: model.gn.latent)")
-        d = cfg
-        for i, k in enumerate(parents):
-            d = d.setdefault(k, {})
-            if not isinstance(d, dict):
-                raise ConfigError(".".join(parents[:i + 1]), f"is not a nested config, so --set {key} cannot "
-                                                             "set a key inside it")
-        d[leaf] = parse_value(value)
-    return cfg
+    """``key=value`` overrides into a nested dict (``gnwarp.validation.apply_overrides``)."""
+    from gnwarp.validation import apply_overrides as apply
+    return apply(cfg, items)
 
 
 def config_source(path: str, items: list[str], flags: dict, config: str | None) -> str:

@@ -57,7 +57,7 @@ def mpc_settings(args, task):
         if key in source and source[key] != "--seed":
             raise ValueError(f"--set {item} and {source[key]} both set {key}: give one")
         given[key], source[key] = parse_value(text), f"--set {item}"
-    if "horizon" not in given:   # the task's (SamplingConfig's own default is a fixed 20)
+    if "horizon" not in given:   # the task's (every planner's default), here also to bound the knots
         given["horizon"] = task.horizon
     if "knots" in fields and "knots" not in given:
         given["knots"] = min(fields["knots"].default, given["horizon"])

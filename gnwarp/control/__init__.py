@@ -15,7 +15,8 @@ from the steady state (``timing``), Gymnasium vector environments on the true or
     >>> out = control.run_episodes(planner, env, task, steps=100, x0=env.reset(...))
 """
 from gnwarp.control.episodes import identify_on_env, run_episodes
-from gnwarp.control.gradient import GradientMPC, GradientMPCConfig, PlanningError
+from gnwarp.control.gradient import GradientMPC, GradientMPCConfig
+from gnwarp.control.returns import PlanningError
 from gnwarp.control.hybrid import HybridConfig, HybridPlanner
 from gnwarp.control.planner import PLANNERS, Planner, get_planner, planner_name
 from gnwarp.control.tasks import TASKS, Task, TaskError, episode_starts, get_task, sample_targets, task_names

@@ -33,10 +33,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-import numpy as np
 import torch
 
-from gnwarp.control.returns import GRAD_NORMS, check_terminal, condition_gradient, planned_return, scale_gradient
+from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, condition_gradient,
+                                    planned_return, scale_gradient)
 from gnwarp.control.tasks import Task, TaskError, get_task
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.state import DYN_NODE_SIZE
@@ -49,10 +49,6 @@ __all__ = ["GradientMPCConfig", "GradientMPC", "PlanningError", "model_systems",
 
 WARMUP_PER_ITERATION = 4   # the default warm-up at the first state: this many x iterations
 PROPOSAL_ROWS = 4096       # rollout rows (episodes x proposals) evaluated together at most
-
-
-class PlanningError(ValueError):
-    """A planner refused its inputs: a model of another system, a state with NaN / Inf, shapes."""
 
 
 @dataclasses.dataclass
@@ -108,7 +104,7 @@ def _ctrl_range(system, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return t(mid), t(half)
 
 
-class GradientMPC:
+class GradientMPC(ActsOnPlan):
     """Gradient-based MPC with a learned ``ForwardModel`` for N episodes of one system.
 
     ``model``: a ForwardModel (bound here to ``system``); ``task``: a ``Task`` or its name;
@@ -429,16 +425,3 @@ class GradientMPC:
         self.plan = self.actions.detach().clone()
         self.shift()
 
-    def act(self, x, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from
-        (clamped to the horizon)."""
-        if self.plan is None:
-            raise PlanningError("no plan to act on: call optimize(states) (or step) first")
-        if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
-            raise PlanningError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
-        return self.plan[:, min(int(time), self.horizon - 1)]
-
-    def step(self, x) -> torch.Tensor:
-        """``optimize(x)`` then ``act(x, 0)``: the first actions [N, U]."""
-        self.optimize(x)
-        return self.act(x, 0)

@@ -37,8 +37,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientMPCConfig, PlanningError
-from gnwarp.control.returns import GRAD_NORMS, check_terminal, planned_return
+from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientMPCConfig
+from gnwarp.control.returns import GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, planned_return
 from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.dynamics import Dynamics
@@ -92,7 +92,7 @@ class HybridConfig:
             raise ConfigError("knots", f"must not exceed the horizon ({self.horizon}), got {self.knots}")
 
 
-class HybridPlanner:
+class HybridPlanner(ActsOnPlan):
     """Sampling proposals refined by gradient steps (or CEM on dynamics without gradients) for
     ``n`` episodes of one system (a ``gnwarp.control.planner.Planner``; see the module's docstring).
 
@@ -212,20 +212,6 @@ class HybridPlanner:
         self.last_refined = best_r
         self.plan = best_a.detach().clone()
         self.nominal = torch.cat([self.plan[:, 1:], self.plan[:, -1:]], 1)
-
-    def act(self, obs, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from
-        (clamped to the horizon)."""
-        if self.plan is None:
-            raise PlanningError("no plan to act on: call optimize(states) (or step) first")
-        if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
-            raise PlanningError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
-        return self.plan[:, min(int(time), self.horizon - 1)]
-
-    def step(self, obs) -> torch.Tensor:
-        """``optimize(obs)`` then ``act(obs, 0)``: the first actions [N, U]."""
-        self.optimize(obs)
-        return self.act(obs, 0)
 
     # -- parts ----------------------------------------------------------------------------------
     def _noise(self, shape, rel, mean=None) -> torch.Tensor:

@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 import torch
 
+from gnwarp.control.returns import plan_action
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.body_state import body_states
 from gnwarp.validation import ConfigError, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
@@ -418,11 +419,7 @@ class ILQG:
 
     def act(self, obs, time: int = 0) -> torch.Tensor:
         """Controls [N, nu] (float64) of the last plans at knot ``time`` (clamped to the horizon)."""
-        if self.plan_U is None:
-            raise RuntimeError("no plan to act on: call optimize(obs) (or step) first")
-        if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
-            raise ValueError(f"time must be an integer >= 0 (knots since the plan's state), got {time!r}")
-        return torch.from_numpy(self.plan_U[:, min(int(time), self.horizon - 1)].copy())
+        return torch.from_numpy(plan_action(self.plan_U, time).copy())
 
     def step(self, obs) -> torch.Tensor:
         """``optimize(obs)`` then ``act(obs, 0)``: the first controls [N, nu]."""

@@ -7,12 +7,11 @@ config.json underneath: ``gnwarp loop -o runs/loop --iterations 20`` goes on to 
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from gnwarp.control.data_loop import RESUMABLE, LoopConfig, run_loop
 from gnwarp.control.loop_store import CONFIG_FILE
-from gnwarp.validation import ConfigError, add_config_flags, config_flags_given
+from gnwarp.validation import add_config_flags, apply_overrides, config_flags_given, read_config_file
 
 __all__ = ["add_loop_arguments", "loop_command", "LOOP_DESCRIPTION"]
 
@@ -48,47 +47,7 @@ def add_loop_arguments(parser) -> None:
 
 
 def _read(path: str) -> dict:
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"no config file at {p}")
-    text = p.read_text()
-    if p.suffix == ".toml":
-        try:
-            import tomllib
-        except ImportError:  # Python 3.10
-            import tomli as tomllib
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(str(p), f"not valid TOML: {e}") from None
-    else:
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ConfigError(str(p), f"not valid JSON: {e.msg} (line {e.lineno}); TOML files need the .toml "
-                                      "suffix") from None
-    if not isinstance(d, dict):
-        raise ConfigError(str(p), f"a config file holds a table of LoopConfig keys, got a {type(d).__name__}")
-    return d
-
-
-def _set(d: dict, item: str) -> None:
-    """Apply one ``KEY=VALUE`` (dotted keys reach nested tables; JSON values where they parse)."""
-    if "=" not in item:
-        raise ConfigError("--set", f"expects KEY=VALUE, got {item!r}")
-    key, text = item.split("=", 1)
-    *parents, leaf = key.strip().split(".")
-    if not all(k.strip() for k in parents + [leaf]):
-        raise ConfigError("--set", f"malformed key {key!r} (keys are dotted names: train.model.gn.latent)")
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError:
-        value = text
-    for k in parents:
-        d = d.setdefault(k, {})
-        if not isinstance(d, dict):
-            raise ConfigError("--set", f"{key}: {k} is not a nested table")
-    d[leaf] = value
+    return read_config_file(path, "LoopConfig keys")
 
 
 def loop_config(args) -> LoopConfig:
@@ -99,8 +58,7 @@ def loop_config(args) -> LoopConfig:
     raw = _read(str(saved)) if saved.is_file() else {}
     if args.config:
         raw.update(_read(args.config))
-    for item in args.set:
-        _set(raw, item)
+    apply_overrides(raw, args.set)
     raw.update(config_flags_given(args, LoopConfig, _FLAGGED))
     raw["out"] = str(out)
     raw["progress"] = not args.quiet

@@ -150,8 +150,9 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
     [M]`` added to planned returns (a ``gnwarp.control.value.TerminalValue``); ``ctrlrange``
     [U, 2]: where sampling planners draw actions (None: the system's actuators' sample range,
     an env's ``ctrlrange``)."""
-    from gnwarp.control.gradient import PlanningError
+    from gnwarp.control.returns import PlanningError
     from gnwarp.control.sampling import model_dynamics
+    from gnwarp.control.tasks import get_task
     from gnwarp.dynamics import Dynamics
     from gnwarp.sim.systems import System, make
     entry = get_planner(name)
@@ -168,6 +169,7 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
         return entry.cls(dynamics, task, system, n, settings, targets, terminal)
     if entry.cls is SamplingPlanner:
         sys_ = one_system()
+        settings = settings.for_task(get_task(task))
         dyn = model_dynamics(dynamics.bind(sys_), n, settings.samples, settings.horizon) if learned else dynamics
         cr = ctrlrange if ctrlrange is not None else sys_.actuators.sample_range()
         return SamplingPlanner(dyn, task, cr, n, settings, targets, terminal)

@@ -21,14 +21,20 @@ step dominates Adam's moments (gradients through a long contact-rich rollout gro
 magnitude from the last control step to the first), and non-finite entries are zeroed.
 
     >>> r = planned_return(task.reward, states, actions, target, discount=0.99, terminal=value)   # [M]
+
+What every planner shares about the plan it optimized: ``PlanningError`` (a planner refused its
+inputs) and ``ActsOnPlan``, the ``act`` / ``step`` of a planner whose ``optimize(state)`` sets
+``self.plan`` [N, T, U] (``plan_action`` reads a plan at a later step).
 """
 from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
 import torch
 
-__all__ = ["step_rewards", "planned_return", "condition_gradient", "check_terminal", "scale_gradient", "GRAD_NORMS"]
+__all__ = ["step_rewards", "planned_return", "condition_gradient", "check_terminal", "scale_gradient", "GRAD_NORMS",
+           "PlanningError", "plan_action", "ActsOnPlan"]
 
 GRAD_NORMS = ("none", "step")
 
@@ -112,3 +118,34 @@ class _ScaleGradient(torch.autograd.Function):
 def scale_gradient(x: torch.Tensor, scale: float) -> torch.Tensor:
     """``x`` unchanged forward; its gradient multiplied by ``scale`` backward."""
     return _ScaleGradient.apply(x, float(scale))
+
+
+class PlanningError(ValueError):
+    """A planner refused its inputs: a model of another system, a state with NaN / Inf, shapes,
+    acting before any plan."""
+
+
+def plan_action(plan, time):
+    """``plan`` [N, T, U] (a tensor or an array) at step ``time`` (clamped to the last): [N, U];
+    ``PlanningError`` before any plan (``plan`` None) or for a ``time`` that is no integer >= 0."""
+    if plan is None:
+        raise PlanningError("no plan to act on: call optimize(state) (or step) first")
+    if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
+        raise PlanningError(f"time must be an integer >= 0 (steps since the plan's state), got {time!r}")
+    return plan[:, min(int(time), plan.shape[1] - 1)]
+
+
+class ActsOnPlan:
+    """``act`` and ``step`` of a planner whose ``optimize(state)`` sets ``self.plan`` [N, T, U]."""
+
+    plan = None
+
+    def act(self, state, time: int = 0) -> torch.Tensor:
+        """Actions [N, U] of the last plan, ``time`` steps after the state it planned from
+        (clamped to the horizon)."""
+        return plan_action(self.plan, time)
+
+    def step(self, state) -> torch.Tensor:
+        """``optimize(state)`` then ``act(state, 0)``: the first actions [N, U]."""
+        self.optimize(state)
+        return self.act(state, 0)

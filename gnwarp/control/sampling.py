@@ -17,14 +17,14 @@ planner in closed loop.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gnwarp.control.returns import check_terminal, planned_return
+from gnwarp.control.returns import ActsOnPlan, check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
@@ -41,7 +41,7 @@ METHODS = ("best", "mppi")
 
 @dataclass
 class SamplingConfig:
-    """horizon: data steps planned ahead (T); samples: candidates per episode (K, the nominal
+    """horizon: data steps planned ahead (T; None: the task's, as the other planners); samples: candidates per episode (K, the nominal
     included); knots: spline knots P over the horizon (``interpolation`` "zero": piecewise
     constant, P spans; "linear" / "cubic": P points from the first step to the last);
     noise: standard deviation of the knot noise, relative to half of each actuator's range;
@@ -49,7 +49,7 @@ class SamplingConfig:
     episode's reward spread)); seed: of the noise; discount: per-step weight of the scored return
     (``gnwarp.control.returns.planned_return``; 1: the reward as is; a ``terminal`` value is
     weighted discount^horizon)."""
-    horizon: PositiveInt = 20
+    horizon: PositiveInt | None = None
     samples: PositiveInt = 64
     knots: PositiveInt = 4
     interpolation: Literal[INTERPOLATIONS] = "zero"
@@ -63,8 +63,18 @@ class SamplingConfig:
         check_fields(self)   # ConfigError naming the field
         if self.interpolation != "zero" and self.knots < 2:
             raise ConfigError("knots", f"{self.interpolation} interpolation needs knots >= 2, got {self.knots}")
-        if self.knots > self.horizon:
+        if self.horizon is not None and self.knots > self.horizon:
             raise ConfigError("knots", f"must not exceed the horizon ({self.horizon}), got {self.knots}")
+
+    def for_task(self, task: Task | None) -> "SamplingConfig":
+        """These settings with the horizon set: their own, else ``task``'s (``ConfigError`` when
+        both are None: a reward callable has no horizon of its own)."""
+        if self.horizon is not None:
+            return self
+        if task is None:
+            raise ConfigError("horizon", "None means the task's horizon, and a reward callable has none: give "
+                                         "SamplingConfig(horizon=...)")
+        return replace(self, horizon=task.horizon)
 
 
 @dataclass
@@ -199,7 +209,7 @@ def ensemble_dynamics(models, n_episodes: int, samples: int, horizon: int, penal
 
 # -- planners ---------------------------------------------------------------------------------
 
-class SamplingPlanner:
+class SamplingPlanner(ActsOnPlan):
     """Predictive sampling / MPPI over ``n_episodes`` episodes at once (a ``Planner``).
 
     ``dynamics``: a ``RolloutDynamics`` (``EnvDynamics``, ``ModelDynamics``); ``reward``: a
@@ -219,7 +229,8 @@ class SamplingPlanner:
         self.task = get_task(reward) if isinstance(reward, (str, Task)) else None
         self.reward = self._task_reward if self.task is not None else reward
         self.terminal = check_terminal(terminal, dynamics.device)
-        self.settings = config or SamplingConfig()
+        self.settings = (config or SamplingConfig()).for_task(self.task)
+        self.horizon = self.settings.horizon
         self.n = _episodes(n_episodes)
         self.device = dynamics.device
         cr = (ctrlrange.detach().double() if isinstance(ctrlrange, torch.Tensor)   # e.g. a CUDA env's ctrlrange
@@ -318,17 +329,9 @@ class SamplingPlanner:
         self.plan = self.actions(chosen)
         self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
 
-    def act(self, obs, time: int = 0) -> torch.Tensor:
-        """Actions [N, U] of the last plan, ``time`` data steps after the state it planned from."""
-        return _plan_action(self.plan, time)
-
-    def step(self, obs) -> torch.Tensor:
-        """``optimize(obs)`` then ``act(obs, 0)``: the first actions [N, U]."""
-        self.optimize(obs)
-        return self.act(obs, 0)
 
 
-class RandomPlanner:
+class RandomPlanner(ActsOnPlan):
     """The random-actions baseline (a ``Planner``): uniform in ``ctrlrange`` [U, 2], independent
     each step: ``optimize`` draws them, ``act`` returns them. ``seed``: ``RandomSettings.seed``.
 
@@ -365,14 +368,6 @@ class RandomPlanner:
         u = torch.rand((self.n, self.lo.shape[0]), generator=self._gen, device=self.lo.device)
         self.plan = (self.lo + u * (self.hi - self.lo))[:, None]
 
-    def act(self, obs, time: int = 0) -> torch.Tensor:
-        """The actions [N, U] the last ``optimize`` drew (``time`` does not matter)."""
-        return _plan_action(self.plan, 0)
-
-    def step(self, obs) -> torch.Tensor:
-        """``optimize(obs)`` then ``act(obs, 0)``: fresh random actions [N, U]."""
-        self.optimize(obs)
-        return self.act(obs, 0)
 
 
 def _episodes(n) -> int:
@@ -386,12 +381,3 @@ def _targets(targets, n: int, device) -> torch.Tensor:
     if t.shape[:1] != (n,):
         raise ValueError(f"targets must have one entry per episode ({n}), got shape {tuple(t.shape)}")
     return t
-
-
-def _plan_action(plan: torch.Tensor | None, time) -> torch.Tensor:
-    """plan [N, T, U] at data step ``time`` (clamped to the last): [N, U]; an error before any plan."""
-    if plan is None:
-        raise RuntimeError("no plan to act on: call optimize(state) (or step) first")
-    if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or time < 0:
-        raise ValueError(f"time must be an integer >= 0 (data steps since the plan's state), got {time!r}")
-    return plan[:, min(int(time), plan.shape[1] - 1)]

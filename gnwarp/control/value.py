@@ -36,25 +36,25 @@ import torch
 
 from gnwarp.control.returns import step_rewards
 from gnwarp.files import atomic_write
-from gnwarp.sim.families import family_name
+from gnwarp.sim.systems import translation_axes
 from gnwarp.state import DYN_NODE_SIZE
 
 __all__ = ["TerminalValue", "ValueFileError", "episode_rewards", "fit_terminal_value", "default_recentre",
            "VALUE_FORMAT", "VALUE_VERSION"]
 
 VALUE_FORMAT, VALUE_VERSION = "gnwarp-terminal-value", 1
-# axes along which a family's rewards do not depend on position (recentred on the root body)
-_TRANSLATION_AXES = {"cheetah": (0,), "walker": (0,), "hopper": (0,), "swimmer": (0, 1)}
 
 
 class ValueFileError(ValueError):
     """A terminal-value file that is not one, or whose contents do not fit; the message says how."""
 
 
-def default_recentre(system: str) -> tuple[int, ...]:
-    """Axes on which ``system`` (a built-in name, "dmc-" prefix allowed) is translation-invariant."""
-    name = system[4:] if system.startswith("dmc-") else system
-    return _TRANSLATION_AXES.get(family_name(name), _TRANSLATION_AXES.get(name, ()))
+def default_recentre(system) -> tuple[int, ...]:
+    """Axes on which ``system`` (a ``System``, or a built-in or DMC system's name) is
+    translation-invariant, recentred on the root body: its ``translation_axes``."""
+    if isinstance(system, str):
+        return translation_axes(system)
+    return tuple(system.translation_axes)
 
 
 def _check_config(nbody, hidden, recentre, gamma) -> tuple[int, tuple[int, ...], tuple[int, ...], float]:
@@ -97,7 +97,7 @@ class TerminalValue(torch.nn.Module):
     @classmethod
     def for_system(cls, system, **kw) -> "TerminalValue":
         """A value for ``system`` (a ``System``): its body count and translation-invariant axes."""
-        kw.setdefault("recentre", default_recentre(system.name))
+        kw.setdefault("recentre", default_recentre(system))
         return cls(system.nbody, **kw)
 
     def config(self) -> dict:

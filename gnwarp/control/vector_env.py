@@ -20,7 +20,17 @@ system here when unbound): the learned model as the environment, every env stepp
   (``Env.ctrlrange``; [-1, 1] for an unlimited actuator). Actions outside it are clamped to the
   actuators' control ranges as the true simulator does (``Env`` with ``ctrl_policy="clamp"``;
   an unlimited actuator takes any finite value); rewards see the clamped actions. NaN / Inf
-  actions raise ``VectorEnvError`` naming the env.
+  actions raise ``VectorEnvError`` naming the env: at once for actions on the host (NumPy, a CPU
+  tensor) and whenever the env's outputs go to the host anyway (``output="numpy"``). Actions
+  given as device tensors with ``output="torch"`` on CUDA are checked without a host sync: a
+  non-finite row steps with zero actions and is flagged on the device, and the flag is read
+  every ``action_check_every`` env steps, at an episode's end and at ``reset`` (or at once by
+  ``check_actions()``), which raises naming the first such env and the step it happened at.
+- Divergence of a learned model: every step of a learned-model env reports
+  ``infos["diverged"]`` [N] bool (``infos["_diverged"]``: all True, Gymnasium's mask), True
+  where the model's state has turned NaN / Inf at this step or before (an env stays diverged
+  until it is reset: reset it with ``options={"reset_mask": infos["diverged"]}``). It is read
+  from the device without a host sync (a tensor with ``output="torch"``).
 - Rewards: the task's per-step reward, ``task.scorer`` (else ``task.reward``) on states
   [:, t:t+2] and actions [:, t:t+1] (for a reward that reads the episode's first state, such as
   swimmer-reach, the per-step rewards do not add up to the episode's reward).
@@ -166,16 +176,24 @@ class ControlVectorEnv(VectorEnv):
     ``elapsed`` [N] (control steps of each env's episode), ``control_steps`` (of all envs, in
     all), ``body_states`` [N, B, 13] (copy, on ``device``), ``targets`` [N, ...] or None,
     ``last_actions`` [N, U] (as applied, clamped), ``ctrl_lo`` / ``ctrl_hi`` [U] (what actions are
-    clamped to), ``obs_layout`` (``ObservationLayout``) and ``obs_names``."""
+    clamped to), ``obs_layout`` (``ObservationLayout``) and ``obs_names``; ``defer_action_checks``
+    (whether device actions are checked for NaN / Inf every ``action_check_every`` steps rather
+    than at once: with ``output="torch"`` on CUDA)."""
 
     def __init__(self, task: Task, system, dynamics, num_envs: int, episode_steps: int,
                  autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP, seed=None, output: str = "numpy",
-                 observation: str | Callable = "bodies", action_repeat: int = 1, per_env_seeds: bool = True):
+                 observation: str | Callable = "bodies", action_repeat: int = 1, per_env_seeds: bool = True,
+                 action_check_every: int = 100):
         self.task, self.system, self.sim = task, system, dynamics
         self.per_env_seeds = bool(per_env_seeds)
         self.num_envs, self.episode_steps, self.action_repeat = num_envs, episode_steps, action_repeat
         self.control_steps = 0
         self.autoreset_mode, self.output = autoreset_mode, output
+        self.action_check_every = _int(action_check_every, "action_check_every")
+        self.defer_action_checks = output == "torch" and torch.device(dynamics.device).type == "cuda"
+        self.env_steps = 0       # step() calls since construction (what a deferred action check names)
+        self._bad_step = None    # [N] int64 on the device: the first env step of non-finite actions, else -1
+        self._diverged = torch.zeros(num_envs, dtype=torch.bool, device=dynamics.device)   # learned model: NaN / Inf
         self.dynamics, self.backend = dynamics.kind, dynamics.backend
         self.device, self.dt = dynamics.device, float(system.dt) * action_repeat
         self.metadata = {"autoreset_mode": autoreset_mode, "render_modes": [], "render_fps": 1.0 / self.dt}
@@ -307,6 +325,7 @@ class ControlVectorEnv(VectorEnv):
                 self._np_random, self._np_random_seed = seeding.np_random(int(seed))
         elif self._np_random is None:
             self._np_random, self._np_random_seed = seeding.np_random()
+        self.check_actions()
         self._start(mask, options)
         return self._out(self._observe(self._body)), {}
 
@@ -339,7 +358,21 @@ class ControlVectorEnv(VectorEnv):
         self._body = body
         self.elapsed[mask] = 0
         self._ended[mask] = False
+        self._diverged = self._diverged & torch.as_tensor(~mask, device=self.device)
         self.last_actions[torch.as_tensor(mask, device=self.device)] = 0
+
+    def check_actions(self) -> None:
+        """Read the deferred NaN / Inf action flag (one host sync; nothing to do without deferred
+        checks): ``VectorEnvError`` naming the first env and env step with non-finite actions."""
+        if self._bad_step is None:
+            return
+        flagged, self._bad_step = self._bad_step, None
+        first = flagged.cpu()
+        if bool((first >= 0).any()):
+            i = int(torch.where(first >= 0, first, torch.iinfo(torch.int64).max).argmin())
+            raise VectorEnvError(f"the actions of env {i} held NaN or Inf at env step {int(first[i])} (actions on the "
+                                 f"device are checked every {self.action_check_every} steps; that step and later "
+                                 "ones applied zero actions in that env)")
 
     def _actions(self, actions, stepping: np.ndarray) -> torch.Tensor:
         """``actions`` [N, U] as a tensor on ``device``, finite where envs step, clamped to the
@@ -349,14 +382,25 @@ class ControlVectorEnv(VectorEnv):
             raise VectorEnvError(f"actions must hold real numbers, got dtype {a.dtype}")
         if tuple(a.shape) != (self.num_envs, self.nu):
             raise VectorEnvError(f"actions must be [num_envs={self.num_envs}, U={self.nu}], got {tuple(a.shape)}")
-        a = a.to(self.device, torch.float64)
-        step_t = None if stepping.all() else torch.as_tensor(stepping, device=self.device)
+        # deferred for tensors already on the env's device (a CUDA tensor, or any with the checks forced)
+        deferred = (self.defer_action_checks and isinstance(actions, torch.Tensor)
+                    and a.device == torch.device(self.device))
+        stepping_on = None if stepping.all() else torch.as_tensor(stepping, device=a.device)
         bad = ~torch.isfinite(a).all(1)
-        if step_t is not None:
-            bad &= step_t
-        if bool(bad.any()):
-            i = int(bad.nonzero()[0, 0])
-            raise VectorEnvError(f"the actions of env {i} hold NaN or Inf: {a[i].tolist()}")
+        if stepping_on is not None:
+            bad &= stepping_on
+        if not deferred:   # host actions, or outputs read on the host each step anyway: checked at once
+            if bool(bad.any()):
+                i = int(bad.nonzero()[0, 0])
+                raise VectorEnvError(f"the actions of env {i} hold NaN or Inf: {a[i].tolist()}")
+        a = a.to(self.device, torch.float64)
+        if deferred:       # flagged on the device, read by check_actions
+            bad = bad.to(self.device)
+            if self._bad_step is None:
+                self._bad_step = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
+            self._bad_step = torch.where(bad & (self._bad_step < 0), self.env_steps, self._bad_step)
+            a = torch.where(bad[:, None], torch.zeros_like(a), a)
+        step_t = None if stepping_on is None else stepping_on.to(self.device)
         a = torch.maximum(torch.minimum(a, self.ctrl_hi), self.ctrl_lo)
         if step_t is not None:
             a = torch.where(step_t[:, None], a, torch.zeros_like(a))
@@ -378,6 +422,8 @@ class ControlVectorEnv(VectorEnv):
             k = self.action_repeat
             traj = self.sim.rollout(u[:, None].expand(n, k, self.nu))
             body = traj[:, -1]
+            if self.dynamics == "learned":
+                self._diverged = self._diverged | ~torch.isfinite(body).flatten(1).all(1)
             r = self._scorer(traj, u.to(traj.dtype)[:, None].expand(n, k, self.nu), self.targets)
             r = torch.as_tensor(r).to(self.device, torch.float32).reshape(n)
             rewards = r if stepping.all() else torch.where(torch.as_tensor(stepping, device=self.device), r, rewards)
@@ -386,13 +432,18 @@ class ControlVectorEnv(VectorEnv):
             self.elapsed[stepping] += self.action_repeat
             self.control_steps += int(stepping.sum()) * self.action_repeat
         truncated = stepping & (self.elapsed >= self.episode_steps)
+        self.env_steps += 1
+        if self._bad_step is not None and (self.env_steps % self.action_check_every == 0 or truncated.any()):
+            self.check_actions()
         infos = {}
+        if self.dynamics == "learned":
+            infos = {"diverged": self._out(self._diverged.clone()), "_diverged": np.ones(n, dtype=bool)}
         if mode == AutoresetMode.NEXT_STEP and ended.any():
             self._start(ended)
         obs = self._observe(self._body)
         if mode == AutoresetMode.SAME_STEP and truncated.any():
-            infos = {"final_obs": self._out(obs.clone()), "_final_obs": truncated.copy(),
-                     "final_body_states": self._out(self._body.clone()), "_final_body_states": truncated.copy()}
+            infos.update({"final_obs": self._out(obs.clone()), "_final_obs": truncated.copy(),
+                          "final_body_states": self._out(self._body.clone()), "_final_body_states": truncated.copy()})
             self._start(truncated)
             obs = self._observe(self._body)
         else:
@@ -413,7 +464,8 @@ class ControlVectorEnv(VectorEnv):
 def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto", seed=None,
                     episode_steps: int | None = None, system=None, autoreset_mode="next_step",
                     output: str = "numpy", observation: str | Callable = "bodies", action_repeat: int = 1,
-                    per_env_seeds: bool = True, device=None, **env_kw) -> ControlVectorEnv:
+                    per_env_seeds: bool = True, device=None, action_check_every: int = 100,
+                    **env_kw) -> ControlVectorEnv:
     """``num_envs`` episodes of ``task`` (a ``Task`` or its name) as a ``gymnasium.vector.VectorEnv``.
 
     ``dynamics``: "true" (the true simulator on ``backend``: "auto", "mujoco", "mujoco_warp",
@@ -430,7 +482,9 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
     steps (a multiple of it). ``per_env_seeds``: each env draws its initial states from its own
     generator (default; one call of the task's ``initial`` per env), or all envs from one shared
     generator in one call (False: faster resets of many envs; the same seed gives the same
-    observations only for the same ``num_envs``)."""
+    observations only for the same ``num_envs``). ``action_check_every``: env steps between reads
+    of the NaN / Inf flag of device actions (``output="torch"`` on CUDA; see the module's
+    docstring)."""
     from gnwarp.sim.systems import System, make
     task = get_task(task)
     num_envs = _int(num_envs, "num_envs")
@@ -447,6 +501,7 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
         raise VectorEnvError(f"task {task.name!r} has no episode_steps: pass episode_steps= (the time limit in steps)")
     steps = _int(steps, "episode_steps")
     k = _int(action_repeat, "action_repeat")
+    _int(action_check_every, "action_check_every")
     if steps % k:
         raise VectorEnvError(f"episode_steps ({steps}) must be a multiple of action_repeat ({k})")
     mode = autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else _MODES.get(str(autoreset_mode).lower())
@@ -469,4 +524,4 @@ def make_vector_env(task, num_envs: int, dynamics="true", backend: str = "auto",
             raise VectorEnvError(f"options {sorted(env_kw)} are for the true simulator, not a learned model")
         sim = LearnedDynamics(dynamics, system, num_envs, k)
     return ControlVectorEnv(task, system, sim, num_envs, steps, mode, seed, output, observation, k,
-                            bool(per_env_seeds))
+                            bool(per_env_seeds), action_check_every)

@@ -28,14 +28,20 @@ class Domain:
     ``get_model_and_assets`` takes (the swimmer's number of bodies); ``control_dt``: DMC's control
     timestep in seconds (the suite module's ``_CONTROL_TIMESTEP``, else the model's timestep);
     ``physics_dt``: the model's own timestep; ``time_limit``: DMC's episode length in seconds;
-    ``translation_invariant``: dynamics independent of the horizontal position."""
+    ``translation_axes``: the position axes (0: x, 1: y) along which the dynamics and rewards do
+    not depend on position (empty: none)."""
     name: str
     module: str
     args: tuple
     control_dt: float
     physics_dt: float
     time_limit: float
-    translation_invariant: bool
+    translation_axes: tuple
+
+    @property
+    def translation_invariant(self) -> bool:
+        """Whether the dynamics are independent of the horizontal position along some axis."""
+        return bool(self.translation_axes)
 
     @property
     def substeps(self) -> int:
@@ -49,14 +55,14 @@ class Domain:
 
 
 DOMAINS: dict[str, Domain] = {d.name: d for d in (
-    Domain("dmc-cheetah", "cheetah", (), 0.01, 0.01, 10.0, True),
-    Domain("dmc-walker", "walker", (), 0.025, 0.0025, 25.0, True),
-    Domain("dmc-hopper", "hopper", (), 0.02, 0.005, 20.0, True),
-    Domain("dmc-swimmer6", "swimmer", (6,), 0.03, 0.002, 30.0, True),
-    Domain("dmc-reacher", "reacher", (), 0.02, 0.02, 20.0, False),
-    Domain("dmc-cartpole", "cartpole", (), 0.01, 0.01, 10.0, False),
-    Domain("dmc-pendulum", "pendulum", (), 0.02, 0.02, 20.0, False),
-    Domain("dmc-acrobot", "acrobot", (), 0.01, 0.01, 10.0, False),
+    Domain("dmc-cheetah", "cheetah", (), 0.01, 0.01, 10.0, (0,)),
+    Domain("dmc-walker", "walker", (), 0.025, 0.0025, 25.0, (0,)),
+    Domain("dmc-hopper", "hopper", (), 0.02, 0.005, 20.0, (0,)),
+    Domain("dmc-swimmer6", "swimmer", (6,), 0.03, 0.002, 30.0, (0, 1)),
+    Domain("dmc-reacher", "reacher", (), 0.02, 0.02, 20.0, ()),
+    Domain("dmc-cartpole", "cartpole", (), 0.01, 0.01, 10.0, ()),
+    Domain("dmc-pendulum", "pendulum", (), 0.02, 0.02, 20.0, ()),
+    Domain("dmc-acrobot", "acrobot", (), 0.01, 0.01, 10.0, ()),
 )}
 
 

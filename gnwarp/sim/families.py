@@ -28,7 +28,8 @@ class Family:
     """A built-in system family.
 
     ``build(params, timestep) -> MjSpec``; ``dt``: data timestep (s); ``substeps``: physics steps
-    per data step; ``translation_invariant``: dynamics independent of the horizontal position;
+    per data step; ``translation_axes``: the position axes (0: x, 1: y) along which the dynamics
+    and rewards do not depend on position (empty: none; ``translation_invariant`` says whether any);
     ``full_circle``: random initial states draw unlimited hinges over the full circle (else
     +-0.1 rad around the reference pose); ``links``: the sizes "<name><N>" may take (None: the
     name takes no size), ``sampled_links``: the sizes its parameterized variant samples,
@@ -39,11 +40,16 @@ class Family:
     build: Callable[[dict[str, float], float], mujoco.MjSpec]
     dt: float
     substeps: int
-    translation_invariant: bool
+    translation_axes: tuple[int, ...]
     full_circle: bool
     links: tuple[int, int] | None = None
     sampled_links: tuple[int, int] | None = None
     default_links: int | None = None
+
+    @property
+    def translation_invariant(self) -> bool:
+        """Whether the dynamics are independent of the horizontal position along some axis."""
+        return bool(self.translation_axes)
 
     def ranges(self, n: int | None = None) -> list[Range]:
         """(parameter, group label, range) of every parameter, in sampling order ([] for a
@@ -123,18 +129,18 @@ def _build_cheetah(p: dict[str, float], timestep: float) -> mujoco.MjSpec:
 
 
 FAMILIES: dict[str, Family] = {
-    "pendulum": Family("pendulum", build_pendulum, dt=0.02, substeps=1, translation_invariant=False,
+    "pendulum": Family("pendulum", build_pendulum, dt=0.02, substeps=1, translation_axes=(),
                        full_circle=True),
-    "cartpole": Family("cartpole", build_cartpole, dt=0.01, substeps=1, translation_invariant=False,
+    "cartpole": Family("cartpole", build_cartpole, dt=0.01, substeps=1, translation_axes=(),
                        full_circle=True),
-    "acrobot": Family("acrobot", build_acrobot, dt=0.01, substeps=1, translation_invariant=False, full_circle=True),
+    "acrobot": Family("acrobot", build_acrobot, dt=0.01, substeps=1, translation_axes=(), full_circle=True),
     # dm_control's swimmer steps at 2 ms; SwimmerN exists for N in 3..15, the parameterized one samples 3..9 (paper B)
-    "swimmer": Family("swimmer", build_swimmer, dt=0.02, substeps=10, translation_invariant=True, full_circle=False,
+    "swimmer": Family("swimmer", build_swimmer, dt=0.02, substeps=10, translation_axes=(0, 1), full_circle=False,
                       links=(3, 15), sampled_links=(3, 9), default_links=6),
-    "cheetah": Family("cheetah", _build_cheetah, dt=0.01, substeps=1, translation_invariant=True, full_circle=False),
-    "walker": Family("walker", build_walker, dt=0.0025, substeps=1, translation_invariant=True, full_circle=False),
+    "cheetah": Family("cheetah", _build_cheetah, dt=0.01, substeps=1, translation_axes=(0,), full_circle=False),
+    "walker": Family("walker", build_walker, dt=0.0025, substeps=1, translation_axes=(0,), full_circle=False),
     # 100 ms data steps over 10 ms implicit physics steps.
-    "jaco": Family("jaco", build_jaco, dt=0.1, substeps=10, translation_invariant=False, full_circle=False),
+    "jaco": Family("jaco", build_jaco, dt=0.1, substeps=10, translation_axes=(), full_circle=False),
 }
 
 

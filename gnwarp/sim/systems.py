@@ -28,11 +28,12 @@ import mujoco
 import numpy as np
 
 from gnwarp.sim.actuators import Actuators
-from gnwarp.sim.families import FAMILIES, parse_name
+from gnwarp.sim.families import FAMILIES, family_of, parse_name
 
 __all__ = [
     "System",
     "names",
+    "translation_axes",
     "make",
     "param_ranges",
     "param_places",
@@ -68,8 +69,9 @@ class System:
       substeps: physics steps per data step.
       params: the parameter factors this instance was built with (empty for fixed systems).
       parameterized: whether this is an instance of a parameterized variant.
-      translation_invariant: whether the dynamics do not depend on the horizontal position
-        (swimmer, cheetah, walker; paper D.4 re-centers these before prediction).
+      translation_axes: the position axes (0: x, 1: y) along which the dynamics and rewards do
+        not depend on position (swimmer: x and y, cheetah and walker: x; paper D.4 re-centers
+        these before prediction); ``translation_invariant`` says whether there is any.
       source: "builtin", "dm_control" (a DMC domain, ``gnwarp.sim.dmc``), or the path of the MJCF
         file ("string" for MJCF text).
       spec: the `mujoco.MjSpec` the model was compiled from (to derive variants of the model,
@@ -82,9 +84,14 @@ class System:
     substeps: int
     params: dict[str, float] = dataclasses.field(default_factory=dict)
     parameterized: bool = False
-    translation_invariant: bool = False
+    translation_axes: tuple[int, ...] = ()
     source: str = "builtin"
     spec: mujoco.MjSpec | None = dataclasses.field(default=None, repr=False)
+
+    @property
+    def translation_invariant(self) -> bool:
+        """Whether the dynamics do not depend on the horizontal position along some axis."""
+        return bool(self.translation_axes)
 
     @property
     def nbody(self) -> int:
@@ -278,7 +285,7 @@ def make(name: str, params: dict[str, float] | None = None, seed: int | None = N
     check_model(model, system_name)
     return System(name=system_name, model=model, dt=fam.dt, substeps=fam.substeps,
                   params=full if parameterized else {}, parameterized=parameterized,
-                  translation_invariant=fam.translation_invariant, spec=spec)
+                  translation_axes=fam.translation_axes, spec=spec)
 
 
 def _check_timing(where, dt, substeps) -> None:
@@ -342,17 +349,38 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
 
 
 def from_mjcf_string(xml: str, assets: dict | None = None, name: str = "model", dt: float | None = None,
-                     substeps: int = 1, source: str = "string", translation_invariant: bool = False) -> System:
+                     substeps: int = 1, source: str = "string", translation_axes=()) -> System:
     """Loads MJCF text (with ``assets``: {file name: bytes} for its includes, meshes and textures)
-    as a fixed system called ``name``; ``dt`` and ``substeps`` as ``from_mjcf``. The same checks
-    and errors as ``from_mjcf``, naming ``name``."""
+    as a fixed system called ``name``; ``dt`` and ``substeps`` as ``from_mjcf``;
+    ``translation_axes`` as ``System``'s. The same checks and errors as ``from_mjcf``, naming
+    ``name``."""
     if not isinstance(xml, str):
         raise ValueError(f"{name}: MJCF text must be a string, got {type(xml).__name__}")
     _check_timing(name, dt, substeps)
+    axes = _axes(name, translation_axes)
     spec, model, dt = _compile_checked(lambda: mujoco.MjSpec.from_string(xml, assets or {}), name, dt, substeps,
                                        lambda: _check_mjcf_text(xml, name))
     return System(name=name, model=model, dt=dt, substeps=int(substeps), source=source, spec=spec,
-                  translation_invariant=bool(translation_invariant))
+                  translation_axes=axes)
+
+
+def _axes(name: str, axes) -> tuple[int, ...]:
+    axes = tuple(axes)
+    if any(isinstance(a, bool) or a not in (0, 1) for a in axes) or len(set(axes)) != len(axes):
+        raise ValueError(f"{name}: translation_axes must hold distinct horizontal axes among 0 (x) and 1 (y), "
+                         f"got {axes!r}")
+    return tuple(int(a) for a in axes)
+
+
+def translation_axes(name: str) -> tuple[int, ...]:
+    """The translation-invariant position axes of the built-in or DMC system ``name`` (as its
+    ``System.translation_axes``, without building it); () for a name that is neither."""
+    from gnwarp.sim import dmc
+    if dmc.is_dmc(name):
+        d = dmc.DOMAINS.get(name.strip().lower())
+        return d.translation_axes if d is not None else ()
+    fam = family_of(name)
+    return fam.translation_axes if fam is not None else ()
 
 
 def _make_dmc(name: str, params, seed) -> System:
@@ -363,7 +391,7 @@ def _make_dmc(name: str, params, seed) -> System:
         raise ValueError(f"{d.name} has no parameterized variant (DMC's domains are fixed); use make({d.name!r})")
     xml, assets = dmc.model_source(d.name)
     system = from_mjcf_string(xml, assets, name=d.name, dt=d.control_dt, substeps=d.substeps, source="dm_control",
-                              translation_invariant=d.translation_invariant)
+                              translation_axes=d.translation_axes)
     _fold_total_mass(system)
     return system
 
