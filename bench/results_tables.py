@@ -147,11 +147,21 @@ def headline(root: Path, doc: Path) -> list[str]:
     ctl = _groups(root, "control/results.jsonl")
     share = []
     for task, name in (("pendulum-balance", "pendulum"), ("cartpole-balance", "cartpole"),
-                       ("acrobot-swingup", "acrobot"), ("swimmer-reach", "swimmer")):
+                       ("acrobot-swingup", "acrobot"), ("swimmer-reach", "swimmer"),
+                       ("cheetah-forward", "cheetah-forward"), ("walker-forward", "walker-forward")):
         gn, ilqg = _find(ctl, task=task, planner="gradient", variant=""), _find(ctl, task=task, planner="ilqg")
         share.append(f"{_pct(gn, ilqg)} {name}")
+    summary = json.loads((root / RESULTS / "control" / "summary.json").read_text())
+    run = [r for r in summary if r["task"] == "dmc-cheetah-run"]
+    loop = [r["mean"] for r in run if r["protocol"] == "loop" and r["variant"] == "loop"]
+    oracle = [r for r in run if r["planner"] == "sampling" and r["dynamics"] == "true_mjwarp"]
+    dmc = ""
+    if loop and oracle:
+        dmc = (f"; DMC cheetah-run: {min(loop):.0f}-{max(loop):.0f} in the data loop (to "
+               f"{max(r['env_steps'] for r in run if r['protocol'] == 'loop') // 1000}k env steps) against "
+               f"{oracle[0]['mean']:.0f} for sampling on the true dynamics")
     rows.append(["gradient MPC through the learned model against iLQG on true MuJoCo (returns)",
-                 ", ".join(share), link("control")])
+                 ", ".join(share) + dmc, link("control")])
     lat = {(r["system"], r["episodes"], r["horizon"], r["iterations"], r["path"]): r
            for r in json.loads((root / RESULTS / "mpc_latency_nvidia-h100-80gb-hbm3.json").read_text())}
     one = {p: lat["pendulum", 1, 50, 5, p]["steady_ms"] for p in ("fused", "unfused", "torch_graph")}
