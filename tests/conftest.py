@@ -1,10 +1,40 @@
-"""Shared test settings."""
+"""Shared test settings and fixtures."""
+import importlib
+import warnings
+
+import mujoco
 import pytest
 import torch
 
 from gnwarp.interop import warp
 
 warp()  # initialize Warp once, quietly
+
+
+@pytest.fixture(scope="module")
+def suite_physics():
+    """dm_control's suite Physics on this MuJoCo (needs dm_control: the DMC tests importorskip it):
+    its index tables lose the fields MuJoCo no longer has (flex_vertedge, ...), restored afterwards.
+    ``make(system)`` -> (the suite's task module, its Physics of the DMC system)."""
+    from dm_control.mujoco.wrapper.mjbindings import sizes
+    m = mujoco.MjModel.from_xml_string("<mujoco/>")
+    d = mujoco.MjData(m)
+    gone = {}
+    for struct, obj in (("mjmodel", m), ("mjdata", d)):
+        for field in list(sizes.array_sizes[struct]):
+            if not hasattr(obj, field):
+                gone[struct, field] = sizes.array_sizes[struct].pop(field)
+
+    def make(system):
+        from gnwarp.sim import dmc
+        d = dmc.domain(system)
+        module = importlib.import_module(f"dm_control.suite.{d.module}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return module, module.Physics.from_xml_string(*module.get_model_and_assets(*d.args))
+    yield make
+    for (struct, field), v in gone.items():
+        sizes.array_sizes[struct][field] = v
 
 
 @pytest.fixture(scope="module", autouse=True)

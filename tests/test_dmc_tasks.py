@@ -1,9 +1,7 @@
 """DMC tasks (gnwarp.control.dmc): each reward on graph states against the suite's own
 ``task.get_reward(physics)`` on the same MuJoCo C trajectories, the torch tolerance against
 dm_control's, surrogates against the exact rewards, initial states and targets, ``gnwarp mpc``."""
-import importlib
 import math
-import warnings
 
 import mujoco
 import numpy as np
@@ -18,30 +16,6 @@ from gnwarp.sim.body_state import body_states
 pytest.importorskip("dm_control")
 pytestmark = pytest.mark.filterwarnings("ignore:.*DISPLAY environment variable")
 from dm_control.utils import rewards  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def suite_physics():
-    """dm_control's suite Physics on this MuJoCo: its index tables lose the fields MuJoCo no longer
-    has (flex_vertedge, ...), restored afterwards."""
-    from dm_control.mujoco.wrapper.mjbindings import sizes
-    m = mujoco.MjModel.from_xml_string("<mujoco/>")
-    d = mujoco.MjData(m)
-    gone = {}
-    for struct, obj in (("mjmodel", m), ("mjdata", d)):
-        for field in list(sizes.array_sizes[struct]):
-            if not hasattr(obj, field):
-                gone[struct, field] = sizes.array_sizes[struct].pop(field)
-
-    def make(system):
-        d = dmc.domain(system)
-        module = importlib.import_module(f"dm_control.suite.{d.module}")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return module, module.Physics.from_xml_string(*module.get_model_and_assets(*d.args))
-    yield make
-    for (struct, field), v in gone.items():
-        sizes.array_sizes[struct][field] = v
 
 
 # the suite's task object of each task

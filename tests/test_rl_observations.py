@@ -2,9 +2,7 @@
 trajectories (float64), and the joint coordinates against MuJoCo's qpos / qvel."""
 from __future__ import annotations
 
-import importlib
 import math
-import warnings
 
 import mujoco
 import numpy as np
@@ -15,34 +13,10 @@ from gnwarp.control import dmc as cdmc
 from gnwarp.control.tasks import get_task, sample_targets
 from gnwarp.rl.obs_reward import ObservationReward, forward_kinematics
 from gnwarp.rl.observations import DMCObservation, joint_coordinates, observation_domain, wrap_angle
-from gnwarp.sim import dmc, systems
+from gnwarp.sim import systems
 from gnwarp.sim.body_state import body_states
 
 pytest.importorskip("dm_control")
-
-
-@pytest.fixture(scope="module")
-def suite_physics():
-    """dm_control's suite Physics on this MuJoCo: its index tables lose the fields MuJoCo no longer
-    has (flex_vertedge, ...), restored afterwards."""
-    from dm_control.mujoco.wrapper.mjbindings import sizes
-    m = mujoco.MjModel.from_xml_string("<mujoco/>")
-    d = mujoco.MjData(m)
-    gone = {}
-    for struct, obj in (("mjmodel", m), ("mjdata", d)):
-        for field in list(sizes.array_sizes[struct]):
-            if not hasattr(obj, field):
-                gone[struct, field] = sizes.array_sizes[struct].pop(field)
-
-    def make(system):
-        d = dmc.domain(system)
-        module = importlib.import_module(f"dm_control.suite.{d.module}")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return module, module.Physics.from_xml_string(*module.get_model_and_assets(*d.args))
-    yield make
-    for (struct, field), v in gone.items():
-        sizes.array_sizes[struct][field] = v
 
 
 SUITE_TASKS = {
