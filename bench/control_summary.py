@@ -42,7 +42,7 @@ if str(ROOT) not in sys.path:
 
 from gnwarp.eval.records import RecordError, read_records  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
-from gnwarp.files import atomic_write  # noqa: E402
+from gnwarp.files import write_or_check  # noqa: E402
 
 __all__ = ["bootstrap_ci", "protocol_of", "variant_of", "rows", "main"]
 
@@ -171,16 +171,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     root = Path(a.root)
     text = json.dumps(rows(root), indent=1, allow_nan=False) + "\n"
-    path = root / CONTROL / "summary.json"
-    if a.check:
-        if not path.exists() or path.read_text() != text:
-            print(f"{path} differs from its records: run python3 bench/control_summary.py", file=sys.stderr)
-            return 1
-        return 0
-    with atomic_write(path) as tmp:
-        tmp.write_text(text)
-    print(f"wrote {path}")
-    return 0
+    return write_or_check(root / CONTROL / "summary.json", text, a.check, "python3 bench/control_summary.py")
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from gnwarp.eval.records import RecordError, read_records  # noqa: E402
-from gnwarp.files import atomic_write  # noqa: E402
+from gnwarp.files import atomic_write, write_or_check  # noqa: E402
 
 __all__ = ["RL", "rows", "point", "plot_curves", "main"]
 
@@ -126,15 +126,9 @@ def main(argv=None) -> int:
     summary = rows(root)
     text = json.dumps(summary, indent=1, allow_nan=False) + "\n"
     path = root / RL / "summary.json"
+    status = write_or_check(path, text, a.check, "python3 bench/rl_summary.py")
     if a.check:
-        if not path.exists() or path.read_text() != text:
-            print(f"{path} differs from its records: run python3 bench/rl_summary.py", file=sys.stderr)
-            return 1
-        return 0
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(path) as tmp:
-        Path(tmp).write_text(text)
-    print(f"wrote {path}")
+        return status
     if not a.no_plot and summary:
         for p in plot_curves(summary, path.parent):
             print(f"wrote {p}")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["sha256_file", "jsonable", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries",
-           "check_output_path"]
+           "check_output_path", "write_or_check"]
 
 _TEMPORARY = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)$")
 
@@ -173,3 +173,22 @@ def check_output_path(path: str | os.PathLike, folder: bool = False) -> Path:
         raise PermissionError(f"cannot write {'output folder' if folder else 'output file'} {p}: "
                               f"{target} is not writable")
     return p
+
+
+def write_or_check(path: str | Path, text: str, check: bool, command: str) -> int:
+    """A file generated from other files: with ``check``, 0 when ``path`` holds exactly ``text``,
+    else 1 with a line on stderr naming ``command`` (what regenerates it); without, ``text`` is
+    written whole (``atomic_write``, the parent folder made) and 0 returned."""
+    import sys  # noqa: PLC0415
+    path = Path(path)
+    if check:
+        if not path.exists() or path.read_text() != text:
+            print(f"{path} differs from its records: run {command}", file=sys.stderr)
+            return 1
+        return 0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(text)
+    print(f"wrote {path}")
+    return 0
+
