@@ -34,6 +34,7 @@ from torch import nn
 from gnwarp.gn.config import GNBlockConfig
 from gnwarp.gn.module import GraphNetwork
 from gnwarp.gn.options import RunOptions
+from gnwarp.rl.networks import NormalizedModel
 from gnwarp.gn.reference import MLP
 from gnwarp.rl.obs_graph import ObservationGraph
 
@@ -159,43 +160,30 @@ class GNQFunction(nn.Module):
         return self.gn(self.graph(obs, action)).globals[:, 0]
 
 
-class GNObservationModel(nn.Module):
+class GNObservationModel(NormalizedModel):
     """``(obs [N, D], action [N, U]) -> next_obs [N, D]``: obs plus the change the last block
     predicts in each entry's graph place (node outputs for body entries, forward edge outputs for
     joint entries, global outputs for the rest).
 
     The graph reads normalized observations ``(obs - obs_mean) / obs_std`` and the outputs are
     changes in units of ``delta_std`` (buffers [D], saved with the weights; 0 and 1 until
-    ``normalize_from`` sets them from data)."""
+    ``normalize_from`` sets them from data: ``NormalizedModel``)."""
 
     def __init__(self, graph, latent: int = 64, hidden: tuple[int, ...] = (64,), blocks: int = 2, **run):
-        super().__init__()
-        self.graph = _graph(graph)
+        graph = _graph(graph)
+        super().__init__(graph.obs_size)
+        self.graph = graph
         g = self.graph
         fv, fe, fu = g.node_index.shape[1], g.edge_index.shape[1], g.global_index.shape[0]
         self.gn = GNStack(g.node_size, g.edge_size(True), g.global_size, max(fv, 1), max(fe, 1), fu,
                           latent, hidden, blocks, **run)
-        self.register_buffer("obs_mean", torch.zeros(g.obs_size))
-        self.register_buffer("obs_std", torch.ones(g.obs_size))
-        self.register_buffer("delta_std", torch.ones(g.obs_size))
-
-    @torch.no_grad()
-    def normalize_from(self, obs: torch.Tensor, next_obs: torch.Tensor, min_std: float = 1e-6) -> None:
-        """Set ``obs_mean``, ``obs_std`` and ``delta_std`` from transitions obs, next_obs [B, D]
-        (standard deviations at least ``min_std``)."""
-        if obs.shape != next_obs.shape or obs.ndim != 2 or obs.shape[1] != self.graph.obs_size or obs.shape[0] < 2:
-            raise ValueError(f"obs and next_obs must both be [B >= 2, {self.graph.obs_size}], "
-                             f"got {tuple(obs.shape)} and {tuple(next_obs.shape)}")
-        self.obs_mean.copy_(obs.mean(0))
-        self.obs_std.copy_(obs.std(0).clamp_min(min_std))
-        self.delta_std.copy_((next_obs - obs).std(0).clamp_min(min_std))
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         g = self.graph
-        out = self.gn(g((obs - self.obs_mean) / self.obs_std, action))
+        out = self.gn(g(self.normalized(obs), action))
         if g.global_size == 0:
             out = out._replace(globals=obs.new_zeros(obs.shape[0], 0))
-        return obs + g.flat_features(out) * self.delta_std
+        return self.step(obs, g.flat_features(out))
 
 
 # -- the MLP option: the same signatures on the flat observation --------------------------------

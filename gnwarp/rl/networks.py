@@ -72,21 +72,22 @@ class QFunction(nn.Module):
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
 
 
-class ObservationModel(nn.Module):
-    """A model ``(obs [B, D], action [B, U]) -> next_obs [B, D]``: ``obs`` plus an MLP's change of
-    the normalized ``(obs - obs_mean) / obs_std`` and the action, in units of ``delta_std``
-    (buffers [D], saved with the weights; 0 and 1 until ``normalize_from`` sets them)."""
+class NormalizedModel(nn.Module):
+    """What every observation model shares: buffers ``obs_mean``, ``obs_std`` and ``delta_std``
+    [D] (saved with the weights; 0, 1 and 1 until ``normalize_from`` sets them from data), the
+    normalized input ``normalized(obs)`` and the next observation ``step(obs, change)`` =
+    obs + change x delta_std."""
 
-    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]):
+    def __init__(self, obs_dim: int):
         super().__init__()
-        self.net = mlp(obs_dim + action_dim, hidden, obs_dim)
         self.register_buffer("obs_mean", torch.zeros(obs_dim))
         self.register_buffer("obs_std", torch.ones(obs_dim))
         self.register_buffer("delta_std", torch.ones(obs_dim))
 
     @torch.no_grad()
     def normalize_from(self, obs: torch.Tensor, next_obs: torch.Tensor, min_std: float = 1e-6) -> None:
-        """Set ``obs_mean``, ``obs_std`` and ``delta_std`` from transitions obs, next_obs [B >= 2, D]."""
+        """Set ``obs_mean``, ``obs_std`` and ``delta_std`` from transitions obs, next_obs [B >= 2, D]
+        (standard deviations at least ``min_std``)."""
         if obs.shape != next_obs.shape or obs.ndim != 2 or obs.shape[1] != self.obs_mean.numel() or obs.shape[0] < 2:
             raise ValueError(f"obs and next_obs must both be [B >= 2, {self.obs_mean.numel()}], "
                              f"got {tuple(obs.shape)} and {tuple(next_obs.shape)}")
@@ -94,6 +95,21 @@ class ObservationModel(nn.Module):
         self.obs_std.copy_(obs.std(0).clamp_min(min_std))
         self.delta_std.copy_((next_obs - obs).std(0).clamp_min(min_std))
 
+    def normalized(self, obs: torch.Tensor) -> torch.Tensor:
+        return (obs - self.obs_mean) / self.obs_std
+
+    def step(self, obs: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
+        return obs + change * self.delta_std
+
+
+class ObservationModel(NormalizedModel):
+    """A model ``(obs [B, D], action [B, U]) -> next_obs [B, D]``: ``obs`` plus an MLP's change of
+    the normalized ``(obs - obs_mean) / obs_std`` and the action, in units of ``delta_std``
+    (``NormalizedModel``)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]):
+        super().__init__(obs_dim)
+        self.net = mlp(obs_dim + action_dim, hidden, obs_dim)
+
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([(obs - self.obs_mean) / self.obs_std, action], -1)
-        return obs + self.net(x) * self.delta_std
+        return self.step(obs, self.net(torch.cat([self.normalized(obs), action], -1)))
