@@ -46,7 +46,7 @@ import torch
 
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
-from gnwarp.distributed import ranks as join_ranks
+from gnwarp.distributed import launched, ranks as join_ranks
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
@@ -80,8 +80,13 @@ class Trainer:
     ``callback(trainer, event, info)``.
     """
 
+    # whether this trainer runs over several ranks (a subclass with its own step says False)
+    runs_on_ranks = True
+
     def __init__(self, config: TrainConfig, datasets=None, model: ForwardModel | None = None,
                  callbacks: list[Callable] = ()):
+        if not self.runs_on_ranks and launched():
+            raise ValueError(f"{type(self).__name__} trains in one process: start it without torchrun")
         self.config = config
         self.out = Path(config.out)
         self.ranks = join_ranks(config.device)   # rank 0 of 1 unless started by torchrun
@@ -539,7 +544,8 @@ class Trainer:
         steps_run = st["step"] - start_step
         summary = {"out": str(out), "best": str(out / "best"), "last": str(out / "last"), "steps": st["step"],
                    "best_step": st["best_step"], "best_error": st["best_error"], "stop": stop,
-                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9)}
+                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9),
+                   "rank": self.ranks.rank, "ranks": self.ranks.world}
         self.emit("end", summary=summary)
         return summary
 
