@@ -4,10 +4,11 @@ all-reduce's share of a training step, and the time to one validation error.
 One launch per GPU count, each appending rows to ``--records`` (JSON lines); ``--summarize``
 turns the rows of one run into ``bench/results/distributed_<gpu>.json`` and a table:
 
-    python bench/distributed.py --prepare --data /root/dist/cheetah.h5          # once: the dataset
-    for n in 1 2 4; do torchrun --nproc_per_node $n bench/distributed.py --data /root/dist/cheetah.h5 \\
-        --records bench/results/distributed/records.jsonl; done
-    python bench/distributed.py --summarize --records bench/results/distributed/records.jsonl
+    python bench/distributed.py --gpus 1,2,4 --data /root/dist/cheetah.h5 --records rec.jsonl
+
+(``--gpus``: the dataset if missing (``--prepare``), one ``torchrun --nproc_per_node N`` launch of
+this script per count, in order, then ``--summarize``; a launch whose captured step fails is run
+again uncaptured, and says so in its rows.)
 
 Per launch (every rank on its own GPU, rank 0 records):
 - generation: each rank simulates ``--gen-per-gpu`` cheetah sequences of ``--gen-steps`` steps with
@@ -237,12 +238,48 @@ def summarize(a) -> None:
     print(f"wrote {path} and {table}")
 
 
+def launch_all(a, argv) -> int:
+    """``--gpus 1,2,4``: prepare, one torchrun launch per count, summarize."""
+    import subprocess
+    import uuid
+    counts = [int(x) for x in a.gpus.split(",")]
+    rest, skip = [], False
+    for x in argv:   # the arguments every launch shares: all but --gpus
+        if skip:
+            skip = False
+            continue
+        if x == "--gpus":
+            skip = True
+            continue
+        if not x.startswith("--gpus="):
+            rest.append(x)
+    me = [sys.executable, str(Path(__file__).resolve())]
+    if not Path(a.data).exists():
+        subprocess.run(me + rest + ["--prepare"], check=True)
+    env = dict(os.environ, GNWARP_BENCH_RUN=a.run_id or f"run-{uuid.uuid4().hex[:8]}")
+    failed = []
+    for n in counts:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(n), "--master_port",
+               str(29500 + n)] + me[1:] + rest
+        t0 = time.perf_counter()
+        rc = subprocess.run(cmd, env=env).returncode
+        if rc != 0 and "--no-capture" not in rest:
+            print(f"{n} GPUs: launch failed (exit {rc}); again with --no-capture", flush=True)
+            rc = subprocess.run(cmd + ["--no-capture"], env=env).returncode
+        print(f"{n} GPUs: exit {rc} after {time.perf_counter() - t0:.0f} s", flush=True)
+        if rc != 0:
+            failed.append(n)
+    subprocess.run(me + rest + ["--summarize", "--run-id", env["GNWARP_BENCH_RUN"]])
+    return 1 if failed else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="runs/dist/cheetah.h5", help="the training dataset (made by --prepare)")
     ap.add_argument("--records", default="bench/results/distributed/records.jsonl")
     ap.add_argument("--work", default="runs/dist", help="folder of the trainers' (unused) run folders")
     ap.add_argument("--run-id", default=os.environ.get("GNWARP_BENCH_RUN", ""), help="names the run's rows")
+    ap.add_argument("--gpus", help="e.g. 1,2,4: one torchrun launch per count, then --summarize")
     ap.add_argument("--prepare", action="store_true", help="write the dataset and stop")
     ap.add_argument("--summarize", action="store_true", help="summary JSON and table from the records")
     ap.add_argument("--summary", help="the summary's path (default bench/results/distributed_<gpu>.json)")
@@ -266,6 +303,8 @@ def main(argv=None) -> int:
     if a.quick:
         a.train_sequences, a.valid_sequences, a.batch, a.strong_total = 8, 4, 4, 8
         a.warmup, a.steps, a.gen_per_gpu, a.gen_steps, a.tte_seconds, a.tte_every = 2, 3, 4, 5, 1.0, 2
+    if a.gpus:
+        return launch_all(a, argv if argv is not None else sys.argv[1:])
     if a.prepare:
         prepare(a)
     elif a.summarize:
