@@ -118,3 +118,14 @@ def test_rl_seeds_rank_env_on_a_cpu_run():
     from bench.rl_seeds import TORCHRUN_VARS, rank_env
     assert rank_env(0, "cpu") == {} and rank_env(5, "cpu") == {}
     assert {"WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_PORT"} <= set(TORCHRUN_VARS)
+
+
+@pytest.mark.parametrize("command", [["rl", "--agent", "svg0", "-o", "x"], ["loop", "-o", "x"]])
+def test_rl_and_loop_refuse_torchrun(command, monkeypatch, capsys, tmp_path):
+    from gnwarp.cli import main
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert "not under torchrun" in err and f"gnwarp {command[0]}: error" in err
+    assert not (tmp_path / "x").exists()
