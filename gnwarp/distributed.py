@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Ranks", "DistributedError", "ranks", "launched", "shard", "timeout_seconds", "collective"]
+__all__ = ["Ranks", "DistributedError", "ranks", "launched", "shard", "unshard", "timeout_seconds", "collective"]
 
 ENV_TIMEOUT = "GNWARP_DIST_TIMEOUT"
 
@@ -121,6 +121,37 @@ class Ranks:
             dist.gather_object(obj, out, dst=0)
         return out
 
+    def map_sharded(self, items, fn, *, batched: bool = False, what: str = "map_sharded") -> list | None:
+        """``fn`` over ``items`` (a sequence), each rank computing its shard (``self.shard``: items
+        ``rank, rank + world, ...``); the results, in the order of ``items``, on rank 0 (None on the
+        others). A single process computes every item and returns them (no collective).
+
+        ``fn``: one item -> its result, or with ``batched`` the list of this rank's items -> one
+        result per item (e.g. episodes planned together; not called for a rank with no items).
+        Results are pickled to rank 0 (keep them small: returns, not every state). A rank whose
+        ``fn`` raises re-raises it after telling the others, which raise ``DistributedError``
+        naming that rank and its error, so no rank waits for the group's timeout."""
+        items = list(items)
+        mine = [items[i] for i in self.shard(len(items))]
+        if not self.distributed:
+            return run_items(mine, fn, batched)
+        error, out = None, None
+        try:
+            out = run_items(mine, fn, batched)
+        except Exception as e:   # every rank learns of it below, instead of waiting at the gather
+            error = e
+        parts = self.gather_objects((None if error is None else f"{type(error).__name__}: {error}", out))
+        failed = None
+        if self.main:
+            failed = next(((k, msg) for k, (msg, _) in enumerate(parts) if msg is not None), None)
+        failed = self.broadcast_object(failed)
+        if error is not None:
+            raise error
+        if failed is not None:
+            raise DistributedError(f"rank {self.rank} of {self.world}: {what}: rank {failed[0]} failed "
+                                   f"({failed[1]})")
+        return unshard([p[1] for p in parts]) if self.main else None
+
     def barrier(self, what: str = "barrier") -> None:
         """Wait for every rank (gloo: ``monitored_barrier``, which names a rank that did not come)."""
         if not self.distributed:
@@ -140,6 +171,30 @@ def shard(n: int, rank: int, world: int) -> range:
     if not (0 <= rank < world):
         raise ValueError(f"rank {rank} is not in 0..{world - 1}")
     return range(rank, int(n), world)
+
+
+def unshard(parts: list) -> list:
+    """The items of every rank's list (``parts[k]``: rank ``k``'s results, in its ``shard`` order)
+    in the original order: item ``i`` is ``parts[i % world][i // world]``."""
+    world = len(parts)
+    sizes = [len(p) for p in parts]
+    n = sum(sizes)
+    want = [len(shard(n, k, world)) for k in range(world)]
+    if sizes != want:
+        raise DistributedError(f"the ranks returned {sizes} results, {n} items over {world} ranks need {want}")
+    return [parts[i % world][i // world] for i in range(n)]
+
+
+def run_items(mine: list, fn, batched: bool) -> list:
+    """``fn`` over this rank's items (see ``Ranks.map_sharded``): one result per item."""
+    if not batched:
+        return [fn(x) for x in mine]
+    if not mine:
+        return []
+    out = list(fn(mine))
+    if len(out) != len(mine):
+        raise ValueError(f"a batched function returned {len(out)} results for {len(mine)} items")
+    return out
 
 
 @contextlib.contextmanager

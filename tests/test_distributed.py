@@ -1,10 +1,6 @@
 """Several ranks on the CPU (gloo), started as torchrun starts them: a training step over two
 ranks against one process on the joint batch, resuming with another number of ranks, a rank that
 dies, sharded generation against one process, and the ranks' helpers."""
-import os
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,29 +12,10 @@ from gnwarp.data.format import ARRAYS, DatasetError
 from gnwarp.data.generation import generate
 from gnwarp.distributed import DistributedError, Ranks, collective, shard, timeout_seconds
 from gnwarp.graphs import GraphsTuple, batch
+from ranks import start_ranks
 
 HERE = Path(__file__).parent
 SMALL = dict(num_sequences=(6, 2, 2), num_steps=8, seed=5, backend="mujoco", progress=False)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_ranks(args, world=2, timeout=30, env=None):
-    """Start ``world`` processes of ``args`` with torchrun's variables; (returncodes, outputs)."""
-    port = free_port()
-    procs = []
-    for r in range(world):
-        e = dict(os.environ, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world), RANK=str(r),
-                 LOCAL_RANK=str(r), LOCAL_WORLD_SIZE=str(world), GNWARP_DIST_TIMEOUT=str(timeout),
-                 OMP_NUM_THREADS="1", **(env or {}))
-        procs.append(subprocess.Popen([sys.executable, *args], env=e, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True))
-    outs = [p.communicate(timeout=240)[0] for p in procs]
-    return [p.returncode for p in procs], outs
 
 
 @pytest.fixture(scope="module")
