@@ -8,13 +8,18 @@ resumed by the next call; afterwards each seed's records and log are copied to
 
 ``--set KEY=VALUE`` sets any other ``RLConfig`` key for every seed (values parsed as JSON where
 they parse). A call prints one line per seed: env steps reached and whether it is done.
+
+Under ``torchrun`` each rank starts only its share of the seeds (``seeds[rank::world]``), their
+processes on the rank's GPU (``CUDA_VISIBLE_DEVICES``; nothing changes on a CPU run); rank 0
+gathers every seed's line and files, prints the lines in seed order and copies the files:
+
+    torchrun --nproc_per_node 2 bench/rl_seeds.py --agent svg1 --task swimmer6 --seeds 0-5
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -24,7 +29,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-__all__ = ["seeds_of", "main"]
+__all__ = ["seeds_of", "main", "rank_env"]
+
+# copied to <results>/<task>/<run>/s<seed>/ for bench/rl_summary.py
+COPIED = ("records.jsonl", "progress.csv", "config.json")
+# what torchrun sets for its workers; a seed's process runs alone
+TORCHRUN_VARS = ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "GROUP_RANK", "GROUP_WORLD_SIZE",
+                 "ROLE_RANK", "ROLE_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT", "TORCHELASTIC_RUN_ID")
 
 QUICK = dict(task="pendulum-balance", agent="svg0", observation="bodies", num_envs=2, episode_steps=20,
              env_steps=160, hidden=[16], batch_size=16, start_steps=40, update_after=40, buffer_size=1000,
@@ -87,34 +98,68 @@ def main(argv=None) -> int:
     name = f"{base['agent']}-{base['preset']}-{base['networks']}"
     env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    procs = {}
+    from gnwarp.distributed import launched, ranks
+    # under torchrun: this process only starts and waits (gloo); its seeds' processes use its GPU
+    r = ranks("cpu")
+    if launched():
+        env.update(rank_env(r.local_rank, base.get("device", "auto")))
+        for k in TORCHRUN_VARS:   # a seed's process is one process, not a rank of this job
+            env.pop(k, None)
     started = time.perf_counter()
-    for s in seeds:
-        out = Path(a.runs) / name / f"s{s}"
-        out.mkdir(parents=True, exist_ok=True)
-        cfg = json.dumps({**base, "seed": s, "out": str(out)})
-        log = open(out / "call.log", "a")
-        procs[s] = (subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--one", cfg], env=env,
-                                     stdout=log, stderr=subprocess.STDOUT), out, log)
+
+    def run(mine: list) -> list:
+        """This rank's seeds, a process each, side by side: one dict per seed."""
+        procs = {}
+        for s in mine:
+            out = Path(a.runs) / name / f"s{s}"
+            out.mkdir(parents=True, exist_ok=True)
+            cfg = json.dumps({**base, "seed": s, "out": str(out)})
+            log = open(out / "call.log", "a")
+            procs[s] = (subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--one", cfg], env=env,
+                                         stdout=log, stderr=subprocess.STDOUT), out, log)
+        done = []
+        for s, (p, out, log) in procs.items():
+            rc = p.wait()
+            log.close()
+            lines = (out / "call.log").read_text().strip().splitlines()
+            files = {f: (out / f).read_bytes() for f in COPIED if rc == 0 and (out / f).is_file()}
+            task = json.loads(files["config.json"])["task"] if "config.json" in files else None
+            done.append({"seed": s, "rc": rc, "lines": lines, "task": task, "files": files})
+        return done
+
+    results = r.map_sharded(seeds, run, batched=True, what="rl seeds")
+    if not r.main:
+        return 0
     failed = 0
-    for s, (p, out, log) in procs.items():
-        rc = p.wait()
-        log.close()
-        lines = (out / "call.log").read_text().strip().splitlines()
-        last = lines[-1] if lines else ""
-        print(f"seed {s}: exit {rc}, {last}")
-        if rc != 0:
+    for d in results:
+        last = d["lines"][-1] if d["lines"] else ""
+        print(f"seed {d['seed']}: exit {d['rc']}, {last}")
+        if d["rc"] != 0:
             failed += 1
-            print("\n".join(lines[-15:]), file=sys.stderr)
+            print("\n".join(d["lines"][-15:]), file=sys.stderr)
             continue
-        task = json.loads((out / "config.json").read_text())["task"]
-        dest = Path(a.results) / task / name / f"s{s}"
+        dest = Path(a.results) / d["task"] / name / f"s{d['seed']}"
         dest.mkdir(parents=True, exist_ok=True)
-        for f in ("records.jsonl", "progress.csv", "config.json"):
-            if (out / f).is_file():
-                shutil.copyfile(out / f, dest / f)
-    print(f"{len(seeds)} seeds in {time.perf_counter() - started:.0f} s; records under {a.results}")
+        for f, data in d["files"].items():
+            (dest / f).write_bytes(data)
+    where = f" on {r.world} ranks" if r.distributed else ""
+    print(f"{len(seeds)} seeds in {time.perf_counter() - started:.0f} s{where}; records under {a.results}")
     return 1 if failed else 0
+
+
+def rank_env(local_rank: int, device) -> dict:
+    """The environment of a rank's seed processes: the GPU of its local rank alone
+    (``CUDA_VISIBLE_DEVICES``, an entry of the one given), or nothing on a CPU run."""
+    import torch
+    if str(device) == "cpu" or not torch.cuda.is_available():
+        return {}
+    given = os.environ.get("CUDA_VISIBLE_DEVICES")
+    gpus = [g.strip() for g in given.split(",") if g.strip()] if given else \
+        [str(i) for i in range(torch.cuda.device_count())]
+    if local_rank >= len(gpus):
+        raise ValueError(f"local rank {local_rank} has no GPU of its own ({len(gpus)} visible): start at most "
+                         f"{len(gpus)} processes per host (torchrun --nproc_per_node {len(gpus)})")
+    return {"CUDA_VISIBLE_DEVICES": gpus[local_rank]}
 
 
 if __name__ == "__main__":

@@ -59,10 +59,13 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(command_of(argv)).parse_args(argv)
     try:
-        return args.func(args)
+        code = args.func(args)
     except (ValueError, OSError, FloatingPointError, RuntimeError, TypeError) as e:
         print(f"gnwarp {args.command}: error: {e}", file=sys.stderr)
         return 2
+    from gnwarp.distributed import close
+    close()   # under torchrun: leave the process group before a clean exit (else gloo may abort the process)
+    return code
 
 
 if __name__ == "__main__":

@@ -71,6 +71,18 @@ def generate_command(args) -> int:
     remove_stale_temporaries(out)  # what a killed generate to this path left
     system = from_mjcf(args.mjcf, dt=args.dt, substeps=args.substeps) if args.mjcf else args.system
     t0 = time.perf_counter()
+    from gnwarp.distributed import launched
+    if launched():   # under torchrun: each rank simulates its share, rank 0 writes the dataset
+        from gnwarp.data.shards import generate as generate_sharded
+        r = generate_sharded(system, out, overwrite=args.overwrite, num_sequences=split_sizes(args),
+                             num_steps=args.steps, seed=args.seed, parameterized=args.parameterized,
+                             backend=args.backend, progress=not args.quiet)
+        steps = r["sequences"] * args.steps
+        print(f"rank {r['rank']} of {r['ranks']}: {r['sequences']} sequences, "
+              f"{steps / max(r['simulation_seconds'], 1e-9):.3g} data steps/s simulated"
+              + (f"; wrote {out} ({r['merge_seconds']:.1f} s to merge the shards), "
+                 f"{time.perf_counter() - t0:.1f} s end to end" if r["rank"] == 0 else ""))
+        return 0
     ds = generate(system, split_sizes(args), num_steps=args.steps, seed=args.seed,
                   parameterized=args.parameterized, backend=args.backend, progress=not args.quiet)
     ds.save(out, overwrite=args.overwrite)

@@ -87,10 +87,12 @@ def mpc_command(args) -> int:
     from pathlib import Path
 
     import numpy as np
+    import torch
 
     from gnwarp.control import control_timestep, episode_starts, get_task, plan_timing, run_episodes
     from gnwarp.control.gradient import model_systems
     from gnwarp.control.planner import make_planner, planner_name
+    from gnwarp.distributed import ranks
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
     from gnwarp.sim import make_env, systems
     from gnwarp.sim.families import family_name
@@ -109,7 +111,9 @@ def mpc_command(args) -> int:
     records = Path(args.records or f"mpc-{task.name}.jsonl")
     video = None if args.video == "none" else Path(args.video or f"mpc-{task.name}.gif")
     check_outputs(records, video)   # before planning, not after
-    model = load_model(args.model, device=args.device, **({"impl": args.impl} if args.impl else {}))
+    rk = ranks(args.device or "auto")   # rank 0 of 1 unless started by torchrun
+    model = load_model(args.model, device=rk.device if rk.distributed else args.device,
+                       **({"impl": args.impl} if args.impl else {}))
     # the system: --system, else the one the model was trained on that fits the task
     name = args.system or next((s for s in model_systems(model) if family_name(s) == task.system),
                                "swimmer6" if task.system == "swimmer" else task.system)
@@ -126,26 +130,52 @@ def mpc_command(args) -> int:
             raise ValueError(f"--terminal {args.terminal}: a value of states of {terminal.nbody} bodies; "
                              f"{system.name} has {system.nbody}")
     qpos, qvel, target = episode_starts(task, system, n, args.seed)
-    planner = make_planner(args.planner, model, task, system, n, settings, target, terminal)
+    k_video = 0 if video is None else min(3, n)
+    mine = {}
+
+    def plan(idx: list) -> list:
+        """This rank's episodes ``idx`` (of the n), planned together: (return, states or None) each."""
+        pick = (lambda a: a) if len(idx) == n else (lambda a: None if a is None else a[np.asarray(idx)])
+        m, tgt = len(idx), pick(target)
+        planner = make_planner(args.planner, model, task, system, m, settings, tgt, terminal)
+        gradient = planner_name(planner) == "gradient"
+        from tqdm.auto import tqdm  # gradient MPC: one bar over every planning iteration, the warm-up included
+        bar = tqdm(total=planner.warmup + settings.iterations * args.steps if gradient else args.steps,
+                   desc=f"mpc {task.name}", unit="it" if gradient else "step", disable=args.quiet or not rk.main,
+                   dynamic_ncols=True)
+        episode_kw = {}
+        if gradient:
+            planner.progress = bar.update
+        else:
+            episode_kw["progress"] = lambda done: bar.update(done - bar.n)
+        env = make_env(system, m, backend=args.backend)
+        t0 = time.perf_counter()
+        out = run_episodes(planner, env, task, args.steps, env.reset(pick(qpos), pick(qvel)), target=tgt,
+                           **episode_kw)
+        mine.update(planner=planner, secs=time.perf_counter() - t0, plan_seconds=out["plan_seconds"])
+        bar.close()
+        return [(float(out["returns"][j]), out["states"][j] if i < k_video else None) for j, i in enumerate(idx)]
+
+    # one process plans the n episodes together; under torchrun each rank its share, gathered on rank 0
+    results = rk.map_sharded(range(n), plan, batched=True, what="mpc episodes")
+    timings = rk.gather_objects(None if not mine else (mine["secs"], mine["plan_seconds"]))
+    if not rk.main:
+        return 0
+    planner = mine["planner"]
     kind = planner_name(planner)
     gradient = kind == "gradient"
-    from tqdm.auto import tqdm  # gradient MPC: one bar over every planning iteration, the warm-up included
-    bar = tqdm(total=planner.warmup + settings.iterations * args.steps if gradient else args.steps,
-               desc=f"mpc {task.name}", unit="it" if gradient else "step", disable=args.quiet, dynamic_ncols=True)
-    episode_kw = {}
-    if gradient:
-        planner.progress = bar.update
-    else:
-        episode_kw["progress"] = lambda done: bar.update(done - bar.n)
-    env = make_env(system, n, backend=args.backend)
-    t0 = time.perf_counter()
-    out = run_episodes(planner, env, task, args.steps, env.reset(qpos, qvel), target=target, **episode_kw)
-    secs = time.perf_counter() - t0
-    bar.close()
+    done = [t for t in timings if t is not None]
+    secs = max(t[0] for t in done)
+    # the slowest rank's time at each control step: the job's step time
+    plan_seconds = np.max(np.stack([t[1] for t in done]), axis=0)
+    out = {"returns": torch.tensor([x[0] for x in results], dtype=torch.float32), "plan_seconds": plan_seconds}
+    if k_video:
+        out["states"] = torch.stack([x[1] for x in results[:k_video]])
     r = out["returns"]
     timing = plan_timing(out["plan_seconds"], control_timestep(system))
     print(f"{task.name} on {system.name}: true return {float(r.mean()):.4g} +- {float(r.std(unbiased=False)):.3g} "
-          f"over {n} episodes of {args.steps} steps ({planner_summary(planner, kind)})")
+          f"over {n} episodes of {args.steps} steps{f' on {rk.world} ranks' if rk.distributed else ''} "
+          f"({planner_summary(planner, kind)})")
     print(timing_line(timing, planner, n))
     metrics = {k: timing[k] for k in ("first_step_ms", "steady_ms", "real_time_factor", "steady_after", "mean_ms")}
     if gradient:
@@ -154,6 +184,8 @@ def mpc_command(args) -> int:
     metrics.update(episode_steps_per_s=n * args.steps / secs, plan_ms=[1e3 * float(t) for t in out["plan_seconds"]])
     if timing["steady_ms"]:
         metrics["steady_episode_steps_per_s"] = 1e3 * n / timing["steady_ms"]
+    if rk.distributed:
+        metrics["ranks"] = rk.world
     fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
     horizon = getattr(planner, "horizon", None) or settings.horizon
     record = ResultRecord(

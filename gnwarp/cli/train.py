@@ -42,7 +42,10 @@ def train_command(args) -> int:
             r = SysIDTrainer(cfg).run()
     else:
         r = train(cfg)
-    print(f"trained {r['steps']} steps in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
+    if r.get("rank", 0) != 0:   # under torchrun, rank 0 reports for all
+        return 0
+    ranks = f" on {r['ranks']} ranks" if r.get("ranks", 1) > 1 else ""
+    print(f"trained {r['steps']} steps{ranks} in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
           f"stop: {r['stop']}); "
           f"best 20-step validation error {r['best_error']:.4g} at step {r['best_step']}; checkpoints in {r['out']}")
     return 0

@@ -138,7 +138,7 @@ def _progress(total: int, desc: str, enabled: bool):
 
 
 def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, parameterized: bool = False,
-             backend: str = "auto", progress: bool = True) -> Dataset:
+             backend: str = "auto", progress: bool = True, shard: tuple[int, int] | None = None) -> Dataset:
     """Simulate sequences under random spline controls (C.1) and return a ``Dataset``.
 
     ``system``: a built-in name (``gnwarp.sim.systems.names()``, e.g. "cheetah", "swimmer6") or a
@@ -147,6 +147,12 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     ``backend``: "auto", "mujoco_warp" (CUDA), "mujoco_warp_cpu" or "mujoco" (MuJoCo C).
     Raises ``gnwarp.data.convert.UnsupportedActuatorError`` (a ValueError) before simulating when
     an actuator's transmission is one the graph cannot carry (``check_actuators``).
+
+    ``shard=(rank, ranks)``: simulate only the sequences ``rank, rank + ranks, ...`` (of all
+    splits, in order) and return them as a shard (``meta["shard"]``); every rank draws the same
+    random initial states, controls and parameters, so ``gnwarp.data.shards.merge`` of the ranks'
+    shards is, array for array, the dataset one process generates (``gnwarp.data.shards.generate``
+    runs it under ``torchrun``).
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, numbers.Integral) or num_steps < 1:
         raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")
@@ -156,6 +162,11 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     backend = resolve_backend(backend)
     sizes = split_sizes(num_sequences, parameterized)
     total = sum(sizes.values())
+    rank, ranks = _check_shard(shard)
+    own = np.zeros(total, dtype=bool)
+    own[rank::ranks] = True                 # the sequences this call simulates
+    local = np.cumsum(own) - 1              # global sequence -> row of this call's arrays
+    n_own = int(own.sum())
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
 
@@ -171,7 +182,7 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         raise ValueError(f"system '{name}' has no actuators: random-control datasets need at least one")
     check_actuators(base_sys.model, f"system '{name}'")   # before simulating: train could not use the data
     m0 = base_sys.model
-    _check_memory(name, total, num_steps, (m0.nbody, m0.nq, m0.nv, m0.nu), base_sys.substeps, backend)
+    _check_memory(name, n_own, num_steps, (m0.nbody, m0.nq, m0.nv, m0.nu), base_sys.substeps, backend)
     if parameterized:
         seeds = rng.integers(0, 2**31 - 1, total)
         bar = _progress(total, f"{name}: building instances", progress)
@@ -195,20 +206,24 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     nv = max(s.model.nv for s in instances)
     nu = max(s.model.nu for s in instances)
     if parameterized:  # sampled instances may be larger than the fixed system (swimmer links)
-        _check_memory(name, total, num_steps, (B, nq, nv, nu), base_sys.substeps, backend)
-    body = np.zeros((total, num_steps + 1, B, DYN_NODE_SIZE), dtype=np.float32)
-    ctrl = np.zeros((total, num_steps, nu), dtype=np.float32)
-    qpos = np.zeros((total, num_steps + 1, nq), dtype=np.float32)
-    qvel = np.zeros((total, num_steps + 1, nv), dtype=np.float32)
+        _check_memory(name, n_own, num_steps, (B, nq, nv, nu), base_sys.substeps, backend)
+    body = np.zeros((n_own, num_steps + 1, B, DYN_NODE_SIZE), dtype=np.float32)
+    ctrl = np.zeros((n_own, num_steps, nu), dtype=np.float32)
+    qpos = np.zeros((n_own, num_steps + 1, nq), dtype=np.float32)
+    qvel = np.zeros((n_own, num_steps + 1, nv), dtype=np.float32)
 
-    bar = _progress(total, f"{name}: simulating ({backend})", progress)
+    bar = _progress(n_own, f"{name}: simulating ({backend})", progress)
     sim_time = 0.0
     for key, inst_ids in groups.items():
         seqs = np.flatnonzero(np.isin(seq_instance, inst_ids))
         rep = instances[inst_ids[0]]
         m = rep.model
-        q0, v0 = initial_states(rep, len(seqs), rng)
+        q0, v0 = initial_states(rep, len(seqs), rng)   # drawn for every sequence, simulated for this call's
         u = random_spline_controls(len(seqs), num_steps, control_range(m), rng)
+        mine = own[seqs]
+        seqs, q0, v0, u = seqs[mine], q0[mine], v0[mine], u[mine]
+        if len(seqs) == 0:
+            continue
         group_systems = [instances[seq_instance[s]] for s in seqs] if parameterized else rep
         ts = time.perf_counter()
         tr = simulate(group_systems, q0, v0, u, backend=backend, progress=bar.update)
@@ -217,10 +232,11 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         if bad:
             raise FloatingPointError(f"simulation of '{name}' produced NaN/Inf or huge (>{_MAXVAL:g}) values in "
                                      f"{', '.join(bad)}: the model is unstable at this timestep or under these controls")
-        body[seqs, :, :m.nbody] = tr.body
-        ctrl[seqs, :, :m.nu] = u
-        qpos[seqs, :, :m.nq] = tr.qpos
-        qvel[seqs, :, :m.nv] = tr.qvel
+        rows = local[seqs]
+        body[rows, :, :m.nbody] = tr.body
+        ctrl[rows, :, :m.nu] = u
+        qpos[rows, :, :m.nq] = tr.qpos
+        qvel[rows, :, :m.nv] = tr.qvel
     bar.close()
 
     static, layout, graph_meta = static_arrays(instances)
@@ -234,8 +250,10 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     splits, start = {}, 0
     for k in SPLITS:
         n = sizes[k]
-        sl = slice(start, start + n)
-        splits[k] = Split(body[sl], ctrl[sl], qpos[sl], qvel[sl], seq_instance[sl])
+        g = np.flatnonzero(own[start:start + n]) + start     # this call's sequences of the split
+        rows = local[g]
+        sl = slice(int(rows[0]), int(rows[-1]) + 1) if len(rows) else slice(0, 0)   # consecutive rows: views
+        splits[k] = Split(body[sl], ctrl[sl], qpos[sl], qvel[sl], seq_instance[g])
         start += n
 
     meta = {
@@ -249,7 +267,24 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         "generation_seconds": time.perf_counter() - t0, "simulation_seconds": sim_time,
         "gnwarp_version": __version__,
     }
+    if shard is not None:
+        # the shard's own split sizes in "splits" (what its arrays hold); the whole dataset's here
+        meta["shard"] = {"rank": rank, "ranks": ranks, "sequences": n_own, "splits": sizes}
+        meta["splits"] = {k: len(sp) for k, sp in splits.items()}
     return Dataset(meta, static, splits)
+
+
+def _check_shard(shard) -> tuple[int, int]:
+    """(rank, ranks) of ``shard`` (None: the whole dataset, (0, 1))."""
+    if shard is None:
+        return 0, 1
+    try:
+        rank, ranks = (int(v) for v in shard)
+    except (TypeError, ValueError):
+        raise ValueError(f"shard must be (rank, ranks), two integers, got {shard!r}") from None
+    if not (ranks >= 1 and 0 <= rank < ranks):
+        raise ValueError(f"shard (rank, ranks) needs 0 <= rank < ranks, got {shard!r}")
+    return rank, ranks
 
 
 _MAXVAL = MAX_ABS  # what a dataset may hold (loading refuses more): MuJoCo's own divergence bound is 1e10

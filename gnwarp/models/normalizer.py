@@ -26,6 +26,9 @@ class Normalizer(nn.Module):
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
         self.register_buffer("sum", torch.zeros(self.size, dtype=torch.float64))
         self.register_buffer("sumsq", torch.zeros(self.size, dtype=torch.float64))
+        # ``gnwarp.distributed.Ranks`` whose batches count as one (set by a distributed trainer):
+        # each batch's count and sums are summed over the ranks before they are added
+        self.ranks = None
 
     def _apply(self, fn, recurse=True):
         saved = {k: self._buffers[k] for k in ("count", "sum", "sumsq")}
@@ -39,6 +42,9 @@ class Normalizer(nn.Module):
     def accumulate(self, x: torch.Tensor, weight: torch.Tensor | None = None) -> None:
         """Add rows of x [n, size]; ``weight`` [n] (0/1) leaves rows out."""
         x = x.detach().to(torch.float64).reshape(-1, self.size)
+        if self.ranks is not None and self.ranks.distributed:
+            self._accumulate_over_ranks(x, weight)
+            return
         if weight is None:
             self.count += x.shape[0]
             self.sum += x.sum(0)
@@ -55,6 +61,9 @@ class Normalizer(nn.Module):
         count's update): what a training step does each batch. Same sums, same statistics (the
         column sums in a fixed order: deterministic)."""
         x = x.detach().reshape(-1, self.size)
+        if self.ranks is not None and self.ranks.distributed:
+            self._accumulate_over_ranks(x.to(torch.float64), weight)
+            return self.mean_std(x.dtype)
         if x.dtype not in (torch.float32, torch.float64) or x.shape[0] == 0:
             self.accumulate(x, weight)
             return self.mean_std(x.dtype)
@@ -72,6 +81,16 @@ class Normalizer(nn.Module):
         else:
             self.count += w.sum(dtype=torch.float64)
         return mean, std
+
+    def _accumulate_over_ranks(self, x: torch.Tensor, weight: torch.Tensor | None) -> None:
+        """This batch's count, sum and squared sum, summed over ``ranks`` (one all-reduce), added."""
+        w = (torch.ones(x.shape[0], 1, dtype=torch.float64, device=x.device) if weight is None
+             else weight.detach().to(torch.float64).reshape(-1, 1))
+        inc = torch.cat([w.sum().reshape(1), (x * w).sum(0), (x * x * w).sum(0)])
+        self.ranks.all_reduce_(inc)
+        self.count += inc[0]
+        self.sum += inc[1:1 + self.size]
+        self.sumsq += inc[1 + self.size:]
 
     def reset(self) -> None:
         for b in (self.count, self.sum, self.sumsq):

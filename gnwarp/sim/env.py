@@ -289,7 +289,8 @@ class MujocoWarpEnv(Env):
         from gnwarp.interop import cuda_available, warp
         from gnwarp.kernels.sim import mujoco_warp as K
         wp = warp()
-        wdev = wp.get_device(device or ("cuda:0" if cuda_available() else "cpu"))
+        # default: torch's current GPU (a rank's own under torchrun), else the CPU
+        wdev = wp.get_device(device or (f"cuda:{torch.cuda.current_device()}" if cuda_available() else "cpu"))
         super().__init__(systems, n_worlds, ctrl_policy, wp.device_to_torch(wdev))
         self._wp, self._mjw, self._K, self._wdev = wp, mjw, K, wdev
         self._capture = wdev.is_cuda if capture is None else bool(capture)

@@ -115,6 +115,17 @@ class FlatAdam(torch.optim.Optimizer):
         for p in self.param_groups[0]["params"]:
             p.grad = None
 
+    @torch.no_grad()
+    def fold_grads(self) -> torch.Tensor:
+        """Add the gradients that code other than the Warp GN block left in ``p.grad`` into the
+        flat gradient (and drop them); returns the flat gradient, every parameter's gradient in
+        one buffer (what a distributed trainer all-reduces before ``step``)."""
+        for p in self.param_groups[0]["params"]:
+            if p.grad is not None:
+                p.main_grad.add_(p.grad)
+                p.grad = None
+        return self.grad_flat
+
     def sync_lr(self):
         """Copy the group's ``lr`` to the device scalar the update reads (``step()`` does this
         itself when not capturing; call it before replaying a captured step after a change)."""
@@ -130,10 +141,7 @@ class FlatAdam(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
         group = self.param_groups[0]
-        for p in group["params"]:  # gradients left by code other than the Warp GN block
-            if p.grad is not None:
-                p.main_grad.add_(p.grad)
-                p.grad = None
+        self.fold_grads()
         capturing = self.flat.is_cuda and torch.cuda.is_current_stream_capturing()
         if not capturing:
             self.sync_lr()

@@ -69,6 +69,8 @@ class TeacherForcingTrainer(Trainer):
     sizes. ``config.device`` must resolve to ``data``'s device.
     """
 
+    runs_on_ranks = False   # its own sampler and normalizers are not reduced over ranks
+
     def __init__(self, config: TrainConfig, data: ProprioData, model: RecurrentForwardModel, window: int = 21,
                  normalizer_steps: int | None = None, callbacks=()):
         if not isinstance(data, ProprioData):

@@ -118,6 +118,8 @@ class SysIDTrainer(Trainer):
     effect; no parameter labels are read, and it is scale-free, so shrinking G_ID does not lower
     it."""
 
+    runs_on_ranks = False   # its own sampler and normalizers are not reduced over ranks
+
     def __init__(self, config: TrainConfig, sysid: SysIDConfig | None = None, datasets=None,
                  model: SysIDModel | None = None, callbacks=(), options: SysIDTrainConfig | None = None):
         saved = _resumable(config)

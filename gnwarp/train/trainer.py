@@ -20,6 +20,15 @@ The loop's checkpoints are copied to the CPU at their step and written by a back
 (``CheckpointWriter``), so training does not wait on the disk; "checkpoint" comes once the folder
 is in place, and the run's end waits for every write. Override a method in a subclass, or replace
 ``trainer.sampler``, to change one seam.
+
+Several ranks (``torchrun``, ``gnwarp.distributed``): each rank draws its own ``batch_size``
+graphs (the batch is per rank; the step's batch is ``batch_size`` x ranks), the model starts
+from rank 0's weights, the gradients (FlatAdam's one flat buffer: one all-reduce a step, inside
+the captured step) and each batch's normalizer sums are summed over the ranks, so every rank
+takes the step one process would take on the joint batch. Rank 0 validates and decides (best,
+early stopping, the time budget) for all, writes log.csv and the checkpoints; a checkpoint holds
+every rank's sampler state, and a run resumes with any number of ranks (the same number continues
+exactly; with another, the ranks past the saved ones draw fresh streams).
 """
 from __future__ import annotations
 
@@ -37,12 +46,14 @@ import torch
 
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
+from gnwarp.distributed import launched, ranks as join_ranks
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
-from gnwarp.interop import Graphed, capture_problem, default_generator, registers_generators, resolve_device
+from gnwarp.interop import Graphed, capture_problem, default_generator, registers_generators
 from gnwarp.models.factory import build_model
 from gnwarp.models.forward import ForwardModel
+from gnwarp.models.normalizer import Normalizer
 from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoint_config, clean_debris,
                                      load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
@@ -69,11 +80,17 @@ class Trainer:
     ``callback(trainer, event, info)``.
     """
 
+    # whether this trainer runs over several ranks (a subclass with its own step says False)
+    runs_on_ranks = True
+
     def __init__(self, config: TrainConfig, datasets=None, model: ForwardModel | None = None,
                  callbacks: list[Callable] = ()):
+        if not self.runs_on_ranks and launched():
+            raise ValueError(f"{type(self).__name__} trains in one process: start it without torchrun")
         self.config = config
         self.out = Path(config.out)
-        self.device = resolve_device(config.device)
+        self.ranks = join_ranks(config.device)   # rank 0 of 1 unless started by torchrun
+        self.device = self.ranks.device
         self.callbacks = list(callbacks)
         torch.manual_seed(config.seed)
         if datasets is None:
@@ -82,18 +99,20 @@ class Trainer:
             datasets = [load(p, lazy=True) for p in config.data]
         self.datasets = list(datasets)
         training = None
-        if self._prepare_out(model):  # with resume: recovers what killed runs left, refuses what it cannot resume
+        if self._prepare_out_once(model):  # with resume: recovers what killed runs left, refuses what it cannot resume
             model, training = self._load_last()
         elif model is None:
             model = build_model(config.model, self.datasets)
         self.model = self.place_model(model)
+        if self.ranks.distributed:
+            self._join_model()
         self.sampler = self.make_sampler()
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
         cuda = self.device.type == "cuda"
         # a CUDA graph replays the device's default generator by itself; others need registering
         self.generator = (default_generator(self.device) if cuda and config.capture and not registers_generators()
                           else torch.Generator(device=self.device))
-        self.generator.manual_seed(config.seed)
+        self.generator.manual_seed(self._rank_seed(0))
         self.optimizer = self.make_optimizer(self._optimizer_kind(training))
         # ``config.ema``: the weights' moving average, which validation and checkpoints use
         self.average = WeightAverage(self.average_tensors(), config.ema) if config.ema > 0 else None
@@ -118,6 +137,56 @@ class Trainer:
                 self.captured = Graphed(self._device_step, warmup=2, generator=own)
             else:
                 warnings.warn(f"training steps run uncaptured: {problem}")
+
+    # -- ranks -----------------------------------------------------------------------------------
+    def _rank_seed(self, step: int) -> int:
+        """The sampler's seed on this rank: ``config.seed`` on rank 0 (a single process is one)."""
+        r = self.ranks.rank
+        return (self.config.seed + r * 1_000_003 + (step * 7_919 if r else 0)) % (1 << 63)
+
+    def _prepare_out_once(self, model) -> bool:
+        """``_prepare_out`` on rank 0 (the others wait for its answer and share it)."""
+        if not self.ranks.distributed:
+            return self._prepare_out(model)
+        answer = None
+        if self.ranks.main:
+            try:
+                answer = ("resume", self._prepare_out(model))
+            except Exception as e:   # every rank stops with rank 0's reason
+                self.ranks.broadcast_object(("error", f"{type(e).__name__}: {e}"))
+                raise
+        kind, value = self.ranks.broadcast_object(answer)
+        if kind == "error":
+            raise CheckpointError(f"rank 0 could not prepare {self.out}: {value}")
+        return value
+
+    def _join_model(self) -> None:
+        """Every rank starts from rank 0's weights and normalizer sums; each batch's normalizer
+        sums are summed over the ranks from now on."""
+        with torch.no_grad():
+            for t in self.model.state_dict().values():
+                if isinstance(t, torch.Tensor) and t.numel():
+                    self.ranks.broadcast_(t)
+        for m in self.model.modules():
+            if isinstance(m, Normalizer):
+                m.ranks = self.ranks
+
+    def reduce_gradients(self) -> None:
+        """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, else of
+        the gradients packed in one buffer); nothing for a single process."""
+        if not self.ranks.distributed:
+            return
+        if isinstance(self.optimizer, FlatAdam):
+            self.ranks.all_reduce_(self.optimizer.fold_grads(), mean=True)
+            return
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        if grads:
+            flat = torch.cat([g.reshape(-1) for g in grads])
+            self.ranks.all_reduce_(flat, mean=True)
+            o = 0
+            for g in grads:
+                g.copy_(flat[o:o + g.numel()].view_as(g))
+                o += g.numel()
 
     # -- seams -----------------------------------------------------------------------------------
     def _optimizer_kind(self, training: dict | None) -> str:
@@ -206,6 +275,7 @@ class Trainer:
         terms = self.loss(*batch)
         self.optimizer.zero_grad(set_to_none=True)
         terms["loss"].backward()
+        self.reduce_gradients()
         if not isinstance(self.optimizer, FlatAdam) and self.config.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         self.optimizer.step()
@@ -254,11 +324,16 @@ class Trainer:
         st = self.state
         readable = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in st.items()}
         path = self.out / name
+        generators = self.ranks.gather_objects(self.generator.get_state().cpu()) if self.ranks.distributed else None
+        if not self.ranks.main:   # rank 0 writes; the others only hand it their sampler states
+            return path
         if self._writer is None:
             self._writer = CheckpointWriter()
         with self.averaged():   # the model saved is the averaged one; the live weights go with the training state
             training = {"optimizer": self.optimizer.state_dict(), "state": dict(st),
                         "generator": self.generator.get_state()}
+            if generators is not None:
+                training["rank_generators"] = generators
             if self.average is not None:
                 training["average"] = self.average.state_dict()
             self._writer.submit(name, path, self.model, training, {**self.info, "state": readable})
@@ -267,7 +342,7 @@ class Trainer:
 
     def _checkpoints_written(self, wait: bool = False) -> None:
         """Emit "checkpoint" for the background writes finished (all, with ``wait``)."""
-        if self._writer is not None:
+        if self._writer is not None and self.ranks.main:
             for name, path in self._writer.done(wait):
                 self.emit("checkpoint", name=name, path=path)
 
@@ -363,11 +438,16 @@ class Trainer:
                 raise CheckpointError(f"{self.out / 'last'}: {exc}") from exc
         self.state.update(training["state"])
         self._lr = None  # the loaded optimizer state brought its own learning rate
+        saved = training.get("rank_generators") or [training["generator"]]
+        r = self.ranks.rank
+        if r >= len(saved):   # more ranks than the run had: this rank draws a fresh stream
+            self.generator.manual_seed(self._rank_seed(self.state["step"]))
+            return
         try:
-            self.generator.set_state(training["generator"])
+            self.generator.set_state(saved[r])
         except (RuntimeError, TypeError):  # resumed on another kind of device: a fresh sampler stream
             warnings.warn("could not restore the batch sampler's random state; reseeding it")
-            self.generator.manual_seed(self.config.seed + self.state["step"])
+            self.generator.manual_seed(self._rank_seed(self.state["step"]) + self.state["step"])
 
     def _after_step(self, bar, log, t_start: float) -> str | None:
         """Bookkeeping after a step: the log row (``log(row)``), validation, checkpoints; a
@@ -378,7 +458,10 @@ class Trainer:
         st["seconds"] = time.perf_counter() - t_start
         bar.update(1)
         row = None
-        if step % c.log_every == 0 or step == c.steps:
+        logs = step % c.log_every == 0 or step == c.steps
+        if logs:
+            if self._running_sum is not None:   # the mean over the ranks' batches
+                self.ranks.all_reduce_(self._running_sum, mean=True)
             sums = self._running_sum.tolist() if self._running_sum is not None else []
             vals = {k: v / self._n_running for k, v in zip(self._running, sums)}
             if not all(math.isfinite(v) for v in vals.values()):
@@ -389,9 +472,12 @@ class Trainer:
             row = {"step": step, "seconds": round(st["seconds"], 3), "lr": lr, **vals, "valid_error": ""}
             bar.set_postfix(loss=f"{vals['loss']:.4g}", best=f"{st['best_error']:.4g}")
         timed_out = c.max_seconds is not None and st["seconds"] >= c.max_seconds
+        if self.ranks.distributed:   # rank 0's clock decides, at log rows (the ranks agree on when to stop)
+            timed_out = bool(self.ranks.broadcast_object(timed_out)) if logs else False
         if self.valid and (step % c.valid_every == 0 or step == c.steps or timed_out):
             with self.averaged():
-                err = self.validate()
+                err = self.validate() if self.ranks.main else None
+            err = self.ranks.broadcast_object(err)
             row = row or {"step": step, "seconds": round(st["seconds"], 3), "lr": lr}
             row["valid_error"] = err
             if err < st["best_error"]:
@@ -401,7 +487,7 @@ class Trainer:
                 st["bad_validations"] += 1
             bar.set_postfix(loss=row.get("loss", ""), valid=f"{err:.4g}", best=f"{st['best_error']:.4g}")
             self.emit("validate", step=step, error=err)
-        if row is not None:
+        if row is not None and self.ranks.main:
             log(row)
             self.emit("log", row=row)
         if step % c.checkpoint_every == 0:
@@ -417,19 +503,21 @@ class Trainer:
         from tqdm.auto import tqdm
 
         c, st, out = self.config, self.state, self.out
+        main = self.ranks.main   # rank 0 writes the log and shows the progress bar
         self.warmup()
         out.mkdir(parents=True, exist_ok=True)
         log_path = out / "log.csv"
         new_log = not log_path.exists() or st["step"] == 0
-        if not new_log:  # rows past the checkpoint resumed from (a killed run's) are run again
+        if main and not new_log:  # rows past the checkpoint resumed from (a killed run's) are run again
             _trim_log(log_path, st["step"])
         start_step = st["step"]
         t_start = time.perf_counter() - st["seconds"]
         bar = tqdm(total=c.steps, initial=start_step, desc=f"train {self.description}", unit="step",
-                   disable=not c.progress, dynamic_ncols=True, smoothing=0.05)
+                   disable=not (c.progress and main), dynamic_ncols=True, smoothing=0.05)
         self.model.train()
-        fields = self.log_fields if new_log else _log_header(log_path)   # a resumed log keeps its columns
-        with open(log_path, "w" if new_log else "a", newline="") as log_file:
+        fields = self.log_fields if new_log or not main else _log_header(log_path)   # a resumed log keeps its columns
+        opened = open(log_path, "w" if new_log else "a", newline="") if main else open(os.devnull, "w")
+        with opened as log_file:
             writer = csv.DictWriter(log_file, fields, extrasaction="ignore")
             if new_log:
                 writer.writeheader()
@@ -450,12 +538,14 @@ class Trainer:
             finally:
                 bar.close()
         self.checkpoint("last")
-        if not (out / "best").is_dir():  # no validation split: the last model is the best we know
+        # no validation split: the last model is the best we know (rank 0's folder decides for all)
+        if self.ranks.broadcast_object(not (out / "best").is_dir()):
             self.checkpoint("best")
         steps_run = st["step"] - start_step
         summary = {"out": str(out), "best": str(out / "best"), "last": str(out / "last"), "steps": st["step"],
                    "best_step": st["best_step"], "best_error": st["best_error"], "stop": stop,
-                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9)}
+                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9),
+                   "rank": self.ranks.rank, "ranks": self.ranks.world}
         self.emit("end", summary=summary)
         return summary
 

@@ -1,0 +1,320 @@
+"""Training and generation on 1..N GPUs of one host (``torchrun``): weak and strong scaling, the
+all-reduce's share of a training step, and the time to one validation error.
+
+One launch per GPU count, each appending rows to ``--records`` (JSON lines); ``--summarize``
+turns the rows of one run into ``bench/results/distributed_<gpu>.json`` and a table:
+
+    python bench/distributed.py --gpus 1,2,4 --data /root/dist/cheetah.h5 --records rec.jsonl
+
+(``--gpus``: the dataset if missing (``--prepare``), one ``torchrun --nproc_per_node N`` launch of
+this script per count, in order, then ``--summarize``; a launch whose captured step fails is run
+again uncaptured, and says so in its rows.)
+
+Per launch (every rank on its own GPU, rank 0 records):
+- generation: each rank simulates ``--gen-per-gpu`` cheetah sequences of ``--gen-steps`` steps with
+  MuJoCo-Warp (``gnwarp.data.generation.generate(shard=...)``, the sequences of a dataset of
+  ``--gen-per-gpu`` x ranks), timed from a barrier to the last rank's end (after a small warm-up
+  generation): data steps per second over all ranks;
+- training throughput: the paper's model on the cheetah dataset, the step captured in a CUDA graph
+  with its all-reduce inside; weak (``--batch`` graphs per GPU) and strong (``--strong-total``
+  graphs per step split over the ranks); graphs per second over all ranks in the steady state
+  (``--warmup`` steps, then ``--steps`` timed);
+- the all-reduce's share: the flat gradient's all-reduce alone (captured, replayed), over the
+  weak step's time;
+- time to error: training from scratch (weak batches; ``--lr-scaling linear`` multiplies the
+  learning rate by the ranks) until the 20-step validation error reaches the one-GPU launch's
+  error after ``--tte-seconds`` (the target is the one-GPU launch's, read from the records);
+  validation time is not counted.
+Efficiency (weak): throughput on N GPUs / (N x throughput on 1 GPU) of the same run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+
+from bench.harness import device_name, slug  # noqa: E402
+
+SYSTEM = "cheetah"
+
+
+def sync(r):
+    if r.device.type == "cuda":
+        torch.cuda.synchronize(r.device)
+
+
+def timed_barrier(r):
+    sync(r)
+    r.barrier("bench")
+    return time.perf_counter()
+
+
+def bench_generation(r, a) -> dict:
+    from gnwarp.data.generation import generate
+    backend = "mujoco_warp" if r.device.type == "cuda" else "mujoco_warp_cpu"
+    generate(SYSTEM, num_sequences=(8 * r.world, 0, 0), num_steps=4, seed=1, backend=backend, progress=False,
+             shard=(r.rank, r.world))    # warm-up: MuJoCo-Warp's kernels loaded
+    t0 = timed_barrier(r)
+    ds = generate(SYSTEM, num_sequences=(a.gen_per_gpu * r.world, 0, 0), num_steps=a.gen_steps, seed=2,
+                  backend=backend, progress=False, shard=(r.rank, r.world))
+    t1 = timed_barrier(r)
+    n = len(ds["train"])
+    return {"generate_steps_per_s": a.gen_per_gpu * r.world * a.gen_steps / (t1 - t0), "generate_seconds": t1 - t0,
+            "generate_sequences_per_gpu": n, "generate_steps": a.gen_steps}
+
+
+def trainer_for(r, a, batch, out, lr=1e-4, capture=True):
+    from gnwarp.train import TrainConfig
+    from gnwarp.train.trainer import Trainer
+    cfg = TrainConfig.from_dict(dict(data=[a.data], out=out, batch_size=batch, lr=lr, device="auto", resume=False,
+                                     progress=False, capture=capture, valid_sequences=a.valid_sequences,
+                                     steps=10**9))
+    return Trainer(cfg)
+
+
+def bench_train(r, a, batch, tag) -> dict:
+    t = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}", capture=not a.no_capture)
+    t.warmup()
+    for _ in range(a.warmup):
+        t.step()
+    t0 = timed_barrier(r)
+    for _ in range(a.steps):
+        t.step()
+    t1 = timed_barrier(r)
+    step_s = (t1 - t0) / a.steps
+    row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
+           "captured": t.captured is not None}
+    if r.distributed:
+        row["allreduce_ms"] = allreduce_ms(r, t)
+        row["allreduce_share"] = row["allreduce_ms"] / row["step_ms"]
+    return row
+
+
+def allreduce_ms(r, t) -> float:
+    """The flat gradient's all-reduce alone, captured and replayed (eager where not on CUDA)."""
+    from gnwarp.interop import Graphed
+    from gnwarp.train.optim import FlatAdam
+    buf = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
+           else torch.cat([p.detach().reshape(-1) for p in t.model.parameters()])).clone()
+    reps = 200
+
+    def many():
+        for _ in range(20):
+            r.all_reduce_(buf, mean=True)
+    run = Graphed(many, warmup=1) if r.device.type == "cuda" else many
+    run()
+    run()
+    t0 = timed_barrier(r)
+    for _ in range(reps // 20):
+        run()
+    t1 = timed_barrier(r)
+    return 1e3 * (t1 - t0) / reps
+
+
+def time_to_error(r, a, target: float | None) -> dict:
+    """Train from scratch; validation every ``--tte-every`` steps (not counted). Without a target
+    (the one-GPU launch): train ``--tte-seconds`` and report the error reached."""
+    lr = 1e-4 * (r.world if a.lr_scaling == "linear" else 1)
+    t = trainer_for(r, a, a.batch, f"{a.work}/tte-{r.world}", lr=lr, capture=not a.no_capture)
+    t.warmup()
+    clock, steps, best, reached = 0.0, 0, math.inf, None
+    limit = a.tte_seconds * (1 if target is None else a.tte_limit)
+    curve = []
+    while clock < limit:
+        t0 = timed_barrier(r)
+        for _ in range(a.tte_every):
+            t.set_lr(t.config.lr_at(steps))
+            t.step()
+            steps += 1
+        clock += timed_barrier(r) - t0
+        err = t.validate() if r.main else None
+        err = r.broadcast_object(err)
+        best = min(best, err)
+        curve.append([round(clock, 3), steps, err])
+        if target is not None and err <= target:
+            reached = clock
+            break
+    return {"time_to_error_s": reached if target is not None else clock, "target_error": target,
+            "best_error": best, "tte_steps": steps, "lr": lr, "lr_scaling": a.lr_scaling, "tte_curve": curve}
+
+
+def prepare(a) -> None:
+    from gnwarp.data.generation import generate
+    path = Path(a.data)
+    if path.exists():
+        print(f"{path} exists")
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    backend = "mujoco_warp" if torch.cuda.is_available() else "mujoco"
+    ds = generate(SYSTEM, num_sequences=(a.train_sequences, a.valid_sequences, 0), num_steps=100, seed=0,
+                  backend=backend, progress=False)
+    ds.save(path)
+    print(f"wrote {path}: {ds.meta['splits']}")
+
+
+def one_gpu_target(records: Path, gpu: str) -> float | None:
+    if not records.is_file():
+        return None
+    rows = [json.loads(x) for x in records.read_text().splitlines() if x.strip()]
+    rows = [x for x in rows if x.get("gpus") == 1 and x.get("mode") == "weak" and x.get("gpu") == gpu
+            and x.get("best_error") is not None]
+    return rows[-1]["best_error"] if rows else None
+
+
+def main_launch(a) -> None:
+    from gnwarp.distributed import ranks
+    r = ranks("auto")
+    gpu = device_name(r.device)
+    nccl = ".".join(map(str, torch.cuda.nccl.version())) if r.device.type == "cuda" else None
+    base = {"gpus": r.world, "gpu": gpu, "nccl": nccl, "backend": r.backend, "run": a.run_id,
+            "env": {k: os.environ.get(k) for k in ("NCCL_NVLS_ENABLE", "TORCH_SYMM_MEM_DISABLE_MULTICAST")}}
+    rows = []
+    gen = {} if a.skip_generation else bench_generation(r, a)
+    weak = {**base, "mode": "weak", **bench_train(r, a, a.batch, "weak"), **gen}
+    if not a.skip_tte:
+        target = None if r.world == 1 else one_gpu_target(Path(a.records), gpu)
+        weak.update(time_to_error(r, a, target))
+    rows.append(weak)
+    if a.strong_total % r.world == 0:
+        rows.append({**base, "mode": "strong", **bench_train(r, a, a.strong_total // r.world, "strong")})
+    if r.main:
+        Path(a.records).parent.mkdir(parents=True, exist_ok=True)
+        with open(a.records, "a") as f:
+            for row in rows:
+                f.write(json.dumps(row) + "\n")
+        for row in rows:
+            print(json.dumps({k: v for k, v in row.items() if k != "tte_curve"}))
+    r.barrier("bench: end")
+
+
+FIELDS = ("gpus", "mode", "per_gpu_batch", "train_graphs_per_s", "generate_steps_per_s", "time_to_error_s", "gpu",
+          "nccl")
+
+
+def summarize(a) -> None:
+    from gnwarp.files import atomic_write
+    rows = [json.loads(x) for x in Path(a.records).read_text().splitlines() if x.strip()]
+    run = a.run_id or rows[-1]["run"]
+    rows = [x for x in rows if x.get("run") == run]
+    gpu = rows[0]["gpu"]
+    out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "step_ms", "best_error",
+                                                                 "target_error", "lr_scaling") if k in x}
+           for x in sorted(rows, key=lambda x: (x["mode"], x["gpus"]))]
+    one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
+    lines = [f"Run {run} on {gpu} (NCCL {rows[0].get('nccl')}), one launch per GPU count; efficiency = "
+             "throughput on N GPUs / (N x on 1 GPU), weak; speed-up for strong.", "",
+             "| GPUs | mode | batch per GPU | graphs/s | efficiency | step ms | all-reduce share | "
+             "data steps/s | gen. efficiency | time to error s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for x in out:
+        base = one.get(x["mode"])
+        eff = x["train_graphs_per_s"] / (x["gpus"] * base["train_graphs_per_s"]) if base else None
+        if x["mode"] == "strong" and base:
+            eff = x["train_graphs_per_s"] / base["train_graphs_per_s"] / x["gpus"]
+        geff = (x["generate_steps_per_s"] / (x["gpus"] * one["weak"]["generate_steps_per_s"])
+                if x.get("generate_steps_per_s") and "weak" in one and one["weak"].get("generate_steps_per_s")
+                else None)
+        x["train_efficiency"], x["generate_efficiency"] = eff, geff
+        f = lambda v, p=3: "" if v is None else (f"{v:.{p}g}" if isinstance(v, float) else str(v))  # noqa: E731
+        lines.append(f"| {x['gpus']} | {x['mode']} | {x['per_gpu_batch']} | {f(x['train_graphs_per_s'], 4)} | "
+                     f"{f(eff)} | {f(x.get('step_ms'))} | {f(x.get('allreduce_share'))} | "
+                     f"{f(x.get('generate_steps_per_s'), 4)} | {f(geff)} | {f(x.get('time_to_error_s'))} |")
+    path = Path(a.summary or ROOT / "bench" / "results" / f"distributed_{slug(gpu)}.json")
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(json.dumps(out, indent=1) + "\n")
+    table = path.with_suffix(".md")
+    with atomic_write(table) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {path} and {table}")
+
+
+def launch_all(a, argv) -> int:
+    """``--gpus 1,2,4``: prepare, one torchrun launch per count, summarize."""
+    import subprocess
+    import uuid
+    counts = [int(x) for x in a.gpus.split(",")]
+    rest, skip = [], False
+    for x in argv:   # the arguments every launch shares: all but --gpus
+        if skip:
+            skip = False
+            continue
+        if x == "--gpus":
+            skip = True
+            continue
+        if not x.startswith("--gpus="):
+            rest.append(x)
+    me = [sys.executable, str(Path(__file__).resolve())]
+    if not Path(a.data).exists():
+        subprocess.run(me + rest + ["--prepare"], check=True)
+    env = dict(os.environ, GNWARP_BENCH_RUN=a.run_id or f"run-{uuid.uuid4().hex[:8]}")
+    failed = []
+    for n in counts:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(n), "--master_port",
+               str(29500 + n)] + me[1:] + rest
+        t0 = time.perf_counter()
+        rc = subprocess.run(cmd, env=env).returncode
+        if rc != 0 and "--no-capture" not in rest:
+            print(f"{n} GPUs: launch failed (exit {rc}); again with --no-capture", flush=True)
+            rc = subprocess.run(cmd + ["--no-capture"], env=env).returncode
+        print(f"{n} GPUs: exit {rc} after {time.perf_counter() - t0:.0f} s", flush=True)
+        if rc != 0:
+            failed.append(n)
+    subprocess.run(me + rest + ["--summarize", "--run-id", env["GNWARP_BENCH_RUN"]])
+    return 1 if failed else 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="runs/dist/cheetah.h5", help="the training dataset (made by --prepare)")
+    ap.add_argument("--records", default="bench/results/distributed/records.jsonl")
+    ap.add_argument("--work", default="runs/dist", help="folder of the trainers' (unused) run folders")
+    ap.add_argument("--run-id", default=os.environ.get("GNWARP_BENCH_RUN", ""), help="names the run's rows")
+    ap.add_argument("--gpus", help="e.g. 1,2,4: one torchrun launch per count, then --summarize")
+    ap.add_argument("--prepare", action="store_true", help="write the dataset and stop")
+    ap.add_argument("--summarize", action="store_true", help="summary JSON and table from the records")
+    ap.add_argument("--summary", help="the summary's path (default bench/results/distributed_<gpu>.json)")
+    ap.add_argument("--train-sequences", type=int, default=2000)
+    ap.add_argument("--valid-sequences", type=int, default=100)
+    ap.add_argument("--batch", type=int, default=200, help="graphs per GPU (weak scaling; the paper's 200)")
+    ap.add_argument("--strong-total", type=int, default=800, help="graphs per step over all GPUs (strong)")
+    ap.add_argument("--warmup", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--gen-per-gpu", type=int, default=4096)
+    ap.add_argument("--gen-steps", type=int, default=100)
+    ap.add_argument("--tte-seconds", type=float, default=60.0, help="the one-GPU launch's training time")
+    ap.add_argument("--tte-limit", type=float, default=1.5, help="other launches stop at this x tte-seconds")
+    ap.add_argument("--tte-every", type=int, default=250, help="steps between validations")
+    ap.add_argument("--lr-scaling", choices=["none", "linear"], default="linear")
+    ap.add_argument("--skip-generation", action="store_true")
+    ap.add_argument("--skip-tte", action="store_true")
+    ap.add_argument("--no-capture", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="CPU-sized")
+    a = ap.parse_args(argv)
+    if a.quick:
+        a.train_sequences, a.valid_sequences, a.batch, a.strong_total = 8, 4, 4, 8
+        a.warmup, a.steps, a.gen_per_gpu, a.gen_steps, a.tte_seconds, a.tte_every = 2, 3, 4, 5, 1.0, 2
+    if a.gpus:
+        return launch_all(a, argv if argv is not None else sys.argv[1:])
+    if a.prepare:
+        prepare(a)
+    elif a.summarize:
+        summarize(a)
+    else:
+        if not Path(a.data).exists():
+            raise SystemExit(f"no dataset at {a.data}: run with --prepare first")
+        main_launch(a)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,26 @@
+"""Start several ranks of a command on the CPU as ``torchrun`` starts them (its environment
+variables, gloo), for the tests of work spread over ranks."""
+import os
+import socket
+import subprocess
+import sys
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_ranks(args, world=2, timeout=30, env=None):
+    """Start ``world`` processes of ``args`` with torchrun's variables; (returncodes, outputs)."""
+    port = free_port()
+    procs = []
+    for r in range(world):
+        e = dict(os.environ, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world), RANK=str(r),
+                 LOCAL_RANK=str(r), LOCAL_WORLD_SIZE=str(world), GNWARP_DIST_TIMEOUT=str(timeout),
+                 OMP_NUM_THREADS="1", **(env or {}))
+        procs.append(subprocess.Popen([sys.executable, *args], env=e, stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True))
+    outs = [p.communicate(timeout=240)[0] for p in procs]
+    return [p.returncode for p in procs], outs

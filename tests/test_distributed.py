@@ -1,0 +1,131 @@
+"""Several ranks on the CPU (gloo), started as torchrun starts them: a training step over two
+ranks against one process on the joint batch, resuming with another number of ranks, a rank that
+dies, sharded generation against one process, and the ranks' helpers."""
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gnwarp.data.format import ARRAYS, DatasetError
+from gnwarp.data.generation import generate
+from gnwarp.distributed import DistributedError, Ranks, collective, shard, timeout_seconds
+from gnwarp.graphs import GraphsTuple, batch
+from ranks import start_ranks
+
+HERE = Path(__file__).parent
+SMALL = dict(num_sequences=(6, 2, 2), num_steps=8, seed=5, backend="mujoco", progress=False)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("dist") / "cartpole.h5"
+    generate("cartpole", **SMALL).save(path)
+    return str(path)
+
+
+def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on_one(data, tmp_path):
+    from dist_worker import config
+    from gnwarp.train.trainer import Trainer
+    out = tmp_path / "two"
+    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "train", data, str(out)])
+    assert codes == [0, 0], "\n".join(outs)
+    seen = torch.load(out / "seen.pt", weights_only=True)
+    parts = sorted(seen["batches"], key=lambda b: b["rank"])
+    assert len(parts) == 2
+    g0, g1 = (GraphsTuple(**p["graph"]) for p in parts)
+    assert not torch.equal(g0.nodes, g1.nodes), "the ranks drew the same batch"
+    joint = (batch([g0, g1]), torch.cat([p["target"] for p in parts]))
+
+    class Joint:
+        static_shapes = True
+
+        def sample(self, n, gen):
+            assert n == 8
+            return joint
+
+    one = Trainer(config(data, str(tmp_path / "one"), batch_size=8))
+    one.sampler = Joint()
+    one.run()
+    mine = one.model.state_dict()
+    assert set(mine) == set(seen["params"])
+    for k, v in seen["params"].items():
+        torch.testing.assert_close(v, mine[k], rtol=1e-5, atol=1e-6, msg=lambda m: f"{k}: {m}")
+    moved = [k for k, v in seen["params"].items() if v.is_floating_point() and "norm" not in k]
+    init = Trainer(config(data, str(tmp_path / "init"), steps=0)).model.state_dict()
+    assert any(not torch.equal(init[k], seen["params"][k]) for k in moved), "the step changed no weight"
+    # the two-rank run resumes in one process (another number of ranks) and goes on from its step
+    r = Trainer(config(data, str(out), steps=3)).run()
+    assert r["steps"] == 3
+    rows = (out / "log.csv").read_text().splitlines()
+    assert [row.split(",")[0] for row in rows[1:]] == ["1", "2", "3"]
+
+
+def test_a_rank_that_dies_ends_the_others_with_a_clear_error_and_leaves_intact_checkpoints(data, tmp_path):
+    from gnwarp.train import load_model
+    out = tmp_path / "die"
+    t0 = time.perf_counter()
+    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "die", data, str(out)], timeout=20)
+    took = time.perf_counter() - t0
+    assert codes[1] == 3
+    assert codes[0] != 0, outs[0]
+    assert "DistributedError" in outs[0] and "rank 0 of 2" in outs[0], outs[0]
+    assert took < 120
+    model = load_model(out / "last")          # the checkpoint rank 0 wrote last is whole
+    assert sum(p.numel() for p in model.parameters()) > 0
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name or "partial" in p.name]
+
+
+def test_sharded_generation_over_two_ranks_is_the_one_process_dataset(tmp_path):
+    out = tmp_path / "sharded.h5"
+    args = ["-m", "gnwarp.cli", "generate", "cartpole", "--train", "6", "--valid", "2", "--test", "2", "--steps", "8",
+            "--seed", "5", "--backend", "mujoco", "-q", "-o", str(out)]
+    codes, outs = start_ranks(args)
+    assert codes == [0, 0], "\n".join(outs)
+    assert "rank 1 of 2: 5 sequences" in "\n".join(outs)
+    assert not list(tmp_path.glob("*.shard-*")), "the shards were not removed"
+    from gnwarp.data.dataset import load
+    one, two = generate("cartpole", **SMALL), load(out, lazy=False)
+    for k in one.splits:
+        for a in ARRAYS:
+            x, y = np.asarray(getattr(one[k], a)), np.asarray(getattr(two[k], a))
+            assert x.dtype == y.dtype and np.array_equal(x, y), (k, a)
+    assert two.meta["ranks"] == 2
+
+
+def test_shards_merge_back_in_place_and_refuse_what_is_not_one_generation():
+    from gnwarp.data.shards import merge
+    kw = dict(SMALL, num_sequences=(4, 1, 2))
+    one = generate("cartpole", **kw)
+    shards = [generate("cartpole", shard=(r, 3), **kw) for r in (2, 0, 1)]
+    assert [len(s["train"]) for s in shards] == [1, 2, 1]
+    m = merge(shards)
+    for k in one.splits:
+        assert np.array_equal(np.asarray(one[k].body), m[k].body), k
+    with pytest.raises(DatasetError, match="needs each of 0..2 once"):
+        merge(shards[:2])
+    with pytest.raises(DatasetError, match="differs in seed"):
+        merge([shards[0], generate("cartpole", shard=(0, 3), **dict(kw, seed=6)), shards[2]])
+    with pytest.raises(DatasetError, match="not a shard"):
+        merge([one])
+    with pytest.raises(ValueError, match="0 <= rank < ranks"):
+        generate("cartpole", shard=(3, 3), **kw)
+
+
+def test_ranks_helpers_for_a_single_process(monkeypatch):
+    assert list(shard(7, 1, 3)) == [1, 4]
+    assert sorted(i for r in range(3) for i in shard(7, r, 3)) == list(range(7))
+    with pytest.raises(ValueError, match="rank 3"):
+        shard(5, 3, 3)
+    one = Ranks()
+    t = torch.ones(3)
+    assert one.all_reduce_(t, mean=True) is t and t.tolist() == [1, 1, 1]
+    assert one.gather_objects({"a": 1}) == [{"a": 1}] and one.broadcast_object(5) == 5 and one.main
+    monkeypatch.setenv("GNWARP_DIST_TIMEOUT", "0")
+    with pytest.raises(ValueError, match="GNWARP_DIST_TIMEOUT"):
+        timeout_seconds()
+    monkeypatch.setenv("GNWARP_DIST_TIMEOUT", "30")
+    with pytest.raises(DistributedError, match="rank 1 of 2: all_reduce"):
+        with collective(Ranks(rank=1, world=2), "all_reduce"):
+            raise RuntimeError("Connection closed by peer")
