@@ -19,8 +19,8 @@ Per launch (every rank on its own GPU, rank 0 records):
   with its all-reduce inside; weak (``--batch`` graphs per GPU) and strong (``--strong-total``
   graphs per step split over the ranks); graphs per second over all ranks in the steady state
   (``--warmup`` steps, then ``--steps`` timed);
-- the all-reduce's share: the flat gradient's all-reduce alone (captured, replayed), over the
-  weak step's time;
+- the all-reduce's share: the step's two all-reduces alone (the flat gradient's and the packed
+  normalizer sums', each captured and replayed), over the step's time;
 - time to error: training from scratch (weak batches; ``--lr-scaling linear`` multiplies the
   learning rate by the ranks) until the 20-step validation error reaches the one-GPU launch's
   error after ``--tte-seconds`` (the target is the one-GPU launch's, read from the records);
@@ -69,8 +69,10 @@ def bench_generation(r, a) -> dict:
                   backend=backend, progress=False, shard=(r.rank, r.world))
     t1 = timed_barrier(r)
     n = len(ds["train"])
+    sims = r.gather_objects(float(ds.meta["simulation_seconds"]))   # each rank's time in the simulator
     return {"generate_steps_per_s": a.gen_per_gpu * r.world * a.gen_steps / (t1 - t0), "generate_seconds": t1 - t0,
-            "generate_sequences_per_gpu": n, "generate_steps": a.gen_steps}
+            "generate_sequences_per_gpu": n, "generate_steps": a.gen_steps,
+            "generate_sim_seconds": [round(x, 4) for x in sims] if sims else None}
 
 
 def trainer_for(r, a, batch, out, lr=1e-4, capture=True):
@@ -95,17 +97,22 @@ def bench_train(r, a, batch, tag) -> dict:
     row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
            "captured": t.captured is not None}
     if r.distributed:
-        row["allreduce_ms"] = allreduce_ms(r, t)
-        row["allreduce_share"] = row["allreduce_ms"] / row["step_ms"]
+        from gnwarp.train.optim import FlatAdam
+        grads = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
+                 else torch.cat([p.detach().reshape(-1) for p in t.model.parameters()]))
+        norms = [m for m in t.model.modules() if hasattr(m, "sumsq") and hasattr(m, "std_floor")]
+        packed = torch.zeros(sum(1 + 2 * m.size for m in norms), dtype=torch.float64, device=r.device)
+        row["allreduce_ms"] = allreduce_ms(r, grads)
+        row["norm_allreduce_ms"] = allreduce_ms(r, packed)
+        row["allreduce_share"] = (row["allreduce_ms"] + row["norm_allreduce_ms"]) / row["step_ms"]
     return row
 
 
-def allreduce_ms(r, t) -> float:
-    """The flat gradient's all-reduce alone, captured and replayed (eager where not on CUDA)."""
+def allreduce_ms(r, like: torch.Tensor) -> float:
+    """An all-reduce of a buffer like ``like`` alone (the step's flat gradient, or its packed
+    normalizer sums), captured and replayed (eager where not on CUDA)."""
     from gnwarp.interop import Graphed
-    from gnwarp.train.optim import FlatAdam
-    buf = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
-           else torch.cat([p.detach().reshape(-1) for p in t.model.parameters()])).clone()
+    buf = like.detach().clone()
     reps = 200
 
     def many():

@@ -129,3 +129,21 @@ def test_ranks_helpers_for_a_single_process(monkeypatch):
     with pytest.raises(DistributedError, match="rank 1 of 2: all_reduce"):
         with collective(Ranks(rank=1, world=2), "all_reduce"):
             raise RuntimeError("Connection closed by peer")
+
+
+def test_normalizers_summed_together_match_each_normalizer_alone():
+    from gnwarp.models.normalizer import Normalizer, accumulate_over_ranks
+    g = torch.Generator().manual_seed(0)
+    alone = [Normalizer(3), Normalizer(5)]
+    together = [Normalizer(3), Normalizer(5)]
+    for _ in range(2):   # twice: the second batch adds to sums already there
+        x, y = torch.randn(7, 3, generator=g) * 3 + 1, torch.randn(4, 5, generator=g, dtype=torch.float64)
+        w = (torch.rand(4, generator=g) > 0.3).to(torch.float64)
+        want = [alone[0].accumulate_stats(x), alone[1].accumulate_stats(y, w)]
+        got = accumulate_over_ranks([(together[0], x, None), (together[1], y, w)], Ranks())
+        for (m0, s0), (m1, s1) in zip(want, got):
+            assert m1.dtype == m0.dtype
+            torch.testing.assert_close(m1, m0)
+            torch.testing.assert_close(s1, s0)
+    for a, b in zip(alone, together):
+        assert a.count.item() == b.count.item() and torch.allclose(a.sumsq, b.sumsq)

@@ -27,3 +27,14 @@ def test_controls_bad_input():
         random_spline_controls(2, 5, np.array([[1.0, -1.0]]))
     with pytest.raises(ValueError, match="num_steps"):
         random_spline_controls(2, 0, np.array([[-1.0, 1.0]]))
+
+
+def test_kept_sequences_are_those_of_the_full_draw_and_the_stream_ends_alike():
+    import numpy as np
+    from gnwarp.sim.excitation import random_spline_controls
+    r = np.array([[-1.0, 1.0], [0.0, 2.0]])
+    full_rng, kept_rng = np.random.default_rng(4), np.random.default_rng(4)
+    full = random_spline_controls(9, 15, r, full_rng)
+    kept = random_spline_controls(9, 15, r, kept_rng, keep=np.arange(9) % 4 == 1)
+    assert kept.shape == (2, 15, 2) and np.array_equal(kept, full[1::4])
+    assert full_rng.random() == kept_rng.random()

@@ -218,10 +218,11 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
         seqs = np.flatnonzero(np.isin(seq_instance, inst_ids))
         rep = instances[inst_ids[0]]
         m = rep.model
-        q0, v0 = initial_states(rep, len(seqs), rng)   # drawn for every sequence, simulated for this call's
-        u = random_spline_controls(len(seqs), num_steps, control_range(m), rng)
+        # drawn for every sequence (the stream is the same for any shard), made for this call's
         mine = own[seqs]
-        seqs, q0, v0, u = seqs[mine], q0[mine], v0[mine], u[mine]
+        q0, v0 = initial_states(rep, len(seqs), rng)
+        u = random_spline_controls(len(seqs), num_steps, control_range(m), rng, keep=None if mine.all() else mine)
+        seqs, q0, v0 = seqs[mine], q0[mine], v0[mine]
         if len(seqs) == 0:
             continue
         group_systems = [instances[seq_instance[s]] for s in seqs] if parameterized else rep

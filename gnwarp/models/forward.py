@@ -32,7 +32,7 @@ from gnwarp.interop import WP_DTYPE, Launcher
 from gnwarp.kernels.models import forward as K
 from gnwarp.models.config import MLPCoreConfig, ModelConfig
 from gnwarp.models.cores import GNCore, MLPCore
-from gnwarp.models.normalizer import Normalizer, normalize_graph
+from gnwarp.models.normalizer import Normalizer, accumulate_over_ranks, normalize_graph
 from gnwarp.models.rollout import (RolloutEngine, RolloutInputError, RolloutInputs, float_tensor, check_instance,
                                    rollout_with_adjoint, source_info)
 from gnwarp.state import (ANGVEL, DYN_NODE_SIZE, LINVEL, POS, QUAT, apply_delta, quat_normalize, rotation_loss,
@@ -344,11 +344,15 @@ class ForwardModel(nn.Module):
         delta = state_delta(dyn, target)  # translation does not change it
         w = ctx.movable.to(dyn.dtype)
         if accumulate:  # each normalizer's sums and new statistics in one launch
-            stats = {"nodes": self.norm_nodes.accumulate_stats(graph.nodes),
-                     "edges": self.norm_edges.accumulate_stats(graph.edges),
-                     "delta": self.norm_delta.accumulate_stats(delta, w)}
+            items = {"nodes": (self.norm_nodes, graph.nodes, None), "edges": (self.norm_edges, graph.edges, None),
+                     "delta": (self.norm_delta, delta, w)}
             if self.norm_globals is not None:
-                stats["globals"] = self.norm_globals.accumulate_stats(graph.globals)
+                items["globals"] = (self.norm_globals, graph.globals, None)
+            ranks = self.norm_nodes.ranks
+            if ranks is not None and ranks.distributed:   # the batches of every rank as one: one all-reduce
+                stats = dict(zip(items, accumulate_over_ranks(list(items.values()), ranks)))
+            else:
+                stats = {k: n.accumulate_stats(x, wt) for k, (n, x, wt) in items.items()}
             ctx = ctx._replace(stats=stats)
         pred_n = self.predict_delta(graph, ctx)
         m, s = ctx.stats["delta"]

@@ -8,7 +8,7 @@ from gnwarp.graphs import GraphsTuple
 from gnwarp.interop import WP_DTYPE, Launcher
 from gnwarp.kernels.models import normalizer as K
 
-__all__ = ["Normalizer", "normalize_graph"]
+__all__ = ["Normalizer", "normalize_graph", "accumulate_over_ranks"]
 
 
 class Normalizer(nn.Module):
@@ -43,7 +43,7 @@ class Normalizer(nn.Module):
         """Add rows of x [n, size]; ``weight`` [n] (0/1) leaves rows out."""
         x = x.detach().to(torch.float64).reshape(-1, self.size)
         if self.ranks is not None and self.ranks.distributed:
-            self._accumulate_over_ranks(x, weight)
+            accumulate_over_ranks([(self, x, weight)], self.ranks)
             return
         if weight is None:
             self.count += x.shape[0]
@@ -62,8 +62,7 @@ class Normalizer(nn.Module):
         column sums in a fixed order: deterministic)."""
         x = x.detach().reshape(-1, self.size)
         if self.ranks is not None and self.ranks.distributed:
-            self._accumulate_over_ranks(x.to(torch.float64), weight)
-            return self.mean_std(x.dtype)
+            return accumulate_over_ranks([(self, x, weight)], self.ranks)[0]
         if x.dtype not in (torch.float32, torch.float64) or x.shape[0] == 0:
             self.accumulate(x, weight)
             return self.mean_std(x.dtype)
@@ -81,16 +80,6 @@ class Normalizer(nn.Module):
         else:
             self.count += w.sum(dtype=torch.float64)
         return mean, std
-
-    def _accumulate_over_ranks(self, x: torch.Tensor, weight: torch.Tensor | None) -> None:
-        """This batch's count, sum and squared sum, summed over ``ranks`` (one all-reduce), added."""
-        w = (torch.ones(x.shape[0], 1, dtype=torch.float64, device=x.device) if weight is None
-             else weight.detach().to(torch.float64).reshape(-1, 1))
-        inc = torch.cat([w.sum().reshape(1), (x * w).sum(0), (x * x * w).sum(0)])
-        self.ranks.all_reduce_(inc)
-        self.count += inc[0]
-        self.sum += inc[1:1 + self.size]
-        self.sumsq += inc[1 + self.size:]
 
     def reset(self) -> None:
         for b in (self.count, self.sum, self.sumsq):
@@ -110,6 +99,49 @@ class Normalizer(nn.Module):
 
     def extra_repr(self) -> str:
         return f"size={self.size}, std_floor={self.std_floor:g}"
+
+
+def accumulate_over_ranks(items, ranks) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """``accumulate_stats`` of several normalizers with each batch summed over ``ranks``: every
+    ``(normalizer, x [n, size], weight [n] or None)``'s count, column sums and squared sums go into
+    one float64 buffer (a Warp launch each), one all-reduce sums the buffer over the ranks, and one
+    launch per normalizer adds its part and writes its new (mean, std) in ``x``'s dtype. Returns
+    the (mean, std) of each item, in order. Every rank calls it with the same normalizers."""
+    sizes = [1 + 2 * n.size for n, _, _ in items]
+    first = items[0][1]
+    pack = torch.zeros(sum(sizes), dtype=torch.float64, device=first.device)
+    launch = Launcher(pack)
+    bd = K.BLOCK if launch.is_cuda else 1
+    prepared, off = [], 0
+    for (norm, x, weight), size in zip(items, sizes):
+        x = x.detach().reshape(-1, norm.size)
+        if x.dtype not in (torch.float32, torch.float64):
+            x = x.to(torch.float64)
+        x = x.contiguous()
+        part = pack[off:off + size]
+        F = norm.size
+        w = None if weight is None else weight.detach().to(x.dtype).reshape(-1).contiguous()
+        scratch = torch.empty(2, F, dtype=x.dtype, device=x.device)
+        if x.shape[0] > 0:   # this batch's sums into the part (its count slot, still 0, is the count before)
+            launch.tiled(K.accumulate_kernel(WP_DTYPE[x.dtype], w is not None), F, bd, x,
+                         w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd, part[:1], norm.std_floor,
+                         part[1:1 + F], part[1 + F:], scratch[0], scratch[1])
+        if w is None:
+            part[0].fill_(float(x.shape[0]))
+        else:
+            part[0].copy_(w.sum(dtype=torch.float64))
+        prepared.append((norm, x.dtype, part))
+        off += size
+    ranks.all_reduce_(pack)
+    out = []
+    for norm, dtype, part in prepared:
+        mean = torch.empty(norm.size, dtype=dtype, device=pack.device)
+        std = torch.empty_like(mean)
+        launch(K.apply_kernel(WP_DTYPE[dtype]), norm.size, part, norm.size, norm.count.reshape(1), norm.std_floor,
+               norm.sum, norm.sumsq, mean, std)
+        norm.count += part[0]
+        out.append((mean, std))
+    return out
 
 
 def normalize_graph(graph: GraphsTuple, stats: dict) -> GraphsTuple:

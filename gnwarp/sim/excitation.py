@@ -17,11 +17,18 @@ __all__ = ["random_spline_controls", "control_range", "catmull_rom"]
 def catmull_rom(knots: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Evaluate a uniform Catmull-Rom spline through ``knots`` [..., K] at times ``t`` [..., M] in [0, K-1]."""
     k = knots.shape[-1]
+    knots, t = np.asarray(knots), np.asarray(t)
+    lead = np.broadcast_shapes(knots.shape[:-1], t.shape[:-1])
+    # segment and offset at t's own shape (times shared by several curves computed once); four
+    # gathers from the flat knots, one row per curve: faster than take_along_axis, same values
     i = np.clip(np.floor(t).astype(np.int64), 0, k - 2)
     s = t - i
-    idx = np.stack([np.clip(i - 1, 0, k - 1), i, i + 1, np.clip(i + 2, 0, k - 1)], -1)
-    p = np.take_along_axis(knots[..., None, :], idx, axis=-1)  # [..., M, 4]
-    p0, p1, p2, p3 = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    flat = np.broadcast_to(knots, lead + (k,)).reshape(-1)
+    row = (np.arange(int(np.prod(lead, dtype=np.int64)), dtype=np.int64) * k).reshape(lead + (1,))
+    p0 = flat[row + np.clip(i - 1, 0, k - 1)]
+    p1 = flat[row + i]
+    p2 = flat[row + i + 1]
+    p3 = flat[row + np.clip(i + 2, 0, k - 1)]
     s2, s3 = s * s, s * s * s
     return 0.5 * ((2 * p1) + (-p0 + p2) * s + (2 * p0 - 5 * p1 + 4 * p2 - p3) * s2
                   + (-p0 + 3 * p1 - 3 * p2 + p3) * s3)
@@ -29,8 +36,12 @@ def catmull_rom(knots: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def random_spline_controls(num_sequences: int, num_steps: int, ctrlrange: np.ndarray,
                            rng: np.random.Generator | int | None = None, knot_every: int = 10,
-                           oversample: int = 3) -> np.ndarray:
+                           oversample: int = 3, keep=None) -> np.ndarray:
     """Random control sequences, [num_sequences, num_steps, nu], inside ``ctrlrange`` [nu, 2].
+
+    ``keep``: indices (or a boolean mask) of the sequences to return, [len(keep), num_steps, nu];
+    every sequence's random numbers are drawn all the same, so ``rng`` ends where it would and
+    each kept sequence is the one the full call returns (what a rank of a sharded generation uses).
 
     ``knot_every``: data steps between spline knots of the dense curve; ``oversample``: the dense
     curve is ``oversample`` times longer than the sequence, and ``num_steps`` sorted random time
@@ -49,10 +60,13 @@ def random_spline_controls(num_sequences: int, num_steps: int, ctrlrange: np.nda
     n_knots = max(2, int(np.ceil(dense / knot_every)) + 1)
     knots = rng.uniform(0.0, 1.0, size=(num_sequences, nu, n_knots))
     # random, sorted sample times over the dense curve (in knot units)
-    times = np.sort(rng.uniform(0.0, n_knots - 1, size=(num_sequences, 1, num_steps)), axis=-1)
-    u = np.clip(catmull_rom(knots, np.broadcast_to(times, (num_sequences, nu, num_steps))), 0.0, 1.0)
+    times = rng.uniform(0.0, n_knots - 1, size=(num_sequences, 1, num_steps))
+    if keep is not None:
+        knots, times = knots[keep], times[keep]
+    times = np.sort(times, axis=-1)
+    u = np.clip(catmull_rom(knots, times), 0.0, 1.0)   # times [S, 1, T]: shared by the actuators
     lo, hi = ctrlrange[:, 0], ctrlrange[:, 1]
-    u = lo[None, :, None] + u * (hi - lo)[None, :, None]
+    u = lo[None, :, None] + u * (hi - lo)[None, :, None]   # [kept sequences, nu, T]
     return np.ascontiguousarray(np.transpose(u, (0, 2, 1)))
 
 

@@ -15,7 +15,7 @@ import functools
 
 import warp as wp
 
-__all__ = ["BLOCK", "accumulate_kernel"]
+__all__ = ["BLOCK", "accumulate_kernel", "apply_kernel"]
 
 BLOCK = 128  # threads per column block on CUDA (Warp's CPU device runs one thread a block)
 
@@ -84,3 +84,44 @@ def accumulate_kernel(dtype, weighted: bool):
                 std_out[col] = T(1.0)
 
     return accumulate
+
+
+@functools.cache
+def apply_kernel(dtype):
+    """Kernel ``(inc_in [1 + 2F], size, count_in [1], floor, sum_out [F], sumsq_out [F],
+    mean_out [F], std_out [F])`` launched over F threads: adds a batch's sums ``inc_in`` (its
+    count, column sums, column squared sums: several ranks' batches summed) to the column sums
+    and writes the new mean and std as ``accumulate_kernel`` does, with the count ``count_in +
+    inc_in[0]`` (the caller adds the count afterwards)."""
+    T = dtype
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def apply(
+        # Data in:
+        inc_in: wp.array(dtype=wp.float64),
+        size: int,
+        count_in: wp.array(dtype=wp.float64),
+        floor: wp.float64,
+        # Data out:
+        sum_out: wp.array(dtype=wp.float64),
+        sumsq_out: wp.array(dtype=wp.float64),
+        mean_out: wp.array(dtype=T),
+        std_out: wp.array(dtype=T),
+    ):
+        col = wp.tid()
+        s = sum_out[col] + inc_in[1 + col]
+        q = sumsq_out[col] + inc_in[1 + size + col]
+        cnt = count_in[0] + inc_in[0]
+        sum_out[col] = s
+        sumsq_out[col] = q
+        if cnt > wp.float64(0.0):
+            d = wp.max(cnt, wp.float64(1.0))
+            m = s / d
+            var = wp.max(q / d - m * m, wp.float64(0.0))
+            mean_out[col] = T(m)
+            std_out[col] = T(wp.max(wp.sqrt(var), floor))
+        else:
+            mean_out[col] = T(0.0)
+            std_out[col] = T(1.0)
+
+    return apply
