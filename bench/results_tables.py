@@ -171,6 +171,14 @@ def headline(root: Path, doc: Path) -> list[str]:
                  f"unfused, {one['torch_graph']:.0f} ms a torch peer in a CUDA graph; 1 iteration: "
                  f"{it1['steady_ms']:.0f} ms (real-time factor {it1['control_dt_ms'] / it1['steady_ms']:.2f})",
                  link("mpc_latency")])
+    dist = json.loads((root / RESULTS / "distributed_nvidia-h100-80gb-hbm3.json").read_text())
+    weak = {r["gpus"]: r for r in dist if r["mode"] == "weak"}
+    n = max(weak)
+    rows.append([f"training and generation on 1-{n} H100s of one host (torch.distributed, NCCL), weak scaling",
+                 ", ".join(f"**{weak[g]['train_efficiency']:.0%}** training / {weak[g]['generate_efficiency']:.0%} "
+                           f"generation efficiency at {g} GPUs" for g in sorted(weak) if g > 1)
+                 + f"; time to the same smoothed validation error {weak[2]['time_to_error_ratio']:.2f}x on 2 GPUs",
+                 link("distributed")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean
             / _find(rj, variant="recurrent, angle (rad)", episode_steps=t).mean for t in (1, 10, 20)]
