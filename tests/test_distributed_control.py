@@ -120,8 +120,9 @@ def test_rl_seeds_rank_env_on_a_cpu_run():
     assert {"WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_PORT"} <= set(TORCHRUN_VARS)
 
 
-@pytest.mark.parametrize("command", [["rl", "--agent", "svg0", "-o", "x"], ["loop", "-o", "x"]])
-def test_rl_and_loop_refuse_torchrun(command, monkeypatch, capsys, tmp_path):
+@pytest.mark.parametrize("command", [["rl", "--agent", "svg0", "-o", "x"], ["loop", "-o", "x"],
+                                     ["evaluate", "x", "--data", "x.h5"]])
+def test_one_process_commands_refuse_torchrun(command, monkeypatch, capsys, tmp_path):
     from gnwarp.cli import main
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("WORLD_SIZE", "2")

@@ -55,9 +55,19 @@ def command_of(argv: list[str]) -> str:
     return next((a for a in argv if not a.startswith("-")), "")
 
 
+# commands that split their work over torchrun's ranks; the others run in one process
+RANKED = ("generate", "train", "mpc")
+ONE_PROCESS_HINTS = {"rl": "; several seeds over ranks: torchrun --nproc_per_node N bench/rl_seeds.py --seeds 0-5 ..."}
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(command_of(argv)).parse_args(argv)
+    from gnwarp.distributed import launched
+    if launched() and args.command not in RANKED:   # every rank would do the same work, write the same files
+        print(f"gnwarp {args.command}: error: runs in one process, not under torchrun (under torchrun: "
+              f"{', '.join(RANKED)}; docs/distributed.md){ONE_PROCESS_HINTS.get(args.command, '')}", file=sys.stderr)
+        return 2
     try:
         code = args.func(args)
     except (ValueError, OSError, FloatingPointError, RuntimeError, TypeError) as e:

@@ -119,10 +119,6 @@ def rl_config(args):
 
 def rl_command(args) -> int:
     """Run ``gnwarp rl``; prints where it stopped and the last evaluation."""
-    from gnwarp.distributed import launched
-    if launched():   # every rank would run the same seed into the same folder
-        raise ValueError("gnwarp rl runs one seed in one process, not under torchrun; several seeds over ranks: "
-                         "torchrun --nproc_per_node N bench/rl_seeds.py --seeds 0-5 ... (docs/distributed.md)")
     cfg = rl_config(args)
     from gnwarp.rl.run import run_rl
     r = run_rl(cfg)

@@ -67,9 +67,6 @@ def loop_config(args) -> LoopConfig:
 
 def loop_command(args) -> int:
     """Run ``gnwarp loop``; prints where it stopped and writes the plot."""
-    from gnwarp.distributed import launched
-    if launched():   # every rank would plan, write and train in the same folder
-        raise ValueError("gnwarp loop runs in one process, not under torchrun (docs/distributed.md)")
     cfg = loop_config(args)
     import logging
     logging.basicConfig(level=logging.INFO, format="%(message)s")   # a line per iteration, also with -q
