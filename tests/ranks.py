@@ -4,6 +4,9 @@ import os
 import socket
 import subprocess
 import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -20,6 +23,8 @@ def start_ranks(args, world=2, timeout=30, env=None):
         e = dict(os.environ, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world), RANK=str(r),
                  LOCAL_RANK=str(r), LOCAL_WORLD_SIZE=str(world), GNWARP_DIST_TIMEOUT=str(timeout),
                  OMP_NUM_THREADS="1", **(env or {}))
+        # the checkout first, installed or not (the workers import gnwarp and the test helpers)
+        e["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])
         procs.append(subprocess.Popen([sys.executable, *args], env=e, stdout=subprocess.PIPE,
                                       stderr=subprocess.STDOUT, text=True))
     outs = [p.communicate(timeout=240)[0] for p in procs]
