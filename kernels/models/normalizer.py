@@ -20,6 +20,18 @@ __all__ = ["BLOCK", "accumulate_kernel", "apply_kernel"]
 BLOCK = 128  # threads per column block on CUDA (Warp's CPU device runs one thread a block)
 
 
+@wp.func
+def column_stats(s: wp.float64, q: wp.float64, cnt: wp.float64, floor: wp.float64):
+    """(mean, std) of a column from its sum ``s``, squared sum ``q`` and count: std = max(sqrt(max(var,
+    0)), floor); (0, 1) while the count is 0."""
+    if cnt > wp.float64(0.0):
+        d = wp.max(cnt, wp.float64(1.0))
+        m = s / d
+        var = wp.max(q / d - m * m, wp.float64(0.0))
+        return wp.vec2d(m, wp.max(wp.sqrt(var), floor))
+    return wp.vec2d(wp.float64(0.0), wp.float64(1.0))
+
+
 @functools.cache
 def accumulate_kernel(dtype, weighted: bool):
     """Kernel ``(x_in [n, F], w_in [n], n, bd, count_in [1], floor, sum_out [F], sumsq_out [F],
@@ -73,15 +85,9 @@ def accumulate_kernel(dtype, weighted: bool):
                 cnt = count_in[0] + sc[0]
             sum_out[col] = s
             sumsq_out[col] = q
-            if cnt > wp.float64(0.0):
-                d = wp.max(cnt, wp.float64(1.0))
-                m = s / d
-                var = wp.max(q / d - m * m, wp.float64(0.0))
-                mean_out[col] = T(m)
-                std_out[col] = T(wp.max(wp.sqrt(var), floor))
-            else:
-                mean_out[col] = T(0.0)
-                std_out[col] = T(1.0)
+            ms = column_stats(s, q, cnt, floor)
+            mean_out[col] = T(ms[0])
+            std_out[col] = T(ms[1])
 
     return accumulate
 
@@ -114,14 +120,8 @@ def apply_kernel(dtype):
         cnt = count_in[0] + inc_in[0]
         sum_out[col] = s
         sumsq_out[col] = q
-        if cnt > wp.float64(0.0):
-            d = wp.max(cnt, wp.float64(1.0))
-            m = s / d
-            var = wp.max(q / d - m * m, wp.float64(0.0))
-            mean_out[col] = T(m)
-            std_out[col] = T(wp.max(wp.sqrt(var), floor))
-        else:
-            mean_out[col] = T(0.0)
-            std_out[col] = T(1.0)
+        ms = column_stats(s, q, cnt, floor)
+        mean_out[col] = T(ms[0])
+        std_out[col] = T(ms[1])
 
     return apply
