@@ -285,10 +285,10 @@ def _episodes(cfg: LoopConfig, rk, task, system, model_path: Path, n: int, steps
     members = [model] + [load_model(member_checkpoint(model_path.parent.parent, j, k), device=device)
                          for k in range(1, cfg.ensemble)]
     value = load_loop_value(cfg, model_path.parent.parent, j, device=model.device)
-    backend = []
 
     def plan(idx: list) -> list:
-        """This rank's episodes ``idx`` (of the n), planned together: (states, actions, qpos, qvel, return) each."""
+        """This rank's episodes ``idx`` (of the n), planned together: (states, actions, qpos, qvel, return,
+        simulator backend) each."""
         from gnwarp.control.episodes import run_episodes
         from gnwarp.sim.env import make_env
         m = len(idx)
@@ -305,17 +305,15 @@ def _episodes(cfg: LoopConfig, rk, task, system, model_path: Path, n: int, steps
             vs.append(np.asarray(env.qvel.cpu(), np.float32))
             bar.update(1)
         out = run_episodes(planner, env, task, steps, x0, target=tgt, progress=progress)
-        backend.append(env.backend)
         env.close()
         qs, vs = np.stack(qs, 1), np.stack(vs, 1)
         x, u = out["states"].cpu().numpy(), out["actions"].cpu().numpy()
         r = out["returns"].double().cpu().numpy()
-        return [(x[e], u[e], qs[e], vs[e], float(r[e])) for e in range(m)]
+        return [(x[e], u[e], qs[e], vs[e], float(r[e]), env.backend) for e in range(m)]
 
     t0 = time.perf_counter()
     # one process plans the n episodes together; on several ranks each its share, gathered on rank 0
     done = rk.map_sharded(range(n), plan, batched=True, what="loop episodes")
-    backends = rk.gather_objects(backend[0] if backend else None)
     if not rk.main:
         return None, None, None, None, model
     states, actions, qpos, qvel = (np.stack([e[k] for e in done]) for k in range(4))
@@ -324,7 +322,7 @@ def _episodes(cfg: LoopConfig, rk, task, system, model_path: Path, n: int, steps
             "plan_seconds": time.perf_counter() - t0, "initial_qpos": np.asarray(qpos0, np.float64).tolist(),
             "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
             "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
-            "backend": next(b for b in backends if b is not None), "model": f"models/{model_path.name}"}
+            "backend": done[0][5], "model": f"models/{model_path.name}"}
     if value is not None:
         meta["value"] = f"value/{model_path.name}.pt"
     return {"states": states, "actions": actions, "returns": np.asarray(returns)}, qpos, qvel, meta, model
