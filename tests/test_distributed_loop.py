@@ -1,7 +1,7 @@
 """The data loop over two ranks on the CPU (gloo), started as torchrun starts them: from the
-same folder (the seed data and its model, which the ranks resume), iteration 1's episodes on two ranks are one process's
-(returns, states, actions, errors), rank 0 alone writes the folder (its value fit included),
-and the folder it leaves is complete and resumable."""
+same folder (the seed data and its model, which the ranks resume), iteration 1's episodes on
+two ranks are one process's (returns, states, actions, errors), rank 0 alone writes the folder
+(its value fit included), and the folder it leaves is complete and resumable."""
 import json
 import shutil
 from pathlib import Path
