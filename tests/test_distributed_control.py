@@ -120,7 +120,7 @@ def test_rl_seeds_rank_env_on_a_cpu_run():
     assert {"WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_PORT"} <= set(TORCHRUN_VARS)
 
 
-@pytest.mark.parametrize("command", [["rl", "--agent", "svg0", "-o", "x"], ["loop", "-o", "x"],
+@pytest.mark.parametrize("command", [["rl", "--agent", "svg0", "-o", "x"],
                                      ["evaluate", "x", "--data", "x.h5"]])
 def test_one_process_commands_refuse_torchrun(command, monkeypatch, capsys, tmp_path):
     from gnwarp.cli import main

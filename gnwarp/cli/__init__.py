@@ -56,7 +56,7 @@ def command_of(argv: list[str]) -> str:
 
 
 # commands that split their work over torchrun's ranks; the others run in one process
-RANKED = ("generate", "train", "mpc")
+RANKED = ("generate", "train", "mpc", "loop")
 ONE_PROCESS_HINTS = {"rl": "; several seeds over ranks: torchrun --nproc_per_node N bench/rl_seeds.py --seeds 0-5 ..."}
 
 

@@ -260,67 +260,120 @@ def _errors(model, ds, split: str, n: int, horizon: int, rng) -> dict:
             "sequences": int(len(idx)), "finite": bool(r["finite"])}
 
 
-def _episodes(cfg: LoopConfig, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
+def _episodes(cfg: LoopConfig, rk, task, system, model_path: Path, n: int, steps: int, key: list, bar) -> tuple:
     """``n`` episodes of ``steps`` steps planned through the checkpoint ``model_path`` on the
     true simulator, their initial states, targets and planner seeded by ``key``, the planner
     adding the loop's value of the same iteration (``value/<model_path's name>.pt``) where it has
-    one. Returns (``run_episodes``' output, qpos [n, steps+1, nq], qvel [n, steps+1, nv], meta:
-    returns, initial states, targets, seconds, backend, model, value; the model)."""
+    one. Every rank (``rk``) draws every initial state and target; each plans and runs its share
+    of the episodes (``Ranks.map_sharded``), gathered on rank 0. Returns, on rank 0, ({"states"
+    [n, steps+1, B, 13], "actions" [n, steps, U], "returns" [n]} as numpy, qpos [n, steps+1, nq],
+    qvel [n, steps+1, nv], meta: returns, initial states, targets, seconds, backend, model, value;
+    the model); on the other ranks (None, None, None, None, the model)."""
     import torch
 
-    from gnwarp.control.episodes import run_episodes
     from gnwarp.control.tasks import sample_targets
     from gnwarp.data.generation import initial_states
-    from gnwarp.sim.env import make_env
     from gnwarp.train.checkpoint import load_model
     rng = np.random.default_rng([cfg.seed, *key])
     init = getattr(task, "initial", None)
     qpos0, qvel0 = init(system, n, rng) if init is not None else initial_states(system, n, rng)
     stream = int(np.random.default_rng([cfg.seed, *key]).integers(1 << 31))   # targets' and planner's seeds
     targets = sample_targets(task, system, n, seed=stream)
-    device = None if cfg.device == "auto" else cfg.device
+    device = rk.device if rk.distributed else (None if cfg.device == "auto" else cfg.device)
     model = load_model(model_path, device=device)
     j = int(model_path.name.split("-")[-1])
     members = [model] + [load_model(member_checkpoint(model_path.parent.parent, j, k), device=device)
                          for k in range(1, cfg.ensemble)]
-    env = make_env(system, n, backend=cfg.backend)
-    value = load_loop_value(cfg, model_path.parent.parent, j)
-    planner = make_loop_planner(cfg, members if cfg.ensemble > 1 else model, task, system, n, targets, env, stream,
-                                terminal=value)
-    x0 = env.reset(qpos0, qvel0)
-    qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
+    value = load_loop_value(cfg, model_path.parent.parent, j, device=model.device)
 
-    def progress(t):   # every state's qpos / qvel, for the dataset
-        qs.append(np.asarray(env.qpos.cpu(), np.float32))
-        vs.append(np.asarray(env.qvel.cpu(), np.float32))
-        bar.update(1)
+    def plan(idx: list) -> list:
+        """This rank's episodes ``idx`` (of the n), planned together: (states, actions, qpos, qvel, return,
+        simulator backend) each."""
+        from gnwarp.control.episodes import run_episodes
+        from gnwarp.sim.env import make_env
+        m = len(idx)
+        pick = (lambda a: a) if m == n else (lambda a: None if a is None else a[np.asarray(idx)])
+        tgt = targets if targets is None or m == n else targets[torch.as_tensor(idx)]
+        env = make_env(system, m, backend=cfg.backend)
+        planner = make_loop_planner(cfg, members if cfg.ensemble > 1 else model, task, system, m, tgt, env, stream,
+                                    terminal=value)
+        x0 = env.reset(pick(qpos0), pick(qvel0))
+        qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
+
+        def progress(t):   # every state's qpos / qvel, for the dataset
+            qs.append(np.asarray(env.qpos.cpu(), np.float32))
+            vs.append(np.asarray(env.qvel.cpu(), np.float32))
+            bar.update(1)
+        out = run_episodes(planner, env, task, steps, x0, target=tgt, progress=progress)
+        env.close()
+        qs, vs = np.stack(qs, 1), np.stack(vs, 1)
+        x, u = out["states"].cpu().numpy(), out["actions"].cpu().numpy()
+        r = out["returns"].double().cpu().numpy()
+        return [(x[e], u[e], qs[e], vs[e], float(r[e]), env.backend) for e in range(m)]
+
     t0 = time.perf_counter()
-    out = run_episodes(planner, env, task, steps, x0, target=targets, progress=progress)
-    meta = {"returns": [float(x) for x in out["returns"].double()], "episode_steps": steps,
+    # one process plans the n episodes together; on several ranks each its share, gathered on rank 0
+    done = rk.map_sharded(range(n), plan, batched=True, what="loop episodes")
+    if not rk.main:
+        return None, None, None, None, model
+    states, actions, qpos, qvel = (np.stack([e[k] for e in done]) for k in range(4))
+    returns = [e[4] for e in done]
+    meta = {"returns": returns, "episode_steps": steps,
             "plan_seconds": time.perf_counter() - t0, "initial_qpos": np.asarray(qpos0, np.float64).tolist(),
             "initial_qvel": np.asarray(qvel0, np.float64).tolist(),
             "targets": None if targets is None else torch.as_tensor(targets).double().tolist(),
-            "backend": env.backend, "model": f"models/{model_path.name}"}
+            "backend": done[0][5], "model": f"models/{model_path.name}"}
     if value is not None:
         meta["value"] = f"value/{model_path.name}.pt"
-    env.close()
-    return out, np.stack(qs, 1), np.stack(vs, 1), meta, model
+    return {"states": states, "actions": actions, "returns": np.asarray(returns)}, qpos, qvel, meta, model
 
 
-def _collect(cfg: LoopConfig, task, system, model_path: Path, trained, iteration: int, steps: int, bar):
+def _collect(cfg: LoopConfig, rk, task, system, model_path: Path, trained, iteration: int, steps: int, bar):
     """Plan ``cfg.episodes`` episodes of ``steps`` steps with the checkpoint ``model_path`` on
-    the true simulator; measure the model's errors on them and on ``trained`` (the training
-    data). Returns the episodes as a shard ``Dataset`` (its meta["loop"]: returns, errors,
-    initial states, targets, seconds)."""
-    out, qpos, qvel, meta, model = _episodes(cfg, task, system, model_path, cfg.episodes, steps, [iteration], bar)
-    loop_meta = {"iteration": iteration, "planner": cfg.planner, **meta}
-    shard = episode_dataset(trained, out["states"].numpy(), out["actions"].numpy(), qpos, qvel, cfg.seq_len, loop_meta)
-    t1 = time.perf_counter()
-    ev_rng = np.random.default_rng([cfg.seed, iteration, 1])
-    loop_meta["errors"] = {"new": _errors(model, shard, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng),
-                           "trained": _errors(model, trained, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng)}
-    loop_meta["eval_seconds"] = time.perf_counter() - t1
-    return shard
+    the true simulator (on every rank, each its share); on rank 0, measure the model's errors on
+    them and on ``trained`` (the training data) and write them as the shard
+    ``shard_path(iteration)``. Returns, on every rank, the shard ``Dataset`` (its
+    meta["loop"]: returns, errors, initial states, targets, seconds; the other ranks read it
+    from the file rank 0 wrote)."""
+    from gnwarp.data.dataset import load
+    out, qpos, qvel, meta, model = _episodes(cfg, rk, task, system, model_path, cfg.episodes, steps, [iteration],
+                                             bar)
+    path = Path(cfg.out) / shard_path(iteration)
+    made = []
+
+    def write():
+        loop_meta = {"iteration": iteration, "planner": cfg.planner, **meta}
+        shard = episode_dataset(trained, out["states"], out["actions"], qpos, qvel, cfg.seq_len, loop_meta)
+        t1 = time.perf_counter()
+        ev_rng = np.random.default_rng([cfg.seed, iteration, 1])
+        loop_meta["errors"] = {"new": _errors(model, shard, "train", cfg.eval_sequences, cfg.error_horizon, ev_rng),
+                               "trained": _errors(model, trained, "train", cfg.eval_sequences, cfg.error_horizon,
+                                                  ev_rng)}
+        loop_meta["eval_seconds"] = time.perf_counter() - t1
+        shard.save(path)
+        made.append(shard)
+    _on_main(rk, f"writing {path}", write)
+    return made[0] if made else load(path, lazy=False)
+
+
+def _on_main(rk, what: str, fn):
+    """``fn()`` on rank 0 alone (what writes the loop folder), its value (small, picklable) on
+    every rank once it is done: the other ranks wait for it, so they read only what rank 0 has
+    written. An error on rank 0 ends every rank (the others raise ``DistributedError``)."""
+    if not rk.distributed:
+        return fn()
+    from gnwarp.distributed import DistributedError
+    answer = None
+    if rk.main:
+        try:
+            answer = ("ok", fn())
+        except Exception as e:   # the others stop with rank 0's reason instead of waiting for it
+            rk.broadcast_object(("error", f"{type(e).__name__}: {e}"))
+            raise
+    kind, value = rk.broadcast_object(answer)
+    if kind == "error":
+        raise DistributedError(f"rank {rk.rank} of {rk.world}: {what}: rank 0 failed ({value})")
+    return value
 
 
 def _train(cfg: LoopConfig, data, steps: int) -> dict:
@@ -415,11 +468,17 @@ def _record(cfg: LoopConfig, task, system, m: dict, state: LoopState, model_env_
 def run_loop(config: LoopConfig) -> dict:
     """Run (or resume) the data loop in ``config.out`` until ``config.iterations`` iterations are
     finished or the time budget is spent. Returns {"iterations": finished, "env_steps",
-    "train_steps", "records": path, "stop": "iterations" | "chunk" | "budget", "seconds": this call's}."""
+    "train_steps", "records": path, "stop": "iterations" | "chunk" | "budget", "seconds": this call's}.
+
+    Under ``torchrun`` every rank runs it together (``gnwarp.distributed``): rank 0 alone writes
+    the folder (config, seed data, checkpoint copies, shards, values, records, state), the others
+    reading what it wrote; each rank plans its share of the episodes, gathered on rank 0; the
+    ranks train together (``Trainer``); rank 0's clock and state decide when to stop."""
     from tqdm.auto import tqdm
 
     from gnwarp.control.tasks import get_task
     from gnwarp.data.dataset import load
+    from gnwarp.distributed import ranks
     from gnwarp.eval.records import write_records
     from gnwarp.files import check_output_path
     cfg = config
@@ -432,49 +491,58 @@ def run_loop(config: LoopConfig) -> dict:
     if cfg.value is not None:
         from gnwarp.control.planner import planner_settings
         gamma = check_value_discount(cfg.value, cfg.planner, planner_settings(cfg.planner, cfg.planner_settings))
-    out.mkdir(parents=True, exist_ok=True)
-    _check_folder_config(out, cfg)
-    state = read_state(out)
+    rk = ranks(cfg.device)   # rank 0 of 1 unless started by torchrun
     records = out / RECORDS_FILE
-    _trim_records(records, state.iteration if state is not None else 0)
-    seed = _seed_data(cfg, system, out)
+
+    def prepare():   # rank 0: the folder checked, its records trimmed, the seed data there
+        out.mkdir(parents=True, exist_ok=True)
+        _check_folder_config(out, cfg)
+        st = read_state(out)
+        _trim_records(records, st.iteration if st is not None else 0)
+        _seed_data(cfg, system, out)
+        return st
+    state = _on_main(rk, f"preparing {out}", prepare)
+    seed = load(out / SEED_DATA, lazy=False)
     if state is None:   # iteration 0: the model trained on the seed data
         log.info("training on the seed data: %d sequences x %d steps", len(seed["train"]), cfg.seq_len)
         r = _train(cfg, concat_train(seed, []), cfg.initial_train_steps)
         state = LoopState(iteration=0, env_steps=train_env_steps(seed), train_steps=int(r["steps"]),
                           seconds=time.perf_counter() - t_call)
-        write_state(out, state)
+        state = _on_main(rk, "writing the loop state", lambda: write_state(out, state) or state)
     shards = [load(out / s, lazy=False) for s in state.shards]
     counted = train_env_steps(seed) + sum(train_env_steps(s) for s in shards)
     if counted != state.env_steps:
         raise LoopStateError(f"{out / 'state.json'} counts {state.env_steps} env steps, its data files hold {counted}; "
                              "restore the state file or the data files")
+    bars = cfg.progress and rk.main
     bar = tqdm(total=cfg.iterations, initial=min(state.iteration, cfg.iterations), desc=f"loop {task.name}",
-               unit="it", disable=not cfg.progress, dynamic_ncols=True, position=0)
+               unit="it", disable=not bars, dynamic_ncols=True, position=0)
     stop, first = "iterations", state.iteration
     while state.iteration < cfg.iterations:
         spent = time.perf_counter() - t_call
+        why = None
         if cfg.chunk is not None and state.iteration - first >= cfg.chunk:
-            stop = "chunk"
-            break
-        if cfg.budget_seconds is not None and spent + (state.last_seconds or 0.0) > cfg.budget_seconds:
-            stop = "budget"
+            why = "chunk"
+        elif cfg.budget_seconds is not None and spent + (state.last_seconds or 0.0) > cfg.budget_seconds:
+            why = "budget"
+        why = rk.broadcast_object(why)   # rank 0's clock decides: every rank leaves together
+        if why is not None:
+            stop = why
             break
         t0 = time.perf_counter()
         i = state.iteration + 1
         trained = concat_train(seed, shards)
         path = out / shard_path(i)
-        if path.exists():   # planned before a kill: kept, not planned again
+        if rk.broadcast_object(path.exists()):   # planned before a kill: kept, not planned again
             shard = load(path, lazy=False)
             plan_s = eval_s = 0.0
         else:
             plan_model = member_checkpoint(out, i, 0)
-            _copy_members(cfg, out, i, keep=True)
-            ebar = tqdm(total=steps, desc=f"episodes {i}", unit="step", disable=not cfg.progress, leave=False,
+            _on_main(rk, f"copying the models iteration {i} plans with", lambda: _copy_members(cfg, out, i, keep=True))
+            ebar = tqdm(total=steps, desc=f"episodes {i}", unit="step", disable=not bars, leave=False,
                         dynamic_ncols=True, position=1)
-            shard = _collect(cfg, task, system, plan_model, trained, i, steps, ebar)
+            shard = _collect(cfg, rk, task, system, plan_model, trained, i, steps, ebar)
             ebar.close()
-            shard.save(path)
             plan_s, eval_s = shard.meta["loop"]["plan_seconds"], shard.meta["loop"]["eval_seconds"]
         t1 = time.perf_counter()
         model_env_steps = state.env_steps
@@ -483,34 +551,44 @@ def run_loop(config: LoopConfig) -> dict:
         seconds = {"plan_seconds": plan_s, "eval_seconds": eval_s, "train_seconds": time.perf_counter() - t1}
         # the model the next iteration plans with, and the evaluation episodes' (after a kill, the same weights)
         next_model = member_checkpoint(out, i + 1, 0)
-        _copy_members(cfg, out, i + 1)
-        fitted = None
-        if cfg.value is not None:   # from value/iter-<i> (not a file a killed call wrote): each episode fitted once
-            fitted = fit_loop_value(cfg, task, system, out, shards, i + 1, gamma)
+
+        def after_training():   # rank 0: the next models copied, the value fitted on every episode
+            _copy_members(cfg, out, i + 1)
+            if cfg.value is None:
+                return None
+            # from value/iter-<i> (not a file a killed call wrote): each episode fitted once
+            return fit_loop_value(cfg, task, system, out, shards, i + 1, gamma)
+        fitted = _on_main(rk, f"copying the models of iteration {i + 1}", after_training)
+        if fitted is not None:
             seconds["value_seconds"] = fitted.pop("seconds")
         evaluation = None
         if cfg.eval_episodes and (i % cfg.eval_every == 0 or i == cfg.iterations):
             t2 = time.perf_counter()
-            ebar = tqdm(total=steps, desc=f"evaluation {i}", unit="step", disable=not cfg.progress, leave=False,
+            ebar = tqdm(total=steps, desc=f"evaluation {i}", unit="step", disable=not bars, leave=False,
                         dynamic_ncols=True, position=1)
-            evaluation = _episodes(cfg, task, system, next_model, cfg.eval_episodes, steps, [i, 2], ebar)[3]
+            evaluation = _episodes(cfg, rk, task, system, next_model, cfg.eval_episodes, steps, [i, 2], ebar)[3]
             ebar.close()
             seconds["evaluation_seconds"] = time.perf_counter() - t2
         seconds["iteration_seconds"] = time.perf_counter() - t0
         new = LoopState(iteration=i, env_steps=state.env_steps + train_env_steps(shard), train_steps=int(r["steps"]),
                         shards=state.shards + [shard_path(i).as_posix()],
                         seconds=state.seconds + seconds["iteration_seconds"], last_seconds=seconds["iteration_seconds"])
-        rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds, fitted=fitted)
-        recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
-                                 "loop-eval")] if evaluation is not None else [])
-        write_records(records, recs)   # then the state: a record past the state is dropped on resume
-        write_state(out, new)
-        state = new
+
+        def finish():   # rank 0: the records, then the state (a record past the state is dropped on resume)
+            rec = _record(cfg, task, system, shard.meta["loop"], new, model_env_steps, seconds, fitted=fitted)
+            recs = [rec] + ([_record(cfg, task, system, {**evaluation, "iteration": i}, new, new.env_steps, seconds,
+                                     "loop-eval")] if evaluation is not None else [])
+            write_records(records, recs)
+            write_state(out, new)
+            return new, rec.metrics
+        state, metrics = _on_main(rk, f"writing the records of iteration {i}", finish)
         bar.update(1)
-        bar.set_postfix(ret=f"{rec.metrics['mean_return']:.4g}", env_steps=state.env_steps)
-        log.info("iteration %d: mean return %.4g, env steps %d, errors on new data %.3g (one-step) %.3g (rollout)",
-                 i, rec.metrics["mean_return"], state.env_steps, rec.metrics["errors"]["new"]["one_step"],
-                 rec.metrics["errors"]["new"]["rollout"])
+        bar.set_postfix(ret=f"{metrics['mean_return']:.4g}", env_steps=state.env_steps)
+        if rk.main:
+            log.info("iteration %d: mean return %.4g, env steps %d, errors on new data %.3g (one-step) %.3g "
+                     "(rollout)", i, metrics["mean_return"], state.env_steps, metrics["errors"]["new"]["one_step"],
+                     metrics["errors"]["new"]["rollout"])
     bar.close()
     return {"iterations": state.iteration, "env_steps": state.env_steps, "train_steps": state.train_steps,
-            "records": str(records), "stop": stop, "seconds": time.perf_counter() - t_call, "out": str(out)}
+            "records": str(records), "stop": stop, "seconds": time.perf_counter() - t_call, "out": str(out),
+            "ranks": rk.world}

@@ -71,6 +71,9 @@ def loop_command(args) -> int:
     import logging
     logging.basicConfig(level=logging.INFO, format="%(message)s")   # a line per iteration, also with -q
     r = run_loop(cfg)
+    from gnwarp.distributed import ranks
+    if not ranks(cfg.device).main:   # under torchrun rank 0 prints and plots
+        return 0
     line = (f"{r['iterations']} of {cfg.iterations} iterations finished ({r['stop']}), {r['env_steps']} env steps, "
             f"{r['train_steps']} training steps, {r['seconds']:.1f} s this call; records in {r['records']}")
     print(line)

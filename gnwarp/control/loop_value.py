@@ -97,13 +97,13 @@ def _device(cfg) -> str:
     return ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
 
 
-def load_loop_value(cfg, out, j: int):
-    """The value iteration ``j`` plans with (on the loop's device), or None: the loop has no
-    value, or ``j`` is 1 (no episode to fit on before it)."""
+def load_loop_value(cfg, out, j: int, device=None):
+    """The value iteration ``j`` plans with (on ``device``, None: the loop's), or None: the loop
+    has no value, or ``j`` is 1 (no episode to fit on before it)."""
     if cfg.value is None or j < 2:
         return None
     from gnwarp.control.value import TerminalValue
-    return TerminalValue.load(value_path(out, j), device=_device(cfg))
+    return TerminalValue.load(value_path(out, j), device=_device(cfg) if device is None else device)
 
 
 def _episodes_and_rewards(task, shards) -> tuple:
