@@ -147,6 +147,7 @@ def time_to_error(r, a, target: float | None) -> dict:
             t.step()
             steps += 1
         clock += timed_barrier(r) - t0
+        clock = r.broadcast_object(clock)   # rank 0's clock: every rank leaves the loop at the same round
         err = t.validate() if r.main else None
         err = r.broadcast_object(err)
         best = min(best, err)

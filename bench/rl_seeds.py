@@ -100,6 +100,8 @@ def main(argv=None) -> int:
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     from gnwarp.distributed import launched, ranks
     # under torchrun: this process only starts and waits (gloo); its seeds' processes use its GPU
+    # the gather waits for every seed of every rank: longer than the budget, whatever the default
+    os.environ.setdefault("GNWARP_DIST_TIMEOUT", str(int(2 * a.budget_seconds * max(1, len(seeds)) + 600)))
     r = ranks("cpu")
     if launched():
         env.update(rank_env(r.local_rank, base.get("device", "auto")))

@@ -9,11 +9,10 @@ stage asks for ``ranks()``; any other process is rank 0 of 1 and no group is mad
 rank takes the GPU of its local rank (torch's current device and Warp's default device agree)
 and talks over NCCL; on CPUs over gloo.
 
-Failures: every collective has the group's timeout (``GNWARP_DIST_TIMEOUT`` seconds, default 600;
-NCCL's watchdog tears a stuck communicator down), and a collective that fails because another
-rank died or timed out raises ``DistributedError`` naming this rank and what it was doing, so the
-others end with a clear error instead of hanging (``torchrun`` also stops the other workers of a
-job when one exits with an error). Only rank 0 writes checkpoints and results, each atomically
+Failures: every collective has the group's timeout (``GNWARP_DIST_TIMEOUT`` seconds, default
+1800). On gloo a collective that fails because another rank died or timed out raises
+``DistributedError`` naming this rank and what it was doing; on NCCL the watchdog aborts the
+rank; ``torchrun`` stops the other workers of a job when one exits with an error. Only rank 0 writes checkpoints and results, each atomically
 (``gnwarp.files.atomic_write``), so a rank that dies leaves no file half written.
 """
 from __future__ import annotations
@@ -41,8 +40,9 @@ def launched() -> bool:
 
 
 def timeout_seconds() -> float:
-    """The process group's timeout: ``GNWARP_DIST_TIMEOUT`` seconds (default 600)."""
-    text = os.environ.get(ENV_TIMEOUT, "600")
+    """The process group's timeout: ``GNWARP_DIST_TIMEOUT`` seconds (default 1800: rank 0's merges
+    and fits run while the other ranks wait in a collective)."""
+    text = os.environ.get(ENV_TIMEOUT, "1800")
     try:
         t = float(text)
     except ValueError:
@@ -206,9 +206,9 @@ def collective(r: Ranks, what: str):
         raise
     except (RuntimeError, ValueError, ConnectionError, OSError) as e:   # DistBackendError is a RuntimeError
         raise DistributedError(
-            f"rank {r.rank} of {r.world}: {what} with the other ranks failed: another rank died, timed out "
-            f"(timeout {timeout_seconds():g} s, {ENV_TIMEOUT}) or disagreed ({type(e).__name__}: "
-            f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r})") from e
+            f"rank {r.rank} of {r.world}: {what} with the other ranks failed ({type(e).__name__}: "
+            f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r}); often another rank died or timed out "
+            f"(timeout {timeout_seconds():g} s, {ENV_TIMEOUT})") from e
 
 
 _RANKS: Ranks | None = None
@@ -237,6 +237,8 @@ def ranks(device: str | torch.device | None = "auto") -> Ranks:
     timeout = datetime.timedelta(seconds=timeout_seconds())
     if want.type == "cuda":
         n = torch.cuda.device_count()
+        if n == 1 and int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1) == 1:   # each task shown only its own GPU
+            local = 0
         if local >= n:
             raise DistributedError(f"rank {rank}: local rank {local} has no GPU of its own ({n} visible); start "
                                    f"at most {n} processes per host (torchrun --nproc_per_node {n})")

@@ -68,13 +68,15 @@ def main(argv=None) -> int:
         print(f"gnwarp {args.command}: error: runs in one process, not under torchrun (under torchrun: "
               f"{', '.join(RANKED)}; docs/distributed.md){ONE_PROCESS_HINTS.get(args.command, '')}", file=sys.stderr)
         return 2
+    from gnwarp.distributed import DistributedError, close
     try:
         code = args.func(args)
     except (ValueError, OSError, FloatingPointError, RuntimeError, TypeError) as e:
         print(f"gnwarp {args.command}: error: {e}", file=sys.stderr)
+        if not isinstance(e, DistributedError):   # a broken group is left as it is
+            close()
         return 2
-    from gnwarp.distributed import close
-    close()   # under torchrun: leave the process group before a clean exit (else gloo may abort the process)
+    close()   # under torchrun: leave the process group before exit (else gloo may abort the process)
     return code
 
 

@@ -2,6 +2,8 @@
 results record, timings and video."""
 from __future__ import annotations
 
+import dataclasses
+
 import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
@@ -137,7 +139,10 @@ def mpc_command(args) -> int:
         """This rank's episodes ``idx`` (of the n), planned together: (return, states or None) each."""
         pick = (lambda a: a) if len(idx) == n else (lambda a: None if a is None else a[np.asarray(idx)])
         m, tgt = len(idx), pick(target)
-        planner = make_planner(args.planner, model, task, system, m, settings, tgt, terminal)
+        own = settings
+        if rk.distributed and "seed" in {f.name for f in dataclasses.fields(settings)}:   # each rank its own draws
+            own = dataclasses.replace(settings, seed=settings.seed + rk.rank * 1_000_003)
+        planner = make_planner(args.planner, model, task, system, m, own, tgt, terminal)
         gradient = planner_name(planner) == "gradient"
         from tqdm.auto import tqdm  # gradient MPC: one bar over every planning iteration, the warm-up included
         bar = tqdm(total=planner.warmup + settings.iterations * args.steps if gradient else args.steps,
@@ -154,7 +159,9 @@ def mpc_command(args) -> int:
                            **episode_kw)
         mine.update(planner=planner, secs=time.perf_counter() - t0, plan_seconds=out["plan_seconds"])
         bar.close()
-        return [(float(out["returns"][j]), out["states"][j] if i < k_video else None) for j, i in enumerate(idx)]
+        # clones: a view would pickle the whole batch's states to rank 0
+        return [(float(out["returns"][j]), out["states"][j].clone() if i < k_video else None)
+                for j, i in enumerate(idx)]
 
     # one process plans the n episodes together; under torchrun each rank its share, gathered on rank 0
     results = rk.map_sharded(range(n), plan, batched=True, what="mpc episodes")

@@ -295,8 +295,8 @@ def _episodes(cfg: LoopConfig, rk, task, system, model_path: Path, n: int, steps
         pick = (lambda a: a) if m == n else (lambda a: None if a is None else a[np.asarray(idx)])
         tgt = targets if targets is None or m == n else targets[torch.as_tensor(idx)]
         env = make_env(system, m, backend=cfg.backend)
-        planner = make_loop_planner(cfg, members if cfg.ensemble > 1 else model, task, system, m, tgt, env, stream,
-                                    terminal=value)
+        planner = make_loop_planner(cfg, members if cfg.ensemble > 1 else model, task, system, m, tgt, env,
+                                    stream + rk.rank * 1_000_003, terminal=value)   # each rank its own draws
         x0 = env.reset(pick(qpos0), pick(qvel0))
         qs, vs = [np.asarray(env.qpos.cpu(), np.float32)], [np.asarray(env.qvel.cpu(), np.float32)]
 

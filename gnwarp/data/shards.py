@@ -110,7 +110,8 @@ def generate(system, out: str | os.PathLike, *, overwrite: bool = False, keep_sh
              ranks=None, **kwargs) -> dict:
     """Generate the dataset ``out`` over the ranks of this job (``gnwarp.distributed.ranks``; a
     single process writes ``out`` directly). ``kwargs``: ``gnwarp.data.generation.generate``'s.
-    Every rank returns a summary (its sequences and seconds; rank 0 also the merge's)."""
+    Every rank returns a summary (its sequences and seconds; rank 0 also the merge's); the other
+    ranks return once every shard is written, rank 0 once ``out`` is."""
     from gnwarp.data.generation import generate as generate_one
     from gnwarp.distributed import ranks as join_ranks
     from gnwarp.files import remove_stale_temporaries
@@ -133,11 +134,13 @@ def generate(system, out: str | os.PathLike, *, overwrite: bool = False, keep_sh
         raise FileExistsError(problem)
     mine = shard_path(out, r.rank, r.world)
     remove_stale_temporaries(mine)
+    kwargs["progress"] = bool(kwargs.get("progress", True)) and r.main   # one bar: rank 0's
     ds = generate_one(system, shard=(r.rank, r.world), **kwargs)
     ds.save(mine, overwrite=True)
     summary = {"rank": r.rank, "ranks": r.world, "sequences": ds.meta["shard"]["sequences"],
                "simulation_seconds": ds.meta["simulation_seconds"], "seconds": time.perf_counter() - t0,
                "out": str(out)}
+    del ds   # its arrays are on disk; rank 0's merge holds the whole dataset next
     r.barrier("generate: waiting for every rank's shard")
     if r.main:
         tm = time.perf_counter()
@@ -149,5 +152,4 @@ def generate(system, out: str | os.PathLike, *, overwrite: bool = False, keep_sh
                 p.unlink(missing_ok=True)
         summary["merge_seconds"] = time.perf_counter() - tm
         summary["seconds"] = time.perf_counter() - t0
-    r.barrier("generate: waiting for rank 0 to write the dataset")
-    return summary
+    return summary   # the other ranks are done once their shards are written (rank 0 alone merges)

@@ -46,7 +46,7 @@ import torch
 
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
-from gnwarp.distributed import launched, ranks as join_ranks
+from gnwarp.distributed import DistributedError, launched, ranks as join_ranks
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
@@ -170,6 +170,22 @@ class Trainer:
         for m in self.model.modules():
             if isinstance(m, Normalizer):
                 m.ranks = self.ranks
+
+    def _validate_on_main(self) -> float:
+        """``validate()`` on rank 0, its error (or its failure) shared with every rank."""
+        if not self.ranks.distributed:
+            return self.validate()
+        answer = None
+        if self.ranks.main:
+            try:
+                answer = ("ok", self.validate())
+            except Exception as e:   # every rank stops with rank 0's reason
+                self.ranks.broadcast_object(("failed", f"{type(e).__name__}: {e}"))
+                raise
+        kind, value = self.ranks.broadcast_object(answer)
+        if kind == "failed":
+            raise DistributedError(f"rank {self.ranks.rank}: validation on rank 0 failed: {value}")
+        return value
 
     def reduce_gradients(self) -> None:
         """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, else of
@@ -320,7 +336,8 @@ class Trainer:
     def checkpoint(self, name: str, wait: bool = True) -> Path:
         """Write ``<out>/<name>`` (model, optimizer, sampler and run state). ``wait=False`` (the
         training loop's): the state is copied now and written by a background thread while
-        training goes on; the "checkpoint" event comes once the folder is in place."""
+        training goes on; the "checkpoint" event comes once the folder is in place. Over several
+        ranks it is a collective (rank 0 gathers every rank's sampler state): every rank calls it."""
         st = self.state
         readable = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in st.items()}
         path = self.out / name
@@ -476,8 +493,7 @@ class Trainer:
             timed_out = bool(self.ranks.broadcast_object(timed_out)) if logs else False
         if self.valid and (step % c.valid_every == 0 or step == c.steps or timed_out):
             with self.averaged():
-                err = self.validate() if self.ranks.main else None
-            err = self.ranks.broadcast_object(err)
+                err = self._validate_on_main()
             row = row or {"step": step, "seconds": round(st["seconds"], 3), "lr": lr}
             row["valid_error"] = err
             if err < st["best_error"]:
@@ -534,6 +550,8 @@ class Trainer:
                         stop = reason
                         break
             except KeyboardInterrupt:  # keep what was learned; training resumes from <out>/last
+                if self.ranks.distributed:   # the ranks may be at different points of a step: no last collective
+                    raise
                 stop = "interrupted"
             finally:
                 bar.close()
