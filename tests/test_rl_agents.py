@@ -379,3 +379,18 @@ def test_sequence_starts_follow_adds():
     assert set(buf.sample_sequences(50, 2, g).reward[:, 0].tolist()) == {0.0}
     _add_step(buf, 3, done_every=2)              # adds the start at step 2
     assert set(buf.sample_sequences(50, 2, g).reward[:, 0].tolist()) == {0.0, 20.0}
+
+
+@pytest.mark.parametrize("agent", ["ddpg", "svg0"])
+def test_saturated_counts_deterministic_actions_at_the_bounds(agent):
+    ag = make_agent(AgentSettings(agent=agent, hidden=(8,), seed=1), D, [-1.0] * U, [1.0] * U, dtype=torch.float64)
+    obs = torch.randn(16, D, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert ag.saturated(obs) < 0.5   # a fresh policy's outputs are small
+    last = [m for m in ag.policy.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.bias[:U] = 50.0   # the outputs (the mean, for SVG) far past tanh's knee
+    assert ag.saturated(obs) == 1.0
+    with torch.no_grad():
+        last.bias[:U] = torch.tensor([50.0] + [0.0] * (U - 1))
+        last.weight.zero_()
+    assert ag.saturated(obs) == pytest.approx(1 / U)

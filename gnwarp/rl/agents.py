@@ -83,6 +83,21 @@ class Agent:
         """The unbounded policy output ``u`` [..., U] as an action: into the box by tanh, or as is."""
         return self.mid + self.half * torch.tanh(u) if self.settings.squash == "tanh" else u
 
+    def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
+        """The policy's unbounded deterministic output ``u`` [B, U] at ``obs`` [B, D] (the action
+        without exploration is ``squash(u)``)."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def saturated(self, obs) -> float:
+        """The share of action components at ``obs`` [B, D] whose deterministic action sits at the
+        box's bounds: tanh of the output beyond 0.99 (its gradient below 0.02), or clipped when the
+        output is not squashed. A policy stuck there no longer learns from its gradient."""
+        u = self.policy_output(self._obs(obs))
+        if self.settings.squash == "tanh":
+            return float((torch.tanh(u).abs() > 0.99).float().mean())
+        return float(((u <= self.low) | (u >= self.high)).float().mean())
+
     def _obs(self, obs) -> torch.Tensor:
         obs = torch.as_tensor(obs, device=self.device, dtype=self.dtype)
         if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
@@ -218,6 +233,9 @@ class DDPG(Agent):
     def target_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self.squash(self.policy_target(obs))
 
+    def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.policy(obs)
+
     def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         """-mean_B Q(x, squash(mu(x))) (eq. 4); ``noise`` is unused."""
         return -self.q(obs, self.squash(self.policy(obs))).mean()
@@ -262,6 +280,9 @@ class SVG(Agent):
 
     def target_action(self, obs: torch.Tensor) -> torch.Tensor:
         return self._sample(self.policy_target, obs, self._noise(obs.shape[0]))
+
+    def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.policy(obs)[0]
 
     def policy_objective(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         """J [B]: sum_{k<N} gamma^k r_k + gamma^N Q(x_N, a_N) from x_0 = ``obs`` [B, D], with

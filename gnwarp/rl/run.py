@@ -290,7 +290,8 @@ def run_rl(cfg: RLConfig) -> dict:
             c["seconds"] += train_s
             done_here += 1
             row = dict(env_steps=agent.env_steps, round=c["round"], updates=agent.updates, episodes=c["episodes"],
-                       seconds=c["seconds"], round_seconds=train_s, train_return=float(np.mean(returns)) if returns else None, **metrics)
+                       seconds=c["seconds"], round_seconds=train_s, train_return=float(np.mean(returns)) if returns else None,
+                       saturated=agent.saturated(state.obs), **metrics)   # deterministic actions at the bounds
             evaluating = (agent.env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every
                           or c["round"] == total_rounds)
             if evaluating:

@@ -17,7 +17,7 @@ __all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "LOG_COLUMNS", "save_checkp
 
 CHECKPOINT, LOG_FILE, RECORDS_FILE = "checkpoint.pt", "progress.csv", "records.jsonl"
 LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_seconds", "train_return", "eval_median", "eval_mean",
-               "q_loss", "policy_loss", "model_loss")
+               "q_loss", "policy_loss", "model_loss", "saturated")
 
 
 def save_checkpoint(path: str | Path, state: dict) -> None:
