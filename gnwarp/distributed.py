@@ -102,8 +102,9 @@ class Ranks:
             return obj
         import torch.distributed as dist
         box = [obj]
+        group, device = _objects_group(self)
         with collective(self, "broadcast_object_list"):
-            dist.broadcast_object_list(box, src, device=self.device if self.backend == "nccl" else None)
+            dist.broadcast_object_list(box, src, group=group, device=device)
         return box[0]
 
     def gather_objects(self, obj) -> list | None:
@@ -113,12 +114,13 @@ class Ranks:
             return [obj]
         import torch.distributed as dist
         out = [None] * self.world if self.main else None
+        group, _ = _objects_group(self)
         with collective(self, "gather_object"):
-            if self.backend == "nccl":  # NCCL has no gather of objects: all-gather them instead
+            if group is None and self.backend == "nccl":  # NCCL has no gather of objects: all-gather them
                 full = [None] * self.world
                 dist.all_gather_object(full, obj)
                 return full if self.main else None
-            dist.gather_object(obj, out, dst=0)
+            dist.gather_object(obj, out, dst=0, group=group)
         return out
 
     def map_sharded(self, items, fn, *, batched: bool = False, what: str = "map_sharded") -> list | None:
@@ -212,6 +214,15 @@ def collective(r: Ranks, what: str):
 
 
 _RANKS: Ranks | None = None
+_OBJECTS = None   # a gloo group beside an NCCL one: objects gathered on the CPU, to rank 0 alone
+
+
+def _objects_group(r: Ranks):
+    """(group, device) that object collectives use: the gloo side group of an NCCL job (a real
+    gather to rank 0 in host memory, no GPU sync), else the default group (NCCL: on the device)."""
+    if r.backend == "nccl" and _OBJECTS is not None:
+        return _OBJECTS, None
+    return None, (r.device if r.backend == "nccl" else None)
 
 
 def ranks(device: str | torch.device | None = "auto") -> Ranks:
@@ -260,13 +271,19 @@ def ranks(device: str | torch.device | None = "auto") -> Ranks:
                                    f"MASTER_ADDR={os.environ.get('MASTER_ADDR')}, "
                                    f"MASTER_PORT={os.environ.get('MASTER_PORT')}): {e}") from e
     _RANKS = Ranks(rank=dist.get_rank(), world=dist.get_world_size(), local_rank=local, device=dev, backend=backend)
+    if backend == "nccl":
+        global _OBJECTS
+        try:   # every rank makes it, in the same order (a collective of the default group)
+            _OBJECTS = dist.new_group(backend="gloo", timeout=timeout)
+        except (RuntimeError, ValueError):   # no gloo here: objects go over NCCL (all-gathered)
+            _OBJECTS = None
     return _RANKS
 
 
 def close() -> None:
     """Leave the process group (at the end of a job; a later ``ranks()`` joins a new one)."""
-    global _RANKS
+    global _RANKS, _OBJECTS
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
-    _RANKS = None
+    _RANKS = _OBJECTS = None
