@@ -394,3 +394,32 @@ def test_saturated_counts_deterministic_actions_at_the_bounds(agent):
         last.bias[:U] = torch.tensor([50.0] + [0.0] * (U - 1))
         last.weight.zero_()
     assert ag.saturated(obs) == pytest.approx(1 / U)
+
+
+class FlatQ(nn.Module):
+    """A Q-function with no slope in the action (and one parameter, for its optimizer)."""
+
+    def __init__(self):
+        super().__init__()
+        self.c = nn.Parameter(torch.zeros((), dtype=torch.float64))
+
+    def forward(self, x, a):
+        return self.c + 0 * a.sum(-1)
+
+
+@pytest.mark.parametrize("penalty", [0.0, 1e-2])
+def test_squash_penalty_pulls_the_unbounded_output_back_from_tanhs_flat_ends(penalty):
+    s = AgentSettings(agent="ddpg", hidden=(8,), seed=2, squash_penalty=penalty)
+    ag = make_agent(s, D, [-1.0] * U, [1.0] * U, q=FlatQ(), dtype=torch.float64)
+    last = [m for m in ag.policy.modules() if isinstance(m, nn.Linear)][-1]
+    with torch.no_grad():
+        last.bias[:] = 4.0   # deep in tanh's flat end
+    batch = _batch()
+    before = ag.policy_output(batch.obs).abs().mean().item()
+    for _ in range(20):
+        ag.update(batch)
+    after = ag.policy_output(batch.obs).abs().mean().item()
+    if penalty == 0:
+        assert after == pytest.approx(before, abs=1e-9)   # a flat Q gives the policy no gradient at all
+    else:
+        assert after < before - 0.01

@@ -172,6 +172,8 @@ class Agent:
         q_loss = self.q_loss(batch)
         self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
         pi_loss = self.policy_loss(batch.obs)
+        if self.settings.squash_penalty > 0:   # keep the unbounded output off tanh's flat ends
+            pi_loss = pi_loss + self.settings.squash_penalty * self.policy_output(batch.obs).square().mean()
         self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
         metrics.update(self._extra_update(batch if model_batch is None else model_batch))

@@ -41,7 +41,10 @@ class AgentSettings:
     sizes. ``action_noise``: DDPG's Gaussian exploration noise, a fraction of the action box's
     half width. ``init_std``: the Gaussian policy's initial standard deviation (of the unbounded
     action). ``entropy_weight``: weight of the Gaussian policy's mean log-std added to its
-    objective (0: the plain value gradient). ``squash``: "tanh" maps the policy's unbounded output
+    objective (0: the plain value gradient). ``squash_penalty``: weight of the mean square of the
+    policy's unbounded output (before tanh) added to its loss: it keeps the deterministic action off
+    tanh's flat ends, where the value gradient vanishes and Adam's normalized steps push further (0:
+    none). ``squash``: "tanh" maps the policy's unbounded output
     into the action box; "none" takes it as the action (clamped to the box only when acting).
     ``train_model``: SVG(N) trains its model jointly on the replayed transitions (when it has
     parameters). ``max_grad_norm``: each network's gradient norm is clipped to it before its Adam
@@ -63,6 +66,7 @@ class AgentSettings:
     action_noise: FloatRange(ge=0) = 0.1
     init_std: FloatRange(gt=0.0068, lt=2.7) = 0.5
     entropy_weight: FloatRange(ge=0) = 0.0
+    squash_penalty: FloatRange(ge=0) = 0.0
     squash: Literal["tanh", "none"] = "tanh"
     train_model: Flag = True
     max_grad_norm: PositiveFloat | None = None
