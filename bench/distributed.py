@@ -103,7 +103,8 @@ def bench_train(r, a, batch, tag) -> dict:
         from gnwarp.train.optim import FlatAdam
         grads = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
                  else torch.cat([p.detach().reshape(-1) for p in t.model.parameters()]))
-        norms = [m for m in t.model.modules() if hasattr(m, "sumsq") and hasattr(m, "std_floor")]
+        from gnwarp.models.normalizer import Normalizer
+        norms = [m for m in t.model.modules() if isinstance(m, Normalizer)]
         packed = torch.zeros(sum(1 + 2 * m.size for m in norms), dtype=torch.float64, device=r.device)
         row["allreduce_ms"] = allreduce_ms(r, grads)
         row["norm_allreduce_ms"] = allreduce_ms(r, packed)

@@ -12,7 +12,8 @@ and talks over NCCL; on CPUs over gloo.
 Failures: every collective has the group's timeout (``GNWARP_DIST_TIMEOUT`` seconds, default
 1800). On gloo a collective that fails because another rank died or timed out raises
 ``DistributedError`` naming this rank and what it was doing; on NCCL the watchdog aborts the
-rank; ``torchrun`` stops the other workers of a job when one exits with an error. Only rank 0 writes checkpoints and results, each atomically
+rank; ``torchrun`` stops the other workers of a job when one exits with an error. Only rank 0
+writes checkpoints and results, each atomically
 (``gnwarp.files.atomic_write``), so a rank that dies leaves no file half written.
 """
 from __future__ import annotations
@@ -122,6 +123,26 @@ class Ranks:
                 return full if self.main else None
             dist.gather_object(obj, out, dst=0, group=group)
         return out
+
+    def on_main(self, what: str, fn):
+        """``fn()`` on rank 0 alone (what writes, validates or decides), its value (small,
+        picklable) on every rank once it is done: the others wait for it, so they read only what
+        rank 0 has finished. An error on rank 0 is raised there and, as ``DistributedError``
+        naming ``what``, on every other rank (none waits for the group's timeout). A single
+        process just calls ``fn()``."""
+        if not self.distributed:
+            return fn()
+        answer = None
+        if self.main:
+            try:
+                answer = ("ok", fn())
+            except Exception as e:   # the others stop with rank 0's reason instead of waiting for it
+                self.broadcast_object(("error", f"{type(e).__name__}: {e}"))
+                raise
+        kind, value = self.broadcast_object(answer)
+        if kind == "error":
+            raise DistributedError(f"rank {self.rank} of {self.world}: {what}: rank 0 failed ({value})")
+        return value
 
     def map_sharded(self, items, fn, *, batched: bool = False, what: str = "map_sharded") -> list | None:
         """``fn`` over ``items`` (a sequence), each rank computing its shard (``self.shard``: items

@@ -15,8 +15,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_ranks(args, world=2, timeout=30, env=None):
-    """Start ``world`` processes of ``args`` with torchrun's variables; (returncodes, outputs)."""
+def start_ranks(args, world=2, timeout=30, env=None, wait=240):
+    """Start ``world`` processes of ``args`` with torchrun's variables (``timeout``: the group's, in
+    seconds); (returncodes, outputs). A rank still running after ``wait`` seconds fails the test
+    (``subprocess.TimeoutExpired``): a hang, not a slow run."""
     port = free_port()
     procs = []
     for r in range(world):
@@ -27,5 +29,9 @@ def start_ranks(args, world=2, timeout=30, env=None):
         e["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])
         procs.append(subprocess.Popen([sys.executable, *args], env=e, stdout=subprocess.PIPE,
                                       stderr=subprocess.STDOUT, text=True))
-    outs = [p.communicate(timeout=240)[0] for p in procs]
+    try:
+        outs = [p.communicate(timeout=wait)[0] for p in procs]
+    finally:
+        for p in procs:   # none left behind when one hangs
+            p.kill()
     return [p.returncode for p in procs], outs

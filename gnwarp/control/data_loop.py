@@ -352,28 +352,8 @@ def _collect(cfg: LoopConfig, rk, task, system, model_path: Path, trained, itera
         loop_meta["eval_seconds"] = time.perf_counter() - t1
         shard.save(path)
         made.append(shard)
-    _on_main(rk, f"writing {path}", write)
+    rk.on_main(f"writing {path}", write)
     return made[0] if made else load(path, lazy=False)
-
-
-def _on_main(rk, what: str, fn):
-    """``fn()`` on rank 0 alone (what writes the loop folder), its value (small, picklable) on
-    every rank once it is done: the other ranks wait for it, so they read only what rank 0 has
-    written. An error on rank 0 ends every rank (the others raise ``DistributedError``)."""
-    if not rk.distributed:
-        return fn()
-    from gnwarp.distributed import DistributedError
-    answer = None
-    if rk.main:
-        try:
-            answer = ("ok", fn())
-        except Exception as e:   # the others stop with rank 0's reason instead of waiting for it
-            rk.broadcast_object(("error", f"{type(e).__name__}: {e}"))
-            raise
-    kind, value = rk.broadcast_object(answer)
-    if kind == "error":
-        raise DistributedError(f"rank {rk.rank} of {rk.world}: {what}: rank 0 failed ({value})")
-    return value
 
 
 def _train(cfg: LoopConfig, data, steps: int) -> dict:
@@ -501,14 +481,14 @@ def run_loop(config: LoopConfig) -> dict:
         _trim_records(records, st.iteration if st is not None else 0)
         _seed_data(cfg, system, out)
         return st
-    state = _on_main(rk, f"preparing {out}", prepare)
+    state = rk.on_main(f"preparing {out}", prepare)
     seed = load(out / SEED_DATA, lazy=False)
     if state is None:   # iteration 0: the model trained on the seed data
         log.info("training on the seed data: %d sequences x %d steps", len(seed["train"]), cfg.seq_len)
         r = _train(cfg, concat_train(seed, []), cfg.initial_train_steps)
         state = LoopState(iteration=0, env_steps=train_env_steps(seed), train_steps=int(r["steps"]),
                           seconds=time.perf_counter() - t_call)
-        state = _on_main(rk, "writing the loop state", lambda: write_state(out, state) or state)
+        state = rk.on_main("writing the loop state", lambda: write_state(out, state) or state)
     shards = [load(out / s, lazy=False) for s in state.shards]
     counted = train_env_steps(seed) + sum(train_env_steps(s) for s in shards)
     if counted != state.env_steps:
@@ -538,7 +518,7 @@ def run_loop(config: LoopConfig) -> dict:
             plan_s = eval_s = 0.0
         else:
             plan_model = member_checkpoint(out, i, 0)
-            _on_main(rk, f"copying the models iteration {i} plans with", lambda: _copy_members(cfg, out, i, keep=True))
+            rk.on_main(f"copying the models iteration {i} plans with", lambda: _copy_members(cfg, out, i, keep=True))
             ebar = tqdm(total=steps, desc=f"episodes {i}", unit="step", disable=not bars, leave=False,
                         dynamic_ncols=True, position=1)
             shard = _collect(cfg, rk, task, system, plan_model, trained, i, steps, ebar)
@@ -558,7 +538,7 @@ def run_loop(config: LoopConfig) -> dict:
                 return None
             # from value/iter-<i> (not a file a killed call wrote): each episode fitted once
             return fit_loop_value(cfg, task, system, out, shards, i + 1, gamma)
-        fitted = _on_main(rk, f"copying the models of iteration {i + 1}", after_training)
+        fitted = rk.on_main(f"copying the models of iteration {i + 1}", after_training)
         if fitted is not None:
             seconds["value_seconds"] = fitted.pop("seconds")
         evaluation = None
@@ -581,7 +561,7 @@ def run_loop(config: LoopConfig) -> dict:
             write_records(records, recs)
             write_state(out, new)
             return new, rec.metrics
-        state, metrics = _on_main(rk, f"writing the records of iteration {i}", finish)
+        state, metrics = rk.on_main(f"writing the records of iteration {i}", finish)
         bar.update(1)
         bar.set_postfix(ret=f"{metrics['mean_return']:.4g}", env_steps=state.env_steps)
         if rk.main:

@@ -46,7 +46,7 @@ import torch
 
 from gnwarp.data.dataset import load
 from gnwarp.data.layout import merge_layouts
-from gnwarp.distributed import DistributedError, launched, ranks as join_ranks
+from gnwarp.distributed import launched, ranks as join_ranks
 from gnwarp.eval.metrics import rollout_error
 from gnwarp.files import atomic_write
 from gnwarp.graphs import GraphsTuple
@@ -146,19 +146,7 @@ class Trainer:
 
     def _prepare_out_once(self, model) -> bool:
         """``_prepare_out`` on rank 0 (the others wait for its answer and share it)."""
-        if not self.ranks.distributed:
-            return self._prepare_out(model)
-        answer = None
-        if self.ranks.main:
-            try:
-                answer = ("resume", self._prepare_out(model))
-            except Exception as e:   # every rank stops with rank 0's reason
-                self.ranks.broadcast_object(("error", f"{type(e).__name__}: {e}"))
-                raise
-        kind, value = self.ranks.broadcast_object(answer)
-        if kind == "error":
-            raise CheckpointError(f"rank 0 could not prepare {self.out}: {value}")
-        return value
+        return self.ranks.on_main(f"preparing {self.out}", lambda: self._prepare_out(model))
 
     def _join_model(self) -> None:
         """Every rank starts from rank 0's weights and normalizer sums; each batch's normalizer
@@ -173,19 +161,7 @@ class Trainer:
 
     def _validate_on_main(self) -> float:
         """``validate()`` on rank 0, its error (or its failure) shared with every rank."""
-        if not self.ranks.distributed:
-            return self.validate()
-        answer = None
-        if self.ranks.main:
-            try:
-                answer = ("ok", self.validate())
-            except Exception as e:   # every rank stops with rank 0's reason
-                self.ranks.broadcast_object(("failed", f"{type(e).__name__}: {e}"))
-                raise
-        kind, value = self.ranks.broadcast_object(answer)
-        if kind == "failed":
-            raise DistributedError(f"rank {self.ranks.rank}: validation on rank 0 failed: {value}")
-        return value
+        return self.ranks.on_main("validation", self.validate)
 
     def reduce_gradients(self) -> None:
         """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, else of
