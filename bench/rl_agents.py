@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from bench.harness import device_name, experiment_out, save_results  # noqa: E402
+from bench.harness import add_run_args, device_name, experiment_out, save_results  # noqa: E402
 from gnwarp.rl.agents import make_agent  # noqa: E402
 from gnwarp.rl.networks import mlp  # noqa: E402
 from gnwarp.rl.replay import ReplayBuffer  # noqa: E402
@@ -96,8 +96,7 @@ def main(argv=None):
     ap.add_argument("--updates", type=int, default=500)
     ap.add_argument("--envs", type=int, default=16)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=None, help="default: bench/results/rl (--quick: a temporary folder)")
-    ap.add_argument("--quick", action="store_true")
+    add_run_args(ap, "rl")   # --out, --quick
     args = ap.parse_args(argv)
     hidden = (256, 256)
     if args.quick:

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import device_name, experiment_out, median_ms, save_results  # noqa: E402
+from bench.harness import add_run_args, device_name, experiment_out, median_ms, save_results  # noqa: E402
 from gnwarp.rl.gn_nets import make_networks  # noqa: E402
 from gnwarp.rl.obs_graph import ObservationGraph  # noqa: E402
 
@@ -73,8 +73,7 @@ def main(argv=None):
     ap.add_argument("--precision", default="fp32")
     ap.add_argument("--reps", type=int, default=50)
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", default=None, help="default: bench/results/rl (--quick: a temporary folder)")
-    ap.add_argument("--quick", action="store_true")
+    add_run_args(ap, "rl")   # --out, --quick
     args = ap.parse_args(argv)
     if args.quick:
         args.device, args.domains, args.batches, args.envs, args.reps = "cpu", "swimmer6", "8", 4, 3
