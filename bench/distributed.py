@@ -348,7 +348,11 @@ def main(argv=None) -> int:
     else:
         if not Path(a.data).exists():
             raise SystemExit(f"no dataset at {a.data}: run with --prepare first")
-        main_launch(a)
+        from gnwarp.distributed import close
+        try:
+            main_launch(a)
+        finally:
+            close()   # leave the process group before exit (else gloo may abort the process at exit)
     return 0
 
 

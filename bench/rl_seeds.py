@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     name = f"{base['agent']}-{base['preset']}-{base['networks']}"
     env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    from gnwarp.distributed import launched, ranks
+    from gnwarp.distributed import close, launched, ranks
     # under torchrun: this process only starts and waits (gloo); its seeds' processes use its GPU
     # the gather waits for every seed of every rank: longer than the budget, whatever the default
     os.environ.setdefault("GNWARP_DIST_TIMEOUT", str(int(2 * a.budget_seconds * max(1, len(seeds)) + 600)))
@@ -129,7 +129,10 @@ def main(argv=None) -> int:
             done.append({"seed": s, "rc": rc, "lines": lines, "task": task, "files": files})
         return done
 
-    results = r.map_sharded(seeds, run, batched=True, what="rl seeds")
+    try:
+        results = r.map_sharded(seeds, run, batched=True, what="rl seeds")
+    finally:
+        close()   # leave the process group before exit (else gloo may abort the process at exit)
     if not r.main:
         return 0
     failed = 0
