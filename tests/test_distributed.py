@@ -145,3 +145,41 @@ def test_normalizers_summed_together_match_each_normalizer_alone():
             torch.testing.assert_close(s1, s0)
     for a, b in zip(alone, together):
         assert a.count.item() == b.count.item() and torch.allclose(a.sumsq, b.sumsq)
+
+
+class _PairedRank:
+    """Rank ``rank`` of two whose all-reduce adds the pack the other rank made (``other``), and
+    keeps its own (``packed``): two ranks' collective played in one process."""
+
+    def __init__(self, rank, other=None):
+        self.rank, self.other, self.packed = rank, other, None
+
+    def all_reduce_(self, t):
+        self.packed = t.clone()
+        if self.other is not None:
+            t.add_(self.other)
+        return t
+
+
+def test_over_two_ranks_the_normalizers_take_both_batches_on_top_of_rank_0_totals():
+    from gnwarp.models.normalizer import Normalizer, accumulate_over_ranks
+    g = torch.Generator().manual_seed(1)
+    one, r0, r1 = ([Normalizer(3), Normalizer(2, std_floor=0.5)] for _ in range(3))
+    for k in range(2):   # what every rank already holds: rank 0's totals, the same on rank 1
+        x = torch.randn(5, (3, 2)[k], generator=g)
+        one[k].accumulate(x), r0[k].accumulate(x), r1[k].accumulate(x)
+    xs = [torch.randn(6, 3, generator=g) * 2, torch.randn(4, 3, generator=g) - 1]   # rank 0's, rank 1's
+    ys = [torch.randn(3, 2, generator=g), torch.randn(5, 2, generator=g)]
+    ws = [torch.tensor([1.0, 0.0, 1.0]), torch.ones(5)]
+    second = _PairedRank(1)
+    accumulate_over_ranks([(r1[0], xs[1], None), (r1[1], ys[1], ws[1])], second)
+    got = accumulate_over_ranks([(r0[0], xs[0], None), (r0[1], ys[0], ws[0])], _PairedRank(0, second.packed))
+    want = [one[0].accumulate_stats(torch.cat(xs)), one[1].accumulate_stats(torch.cat(ys), torch.cat(ws))]
+    assert second.packed[0].item() == 4 and second.packed[1 + 3 + 3].item() == 5, "rank 1 packs its batch alone"
+    for (m0, s0), (m1, s1) in zip(want, got):
+        torch.testing.assert_close(m1, m0)
+        torch.testing.assert_close(s1, s0)
+    for a, b in zip(one, r0):
+        assert a.count.item() == b.count.item() == 5 + (10 if a.size == 3 else 7)
+        torch.testing.assert_close(b.sum, a.sum)
+        torch.testing.assert_close(b.sumsq, a.sumsq)

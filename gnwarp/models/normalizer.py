@@ -102,46 +102,78 @@ class Normalizer(nn.Module):
 
 
 def accumulate_over_ranks(items, ranks) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """``accumulate_stats`` of several normalizers with each batch summed over ``ranks``: every
-    ``(normalizer, x [n, size], weight [n] or None)``'s count, column sums and squared sums go into
-    one float64 buffer (a Warp launch each), one all-reduce sums the buffer over the ranks, and one
-    launch per normalizer adds its part and writes its new (mean, std) in ``x``'s dtype. Returns
+    """``accumulate_stats`` of several normalizers with each batch summed over ``ranks``, in a fixed
+    number of launches whatever the normalizers: rank 0 packs every ``(normalizer, x [n, size],
+    weight [n] or None)``'s count, column sums and squared sums in one float64 buffer (one
+    concatenation; the other ranks start from zeros), each rank adds its batch's sums (a Warp launch
+    per normalizer), one all-reduce makes the buffer the new totals on every rank, one launch writes
+    every (mean, std) in ``x``'s dtype and one copies the totals back into the normalizers. Returns
     the (mean, std) of each item, in order. Every rank calls it with the same normalizers."""
-    sizes = [1 + 2 * n.size for n, _, _ in items]
+    norms = [n for n, _, _ in items]
     first = items[0][1]
-    pack = torch.zeros(sum(sizes), dtype=torch.float64, device=first.device)
+    if ranks.rank == 0:
+        pack = torch.cat([t.reshape(-1) for n in norms for t in (n.count, n.sum, n.sumsq)]).to(first.device)
+    else:
+        pack = torch.zeros(sum(1 + 2 * n.size for n in norms), dtype=torch.float64, device=first.device)
     launch = Launcher(pack)
     bd = K.BLOCK if launch.is_cuda else 1
-    prepared, off = [], 0
-    for (norm, x, weight), size in zip(items, sizes):
+    dtypes, off = [], 0
+    for norm, x, weight in items:
         x = x.detach().reshape(-1, norm.size)
         if x.dtype not in (torch.float32, torch.float64):
             x = x.to(torch.float64)
         x = x.contiguous()
-        part = pack[off:off + size]
         F = norm.size
         w = None if weight is None else weight.detach().to(x.dtype).reshape(-1).contiguous()
-        scratch = torch.empty(2, F, dtype=x.dtype, device=x.device)
-        if x.shape[0] > 0:   # this batch's sums into the part (its count slot, still 0, is the count before)
-            launch.tiled(K.accumulate_kernel(WP_DTYPE[x.dtype], w is not None), F, bd, x,
-                         w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd, part[:1], norm.std_floor,
-                         part[1:1 + F], part[1 + F:], scratch[0], scratch[1])
-        if w is None:
-            part[0].fill_(float(x.shape[0]))
-        else:
-            part[0].copy_(w.sum(dtype=torch.float64))
-        prepared.append((norm, x.dtype, part))
-        off += size
+        launch.tiled(K.sums_kernel(WP_DTYPE[x.dtype], w is not None), F if x.shape[0] else 0, bd, x,
+                     w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd,
+                     pack[off:off + 1], pack[off + 1:off + 1 + F], pack[off + 1 + F:off + 1 + 2 * F])
+        dtypes.append(x.dtype)
+        off += 1 + 2 * F
     ranks.all_reduce_(pack)
-    out = []
-    for norm, dtype, part in prepared:
-        mean = torch.empty(norm.size, dtype=dtype, device=pack.device)
+    out: list = [None] * len(items)
+    for dtype in dict.fromkeys(dtypes):   # one launch per dtype (a model has one)
+        picked = [k for k, d in enumerate(dtypes) if d == dtype]
+        where, floors = _pack_table(tuple((n.size, n.std_floor) for n in norms), tuple(picked), pack.device)
+        mean = torch.empty(where.shape[0], dtype=dtype, device=pack.device)
         std = torch.empty_like(mean)
-        launch(K.apply_kernel(WP_DTYPE[dtype]), norm.size, part, norm.size, norm.count.reshape(1), norm.std_floor,
-               norm.sum, norm.sumsq, mean, std)
-        norm.count += part[0]
-        out.append((mean, std))
+        launch(K.pack_stats_kernel(WP_DTYPE[dtype]), where.shape[0], pack, where, floors, mean, std)
+        o = 0
+        for k in picked:
+            F = norms[k].size
+            out[k] = (mean[o:o + F], std[o:o + F])
+            o += F
+    dests, srcs, off = [], [], 0
+    for n in norms:
+        dests += [n.count.reshape(1), n.sum, n.sumsq]
+        srcs += [pack[off:off + 1], pack[off + 1:off + 1 + n.size], pack[off + 1 + n.size:off + 1 + 2 * n.size]]
+        off += 1 + 2 * n.size
+    torch._foreach_copy_(dests, srcs)
     return out
+
+
+_PACK_TABLES: dict = {}
+
+
+def _pack_table(layout: tuple, picked: tuple, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``pack_stats_kernel`` table of the normalizers ``picked`` of a pack laid out as ``layout``
+    ((size, std floor) per normalizer): each column's (sum, squared sum, count) indices [C, 3] and
+    std floors [C]; made once per layout and device (before any captured step replays it)."""
+    key = (layout, picked, str(device))
+    got = _PACK_TABLES.get(key)
+    if got is None:
+        starts = [0]
+        for size, _ in layout:
+            starts.append(starts[-1] + 1 + 2 * size)
+        where, floors = [], []
+        for k in picked:
+            size, floor = layout[k]
+            s = starts[k]
+            where += [(s + 1 + j, s + 1 + size + j, s) for j in range(size)]
+            floors += [floor] * size
+        got = _PACK_TABLES[key] = (torch.tensor(where, dtype=torch.int32, device=device).reshape(-1, 3),
+                                   torch.tensor(floors, dtype=torch.float64, device=device))
+    return got
 
 
 def normalize_graph(graph: GraphsTuple, stats: dict) -> GraphsTuple:
