@@ -18,7 +18,9 @@ Per launch (every rank on its own GPU, rank 0 records):
 - training throughput: the paper's model on the cheetah dataset, the step captured in a CUDA graph
   with its all-reduce inside; weak (``--batch`` graphs per GPU) and strong (``--strong-total``
   graphs per step split over the ranks); graphs per second over all ranks in the steady state
-  (``--warmup`` steps, then ``--steps`` timed);
+  (``--warmup`` steps, then ``--steps`` timed); over several ranks the step reduces GN2's
+  gradients during the backward (``overlap_allreduce``), and the same launch times the peer with
+  one all-reduce after the backward (``step_ms_one_allreduce``);
 - the all-reduce's share: the step's two all-reduces alone (the flat gradient's and the packed
   normalizer sums', each captured and replayed), over the step's time;
 - time to error: training from scratch for ``--tte-seconds`` (weak batches; ``--lr-scaling
@@ -78,27 +80,35 @@ def bench_generation(r, a) -> dict:
             "generate_sim_seconds": [round(x, 4) for x in sims] if sims else None}
 
 
-def trainer_for(r, a, batch, out, lr=1e-4, capture=True):
+def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=True):
     from gnwarp.train import TrainConfig
     from gnwarp.train.trainer import Trainer
     cfg = TrainConfig.from_dict(dict(data=[a.data], out=out, batch_size=batch, lr=lr, device="auto", resume=False,
                                      progress=False, capture=capture, valid_sequences=a.valid_sequences,
-                                     steps=10**9))
+                                     steps=10**9, overlap_allreduce=overlap, optimizer=a.optimizer))
     return Trainer(cfg)
 
 
-def bench_train(r, a, batch, tag) -> dict:
-    t = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}", capture=not a.no_capture)
+def timed_steps(r, a, t) -> float:
+    """Seconds per step of trainer ``t`` in the steady state (after its warm-up and ``--warmup`` steps)."""
     t.warmup()
     for _ in range(a.warmup):
         t.step()
     t0 = timed_barrier(r)
     for _ in range(a.steps):
         t.step()
-    t1 = timed_barrier(r)
-    step_s = (t1 - t0) / a.steps
+    return (timed_barrier(r) - t0) / a.steps
+
+
+def bench_train(r, a, batch, tag) -> dict:
+    t = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}", capture=not a.no_capture)
+    step_s = timed_steps(r, a, t)
     row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
-           "captured": t.captured is not None}
+           "captured": t.captured is not None, "overlap": t.buckets is not None}
+    if t.buckets is not None:   # the peer in the same launch: one all-reduce after the backward
+        serial = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}-serial", capture=not a.no_capture, overlap=False)
+        row["step_ms_one_allreduce"] = 1e3 * timed_steps(r, a, serial)
+        del serial
     if r.distributed:
         from gnwarp.train.optim import FlatAdam
         grads = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
@@ -228,7 +238,7 @@ def summarize(a) -> None:
     gpu = rows[0]["gpu"]
     out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
                                                                  "step_ms", "lr_scaling", "generate_sim_seconds",
-                                                                 "captured") if k in x}
+                                                                 "captured", "overlap", "step_ms_one_allreduce") if k in x}
            for x in sorted(rows, key=lambda x: (x["mode"], x["gpus"]))]
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}
@@ -331,6 +341,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tte-window", type=int, default=8, help="validations in the moving median of the error")
     ap.add_argument("--tte-every", type=int, default=250, help="steps between validations")
     ap.add_argument("--lr-scaling", choices=["none", "linear"], default="linear")
+    ap.add_argument("--optimizer", default="auto", choices=["auto", "adam", "flat_adam"],
+                    help="TrainConfig.optimizer (auto: FlatAdam on GPUs, torch's Adam on CPUs)")
     ap.add_argument("--skip-generation", action="store_true")
     ap.add_argument("--skip-tte", action="store_true")
     ap.add_argument("--no-capture", action="store_true")

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Ranks", "DistributedError", "ranks", "launched", "shard", "unshard", "timeout_seconds", "collective"]
+__all__ = ["Ranks", "Pending", "DistributedError", "ranks", "launched", "shard", "unshard", "timeout_seconds", "collective"]
 
 ENV_TIMEOUT = "GNWARP_DIST_TIMEOUT"
 
@@ -78,16 +78,19 @@ class Ranks:
         return shard(n, self.rank, self.world)
 
     # -- collectives (no-ops for a single process) -----------------------------------------------
-    def all_reduce_(self, t: torch.Tensor, mean: bool = False) -> torch.Tensor:
-        """Sum (or average) ``t`` over the ranks, in place; returns ``t``. Captured CUDA graphs may
-        hold it (NCCL)."""
-        if self.distributed:
-            import torch.distributed as dist
-            with collective(self, "all_reduce"):
-                dist.all_reduce(t)
-            if mean:
-                t.div_(self.world)
-        return t
+    def all_reduce_(self, t: torch.Tensor, mean: bool = False, async_op: bool = False):
+        """Sum (or average) ``t`` over the ranks, in place; returns ``t``, or with ``async_op`` a
+        ``Pending`` whose ``wait()`` returns it (the reduction runs on the group's stream while this
+        one goes on; the current stream waits for it at ``wait``). NCCL averages in the reduction;
+        gloo sums and divides. Captured CUDA graphs may hold either (NCCL)."""
+        if not self.distributed:
+            return Pending(self, None, t, False) if async_op else t
+        import torch.distributed as dist
+        avg = mean and self.backend == "nccl"
+        with collective(self, "all_reduce"):
+            work = dist.all_reduce(t, op=dist.ReduceOp.AVG if avg else dist.ReduceOp.SUM, async_op=async_op)
+        pending = Pending(self, work, t, mean and not avg)
+        return pending if async_op else pending.wait()
 
     def broadcast_(self, t: torch.Tensor, src: int = 0) -> torch.Tensor:
         """``t`` of rank ``src`` on every rank, in place."""
@@ -232,6 +235,24 @@ def collective(r: Ranks, what: str):
             f"rank {r.rank} of {r.world}: {what} with the other ranks failed ({type(e).__name__}: "
             f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r}); often another rank died or timed out "
             f"(timeout {timeout_seconds():g} s, {ENV_TIMEOUT})") from e
+
+
+class Pending:
+    """An all-reduce under way (``Ranks.all_reduce_(..., async_op=True)``): ``wait()`` makes the
+    current stream wait for it (and averages, where the backend did not) and returns the tensor."""
+
+    def __init__(self, ranks: Ranks, work, t: torch.Tensor, divide: bool):
+        self.ranks, self.work, self.t, self.divide = ranks, work, t, divide
+
+    def wait(self) -> torch.Tensor:
+        if self.work is not None:
+            with collective(self.ranks, "all_reduce"):
+                self.work.wait()
+            self.work = None
+        if self.divide:
+            self.t.div_(self.ranks.world)
+            self.divide = False
+        return self.t
 
 
 _RANKS: Ranks | None = None

@@ -49,7 +49,8 @@ def main(what, data, out):
         g, target = t.sampler.batches[-1]
         # clones: the batch's tensors carry the builder's cached context as attributes
         mine = {"graph": {k: v.clone() for k, v in g._asdict().items() if isinstance(v, torch.Tensor)},
-                "target": target.clone(), "rank": t.ranks.rank}
+                "target": target.clone(), "rank": t.ranks.rank,
+                "early_buckets": None if t.buckets is None else t.buckets.sent}
         got = t.ranks.gather_objects(mine)
         if t.ranks.main:
             torch.save({"params": {k: v.clone() for k, v in t.model.state_dict().items()}, "batches": got},

@@ -24,15 +24,19 @@ def data(tmp_path_factory):
     return str(path)
 
 
-def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on_one(data, tmp_path):
+@pytest.mark.parametrize("opt", ["adam", "flat_adam"])
+def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on_one(data, tmp_path, opt):
+    """torch's Adam: one all-reduce of the packed gradients; FlatAdam: GN2's span reduced during
+    the backward (``GradientBuckets``), the rest after it."""
     from dist_worker import config
     from gnwarp.train.trainer import Trainer
     out = tmp_path / "two"
-    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "train", data, str(out)])
+    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "train", data, str(out)], env={"OPT": opt})
     assert codes == [0, 0], "\n".join(outs)
     seen = torch.load(out / "seen.pt", weights_only=True)
     parts = sorted(seen["batches"], key=lambda b: b["rank"])
     assert len(parts) == 2
+    assert [p["early_buckets"] for p in parts] == ([None, None] if opt == "adam" else [1, 1])
     g0, g1 = (GraphsTuple(**p["graph"]) for p in parts)
     assert not torch.equal(g0.nodes, g1.nodes), "the ranks drew the same batch"
     joint = (batch([g0, g1]), torch.cat([p["target"] for p in parts]))
@@ -44,7 +48,7 @@ def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on
             assert n == 8
             return joint
 
-    one = Trainer(config(data, str(tmp_path / "one"), batch_size=8))
+    one = Trainer(config(data, str(tmp_path / "one"), batch_size=8, optimizer=opt))
     one.sampler = Joint()
     one.run()
     mine = one.model.state_dict()
@@ -55,7 +59,7 @@ def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on
     init = Trainer(config(data, str(tmp_path / "init"), steps=0)).model.state_dict()
     assert any(not torch.equal(init[k], seen["params"][k]) for k in moved), "the step changed no weight"
     # the two-rank run resumes in one process (another number of ranks) and goes on from its step
-    r = Trainer(config(data, str(out), steps=3)).run()
+    r = Trainer(config(data, str(out), steps=3, optimizer=opt)).run()
     assert r["steps"] == 3
     rows = (out / "log.csv").read_text().splitlines()
     assert [row.split(",")[0] for row in rows[1:]] == ["1", "2", "3"]
@@ -183,3 +187,69 @@ def test_over_two_ranks_the_normalizers_take_both_batches_on_top_of_rank_0_total
         assert a.count.item() == b.count.item() == 5 + (10 if a.size == 3 else 7)
         torch.testing.assert_close(b.sum, a.sum)
         torch.testing.assert_close(b.sumsq, a.sumsq)
+
+
+class _Recording:
+    """A rank of two that records what it is asked to all-reduce (no other process)."""
+    distributed, world, rank = True, 2, 0
+
+    def __init__(self, flat):
+        self.flat, self.calls = flat, []
+
+    def all_reduce_(self, t, mean=False, async_op=False):
+        start = (t.data_ptr() - self.flat.data_ptr()) // t.element_size()
+        self.calls.append((start, start + t.numel(), async_op, float(self.flat[:start].abs().sum())))
+        t.div_(1.0)
+        return _Done(t) if async_op else t
+
+
+class _Done:
+    def __init__(self, t):
+        self.t = t
+
+    def wait(self):
+        return self.t
+
+
+def test_gn2_gradients_go_out_during_the_backward_before_gn1_has_any(data, tmp_path):
+    from dist_worker import config
+    from gnwarp.train.overlap import GradientBuckets
+    from gnwarp.train.trainer import Trainer
+    t = Trainer(config(data, str(tmp_path / "o"), optimizer="flat_adam"))
+    flat = t.optimizer.grad_flat
+    fake = _Recording(flat)
+    buckets = GradientBuckets.for_model(fake, t.optimizer, t.model)
+    assert buckets.end - buckets.start >= sum(p.numel() for p in t.model.core.gn2.parameters())
+    g, target = t.sample()
+    for rounds in range(2):
+        with buckets.armed():
+            terms = t.loss(g, target)
+        t.optimizer.zero_grad()
+        terms["loss"].backward()
+        assert len(fake.calls) == 1 and fake.calls[0][:3] == (buckets.start, buckets.end, True)
+        assert fake.calls[0][3] == 0.0, "GN1's gradients had begun when GN2's went out"
+        assert buckets.start > 0 and flat[:buckets.start].abs().sum() > 0
+        buckets.reduce()
+        rest = [(0, buckets.start)] + ([(buckets.end, flat.numel())] if buckets.end < flat.numel() else [])
+        assert [c[:3] for c in fake.calls[1:]] == [(a, b, False) for a, b in rest]
+        fake.calls.clear()
+    # a GN2 gradient outside the flat buffer at the signal: the whole buffer after the backward
+    with buckets.armed():
+        terms = t.loss(g, target)
+    t.optimizer.zero_grad()
+    p = next(t.model.core.gn2.parameters())
+    p.grad = torch.zeros_like(p)
+    terms["loss"].backward()
+    assert fake.calls == [] and buckets.skipped
+    buckets.reduce()
+    assert [c[:3] for c in fake.calls] == [(0, flat.numel(), False)] and p.grad is None
+    # one that arrives after its bucket went out: an error, not a gradient averaged in part
+    fake.calls.clear()
+    with buckets.armed():
+        terms = t.loss(g, target)
+    t.optimizer.zero_grad()
+    terms["loss"].backward()
+    p.grad = torch.ones_like(p)
+    with pytest.raises(RuntimeError, match="arrived in p.grad after its bucket"):
+        buckets.reduce()
+    assert GradientBuckets.for_model(Ranks(), t.optimizer, t.model) is None

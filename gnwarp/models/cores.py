@@ -5,6 +5,9 @@ is the baseline of section E: an MLP on the flattened graph of a fixed topology.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 import torch
 import torch.nn as nn
 
@@ -16,7 +19,36 @@ from gnwarp.graphs import GraphsTuple
 from gnwarp.models.config import GNCoreConfig, MLPCoreConfig, core_blocks
 from gnwarp.state import DYN_NODE_SIZE
 
-__all__ = ["GNCore", "MLPCore"]
+__all__ = ["GNCore", "MLPCore", "after_gn2_backward"]
+
+_AFTER_GN2 = contextvars.ContextVar("after_gn2_backward", default=None)
+
+
+@contextlib.contextmanager
+def after_gn2_backward(fn):
+    """Within it, every ``GNCore`` forward that records gradients has its backward call ``fn()``
+    once GN2's backward is done (GN2's parameter gradients complete, GN1's not begun): where a
+    distributed trainer starts reducing GN2's gradients while GN1's backward runs."""
+    token = _AFTER_GN2.set(fn)
+    try:
+        yield
+    finally:
+        _AFTER_GN2.reset(token)
+
+
+class _Signal(torch.autograd.Function):
+    """Identity on GN2's inputs whose backward calls ``fn()`` first (when their gradients are
+    complete, i.e. GN2's backward has returned)."""
+
+    @staticmethod
+    def forward(ctx, fn, *xs):
+        ctx.fn = fn
+        return tuple(x.view_as(x) for x in xs)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        ctx.fn()
+        return (None, *grads)
 
 
 class GNCore(nn.Module):
@@ -70,6 +102,10 @@ class GNCore(nn.Module):
             out = graph._replace(nodes=torch.cat([graph.nodes, out.nodes], -1),
                                  edges=torch.cat([graph.edges, out.edges], -1),
                                  globals=torch.cat([graph.globals, out.globals], -1))
+        signal = _AFTER_GN2.get()
+        if signal is not None and torch.is_grad_enabled():
+            names = [k for k in ("nodes", "edges", "globals") if getattr(out, k) is not None]
+            out = out._replace(**dict(zip(names, _Signal.apply(signal, *(getattr(out, k) for k in names)))))
         return self.gn2(out, index).nodes
 
 

@@ -58,6 +58,7 @@ from gnwarp.train.checkpoint import (CheckpointError, CheckpointWriter, checkpoi
                                      load_checkpoint, model_config_changes, recover_checkpoint)
 from gnwarp.train.config import TrainConfig
 from gnwarp.train.optim import FlatAdam, WeightAverage
+from gnwarp.train.overlap import GradientBuckets
 from gnwarp.train.sampler import BatchSampler
 
 __all__ = ["Trainer", "train", "LOG_FIELDS"]
@@ -116,6 +117,9 @@ class Trainer:
         self.optimizer = self.make_optimizer(self._optimizer_kind(training))
         # ``config.ema``: the weights' moving average, which validation and checkpoints use
         self.average = WeightAverage(self.average_tensors(), config.ema) if config.ema > 0 else None
+        # over ranks: GN2's gradients averaged while GN1's backward runs (``config.overlap_allreduce``)
+        self.buckets = (GradientBuckets.for_model(self.ranks, self.optimizer, self.model)
+                        if config.overlap_allreduce and isinstance(self.optimizer, FlatAdam) else None)
         self.state = {"step": 0, "best_error": math.inf, "best_step": -1, "bad_validations": 0, "seconds": 0.0}
         if training is not None:
             self._restore(training)
@@ -167,6 +171,9 @@ class Trainer:
         """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, else of
         the gradients packed in one buffer); nothing for a single process."""
         if not self.ranks.distributed:
+            return
+        if self.buckets is not None:
+            self.buckets.reduce()
             return
         if isinstance(self.optimizer, FlatAdam):
             self.ranks.all_reduce_(self.optimizer.fold_grads(), mean=True)
@@ -264,7 +271,8 @@ class Trainer:
         # keep the batch: a captured step reads its index tensors (cached per batch size by the
         # graph builder, which may drop them) at every replay
         self._batch = batch
-        terms = self.loss(*batch)
+        with self.buckets.armed() if self.buckets is not None else contextlib.nullcontext():
+            terms = self.loss(*batch)
         self.optimizer.zero_grad(set_to_none=True)
         terms["loss"].backward()
         self.reduce_gradients()
