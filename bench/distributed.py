@@ -206,7 +206,7 @@ def main_launch(a) -> None:
         target = None if r.world == 1 else one_gpu_target(Path(a.records), gpu)
         weak.update(time_to_error(r, a, target))
     rows.append(weak)
-    if a.strong_total % r.world == 0:
+    if not a.skip_strong and a.strong_total % r.world == 0:
         rows.append({**base, "mode": "strong", **bench_train(r, a, a.strong_total // r.world, "strong")})
     if r.main:
         Path(a.records).parent.mkdir(parents=True, exist_ok=True)
@@ -345,6 +345,7 @@ def main(argv=None) -> int:
                     help="TrainConfig.optimizer (auto: FlatAdam on GPUs, torch's Adam on CPUs)")
     ap.add_argument("--skip-generation", action="store_true")
     ap.add_argument("--skip-tte", action="store_true")
+    ap.add_argument("--skip-strong", action="store_true")
     ap.add_argument("--no-capture", action="store_true")
     ap.add_argument("--quick", action="store_true", help="CPU-sized")
     a = ap.parse_args(argv)
