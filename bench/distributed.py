@@ -18,9 +18,10 @@ Per launch (every rank on its own GPU, rank 0 records):
 - training throughput: the paper's model on the cheetah dataset, the step captured in a CUDA graph
   with its all-reduce inside; weak (``--batch`` graphs per GPU) and strong (``--strong-total``
   graphs per step split over the ranks); graphs per second over all ranks in the steady state
-  (``--warmup`` steps, then ``--steps`` timed); over several ranks the step reduces GN2's
-  gradients during the backward (``overlap_allreduce``), and the same launch times the peer with
-  one all-reduce after the backward (``step_ms_one_allreduce``);
+  (``--warmup`` steps, then ``--steps`` timed); over several ranks the step reduces with
+  one all-reduce after the backward (``overlap_allreduce`` off, the default) and the same launch
+  times the peer that reduces GN2's gradients during the backward (``step_ms_overlap``; run
+  h100x2-overlap had them the other way round: ``step_ms_one_allreduce``);
 - the all-reduce's share: the step's two all-reduces alone (the flat gradient's and the packed
   normalizer sums', each captured and replayed), over the step's time;
 - time to error: training from scratch for ``--tte-seconds`` (weak batches; ``--lr-scaling
@@ -80,7 +81,7 @@ def bench_generation(r, a) -> dict:
             "generate_sim_seconds": [round(x, 4) for x in sims] if sims else None}
 
 
-def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=True):
+def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=False):
     from gnwarp.train import TrainConfig
     from gnwarp.train.trainer import Trainer
     cfg = TrainConfig.from_dict(dict(data=[a.data], out=out, batch_size=batch, lr=lr, device="auto", resume=False,
@@ -105,10 +106,11 @@ def bench_train(r, a, batch, tag) -> dict:
     step_s = timed_steps(r, a, t)
     row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
            "captured": t.captured is not None, "overlap": t.buckets is not None}
-    if t.buckets is not None:   # the peer in the same launch: one all-reduce after the backward
-        serial = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}-serial", capture=not a.no_capture, overlap=False)
-        row["step_ms_one_allreduce"] = 1e3 * timed_steps(r, a, serial)
-        del serial
+    if r.distributed:   # the peer in the same launch: GN2's gradients reduced during the backward
+        peer = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}-overlap", capture=not a.no_capture, overlap=True)
+        if peer.buckets is not None:
+            row["step_ms_overlap"] = 1e3 * timed_steps(r, a, peer)
+        del peer
     if r.distributed:
         from gnwarp.train.optim import FlatAdam
         grads = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
@@ -238,7 +240,8 @@ def summarize(a) -> None:
     gpu = rows[0]["gpu"]
     out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
                                                                  "step_ms", "lr_scaling", "generate_sim_seconds",
-                                                                 "captured", "overlap", "step_ms_one_allreduce") if k in x}
+                                                                 "captured", "overlap", "step_ms_one_allreduce",
+                                                                 "step_ms_overlap") if k in x}
            for x in sorted(rows, key=lambda x: (x["mode"], x["gpus"]))]
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}
@@ -256,7 +259,8 @@ def summarize(a) -> None:
     lines = [f"Run {run} on {gpu} (NCCL {rows[0].get('nccl')}), one launch per GPU count; efficiency = "
              "throughput on N GPUs / (N x on 1 GPU), weak; speed-up for strong.", "",
              "| GPUs | mode | batch per GPU | graphs/s | efficiency | step ms | all-reduce share | "
-             "data steps/s | gen. efficiency | time to error s (x 1 GPU) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "step ms: one all-reduce / overlapped (efficiency) | data steps/s | gen. efficiency | "
+             "time to error s (x 1 GPU) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     t_one = next((x["time_to_error_s"] for x in out if x["gpus"] == 1 and x["mode"] == "weak"), None)
     for x in out:
         if x.get("time_to_error_s") is not None and t_one:
@@ -269,9 +273,18 @@ def summarize(a) -> None:
                 if x.get("generate_steps_per_s") and "weak" in one and one["weak"].get("generate_steps_per_s")
                 else None)
         x["train_efficiency"], x["generate_efficiency"] = eff, geff
+        ways = {}   # the step with one all-reduce and with the overlapped one, where measured
+        if x.get("overlap") is not None and x["gpus"] > 1:
+            ways = {"one_allreduce": x.get("step_ms_one_allreduce", None if x["overlap"] else x.get("step_ms")),
+                    "overlap": x.get("step_ms") if x["overlap"] else x.get("step_ms_overlap")}
+        for way, ms in ways.items():   # efficiency as above: throughput / (N x one GPU's)
+            if ms and base and base.get("step_ms"):
+                x[f"train_efficiency_{way}"] = x["per_gpu_batch"] * base["step_ms"] / (base["per_gpu_batch"] * ms)
         f = lambda v, p=3: "" if v is None else (f"{v:.{p}g}" if isinstance(v, float) else str(v))  # noqa: E731
         lines.append(f"| {x['gpus']} | {x['mode']} | {x['per_gpu_batch']} | {f(x['train_graphs_per_s'], 4)} | "
                      f"{f(eff)} | {f(x.get('step_ms'))} | {f(x.get('allreduce_share'))} | "
+                     + " / ".join(f"{ways[w]:.3g} ({x[f'train_efficiency_{w}']:.3f})" if f"train_efficiency_{w}" in x
+                                  else "" for w in ways) + " | "
                      f"{f(x.get('generate_steps_per_s'), 4)} | {f(geff)} | {f(x.get('time_to_error_s'))}"
                      + (f" ({x['time_to_error_ratio']:.2f})" if x.get("time_to_error_ratio") else "") + " |")
     path = Path(a.summary or ROOT / "bench" / "results" / f"distributed_{slug(gpu)}.json")

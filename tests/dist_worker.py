@@ -43,7 +43,8 @@ class Recorder:
 
 def main(what, data, out):
     if what == "train":
-        t = Trainer(config(data, out, optimizer=os.environ.get("OPT", "adam")))
+        t = Trainer(config(data, out, optimizer=os.environ.get("OPT", "adam"),
+                           overlap_allreduce=os.environ.get("OVERLAP") == "1"))
         t.sampler = Recorder(t.sampler)
         t.run()
         g, target = t.sampler.batches[-1]

@@ -26,12 +26,13 @@ def data(tmp_path_factory):
 
 @pytest.mark.parametrize("opt", ["adam", "flat_adam"])
 def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on_one(data, tmp_path, opt):
-    """torch's Adam: one all-reduce of the packed gradients; FlatAdam: GN2's span reduced during
-    the backward (``GradientBuckets``), the rest after it."""
+    """torch's Adam: one all-reduce of the packed gradients; FlatAdam with ``overlap_allreduce``:
+    GN2's span reduced during the backward (``GradientBuckets``), the rest after it."""
     from dist_worker import config
     from gnwarp.train.trainer import Trainer
     out = tmp_path / "two"
-    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "train", data, str(out)], env={"OPT": opt})
+    codes, outs = start_ranks([str(HERE / "dist_worker.py"), "train", data, str(out)],
+                              env={"OPT": opt, "OVERLAP": "1"})
     assert codes == [0, 0], "\n".join(outs)
     seen = torch.load(out / "seen.pt", weights_only=True)
     parts = sorted(seen["batches"], key=lambda b: b["rank"])
