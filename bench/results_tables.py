@@ -177,7 +177,11 @@ def headline(root: Path, doc: Path) -> list[str]:
     rows.append([f"training and generation on 1-{n} H100s of one host (torch.distributed, NCCL), weak scaling",
                  ", ".join(f"**{weak[g]['train_efficiency']:.0%}** training / {weak[g]['generate_efficiency']:.0%} "
                            f"generation efficiency at {g} GPUs" for g in sorted(weak) if g > 1)
-                 + f"; time to the same smoothed validation error {weak[2]['time_to_error_ratio']:.2f}x on 2 GPUs",
+                 + f"; time to the same smoothed validation error {weak[2]['time_to_error_ratio']:.2f}x on 2 GPUs"
+                 + "; a later 1-2 GPU run, training only: **{train_efficiency_one_allreduce:.1%}** at 2 GPUs with one "
+                   "all-reduce, {train_efficiency_overlap:.1%} overlapped".format(**next(
+                       r for r in json.loads((root / RESULTS / "distributed" / "h100x2-overlap.json").read_text())
+                       if r["gpus"] == 2)),
                  link("distributed")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean

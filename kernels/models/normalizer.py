@@ -45,7 +45,15 @@ def _column_sums(dtype, weighted: bool):
     W = 1 if weighted else 0
 
     @wp.func
-    def column_sums(x_in: wp.array2d(dtype=T), w_in: wp.array(dtype=T), n: int, bd: int, col: int, lane: int):
+    def column_sums(
+        # Data in:
+        x_in: wp.array2d(dtype=T),
+        w_in: wp.array(dtype=T),
+        n: int,
+        bd: int,
+        col: int,
+        lane: int,
+    ):
         a = wp.float64(0.0)
         b = wp.float64(0.0)
         c = wp.float64(0.0)
