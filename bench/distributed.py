@@ -18,10 +18,12 @@ Per launch (every rank on its own GPU, rank 0 records):
 - training throughput: the paper's model on the cheetah dataset, the step captured in a CUDA graph
   with its all-reduce inside; weak (``--batch`` graphs per GPU) and strong (``--strong-total``
   graphs per step split over the ranks); graphs per second over all ranks in the steady state
-  (``--warmup`` steps, then ``--steps`` timed); over several ranks the step reduces with
-  one all-reduce after the backward (``overlap_allreduce`` off, the default) and the same launch
-  times the peer that reduces GN2's gradients during the backward (``step_ms_overlap``; run
-  h100x2-overlap had them the other way round: ``step_ms_one_allreduce``);
+  (``--warmup`` steps, then ``--steps`` timed in two halves); over several ranks with FlatAdam
+  the step reduces with one all-reduce after the backward (``overlap_allreduce`` off, the
+  default) and the same launch times the peer that reduces GN2's gradients during the backward
+  (``step_ms_overlap``, with ``overlap_sent``: its steps that did), the halves in turn (A B, B A;
+  run h100x2-overlap timed the overlapped step as its main row, then the other, one after the
+  other: ``step_ms_one_allreduce``);
 - the all-reduce's share: the step's two all-reduces alone (the flat gradient's and the packed
   normalizer sums', each captured and replayed), over the step's time;
 - time to error: training from scratch for ``--tte-seconds`` (weak batches; ``--lr-scaling
@@ -90,29 +92,43 @@ def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=False):
     return Trainer(cfg)
 
 
-def timed_steps(r, a, t) -> float:
-    """Seconds per step of trainer ``t`` in the steady state (after its warm-up and ``--warmup`` steps)."""
+def warm(r, a, t) -> None:
+    """Trainer ``t`` past its warm-up (captured, where it captures) and ``--warmup`` steps."""
     t.warmup()
     for _ in range(a.warmup):
         t.step()
+
+
+def timed_steps(r, a, t, steps: int) -> float:
+    """Seconds of ``steps`` steps of the warm trainer ``t``, between barriers."""
     t0 = timed_barrier(r)
-    for _ in range(a.steps):
+    for _ in range(steps):
         t.step()
-    return (timed_barrier(r) - t0) / a.steps
+    return timed_barrier(r) - t0
 
 
 def bench_train(r, a, batch, tag) -> dict:
+    from gnwarp.train.optim import FlatAdam
     t = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}", capture=not a.no_capture)
-    step_s = timed_steps(r, a, t)
-    row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
-           "captured": t.captured is not None, "overlap": t.buckets is not None}
-    if r.distributed:   # the peer in the same launch: GN2's gradients reduced during the backward
+    trainers = {"step_ms": t}
+    if r.distributed and isinstance(t.optimizer, FlatAdam):   # the peer: GN2's gradients reduced in the backward
         peer = trainer_for(r, a, batch, f"{a.work}/{tag}-{r.world}-overlap", capture=not a.no_capture, overlap=True)
         if peer.buckets is not None:
-            row["step_ms_overlap"] = 1e3 * timed_steps(r, a, peer)
-        del peer
+            trainers["step_ms_overlap"] = peer
+    for x in trainers.values():
+        warm(r, a, x)
+    seconds = dict.fromkeys(trainers, 0.0)
+    for order in (list(trainers), list(trainers)[::-1]):   # two halves in turn: order effects fall on both
+        for k in order:
+            seconds[k] += timed_steps(r, a, trainers[k], a.steps // 2)
+    step_s = seconds["step_ms"] / (2 * (a.steps // 2))
+    row = {"per_gpu_batch": batch, "step_ms": 1e3 * step_s, "train_graphs_per_s": batch * r.world / step_s,
+           "captured": t.captured is not None, "overlap": t.buckets is not None}
+    if "step_ms_overlap" in trainers:
+        peer = trainers["step_ms_overlap"]
+        row["step_ms_overlap"] = 1e3 * seconds["step_ms_overlap"] / (2 * (a.steps // 2))
+        row["overlap_sent"], row["overlap_skipped"] = peer.buckets.sent, peer.buckets.skipped   # it did overlap
     if r.distributed:
-        from gnwarp.train.optim import FlatAdam
         grads = (t.optimizer.grad_flat if isinstance(t.optimizer, FlatAdam)
                  else torch.cat([p.detach().reshape(-1) for p in t.model.parameters()]))
         from gnwarp.models.normalizer import Normalizer
@@ -241,7 +257,7 @@ def summarize(a) -> None:
     out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
                                                                  "step_ms", "lr_scaling", "generate_sim_seconds",
                                                                  "captured", "overlap", "step_ms_one_allreduce",
-                                                                 "step_ms_overlap") if k in x}
+                                                                 "step_ms_overlap", "overlap_sent") if k in x}
            for x in sorted(rows, key=lambda x: (x["mode"], x["gpus"]))]
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}

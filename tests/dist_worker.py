@@ -41,6 +41,14 @@ class Recorder:
         return b
 
 
+def averaged_gradients(t) -> torch.Tensor:
+    """The gradients the last step's update read, as one vector (over ranks: averaged)."""
+    from gnwarp.train.optim import FlatAdam
+    if isinstance(t.optimizer, FlatAdam):
+        return t.optimizer.grad_flat.clone()
+    return torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in t.model.parameters()])
+
+
 def main(what, data, out):
     if what == "train":
         t = Trainer(config(data, out, optimizer=os.environ.get("OPT", "adam"),
@@ -54,8 +62,8 @@ def main(what, data, out):
                 "early_buckets": None if t.buckets is None else t.buckets.sent}
         got = t.ranks.gather_objects(mine)
         if t.ranks.main:
-            torch.save({"params": {k: v.clone() for k, v in t.model.state_dict().items()}, "batches": got},
-                       os.path.join(out, "seen.pt"))
+            torch.save({"params": {k: v.clone() for k, v in t.model.state_dict().items()}, "batches": got,
+                        "grads": averaged_gradients(t)}, os.path.join(out, "seen.pt"))
     elif what == "die":
         t = Trainer(config(data, out, steps=50, checkpoint_every=1))
         t.sampler = Recorder(t.sampler, die_at=4 if t.ranks.rank == 1 else None)
@@ -64,4 +72,8 @@ def main(what, data, out):
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:4])
+    from gnwarp.distributed import close
+    try:
+        main(*sys.argv[1:4])
+    finally:
+        close()   # leave the process group before exit (else gloo may abort the process at exit)

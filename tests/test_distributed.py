@@ -52,6 +52,9 @@ def test_two_ranks_take_the_step_of_one_process_on_the_joint_batch_and_resume_on
     one = Trainer(config(data, str(tmp_path / "one"), batch_size=8, optimizer=opt))
     one.sampler = Joint()
     one.run()
+    # the averaged gradients themselves (Adam's first step hides a gradient's scale), then the weights
+    from dist_worker import averaged_gradients
+    torch.testing.assert_close(seen["grads"], averaged_gradients(one), rtol=1e-5, atol=1e-7)
     mine = one.model.state_dict()
     assert set(mine) == set(seen["params"])
     for k, v in seen["params"].items():
@@ -150,6 +153,14 @@ def test_normalizers_summed_together_match_each_normalizer_alone():
             torch.testing.assert_close(s1, s0)
     for a, b in zip(alone, together):
         assert a.count.item() == b.count.item() and torch.allclose(a.sumsq, b.sumsq)
+    with pytest.raises(ValueError, match="listed twice"):
+        accumulate_over_ranks([(alone[0], x, None), (alone[0], x, None)], Ranks())
+    half = torch.randn(5, 3, generator=g).to(torch.float16)   # statistics in the input's dtype, as alone
+    (m1, s1), = accumulate_over_ranks([(Normalizer(3), half, None)], Ranks())
+    m0, s0 = Normalizer(3).accumulate_stats(half)
+    assert m1.dtype == s1.dtype == m0.dtype == torch.float16
+    torch.testing.assert_close(m1, m0)
+    torch.testing.assert_close(s1, s0)
 
 
 class _PairedRank:
@@ -191,7 +202,8 @@ def test_over_two_ranks_the_normalizers_take_both_batches_on_top_of_rank_0_total
 
 
 class _Recording:
-    """A rank of two that records what it is asked to all-reduce (no other process)."""
+    """A rank of two that records what it is asked to all-reduce (no other process): the range of
+    the flat gradient, whether asynchronous, the sum of |gradient| before it, and a copy of it."""
     distributed, world, rank = True, 2, 0
 
     def __init__(self, flat):
@@ -199,8 +211,7 @@ class _Recording:
 
     def all_reduce_(self, t, mean=False, async_op=False):
         start = (t.data_ptr() - self.flat.data_ptr()) // t.element_size()
-        self.calls.append((start, start + t.numel(), async_op, float(self.flat[:start].abs().sum())))
-        t.div_(1.0)
+        self.calls.append((start, start + t.numel(), async_op, float(self.flat[:start].abs().sum()), t.clone()))
         return _Done(t) if async_op else t
 
 
@@ -212,7 +223,7 @@ class _Done:
         return self.t
 
 
-def test_gn2_gradients_go_out_during_the_backward_before_gn1_has_any(data, tmp_path):
+def test_gn2_gradients_go_out_complete_during_the_backward_before_gn1_has_any(data, tmp_path):
     from dist_worker import config
     from gnwarp.train.overlap import GradientBuckets
     from gnwarp.train.trainer import Trainer
@@ -220,25 +231,30 @@ def test_gn2_gradients_go_out_during_the_backward_before_gn1_has_any(data, tmp_p
     flat = t.optimizer.grad_flat
     fake = _Recording(flat)
     buckets = GradientBuckets.for_model(fake, t.optimizer, t.model)
-    assert buckets.end - buckets.start >= sum(p.numel() for p in t.model.core.gn2.parameters())
+    gn2 = list(t.model.core.gn2.parameters())
+    offsets = dict(zip(map(id, t.optimizer.param_groups[0]["params"]), t.optimizer.offsets))
+    # GN2's span, with the padding after its last parameter (it ends the buffer): two reductions a step
+    assert (buckets.start, buckets.end) == (offsets[id(gn2[0])], flat.numel()) and buckets.rest == [(0, buckets.start)]
     g, target = t.sample()
-    for rounds in range(2):
+    for calls in (1, 2):   # the model once, then twice in one step: sent after the last call's GN2 backward
         with buckets.armed():
-            terms = t.loss(g, target)
+            loss = sum(t.loss(g, target)["loss"] for _ in range(calls))
         t.optimizer.zero_grad()
-        terms["loss"].backward()
+        loss.backward()
+        assert buckets.calls == buckets.signals == calls and buckets.sent == calls
         assert len(fake.calls) == 1 and fake.calls[0][:3] == (buckets.start, buckets.end, True)
-        assert fake.calls[0][3] == 0.0, "GN1's gradients had begun when GN2's went out"
-        assert buckets.start > 0 and flat[:buckets.start].abs().sum() > 0
+        if calls == 1:
+            assert fake.calls[0][3] == 0.0, "GN1's gradients had begun when GN2's went out"
+        assert torch.equal(fake.calls[0][4], flat[buckets.start:buckets.end]), "GN2's span was sent incomplete"
+        assert flat[buckets.start:buckets.end].abs().sum() > 0 and flat[:buckets.start].abs().sum() > 0
         buckets.reduce()
-        rest = [(0, buckets.start)] + ([(buckets.end, flat.numel())] if buckets.end < flat.numel() else [])
-        assert [c[:3] for c in fake.calls[1:]] == [(a, b, False) for a, b in rest]
+        assert [c[:3] for c in fake.calls[1:]] == [(0, buckets.start, False)] and buckets.pending is None
         fake.calls.clear()
     # a GN2 gradient outside the flat buffer at the signal: the whole buffer after the backward
     with buckets.armed():
         terms = t.loss(g, target)
     t.optimizer.zero_grad()
-    p = next(t.model.core.gn2.parameters())
+    p = gn2[0]
     p.grad = torch.zeros_like(p)
     terms["loss"].backward()
     assert fake.calls == [] and buckets.skipped
@@ -253,4 +269,7 @@ def test_gn2_gradients_go_out_during_the_backward_before_gn1_has_any(data, tmp_p
     p.grad = torch.ones_like(p)
     with pytest.raises(RuntimeError, match="arrived in p.grad after its bucket"):
         buckets.reduce()
+    assert buckets.pending is None, "the early reduction was left under way"
     assert GradientBuckets.for_model(Ranks(), t.optimizer, t.model) is None
+    done = Ranks().all_reduce_(torch.ones(2), mean=True, async_op=True)
+    assert done.wait().tolist() == [1.0, 1.0]

@@ -19,35 +19,36 @@ from gnwarp.graphs import GraphsTuple
 from gnwarp.models.config import GNCoreConfig, MLPCoreConfig, core_blocks
 from gnwarp.state import DYN_NODE_SIZE
 
-__all__ = ["GNCore", "MLPCore", "after_gn2_backward"]
+__all__ = ["GNCore", "MLPCore", "gn2_listener"]
 
-_AFTER_GN2 = contextvars.ContextVar("after_gn2_backward", default=None)
+_GN2_LISTENER = contextvars.ContextVar("gn2_listener", default=None)
 
 
 @contextlib.contextmanager
-def after_gn2_backward(fn):
-    """Within it, every ``GNCore`` forward that records gradients has its backward call ``fn()``
-    once GN2's backward is done (GN2's parameter gradients complete, GN1's not begun): where a
-    distributed trainer starts reducing GN2's gradients while GN1's backward runs."""
-    token = _AFTER_GN2.set(fn)
+def gn2_listener(listener):
+    """Within it, every ``GNCore`` forward that records gradients calls ``listener.gn2_forward()``,
+    and its backward ``listener.gn2_backward()`` once GN2's backward is done (that call's GN2
+    parameter gradients complete, its GN1's not begun): where a distributed trainer starts
+    reducing GN2's gradients while GN1's backward runs (``gnwarp.train.overlap``)."""
+    token = _GN2_LISTENER.set(listener)
     try:
         yield
     finally:
-        _AFTER_GN2.reset(token)
+        _GN2_LISTENER.reset(token)
 
 
 class _Signal(torch.autograd.Function):
-    """Identity on GN2's inputs whose backward calls ``fn()`` first (when their gradients are
-    complete, i.e. GN2's backward has returned)."""
+    """Identity on GN2's inputs that need a gradient, whose backward calls ``listener.gn2_backward()``
+    first (when their gradients are complete, i.e. GN2's backward has returned)."""
 
     @staticmethod
-    def forward(ctx, fn, *xs):
-        ctx.fn = fn
+    def forward(ctx, listener, *xs):
+        ctx.listener = listener
         return tuple(x.view_as(x) for x in xs)
 
     @staticmethod
     def backward(ctx, *grads):
-        ctx.fn()
+        ctx.listener.gn2_backward()
         return (None, *grads)
 
 
@@ -102,10 +103,11 @@ class GNCore(nn.Module):
             out = graph._replace(nodes=torch.cat([graph.nodes, out.nodes], -1),
                                  edges=torch.cat([graph.edges, out.edges], -1),
                                  globals=torch.cat([graph.globals, out.globals], -1))
-        signal = _AFTER_GN2.get()
-        if signal is not None and torch.is_grad_enabled():
-            names = [k for k in ("nodes", "edges", "globals") if getattr(out, k) is not None]
-            out = out._replace(**dict(zip(names, _Signal.apply(signal, *(getattr(out, k) for k in names)))))
+        listener = _GN2_LISTENER.get()
+        names = [k for k in ("nodes", "edges", "globals") if getattr(out, k) is not None and getattr(out, k).requires_grad]
+        if listener is not None and torch.is_grad_enabled() and names:
+            listener.gn2_forward()
+            out = out._replace(**dict(zip(names, _Signal.apply(listener, *(getattr(out, k) for k in names)))))
         return self.gn2(out, index).nodes
 
 

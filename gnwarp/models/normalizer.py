@@ -102,14 +102,18 @@ class Normalizer(nn.Module):
 
 
 def accumulate_over_ranks(items, ranks) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """``accumulate_stats`` of several normalizers with each batch summed over ``ranks``, in a fixed
-    number of launches whatever the normalizers: rank 0 packs every ``(normalizer, x [n, size],
-    weight [n] or None)``'s count, column sums and squared sums in one float64 buffer (one
-    concatenation; the other ranks start from zeros), each rank adds its batch's sums (a Warp launch
-    per normalizer), one all-reduce makes the buffer the new totals on every rank, one launch writes
-    every (mean, std) in ``x``'s dtype and one copies the totals back into the normalizers. Returns
-    the (mean, std) of each item, in order. Every rank calls it with the same normalizers."""
+    """``accumulate_stats`` of several normalizers with each batch summed over ``ranks``: rank 0
+    packs every ``(normalizer, x [n, size], weight [n] or None)``'s count, column sums and squared
+    sums in one float64 buffer (one concatenation; the other ranks start from zeros), each rank
+    adds its batch's sums (a Warp launch per normalizer), one all-reduce makes the buffer the new
+    totals on every rank, one launch writes every (mean, std) in ``x``'s dtype and one copies the
+    totals back into the normalizers: four launches and the collective beside one per normalizer.
+    Returns the (mean, std) of each item, in order. Every rank calls it with the same normalizers,
+    each once. On CUDA, the first call of a set of normalizers must not be captured (it makes the
+    launch's index table): a trainer's eager warm-up steps come first."""
     norms = [n for n, _, _ in items]
+    if len({id(n) for n in norms}) != len(norms):
+        raise ValueError("accumulate_over_ranks: a normalizer is listed twice (its batches would overwrite each other)")
     first = items[0][1]
     if ranks.rank == 0:
         pack = torch.cat([t.reshape(-1) for n in norms for t in (n.count, n.sum, n.sumsq)]).to(first.device)
@@ -117,17 +121,21 @@ def accumulate_over_ranks(items, ranks) -> list[tuple[torch.Tensor, torch.Tensor
         pack = torch.zeros(sum(1 + 2 * n.size for n in norms), dtype=torch.float64, device=first.device)
     launch = Launcher(pack)
     bd = K.BLOCK if launch.is_cuda else 1
-    dtypes, off = [], 0
+    dtypes, wanted, off = [], [], 0
     for norm, x, weight in items:
         x = x.detach().reshape(-1, norm.size)
+        wanted.append(x.dtype)   # the statistics' dtype; the sums run in float32 or float64
         if x.dtype not in (torch.float32, torch.float64):
             x = x.to(torch.float64)
         x = x.contiguous()
         F = norm.size
         w = None if weight is None else weight.detach().to(x.dtype).reshape(-1).contiguous()
-        launch.tiled(K.sums_kernel(WP_DTYPE[x.dtype], w is not None), F if x.shape[0] else 0, bd, x,
-                     w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd,
-                     pack[off:off + 1], pack[off + 1:off + 1 + F], pack[off + 1 + F:off + 1 + 2 * F])
+        if F > 0:
+            launch.tiled(K.sums_kernel(WP_DTYPE[x.dtype], w is not None), F if x.shape[0] else 0, bd, x,
+                         w if w is not None else launch.placeholder(x.dtype, 1), x.shape[0], bd,
+                         pack[off:off + 1], pack[off + 1:off + 1 + F], pack[off + 1 + F:off + 1 + 2 * F])
+        else:   # no column to launch over: the count alone
+            pack[off:off + 1].add_(x.shape[0] if w is None else w.sum(dtype=torch.float64))
         dtypes.append(x.dtype)
         off += 1 + 2 * F
     ranks.all_reduce_(pack)
@@ -141,7 +149,7 @@ def accumulate_over_ranks(items, ranks) -> list[tuple[torch.Tensor, torch.Tensor
         o = 0
         for k in picked:
             F = norms[k].size
-            out[k] = (mean[o:o + F], std[o:o + F])
+            out[k] = (mean[o:o + F].to(wanted[k]), std[o:o + F].to(wanted[k]))
             o += F
     dests, srcs, off = [], [], 0
     for n in norms:
@@ -162,6 +170,9 @@ def _pack_table(layout: tuple, picked: tuple, device) -> tuple[torch.Tensor, tor
     key = (layout, picked, str(device))
     got = _PACK_TABLES.get(key)
     if got is None:
+        if torch.device(device).type == "cuda" and torch.cuda.is_current_stream_capturing():
+            raise RuntimeError("accumulate_over_ranks: first called for these normalizers inside a CUDA graph "
+                               "capture; run it once eagerly first (its index table is copied to the GPU then)")
         starts = [0]
         for size, _ in layout:
             starts.append(starts[-1] + 1 + 2 * size)

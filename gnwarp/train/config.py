@@ -52,9 +52,9 @@ class TrainConfig:
     log.csv records progress but no checkpoint is left), "error" refuses, naming what differs;
     "restart" moves the old run's files to ``out/replaced-<n>/`` and starts a new run.
     ``overlap_allreduce``: over several ranks with FlatAdam, average GN2's gradients while GN1's
-    backward runs (two all-reduces, the first overlapped: ``gnwarp.train.overlap``); False
-    (default, measured faster on 2 H100s: bench/results/distributed): one all-reduce of every
-    gradient after the backward.
+    backward runs (two all-reduces a step, the first overlapped: ``gnwarp.train.overlap``); False
+    (default; overlapping was no faster on 2 H100s, bench/results/distributed): one all-reduce of
+    every gradient after the backward.
     ``grad_clip``: the gradients' global norm is clipped to it (> 0; None: no clipping).
     ``ema`` (beyond the paper; default 0, off): the decay of an exponential moving average of the
     weights (Polyak averaging, ``gnwarp.train.WeightAverage``; e.g. 0.999, about the last 1000

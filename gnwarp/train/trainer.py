@@ -24,7 +24,7 @@ is in place, and the run's end waits for every write. Override a method in a sub
 Several ranks (``torchrun``, ``gnwarp.distributed``): each rank draws its own ``batch_size``
 graphs (the batch is per rank; the step's batch is ``batch_size`` x ranks), the model starts
 from rank 0's weights, the gradients (FlatAdam's one flat buffer: one all-reduce a step, inside
-the captured step) and each batch's normalizer sums are summed over the ranks, so every rank
+the captured step, or two with ``overlap_allreduce``) and each batch's normalizer sums are summed over the ranks, so every rank
 takes the step one process would take on the joint batch. Rank 0 validates and decides (best,
 early stopping, the time budget) for all, writes log.csv and the checkpoints; a checkpoint holds
 every rank's sampler state, and a run resumes with any number of ranks (the same number continues
@@ -168,8 +168,9 @@ class Trainer:
         return self.ranks.on_main("validation", self.validate)
 
     def reduce_gradients(self) -> None:
-        """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, else of
-        the gradients packed in one buffer); nothing for a single process."""
+        """Average the gradients over the ranks (one all-reduce of FlatAdam's flat buffer, or with
+        ``overlap_allreduce`` the rest of it after GN2's span went out during the backward; else
+        of the gradients packed in one buffer); nothing for a single process."""
         if not self.ranks.distributed:
             return
         if self.buckets is not None:
