@@ -21,7 +21,8 @@ Per launch (every rank on its own GPU, rank 0 records):
   (``--warmup`` steps, then ``--steps`` timed in two halves); over several ranks with FlatAdam
   the step reduces with one all-reduce after the backward (``overlap_allreduce`` off, the
   default) and the same launch times the peer that reduces GN2's gradients during the backward
-  (``step_ms_overlap``, with ``overlap_sent``: its steps that did), the halves in turn (A B, B A;
+  (``step_ms_overlap``; ``overlap_sent``: how many of its eager steps and its capture sent GN2's
+  span early, which replays repeat), the halves in turn (A B, B A;
   run h100x2-overlap timed the overlapped step as its main row, then the other, one after the
   other: ``step_ms_one_allreduce``);
 - the all-reduce's share: the step's two all-reduces alone (the flat gradient's and the packed
