@@ -18,6 +18,7 @@ steps: the median with its 25-75% band (left) and the mean with +- one standard 
 
     PYTHONPATH=. python3 bench/rl_summary.py              # rewrite summary.json and the plots
     PYTHONPATH=. python3 bench/rl_summary.py --check      # exit 1 where summary.json differs
+    PYTHONPATH=. python3 bench/rl_summary.py --folder bench/results/rl_cpu   # another folder's
 """
 from __future__ import annotations
 
@@ -57,11 +58,11 @@ def _group(rec) -> tuple:
     return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"))
 
 
-def rows(root: Path = ROOT) -> list[dict]:
-    """The summary's rows from every records file under ``bench/results/rl`` of ``root``
-    (records of experiment "rl" only), sorted by task, agent, preset, networks, env steps."""
+def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
+    """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
+    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, env steps."""
     by: dict[tuple, dict] = {}
-    for path in sorted((root / RL).rglob("*.jsonl")):
+    for path in sorted((root / folder).rglob("*.jsonl")):
         try:
             recs = read_records(path)
         except RecordError:
@@ -120,12 +121,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--check", action="store_true", help="exit 1 where summary.json differs from the records")
     ap.add_argument("--no-plot", action="store_true", help="summary.json only")
+    ap.add_argument("--folder", default=str(RL),
+                    help="the records' folder in the repository, where summary.json and the plots go")
     ap.add_argument("--root", default=str(ROOT), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     root = Path(a.root)
-    summary = rows(root)
+    summary = rows(root, Path(a.folder))
     text = json.dumps(summary, indent=1, allow_nan=False) + "\n"
-    path = root / RL / "summary.json"
+    path = root / a.folder / "summary.json"
     status = write_or_check(path, text, a.check, "python3 bench/rl_summary.py")
     if a.check:
         return status
