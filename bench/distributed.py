@@ -89,7 +89,7 @@ def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=False):
     from gnwarp.train.trainer import Trainer
     cfg = TrainConfig.from_dict(dict(data=[a.data], out=out, batch_size=batch, lr=lr, device="auto", resume=False,
                                      progress=False, capture=capture, valid_sequences=a.valid_sequences,
-                                     steps=10**9, overlap_allreduce=overlap, optimizer=a.optimizer))
+                                     steps=10**9, overlap_allreduce=overlap, optimizer=a.optimizer, seed=a.seed))
     return Trainer(cfg)
 
 
@@ -216,7 +216,7 @@ def main_launch(a) -> None:
     r = ranks("auto")
     gpu = device_name(r.device)
     nccl = ".".join(map(str, torch.cuda.nccl.version())) if r.device.type == "cuda" else None
-    base = {"gpus": r.world, "gpu": gpu, "nccl": nccl, "backend": r.backend, "run": a.run_id,
+    base = {"gpus": r.world, "gpu": gpu, "nccl": nccl, "backend": r.backend, "run": a.run_id, "seed": a.seed,
             "env": {k: os.environ.get(k) for k in ("NCCL_NVLS_ENABLE", "TORCH_SYMM_MEM_DISABLE_MULTICAST")}}
     rows = []
     gen = {} if a.skip_generation else bench_generation(r, a)
@@ -258,7 +258,7 @@ def summarize(a) -> None:
     out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
                                                                  "step_ms", "lr_scaling", "generate_sim_seconds",
                                                                  "captured", "overlap", "step_ms_one_allreduce",
-                                                                 "step_ms_overlap", "overlap_sent") if k in x}
+                                                                 "step_ms_overlap", "overlap_sent", "seed") if k in x}
            for x in sorted(rows, key=lambda x: (x["mode"], x["gpus"]))]
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}
@@ -370,6 +370,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tte-seconds", type=float, default=60.0, help="the one-GPU launch's training time")
     ap.add_argument("--tte-window", type=int, default=8, help="validations in the moving median of the error")
     ap.add_argument("--tte-every", type=int, default=250, help="steps between validations")
+    ap.add_argument("--seed", type=int, default=0, help="the trainers' seed (weights and batches)")
     ap.add_argument("--lr-scaling", choices=["none", "linear"], default="linear")
     ap.add_argument("--optimizer", default="auto", choices=["auto", "adam", "flat_adam"],
                     help="TrainConfig.optimizer (auto: FlatAdam on GPUs, torch's Adam on CPUs)")
