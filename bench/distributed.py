@@ -84,12 +84,12 @@ def bench_generation(r, a) -> dict:
             "generate_sim_seconds": [round(x, 4) for x in sims] if sims else None}
 
 
-def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=False):
+def trainer_for(r, a, batch, out, lr=1e-4, capture=True, overlap=False, **config):
     from gnwarp.train import TrainConfig
     from gnwarp.train.trainer import Trainer
     cfg = TrainConfig.from_dict(dict(data=[a.data], out=out, batch_size=batch, lr=lr, device="auto", resume=False,
                                      progress=False, capture=capture, valid_sequences=a.valid_sequences,
-                                     steps=10**9, overlap_allreduce=overlap, optimizer=a.optimizer, seed=a.seed))
+                                     steps=10**9, overlap_allreduce=overlap, optimizer=a.optimizer, seed=a.seed, **config))
     return Trainer(cfg)
 
 
@@ -163,16 +163,25 @@ def allreduce_ms(r, like: torch.Tensor) -> float:
 
 def time_to_error(r, a, target: float | None) -> dict:
     """Train from scratch; validation every ``--tte-every`` steps (not counted). Without a target
-    (the one-GPU launch): train ``--tte-seconds`` and report the error reached."""
-    lr = 1e-4 * (r.world if a.lr_scaling == "linear" else 1)
-    t = trainer_for(r, a, a.batch, f"{a.work}/tte-{r.world}", lr=lr, capture=not a.no_capture)
+    (the one-GPU launch): train ``--tte-seconds`` and report the error reached.
+
+    With ``--tte-samples-steps N`` the launch instead trains a fixed number of graphs: N steps at one
+    GPU, N / GPUs steps on several (each of ``--batch`` graphs per GPU), the learning rate halved
+    (``--tte-decay``) every ``--tte-decay-every`` one-GPU steps' worth of graphs and validated every
+    ``--tte-every`` one-GPU steps' worth: every launch sees the same schedule per graph trained."""
+    world = r.world
+    lr = 1e-4 * (world if a.lr_scaling == "linear" else 1)
+    by_samples = a.tte_samples_steps is not None
+    schedule = dict(lr_decay=a.tte_decay, lr_decay_steps=max(1, a.tte_decay_every // world)) if by_samples else {}
+    t = trainer_for(r, a, a.batch, f"{a.work}/tte-{world}", lr=lr, capture=not a.no_capture, **schedule)
+    every = max(1, a.tte_every // world) if by_samples else a.tte_every
+    total = a.tte_samples_steps // world if by_samples else None
     t.warmup()
     clock, steps, best, reached = 0.0, 0, math.inf, None
-    limit = a.tte_seconds
     curve = []
-    while clock < limit:   # the whole time: the summary reads the time to error from the curve
-        t0 = timed_barrier(r)
-        for _ in range(a.tte_every):
+    while (steps < total) if by_samples else (clock < a.tte_seconds):   # the whole budget: the summary
+        t0 = timed_barrier(r)                                         # reads the time to error from the curve
+        for _ in range(every):
             t.set_lr(t.config.lr_at(steps))
             t.step()
             steps += 1
@@ -185,7 +194,10 @@ def time_to_error(r, a, target: float | None) -> dict:
         if target is not None and err <= target and reached is None:
             reached = clock
     return {"time_to_raw_error_s": reached if target is not None else clock, "target_error": target,
-            "best_error": best, "tte_steps": steps, "lr": lr, "lr_scaling": a.lr_scaling, "tte_curve": curve}
+            "best_error": best, "tte_steps": steps, "lr": lr, "lr_scaling": a.lr_scaling, "tte_curve": curve,
+            "tte_protocol": ({"samples_steps": a.tte_samples_steps, "decay": a.tte_decay,
+                              "decay_every": a.tte_decay_every, "every": a.tte_every} if by_samples
+                             else {"seconds": a.tte_seconds, "every": a.tte_every})}
 
 
 def prepare(a) -> None:
@@ -263,6 +275,8 @@ def summarize(a) -> None:
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}
     target = smoothed(curves[1], a.tte_window)[1][-1] if 1 in curves else None
+    if a.tte_target == "all_reach" and 1 in curves:   # the error every launch reaches: the worst end
+        target = max(smoothed(c, a.tte_window)[1][-1] for c in curves.values())
     for x, o in zip(sorted(rows, key=lambda x: (x["mode"], x["gpus"])), out):
         c = curves.get(x["gpus"]) if x["mode"] == "weak" else None
         o["time_to_error_s"] = None
@@ -271,6 +285,7 @@ def summarize(a) -> None:
             hit = [ti for ti, ei in zip(t, e) if ei <= target]
             o["time_to_error_s"] = hit[0] if hit else None
             o["target_smoothed_error"] = target
+            o["tte_target"] = a.tte_target
             o["trained_s"] = t[-1]
             o["time_to_raw_error_s"] = x.get("time_to_raw_error_s", x.get("time_to_error_s"))
     lines = [f"Run {run} on {gpu} (NCCL {rows[0].get('nccl')}), one launch per GPU count; efficiency = "
@@ -370,6 +385,14 @@ def main(argv=None) -> int:
     ap.add_argument("--tte-seconds", type=float, default=60.0, help="the one-GPU launch's training time")
     ap.add_argument("--tte-window", type=int, default=8, help="validations in the moving median of the error")
     ap.add_argument("--tte-every", type=int, default=250, help="steps between validations")
+    ap.add_argument("--tte-samples-steps", type=int, help="train a fixed number of graphs: this many steps at one "
+                    "GPU (N / GPUs on N), instead of --tte-seconds")
+    ap.add_argument("--tte-decay", type=float, default=0.5, help="with --tte-samples-steps: the learning rate's factor")
+    ap.add_argument("--tte-decay-every", type=int, default=7500,
+                    help="with --tte-samples-steps: one-GPU steps' worth of graphs per --tte-decay")
+    ap.add_argument("--tte-target", choices=["one_gpu_end", "all_reach"], default="one_gpu_end",
+                    help="summary: the target is the one-GPU launch's smoothed error at its end, or the worst of "
+                         "every launch's (an error every launch reaches)")
     ap.add_argument("--seed", type=int, default=0, help="the trainers' seed (weights and batches)")
     ap.add_argument("--lr-scaling", choices=["none", "linear"], default="linear")
     ap.add_argument("--optimizer", default="auto", choices=["auto", "adam", "flat_adam"],

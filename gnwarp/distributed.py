@@ -323,9 +323,20 @@ def ranks(device: str | torch.device | None = "auto") -> Ranks:
 
 
 def close() -> None:
-    """Leave the process group (at the end of a job; a later ``ranks()`` joins a new one)."""
+    """Leave the process group at the end of a job (a later ``ranks()`` joins a new one on gloo).
+
+    On NCCL the default group is left to the process's exit: ``destroy_process_group`` hangs once
+    NCCL collectives were captured in a CUDA graph (pytorch/pytorch#115388; two 2-GPU benchmark
+    launches hung there), so only the GPU's work is waited for and the gloo side group closed. On
+    gloo the group is destroyed (left to the exit, gloo can abort the process)."""
     global _RANKS, _OBJECTS
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized():
-        dist.destroy_process_group()
+        if dist.get_backend() == "nccl":
+            if _RANKS is not None and _RANKS.device.type == "cuda":
+                torch.cuda.synchronize(_RANKS.device)
+            if _OBJECTS is not None:
+                dist.destroy_process_group(_OBJECTS)
+        else:
+            dist.destroy_process_group()
     _RANKS = _OBJECTS = None
