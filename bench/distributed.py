@@ -262,12 +262,30 @@ def smoothed(curve, window: int) -> tuple[list[float], list[float]]:
 
 
 def summarize(a) -> None:
+    """The summary JSON (every listed run's rows, each with its ``run``) and its table."""
     from gnwarp.files import atomic_write
-    rows = [json.loads(x) for x in Path(a.records).read_text().splitlines() if x.strip()]
-    run = a.run_id or rows[-1]["run"]
-    rows = [x for x in rows if x.get("run") == run]
+    records = [json.loads(x) for x in Path(a.records).read_text().splitlines() if x.strip()]
+    out, lines = [], []
+    for run in (a.run_id or records[-1]["run"]).split(","):
+        rows = [x for x in records if x.get("run") == run]
+        if not rows:
+            raise SystemExit(f"{a.records}: no rows of run {run!r}")
+        o, t = summarize_run(a, run, rows)
+        out += o
+        lines += t + [""]
+    path = Path(a.summary or ROOT / "bench" / "results" / f"distributed_{slug(out[0]['gpu'])}.json")
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text(json.dumps(out, indent=1) + "\n")
+    table = path.with_suffix(".md")
+    with atomic_write(table) as tmp:
+        Path(tmp).write_text("\n".join(lines).rstrip() + "\n")
+    print("\n".join(lines))
+    print(f"wrote {path} and {table}")
+
+
+def summarize_run(a, run: str, rows: list[dict]) -> tuple[list[dict], list[str]]:
     gpu = rows[0]["gpu"]
-    out = [{k: x.get(k) for k in FIELDS} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
+    out = [{k: x.get(k) for k in FIELDS} | {"run": run} | {k: x[k] for k in ("allreduce_share", "allreduce_ms", "norm_allreduce_ms",
                                                                  "step_ms", "lr_scaling", "generate_sim_seconds",
                                                                  "captured", "overlap", "step_ms_one_allreduce",
                                                                  "step_ms_overlap", "overlap_sent", "seed") if k in x}
@@ -319,14 +337,7 @@ def summarize(a) -> None:
                                   else "" for w in ways) + " | "
                      f"{f(x.get('generate_steps_per_s'), 4)} | {f(geff)} | {f(x.get('time_to_error_s'))}"
                      + (f" ({x['time_to_error_ratio']:.2f})" if x.get("time_to_error_ratio") else "") + " |")
-    path = Path(a.summary or ROOT / "bench" / "results" / f"distributed_{slug(gpu)}.json")
-    with atomic_write(path) as tmp:
-        Path(tmp).write_text(json.dumps(out, indent=1) + "\n")
-    table = path.with_suffix(".md")
-    with atomic_write(table) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {path} and {table}")
+    return out, lines
 
 
 def launch_all(a, argv) -> int:
@@ -369,7 +380,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default="runs/dist/cheetah.h5", help="the training dataset (made by --prepare)")
     ap.add_argument("--records", default="bench/results/distributed/records.jsonl")
     ap.add_argument("--work", default="runs/dist", help="folder of the trainers' (unused) run folders")
-    ap.add_argument("--run-id", default=os.environ.get("GNWARP_BENCH_RUN", ""), help="names the run's rows")
+    ap.add_argument("--run-id", default=os.environ.get("GNWARP_BENCH_RUN", ""), help="names the run's rows (--summarize: runs, comma-separated)")
     ap.add_argument("--gpus", help="e.g. 1,2,4: one torchrun launch per count, then --summarize")
     ap.add_argument("--prepare", action="store_true", help="write the dataset and stop")
     ap.add_argument("--summarize", action="store_true", help="summary JSON and table from the records")
