@@ -274,3 +274,22 @@ def test_gn2_gradients_go_out_complete_during_the_backward_before_gn1_has_any(da
     assert GradientBuckets.for_model(Ranks(), t.optimizer, t.model) is None
     done = Ranks().all_reduce_(torch.ones(2), mean=True, async_op=True)
     assert done.wait().tolist() == [1.0, 1.0]
+
+
+@pytest.mark.parametrize("backend", ["nccl", "gloo"])
+def test_close_leaves_an_nccl_group_to_the_exit_and_destroys_a_gloo_one(backend, monkeypatch):
+    """``close()``: on NCCL only the gloo side group is destroyed (destroying the NCCL group hangs
+    after captured NCCL collectives, pytorch#115388); on gloo the whole group is; both forget the ranks."""
+    import torch.distributed as dist
+
+    import gnwarp.distributed as gd
+    destroyed = []
+    side = object()
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_backend", lambda group=None: backend)
+    monkeypatch.setattr(dist, "destroy_process_group", lambda group=None: destroyed.append(group))
+    monkeypatch.setattr(gd, "_RANKS", Ranks(rank=0, world=2, device=torch.device("cpu"), backend=backend))
+    monkeypatch.setattr(gd, "_OBJECTS", side if backend == "nccl" else None)
+    gd.close()
+    assert destroyed == ([side] if backend == "nccl" else [None])
+    assert gd._RANKS is None and gd._OBJECTS is None

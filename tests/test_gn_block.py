@@ -661,7 +661,7 @@ def test_tile_kernel_too_large_is_refused_before_launch(monkeypatch):
     """A fused kernel over the CPU tile arena (256 KiB; Warp would abort the process) raises;
     path="auto" falls back to the blas path."""
     kw = dict(node_size=2, edge_size=2, global_size=2, node_out=2, edge_out=2, global_out=2,
-              edge_hidden=(2, 128 * 1024 // 4 // 2), node_hidden=(2,), global_hidden=(2,))  # two 128 KiB layers
+              edge_hidden=(256, 256), node_hidden=(2,), global_hidden=(2,))  # a 256 KiB layer (256 x 256)
     g = make_batch("mixed", dtype=torch.float32, fv=2, fe=2, fu=2)
     gn = GraphNetwork(**kw, path="tile")
     launches = []
