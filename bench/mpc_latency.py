@@ -22,8 +22,9 @@ warm-up). Each configuration runs in fresh processes:
 
 Paths: "unfused" and "fused" (``GradientMPCConfig(fused=False)`` and ``fused=None``, the
 planner's own choice by size, where the config has the field; without it, "unfused" is the
-library's one path), and a torch peer of the same model step
-in the same run: the same model with ``RunOptions(impl="torch")`` in the same planner, one
+library's one path), "fused_forced" (``fused=True`` at any size: the crossover of the rule), and a torch peer of the same model step
+in the same run: the same model with ``impl="torch"`` (the library's default run options otherwise:
+TF32 GEMMs) in the same planner, one
 planning iteration (rollout, reward, backward to the actions, Adam) captured in a CUDA graph
 ("torch_graph"), and the same with the model step compiled by ``torch.compile`` inside that
 graph ("torch_compile", ``--compile-mode``; the compiled step runs in the planner's own graph, so
@@ -67,7 +68,7 @@ TASKS = {"pendulum": "pendulum-balance", "cartpole": "cartpole-balance", "swimme
          "cheetah": "cheetah-forward", "walker": "walker-forward"}
 CONFIGS = ((1, 50, 5), (1, 50, 1), (16, 50, 5), (256, 50, 5), (4096, 100, 5))
 QUICK_CONFIGS = ((1, 4, 1), (2, 4, 2))
-PATHS = ("unfused", "fused", "torch_graph", "torch_compile")
+PATHS = ("unfused", "fused", "torch_graph", "torch_compile", "fused_forced")
 SIZES = GNCoreConfig(latent=128, edge_hidden=(256, 256), node_hidden=(256, 256), global_hidden=(256, 256))
 EXPERIMENT = "bench/mpc_latency"
 ROW_KEYS = ("system", "episodes", "horizon", "iterations", "path", "first_step_ms", "first_step_cold_ms", "steady_ms",
@@ -107,14 +108,16 @@ def planning_setup(system_name: str, n: int, dev, impl: str = "warp", quick: boo
     from gnwarp.control import get_task, sample_targets
     from gnwarp.data import static_arrays
     from gnwarp.data.generation import initial_states
-    from gnwarp.gn import RunOptions
     from gnwarp.models import ForwardModel, ModelConfig
+    from gnwarp.models.config import DEFAULT_RUN
     from gnwarp.sim import make_env
 
     system = systems.make(system_name)
     task = TASKS[system_name]
     torch.manual_seed(0)
-    model = ForwardModel(ModelConfig(gn=QUICK if quick else SIZES, run=RunOptions(impl=impl)),
+    # the library's default run options (TF32 GEMMs on CUDA) for both implementations; before
+    # 2026-11-27 (run "tf32") this was RunOptions(impl=impl): IEEE float32 GEMMs (see NOTES.md)
+    model = ForwardModel(ModelConfig(gn=QUICK if quick else SIZES, run=DEFAULT_RUN.replace(impl=impl)),
                          static_arrays([system])[1]).to(dev)
     qpos, qvel = initial_states(system, n, np.random.default_rng(0))
     x = torch.as_tensor(make_env(system, n, backend="mujoco").reset(qpos, qvel), dtype=torch.float32, device=dev)
@@ -136,7 +139,8 @@ def measure(spec: dict) -> dict:
                                                      else "warp", spec["quick"])
     if path == "torch_compile":   # the model step compiled; the planner's graph captures what it launches
         model.next_nodes = torch.compile(model.next_nodes, mode=spec["compile_mode"], dynamic=False)
-    extra = {"fused": False if path == "unfused" else None} if path in ("unfused", "fused") else {}
+    extra = ({"fused": {"unfused": False, "fused": None, "fused_forced": True}[path]}
+             if path in ("unfused", "fused", "fused_forced") else {})
     cfg = GradientMPCConfig(horizon=H, iterations=its, seed=0, **extra)
     _sync(dev)
     t0 = time.perf_counter()

@@ -32,6 +32,8 @@ def main(argv=None):
     p.add_argument("--n", type=int, default=1)
     p.add_argument("--horizon", type=int, default=50)
     p.add_argument("--path", default="auto")
+    p.add_argument("--fused", choices=["auto", "true", "false"], default="auto",
+                   help="GradientMPCConfig.fused: the rule's choice, or forced")
     p.add_argument("--out", default=".", help="folder of the kernel table")
     a = p.parse_args(argv)
     ds = data.generate(a.system, (4, 1, 1), num_steps=10, seed=0, backend="mujoco", progress=False)
@@ -42,13 +44,14 @@ def main(argv=None):
     x = torch.as_tensor(ds["test"].body[:1, 0]).expand(a.n, -1, -1).contiguous().cuda()
     for capture in (False, True):
         pl = GradientMPC(model, TASK[a.system], a.system, n=a.n,
-                         config=GradientMPCConfig(horizon=a.horizon, iterations=1, warmup=0, capture=capture))
+                         config=GradientMPCConfig(horizon=a.horizon, iterations=1, warmup=0, capture=capture,
+                                                  fused={"auto": None, "true": True, "false": False}[a.fused]))
         xs = pl.check_state(x)
         for _ in range(3):
             pl.iterate(xs, 1)
         torch.cuda.synchronize()
         if not capture:   # the eager iteration's kernels (a captured replay hides them from the profiler)
-            table = Path(a.out) / f"mpc_profile_{a.system}_{a.n}.txt"
+            table = Path(a.out) / f"mpc_profile_{a.system}_{a.n}{'' if a.fused == 'auto' else '_fused_' + a.fused}.txt"
             k, us = profile_kernels(lambda: pl.iterate(xs, 1), 1, table, f"{a.system} N={a.n} H={a.horizon} "
                                     "eager planning iteration", top=45, unit="iteration")
             print(f"eager iteration: {k:.0f} kernels, {us:.0f} us device; per model step {k / a.horizon:.1f} "

@@ -46,7 +46,7 @@ class Tunables:
     tile_max_edges: int = 3600
     tile_smem_budget: int = 160 * 1024
     tile_mathdx: bool = True
-    fused_step_max_graphs: int = 256
+    fused_step_max_graphs: int = 1 << 20
 
 
 TUNABLES = Tunables()
@@ -164,13 +164,16 @@ def choose_path(config: GNBlockConfig, run, device: torch.device, n_edges: int) 
 # ~370 CUDA kernels and ~1160 aten ops per step forward + backward on a pendulum, ~1.5 us of device
 # time each, measured on an H100 under torch.profiler: one episode, horizon 50) or ``FusedStep``
 # (gnwarp/models/fused_step.py: encode, core, decode; the backward in a few more launches). At a
-# small batch every launch costs more than its work, so fusing wins; at a large batch the glue's
-# kernels are bandwidth-bound either way and the core's large-batch path may be the faster one.
-# Until the H100 crossover is measured (bench/fused_step.py), the rule fuses on CUDA up to
-# ``fused_step_max_graphs`` graphs and never on the CPU (no launch latency to save there: the
-# unfused step stays the reference).
+# small batch every launch costs more than its work; at a large batch the glue's kernels are
+# bandwidth-bound and still cost: in a gradient planner's iteration on an H100 (TF32, 2026-11-27,
+# bench/results/mpc_latency/NOTES.md) the fused step was faster at every size measured, 1.71x at
+# 4096 pendulums x horizon 100 (68 against 116 ms) and 1.21x at 4096 cheetahs x horizon 20 (an
+# earlier rollout benchmark, before the backward replayed the forward's blocks, had it slower at
+# 4096). So the rule fuses on CUDA at any batch (the bound keeps only an unmeasured extreme on the
+# unfused step) and never on the CPU (no launch latency to save there: the unfused step stays
+# the reference).
 def choose_fused(n_graphs: int, device) -> bool:
     """Whether a rollout engine of ``n_graphs`` graphs on ``device`` runs the fused model step
     when it is not told (``RolloutEngine(fused=None)``): on CUDA up to
-    ``TUNABLES.fused_step_max_graphs`` graphs."""
+    ``TUNABLES.fused_step_max_graphs`` graphs (about a million: every measured size)."""
     return torch.device(device).type == "cuda" and n_graphs <= TUNABLES.fused_step_max_graphs
