@@ -124,6 +124,12 @@ def planning_setup(system_name: str, n: int, dev, impl: str = "warp", quick: boo
     return system, task, model, x, sample_targets(get_task(task), system, n, seed=0)
 
 
+def run_precision() -> str:
+    """The GEMM precision of ``planning_setup``'s models (the library's default run options)."""
+    from gnwarp.models.config import DEFAULT_RUN
+    return DEFAULT_RUN.precision
+
+
 def measure(spec: dict) -> dict:
     """One configuration's planning times in this process: ``spec`` = {system, episodes, horizon,
     iterations, path, steps, first_only, quick, compile_mode}. Returns {first_step_ms, and unless
@@ -217,9 +223,15 @@ def records_path(out: Path, gpu: str) -> Path:
     return Path(out) / f"{NAME}_{slug(gpu)}.jsonl"
 
 
+def precision(rec: ResultRecord) -> str:
+    """The GEMM precision a record planned with: its config's, else "fp32" (records before the
+    benchmark took the library's default run options, 2026-11-27, planned with IEEE float32)."""
+    return rec.config.get("precision", "fp32")
+
+
 def record_key(rec: ResultRecord) -> tuple:
     c = rec.config
-    return rec.system, rec.episodes, c.get("horizon"), c.get("iterations"), c.get("path"), rec.gpu
+    return rec.system, rec.episodes, c.get("horizon"), c.get("iterations"), c.get("path"), rec.gpu, precision(rec)
 
 
 def make_record(system: str, n: int, H: int, its: int, path: str, gpu: str, warm: dict, cold: dict | None,
@@ -234,7 +246,7 @@ def make_record(system: str, n: int, H: int, its: int, path: str, gpu: str, warm
     errors = [f"{what}: {r['error']}" for what, r in (("warm", warm), ("cold", cold)) if r and "error" in r]
     config = {"path": path, "horizon": H, "iterations": its, "steps": steps, "quick": quick,
               "gn": dataclasses.asdict(QUICK if quick else SIZES), "cold": cold_mode,
-              "impl": "torch" if path.startswith("torch") else "warp",
+              "impl": "torch" if path.startswith("torch") else "warp", "precision": run_precision(),
               "note": "timing only: an untrained model, no closed loop (returns not measured)"}
     if path == "torch_compile":
         config["compile_mode"] = compile_mode
@@ -268,7 +280,7 @@ def summary_rows(records: list[ResultRecord]) -> list[dict]:
     for r in latest.values():
         m, c = r.metrics, r.config
         row = {"system": r.system, "episodes": r.episodes, "horizon": c["horizon"], "iterations": c["iterations"],
-               "path": c["path"], "first_step_ms": _num(m.get("first_step_ms")),
+               "path": c["path"], "precision": precision(r), "first_step_ms": _num(m.get("first_step_ms")),
                "first_step_cold_ms": _num(m.get("first_step_cold_ms")), "steady_ms": _num(m.get("steady_ms")),
                "model_step_us": _num(m.get("model_step_us")), "model_evals_per_step": m.get("model_evals_per_step"),
                "control_dt_ms": 1e3 * r.control_dt if r.control_dt else None, "gpu": r.gpu,
@@ -281,7 +293,8 @@ def summary_rows(records: list[ResultRecord]) -> list[dict]:
         rows.append(row)
     order = {s: i for i, s in enumerate(TASKS)}
     rows.sort(key=lambda w: (w["gpu"], order.get(w["system"], 99), w["system"], w["episodes"], w["horizon"],
-                             -w["iterations"], PATHS.index(w["path"]) if w["path"] in PATHS else 99))
+                             -w["iterations"], w["precision"] != "tf32",
+                             PATHS.index(w["path"]) if w["path"] in PATHS else 99))
     return rows
 
 
@@ -305,20 +318,21 @@ def markdown(rows: list[dict]) -> str:
              "steady / (iterations x horizon), forward and backward. RTF: control timestep / steady (> 1:",
              "faster than real time). Paths: the Warp planner unfused / fused, and a torch peer of the same",
              "model step (the same planner on `impl=\"torch\"`), one planning iteration in a CUDA graph,",
-             "plain and with `torch.compile` inside.", ""]
+             "plain and with `torch.compile` inside. Precision: the planning model's GEMMs (\"tf32\", the",
+             "library's default, since 2026-11-27; \"fp32\": IEEE float32, the runs before).", ""]
     for gpu in sorted({r["gpu"] for r in rows}):
         lines += [f"## {gpu}", "",
-                  "| system | episodes | horizon | iterations | path | first action (s) | cold (s) | steady ms / step "
-                  "| model step us | evals / step | episode-steps / s | RTF | control dt ms |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| system | episodes | horizon | iterations | path | precision | first action (s) | cold (s) "
+                  "| steady ms / step | model step us | evals / step | episode-steps / s | RTF | control dt ms |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in (r for r in rows if r["gpu"] == gpu):
             sec = lambda v: None if v is None else v / 1e3  # noqa: E731
-            cells = [r["system"], r["episodes"], r["horizon"], r["iterations"], r["path"],
+            cells = [r["system"], r["episodes"], r["horizon"], r["iterations"], r["path"], r["precision"],
                      _fmt(sec(r["first_step_ms"])), _fmt(sec(r["first_step_cold_ms"])), _fmt(r["steady_ms"]),
                      _fmt(r["model_step_us"]), _fmt(r["model_evals_per_step"]), _fmt(r["episode_steps_per_s"]),
                      _fmt(r["real_time_factor"]), _fmt(r["control_dt_ms"])]
             if "error" in r:
-                cells[7] = f"error: {r['error'][:80]}".replace("|", "/")
+                cells[8] = f"error: {r['error'][:80]}".replace("|", "/")
             lines.append("| " + " | ".join(str(c) for c in cells) + " |")
         lines.append("")
     return "\n".join(lines)
@@ -378,7 +392,7 @@ def run(args) -> int:
         for system in systems:
             for n, H, its in configs:
                 for path in paths:
-                    key = (system, n, H, its, path, gpu)
+                    key = (system, n, H, its, path, gpu, run_precision())
                     if key in done:
                         print(f"{system} {n}x{H}x{its} {path}: recorded, skipped")
                         continue
