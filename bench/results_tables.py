@@ -166,8 +166,8 @@ def headline(root: Path, doc: Path) -> list[str]:
            for r in json.loads((root / RESULTS / "mpc_latency_nvidia-h100-80gb-hbm3.json").read_text())}
     one = {p: lat["pendulum", 1, 50, 5, p, "tf32"]["steady_ms"] for p in ("fused", "unfused", "torch_graph")}
     big = {p: lat["pendulum", 4096, 100, 5, p, "tf32"]["steady_ms"] for p in ("fused", "unfused", "torch_graph")}
-    rows.append(["gradient MPC planning step, pendulum, horizon 50, 5 iterations, one H100 (TF32)",
-                 f"1 episode: **{one['fused']:.0f} ms** per 20 ms control step (fused model step), "
+    rows.append(["gradient MPC planning step, pendulum, 5 iterations, one H100 (TF32)",
+                 f"1 episode, horizon 50: **{one['fused']:.0f} ms** per 20 ms control step (fused model step), "
                  f"{one['unfused']:.0f} ms unfused, {one['torch_graph']:.0f} ms a torch peer in a CUDA graph; "
                  f"4096 episodes, horizon 100: **{big['fused']:.0f} ms** (unfused {big['unfused']:.0f}, torch peer "
                  f"{big['torch_graph']:.0f})", link("mpc_latency")])
