@@ -29,11 +29,14 @@ Per launch (every rank on its own GPU, rank 0 records):
   normalizer sums', each captured and replayed), over the step's time;
 - time to error: training from scratch for ``--tte-seconds`` (weak batches; ``--lr-scaling
   linear`` multiplies the learning rate by the ranks), the 20-step validation error every
-  ``--tte-every`` steps (validation time not counted). The error jumps 2-5x from one validation to
-  the next at this learning rate, so the summary smooths it: the moving median of the last
-  ``--tte-window`` validations; the target is the one-GPU launch's smoothed error at its end, and a
-  launch's time to error is when its smoothed error first reaches it (``time_to_raw_error_s``: the
-  first single validation at or below the one-GPU launch's best, kept for comparison).
+  ``--tte-every`` steps (validation time not counted); or, with ``--tte-samples-steps N``, on a
+  fixed number of graphs (N / GPUs steps, the learning rate decaying with the graphs seen). The
+  error jumps 2-5x from one validation to the next, so the summary smooths it: the moving median
+  of the last ``--tte-window`` validations; the target is the one-GPU launch's smoothed error at
+  its end (or, ``--tte-target all_reach``, the worst launch's), and a launch's time to error is
+  when its smoothed error first reaches it (``time_to_raw_error_s``: the first single validation
+  at or below the one-GPU launch's best, kept for comparison).
+``--summarize --run-id a,b``: every listed run's rows in one summary, each row naming its run.
 Efficiency (weak): throughput on N GPUs / (N x throughput on 1 GPU) of the same run.
 """
 from __future__ import annotations
@@ -172,6 +175,12 @@ def time_to_error(r, a, target: float | None) -> dict:
     world = r.world
     lr = 1e-4 * (world if a.lr_scaling == "linear" else 1)
     by_samples = a.tte_samples_steps is not None
+    if by_samples:   # every launch the same schedule per graph: each count divides by the GPUs
+        bad = {k: v for k, v in (("--tte-samples-steps", a.tte_samples_steps), ("--tte-every", a.tte_every),
+                                 ("--tte-decay-every", a.tte_decay_every)) if v % world}
+        if bad or a.tte_samples_steps % a.tte_every:
+            raise SystemExit(f"time to error on {world} GPUs: {bad or '--tte-samples-steps'} must divide by the GPUs "
+                             "(and --tte-samples-steps by --tte-every) for every launch to see the same schedule")
     schedule = dict(lr_decay=a.tte_decay, lr_decay_steps=max(1, a.tte_decay_every // world)) if by_samples else {}
     t = trainer_for(r, a, a.batch, f"{a.work}/tte-{world}", lr=lr, capture=not a.no_capture, **schedule)
     every = max(1, a.tte_every // world) if by_samples else a.tte_every
@@ -266,7 +275,7 @@ def summarize(a) -> None:
     from gnwarp.files import atomic_write
     records = [json.loads(x) for x in Path(a.records).read_text().splitlines() if x.strip()]
     out, lines = [], []
-    for run in (a.run_id or records[-1]["run"]).split(","):
+    for run in [x.strip() for x in (a.run_id or records[-1]["run"]).split(",") if x.strip()]:
         rows = [x for x in records if x.get("run") == run]
         if not rows:
             raise SystemExit(f"{a.records}: no rows of run {run!r}")
@@ -293,7 +302,10 @@ def summarize_run(a, run: str, rows: list[dict]) -> tuple[list[dict], list[str]]
     one = {(x["mode"]): x for x in rows if x["gpus"] == 1}
     curves = {x["gpus"]: x.get("tte_curve") for x in rows if x["mode"] == "weak" and x.get("tte_curve")}
     target = smoothed(curves[1], a.tte_window)[1][-1] if 1 in curves else None
-    if a.tte_target == "all_reach" and 1 in curves:   # the error every launch reaches: the worst end
+    # the run's declared target: --tte-target, else its protocol's (a fixed number of graphs: all_reach)
+    tte_target = a.tte_target or ("all_reach" if any("samples_steps" in x.get("tte_protocol", {}) for x in rows)
+                                  else "one_gpu_end")
+    if tte_target == "all_reach" and 1 in curves:   # the error every launch reaches: the worst end
         target = max(smoothed(c, a.tte_window)[1][-1] for c in curves.values())
     for x, o in zip(sorted(rows, key=lambda x: (x["mode"], x["gpus"])), out):
         c = curves.get(x["gpus"]) if x["mode"] == "weak" else None
@@ -303,7 +315,7 @@ def summarize_run(a, run: str, rows: list[dict]) -> tuple[list[dict], list[str]]
             hit = [ti for ti, ei in zip(t, e) if ei <= target]
             o["time_to_error_s"] = hit[0] if hit else None
             o["target_smoothed_error"] = target
-            o["tte_target"] = a.tte_target
+            o["tte_target"] = tte_target
             o["trained_s"] = t[-1]
             o["time_to_raw_error_s"] = x.get("time_to_raw_error_s", x.get("time_to_error_s"))
     lines = [f"Run {run} on {gpu} (NCCL {rows[0].get('nccl')}), one launch per GPU count; efficiency = "
@@ -401,9 +413,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tte-decay", type=float, default=0.5, help="with --tte-samples-steps: the learning rate's factor")
     ap.add_argument("--tte-decay-every", type=int, default=7500,
                     help="with --tte-samples-steps: one-GPU steps' worth of graphs per --tte-decay")
-    ap.add_argument("--tte-target", choices=["one_gpu_end", "all_reach"], default="one_gpu_end",
+    ap.add_argument("--tte-target", choices=["one_gpu_end", "all_reach"],
                     help="summary: the target is the one-GPU launch's smoothed error at its end, or the worst of "
-                         "every launch's (an error every launch reaches)")
+                         "every launch's (an error every launch reaches); default: all_reach for a run on a fixed "
+                         "number of graphs (--tte-samples-steps), else one_gpu_end")
     ap.add_argument("--seed", type=int, default=0, help="the trainers' seed (weights and batches)")
     ap.add_argument("--lr-scaling", choices=["none", "linear"], default="linear")
     ap.add_argument("--optimizer", default="auto", choices=["auto", "adam", "flat_adam"],

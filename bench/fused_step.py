@@ -10,8 +10,9 @@ graphs on CUDA) with ``fused=False`` and ``fused=True`` on the same model, state
 - the largest difference of the fused rollout and its gradients from the unfused ones (a
   correctness column: it must stay at rounding).
 
-The crossover of fused vs unfused over N is what ``gnwarp.gn.rules.choose_fused`` reads
-(``TUNABLES.fused_step_max_graphs``); the core is the model's own GN core.
+The crossover of fused vs unfused over N set ``gnwarp.gn.rules.choose_fused``'s bound
+(``TUNABLES.fused_step_max_graphs``) until 2026-11-27 (now set from planning iterations,
+bench/results/mpc_latency/NOTES.md); the core is the model's own GN core.
 
     python bench/fused_step.py [--systems pendulum,cheetah] [--batches 1,16,256,4096] [--horizon 50]
     python bench/fused_step.py --quick          # tiny sizes on the CPU: a smoke test of the script

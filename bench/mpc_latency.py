@@ -125,9 +125,13 @@ def planning_setup(system_name: str, n: int, dev, impl: str = "warp", quick: boo
 
 
 def run_precision() -> str:
-    """The GEMM precision of ``planning_setup``'s models (the library's default run options)."""
+    """The GEMM precision ``planning_setup``'s models run with here (the library's default run
+    options; off CUDA "tf32" runs as "fp32")."""
+    import torch
+
     from gnwarp.models.config import DEFAULT_RUN
-    return DEFAULT_RUN.precision
+    p = DEFAULT_RUN.precision
+    return "fp32" if p == "tf32" and not torch.cuda.is_available() else p
 
 
 def measure(spec: dict) -> dict:
@@ -268,7 +272,7 @@ def _num(v):
 
 
 def summary_rows(records: list[ResultRecord]) -> list[dict]:
-    """One row per (system, episodes, horizon, iterations, path, gpu), from the latest record of
+    """One row per (system, episodes, horizon, iterations, path, gpu, precision), from the latest record of
     each: the issue's keys (``ROW_KEYS``) plus episode_steps_per_s, real_time_factor, what the
     first action ran (Adam iterations, forward-only proposal model steps per episode) and, for a
     failed run, its error."""

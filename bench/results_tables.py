@@ -173,13 +173,16 @@ def headline(root: Path, doc: Path) -> list[str]:
                  f"{big['torch_graph']:.0f})", link("mpc_latency")])
     dist = json.loads((root / RESULTS / "distributed_nvidia-h100-80gb-hbm3.json").read_text())
     weak = {r["gpus"]: r for r in dist if r["mode"] == "weak" and r["run"] == "h100x4-b"}
-    tte = [r for r in dist if r["mode"] == "weak" and r["run"].startswith("h100x2-tte-b") and r["gpus"] == 2]
+    tte = [r for r in dist if r["mode"] == "weak" and r["run"] in ("h100x2-tte-b-s0", "h100x2-tte-b-s1")
+           and r["gpus"] == 2]
+    if len(tte) != 2 or any(r.get("time_to_error_ratio") is None for r in tte):
+        raise SystemExit("distributed summary: runs h100x2-tte-b-s0 and -s1 need their 2-GPU time to error")
     n = max(weak)
     rows.append([f"training and generation on 1-{n} H100s of one host (torch.distributed, NCCL), weak scaling",
                  ", ".join(f"**{weak[g]['train_efficiency']:.0%}** training / {weak[g]['generate_efficiency']:.0%} "
                            f"generation efficiency at {g} GPUs" for g in sorted(weak) if g > 1)
                  + "; later 1-2 GPU runs: **{:.0%}** training at 2 GPUs, time to the same validation error "
-                   "**{}** of one GPU's ({} seeds, the same graphs trained)".format(
+                   "**{}** of one GPU's ({} seeds, the same graphs trained, learning rate x GPUs)".format(
                        min(r["train_efficiency"] for r in tte),
                        " and ".join(f"{r['time_to_error_ratio']:.2f}x" for r in tte), len(tte)),
                  link("distributed")])

@@ -280,6 +280,9 @@ def ranks(device: str | torch.device | None = "auto") -> Ranks:
     if not launched():
         return Ranks(device=want)
     import torch.distributed as dist
+    if _RANKS is None and dist.is_initialized() and "nccl" in str(dist.get_backend()) and want.type != "cuda":
+        raise ValueError(f"the process group runs on cuda (NCCL), this asks for {want.type}: one job runs every "
+                         "stage on one kind of device")
     if _RANKS is not None and dist.is_initialized():
         if want.type != _RANKS.device.type:
             raise ValueError(f"the process group runs on {_RANKS.device.type}, this asks for {want.type}: one "
@@ -332,9 +335,12 @@ def close() -> None:
     global _RANKS, _OBJECTS
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized():
-        if dist.get_backend() == "nccl":
+        if "nccl" in str(dist.get_backend()):   # "nccl", or a combined "cpu:gloo,cuda:nccl"
             if _RANKS is not None and _RANKS.device.type == "cuda":
-                torch.cuda.synchronize(_RANKS.device)
+                try:
+                    torch.cuda.synchronize(_RANKS.device)
+                except RuntimeError:   # the device already failed: that error is what the caller reports
+                    pass
             if _OBJECTS is not None:
                 dist.destroy_process_group(_OBJECTS)
         else:

@@ -54,3 +54,14 @@ def test_several_runs_in_one_summary_each_row_named(tmp_path):
     assert out[2]["train_efficiency"] == 1.0 and out[1]["train_efficiency"] == pytest.approx(1.0)
     with pytest.raises(SystemExit, match="no rows of run 'c'"):
         summarize(tmp_path, a, "a,c", "all_reach")
+
+
+def test_a_run_on_a_fixed_number_of_graphs_declares_its_own_target(tmp_path):
+    one = row("r", 1, curve([10, 20, 30, 40], [0.9, 0.5, 0.3, 0.2]), 1.0)
+    two = row("r", 2, curve([5, 10, 15, 20], [0.8, 0.4, 0.35, 0.34]), 1.1)
+    old = {x["gpus"]: x for x in summarize(tmp_path, [one, two], "r", None)}   # a time-budget run: one GPU's end
+    assert old[2]["tte_target"] == "one_gpu_end" and old[2]["time_to_error_s"] is None
+    for x in (one, two):
+        x["tte_protocol"] = {"samples_steps": 8}
+    new = {x["gpus"]: x for x in summarize(tmp_path, [one, two], " r ", None)}
+    assert new[2]["tte_target"] == "all_reach" and new[2]["time_to_error_s"] == 20

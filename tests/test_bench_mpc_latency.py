@@ -32,6 +32,8 @@ def test_quick_run_records_and_summary_follow_the_records(tmp_path, capsys):
     assert row["model_step_us"] == pytest.approx(1e3 * m["steady_ms"] / 3, rel=1e-3)
     assert row["first_step_cold_ms"] is None and row["control_dt_ms"] == pytest.approx(20.0)
 
+    assert rec.config["precision"] == row["precision"] == "fp32"   # TF32 runs as IEEE fp32 off CUDA
+
     # change the record, regenerate: the JSON and the README follow it
     d = json.loads(rec_file.read_text().splitlines()[0])
     d["metrics"].update(steady_ms=123.0, model_step_us=41000.0)
@@ -39,7 +41,15 @@ def test_quick_run_records_and_summary_follow_the_records(tmp_path, capsys):
     assert ml.main(["--summarize", "--out", str(out)]) == 0
     (row2,) = json.loads(summary.read_text())
     assert row2["steady_ms"] == 123.0 != row["steady_ms"] and row2["model_step_us"] == 41000.0
-    assert "| pendulum | 1 | 3 | 1 | torch_graph |" in (out / "README.md").read_text()
+    assert "| pendulum | 1 | 3 | 1 | torch_graph | fp32 |" in (out / "README.md").read_text()
+    # a record of another precision is a row of its own; one without the field reads as fp32
+    d2 = dict(d, config=dict(d["config"], precision="tf32"), metrics=dict(d["metrics"], steady_ms=7.0))
+    d["config"].pop("precision")
+    rec_file.write_text(json.dumps(d) + "\n" + json.dumps(d2) + "\n")
+    assert ml.main(["--summarize", "--out", str(out)]) == 0
+    rows = {r["precision"]: r["steady_ms"] for r in json.loads(summary.read_text())}
+    assert rows == {"fp32": 123.0, "tf32": 7.0}
+    rec_file.write_text(json.dumps(dict(d, config=dict(d["config"], precision="fp32"))) + "\n")
 
     # resume: the recorded configuration is skipped
     capsys.readouterr()

@@ -293,3 +293,9 @@ def test_close_leaves_an_nccl_group_to_the_exit_and_destroys_a_gloo_one(backend,
     gd.close()
     assert destroyed == ([side] if backend == "nccl" else [None])
     assert gd._RANKS is None and gd._OBJECTS is None
+    if backend == "nccl":   # the NCCL group lives on: a later CPU request is refused, not put on top of it
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        monkeypatch.setenv("RANK", "0")
+        monkeypatch.setattr(gd, "launched", lambda: True)
+        with pytest.raises(ValueError, match="runs on cuda"):
+            gd.ranks("cpu")

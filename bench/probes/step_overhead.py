@@ -6,7 +6,7 @@ iterations=I, seed=0, fused=...)``), takes a few control steps, then times with 
 times: check, iterations, plan copy, shift) and ``check_state(x)``; and lists the kernels of one
 ``step`` and of ``iterate(x, I)`` (torch.profiler) into ``--out``.
 
-    python bench/probes/step_overhead.py [--system pendulum] [--n 4096] [--horizon 100] [--iterations 5]
+    python bench/probes/step_overhead.py [--system pendulum] [--n 4096] [--horizon 100] [--iterations 5] [--fused true]
 """
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ def main(argv=None):
     print(f"{a.system} N={a.n} H={a.horizon} I={a.iterations} fused={a.fused}: iterate(x, I) {t_iter:.2f} ms, "
           f"step {t_step:.2f} ms, check_state {t_check:.3f} ms, shift {t_shift:.3f} ms, "
           f"x {tuple(x.shape)} {x.dtype} {x.device} contiguous={x.is_contiguous()}")
-    table = Path(a.out) / f"step_overhead_{a.system}_{a.n}.txt"
+    table = Path(a.out) / f"step_overhead_{a.system}_{a.n}_fused_{a.fused}.txt"
     for name, fn in (("step", lambda: pl.step(x)), ("iterate", lambda: pl.iterate(xs, a.iterations))):
         k, us = profile_kernels(fn, 2, table, f"{name}: {a.system} N={a.n} H={a.horizon} I={a.iterations}",
                                 top=25, unit=name)

@@ -169,7 +169,8 @@ def choose_path(config: GNBlockConfig, run, device: torch.device, n_edges: int) 
 # bench/results/mpc_latency/NOTES.md) the fused step was faster at every size measured, 1.71x at
 # 4096 pendulums x horizon 100 (68 against 116 ms) and 1.21x at 4096 cheetahs x horizon 20 (an
 # earlier rollout benchmark, before the backward replayed the forward's blocks, had it slower at
-# 4096). So the rule fuses on CUDA at any batch (the bound keeps only an unmeasured extreme on the
+# 4096; fused against unfused without a store, store=False, is not measured at large batch). So
+# the rule fuses on CUDA at any batch (the bound keeps only an unmeasured extreme on the
 # unfused step) and never on the CPU (no launch latency to save there: the unfused step stays
 # the reference).
 def choose_fused(n_graphs: int, device) -> bool:

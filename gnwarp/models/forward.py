@@ -306,7 +306,7 @@ class ForwardModel(nn.Module):
         instead of recomputing them (``RolloutEngine``). ``fused``: run each step as a
         ``gnwarp.models.fused_step.FusedStep`` (input graph, normalization, core, state update and
         their backward in a few launches): None (default) where it runs and the measured rule
-        (``gnwarp.gn.rules.choose_fused``: CUDA, small batches) picks it, True always (ValueError
+        (``gnwarp.gn.rules.choose_fused``: CUDA) picks it, True always (ValueError
         naming why it cannot run: an MLP core, graphs of several sizes, ...), False never;
         ``engine.fused`` says which runs."""
         return RolloutEngine(self, instance, horizon, builder, ctrl_policy=ctrl_policy, check=check, graphs=graphs,

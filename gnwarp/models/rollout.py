@@ -351,7 +351,7 @@ class RolloutEngine:
     product on the states the forward kept) instead of ``model.next_nodes`` with autograd
     recomputation. None (default): where it can run (a ``ForwardModel`` with a GN core, graphs of
     one size and topology, float32 / float64) and ``gnwarp.gn.rules.choose_fused`` picks it (CUDA,
-    small batches); True: always (ValueError naming why it cannot run); False: never. A fused
+    any batch); True: always (ValueError naming why it cannot run); False: never. A fused
     engine keeps a store as the unfused one does: the backward's core forward replays the
     recording. ``engine.fused`` says which runs."""
 
