@@ -191,8 +191,7 @@ def time_to_error(r, a, target: float | None) -> dict:
     while (steps < total) if by_samples else (clock < a.tte_seconds):   # the whole budget: the summary
         t0 = timed_barrier(r)                                         # reads the time to error from the curve
         for _ in range(every):
-            t.set_lr(t.config.lr_at(steps))
-            t.step()
+            t.step()   # at the schedule's learning rate (the trainer's step count is this loop's)
             steps += 1
         clock += timed_barrier(r) - t0
         clock = r.broadcast_object(clock)   # rank 0's clock: every rank leaves the loop at the same round
@@ -223,12 +222,13 @@ def prepare(a) -> None:
     print(f"wrote {path}: {ds.meta['splits']}")
 
 
-def one_gpu_target(records: Path, gpu: str) -> float | None:
+def one_gpu_target(records: Path, gpu: str, run: str) -> float | None:
+    """The best single validation of this run's one-GPU launch (the raw target), if recorded."""
     if not records.is_file():
         return None
     rows = [json.loads(x) for x in records.read_text().splitlines() if x.strip()]
     rows = [x for x in rows if x.get("gpus") == 1 and x.get("mode") == "weak" and x.get("gpu") == gpu
-            and x.get("best_error") is not None]
+            and x.get("run") == run and x.get("best_error") is not None]
     return rows[-1]["best_error"] if rows else None
 
 
@@ -243,7 +243,7 @@ def main_launch(a) -> None:
     gen = {} if a.skip_generation else bench_generation(r, a)
     weak = {**base, "mode": "weak", **bench_train(r, a, a.batch, "weak"), **gen}
     if not a.skip_tte:
-        target = None if r.world == 1 else one_gpu_target(Path(a.records), gpu)
+        target = None if r.world == 1 else one_gpu_target(Path(a.records), gpu, a.run_id)
         weak.update(time_to_error(r, a, target))
     rows.append(weak)
     if not a.skip_strong and a.strong_total % r.world == 0:

@@ -103,9 +103,10 @@ class GNCore(nn.Module):
             out = graph._replace(nodes=torch.cat([graph.nodes, out.nodes], -1),
                                  edges=torch.cat([graph.edges, out.edges], -1),
                                  globals=torch.cat([graph.globals, out.globals], -1))
-        listener = _GN2_LISTENER.get()
-        names = [k for k in ("nodes", "edges", "globals") if getattr(out, k) is not None and getattr(out, k).requires_grad]
-        if listener is not None and torch.is_grad_enabled() and names:
+        listener = _GN2_LISTENER.get()   # None outside a distributed trainer's overlapped step
+        names = [] if listener is None or not torch.is_grad_enabled() else [
+            k for k in ("nodes", "edges", "globals") if getattr(out, k) is not None and getattr(out, k).requires_grad]
+        if names:
             listener.gn2_forward()
             out = out._replace(**dict(zip(names, _Signal.apply(listener, *(getattr(out, k) for k in names)))))
         return self.gn2(out, index).nodes
