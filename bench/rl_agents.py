@@ -4,8 +4,12 @@ networks, and actions per second of their policies, on one device.
 Swimmer6's sizes (25 observation features, 5 actions), the spinningup preset's 256 x 2 MLPs; per
 agent (DDPG, SVG(0), SVG(N) through a 256 x 2 MLP model trained jointly, a stand-in for the GN
 model) and batch size: a replay buffer of random transitions, then ``--updates`` updates, each
-sampling its batch (updates / s, after a warm-up); and ``act`` on ``--envs`` observations at a
-time (env steps / s of the policy alone).
+sampling its batch (updates / s, after a warm-up), three ways in the same process: ``eager``
+(``agent.update(buffer.sample(...))``), ``updater`` (``gnwarp.rl.graphed.Updater`` uncaptured:
+what ``--cuda-graph false`` runs) and ``graph`` (the same, recorded in a CUDA graph and replayed:
+what ``gnwarp rl`` runs on CUDA; ``first_graph_s``: its first two calls, the eager one and the
+recording, what a run waits for once); and ``act`` on ``--envs`` observations at a time (env
+steps / s of the policy alone).
 
     python bench/rl_agents.py [--agents ddpg,svg0,svg1,svg2] [--batches 100,256] [--updates 500]
     python bench/rl_agents.py --quick       # tiny sizes on the CPU: a smoke test of the script
@@ -25,6 +29,7 @@ from torch import nn  # noqa: E402
 
 from bench.harness import add_run_args, device_name, experiment_out, save_results  # noqa: E402
 from gnwarp.rl.agents import make_agent  # noqa: E402
+from gnwarp.rl.graphed import Updater  # noqa: E402
 from gnwarp.rl.networks import mlp  # noqa: E402
 from gnwarp.rl.replay import ReplayBuffer  # noqa: E402
 from gnwarp.rl.settings import AgentSettings  # noqa: E402
@@ -62,19 +67,43 @@ def filled_buffer(dev, envs: int, steps: int, gen: torch.Generator) -> ReplayBuf
     return buf
 
 
-def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int) -> dict:
+def _make(name: str, batch: int, hidden, dev):
     s = AgentSettings(agent=name, hidden=hidden, batch_size=batch, start_steps=0)
     model = MLPModel(hidden).to(dev) if s.horizon else None
-    agent = make_agent(s, OBS, [-1.0] * ACT, [1.0] * ACT, model=model, reward=reward if model else None, device=dev)
-    gen = torch.Generator(dev).manual_seed(0)
-    for _ in range(5):
-        agent.update(buf.sample(batch, gen))
+    return make_agent(s, OBS, [-1.0] * ACT, [1.0] * ACT, model=model, reward=reward if model else None, device=dev)
+
+
+def _rate(step, updates: int, dev) -> float:
+    """Updates per second of ``step(n)`` doing n updates, after 5 warm-up updates."""
+    step(5)
     _sync(dev)
     t0 = time.perf_counter()
-    for _ in range(updates):
-        m = agent.update(buf.sample(batch, gen))
+    step(updates)
     _sync(dev)
-    ups = updates / (time.perf_counter() - t0)
+    return updates / (time.perf_counter() - t0)
+
+
+def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int) -> dict:
+    gen = torch.Generator(dev).manual_seed(0)
+    agent = _make(name, batch, hidden, dev)
+    out = {}
+
+    def eager(n):
+        for _ in range(n):
+            out["m"] = agent.update(buf.sample(batch, gen))
+    ups = _rate(eager, updates, dev)
+    updater = Updater(_make(name, batch, hidden, dev), buf, gen, capture=False)
+    ups_updater = _rate(updater.run, updates, dev)
+    ups_graph = first_graph = None
+    if dev.type == "cuda":
+        graphed = Updater(_make(name, batch, hidden, dev), buf, gen, capture=True)
+        t0 = time.perf_counter()
+        graphed.run(2)
+        _sync(dev)
+        first_graph = time.perf_counter() - t0
+        ups_graph = _rate(graphed.run, updates, dev)
+        assert graphed.captured
+    m = out["m"]
     obs = torch.randn(envs, OBS, device=dev)
     for _ in range(3):
         agent.act(obs)
@@ -85,7 +114,10 @@ def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int)
     _sync(dev)
     aps = envs * updates / (time.perf_counter() - t0)
     assert all(torch.isfinite(v) for v in m.values()), m
+    r = lambda v, k=1: None if v is None else round(v, k)  # noqa: E731
     return dict(agent=name, batch=batch, hidden=list(hidden), updates=updates, updates_per_s=round(ups, 1),
+                updater_updates_per_s=round(ups_updater, 1), graph_updates_per_s=r(ups_graph),
+                graph_speedup=r(ups_graph and ups_graph / ups, 2), first_graph_s=r(first_graph, 3),
                 envs=envs, act_env_steps_per_s=round(aps))
 
 
@@ -115,8 +147,11 @@ def main(argv=None):
              f"{ACT} actions), MLPs {'x'.join(map(str, hidden))}, SVG(N)'s model an MLP of the same widths "
              "trained jointly; each update samples its batch from the replay buffer; acting: "
              f"`act` on {args.envs} observations.", "",
-             "| agent | batch | updates / s | acting, env steps / s |", "|---|---|---|---|"]
-    lines += [f"| {r['agent']} | {r['batch']} | {r['updates_per_s']} | {r['act_env_steps_per_s']} |" for r in rows]
+             "| agent | batch | updates / s, eager | Updater uncaptured | CUDA graph | graph / eager "
+             "| first two graph updates (s) | acting, env steps / s |", "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['agent']} | {r['batch']} | {r['updates_per_s']} | {r['updater_updates_per_s']} | "
+              f"{r['graph_updates_per_s'] or '-'} | {r['graph_speedup'] or '-'} | {r['first_graph_s'] or '-'} | "
+              f"{r['act_env_steps_per_s']} |" for r in rows]
     save_results(experiment_out("rl", args.out, args.quick), "rl_agents", name, args.quick, rows, lines)
 
 

@@ -49,8 +49,11 @@ def _adam(net, lr: float) -> torch.optim.Adam | None:
     params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
     if not params:
         return None
-    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound)
-    return torch.optim.Adam(params, lr=lr, fused=all(p.is_cuda for p in params))
+    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound), its step count on
+    # the device so that a CUDA graph can record the update (gnwarp.rl.graphed); eager updates use
+    # the same optimizer, so captured and eager updates compute the same numbers
+    cuda = all(p.is_cuda for p in params)
+    return torch.optim.Adam(params, lr=lr, fused=cuda, capturable=cuda)
 
 
 class Agent:
@@ -77,6 +80,7 @@ class Agent:
         self.q_opt = _adam(self.q, settings.q_lr)
         self.generator = torch.Generator(self.device).manual_seed(settings.seed)
         self.updates, self.env_steps = 0, 0
+        self.loads = 0    # load_state_dict calls
 
     # -- actions --------------------------------------------------------------------------------
     def squash(self, u: torch.Tensor) -> torch.Tensor:
@@ -125,19 +129,25 @@ class Agent:
         return a
 
     # -- learning -------------------------------------------------------------------------------
-    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
+    def target_action(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         raise NotImplementedError
 
-    def q_target_values(self, batch: Transitions) -> torch.Tensor:
-        """y = r + gamma (1 - terminated) Q'(x', a') [B] (eq. 3): a truncated step bootstraps."""
+    def update_noise_shape(self, batch: int) -> tuple[int, ...] | None:
+        """The shape of the standard normal noise one update on ``batch`` transitions draws (None:
+        it draws none)."""
+        return None
+
+    def q_target_values(self, batch: Transitions, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """y = r + gamma (1 - terminated) Q'(x', a') [B] (eq. 3): a truncated step bootstraps.
+        ``noise`` [B, U]: the target policy's (SVG; None: drawn)."""
         with torch.no_grad():
-            a2 = self.target_action(batch.next_obs)
+            a2 = self.target_action(batch.next_obs, noise)
             q2 = self.q_target(batch.next_obs, a2)
             return batch.reward + self.settings.gamma * (~batch.terminated).to(q2.dtype) * q2
 
-    def q_loss(self, batch: Transitions) -> torch.Tensor:
+    def q_loss(self, batch: Transitions, noise: torch.Tensor | None = None) -> torch.Tensor:
         """Mean squared Bellman error of the online Q on ``batch`` (eq. 3)."""
-        return (self.q(batch.obs, batch.action) - self.q_target_values(batch)).pow(2).mean()
+        return (self.q(batch.obs, batch.action) - self.q_target_values(batch, noise)).pow(2).mean()
 
     def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         raise NotImplementedError
@@ -153,33 +163,51 @@ class Agent:
         opt.step()
         opt.zero_grad(set_to_none=True)
 
-    def _update_targets(self) -> None:
-        s = self.settings
-        with torch.no_grad():
-            if s.target_update == "hard":
-                if self.updates % s.target_period == 0:
-                    for net, tgt in ((self.policy, self.policy_target), (self.q, self.q_target)):
-                        tgt.load_state_dict(net.state_dict())
-            elif self._online:
-                torch._foreach_lerp_(self._targets, self._online, 1 - s.polyak)
-
-    def update(self, batch: Transitions, model_batch: Transitions | None = None) -> dict[str, torch.Tensor]:
+    def update(self, batch: Transitions, model_batch: Transitions | None = None,
+               noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """One gradient step of Q (eq. 3) and of the policy on ``batch`` (transitions [B]), then
         (SVG(N)) of the model on ``model_batch`` (any shape its ``model_loss`` takes, e.g.
-        sequences [B, L]; None: ``batch``), then the target networks. Returns {"q_loss",
-        "policy_loss", "model_loss"...} as 0-dim tensors (no host sync)."""
+        sequences [B, L]; None: ``batch``), then the target networks. ``noise``: the update's
+        standard normal draws, of ``update_noise_shape(B)`` (None: drawn from the agent's
+        generator). Returns {"q_loss", "policy_loss", "model_loss"...} as 0-dim tensors (no host
+        sync)."""
         self._check_batch(batch)
-        q_loss = self.q_loss(batch)
+        shape = self.update_noise_shape(len(batch))
+        if shape is not None and noise is None:
+            noise = self._noise(*shape[:-1])
+        elif shape is not None and tuple(noise.shape) != shape:
+            raise ValueError(f"noise has shape {tuple(noise.shape)}; expected {shape}")
+        metrics = self.update_step(batch, model_batch, noise)
+        self.count_update()
+        return metrics
+
+    def update_step(self, batch: Transitions, model_batch: Transitions | None,
+                    noise: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """The device work of ``update`` (no host sync, no check, the counter untouched): what a
+        CUDA graph records (``gnwarp.rl.graphed.Updater``); ``count_update`` follows each."""
+        target_noise, policy_noise = (None, None) if noise is None else (noise[0], noise[1:])
+        q_loss = self.q_loss(batch, target_noise)
         self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
-        pi_loss = self.policy_loss(batch.obs)
+        pi_loss = self.policy_loss(batch.obs, policy_noise)
         if self.settings.squash_penalty > 0:   # keep the unbounded output off tanh's flat ends
             pi_loss = pi_loss + self.settings.squash_penalty * self.policy_output(batch.obs).square().mean()
         self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
         metrics.update(self._extra_update(batch if model_batch is None else model_batch))
-        self.updates += 1
-        self._update_targets()
+        if self.settings.target_update == "polyak" and self._online:
+            with torch.no_grad():
+                torch._foreach_lerp_(self._targets, self._online, 1 - self.settings.polyak)
         return metrics
+
+    def count_update(self) -> None:
+        """Count an update done by ``update_step``; with hard target updates, copy the networks
+        into their targets every ``target_period`` updates."""
+        self.updates += 1
+        s = self.settings
+        if s.target_update == "hard" and self.updates % s.target_period == 0:
+            with torch.no_grad():
+                for net, tgt in ((self.policy, self.policy_target), (self.q, self.q_target)):
+                    tgt.load_state_dict(net.state_dict())
 
     def _extra_update(self, batch: Transitions) -> dict[str, torch.Tensor]:
         return {}
@@ -212,6 +240,7 @@ class Agent:
                 m.load_state_dict(state[k])
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
         self.generator.set_state(state["generator"])
+        self.loads += 1   # the optimizers' state tensors are new: a recorded update is stale
 
 
 class DDPG(Agent):
@@ -232,7 +261,8 @@ class DDPG(Agent):
             a = a + self.settings.action_noise * self.half * self._noise(obs.shape[0])
         return torch.maximum(torch.minimum(a, self.high), self.low)
 
-    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
+    def target_action(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """squash(mu'(x)); ``noise`` is unused (DDPG's target policy is deterministic)."""
         return self.squash(self.policy_target(obs))
 
     def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
@@ -280,8 +310,13 @@ class SVG(Agent):
         return torch.maximum(torch.minimum(self._sample(self.policy, obs, self._noise(obs.shape[0])), self.high),
                              self.low)
 
-    def target_action(self, obs: torch.Tensor) -> torch.Tensor:
-        return self._sample(self.policy_target, obs, self._noise(obs.shape[0]))
+    def target_action(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """a' ~ pi'(.|x'): the target policy's sample with ``noise`` [B, U] (None: drawn)."""
+        return self._sample(self.policy_target, obs, self._noise(obs.shape[0]) if noise is None else noise)
+
+    def update_noise_shape(self, batch: int) -> tuple[int, ...]:
+        """[N + 2, B, U]: the target policy's noise, then ``policy_objective``'s N + 1."""
+        return (self.horizon + 2, int(batch), self.action_dim)
 
     def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
         return self.policy(obs)[0]

@@ -15,6 +15,7 @@ import dataclasses
 import numpy as np
 import torch
 
+from gnwarp.rl.graphed import Updater
 from gnwarp.rl.replay import ReplayBuffer, reached_obs
 
 __all__ = ["CollectorState", "run_env_steps"]
@@ -48,18 +49,25 @@ def _numpy(x) -> np.ndarray:
 
 
 def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps: int, generator: torch.Generator,
-                  model_sequence: int | None = None) -> dict:
+                  model_sequence: int | None = None, updater: Updater | None = None) -> dict:
     """``steps`` steps of the vector ``env`` (``steps x num_envs`` env steps) with ``agent.act``:
     each step stored in ``buffer``; once ``agent.env_steps >= update_after``,
     ``updates_per_step x num_envs`` updates per step on batches of ``batch_size`` from ``buffer``
     (drawn with ``generator``; ``model_sequence``: the model's batch as sequences of that many
-    steps). ``state`` is advanced in place. Returns {"returns": [finished episodes' returns],
-    "metrics": the last update's losses (floats) or {}, "updates": updates taken}."""
+    steps), by ``updater`` (``gnwarp.rl.graphed.Updater``; None: a new one, captured on CUDA:
+    pass the same one to every call so that it records once). ``state`` is advanced in place.
+    Returns {"returns": [finished episodes' returns], "metrics": the last update's losses (floats)
+    or {}, "updates": updates taken}."""
     from gymnasium.vector import AutoresetMode
     mode = getattr(env, "metadata", {}).get("autoreset_mode")
     if mode is not None and AutoresetMode(mode) != AutoresetMode.SAME_STEP:
         raise ValueError(f"the env autoresets in {mode} mode; make it with autoreset_mode=\"same_step\"")
     s = agent.settings
+    if updater is None:
+        updater = Updater(agent, buffer, generator, model_sequence)
+    elif (updater.agent, updater.buffer, updater.generator, updater.model_sequence) != (
+            agent, buffer, generator, model_sequence):
+        raise ValueError("the updater was made for another agent, buffer, generator or model_sequence")
     returns, metrics, updates = [], {}, 0
     torch_env = isinstance(state.obs, torch.Tensor)
     for _ in range(int(steps)):
@@ -73,12 +81,9 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         state.obs = next_obs
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
-            while state.owed >= 1:
-                model_batch = (buffer.sample_sequences(s.batch_size, model_sequence, generator)
-                               if model_sequence else None)
-                m = agent.update(buffer.sample(s.batch_size, generator), model_batch)
-                state.owed -= 1
-                updates += 1
-            if updates:
-                metrics = m
+            n = int(state.owed)
+            if n:
+                metrics = updater.run(n)
+                state.owed -= n
+                updates += n
     return {"returns": returns, "metrics": {k: float(v) for k, v in metrics.items()}, "updates": updates}

@@ -153,12 +153,23 @@ class ReplayBuffer:
     def _gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
         return Transitions(*(getattr(self, name)[rows, envs] for name in _FIELDS))
 
+    def gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
+        """The stored transitions at ``rows`` (ring rows) and ``envs`` (any equal shapes, from
+        ``sample_index`` or ``sequence_index``): ``Transitions`` of that shape. No host sync, so a
+        CUDA graph may record it with the indices in static tensors."""
+        return self._gather(rows, envs)
+
+    def sample_index(self, batch: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rows, envs) [batch] of ``batch`` transitions drawn uniformly with replacement from those
+        stored: what ``sample`` gathers."""
+        self._check_batch(batch, generator)
+        i = torch.randint(0, self.filled * self.num_envs, (batch,), generator=generator, device=self.device)
+        return i // self.num_envs, i % self.num_envs
+
     def sample(self, batch: int, generator: torch.Generator | None = None) -> Transitions:
         """``batch`` transitions drawn uniformly with replacement from those stored (``generator``
         on the buffer's device; None: torch's default). Returns ``Transitions`` of shape [batch]."""
-        self._check_batch(batch, generator)
-        i = torch.randint(0, self.filled * self.num_envs, (batch,), generator=generator, device=self.device)
-        return self._gather(i // self.num_envs, i % self.num_envs)
+        return self._gather(*self.sample_index(batch, generator))
 
     def valid_starts(self, length: int) -> torch.Tensor:
         """[filled, E] bool, in time order from the oldest stored step: True where a sequence of
@@ -176,11 +187,10 @@ class ReplayBuffer:
         ok[:m] = (c[length - 1:length - 1 + m] - c[:m]) == 0
         return ok
 
-    def sample_sequences(self, batch: int, length: int, generator: torch.Generator | None = None) -> Transitions:
-        """``batch`` sequences of ``length`` consecutive steps of one env, drawn uniformly with
-        replacement among those within one episode (only the last step may end it). Returns
-        ``Transitions`` of shape [batch, length]. The valid starts are counted once per ``add`` (one
-        host sync, to refuse a buffer with no such sequence) and reused by later calls."""
+    def sequence_index(self, batch: int, length: int,
+                       generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rows, envs) [batch, length] of ``batch`` sequences drawn as ``sample_sequences`` draws
+        them: what it gathers."""
         self._check_batch(batch, generator)
         if isinstance(length, bool) or not isinstance(length, (int, np.integer)) or length < 1:
             raise ReplayError(f"length must be an integer >= 1, got {length!r}")
@@ -198,7 +208,14 @@ class ReplayBuffer:
         flat = torch.searchsorted(c, u, right=True)        # the (u+1)-th valid start
         start, env = flat // self.num_envs, flat % self.num_envs
         rows = (self.ptr - self.filled + start[:, None] + torch.arange(length, device=self.device)) % self.rows
-        return self._gather(rows, env[:, None].expand(-1, length))
+        return rows, env[:, None].expand(-1, length)
+
+    def sample_sequences(self, batch: int, length: int, generator: torch.Generator | None = None) -> Transitions:
+        """``batch`` sequences of ``length`` consecutive steps of one env, drawn uniformly with
+        replacement among those within one episode (only the last step may end it). Returns
+        ``Transitions`` of shape [batch, length]. The valid starts are counted once per ``add`` (one
+        host sync, to refuse a buffer with no such sequence) and reused by later calls."""
+        return self._gather(*self.sequence_index(batch, length, generator))
 
     # -- saving ---------------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -219,6 +219,8 @@ def run_rl(cfg: RLConfig) -> dict:
     records_path = out / RECORDS_FILE
     cut_records(records_path, keep_until)
     log = RunLog(out, keep_until, cfg.tensorboard)
+    from gnwarp.rl.graphed import Updater
+    updater = Updater(agent, buffer, gen, capture=cfg.cuda_graph and parts["device"].type == "cuda")
     meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
     dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
 
@@ -273,13 +275,14 @@ def run_rl(cfg: RLConfig) -> dict:
                     before = math.ceil((s.update_after - agent.env_steps) / E) - 1
                     if before < piece:
                         if before > 0:
-                            returns += run_env_steps(agent, env, buffer, state, before, gen)["returns"]
+                            returns += run_env_steps(agent, env, buffer, state, before, gen,
+                                                     updater=updater)["returns"]
                             left -= before
                             bar.update(before * E)
                         _normalize_model(model, buffer)
                         c["normalized"] = True   # once, before the first update
                         continue
-                r = run_env_steps(agent, env, buffer, state, piece, gen)
+                r = run_env_steps(agent, env, buffer, state, piece, gen, updater=updater)
                 returns += r["returns"]
                 metrics = r["metrics"] or metrics
                 left -= piece
