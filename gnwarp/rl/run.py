@@ -220,7 +220,9 @@ def run_rl(cfg: RLConfig) -> dict:
     cut_records(records_path, keep_until)
     log = RunLog(out, keep_until, cfg.tensorboard)
     from gnwarp.rl.graphed import Updater
-    updater = Updater(agent, buffer, gen, capture=cfg.cuda_graph and parts["device"].type == "cuda")
+    # GN networks are not recorded (their capture fails on CUDA, 2026-11-27): eager updates
+    updater = Updater(agent, buffer, gen,
+                      capture=cfg.cuda_graph and parts["device"].type == "cuda" and cfg.networks == "mlp")
     meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
     dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
 
