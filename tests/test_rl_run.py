@@ -18,7 +18,7 @@ warnings.filterwarnings("ignore", message=".*glfw.*")
 
 TINY = dict(task="pendulum-balance", agent="svg0", observation="bodies", num_envs=2, episode_steps=10, env_steps=100,
             hidden=(16,), buffer_size=1000, batch_size=8, start_steps=20, update_after=20, eval_every=40, eval_episodes=3,
-            progress=False, device="cpu", backend="mujoco", tensorboard=False)
+            progress=False, device="cpu", backend="mujoco", tensorboard=False, video_episodes=0)
 
 
 def _tensors_equal(a, b, where=""):
@@ -56,6 +56,26 @@ def test_tiny_run_writes_checkpoint_records_and_log(tmp_path):
     rows = list(csv.DictReader(open(out / LOG_FILE)))
     assert [int(x["env_steps"]) for x in rows] == [20, 40, 60, 80, 100]
     assert rows[-1]["eval_median"] and not rows[0]["eval_median"] and float(rows[-1]["q_loss"]) >= 0
+
+
+def test_video_of_the_last_evaluation(tmp_path):
+    import imageio.v3 as iio
+    from gnwarp.rl.run import evaluate_policy
+    cfg = RLConfig(**{**TINY, "video_episodes": 2, "video_steps": 6, "renderer": "matplotlib", "env_steps": 40},
+                   out=str(tmp_path / "v"))
+    r = run_rl(cfg)
+    frames = iio.imread(r["video"], index=None)
+    from gnwarp.rl.run import build_run
+    parts = build_run(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "w")))
+    stride = max(1, round(1 / (25 * parts["env"].system.dt)))     # animate's frame stride at 25 fps at most
+    assert r["video"] == str(tmp_path / "v" / "video.gif") and frames.shape[0] == len(range(0, 7, stride))
+    assert sorted(p.name for p in (tmp_path / "v").iterdir() if p.name.startswith(".")) == []   # no leftovers
+    # the states are the evaluation's episodes: the first envs of a batched evaluation
+    returns, states = evaluate_policy(parts["agent"], parts["eval_env"], 5, keep=2, keep_steps=4)
+    assert states.shape == (2, 5, parts["env"].system.nbody, 13) and len(returns) == 3
+    again, full = evaluate_policy(parts["agent"], parts["eval_env"], 5, keep=3)
+    assert again == returns and full.shape[1] == 11 and torch.equal(full[:2, :5], states)
+    assert not run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 0}, out=str(tmp_path / "n")))["video"]
 
 
 def test_resume_equals_uninterrupted_bit_for_bit(tmp_path):

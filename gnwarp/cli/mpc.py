@@ -85,7 +85,6 @@ def mpc_command(args) -> int:
     """``gnwarp mpc``: a registered planner (``--planner``) through a learned model, in closed
     loop on the true simulator."""
     import dataclasses
-    import types
     from pathlib import Path
 
     import numpy as np
@@ -210,13 +209,10 @@ def mpc_command(args) -> int:
     write_records(records, [record])
     print(f"wrote {records}")
     if video is not None:
-        from gnwarp.eval.animation import animate
-        k = min(3, n)
-        shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
-                                     static={"n_node": np.full(k, system.nbody)})
+        from gnwarp.eval.animation import animate_system
         what = "gradient MPC" if gradient else f"{kind} planner"
-        animate(out["states"][:k].numpy(), {}, shim, np.zeros(k, dtype=np.int64), video, dt=system.dt,
-                title=f"{task.name}: {what}, true simulator", renderer=args.renderer)
+        animate_system(out["states"][:min(3, n)].numpy(), system, video,
+                       title=f"{task.name}: {what}, true simulator", renderer=args.renderer)
         print(f"wrote {video}")
     return 0
 

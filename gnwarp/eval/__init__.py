@@ -8,7 +8,7 @@ animations of true vs predicted motion.
 Modules: ``metrics`` (errors), ``report`` (tables and plots), ``animation`` (GIFs), ``render``
 (MuJoCo's offscreen renderer in a child process), ``sysid`` (rollouts from identified parameters).
 """
-from gnwarp.eval.animation import animate
+from gnwarp.eval.animation import animate, animate_system
 from gnwarp.eval.metrics import (evaluate, movable_mask, normalized_errors, one_step_predictions, rollout_error,
                                  rollout_predictions, sequence_shares, squared_errors)
 from gnwarp.eval.render import RenderUnavailable, render_rollouts
@@ -19,6 +19,6 @@ from gnwarp.state import GROUPS
 
 __all__ = ["evaluate", "rollout_error", "rollout_predictions", "one_step_predictions", "normalized_errors",
            "sequence_shares", "squared_errors", "movable_mask", "GROUPS", "markdown_table", "plot_errors",
-           "plot_state_traces", "plot_training", "animate", "render_rollouts", "RenderUnavailable",
+           "plot_state_traces", "plot_training", "animate", "animate_system", "render_rollouts", "RenderUnavailable",
            "other_instance_windows", "sysid_rollout_predictions", "sysid_rollout_error", "sysid_error_rows",
            "window_errors", "write_report"]

@@ -3,6 +3,7 @@
 geoms (no OpenGL needed)."""
 from __future__ import annotations
 
+import types
 from pathlib import Path
 
 import mujoco
@@ -12,7 +13,7 @@ from gnwarp.eval.render import RenderUnavailable, render_rollouts
 from gnwarp.sim.systems import make
 from gnwarp.state import POS, body_points, quat_rotate
 
-__all__ = ["animate"]
+__all__ = ["animate", "animate_system"]
 
 
 def _geom_segments(system) -> list[tuple[int, np.ndarray, np.ndarray, float]]:
@@ -173,3 +174,17 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
     path = Path(path)
     iio.imwrite(path, np.stack(frames), duration=int(round(1000 * stride * dt)), loop=0)
     return path
+
+
+def animate_system(states: np.ndarray, system, path, title: str = "", renderer: str = "auto",
+                   fps_max: float = 25.0) -> Path:
+    """``animate`` for episodes of one built-in system (``gnwarp.sim.systems.System``, unparameterized):
+    ``states`` [K, T+1, B, 13] body states (the true motion, no prediction) at ``system.dt``."""
+    states = np.asarray(states)
+    if states.ndim != 4 or states.shape[2:] != (system.nbody, 13):
+        raise ValueError(f"states must be [K, T+1, {system.nbody}, 13] for {system.name}, got {states.shape}")
+    k = states.shape[0]
+    shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
+                                 static={"n_node": np.full(k, system.nbody)})
+    return animate(states, {}, shim, np.zeros(k, dtype=np.int64), path, dt=system.dt, fps_max=fps_max,
+                   title=title, renderer=renderer)

@@ -18,7 +18,8 @@ __all__ = ["RLConfig", "RESUMABLE", "MAX_RL_HORIZON", "CONFIG_FILE"]
 MAX_RL_HORIZON = 5     # SVG(N) runs accept N <= this (the paper's SVG(5+) did no better)
 CONFIG_FILE = "config.json"
 # keys a resumed run may change; the others must equal the folder's config.json
-RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard", "cuda_graph")
+RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard", "cuda_graph",
+             "video_episodes", "video_steps", "renderer")
 # AgentSettings keys the run sets itself
 _RUN_AGENT_KEYS = ("agent", "preset", "seed", "updates_per_step")
 
@@ -48,6 +49,9 @@ class RLConfig:
     call; both stop at episode ends only, so a resumed run equals an uninterrupted one.
     ``cuda_graph``: on CUDA, the gradient update is recorded once in a CUDA graph and replayed
     (``gnwarp.rl.graphed.Updater``; the same numbers as eager updates, several times faster).
+    ``video_episodes``, ``video_steps``, ``renderer``: at the end of a call that evaluated, a GIF
+    ``video.gif`` of the first ``video_steps`` steps of that many episodes of its last evaluation
+    (the deterministic policy on the true simulator; ``gnwarp.eval.animate_system``).
     """
     task: str = described("swimmer6", "task name (gnwarp.control.TASKS; swimmer6 = dmc-swimmer-swimmer6)")
     out: str = described("runs/rl", "the run folder (resumed where it holds a run)")
@@ -80,6 +84,10 @@ class RLConfig:
                                                            "seconds of this call")
     tensorboard: Flag = described(True, "TensorBoard logs where torch.utils.tensorboard imports")
     cuda_graph: Flag = described(True, "on CUDA, record the gradient update in a CUDA graph and replay it")
+    video_episodes: Count = described(2, "episodes of the call's last evaluation in video.gif (0: no video)")
+    video_steps: PositiveInt = described(300, "control steps of each episode in the video")
+    renderer: Literal["auto", "mujoco", "matplotlib"] = described(
+        "auto", "the video's renderer (auto: MuJoCo's where OpenGL works, else matplotlib)")
     progress: Flag = described(True, "progress bar")
 
     def __post_init__(self):

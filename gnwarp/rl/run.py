@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import random
 import time
 from datetime import datetime, timezone
@@ -38,6 +39,7 @@ from gnwarp.validation import ConfigError
 __all__ = ["run_rl", "build_run", "evaluate_policy", "round_seed", "check_task"]
 
 _PIECE = 50   # vector steps between progress-bar updates
+VIDEO_FILE = "video.gif"
 
 
 def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
@@ -134,15 +136,23 @@ def build_run(cfg: RLConfig) -> dict:
 
 
 @torch.no_grad()
-def evaluate_policy(agent, env, seed: int) -> list[float]:
+def evaluate_policy(agent, env, seed: int, keep: int = 0, keep_steps: int | None = None):
     """One episode in each env of ``env`` (reset with ``seed``) with the agent's deterministic
-    policy; their returns."""
+    policy; their returns. With ``keep`` > 0, also the body states of the first ``keep`` envs'
+    first ``keep_steps`` steps (None: all) [keep, steps + 1, B, 13] (CPU, float64): (returns, states)."""
     obs, _ = env.reset(seed=seed)
     total = torch.zeros(env.num_envs, dtype=torch.float64)
-    for _ in range(env.episode_steps):
-        obs, reward, _, _, _ = env.step(agent.act(obs, deterministic=True))
+    keep = min(int(keep), env.num_envs)
+    last = env.episode_steps if keep_steps is None else min(int(keep_steps), env.episode_steps)
+    states = [env.body_states[:keep].double().cpu()] if keep else None
+    for t in range(env.episode_steps):
+        obs, reward, _, _, infos = env.step(agent.act(obs, deterministic=True))
         total += torch.as_tensor(reward, dtype=torch.float64).cpu()
-    return total.tolist()
+        if keep and t < last:   # the step's own state: at the time limit the env reset already
+            ended = "final_body_states" in infos
+            states.append((torch.as_tensor(infos["final_body_states"]) if ended else env.body_states)[:keep]
+                          .double().cpu())
+    return (total.tolist(), torch.stack(states, 1)) if keep else total.tolist()
 
 
 def _rng_states() -> dict:
@@ -193,7 +203,8 @@ def run_rl(cfg: RLConfig) -> dict:
     """Train (or go on training) the run of ``cfg`` in ``cfg.out`` until ``cfg.env_steps``, the
     ``chunk`` or the ``budget_seconds``. Returns {"stop": "done" | "chunk" | "budget",
     "env_steps", "updates", "rounds", "seconds" (this call), "records" (path), "last_eval"
-    (the last evaluation's returns or None)}."""
+    (the last evaluation's returns or None), "video" (the path of video.gif when this call
+    wrote one, else None)}."""
     from tqdm.auto import tqdm
     started = time.perf_counter()
     check_task(cfg)
@@ -232,8 +243,14 @@ def run_rl(cfg: RLConfig) -> dict:
             collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
             env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
 
+    video = {}   # the body states of this call's last evaluation, for video.gif
+
     def evaluate():
-        returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True))
+        returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True), keep=cfg.video_episodes,
+                                  keep_steps=cfg.video_steps)
+        if cfg.video_episodes:
+            returns, video["states"] = returns
+            video["env_steps"] = agent.env_steps
         c["last_eval"] = agent.env_steps
         rec = ResultRecord(
             experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
@@ -311,10 +328,26 @@ def run_rl(cfg: RLConfig) -> dict:
         if c["round"] >= total_rounds:
             stop = "done"
         checkpoint()
+        if video:
+            write_video(out / VIDEO_FILE, video["states"], env.system, f"{cfg.agent} {task.name}, deterministic "
+                        f"policy after {video['env_steps']} env steps", cfg.renderer)
     finally:
         bar.close()
         log.close()
         env.close()
         eval_env.close()
     return dict(stop=stop, env_steps=agent.env_steps, updates=agent.updates, rounds=c["round"],
-                seconds=time.perf_counter() - started, records=str(records_path), last_eval=last_eval)
+                seconds=time.perf_counter() - started, records=str(records_path), last_eval=last_eval,
+                video=str(out / VIDEO_FILE) if video else None)
+
+
+def write_video(path: Path, states: torch.Tensor, system, title: str, renderer: str = "auto") -> Path:
+    """A GIF of episodes' body states [K, T+1, B, 13] at ``path``, written whole or not at all
+    (rendered into a temporary folder beside it, then renamed)."""
+    import tempfile
+
+    from gnwarp.eval.animation import animate_system
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
+        animate_system(states.numpy(), system, Path(tmp) / path.name, title=title, renderer=renderer)
+        os.replace(Path(tmp) / path.name, path)
+    return path
