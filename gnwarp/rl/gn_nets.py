@@ -48,7 +48,8 @@ _INDEX_CACHE = 4   # graph indices kept per stack (one per batch size and device
 class GNStack(nn.Module):
     """``blocks`` GN blocks from input widths (``node_size``, ``edge_size``, ``global_size``) to
     outputs (``node_out``, ``edge_out``, ``global_out``; ``global_out=0``: the last block keeps
-    no global update). ``stack(graph) -> GraphsTuple``; run options as ``GraphNetwork``'s."""
+    no global update). ``stack(graph) -> GraphsTuple``; run options as ``GraphNetwork``'s, with
+    ``check_inputs`` off unless given (the topology is validated once per batch size)."""
 
     def __init__(self, node_size: int, edge_size: int, global_size: int, node_out: int, edge_out: int,
                  global_out: int, latent: int = 64, hidden: tuple[int, ...] = (64,), blocks: int = 2,
@@ -56,7 +57,10 @@ class GNStack(nn.Module):
         super().__init__()
         if int(blocks) < 1:
             raise ValueError(f"blocks must be at least 1, got {blocks}")
-        options = options if options is not None else RunOptions(**run)
+        # the observation graph's topology is fixed and validated once per batch size (the index
+        # cache below) and its features come from checked observations: per-call input checks
+        # would only sync with the host (which a CUDA-graph capture of an update cannot take)
+        options = options if options is not None else RunOptions(**{"check_inputs": False, **run})
         hidden = tuple(int(h) for h in hidden)
         sizes = (node_size, edge_size, global_size)
         layers = []

@@ -148,8 +148,9 @@ class ObservationGraph:
             self._templates[key] = {
                 "graph": GraphsTuple(nodes=None, edges=None, receivers=self.receivers.to(device),
                                      senders=self.senders.to(device), globals=None,
-                                     n_node=torch.tensor([self.n_node], device=device),
-                                     n_edge=torch.tensor([self.n_edge], device=device)),
+                                     # counts on the host: ``tile`` reads them, and a read from the
+                                     # device would sync (and break a CUDA-graph capture)
+                                     n_node=torch.tensor([self.n_node]), n_edge=torch.tensor([self.n_edge])),
                 "node": self.node_index.to(device), "edge": self.edge_index.to(device),
                 "global": self.global_index.to(device), "act": self.edge_actuator.to(device),
                 "act_edge": self.actuator_edge.to(device),
