@@ -75,6 +75,13 @@ def test_video_of_the_last_evaluation(tmp_path):
     assert states.shape == (2, 5, parts["env"].system.nbody, 13) and len(returns) == 3
     again, full = evaluate_policy(parts["agent"], parts["eval_env"], 5, keep=3)
     assert again == returns and full.shape[1] == 11 and torch.equal(full[:2, :5], states)
+    parts["eval_env"].reset(seed=5)             # the first state is the episode's reset state
+    assert torch.equal(full[:, 0], parts["eval_env"].body_states[:3].double().cpu())
+    assert not torch.equal(full[:, -1], full[:, 0])
+    with pytest.raises(ValueError, match="keep and keep_steps must be >= 0"):
+        evaluate_policy(parts["agent"], parts["eval_env"], 5, keep=-1)
+    parts["env"].close()
+    parts["eval_env"].close()
     assert not run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 0}, out=str(tmp_path / "n")))["video"]
 
 
@@ -198,3 +205,14 @@ def test_rl_help_loads_no_heavy_module():
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120,
                          env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0 and out.stdout.strip() == "", out.stderr
+
+
+def test_failed_video_warns_and_keeps_the_run(tmp_path, monkeypatch):
+    import gnwarp.rl.run as run_mod
+
+    def broken(*a, **k):
+        raise RuntimeError("no OpenGL here")
+    monkeypatch.setattr(run_mod, "write_video", broken)
+    with pytest.warns(RuntimeWarning, match="no video written.*no OpenGL here"):
+        r = run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 1}, out=str(tmp_path / "f")))
+    assert r["stop"] == "done" and r["video"] is None and (tmp_path / "f" / CHECKPOINT).is_file()

@@ -49,11 +49,9 @@ def _adam(net, lr: float) -> torch.optim.Adam | None:
     params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
     if not params:
         return None
-    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound), its step count on
-    # the device so that a CUDA graph can record the update (gnwarp.rl.graphed); eager updates use
-    # the same optimizer, so captured and eager updates compute the same numbers
-    cuda = all(p.is_cuda for p in params)
-    return torch.optim.Adam(params, lr=lr, fused=cuda, capturable=cuda)
+    # one fused kernel per step on CUDA (updates of small MLPs are launch-bound; its step count
+    # lives on the device); gnwarp.rl.graphed.Updater makes it capturable before recording
+    return torch.optim.Adam(params, lr=lr, fused=all(p.is_cuda for p in params))
 
 
 class Agent:
@@ -151,6 +149,10 @@ class Agent:
 
     def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         raise NotImplementedError
+
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        """The agent's optimizers (policy, Q and, SVG(N), the model's), those that exist."""
+        return [o for o in (self.q_opt, self.policy_opt, getattr(self, "model_opt", None)) if o is not None]
 
     def _step(self, opt, loss, params) -> None:
         if opt is None:

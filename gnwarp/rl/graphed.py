@@ -16,6 +16,8 @@ tensors) records it again.
 """
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from gnwarp.rl.replay import ReplayBuffer
@@ -27,11 +29,21 @@ class Updater:
     """Updates of ``agent`` on batches of ``batch_size`` from ``buffer`` (indices drawn with
     ``generator``); ``model_sequence``: SVG(N)'s model batch as sequences of that many steps
     (None: the update's batch). ``capture``: record the update in a CUDA graph (None: when the
-    agent is on CUDA). ``captured`` tells whether a graph is in use; ``recordings`` counts them."""
+    agent is on CUDA). ``captured`` tells whether a graph is in use; ``recordings`` counts them.
+    A recording that fails (a network that syncs with the host) warns once, sets ``failure``
+    and ``capture`` off, and the updates go on eagerly (nothing ran while recording)."""
 
     def __init__(self, agent, buffer: ReplayBuffer, generator: torch.Generator, model_sequence: int | None = None,
                  capture: bool | None = None):
         self.agent, self.buffer, self.generator = agent, buffer, generator
+        if (buffer.obs_dim, buffer.action_dim) != (agent.obs_dim, agent.action_dim):
+            raise ValueError(f"the buffer holds {buffer.obs_dim} observation and {buffer.action_dim} action "
+                             f"features; the agent takes {agent.obs_dim} and {agent.action_dim}")
+        if buffer.device.type != agent.device.type:
+            raise ValueError(f"the buffer is on {buffer.device}, the agent on {agent.device}: put both on one device")
+        if model_sequence is not None and (isinstance(model_sequence, bool) or not isinstance(model_sequence, int)
+                                           or model_sequence < 1):
+            raise ValueError(f"model_sequence must be None or an integer >= 1, got {model_sequence!r}")
         self.model_sequence = model_sequence
         on_cuda = agent.device.type == "cuda"
         if capture and not on_cuda:
@@ -45,6 +57,8 @@ class Updater:
         shape = agent.update_noise_shape(B)
         self.noise = None if shape is None else torch.zeros(shape, dtype=agent.dtype, device=agent.device)
         self.graph, self.out, self.recordings = None, None, 0
+        self.failure = None   # why recording failed (then updates run eagerly), else None
+        self._stream = None   # the side stream of the eager update before recording and of the recording
         self._eager_done, self._loads = False, agent.loads
 
     @property
@@ -70,18 +84,31 @@ class Updater:
     def _eager(self) -> dict[str, torch.Tensor]:
         if not self.capture:
             return self._work()
-        # the update that precedes recording runs on a side stream, as torch's capture recipe does
-        side = torch.cuda.Stream(self.agent.device)
-        side.wait_stream(torch.cuda.current_stream(self.agent.device))
-        with torch.cuda.stream(side):
+        # the update that precedes recording runs on the stream it records on (torch's recipe)
+        if self._stream is None:
+            self._stream = torch.cuda.Stream(self.agent.device)
+        main = torch.cuda.current_stream(self.agent.device)
+        self._stream.wait_stream(main)
+        with torch.cuda.stream(self._stream):
             out = self._work()
-        torch.cuda.current_stream(self.agent.device).wait_stream(side)
+        main.wait_stream(self._stream)
         return out
 
     def _record(self) -> None:
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.out = self._work()
+        from gnwarp.interop import cuda_graph     # Warp's launches recorded too (GN networks)
+        for opt in self.agent.optimizers():       # Adam's step count on the device, its steps recordable
+            for group in opt.param_groups:
+                group["capturable"] = True
+            for p, st in opt.state.items():
+                if "step" in st:
+                    st["step"] = st["step"].to(p.device, torch.float32)
+        graph = torch.cuda.CUDAGraph()
+        main = torch.cuda.current_stream(self.agent.device)
+        self._stream.wait_stream(main)
+        with cuda_graph(graph, self._stream):
+            out = self._work()
+        main.wait_stream(self._stream)
+        self.graph, self.out = graph, out
         self.recordings += 1
 
     def run(self, n: int) -> dict[str, torch.Tensor]:
@@ -90,10 +117,20 @@ class Updater:
         metrics: dict[str, torch.Tensor] = {}
         if self.agent.loads != self._loads:       # the optimizers' tensors were replaced
             self.graph, self._eager_done, self._loads = None, False, self.agent.loads
+            if self.capture:
+                for opt in self.agent.optimizers():   # eager again until recorded (no capturable warning)
+                    for group in opt.param_groups:
+                        group["capturable"] = False
         for _ in range(int(n)):
             self._draw()
             if self.graph is None and self.capture and self._eager_done:
-                self._record()   # records without computing: the replay below does the update
+                try:
+                    self._record()   # records without computing: the replay below does the update
+                except RuntimeError as e:   # a network that syncs with the host cannot be recorded
+                    self.graph, self.capture = None, False
+                    self.failure = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0]}"
+                    warnings.warn(f"the update could not be recorded in a CUDA graph ({self.failure}); "
+                                  "updating eagerly from now on", RuntimeWarning, stacklevel=2)
             if self.graph is not None:
                 self.graph.replay()
                 metrics = self.out

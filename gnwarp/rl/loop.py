@@ -54,8 +54,9 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     each step stored in ``buffer``; once ``agent.env_steps >= update_after``,
     ``updates_per_step x num_envs`` updates per step on batches of ``batch_size`` from ``buffer``
     (drawn with ``generator``; ``model_sequence``: the model's batch as sequences of that many
-    steps), by ``updater`` (``gnwarp.rl.graphed.Updater``; None: a new one, captured on CUDA:
-    pass the same one to every call so that it records once). ``state`` is advanced in place.
+    steps), by ``updater`` (``gnwarp.rl.graphed.Updater``, made once and passed to every call: on
+    CUDA it records the update in a CUDA graph once; None: eager updates). ``state`` is advanced
+    in place.
     Returns {"returns": [finished episodes' returns], "metrics": the last update's losses (floats)
     or {}, "updates": updates taken}."""
     from gymnasium.vector import AutoresetMode
@@ -64,7 +65,7 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         raise ValueError(f"the env autoresets in {mode} mode; make it with autoreset_mode=\"same_step\"")
     s = agent.settings
     if updater is None:
-        updater = Updater(agent, buffer, generator, model_sequence)
+        updater = Updater(agent, buffer, generator, model_sequence, capture=False)
     elif (updater.agent, updater.buffer, updater.generator, updater.model_sequence) != (
             agent, buffer, generator, model_sequence):
         raise ValueError("the updater was made for another agent, buffer, generator or model_sequence")

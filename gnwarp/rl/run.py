@@ -21,6 +21,7 @@ import json
 import math
 import os
 import random
+import warnings
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -140,6 +141,8 @@ def evaluate_policy(agent, env, seed: int, keep: int = 0, keep_steps: int | None
     """One episode in each env of ``env`` (reset with ``seed``) with the agent's deterministic
     policy; their returns. With ``keep`` > 0, also the body states of the first ``keep`` envs'
     first ``keep_steps`` steps (None: all) [keep, steps + 1, B, 13] (CPU, float64): (returns, states)."""
+    if int(keep) < 0 or (keep_steps is not None and int(keep_steps) < 0):
+        raise ValueError(f"keep and keep_steps must be >= 0, got {keep} and {keep_steps}")
     obs, _ = env.reset(seed=seed)
     total = torch.zeros(env.num_envs, dtype=torch.float64)
     keep = min(int(keep), env.num_envs)
@@ -329,8 +332,13 @@ def run_rl(cfg: RLConfig) -> dict:
             stop = "done"
         checkpoint()
         if video:
-            write_video(out / VIDEO_FILE, video["states"], env.system, f"{cfg.agent} {task.name}, deterministic "
-                        f"policy after {video['env_steps']} env steps", cfg.renderer)
+            try:
+                write_video(out / VIDEO_FILE, video["states"], env.system, f"{cfg.agent} {task.name}, "
+                            f"deterministic policy after {video['env_steps']} env steps", cfg.renderer)
+            except Exception as e:  # noqa: BLE001 - training is saved; a video that fails is reported, not fatal
+                video.clear()
+                warnings.warn(f"no video written ({type(e).__name__}: {e}); renderer 'matplotlib' needs no "
+                              "OpenGL", RuntimeWarning, stacklevel=2)
     finally:
         bar.close()
         log.close()
