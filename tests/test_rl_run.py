@@ -11,7 +11,7 @@ import torch
 from gnwarp.eval.records import read_records
 from gnwarp.rl.config import RLConfig
 from gnwarp.rl.run import run_rl
-from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE
+from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE, load_checkpoint
 from gnwarp.validation import ConfigError
 
 warnings.filterwarnings("ignore", message=".*glfw.*")
@@ -92,8 +92,8 @@ def test_resume_equals_uninterrupted_bit_for_bit(tmp_path):
     assert first["stop"] == "chunk" and first["env_steps"] == 40
     second = run_rl(RLConfig(**cfg, out=str(tmp_path / "parts")))
     assert second["stop"] == "done" and second["env_steps"] == 80
-    a = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=False)
-    b = torch.load(tmp_path / "parts" / CHECKPOINT, weights_only=False)
+    a = load_checkpoint(tmp_path / "whole" / CHECKPOINT)
+    b = load_checkpoint(tmp_path / "parts" / CHECKPOINT)
     for key in ("agent", "buffer", "generator", "rng", "collector"):
         _tensors_equal(a[key], b[key], key)
     assert _eval_returns(tmp_path / "whole") == _eval_returns(tmp_path / "parts")
@@ -125,7 +125,7 @@ def test_svg1_gn_on_swimmer6(tmp_path):
                    tensorboard=False, out=str(tmp_path / "s"))
     r = run_rl(cfg)
     assert r["env_steps"] == 12 and r["updates"] == 12 - 8 + 2
-    ck = torch.load(tmp_path / "s" / CHECKPOINT, weights_only=False)
+    ck = load_checkpoint(tmp_path / "s" / CHECKPOINT)
     model = ck["agent"]["model"]
     assert float(model["delta_std"].min()) > 0 and not torch.all(model["obs_std"] == 1)   # normalized from data
     recs = read_records(tmp_path / "s" / RECORDS_FILE)
@@ -187,7 +187,7 @@ def test_svg1_resume_equals_uninterrupted(tmp_path):
     run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
     assert run_rl(RLConfig(**cfg, out=str(tmp_path / "parts"), chunk=8))["stop"] == "chunk"
     run_rl(RLConfig(**cfg, out=str(tmp_path / "parts")))
-    a, b = (torch.load(tmp_path / f / CHECKPOINT, weights_only=False) for f in ("whole", "parts"))
+    a, b = (load_checkpoint(tmp_path / f / CHECKPOINT) for f in ("whole", "parts"))
     assert a["agent"]["updates"] == 24 - 12 + 2
     _tensors_equal(a["agent"], b["agent"], "agent")
     assert not torch.all(a["agent"]["model"]["obs_std"] == 1)
@@ -216,3 +216,49 @@ def test_failed_video_warns_and_keeps_the_run(tmp_path, monkeypatch):
     with pytest.warns(RuntimeWarning, match="no video written.*no OpenGL here"):
         r = run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 1}, out=str(tmp_path / "f")))
     assert r["stop"] == "done" and r["video"] is None and (tmp_path / "f" / CHECKPOINT).is_file()
+
+
+def test_checkpoint_runs_no_code_and_detects_corruption(tmp_path):
+    import os
+    from gnwarp.rl.run_log import RLCheckpointError, save_checkpoint
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, {"a": torch.arange(5), "n": np.arange(3), "t": (1, "x", None)})
+    back = load_checkpoint(path)
+    assert torch.equal(back["a"], torch.arange(5)) and torch.equal(back["n"], torch.arange(3)) and back["t"] == (1, "x", None)
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF                       # one flipped byte inside the payload
+    path.write_bytes(bytes(raw))
+    with pytest.raises(RLCheckpointError, match="corrupt|not a readable"):
+        load_checkpoint(path)
+
+    class Boom:                                      # a pickle that would run code when loaded
+        def __reduce__(self):
+            return (os.system, ("echo ran > " + str(tmp_path / "ran"),))
+    torch.save({"agent": Boom()}, tmp_path / "evil.pt")
+    with pytest.raises(RLCheckpointError, match="not a readable gnwarp rl checkpoint"):
+        load_checkpoint(tmp_path / "evil.pt")
+    assert not (tmp_path / "ran").exists()
+    torch.save({"agent": {}}, tmp_path / "old.pt")   # plain values, but not this format
+    with pytest.raises(RLCheckpointError, match="not a gnwarp rl checkpoint"):
+        load_checkpoint(tmp_path / "old.pt")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(RLCheckpointError, match="not a readable"):
+        load_checkpoint(tmp_path / "empty.pt")
+
+
+def test_load_agent_acts_as_the_run_did(tmp_path):
+    from gnwarp.rl.run import build_run, load_agent
+    cfg = RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r"))
+    run_rl(cfg)
+    agent, saved, obs_fn = load_agent(tmp_path / "r", device="cpu")
+    ref = load_checkpoint(tmp_path / "r" / CHECKPOINT)["agent"]
+    assert saved.agent == "svg0" and obs_fn == "bodies" and agent.updates == ref["updates"] > 0
+    assert all(torch.equal(a, b) for a, b in zip(agent.policy.state_dict().values(), ref["policy"].values()))
+    obs = torch.randn(4, agent.obs_dim)
+    fresh = build_run(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "s")))["agent"]
+    assert not torch.equal(agent.act(obs, deterministic=True), fresh.act(obs, deterministic=True))
+    with pytest.raises(FileNotFoundError, match="no gnwarp rl run in .*config.json is missing"):
+        load_agent(tmp_path / "nothing")
+    (tmp_path / "r" / "config.json").write_text("[1, 2]")
+    with pytest.raises(ConfigError, match="table of RLConfig keys"):
+        load_agent(tmp_path / "r")

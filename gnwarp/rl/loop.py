@@ -35,12 +35,19 @@ class CollectorState:
             self.episode_return = np.zeros(self.num_envs)
 
     def state_dict(self) -> dict:
-        obs = self.obs.cpu() if isinstance(self.obs, torch.Tensor) else np.array(self.obs)
-        return dict(obs=obs, num_envs=self.num_envs, episode_return=self.episode_return.copy(), owed=self.owed)
+        """Tensors and plain values (a NumPy env's observations as a tensor, flagged)."""
+        numpy_obs = self.obs is not None and not isinstance(self.obs, torch.Tensor)
+        obs = None if self.obs is None else (torch.as_tensor(np.array(self.obs)) if numpy_obs else self.obs.cpu())
+        return dict(obs=obs, numpy_obs=numpy_obs, num_envs=self.num_envs,
+                    episode_return=torch.as_tensor(self.episode_return.copy()), owed=self.owed)
 
     @classmethod
     def from_state_dict(cls, d: dict, device=None) -> "CollectorState":
-        obs = d["obs"].to(device) if isinstance(d["obs"], torch.Tensor) and device is not None else d["obs"]
+        obs = d["obs"]
+        if obs is not None and d.get("numpy_obs", not isinstance(obs, torch.Tensor)):
+            obs = np.array(obs)
+        elif obs is not None and device is not None:
+            obs = obs.to(device)
         return cls(obs, int(d["num_envs"]), np.array(d["episode_return"]), float(d["owed"]))
 
 

@@ -37,7 +37,8 @@ from gnwarp.rl.replay import ReplayBuffer
 from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "evaluate_policy", "round_seed", "check_task"]
+__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "evaluate_policy", "round_seed", "check_task",
+           "observation_of"]
 
 _PIECE = 50   # vector steps between progress-bar updates
 VIDEO_FILE = "video.gif"
@@ -88,23 +89,20 @@ def check_task(cfg: RLConfig):
     return task
 
 
-def build_run(cfg: RLConfig) -> dict:
-    """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
-    "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
-    ``cfg.seed``."""
-    from gnwarp.control.vector_env import make_vector_env
-    from gnwarp.rl.agents import make_agent
-    task = check_task(cfg)
-    device = _device(cfg.device)
-    settings = cfg.agent_config()
-    obs_fn = "bodies"
+def observation_of(cfg: RLConfig, task):
+    """The observation the run's agent acts on: "bodies" or the task's ``DMCObservation``."""
     if cfg.observation == "dmc":
         from gnwarp.rl.observations import DMCObservation
-        obs_fn = DMCObservation(task.name)
-    env_kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
-    env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
-    eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
-    D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
+        return DMCObservation(task.name)
+    return "bodies"
+
+
+def build_agent(cfg: RLConfig, task, obs_fn, obs_dim: int, action_low, action_high, device):
+    """The run's agent (networks initialized from ``cfg.seed``; SVG(N)'s model and reward of
+    predicted observations) for observations of ``obs_dim`` and the action box [low, high] [U]."""
+    from gnwarp.rl.agents import make_agent
+    settings = cfg.agent_config()
+    D, U = int(obs_dim), len(action_low)
     torch.manual_seed(cfg.seed)
     nets, model, reward_fn = {}, None, None
     gaussian = settings.kind == "svg"
@@ -128,12 +126,60 @@ def build_run(cfg: RLConfig) -> dict:
 
     def reward(obs, action, next_obs):   # in the agent's dtype whatever the reward computes in
         return reward_fn(obs, action, next_obs).to(obs.dtype)
-    agent = make_agent(settings, D, env.single_action_space.low, env.single_action_space.high, model=model,
+    agent = make_agent(settings, D, action_low, action_high, model=model,
                        reward=reward if reward_fn is not None else None, device=device, **nets)
+    return agent, model
+
+
+def build_run(cfg: RLConfig) -> dict:
+    """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
+    "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
+    ``cfg.seed``."""
+    from gnwarp.control.vector_env import make_vector_env
+    task = check_task(cfg)
+    device = _device(cfg.device)
+    obs_fn = observation_of(cfg, task)
+    env_kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
+    eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
+    D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
+    agent, model = build_agent(cfg, task, obs_fn, D, env.single_action_space.low, env.single_action_space.high,
+                               device)
     buffer = ReplayBuffer(cfg.buffer_size, D, U, num_envs=cfg.num_envs, device=device)
     generator = torch.Generator(device).manual_seed(cfg.seed)
     return dict(task=task, env=env, eval_env=eval_env, agent=agent, buffer=buffer, generator=generator,
                 device=device, model=model)
+
+
+def load_agent(folder, device: str = "auto") -> tuple:
+    """(agent, cfg, observation) of the ``gnwarp rl`` run in ``folder``: its ``config.json``
+    (checked as ``RLConfig``) and the agent's state in its ``checkpoint.pt`` (validated; no code
+    runs), on ``device`` ("auto", "cpu", "cuda"); ``observation`` is the run's ("bodies" or its
+    ``DMCObservation``). FileNotFoundError names a missing file."""
+    from gnwarp.control.vector_env import make_vector_env
+    folder = Path(folder)
+    for name in (CONFIG_FILE, CHECKPOINT):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {name} is missing")
+    try:
+        raw = json.loads((folder / CONFIG_FILE).read_text())
+    except json.JSONDecodeError as e:
+        raise ConfigError(str(folder / CONFIG_FILE), f"not valid JSON: {e.msg} (line {e.lineno})") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(str(folder / CONFIG_FILE), "a run's config holds a table of RLConfig keys")
+    cfg = RLConfig.from_dict({**raw, "device": device})
+    task = check_task(cfg)
+    obs_fn = observation_of(cfg, task)
+    # one env of MuJoCo C for the spaces (the agent's sizes and action box)
+    env = make_vector_env(task, 1, backend="mujoco", episode_steps=cfg.episode_steps, output="torch",
+                          observation=obs_fn)
+    try:
+        D, space = env.single_observation_space.shape[0], env.single_action_space
+    finally:
+        env.close()
+    agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, _device(cfg.device))
+    agent.load_state_dict(load_checkpoint(folder / CHECKPOINT)["agent"])
+    return agent, cfg, obs_fn
 
 
 @torch.no_grad()
@@ -167,7 +213,8 @@ def _rng_states() -> dict:
 
 def _set_rng_states(d: dict) -> None:
     torch.set_rng_state(d["torch"])
-    np.random.set_state(d["numpy"])
+    name, keys, *rest = d["numpy"]    # the checkpoint holds the key array as a tensor
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), *rest))
     random.setstate(d["python"])
     if "cuda" in d and torch.cuda.is_available() and len(d["cuda"]) == torch.cuda.device_count():
         torch.cuda.set_rng_state_all(d["cuda"])

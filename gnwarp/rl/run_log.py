@@ -1,9 +1,16 @@
-"""A reinforcement-learning run's files: the checkpoint (written whole or not at all), the
-progress log (CSV, and TensorBoard where ``torch.utils.tensorboard`` imports), the evaluation
-records (``records.jsonl``), each cut back to the checkpoint when a run resumes."""
+"""A reinforcement-learning run's files: the checkpoint (written whole or not at all, read
+without running code, its corruption detected), the progress log (CSV, and TensorBoard where
+``torch.utils.tensorboard`` imports), the evaluation records (``records.jsonl``), each cut back to
+the checkpoint when a run resumes.
+
+The checkpoint file holds {"format": "gnwarp-rl-checkpoint", "version", "sha256", "payload"}:
+the state (tensors and plain values only; NumPy arrays stored as tensors) serialized by
+``torch.save`` into the bytes ``payload``, and their sha256. Both levels are read with
+``torch.load(weights_only=True)``."""
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 from pathlib import Path
 
@@ -13,7 +20,13 @@ from gnwarp.eval.records import read_records, write_records
 from gnwarp.files import atomic_write
 
 __all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "LOG_COLUMNS", "save_checkpoint", "load_checkpoint",
-           "RunLog", "cut_records"]
+           "RunLog", "cut_records", "RLCheckpointError"]
+
+FORMAT, VERSION = "gnwarp-rl-checkpoint", 1
+
+
+class RLCheckpointError(ValueError):
+    """An RL checkpoint that cannot be read: not one, another version, or corrupt."""
 
 CHECKPOINT, LOG_FILE, RECORDS_FILE = "checkpoint.pt", "progress.csv", "records.jsonl"
 LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_seconds", "train_return", "eval_median", "eval_mean",
@@ -21,14 +34,41 @@ LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_se
 
 
 def save_checkpoint(path: str | Path, state: dict) -> None:
-    """``torch.save(state)`` to ``path`` atomically (a kill leaves the previous checkpoint)."""
+    """``state`` (tensors and plain values; NumPy arrays become tensors) to ``path``, atomically
+    (a kill leaves the previous checkpoint) and with its checksum (the module docstring)."""
+    from gnwarp.train.checkpoint import _plain
+    buf = io.BytesIO()
+    torch.save(_plain(state, "the RL checkpoint"), buf)
+    payload = buf.getbuffer()
+    digest = hashlib.sha256(payload).hexdigest()
     with atomic_write(path) as tmp:
-        torch.save(state, tmp)
+        torch.save({"format": FORMAT, "version": VERSION, "sha256": digest,
+                    "payload": torch.frombuffer(bytearray(payload), dtype=torch.uint8)}, tmp)
 
 
 def load_checkpoint(path: str | Path) -> dict:
-    """The checkpoint at ``path``, its tensors on the CPU (``load_state_dict`` moves them)."""
-    return torch.load(path, map_location="cpu", weights_only=False)
+    """The state ``save_checkpoint`` wrote at ``path``, its tensors on the CPU (``load_state_dict``
+    moves them); no code runs. ``RLCheckpointError`` names what is wrong with a file that is not
+    such a checkpoint, of another version, or corrupt."""
+    path = Path(path)
+    try:
+        outer = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unreadable file: one clear error
+        raise RLCheckpointError(f"{path} is not a readable gnwarp rl checkpoint ({type(e).__name__}: "
+                                f"{str(e).strip().splitlines()[0] if str(e).strip() else 'no detail'})") from None
+    if not isinstance(outer, dict) or outer.get("format") != FORMAT:
+        raise RLCheckpointError(f"{path} is not a gnwarp rl checkpoint (written by an older gnwarp or another "
+                                "program; start the run in a new folder)")
+    if outer.get("version") != VERSION:
+        raise RLCheckpointError(f"{path} is a version {outer.get('version')!r} rl checkpoint; this gnwarp reads "
+                                f"version {VERSION}")
+    payload = outer.get("payload")
+    if not isinstance(payload, torch.Tensor) or payload.dtype != torch.uint8 or payload.ndim != 1:
+        raise RLCheckpointError(f"{path}: its payload is missing or malformed")
+    data = payload.numpy().tobytes()
+    if hashlib.sha256(data).hexdigest() != outer.get("sha256"):
+        raise RLCheckpointError(f"{path} is corrupt (its checksum does not match its contents)")
+    return torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
 
 
 def _read_log(path: Path) -> list[dict]:
