@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries",
+__all__ = ["sha256_file", "jsonable", "plain_values", "pid_alive", "atomic_write", "temporary_of", "remove_stale_temporaries",
            "check_output_path", "write_or_check"]
 
 _TEMPORARY = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)$")
@@ -192,3 +192,26 @@ def write_or_check(path: str | Path, text: str, check: bool, command: str) -> in
     print(f"wrote {path}")
     return 0
 
+
+def plain_values(x, where: str):
+    """``x`` as tensors and plain values only (what ``torch.load(weights_only=True)`` reads back):
+    numpy scalars and arrays converted; anything else raises TypeError naming where it is (the
+    checkpoints' state, ``gnwarp.train.checkpoint`` and ``gnwarp.rl.run_log``)."""
+    import torch
+    if isinstance(x, np.generic):  # before float: np.float64 is one
+        return x.item()
+    if x is None or type(x) in (bool, int, float, str):
+        return x
+    if isinstance(x, torch.Tensor):
+        return x.detach()
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(x.copy())
+    if isinstance(x, dict):
+        for k in x:
+            if not isinstance(k, (str, int)) or isinstance(k, bool):
+                raise TypeError(f"{where}: key {k!r} is a {type(k).__name__}; checkpoint keys are str or int")
+        return {k: plain_values(v, f"{where}[{k!r}]") for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(plain_values(v, f"{where}[{i}]") for i, v in enumerate(x))
+    raise TypeError(f"{where} is a {type(x).__module__}.{type(x).__qualname__}; a checkpoint's state "
+                    "holds only tensors and plain values (dict, list, tuple, int, float, bool, str, None)")

@@ -41,6 +41,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     add_mpc(sub)
     lp = sub.add_parser("loop", help="the data loop: plan on the true simulator, add the data, train on, repeat")
     if command in (None, "loop"):   # its flags are LoopConfig's, whose module loads torch
+        import gnwarp.rl.planner  # noqa: F401 - registers planner "policy" (a trained gnwarp rl agent)
         from gnwarp.control.loop_command import add_loop_arguments
         add_loop_arguments(lp)
     add_rl(sub, full=command in (None, "rl"))   # its flags are RLConfig's

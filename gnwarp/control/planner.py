@@ -96,7 +96,12 @@ PLANNERS: dict[str, PlannerEntry] = {
 
 
 def get_planner(name: str) -> PlannerEntry:
-    """The registered planner ``name`` (one of ``PLANNERS``), or ValueError naming the choices."""
+    """The registered planner ``name`` (one of ``PLANNERS``), or ValueError naming the choices.
+    "policy" (a trained agent of ``gnwarp rl``) registers itself when ``gnwarp.rl.planner`` is
+    imported (the ``gnwarp`` commands import it)."""
+    if name == "policy" and name not in PLANNERS:
+        raise ValueError("planner 'policy' (a trained gnwarp rl agent) is registered by importing "
+                         "gnwarp.rl.planner")
     if name not in PLANNERS:
         raise ValueError(f"unknown planner {name!r}; registered: {', '.join(PLANNERS)}")
     return PLANNERS[name]

@@ -4,14 +4,40 @@ closed-loop episodes and benchmarks of ``gnwarp.control`` run it beside the plan
 
     >>> planner = PolicyPlanner(agent, env.obs_layout, n=env.num_envs, targets=env.targets)
     >>> action = planner.step(env.body_states)        # [N, U]
+
+It is registered as planner "policy" (``gnwarp.control.PLANNERS``; settings ``PolicySettings``:
+the folder of a ``gnwarp rl`` run), so ``make_planner("policy", ...)`` and the data loop
+(``LoopConfig(planner="policy", planner_settings={"run": "runs/rl/svg1-s0"})``: the model's
+error on the states the trained agent visits, the paper's Figure H.1) run a trained agent.
 """
 from __future__ import annotations
 
-from typing import Callable
+import dataclasses
+from pathlib import Path
+from typing import Callable, Literal
 
 import torch
 
-__all__ = ["PolicyPlanner"]
+from gnwarp.control.planner import PLANNERS, PlannerEntry
+from gnwarp.validation import ConfigError, check_fields
+
+__all__ = ["PolicyPlanner", "PolicySettings"]
+
+
+@dataclasses.dataclass
+class PolicySettings:
+    """``run``: the folder of a ``gnwarp rl`` run (its ``config.json`` and ``checkpoint.pt``) whose
+    trained policy acts; ``device``: the policy's ("auto": CUDA where there is one)."""
+    run: str = ""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+
+    def __post_init__(self):
+        check_fields(self)
+        if not isinstance(self.run, str) or not self.run.strip():
+            raise ConfigError("run", "must name the folder of a gnwarp rl run (its config.json and checkpoint.pt)")
+        missing = [f for f in ("config.json", "checkpoint.pt") if not (Path(self.run) / f).is_file()]
+        if missing:   # refused before anything is simulated
+            raise ConfigError("run", f"no gnwarp rl run in {self.run} (no {' or '.join(missing)})")
 
 
 class PolicyPlanner:
@@ -21,6 +47,29 @@ class PolicyPlanner:
     a task without)."""
 
     needs_sim_state = False
+    settings = None   # a PolicySettings when made from one (``for_model``)
+
+    @classmethod
+    def for_model(cls, dynamics, task, system, n: int, settings: PolicySettings, targets=None) -> "PolicyPlanner":
+        """``make_planner``'s builder: the trained policy of the run ``settings.run`` for ``n``
+        episodes of ``task`` on ``system`` (``dynamics`` unused: a policy does not plan). The
+        run's task and action count must be these; ``ConfigError`` names what differs."""
+        from gnwarp.control.env_observation import ObservationLayout
+        from gnwarp.control.tasks import get_task
+        from gnwarp.rl.run import load_agent
+        from gnwarp.sim.systems import System, make
+        task = get_task(task) if isinstance(task, str) else task
+        agent, cfg, obs_fn = load_agent(settings.run, settings.device)
+        trained = get_task(cfg.task).name
+        if trained != task.name:
+            raise ConfigError("run", f"the policy in {settings.run} was trained on task {trained!r}, not {task.name!r}")
+        system = system if isinstance(system, System) else make(system)
+        if system.nu != agent.action_dim:
+            raise ConfigError("run", f"the policy in {settings.run} gives {agent.action_dim} actions; "
+                                     f"{system.name} has {system.nu} actuators")
+        planner = cls(agent, ObservationLayout(system, task, None if obs_fn == "bodies" else obs_fn), n, targets)
+        planner.settings = settings
+        return planner
 
     def __init__(self, agent, observation: Callable, n: int, targets=None):
         if not callable(observation):
@@ -56,3 +105,6 @@ class PolicyPlanner:
     def step(self, state) -> torch.Tensor:
         self.optimize(state)
         return self.act(state, 0)
+
+
+PLANNERS.setdefault("policy", PlannerEntry(PolicyPlanner, PolicySettings))

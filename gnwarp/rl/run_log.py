@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from gnwarp.eval.records import read_records, write_records
-from gnwarp.files import atomic_write
+from gnwarp.files import atomic_write, plain_values
 
 __all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "LOG_COLUMNS", "save_checkpoint", "load_checkpoint",
            "RunLog", "cut_records", "RLCheckpointError"]
@@ -36,9 +36,8 @@ LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_se
 def save_checkpoint(path: str | Path, state: dict) -> None:
     """``state`` (tensors and plain values; NumPy arrays become tensors) to ``path``, atomically
     (a kill leaves the previous checkpoint) and with its checksum (the module docstring)."""
-    from gnwarp.train.checkpoint import _plain
     buf = io.BytesIO()
-    torch.save(_plain(state, "the RL checkpoint"), buf)
+    torch.save(plain_values(state, "the RL checkpoint"), buf)
     payload = buf.getbuffer()
     digest = hashlib.sha256(payload).hexdigest()
     with atomic_write(path) as tmp:

@@ -30,11 +30,10 @@ import shutil
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from gnwarp.data.layout import FeatureLayout
-from gnwarp.files import atomic_write, pid_alive, sha256_file
+from gnwarp.files import atomic_write, pid_alive, plain_values, sha256_file
 from gnwarp.gn.options import RunOptions, check_option_names
 from gnwarp.interop import resolve_device
 from gnwarp.models.config import ModelConfig, check_model_size
@@ -54,29 +53,6 @@ class CheckpointError(ValueError):
     """A checkpoint folder that is missing, incomplete, corrupt, unsafe or of another format."""
 
 
-# -- plain values ------------------------------------------------------------------------------
-def _plain(x, where: str):
-    """``x`` as tensors and plain values only (what ``torch.load(weights_only=True)`` reads back):
-    numpy scalars and arrays converted; anything else raises TypeError naming where it is."""
-    if isinstance(x, np.generic):  # before float: np.float64 is one
-        return x.item()
-    if x is None or type(x) in (bool, int, float, str):
-        return x
-    if isinstance(x, torch.Tensor):
-        return x.detach()
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x.copy())
-    if isinstance(x, dict):
-        for k in x:
-            if not isinstance(k, (str, int)) or isinstance(k, bool):
-                raise TypeError(f"{where}: key {k!r} is a {type(k).__name__}; checkpoint keys are str or int")
-        return {k: _plain(v, f"{where}[{k!r}]") for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return type(x)(_plain(v, f"{where}[{i}]") for i, v in enumerate(x))
-    raise TypeError(f"{where} is a {type(x).__module__}.{type(x).__qualname__}; a checkpoint's training state "
-                    "holds only tensors and plain values (dict, list, tuple, int, float, bool, str, None)")
-
-
 # -- writing -----------------------------------------------------------------------------------
 def save_checkpoint(path, model: ForwardModel, training: dict | None = None, info: dict | None = None) -> Path:
     """Write ``model`` (and optional training state: tensors and plain values only) as a
@@ -89,7 +65,7 @@ def snapshot(model: ForwardModel, training: dict | None = None, info: dict | Non
     """What ``save_checkpoint`` writes, copied now: config text and every tensor on the CPU (copies,
     so that training on may go on while another thread writes them, ``CheckpointWriter``)."""
     if training is not None:
-        training = _cpu_copy(_plain(training, "training"))
+        training = _cpu_copy(plain_values(training, "training"))
     cfg = {"format": FORMAT, "version": VERSION, "gnwarp_version": __version__, "model": model.config.to_dict()}
     if getattr(model, "layout", None) is not None:  # models of observation graphs have input sizes instead
         cfg["layout"] = model.layout.to_dict()
