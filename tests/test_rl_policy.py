@@ -75,3 +75,22 @@ def test_the_data_loop_runs_a_trained_policy(rl_run, tmp_path):
     torch.testing.assert_close(acted.reshape(S, T, -1).to(ctrl.dtype), ctrl, rtol=1e-5, atol=1e-6)
     with pytest.raises(ConfigError, match="takes no terminal value"):
         LoopConfig(**{**cfg.to_dict(), "out": str(tmp_path / "v"), "value": {}})
+
+
+def test_gnwarp_mpc_acts_with_a_trained_policy(rl_run, tmp_path, capsys):
+    from gnwarp.cli import main
+    from gnwarp.eval.records import read_records
+    rec_path = tmp_path / "r.jsonl"
+    args = ["mpc", "--task", "pendulum-balance", "--policy", str(rl_run), "--episodes", "2", "--steps", "8",
+            "--backend", "mujoco", "--device", "cpu", "--video", "none", "--records", str(rec_path), "-q"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "the trained policy of" in out and "true return" in out
+    (rec,) = read_records(rec_path)
+    assert rec.planner == "policy" and rec.dynamics == "none" and len(rec.returns) == 2 and rec.config["model"] is None
+    agent, _, _ = load_agent(rl_run, "cpu")
+    assert rec.env_steps == agent.env_steps == 40
+    assert main(args[:-1] + ["--horizon", "5"]) == 2          # a planner's setting: refused, naming it
+    assert "--horizon set a planner's settings" in capsys.readouterr().err
+    assert main(["mpc", "--task", "pendulum-balance", "--episodes", "1", "--video", "none"]) == 2
+    assert "--model is required" in capsys.readouterr().err

@@ -35,6 +35,18 @@ def mpc_settings(args, task):
     from gnwarp.control.planner import MODEL_PLANNERS, get_planner, planner_settings
     from gnwarp.validation import ConfigError
     name = args.planner
+    if name == "policy":   # a trained agent acts: no planner settings, no model
+        given = [f"--{f}" for f in SETTING_FLAGS if getattr(args, f) is not None] + (["--set"] if args.set else [])
+        if args.terminal is not None:
+            given.append("--terminal")
+        if given:
+            raise ValueError(f"{', '.join(given)} set a planner's settings; --policy acts with a trained policy "
+                             "without planning")
+        from gnwarp.rl.planner import PolicySettings   # registers planner "policy"
+        try:
+            return PolicySettings(run=args.policy or "", device=args.device or "auto")
+        except ConfigError as e:
+            raise ConfigError("--policy", e.reason) from None
     if name not in MODEL_PLANNERS:
         why = " (it does not plan through a learned model)" if name in ("ilqg", "random") else ""
         raise ValueError(f"--planner {name!r}{why}: gnwarp mpc plans through a learned model with one of "
@@ -72,6 +84,8 @@ def mpc_settings(args, task):
 def planner_summary(planner, name: str) -> str:
     """What the planner spends a control step on, in words."""
     s = planner.settings
+    if name == "policy":
+        return f"the trained policy of {s.run}, no planning"
     if name == "gradient":
         return (f"horizon {planner.horizon}, {s.iterations} iterations a step: {planner.model_evals_per_step} model "
                 "steps an episode")
@@ -103,6 +117,13 @@ def mpc_command(args) -> int:
 
     task = get_task(args.task)
     # refused before anything is loaded
+    if args.policy is not None and args.planner not in ("gradient", "policy"):
+        raise ValueError(f"--policy acts with a trained policy; it does not go with --planner {args.planner}")
+    args.planner = "policy" if args.policy is not None else args.planner
+    if args.model is None and args.planner != "policy":
+        raise ValueError(f"--model is required: planner {args.planner!r} plans through a learned model "
+                         "(or act with a trained gnwarp rl policy: --policy RUN)")
+    policy = args.planner == "policy"
     settings = mpc_settings(args, task)
     args.steps = args.steps if args.steps is not None else (getattr(task, "episode_steps", None) or 100)
     if args.episodes < 1 or args.steps < 1:
@@ -113,10 +134,11 @@ def mpc_command(args) -> int:
     video = None if args.video == "none" else Path(args.video or f"mpc-{task.name}.gif")
     check_outputs(records, video)   # before planning, not after
     rk = ranks(args.device or "auto")   # rank 0 of 1 unless started by torchrun
-    model = load_model(args.model, device=rk.device if rk.distributed else args.device,
-                       **({"impl": args.impl} if args.impl else {}))
+    model = None if policy else load_model(args.model, device=rk.device if rk.distributed else args.device,
+                                           **({"impl": args.impl} if args.impl else {}))
     # the system: --system, else the one the model was trained on that fits the task
-    name = args.system or next((s for s in model_systems(model) if family_name(s) == task.system),
+    name = args.system or next((s for s in (model_systems(model) if model is not None else ())
+                                if family_name(s) == task.system),
                                "swimmer6" if task.system == "swimmer" else task.system)
     system = systems.make(name)
     n = args.episodes
@@ -193,19 +215,22 @@ def mpc_command(args) -> int:
     if rk.distributed:
         metrics["ranks"] = rk.world
     fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
-    horizon = getattr(planner, "horizon", None) or settings.horizon
+    horizon = getattr(planner, "horizon", None) or getattr(settings, "horizon", None)
     record = ResultRecord(
-        experiment="mpc", task=task.name, system=system.name, planner=kind, dynamics="learned", seed=args.seed,
-        episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()], control_dt=float(system.dt),
-        action_repeat=int(system.substeps), env_steps=training_env_steps(args.model),
+        experiment="mpc", task=task.name, system=system.name, planner=kind, dynamics="none" if policy else "learned",
+        seed=args.seed, episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()],
+        control_dt=float(system.dt), action_repeat=int(system.substeps),
+        env_steps=planner.agent.env_steps if policy else training_env_steps(args.model),
         metrics=metrics, variant="terminal" if terminal is not None else "",
-        config={"model": str(args.model), "horizon": horizon, "iterations": fields.get("iterations"),
+        config={"model": None if policy else str(args.model), "policy": args.policy, "horizon": horizon,
+                "iterations": fields.get("iterations"),
                 "warmup": planner.warmup if gradient else fields.get("warmup"), "proposals": fields.get("proposals"),
                 "lr": fields.get("lr"), "backend": args.backend, "settings": fields,
                 "terminal": None if args.terminal is None else str(args.terminal),
                 "initial_qpos": np.asarray(qpos).tolist(), "initial_qvel": np.asarray(qvel).tolist(),
                 "targets": None if target is None else target.cpu().double().numpy().tolist()},
-        commit=git_commit(), gpu=gpu_name(model.device), date=time.strftime("%Y-%m-%d %H:%M:%S"))
+        commit=git_commit(), gpu=gpu_name(planner.device if policy else model.device),
+        date=time.strftime("%Y-%m-%d %H:%M:%S"))
     write_records(records, [record])
     print(f"wrote {records}")
     if video is not None:
@@ -265,8 +290,13 @@ def add_mpc(sub) -> None:
                            "A progress bar counts gradient MPC's planning iterations (other planners': control "
                            "steps). Prints the first control step and the steady state apart, with the real-time "
                            "factor (control timestep / steady time).",
+                           "--policy RUN acts with the trained policy of a gnwarp rl run on the same task instead "
+                           "(no model, no planning: a baseline beside the planners).",
                            "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
-    m.add_argument("--model", required=True, help="checkpoint folder (e.g. runs/pendulum/best)")
+    m.add_argument("--model", help="checkpoint folder (e.g. runs/pendulum/best; default: none, required unless --policy)")
+    m.add_argument("--policy", metavar="RUN",
+                   help="act with the trained policy of the gnwarp rl run in folder RUN instead of planning "
+                        "(planner 'policy'; no --model; default: none)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance, cheetah-run)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
     m.add_argument("--planner", default="gradient", metavar="NAME",
