@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-5", help="e.g. 0-5 or 0,2,7")
     ap.add_argument("--env-steps", type=int, default=None, help="env steps to train in all (default: RLConfig's)")
     ap.add_argument("--budget-seconds", type=float, default=480.0, help="each seed's budget in this call")
-    ap.add_argument("--threads", type=int, default=2, help="CPU threads of each process (OMP_NUM_THREADS)")
+    ap.add_argument("--threads", type=int, default=2, help="CPU threads of each process (OMP_NUM_THREADS, and its MuJoCo C pool: sim_threads)")
     ap.add_argument("--runs", default="runs/rl", help="folder of the run folders")
     ap.add_argument("--results", default=str(Path("bench") / "results" / "rl"),
                     help="where each seed's records.jsonl and progress.csv are copied")
@@ -85,7 +85,8 @@ def main(argv=None) -> int:
     if a.one:
         return _one(a.one)
     base: dict = dict(QUICK) if a.quick else dict(task=a.task, agent=a.agent)
-    base.update(preset=a.preset, networks=a.networks, budget_seconds=a.budget_seconds, progress=False)
+    base.update(preset=a.preset, networks=a.networks, budget_seconds=a.budget_seconds, progress=False,
+                sim_threads=a.threads)   # MuJoCo C's pool too: processes side by side share the cores
     if a.env_steps is not None:
         base["env_steps"] = a.env_steps
     for item in a.set:

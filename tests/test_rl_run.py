@@ -262,3 +262,14 @@ def test_load_agent_acts_as_the_run_did(tmp_path):
     (tmp_path / "r" / "config.json").write_text("[1, 2]")
     with pytest.raises(ConfigError, match="table of RLConfig keys"):
         load_agent(tmp_path / "r")
+
+
+def test_sim_threads_change_no_result(tmp_path):
+    cfg = dict(TINY, agent="ddpg", env_steps=40, num_envs=3)
+    a = run_rl(RLConfig(**cfg, out=str(tmp_path / "a")))
+    b = run_rl(RLConfig(**cfg, sim_threads=1, out=str(tmp_path / "b")))
+    assert a["last_eval"] == b["last_eval"] and a["updates"] == b["updates"]
+    _tensors_equal(load_checkpoint(tmp_path / "a" / CHECKPOINT)["buffer"],
+                   load_checkpoint(tmp_path / "b" / CHECKPOINT)["buffer"], "buffer")
+    with pytest.raises(ConfigError, match="sim_threads"):
+        RLConfig(**cfg, sim_threads=0, out=str(tmp_path / "c"))

@@ -19,7 +19,7 @@ MAX_RL_HORIZON = 5     # SVG(N) runs accept N <= this (the paper's SVG(5+) did n
 CONFIG_FILE = "config.json"
 # keys a resumed run may change; the others must equal the folder's config.json
 RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard", "cuda_graph",
-             "video_episodes", "video_steps", "renderer")
+             "video_episodes", "video_steps", "renderer", "sim_threads")
 # AgentSettings keys the run sets itself
 _RUN_AGENT_KEYS = ("agent", "preset", "seed", "updates_per_step")
 
@@ -47,7 +47,9 @@ class RLConfig:
     agent's; ``backend``: the true simulator's. ``chunk``: env steps at most in this call;
     ``budget_seconds``: stop before a round expected to end past this many seconds of this
     call; both stop at episode ends only, so a resumed run equals an uninterrupted one.
-    ``cuda_graph``: on CUDA, the gradient update is recorded once in a CUDA graph and replayed
+    ``sim_threads``: the threads of MuJoCo C's rollout pool in each env (results do not depend on
+    it; several runs side by side want few each). ``cuda_graph``: on CUDA, the gradient update is
+    recorded once in a CUDA graph and replayed
     (``gnwarp.rl.graphed.Updater``; the same numbers as eager updates, several times faster).
     ``video_episodes``, ``video_steps``, ``renderer``: at the end of a call that evaluated, a GIF
     ``video.gif`` of the first ``video_steps`` steps of that many episodes of its last evaluation
@@ -79,6 +81,9 @@ class RLConfig:
     device: Literal["auto", "cpu", "cuda"] = described("auto", "the agent's device")
     backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
         "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")
+    sim_threads: PositiveInt | None = described(
+        None, "MuJoCo C's threads stepping the envs (unset: one per env up to the CPU count; 1 where seeds run "
+              "side by side)")
     chunk: PositiveInt | None = described(None, "env steps at most in this call (rounded up to whole episodes)")
     budget_seconds: PositiveFloat | None = described(None, "stop before a round expected to end past this many "
                                                            "seconds of this call")

@@ -140,6 +140,8 @@ def build_run(cfg: RLConfig) -> dict:
     device = _device(cfg.device)
     obs_fn = observation_of(cfg, task)
     env_kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    if cfg.sim_threads is not None and _backend(cfg) == "mujoco":
+        env_kw["nthread"] = cfg.sim_threads
     env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
     eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
