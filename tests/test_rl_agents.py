@@ -423,3 +423,21 @@ def test_squash_penalty_pulls_the_unbounded_output_back_from_tanhs_flat_ends(pen
         assert after == pytest.approx(before, abs=1e-9)   # a flat Q gives the policy no gradient at all
     else:
         assert after < before - 0.01
+
+
+def test_default_model_loss_weighs_each_entry_by_its_change_spread():
+    from gnwarp.rl.agents import mse_model_loss
+    from gnwarp.rl.networks import ObservationModel
+    torch.manual_seed(0)
+    model = ObservationModel(2, 1, (8,))
+    obs, act = torch.randn(64, 2), torch.randn(64, 1)
+    nxt = obs + torch.stack([0.01 * torch.randn(64), 10.0 * torch.randn(64)], -1)
+    batch = Transitions(obs, act, torch.zeros(64), nxt, torch.zeros(64, dtype=torch.bool),
+                        torch.zeros(64, dtype=torch.bool))
+    raw = (model(obs, act) - nxt).pow(2).mean()
+    assert torch.equal(mse_model_loss(model, batch), raw)          # delta_std 1 before normalize_from
+    model.normalize_from(obs, nxt)
+    err = (model(obs, act) - nxt) / model.delta_std
+    assert torch.allclose(mse_model_loss(model, batch), err.pow(2).mean())
+    assert mse_model_loss(model, batch) < 0.01 * (model(obs, act) - nxt).pow(2).mean()   # not the raw loss
+    assert mse_model_loss(lambda o, a: o, batch) == (obs - nxt).pow(2).mean()   # no delta_std: raw units

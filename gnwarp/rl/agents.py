@@ -29,8 +29,13 @@ __all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss"]
 
 def mse_model_loss(model, batch: Transitions) -> torch.Tensor:
     """The default joint model loss: mean squared error of ``model(obs, action)`` against the
-    observed ``next_obs``."""
-    return (model(batch.obs, batch.action) - batch.next_obs).pow(2).mean()
+    observed ``next_obs``, each entry in units of the model's ``delta_std`` (the spread of its
+    change, ``NormalizedModel``) where it has one: every entry counts alike, so those that change
+    little (swimmer6's ``to_target``, which its reward reads) are fitted as well as the large
+    velocities; raw units for a model without one."""
+    err = model(batch.obs, batch.action) - batch.next_obs
+    scale = getattr(model, "delta_std", None)
+    return (err if scale is None else err / scale).pow(2).mean()
 
 
 def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
