@@ -439,5 +439,5 @@ def test_default_model_loss_weighs_each_entry_by_its_change_spread():
     model.normalize_from(obs, nxt)
     err = (model(obs, act) - nxt) / model.delta_std
     assert torch.allclose(mse_model_loss(model, batch), err.pow(2).mean())
-    assert mse_model_loss(model, batch) < 0.01 * (model(obs, act) - nxt).pow(2).mean()   # not the raw loss
+    assert mse_model_loss(model, batch) < 0.1 * (model(obs, act) - nxt).pow(2).mean()   # not the raw loss
     assert mse_model_loss(lambda o, a: o, batch) == (obs - nxt).pow(2).mean()   # no delta_std: raw units
