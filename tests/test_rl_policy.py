@@ -94,3 +94,20 @@ def test_gnwarp_mpc_acts_with_a_trained_policy(rl_run, tmp_path, capsys):
     assert "--horizon set a planner's settings" in capsys.readouterr().err
     assert main(["mpc", "--task", "pendulum-balance", "--episodes", "1", "--video", "none"]) == 2
     assert "--model is required" in capsys.readouterr().err
+    for extra, words in ((["--planner", "gradient"], "takes no --planner"), (["--model", str(rl_run)], "takes no --model"),
+                         (["--terminal", str(rl_run / "config.json")], "--terminal set a planner's settings"),
+                         (["--set", "seed=1"], "--set set a planner's settings")):
+        assert main(args[:-1] + extra) == 2
+        assert words in capsys.readouterr().err
+    assert main(["mpc", "--task", "pendulum-balance", "--planner", "policy", "--video", "none"]) == 2
+    assert "--policy" in capsys.readouterr().err   # planner policy names its run with --policy
+
+
+def test_policy_is_registered_by_its_module_only():
+    import gnwarp.control.planner as cp
+    entry = cp.PLANNERS.pop("policy")
+    try:
+        with pytest.raises(ValueError, match="registered by importing gnwarp.rl.planner"):
+            cp.get_planner("policy")
+    finally:
+        cp.PLANNERS["policy"] = entry

@@ -228,14 +228,20 @@ def test_checkpoint_runs_no_code_and_detects_corruption(tmp_path):
     raw = bytearray(path.read_bytes())
     raw[len(raw) // 2] ^= 0xFF                       # one flipped byte inside the payload
     path.write_bytes(bytes(raw))
-    with pytest.raises(RLCheckpointError, match="corrupt|not a readable"):
+    with pytest.raises(RLCheckpointError, match="is corrupt .its checksum"):
         load_checkpoint(path)
+    for outer, words in (({"format": "gnwarp-rl-checkpoint", "version": 99}, "version 99 rl checkpoint"),
+                         ({"format": "gnwarp-rl-checkpoint", "version": 1, "sha256": "x", "payload": torch.zeros(3)},
+                          "payload is missing or malformed")):
+        torch.save(outer, tmp_path / "other.pt")
+        with pytest.raises(RLCheckpointError, match=words):
+            load_checkpoint(tmp_path / "other.pt")
 
     class Boom:                                      # a pickle that would run code when loaded
         def __reduce__(self):
             return (os.system, ("echo ran > " + str(tmp_path / "ran"),))
     torch.save({"agent": Boom()}, tmp_path / "evil.pt")
-    with pytest.raises(RLCheckpointError, match="not a readable gnwarp rl checkpoint"):
+    with pytest.raises(RLCheckpointError, match="holds objects other than tensors and plain values"):
         load_checkpoint(tmp_path / "evil.pt")
     assert not (tmp_path / "ran").exists()
     torch.save({"agent": {}}, tmp_path / "old.pt")   # plain values, but not this format
@@ -273,3 +279,27 @@ def test_sim_threads_change_no_result(tmp_path):
                    load_checkpoint(tmp_path / "b" / CHECKPOINT)["buffer"], "buffer")
     with pytest.raises(ConfigError, match="sim_threads"):
         RLConfig(**cfg, sim_threads=0, out=str(tmp_path / "c"))
+
+
+def test_checkpointed_random_states_and_collector_round_trip(tmp_path):
+    import random
+    from gnwarp.rl.loop import CollectorState
+    from gnwarp.rl.run import _rng_states, _set_rng_states
+    from gnwarp.rl.run_log import save_checkpoint
+    np.random.seed(3)
+    np.random.standard_normal()                      # a cached Gaussian in the state
+    random.seed(4)
+    torch.manual_seed(5)
+    states = [CollectorState(None, 2), CollectorState(np.arange(6.0).reshape(2, 3), 2, np.array([1.5, -2.0]), 0.25),
+              CollectorState(torch.arange(4.0).reshape(2, 2), 2)]
+    save_checkpoint(tmp_path / "c.pt", {"rng": _rng_states(), "collectors": [c.state_dict() for c in states]})
+    want = (np.random.standard_normal(3), random.random(), torch.rand(2))
+    np.random.seed(0), random.seed(0), torch.manual_seed(0)
+    back = load_checkpoint(tmp_path / "c.pt")
+    _set_rng_states(back["rng"])
+    got = (np.random.standard_normal(3), random.random(), torch.rand(2))
+    assert np.array_equal(want[0], got[0]) and want[1] == got[1] and torch.equal(want[2], got[2])
+    none, arr, ten = (CollectorState.from_state_dict(d) for d in back["collectors"])
+    assert none.obs is None and isinstance(arr.obs, np.ndarray) and np.array_equal(arr.obs, states[1].obs)
+    assert np.array_equal(arr.episode_return, [1.5, -2.0]) and arr.owed == 0.25 and arr.obs.dtype == np.float64
+    assert isinstance(ten.obs, torch.Tensor) and torch.equal(ten.obs, states[2].obs)

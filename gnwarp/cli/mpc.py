@@ -117,9 +117,12 @@ def mpc_command(args) -> int:
 
     task = get_task(args.task)
     # refused before anything is loaded
-    if args.policy is not None and args.planner not in ("gradient", "policy"):
-        raise ValueError(f"--policy acts with a trained policy; it does not go with --planner {args.planner}")
-    args.planner = "policy" if args.policy is not None else args.planner
+    if args.policy is not None:
+        given = [f for f, v in (("--planner", args.planner not in (None, "policy")), ("--model", args.model),
+                                ("--impl", args.impl)) if v]
+        if given:
+            raise ValueError(f"--policy acts with a trained gnwarp rl policy: it takes no {' or '.join(given)}")
+    args.planner = "policy" if args.policy is not None else (args.planner or "gradient")
     if args.model is None and args.planner != "policy":
         raise ValueError(f"--model is required: planner {args.planner!r} plans through a learned model "
                          "(or act with a trained gnwarp rl policy: --policy RUN)")
@@ -298,9 +301,11 @@ def add_mpc(sub) -> None:
                    help="act with the trained policy of the gnwarp rl run in folder RUN instead of planning "
                         "(planner 'policy'; no --model; default: none)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance, cheetah-run)")
-    m.add_argument("--system", help="system to control (default: the model's system that fits the task)")
-    m.add_argument("--planner", default="gradient", metavar="NAME",
-                   help=f"planner through the model: {', '.join(PLANNERS)} (gnwarp.control.PLANNERS)")
+    m.add_argument("--system", help="system to control (default: the model's system that fits the task; with "
+                                    "--policy, the task's)")
+    m.add_argument("--planner", default=None, metavar="NAME",
+                   help=f"planner through the model: {', '.join(PLANNERS)} (gnwarp.control.PLANNERS; default: "
+                        "gradient)")
     m.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a field of the planner's settings (repeatable; values parsed as JSON when they parse, "
                         "e.g. --set samples=128 --set noise=0.3; default: none)")

@@ -82,8 +82,8 @@ class RLConfig:
     backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
         "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")
     sim_threads: PositiveInt | None = described(
-        None, "MuJoCo C's threads stepping the envs (unset: one per env up to the CPU count; 1 where seeds run "
-              "side by side)")
+        None, "MuJoCo C's threads stepping the envs (unset: one per env up to the CPU count; few where runs go "
+              "side by side: bench/rl_seeds.py sets its --threads; other backends ignore it)")
     chunk: PositiveInt | None = described(None, "env steps at most in this call (rounded up to whole episodes)")
     budget_seconds: PositiveFloat | None = described(None, "stop before a round expected to end past this many "
                                                            "seconds of this call")

@@ -37,7 +37,7 @@ class CollectorState:
     def state_dict(self) -> dict:
         """Tensors and plain values (a NumPy env's observations as a tensor, flagged)."""
         numpy_obs = self.obs is not None and not isinstance(self.obs, torch.Tensor)
-        obs = None if self.obs is None else (torch.as_tensor(np.array(self.obs)) if numpy_obs else self.obs.cpu())
+        obs = None if self.obs is None else (torch.from_numpy(np.array(self.obs)) if numpy_obs else self.obs.cpu())
         return dict(obs=obs, numpy_obs=numpy_obs, num_envs=self.num_envs,
                     episode_return=torch.as_tensor(self.episode_return.copy()), owed=self.owed)
 
@@ -45,10 +45,12 @@ class CollectorState:
     def from_state_dict(cls, d: dict, device=None) -> "CollectorState":
         obs = d["obs"]
         if obs is not None and d.get("numpy_obs", not isinstance(obs, torch.Tensor)):
-            obs = np.array(obs)
+            obs = obs.numpy().copy() if isinstance(obs, torch.Tensor) else np.array(obs)
         elif obs is not None and device is not None:
             obs = obs.to(device)
-        return cls(obs, int(d["num_envs"]), np.array(d["episode_return"]), float(d["owed"]))
+        ret = d["episode_return"]
+        ret = ret.numpy().copy() if isinstance(ret, torch.Tensor) else np.array(ret)
+        return cls(obs, int(d["num_envs"]), ret, float(d["owed"]))
 
 
 def _numpy(x) -> np.ndarray:

@@ -179,8 +179,11 @@ def load_agent(folder, device: str = "auto") -> tuple:
         D, space = env.single_observation_space.shape[0], env.single_action_space
     finally:
         env.close()
-    agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, _device(cfg.device))
-    agent.load_state_dict(load_checkpoint(folder / CHECKPOINT)["agent"])
+    state = load_checkpoint(folder / CHECKPOINT)["agent"]   # before building: a bad file fails first
+    devices = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
+    with torch.random.fork_rng(devices=devices):   # building seeds torch: leave the caller's RNG as it was
+        agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, _device(cfg.device))
+    agent.load_state_dict(state)
     return agent, cfg, obs_fn
 
 

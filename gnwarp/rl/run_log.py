@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import pickle
 from pathlib import Path
 
 import torch
@@ -38,11 +39,11 @@ def save_checkpoint(path: str | Path, state: dict) -> None:
     (a kill leaves the previous checkpoint) and with its checksum (the module docstring)."""
     buf = io.BytesIO()
     torch.save(plain_values(state, "the RL checkpoint"), buf)
-    payload = buf.getbuffer()
-    digest = hashlib.sha256(payload).hexdigest()
+    view = buf.getbuffer()            # the serialized state, not copied again below
+    digest = hashlib.sha256(view).hexdigest()
     with atomic_write(path) as tmp:
         torch.save({"format": FORMAT, "version": VERSION, "sha256": digest,
-                    "payload": torch.frombuffer(bytearray(payload), dtype=torch.uint8)}, tmp)
+                    "payload": torch.frombuffer(view, dtype=torch.uint8)}, tmp)
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -50,8 +51,12 @@ def load_checkpoint(path: str | Path) -> dict:
     moves them); no code runs. ``RLCheckpointError`` names what is wrong with a file that is not
     such a checkpoint, of another version, or corrupt."""
     path = Path(path)
-    try:
-        outer = torch.load(path, map_location="cpu", weights_only=True)
+    try:   # mapped, not read: the payload is hashed and parsed in place
+        outer = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except pickle.UnpicklingError:
+        raise RLCheckpointError(f"{path} is not a gnwarp rl checkpoint: it holds objects other than tensors and "
+                                "plain values (a checkpoint of an older gnwarp, or another program's file); start "
+                                "the run in a new folder") from None
     except Exception as e:  # noqa: BLE001 - any unreadable file: one clear error
         raise RLCheckpointError(f"{path} is not a readable gnwarp rl checkpoint ({type(e).__name__}: "
                                 f"{str(e).strip().splitlines()[0] if str(e).strip() else 'no detail'})") from None
@@ -64,7 +69,7 @@ def load_checkpoint(path: str | Path) -> dict:
     payload = outer.get("payload")
     if not isinstance(payload, torch.Tensor) or payload.dtype != torch.uint8 or payload.ndim != 1:
         raise RLCheckpointError(f"{path}: its payload is missing or malformed")
-    data = payload.numpy().tobytes()
+    data = memoryview(payload.numpy())
     if hashlib.sha256(data).hexdigest() != outer.get("sha256"):
         raise RLCheckpointError(f"{path} is corrupt (its checksum does not match its contents)")
     return torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
