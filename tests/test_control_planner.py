@@ -58,10 +58,16 @@ def make(name: str, model, env):
     raise AssertionError(f"no test planner for {name}")
 
 
+# the planners of gnwarp.control; "policy" (a trained gnwarp rl agent, registered when gnwarp.rl.planner
+# is imported, as another test module may have done) acts without planning: tests/test_rl_policy.py
+CONTROL_PLANNERS = [n for n in PLANNERS if n != "policy"]
+
+
 def test_every_registered_planner_runs_in_run_episodes(model):
     env = make_env("pendulum", N, backend="mujoco")
-    assert set(PLANNERS) == {"gradient", "sampling", "mppi", "ilqg", "random", "hybrid"}
-    for name in PLANNERS:
+    assert set(CONTROL_PLANNERS) == {"gradient", "sampling", "mppi", "ilqg", "random", "hybrid"}
+    assert set(PLANNERS) - set(CONTROL_PLANNERS) <= {"policy"}
+    for name in CONTROL_PLANNERS:
         planner = make(name, model, env)
         assert isinstance(planner, Planner) and planner_name(planner) == name
         assert planner.needs_sim_state == (name in ("sampling", "mppi", "ilqg"))
@@ -75,7 +81,7 @@ def test_every_registered_planner_runs_in_run_episodes(model):
 
 def test_step_is_optimize_then_act(model):
     env = make_env("pendulum", N, backend="mujoco")
-    for name in PLANNERS:
+    for name in CONTROL_PLANNERS:
         a, b = make(name, model, env), make(name, model, env)
         env.reset(Q0, V0)
         for _ in range(3):

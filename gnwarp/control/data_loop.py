@@ -95,7 +95,8 @@ class LoopConfig:
     task: str = described("pendulum-balance", "task name (gnwarp.control.TASKS)")
     out: str = described("runs/loop", "the loop folder (resumed where it holds a loop)")
     system: str | None = described(None, "system to control (unset: the task's)")
-    planner: str = described("gradient", "planner name (gnwarp.control.PLANNERS) planning through the model")
+    planner: str = described("gradient", "planner name (gnwarp.control.PLANNERS) planning through the model, "
+                                          "or policy: a trained gnwarp rl agent (planner_settings.run)")
     planner_settings: dict = field(default_factory=dict)
     episodes: PositiveInt = described(16, "episodes planned together each iteration")
     episode_steps: PositiveInt | None = described(None, "control steps per episode (unset: the task's episode "
