@@ -39,7 +39,7 @@ TORCHRUN_VARS = ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "GROUP_
 
 QUICK = dict(task="pendulum-balance", agent="svg0", observation="bodies", num_envs=2, episode_steps=20,
              env_steps=160, hidden=[16], batch_size=16, start_steps=40, update_after=40, buffer_size=1000,
-             eval_every=80, eval_episodes=4, device="cpu", backend="mujoco", tensorboard=False)
+             eval_every=80, eval_episodes=4, device="cpu", backend="mujoco", tensorboard=False, video_episodes=0)
 
 
 def seeds_of(text: str) -> list[int]:

@@ -122,7 +122,7 @@ def test_svg1_gn_on_swimmer6(tmp_path):
     cfg = RLConfig(task="swimmer6", agent="svg1", networks="gn", gn_impl="torch", num_envs=2, episode_steps=6,
                    env_steps=12, latent=8, hidden=(8,), model_hidden=(8,), blocks=1, batch_size=4, start_steps=6,
                    update_after=8, buffer_size=100, eval_every=12, eval_episodes=2, progress=False, device="cpu", backend="mujoco",
-                   tensorboard=False, out=str(tmp_path / "s"))
+                   tensorboard=False, video_episodes=0, out=str(tmp_path / "s"))
     r = run_rl(cfg)
     assert r["env_steps"] == 12 and r["updates"] == 12 - 8 + 2
     ck = load_checkpoint(tmp_path / "s" / CHECKPOINT)
@@ -167,7 +167,8 @@ def test_cli_runs_and_resumes(tmp_path, capsys):
     argv = ["rl", "--task", "pendulum-balance", "--agent", "svg0", "--observation", "bodies", "--num-envs", "2",
             "--episode-steps", "10", "--env-steps", "60", "--hidden", "16", "--batch-size", "8", "--start-steps",
             "20", "--update-after", "20", "--eval-every", "40", "--eval-episodes", "2", "--device", "cpu",
-            "--backend", "mujoco", "--chunk", "20", "--no-tensorboard", "--buffer-size", "1000", "-q", "-o", out, "--set", "agent_settings.gamma=0.9"]
+            "--backend", "mujoco", "--chunk", "20", "--no-tensorboard", "--buffer-size", "1000", "-q", "-o", out, "--set", "agent_settings.gamma=0.9",
+            "--video-episodes", "0"]
     assert main(argv) == 0
     assert "run again" in capsys.readouterr().out
     assert main(["rl", "-o", out, "-q"]) == 0                  # the folder's config, to its end
@@ -183,7 +184,7 @@ def test_svg1_resume_equals_uninterrupted(tmp_path):
     # the first chunk ends before update_after: the model is normalized after the resume
     cfg = dict(task="swimmer6", agent="svg1", num_envs=2, episode_steps=4, env_steps=24, hidden=(8,),
                model_hidden=(8,), batch_size=4, start_steps=4, update_after=12, buffer_size=100, eval_every=8,
-               eval_episodes=2, progress=False, device="cpu", backend="mujoco", tensorboard=False)
+               eval_episodes=2, progress=False, device="cpu", backend="mujoco", tensorboard=False, video_episodes=0)
     run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
     assert run_rl(RLConfig(**cfg, out=str(tmp_path / "parts"), chunk=8))["stop"] == "chunk"
     run_rl(RLConfig(**cfg, out=str(tmp_path / "parts")))
