@@ -165,17 +165,25 @@ def test_captured_gn_networks_equal_eager_ones_cuda(agent):
 
 
 def test_failed_recording_warns_and_updates_eagerly(monkeypatch):
+    import gnwarp.interop
+
+    class FailingGraphed:        # gnwarp.interop.Graphed whose recording fails (here on the CPU)
+        def __init__(self, fn, warmup=1):
+            self.fn, self.warmup, self.graph = fn, warmup, None
+
+        def __call__(self):
+            if self.warmup > 0:
+                self.warmup -= 1
+                return self.fn()
+            raise RuntimeError("operation not permitted when stream is capturing\nmore")
+    monkeypatch.setattr(gnwarp.interop, "Graphed", FailingGraphed)
     ag, buf = _setup("svg1")
     ref, ref_buf = copy.deepcopy(ag), copy.deepcopy(buf)
     up = Updater(ag, buf, torch.Generator().manual_seed(7))
-    up.capture = True                       # as on CUDA; here the recording itself fails
-
-    def fail():
-        raise RuntimeError("operation not permitted when stream is capturing\nmore")
-    monkeypatch.setattr(up, "_record", fail)
-    monkeypatch.setattr(up, "_eager", up._work)
+    up.capture = True                       # as on CUDA
     with pytest.warns(RuntimeWarning, match="could not be recorded.*not permitted when stream is capturing"):
         up.run(4)
     assert not up.capture and not up.captured and up.failure.startswith("RuntimeError: operation not permitted")
+    assert up.recordings == 0 and not any(g["capturable"] for o in ag.optimizers() for g in o.param_groups)
     Updater(ref, ref_buf, torch.Generator().manual_seed(7)).run(4)   # the same draws, all eager
     assert ag.updates == 4 and all(torch.equal(a, b) for a, b in zip(_params(ag), _params(ref)))

@@ -267,7 +267,7 @@ def test_load_agent_acts_as_the_run_did(tmp_path):
     with pytest.raises(FileNotFoundError, match="no gnwarp rl run in .*config.json is missing"):
         load_agent(tmp_path / "nothing")
     (tmp_path / "r" / "config.json").write_text("[1, 2]")
-    with pytest.raises(ConfigError, match="table of RLConfig keys"):
+    with pytest.raises(ConfigError, match="holds a table of RLConfig keys, got a list"):
         load_agent(tmp_path / "r")
 
 

@@ -11,7 +11,7 @@ generator), into static tensors; the recorded part gathers the batch from the bu
 (fixed storage) and runs ``agent.update_step``. Uncaptured (the CPU, ``capture=False``) the same
 draws and the same work run eagerly, so both modes give the same numbers and a run resumes
 exactly in either. The first update runs eagerly (it creates the optimizers' state); the
-second records the graph. Loading the agent's state (``load_state_dict``: new optimizer
+second records the graph (``gnwarp.interop.Graphed``, as the trainer and gradient MPC do). Loading the agent's state (``load_state_dict``: new optimizer
 tensors) records it again.
 """
 from __future__ import annotations
@@ -56,14 +56,12 @@ class Updater:
         self.seq_rows, self.seq_envs = (torch.zeros(B, L, **z), torch.zeros(B, L, **z)) if L else (None, None)
         shape = agent.update_noise_shape(B)
         self.noise = None if shape is None else torch.zeros(shape, dtype=agent.dtype, device=agent.device)
-        self.graph, self.out, self.recordings = None, None, 0
-        self.failure = None   # why recording failed (then updates run eagerly), else None
-        self._stream = None   # the side stream of the eager update before recording and of the recording
-        self._eager_done, self._loads = False, agent.loads
+        self.recordings, self.failure = 0, None   # failure: why recording failed (then updates run eagerly)
+        self._graphed, self._out, self._loads = None, {}, agent.loads
 
     @property
     def captured(self) -> bool:
-        return self.graph is not None
+        return self._graphed is not None and self._graphed.graph is not None
 
     def _draw(self) -> None:
         rows, envs = self.buffer.sample_index(self.rows.numel(), self.generator)
@@ -81,61 +79,54 @@ class Updater:
         model_batch = self.buffer.gather(self.seq_rows, self.seq_envs) if self.model_sequence else None
         return self.agent.update_step(batch, model_batch, self.noise)
 
-    def _eager(self) -> dict[str, torch.Tensor]:
-        if not self.capture:
-            return self._work()
-        # the update that precedes recording runs on the stream it records on (torch's recipe)
-        if self._stream is None:
-            self._stream = torch.cuda.Stream(self.agent.device)
-        main = torch.cuda.current_stream(self.agent.device)
-        self._stream.wait_stream(main)
-        with torch.cuda.stream(self._stream):
-            out = self._work()
-        main.wait_stream(self._stream)
-        return out
-
-    def _record(self) -> None:
-        from gnwarp.interop import cuda_graph     # Warp's launches recorded too (GN networks)
-        for opt in self.agent.optimizers():       # Adam's step count on the device, its steps recordable
+    def _set_capturable(self, on: bool) -> None:
+        """Adam's steps recordable (``on``) or eager (no warning about capturable eager steps); the
+        step counts of fused Adam already live on the device."""
+        for opt in self.agent.optimizers():
             for group in opt.param_groups:
-                group["capturable"] = True
+                group["capturable"] = on
             for p, st in opt.state.items():
-                if "step" in st:
+                if on and "step" in st:
                     st["step"] = st["step"].to(p.device, torch.float32)
-        graph = torch.cuda.CUDAGraph()
-        main = torch.cuda.current_stream(self.agent.device)
-        self._stream.wait_stream(main)
-        with cuda_graph(graph, self._stream):
-            out = self._work()
-        main.wait_stream(self._stream)
-        self.graph, self.out = graph, out
-        self.recordings += 1
+
+    def _graphed_step(self) -> None:
+        self._out = self._work()   # eager: this update's losses; recording: the graph's output tensors
 
     def run(self, n: int) -> dict[str, torch.Tensor]:
         """``n`` updates; returns the last one's metrics (0-dim tensors; a captured update's are
         the graph's outputs, overwritten by the next replay), {} for n = 0."""
+        from gnwarp.interop import Graphed   # one eager update on its side stream, then record, then replay
         metrics: dict[str, torch.Tensor] = {}
-        if self.agent.loads != self._loads:       # the optimizers' tensors were replaced
-            self.graph, self._eager_done, self._loads = None, False, self.agent.loads
+        if self.agent.loads != self._loads:       # the optimizers' tensors were replaced: record again
+            self._graphed, self._loads = None, self.agent.loads
             if self.capture:
-                for opt in self.agent.optimizers():   # eager again until recorded (no capturable warning)
-                    for group in opt.param_groups:
-                        group["capturable"] = False
+                self._set_capturable(False)
         for _ in range(int(n)):
             self._draw()
-            if self.graph is None and self.capture and self._eager_done:
-                try:
-                    self._record()   # records without computing: the replay below does the update
-                except RuntimeError as e:   # a network that syncs with the host cannot be recorded
-                    self.graph, self.capture = None, False
-                    self.failure = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0]}"
-                    warnings.warn(f"the update could not be recorded in a CUDA graph ({self.failure}); "
-                                  "updating eagerly from now on", RuntimeWarning, stacklevel=2)
-            if self.graph is not None:
-                self.graph.replay()
-                metrics = self.out
+            if not self.capture:
+                metrics = self._work()
             else:
-                metrics = self._eager()
-                self._eager_done = True
+                if self._graphed is None:
+                    self._graphed = Graphed(self._graphed_step, warmup=1)
+                recording = self._graphed.graph is None and self._graphed.warmup == 0
+                if recording:
+                    self._set_capturable(True)
+                try:
+                    self._graphed()   # the warm-up runs the update; recording records it, then replays it
+                except RuntimeError as e:   # a network that syncs with the host cannot be recorded
+                    if not recording:
+                        raise
+                    self._give_up(e)
+                    self._out = self._work()   # nothing ran while recording: this update, eagerly
+                else:
+                    self.recordings += int(recording)
+                metrics = self._out
             self.agent.count_update()
         return metrics
+
+    def _give_up(self, e: Exception) -> None:
+        self._graphed, self.capture = None, False
+        self._set_capturable(False)
+        self.failure = f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0]}"
+        warnings.warn(f"the update could not be recorded in a CUDA graph ({self.failure}); updating eagerly "
+                      "from now on", RuntimeWarning, stacklevel=3)

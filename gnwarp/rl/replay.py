@@ -150,14 +150,11 @@ class ReplayBuffer:
         if self.filled == 0:
             raise ReplayError("the replay buffer is empty: add transitions before sampling")
 
-    def _gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
-        return Transitions(*(getattr(self, name)[rows, envs] for name in _FIELDS))
-
     def gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
         """The stored transitions at ``rows`` (ring rows) and ``envs`` (any equal shapes, from
         ``sample_index`` or ``sequence_index``): ``Transitions`` of that shape. No host sync, so a
         CUDA graph may record it with the indices in static tensors."""
-        return self._gather(rows, envs)
+        return Transitions(*(getattr(self, name)[rows, envs] for name in _FIELDS))
 
     def sample_index(self, batch: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(rows, envs) [batch] of ``batch`` transitions drawn uniformly with replacement from those
@@ -169,7 +166,7 @@ class ReplayBuffer:
     def sample(self, batch: int, generator: torch.Generator | None = None) -> Transitions:
         """``batch`` transitions drawn uniformly with replacement from those stored (``generator``
         on the buffer's device; None: torch's default). Returns ``Transitions`` of shape [batch]."""
-        return self._gather(*self.sample_index(batch, generator))
+        return self.gather(*self.sample_index(batch, generator))
 
     def valid_starts(self, length: int) -> torch.Tensor:
         """[filled, E] bool, in time order from the oldest stored step: True where a sequence of
@@ -215,7 +212,7 @@ class ReplayBuffer:
         replacement among those within one episode (only the last step may end it). Returns
         ``Transitions`` of shape [batch, length]. The valid starts are counted once per ``add`` (one
         host sync, to refuse a buffer with no such sequence) and reused by later calls."""
-        return self._gather(*self.sequence_index(batch, length, generator))
+        return self.gather(*self.sequence_index(batch, length, generator))
 
     # -- saving ---------------------------------------------------------------------------------
     def state_dict(self) -> dict:

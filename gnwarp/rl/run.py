@@ -163,13 +163,8 @@ def load_agent(folder, device: str = "auto") -> tuple:
     for name in (CONFIG_FILE, CHECKPOINT):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {name} is missing")
-    try:
-        raw = json.loads((folder / CONFIG_FILE).read_text())
-    except json.JSONDecodeError as e:
-        raise ConfigError(str(folder / CONFIG_FILE), f"not valid JSON: {e.msg} (line {e.lineno})") from None
-    if not isinstance(raw, dict):
-        raise ConfigError(str(folder / CONFIG_FILE), "a run's config holds a table of RLConfig keys")
-    cfg = RLConfig.from_dict({**raw, "device": device})
+    from gnwarp.validation import read_config_file
+    cfg = RLConfig.from_dict({**read_config_file(folder / CONFIG_FILE, "RLConfig keys"), "device": device})
     task = check_task(cfg)
     obs_fn = observation_of(cfg, task)
     # one env of MuJoCo C for the spaces (the agent's sizes and action box)
