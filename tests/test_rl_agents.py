@@ -237,6 +237,31 @@ def test_replay_state_round_trip():
         ReplayBuffer(10, obs_dim=2, action_dim=1, num_envs=1).load_state_dict(buf.state_dict())
 
 
+def test_replay_state_holds_the_filled_rows_only():
+    """A checkpoint grows with the data, not with the capacity; it resumes as the whole ring did."""
+    buf = ReplayBuffer(40, obs_dim=2, action_dim=1, num_envs=2)   # 20 rows
+    for t in range(7):
+        _add_step(buf, t, done_every=3)
+    state = buf.state_dict()
+    assert state["obs"].shape[0] == buf.filled == 7 < buf.rows
+    assert state["obs"].untyped_storage().nbytes() == 7 * 2 * 2 * 4            # a copy, not a view of the ring
+    saved = io.BytesIO()
+    torch.save(state, saved)
+    saved.seek(0)
+    other = ReplayBuffer(40, obs_dim=2, action_dim=1, num_envs=2)
+    other.obs.fill_(5.0)                                                      # stale contents are cleared
+    other.load_state_dict(torch.load(saved))
+    assert torch.equal(other.obs, buf.obs) and (other.ptr, other.filled) == (buf.ptr, buf.filled)
+    for t in range(7, 30):
+        for b in (buf, other):
+            _add_step(b, t, done_every=3)
+    assert buf.state_dict()["obs"].shape[0] == buf.rows                       # full: the ring as it is
+    a, c = (b.sample(16, torch.Generator().manual_seed(2)) for b in (buf, other))
+    assert torch.equal(a.obs, c.obs) and torch.equal(a.reward, c.reward)
+    with pytest.raises(ReplayError, match=r"obs has shape \(5, 2, 2\); expected \(7, 2, 2\)"):
+        other.load_state_dict(dict(state, obs=state["obs"][:5]))
+
+
 # -- resume, settings ------------------------------------------------------------------------------
 class TinyModel(nn.Module):
     def __init__(self, seed):

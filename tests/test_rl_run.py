@@ -11,7 +11,7 @@ import torch
 from gnwarp.eval.records import read_records
 from gnwarp.rl.config import RLConfig
 from gnwarp.rl.run import run_rl
-from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE, load_checkpoint
+from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE, RLCheckpointError, load_checkpoint
 from gnwarp.validation import ConfigError
 
 warnings.filterwarnings("ignore", message=".*glfw.*")
@@ -221,7 +221,7 @@ def test_failed_video_warns_and_keeps_the_run(tmp_path, monkeypatch):
 
 def test_checkpoint_runs_no_code_and_detects_corruption(tmp_path):
     import os
-    from gnwarp.rl.run_log import RLCheckpointError, save_checkpoint
+    from gnwarp.rl.run_log import save_checkpoint
     path = tmp_path / "c.pt"
     save_checkpoint(path, {"a": torch.arange(5), "n": np.arange(3), "t": (1, "x", None)})
     back = load_checkpoint(path)
@@ -269,6 +269,28 @@ def test_load_agent_acts_as_the_run_did(tmp_path):
     (tmp_path / "r" / "config.json").write_text("[1, 2]")
     with pytest.raises(ConfigError, match="holds a table of RLConfig keys, got a list"):
         load_agent(tmp_path / "r")
+
+
+def test_exported_agent_loads_as_the_run_and_cannot_train(tmp_path):
+    from gnwarp.rl.run import AGENT_FILE, export_agent, load_agent
+    run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r")))
+    dest = export_agent(tmp_path / "r", tmp_path / "x")
+    assert sorted(p.name for p in dest.iterdir()) == ["agent.pt", "config.json"]
+    assert set(load_checkpoint(dest / AGENT_FILE)) == {"agent"}   # no buffer, loop state or generators
+    a, cfg_a, _ = load_agent(tmp_path / "r", "cpu")
+    b, cfg_b, _ = load_agent(dest, "cpu")
+    obs = torch.randn(5, a.obs_dim)
+    assert torch.equal(a.act(obs, deterministic=True), b.act(obs, deterministic=True))
+    assert a.updates == b.updates > 0 and cfg_b.out == str(dest) and cfg_a.agent == cfg_b.agent
+    with pytest.raises(ConfigError, match="exported agent .*cannot resume training"):
+        run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(dest)))
+    with pytest.raises(FileNotFoundError, match="checkpoint.pt is missing"):
+        export_agent(dest, tmp_path / "y")
+    with pytest.raises(ValueError, match="another folder"):
+        export_agent(tmp_path / "r", tmp_path / "r")
+    (dest / AGENT_FILE).write_bytes(b"junk")
+    with pytest.raises(RLCheckpointError):
+        load_agent(dest, "cpu")
 
 
 def test_sim_threads_change_no_result(tmp_path):

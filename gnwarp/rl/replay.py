@@ -216,8 +216,10 @@ class ReplayBuffer:
 
     # -- saving ---------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """Everything needed to resume exactly: the rings (tensors) and the counters."""
-        d = {name: getattr(self, name) for name in _FIELDS}
+        """Everything needed to resume exactly: the rings' filled rows (tensors; the rows past
+        them were never written) and the counters."""
+        n = self.filled
+        d = {name: getattr(self, name) if n == self.rows else getattr(self, name)[:n].clone() for name in _FIELDS}
         d.update(ptr=self.ptr, filled=self.filled, added=self.added, rows=self.rows, num_envs=self.num_envs,
                  obs_dim=self.obs_dim, action_dim=self.action_dim)
         return d
@@ -227,7 +229,13 @@ class ReplayBuffer:
         for key in ("num_envs", "obs_dim", "action_dim", "rows"):
             if int(state[key]) != getattr(self, key):
                 raise ReplayError(f"the saved buffer has {key}={state[key]}; this one {getattr(self, key)}")
+        n = int(state["filled"])
         for name in _FIELDS:
-            getattr(self, name).copy_(state[name])
-        self.ptr, self.filled, self.added = int(state["ptr"]), int(state["filled"]), int(state["added"])
+            ring, saved = getattr(self, name), state[name]
+            if not 0 <= n <= self.rows or saved.shape[0] not in (n, self.rows) or saved.shape[1:] != ring.shape[1:]:
+                raise ReplayError(f"the saved buffer's {name} has shape {tuple(saved.shape)}; expected "
+                                  f"{(n,) + tuple(ring.shape[1:])} ({n} filled rows)")
+            ring.zero_()
+            ring[:n].copy_(saved[:n])
+        self.ptr, self.filled, self.added = int(state["ptr"]), n, int(state["added"])
         self._starts = None

@@ -37,8 +37,10 @@ from gnwarp.rl.replay import ReplayBuffer
 from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "evaluate_policy", "round_seed", "check_task",
-           "observation_of"]
+__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "evaluate_policy", "round_seed",
+           "check_task", "observation_of", "AGENT_FILE"]
+
+AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
 
 _PIECE = 50   # vector steps between progress-bar updates
 VIDEO_FILE = "video.gif"
@@ -155,14 +157,16 @@ def build_run(cfg: RLConfig) -> dict:
 
 def load_agent(folder, device: str = "auto") -> tuple:
     """(agent, cfg, observation) of the ``gnwarp rl`` run in ``folder``: its ``config.json``
-    (checked as ``RLConfig``) and the agent's state in its ``checkpoint.pt`` (validated; no code
-    runs), on ``device`` ("auto", "cpu", "cuda"); ``observation`` is the run's ("bodies" or its
-    ``DMCObservation``). FileNotFoundError names a missing file."""
+    (checked as ``RLConfig``) and the agent's state in its ``checkpoint.pt``, or in the
+    ``agent.pt`` of a folder that ``export_agent`` wrote (validated; no code runs), on ``device``
+    ("auto", "cpu", "cuda"); ``observation`` is the run's ("bodies" or its ``DMCObservation``).
+    FileNotFoundError names a missing file."""
     from gnwarp.control.vector_env import make_vector_env
     folder = Path(folder)
-    for name in (CONFIG_FILE, CHECKPOINT):
-        if not (folder / name).is_file():
-            raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {name} is missing")
+    states = [folder / n for n in (CHECKPOINT, AGENT_FILE) if (folder / n).is_file()]
+    if not (folder / CONFIG_FILE).is_file() or not states:
+        missing = CONFIG_FILE if not (folder / CONFIG_FILE).is_file() else f"{CHECKPOINT} (or an exported {AGENT_FILE})"
+        raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {missing} is missing")
     from gnwarp.validation import read_config_file
     cfg = RLConfig.from_dict({**read_config_file(folder / CONFIG_FILE, "RLConfig keys"), "device": device})
     task = check_task(cfg)
@@ -174,12 +178,46 @@ def load_agent(folder, device: str = "auto") -> tuple:
         D, space = env.single_observation_space.shape[0], env.single_action_space
     finally:
         env.close()
-    state = load_checkpoint(folder / CHECKPOINT)["agent"]   # before building: a bad file fails first
+    state = _agent_state(states[0])   # before building: a bad file fails first
     devices = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
     with torch.random.fork_rng(devices=devices):   # building seeds torch: leave the caller's RNG as it was
         agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, _device(cfg.device))
     agent.load_state_dict(state)
     return agent, cfg, obs_fn
+
+
+def _agent_state(path: Path) -> dict:
+    """The agent's state in a run's checkpoint or an exported agent file (RLCheckpointError if
+    the file holds none)."""
+    from gnwarp.rl.run_log import RLCheckpointError
+    state = load_checkpoint(path).get("agent")
+    if not isinstance(state, dict):
+        raise RLCheckpointError(f"{path} holds no agent state")
+    return state
+
+
+def export_agent(run, dest) -> Path:
+    """The trained agent of the run in folder ``run`` alone, without its replay buffer and loop
+    state (kilobytes to a few MB instead of hundreds: to share, commit or copy off a machine),
+    into folder ``dest``: its ``config.json`` and ``agent.pt`` (the same checked format as the
+    checkpoint). ``load_agent(dest)``, planner "policy" and ``gnwarp mpc --policy`` read it like
+    the run; it cannot resume training. Returns ``dest``."""
+    run, dest = Path(run), Path(dest)
+    for name in (CONFIG_FILE, CHECKPOINT):
+        if not (run / name).is_file():
+            raise FileNotFoundError(f"no gnwarp rl run in {run}: its {name} is missing")
+    if dest.resolve() == run.resolve():
+        raise ValueError(f"export_agent writes into another folder than the run's ({run})")
+    from gnwarp.validation import read_config_file
+    cfg = read_config_file(run / CONFIG_FILE, "RLConfig keys")
+    RLConfig.from_dict(cfg)   # a broken config fails here, not when the export is loaded
+    cfg["out"] = str(dest)    # the folder names itself
+    state = _agent_state(run / CHECKPOINT)
+    dest.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(dest / AGENT_FILE, dict(agent=state))
+    with atomic_write(dest / CONFIG_FILE) as tmp:
+        Path(tmp).write_text(json.dumps(cfg, indent=1) + "\n")
+    return dest
 
 
 @torch.no_grad()
@@ -226,6 +264,9 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     resume = (out / CHECKPOINT).is_file()
+    if not resume and (out / AGENT_FILE).is_file():
+        raise ConfigError("out", f"{out} holds an exported agent ({AGENT_FILE}), which cannot resume training; "
+                                 "train in another folder")
     saved = out / CONFIG_FILE
     if resume and saved.is_file():
         old = json.loads(saved.read_text())
