@@ -190,12 +190,16 @@ def headline(root: Path, doc: Path) -> list[str]:
           if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup" and r["networks"] == "mlp"]
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl") if r["batch"] == 100}
-    pts = [f"{a.upper()} {at[a, 250000]['mean']:.0f} +- {at[a, 250000]['se']:.0f} ({at[a, 250000]['seeds']} seeds)"
-           for a in ("svg1", "svg0", "ddpg") if (a, 250000) in at]
-    rows.append(["RL on DMC swimmer6 (SpinningUp preset, MLPs), return at 250k env steps, mean +- s.e. over seeds",
-                 ", ".join(pts).replace("SVG1", "SVG(1)").replace("SVG0", "SVG(0)")
-                 + f"; updates replayed from a CUDA graph **{ups['svg1']['graph_speedup']:.1f}x** eager's "
-                   f"(SVG(1), one H100)", link("rl")])
+    names = {"svg1": "SVG(1)", "svg0": "SVG(0)", "ddpg": "DDPG"}
+    seeds = min(at[a, s]["seeds"] for a in names for s in (250000, 500000) if (a, s) in at)
+    pts = [f"{names[a]} " + " / ".join(f"{at[a, s]['mean']:.0f} +- {at[a, s]['se']:.0f}" for s in (250000, 500000)
+                                       if (a, s) in at) for a in names if (a, 250000) in at]
+    last = max(s for (a, s) in at if a == "ddpg")
+    rows.append([f"RL on DMC swimmer6 (SpinningUp preset, MLPs, {seeds} seeds), return at 250k / 500k env steps, "
+                 "mean +- s.e. over seeds",
+                 ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {at['ddpg', last]['mean']:.0f} +- "
+                 f"{at['ddpg', last]['se']:.0f} (SpinningUp 351 +- 19); updates replayed from a CUDA graph "
+                 f"**{ups['svg1']['graph_speedup']:.1f}x** eager's (SVG(1), one H100)", link("rl")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean
             / _find(rj, variant="recurrent, angle (rad)", episode_steps=t).mean for t in (1, 10, 20)]

@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from gnwarp.rl.agents import DDPG, SVG, make_agent
+from gnwarp.rl.agents import DDPG, SVG, make_agent, restore_generator
 from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.planner import PolicyPlanner
 from gnwarp.rl.replay import ReplayBuffer, ReplayError, Transitions
@@ -299,6 +299,30 @@ def test_resume_continues_bit_for_bit(agent, preset):
     assert (ag.updates, ag.env_steps) == (fresh.updates, fresh.env_steps) == (5, 10)
     with pytest.raises(ConfigError, match="other settings"):
         make_agent(AgentSettings(**{**s, "seed": 8}), D, [-1] * U, [1] * U, **kw(1)).load_state_dict(ag.state_dict())
+
+
+def test_a_state_saved_on_cuda_loads_on_the_cpu():
+    """A GPU-trained agent (CUDA generator state, fused and capturable Adam) acts and trains on the CPU."""
+    s = AgentSettings(agent="svg1", hidden=(8,), start_steps=0, seed=3)
+    reward = lambda x, a, x2: -(x2 ** 2).sum(-1)    # noqa: E731
+    ag = make_agent(s, D, [-1] * U, [1] * U, model=TinyModel(0), reward=reward)
+    ag.update(_batch(8, dtype=torch.float32))
+    state = ag.state_dict()
+    state["generator"] = torch.zeros(16, dtype=torch.uint8)          # what a CUDA generator saves
+    for key in ("policy_opt", "q_opt", "model_opt"):
+        for g in state[key]["param_groups"]:
+            g.update(fused=True, capturable=True)
+    cpu = make_agent(s, D, [-1] * U, [1] * U, model=TinyModel(1), reward=reward)
+    before = cpu.generator.get_state()
+    cpu.load_state_dict(state)
+    assert torch.equal(cpu.generator.get_state(), before)             # kept its seed
+    assert not restore_generator(torch.Generator(), state["generator"])
+    assert restore_generator(torch.Generator(), before)
+    obs = torch.randn(3, D)
+    assert torch.equal(cpu.act(obs, deterministic=True), ag.act(obs, deterministic=True))
+    assert all(not g["fused"] and not g["capturable"] for o in cpu.optimizers() for g in o.param_groups)
+    m = cpu.update(_batch(8, dtype=torch.float32))                   # trains on the CPU
+    assert all(torch.isfinite(v) for v in m.values())
 
 
 def test_bad_settings_are_refused():

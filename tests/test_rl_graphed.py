@@ -127,8 +127,6 @@ def test_captured_update_records_again_after_load_cuda():
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
-@pytest.mark.xfail(strict=True, reason="GN networks failed to record in a CUDA graph (H100, 2026-11-27; run_rl "
-                                       "updates them eagerly): an XPASS means they record now")
 @pytest.mark.parametrize("agent", ["ddpg", "svg1"])
 def test_captured_gn_networks_equal_eager_ones_cuda(agent):
     pytest.importorskip("dm_control")

@@ -45,7 +45,7 @@ def test_policy_planner_from_a_run_folder(rl_run):
         make_planner("policy", None, "pendulum-swingup", "pendulum", 1, {"run": str(rl_run), "device": "cpu"})
     with pytest.raises(ConfigError, match="run: must name the folder"):
         PolicySettings()
-    with pytest.raises(ConfigError, match="run: no gnwarp rl run in .*none .no config.json or checkpoint.pt"):
+    with pytest.raises(ConfigError, match="run: no gnwarp rl run in .*none: its config.json is missing"):
         make_planner("policy", None, "pendulum-balance", "pendulum", 1, {"run": str(rl_run.parent / "none")})
 
 

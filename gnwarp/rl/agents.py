@@ -24,7 +24,17 @@ from gnwarp.rl.replay import Transitions
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
 
-__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss"]
+__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss", "restore_generator"]
+
+
+def restore_generator(generator: torch.Generator, state: torch.Tensor) -> bool:
+    """Set ``generator`` to a saved ``get_state()``; whether it could: a state of the other kind
+    of device (CPU and CUDA generators keep states of different sizes) leaves it as it is."""
+    try:
+        generator.set_state(state)
+    except RuntimeError:
+        return False
+    return True
 
 
 def mse_model_loss(model, batch: Transitions) -> torch.Tensor:
@@ -238,15 +248,24 @@ class Agent:
         return d
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore ``state_dict()``; one saved with other settings is refused."""
+        """Restore ``state_dict()``; one saved with other settings is refused. A state saved on
+        another kind of device (a CUDA-trained agent loaded on the CPU) loads too: the optimizers
+        take this device's flags, and the generator keeps its seed where the saved state is of
+        the other kind (``restore_generator``), so such a load acts the same but does not resume
+        the exploration noise bit for bit."""
         if state["settings"] != self.settings.to_dict():
             diff = sorted(k for k, v in state["settings"].items() if self.settings.to_dict().get(k) != v)
             raise ConfigError(diff[0] if diff else "", f"the saved agent has other settings ({diff})")
         for k, m in self._modules().items():
             if m is not None:
                 m.load_state_dict(state[k])
+        cuda = self.device.type == "cuda"
+        for opt in self.optimizers():   # a saved state brings its device's flags (fused, capturable on CUDA)
+            for g in opt.param_groups:
+                g["fused"] = bool(g.get("fused")) and cuda
+                g["capturable"] = bool(g.get("capturable")) and cuda
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
-        self.generator.set_state(state["generator"])
+        restore_generator(self.generator, state["generator"])
         self.loads += 1   # the optimizers' state tensors are new: a recorded update is stale
 
 

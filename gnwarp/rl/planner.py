@@ -13,7 +13,6 @@ error on the states the trained agent visits, the paper's Figure H.1) run a trai
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from typing import Callable, Literal
 
 import torch
@@ -26,8 +25,9 @@ __all__ = ["PolicyPlanner", "PolicySettings"]
 
 @dataclasses.dataclass
 class PolicySettings:
-    """``run``: the folder of a ``gnwarp rl`` run (its ``config.json`` and ``checkpoint.pt``) whose
-    trained policy acts; ``device``: the policy's ("auto": CUDA where there is one)."""
+    """``run``: the folder of a ``gnwarp rl`` run (its ``config.json`` and ``checkpoint.pt``), or
+    one that ``export_agent`` wrote (``agent.pt``), whose trained policy acts; ``device``: the
+    policy's ("auto": CUDA where there is one)."""
     run: str = ""
     device: Literal["auto", "cpu", "cuda"] = "auto"
 
@@ -35,9 +35,11 @@ class PolicySettings:
         check_fields(self)
         if not isinstance(self.run, str) or not self.run.strip():
             raise ConfigError("run", "must name the folder of a gnwarp rl run (its config.json and checkpoint.pt)")
-        missing = [f for f in ("config.json", "checkpoint.pt") if not (Path(self.run) / f).is_file()]
-        if missing:   # refused before anything is simulated
-            raise ConfigError("run", f"no gnwarp rl run in {self.run} (no {' or '.join(missing)})")
+        from gnwarp.rl.run import agent_file
+        try:   # refused before anything is simulated
+            agent_file(self.run)
+        except FileNotFoundError as e:
+            raise ConfigError("run", str(e)) from None
 
 
 class PolicyPlanner:

@@ -31,13 +31,14 @@ import torch
 
 from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
 from gnwarp.files import atomic_write
+from gnwarp.rl.agents import restore_generator
 from gnwarp.rl.config import CONFIG_FILE, RESUMABLE, RLConfig
 from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.replay import ReplayBuffer
 from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "evaluate_policy", "round_seed",
+__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
            "check_task", "observation_of", "AGENT_FILE"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
@@ -163,10 +164,7 @@ def load_agent(folder, device: str = "auto") -> tuple:
     FileNotFoundError names a missing file."""
     from gnwarp.control.vector_env import make_vector_env
     folder = Path(folder)
-    states = [folder / n for n in (CHECKPOINT, AGENT_FILE) if (folder / n).is_file()]
-    if not (folder / CONFIG_FILE).is_file() or not states:
-        missing = CONFIG_FILE if not (folder / CONFIG_FILE).is_file() else f"{CHECKPOINT} (or an exported {AGENT_FILE})"
-        raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {missing} is missing")
+    state_file = agent_file(folder)
     from gnwarp.validation import read_config_file
     cfg = RLConfig.from_dict({**read_config_file(folder / CONFIG_FILE, "RLConfig keys"), "device": device})
     task = check_task(cfg)
@@ -178,12 +176,23 @@ def load_agent(folder, device: str = "auto") -> tuple:
         D, space = env.single_observation_space.shape[0], env.single_action_space
     finally:
         env.close()
-    state = _agent_state(states[0])   # before building: a bad file fails first
+    state = _agent_state(state_file)   # before building: a bad file fails first
     devices = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
     with torch.random.fork_rng(devices=devices):   # building seeds torch: leave the caller's RNG as it was
         agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, _device(cfg.device))
     agent.load_state_dict(state)
     return agent, cfg, obs_fn
+
+
+def agent_file(folder) -> Path:
+    """The file holding the trained agent of a ``gnwarp rl`` run folder (``checkpoint.pt``) or of
+    an ``export_agent`` folder (``agent.pt``); FileNotFoundError names what is missing."""
+    folder = Path(folder)
+    states = [folder / n for n in (CHECKPOINT, AGENT_FILE) if (folder / n).is_file()]
+    if not (folder / CONFIG_FILE).is_file() or not states:
+        missing = CONFIG_FILE if not (folder / CONFIG_FILE).is_file() else f"{CHECKPOINT} (or an exported {AGENT_FILE})"
+        raise FileNotFoundError(f"no gnwarp rl run in {folder}: its {missing} is missing")
+    return states[0]
 
 
 def _agent_state(path: Path) -> dict:
@@ -313,7 +322,9 @@ def run_rl(cfg: RLConfig) -> dict:
         ck = load_checkpoint(out / CHECKPOINT)
         agent.load_state_dict(ck["agent"])
         buffer.load_state_dict(ck["buffer"])
-        gen.set_state(ck["generator"])
+        if not restore_generator(gen, ck["generator"]):
+            warnings.warn(f"{out} was saved on another kind of device: its replay sampling goes on from the seed, "
+                          "not bit for bit", RuntimeWarning, stacklevel=2)
         state = CollectorState.from_state_dict(ck["collector"], parts["device"])
         c = ck["counters"]
         _set_rng_states(ck["rng"])
@@ -322,9 +333,8 @@ def run_rl(cfg: RLConfig) -> dict:
     cut_records(records_path, keep_until)
     log = RunLog(out, keep_until, cfg.tensorboard)
     from gnwarp.rl.graphed import Updater
-    # GN networks are not recorded (their capture fails on CUDA, 2026-11-27): eager updates
     updater = Updater(agent, buffer, gen,
-                      capture=cfg.cuda_graph and parts["device"].type == "cuda" and cfg.networks == "mlp")
+                      capture=cfg.cuda_graph and parts["device"].type == "cuda")
     meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
     dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
 
