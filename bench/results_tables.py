@@ -296,22 +296,33 @@ def control_dmc(root: Path, doc: Path) -> list[str]:
         ["task", "planner", "dynamics", "seeds", "episodes", "mean", "95% interval", "over", "plan ms / step"], out)
 
 
-@table("control-loop")
-def control_loop(root: Path, doc: Path) -> list[str]:
-    """The data loop on cheetah-run: one row per iteration."""
-    recs = read_records(root / RESULTS / "control" / "loop_cheetah_run" / "records.jsonl")
+def _loop_rows(root: Path, rel: str, episodes: str) -> list[str]:
+    """A data loop's records (``gnwarp loop``): one row per iteration, the model's errors on the
+    iteration's new states beside those on its training data (the paper's Figure H.1)."""
     out = []
-    for r in recs:
+    for r in read_records(root / RESULTS / rel):
         e = r.metrics.get("errors", {})
         new, old = e.get("new", {}), e.get("trained", {})
         out.append([str(r.metrics.get("iteration")), str(r.env_steps), _num(statistics.fmean(r.returns), 3),
                     _num(new.get("one_step"), 2), _num(new.get("rollout"), 2), _num(old.get("one_step"), 2),
                     _num(old.get("rollout"), 2)])
-    return [_note("per iteration: the mean true return of its episodes (16, planned before training on them) and "
-                  "the model's normalized one-step and 20-step rollout errors on those new states and on its "
-                  "training data, before it trains on them", "`loop_cheetah_run/records.jsonl`"), ""] + _md(
-        ["iteration", "env steps", "mean return", "new: one-step", "new: rollout", "trained: one-step",
-         "trained: rollout"], out)
+    return [_note(f"per iteration: the mean true return of its episodes ({episodes}, before the model trains on "
+                  "them) and the model's normalized one-step and 20-step rollout errors on those new states and "
+                  "on its training data, before it trains on them", f"`{Path(rel).name}` of `{Path(rel).parent}`"),
+            ""] + _md(["iteration", "env steps", "mean return", "new: one-step", "new: rollout", "trained: one-step",
+                       "trained: rollout"], out)
+
+
+@table("control-loop")
+def control_loop(root: Path, doc: Path) -> list[str]:
+    """The data loop on cheetah-run: one row per iteration."""
+    return _loop_rows(root, "control/loop_cheetah_run/records.jsonl", "16, planned")
+
+
+@table("rl-h1")
+def rl_h1(root: Path, doc: Path) -> list[str]:
+    """Figure H.1: a model trained on random-control swimmer6 data, on the trained SVG(1) agent's states."""
+    return _loop_rows(root, "rl/h1_swimmer6/records.jsonl", "4, the trained SVG(1) policy's")
 
 
 @table("control-fig10")

@@ -260,6 +260,9 @@ def test_replay_state_holds_the_filled_rows_only():
     assert torch.equal(a.obs, c.obs) and torch.equal(a.reward, c.reward)
     with pytest.raises(ReplayError, match=r"obs has shape \(5, 2, 2\); expected \(7, 2, 2\)"):
         other.load_state_dict(dict(state, obs=state["obs"][:5]))
+    for bad in (dict(filled=21), dict(ptr=3), dict(added=9)):
+        with pytest.raises(ReplayError, match="counters are inconsistent"):
+            other.load_state_dict({**state, **bad})
 
 
 # -- resume, settings ------------------------------------------------------------------------------

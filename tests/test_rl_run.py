@@ -288,6 +288,17 @@ def test_exported_agent_loads_as_the_run_and_cannot_train(tmp_path):
         export_agent(dest, tmp_path / "y")
     with pytest.raises(ValueError, match="another folder"):
         export_agent(tmp_path / "r", tmp_path / "r")
+    run_rl(RLConfig(**{**TINY, "env_steps": 20, "seed": 5}, out=str(tmp_path / "other")))
+    before = (tmp_path / "other" / "config.json").read_bytes()
+    with pytest.raises(ValueError, match="holds a gnwarp rl run"):
+        export_agent(tmp_path / "r", tmp_path / "other")     # another run's folder stays as it was
+    assert (tmp_path / "other" / "config.json").read_bytes() == before
+    assert export_agent(tmp_path / "r", dest) == dest       # over an earlier export
+    from bench.rl_video import main as video   # a GIF of the exported agent, its returns on record
+    assert video([str(dest), "--out", str(tmp_path / "v.gif"), "--episodes", "2", "--steps", "4",
+                  "--renderer", "matplotlib"]) == 0
+    info = json.loads((tmp_path / "v.gif.json").read_text())
+    assert (tmp_path / "v.gif").stat().st_size > 0 and len(info["returns"]) == 2 and info["env_steps"] == b.env_steps
     (dest / AGENT_FILE).write_bytes(b"junk")
     with pytest.raises(RLCheckpointError):
         load_agent(dest, "cpu")

@@ -260,10 +260,14 @@ class Agent:
             if m is not None:
                 m.load_state_dict(state[k])
         cuda = self.device.type == "cuda"
-        for opt in self.optimizers():   # a saved state brings its device's flags (fused, capturable on CUDA)
+        for opt in self.optimizers():   # a saved state brings its device's flags: keep this agent's own
             for g in opt.param_groups:
-                g["fused"] = bool(g.get("fused")) and cuda
+                g["fused"] = bool(g["params"]) and all(p.is_cuda for p in g["params"])   # as _adam builds it
                 g["capturable"] = bool(g.get("capturable")) and cuda
+                for p in g["params"]:    # fused or capturable Adam keeps its step count on the device
+                    st = opt.state.get(p, {})
+                    if isinstance(st.get("step"), torch.Tensor) and (g["fused"] or g["capturable"]):
+                        st["step"] = st["step"].to(p.device, torch.float32)
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
         restore_generator(self.generator, state["generator"])
         self.loads += 1   # the optimizers' state tensors are new: a recorded update is stale

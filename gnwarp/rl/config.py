@@ -88,8 +88,7 @@ class RLConfig:
     budget_seconds: PositiveFloat | None = described(None, "stop before a round expected to end past this many "
                                                            "seconds of this call")
     tensorboard: Flag = described(True, "TensorBoard logs where torch.utils.tensorboard imports")
-    cuda_graph: Flag = described(True, "on CUDA, record the gradient update in a CUDA graph and replay it "
-                                       "(MLP networks; GN networks update eagerly)")
+    cuda_graph: Flag = described(True, "on CUDA, record the gradient update in a CUDA graph and replay it")
     video_episodes: Count = described(2, "episodes of the call's last evaluation in video.gif (0: no video)")
     video_steps: PositiveInt = described(300, "control steps of each episode in the video")
     renderer: Literal["auto", "mujoco", "matplotlib"] = described(

@@ -34,7 +34,8 @@ class PolicySettings:
     def __post_init__(self):
         check_fields(self)
         if not isinstance(self.run, str) or not self.run.strip():
-            raise ConfigError("run", "must name the folder of a gnwarp rl run (its config.json and checkpoint.pt)")
+            raise ConfigError("run", "must name the folder of a gnwarp rl run (its config.json and checkpoint.pt) "
+                                     "or of an exported agent (config.json and agent.pt)")
         from gnwarp.rl.run import agent_file
         try:   # refused before anything is simulated
             agent_file(self.run)

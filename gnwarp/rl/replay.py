@@ -218,8 +218,8 @@ class ReplayBuffer:
     def state_dict(self) -> dict:
         """Everything needed to resume exactly: the rings' filled rows (tensors; the rows past
         them were never written) and the counters."""
-        n = self.filled
-        d = {name: getattr(self, name) if n == self.rows else getattr(self, name)[:n].clone() for name in _FIELDS}
+        n = self.filled   # copied to the host (a GPU buffer's copy takes no device memory)
+        d = {name: getattr(self, name)[:n].to("cpu", copy=True) for name in _FIELDS}
         d.update(ptr=self.ptr, filled=self.filled, added=self.added, rows=self.rows, num_envs=self.num_envs,
                  obs_dim=self.obs_dim, action_dim=self.action_dim)
         return d
@@ -229,13 +229,17 @@ class ReplayBuffer:
         for key in ("num_envs", "obs_dim", "action_dim", "rows"):
             if int(state[key]) != getattr(self, key):
                 raise ReplayError(f"the saved buffer has {key}={state[key]}; this one {getattr(self, key)}")
-        n = int(state["filled"])
+        n, ptr, added = int(state["filled"]), int(state["ptr"]), int(state["added"])
+        if not (0 <= n <= self.rows and 0 <= ptr < self.rows and n == min(added, self.rows)
+                and (n == self.rows or ptr == n)):
+            raise ReplayError(f"the saved buffer's counters are inconsistent (filled={n}, ptr={ptr}, added={added}, "
+                              f"{self.rows} rows): a damaged checkpoint")
         for name in _FIELDS:
             ring, saved = getattr(self, name), state[name]
-            if not 0 <= n <= self.rows or saved.shape[0] not in (n, self.rows) or saved.shape[1:] != ring.shape[1:]:
+            if saved.shape[0] not in (n, self.rows) or saved.shape[1:] != ring.shape[1:]:
                 raise ReplayError(f"the saved buffer's {name} has shape {tuple(saved.shape)}; expected "
                                   f"{(n,) + tuple(ring.shape[1:])} ({n} filled rows)")
             ring.zero_()
             ring[:n].copy_(saved[:n])
-        self.ptr, self.filled, self.added = int(state["ptr"]), n, int(state["added"])
+        self.ptr, self.filled, self.added = ptr, n, added
         self._starts = None

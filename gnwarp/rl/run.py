@@ -217,6 +217,9 @@ def export_agent(run, dest) -> Path:
             raise FileNotFoundError(f"no gnwarp rl run in {run}: its {name} is missing")
     if dest.resolve() == run.resolve():
         raise ValueError(f"export_agent writes into another folder than the run's ({run})")
+    if (dest / CHECKPOINT).exists() or ((dest / CONFIG_FILE).exists() and not (dest / AGENT_FILE).exists()):
+        raise ValueError(f"{dest} holds a gnwarp rl run or another program's {CONFIG_FILE}: export into an empty "
+                         "folder or an earlier export")
     from gnwarp.validation import read_config_file
     cfg = read_config_file(run / CONFIG_FILE, "RLConfig keys")
     RLConfig.from_dict(cfg)   # a broken config fails here, not when the export is loaded
@@ -323,8 +326,8 @@ def run_rl(cfg: RLConfig) -> dict:
         agent.load_state_dict(ck["agent"])
         buffer.load_state_dict(ck["buffer"])
         if not restore_generator(gen, ck["generator"]):
-            warnings.warn(f"{out} was saved on another kind of device: its replay sampling goes on from the seed, "
-                          "not bit for bit", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"{out} was saved on another kind of device: its replay sampling and the agent's "
+                          "exploration noise go on from their seeds, not bit for bit", RuntimeWarning, stacklevel=2)
         state = CollectorState.from_state_dict(ck["collector"], parts["device"])
         c = ck["counters"]
         _set_rng_states(ck["rng"])
@@ -447,13 +450,16 @@ def run_rl(cfg: RLConfig) -> dict:
                 video=str(out / VIDEO_FILE) if video else None)
 
 
-def write_video(path: Path, states: torch.Tensor, system, title: str, renderer: str = "auto") -> Path:
-    """A GIF of episodes' body states [K, T+1, B, 13] at ``path``, written whole or not at all
-    (rendered into a temporary folder beside it, then renamed)."""
+def write_video(path: Path, states: torch.Tensor, system, title: str, renderer: str = "auto",
+                fps_max: float = 25.0) -> Path:
+    """A GIF of episodes' body states [K, T+1, B, 13] at ``path`` (at most ``fps_max`` frames a
+    second of simulated time), written whole or not at all (rendered into a temporary folder
+    beside it, then renamed)."""
     import tempfile
 
     from gnwarp.eval.animation import animate_system
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
-        animate_system(states.numpy(), system, Path(tmp) / path.name, title=title, renderer=renderer)
+        animate_system(states.numpy(), system, Path(tmp) / path.name, title=title, renderer=renderer,
+                       fps_max=fps_max)
         os.replace(Path(tmp) / path.name, path)
     return path
