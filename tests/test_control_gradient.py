@@ -149,6 +149,8 @@ def test_clear_errors(model, pendulum_data):
         p.step(x[:1])
     with pytest.raises(ConfigError, match="iterations"):
         GradientMPCConfig(iterations=0)
+    with pytest.raises(ConfigError, match="capture_warmup"):
+        GradientMPCConfig(capture_warmup=0)   # a recording needs one eager call before it
 
 
 def test_cli_mpc(model, tmp_path, capsys):
@@ -270,9 +272,10 @@ def test_bounded_warmup_returns_stay_with_the_papers(model):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_captured_planning_iteration_matches_eager(pendulum_data):
+@pytest.mark.parametrize("capture_warmup", [1, 2])
+def test_cuda_captured_planning_iteration_matches_eager(pendulum_data, capture_warmup):
     """One planning iteration replayed from a CUDA graph (rollout, reward, adjoint backward, Adam)
-    plans what eager iterations plan, step after step."""
+    plans what eager iterations plan, step after step, recorded after one or two eager ones."""
     from gnwarp.models.factory import build_model
     torch.manual_seed(0)   # an untrained model on CUDA (the fixture's training runs Warp CPU kernels)
     cfg = TrainConfig(model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", precision="fp32")))
@@ -280,7 +283,8 @@ def test_cuda_captured_planning_iteration_matches_eager(pendulum_data):
     plans = {}
     for capture in (True, False):
         p = GradientMPC(m, "pendulum-balance", "pendulum", n=4,
-                        config=GradientMPCConfig(horizon=8, iterations=3, warmup=4, capture=capture))
+                        config=GradientMPCConfig(horizon=8, iterations=3, warmup=4, capture=capture,
+                                                 capture_warmup=capture_warmup))
         assert (p._graph is not None) == capture
         x, acts = x0(pendulum_data, 4), []
         for _ in range(4):

@@ -82,6 +82,7 @@ def main(argv=None):
     ap.add_argument("--sample", type=float, default=0.0, help="sample every thread's stack every this many ms")
     ap.add_argument("--warp-log", action="store_true", help="Warp's info log: each module load's time")
     ap.add_argument("--cuda-output", choices=("auto", "ptx", "cubin"), default="auto")
+    ap.add_argument("--capture-warmup", type=int, default=2, help="eager iterations before the recording")
     a = ap.parse_args(argv)
     wp = warp()   # initialized with gnwarp's log level, then the options
     if a.warp_log:
@@ -94,7 +95,8 @@ def main(argv=None):
     t_import = time.perf_counter() - T_START
     system, task, model, x, targets = planning_setup(a.system, a.episodes, dev)
     fused = {"auto": None, "on": True, "off": False}[a.fused]
-    cfg = GradientMPCConfig(horizon=a.horizon, iterations=a.iterations, seed=0, fused=fused)
+    cfg = GradientMPCConfig(horizon=a.horizon, iterations=a.iterations, seed=0, fused=fused,
+                            capture_warmup=a.capture_warmup)
     sync()
     phases, t = {}, time.perf_counter()
     order = iter(["construct", "proposal", "iteration_1", "iteration_2", "iterations_rest", "end"])
@@ -122,7 +124,7 @@ def main(argv=None):
     planner.iterate(xc, rest)
     mark(f"iterations_3_to_{rest + 2}_ms")
     row = {"system": a.system, "episodes": a.episodes, "horizon": a.horizon, "iterations": a.iterations,
-           "fused": planner.engine.fused, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+           "fused": planner.engine.fused, "capture_warmup": a.capture_warmup, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "imports_s": round(t_import, 2), **phases, "total_ms": round(sum(phases.values()), 1)}
     print(json.dumps(row), flush=True)
     if sampler is not None:

@@ -61,7 +61,9 @@ class GradientMPCConfig:
     best (0: from the reset's random sequence). ``lr``: Adam's step size on the unconstrained
     actions z. ``init_std``: the random initial z ~ N(0, init_std^2) (and the proposals').
     ``seed``: of those sequences. ``capture``: replay one planning iteration from a CUDA graph
-    (None: on CUDA; ignored on the CPU). ``fused``: the rollout engine's model step fused
+    (None: on CUDA; ignored on the CPU); ``capture_warmup``: eager iterations before it is
+    recorded (each costs about one eager iteration of the first action; 2 is what every timing
+    so far used). ``fused``: the rollout engine's model step fused
     (``ForwardModel.rollout_engine``; None: automatic). ``discount``: per-step weight of the
     planned return (``gnwarp.control.returns.planned_return``; 1: the task's reward as is; < 1
     shortens the effective horizon of the gradient and weights a ``terminal`` value by
@@ -82,6 +84,7 @@ class GradientMPCConfig:
     betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
     seed: IntRange(0) = 0
     capture: Flag | None = None
+    capture_warmup: PositiveInt = 2
     fused: Flag | None = None
     discount: FloatRange(gt=0, le=1) = 1.0
     grad_norm: Literal[GRAD_NORMS] = "none"
@@ -194,7 +197,7 @@ class GradientMPC(ActsOnPlan):
         self._t = torch.zeros((), device=dev, dtype=torch.float64)      # Adam's step count
         self._x = torch.zeros((n, self.B, DYN_NODE_SIZE), device=dev, dtype=dt)
         self._r = torch.zeros(n, device=dev, dtype=dt)                  # planned reward before the last step
-        self._graph = Graphed(self._iterate_once, warmup=2) if self.capture else None
+        self._graph = Graphed(self._iterate_once, warmup=self.settings.capture_warmup) if self.capture else None
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
 
