@@ -6,6 +6,9 @@ resumed by the next call; afterwards each seed's records and log are copied to
     PYTHONPATH=. python3 bench/rl_seeds.py --agent svg1 --task swimmer6 --seeds 0-5 --budget-seconds 480
     PYTHONPATH=. python3 bench/rl_seeds.py --quick            # CPU-sized, 2 seeds, seconds
 
+``--export DIR`` also writes each seed's trained agent without its replay buffer (``export_agent``)
+to ``DIR/<agent>-<preset>-<networks>/s<seed>/`` after every call.
+
 ``--set KEY=VALUE`` sets any other ``RLConfig`` key for every seed (values parsed as JSON where
 they parse). A call prints one line per seed: env steps reached and whether it is done.
 
@@ -57,10 +60,14 @@ def seeds_of(text: str) -> list[int]:
 
 
 def _one(cfg_json: str) -> int:
-    """Run one seed (the child process)."""
+    """Run one seed (the child process); with "export" in the JSON, then write its agent there."""
     from gnwarp.rl.config import RLConfig
-    from gnwarp.rl.run import run_rl
-    r = run_rl(RLConfig.from_dict(json.loads(cfg_json)))
+    from gnwarp.rl.run import export_agent, run_rl
+    d = json.loads(cfg_json)
+    export = d.pop("export", None)
+    r = run_rl(RLConfig.from_dict(d))
+    if export:
+        export_agent(d["out"], export)
     print(json.dumps({k: r[k] for k in ("stop", "env_steps", "updates", "rounds", "seconds")}))
     return 0
 
@@ -79,6 +86,9 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default=str(Path("bench") / "results" / "rl"),
                     help="where each seed's records.jsonl and progress.csv are copied")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="another RLConfig key")
+    ap.add_argument("--export", default=None, metavar="DIR",
+                    help="after each seed's call, its trained agent alone (export_agent: no replay buffer, a few MB) "
+                         "in DIR/<agent>-<preset>-<networks>/s<seed>: what can leave a machine that keeps nothing")
     ap.add_argument("--quick", action="store_true", help="CPU-sized (pendulum-balance, 2 seeds, tiny networks)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -116,7 +126,8 @@ def main(argv=None) -> int:
         for s in mine:
             out = Path(a.runs) / name / f"s{s}"
             out.mkdir(parents=True, exist_ok=True)
-            cfg = json.dumps({**base, "seed": s, "out": str(out)})
+            cfg = json.dumps({**base, "seed": s, "out": str(out)}
+                             | ({"export": str(Path(a.export) / name / f"s{s}")} if a.export else {}))
             log = open(out / "call.log", "a")
             procs[s] = (subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--one", cfg], env=env,
                                          stdout=log, stderr=subprocess.STDOUT), out, log)
