@@ -3,7 +3,6 @@ results record, timings and video."""
 from __future__ import annotations
 
 import dataclasses
-
 import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
@@ -30,8 +29,6 @@ def mpc_settings(args, task):
     (each where the settings have that field; elsewhere ValueError), ``--seed``, then ``--set
     KEY=VALUE``; the horizon defaults to the task's, and ``knots`` to at most the horizon. An
     unknown key raises ``ConfigError`` naming the planner's fields, a bad value where it came from."""
-    import dataclasses
-
     from gnwarp.control.planner import MODEL_PLANNERS, get_planner, planner_settings
     from gnwarp.validation import ConfigError
     name = args.planner
@@ -98,7 +95,6 @@ def planner_summary(planner, name: str) -> str:
 def mpc_command(args) -> int:
     """``gnwarp mpc``: a registered planner (``--planner``) through a learned model, in closed
     loop on the true simulator."""
-    import dataclasses
     from pathlib import Path
 
     import numpy as np
