@@ -49,11 +49,16 @@ def main(argv=None) -> int:
         returns, states = evaluate_policy(agent, env, a.seed, keep=a.episodes)
         title = (f"{cfg.agent} {task.name} after {agent.env_steps} env steps; returns "
                  + ", ".join(f"{r:.0f}" for r in returns) + f" over {a.steps} steps")
-        write_video(out, states, env.system, title, a.renderer, fps_max=a.fps)
+        # a task's world-point targets (swimmer6's), drawn where the renderer can
+        tgt = env.targets
+        marks = (tgt[:a.episodes].double().cpu().numpy() if tgt is not None and tgt.ndim == 2 and tgt.shape[1] == 3
+                 and a.renderer != "mujoco" else None)
+        write_video(out, states, env.system, title, a.renderer, fps_max=a.fps, marks=marks)
     finally:
         env.close()
     info = dict(run=str(a.run), task=task.name, agent=cfg.agent, env_steps=agent.env_steps, seed=a.seed,
-                steps=a.steps, returns=[float(r) for r in np.asarray(returns)], renderer=a.renderer, fps=a.fps)
+                steps=a.steps, returns=[float(r) for r in np.asarray(returns)], renderer=a.renderer, fps=a.fps,
+                targets=marks.round(4).tolist() if marks is not None else None)
     with atomic_write(Path(str(out) + ".json")) as tmp:
         Path(tmp).write_text(json.dumps(info, indent=1) + "\n")
     print(f"wrote {out}: returns {', '.join(f'{r:.1f}' for r in info['returns'])}")

@@ -60,3 +60,24 @@ def test_animate_falls_back_without_gl(cartpole, tmp_path, monkeypatch):
     assert p.exists() and p.stat().st_size > 0
     with pytest.raises(ValueError, match="renderer"):
         ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "c.gif", renderer="povray")
+
+
+def test_marks_are_drawn_where_they_are(cartpole, tmp_path):
+    """A target per rollout: a red circle at its world point (matplotlib), in view; a bad shape or
+    the MuJoCo renderer is refused."""
+    import imageio.v3 as iio
+    te = cartpole["test"]
+    K = te.body.shape[0]
+    at_cart = te.body[:, 0, 1, :3].astype(np.float64)
+    far = at_cart + np.array([3.0, 0.0, 0.0])                 # beyond the motion: the view takes it in
+    plain = iio.imread(ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "a.gif", renderer="matplotlib"))
+    marked = iio.imread(ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "b.gif", renderer="auto",
+                                   marks=far))
+    assert plain.shape == marked.shape
+    top = int(0.85 * plain.shape[1])                           # above the legend
+    red = lambda v: ((v[:top, :, 0] > 150) & (v[:top, :, 1] < 120) & (v[:top, :, 2] < 120)).sum()  # noqa: E731
+    assert red(marked[0]) > red(plain[0]) + 20                 # the circle, in the panel
+    with pytest.raises(ValueError, match=r"marks must be \[K, 3\]"):
+        ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "c.gif", marks=np.zeros((K + 1, 3)))
+    with pytest.raises(ValueError, match="matplotlib"):
+        ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "d.gif", renderer="mujoco", marks=at_cart)

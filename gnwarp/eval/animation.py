@@ -71,11 +71,13 @@ def _world_segments(body: np.ndarray, segs, edges) -> np.ndarray:
 
 
 def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, path, dt: float | None = None,
-            fps_max: float = 25.0, title: str = "", renderer: str = "matplotlib") -> Path:
+            fps_max: float = 25.0, title: str = "", renderer: str = "matplotlib", marks=None) -> Path:
     """GIF of true vs predicted motion for a few rollouts.
 
     ``true`` [K, H+1, B, 13], ``preds`` {name: [K, H+1, B, 13]}, ``instances`` [K] system instance
-    of each rollout. ``renderer``:
+    of each rollout. ``marks`` [K, 3] (or None): a fixed world point per rollout, such as a task's
+    target, drawn as a red circle; only "matplotlib" draws them, so "auto" picks it where marks
+    are given. ``renderer``:
 
     - "mujoco": MuJoCo's offscreen renderer (EGL/OSMesa, see ``gnwarp.eval.render``): one row per
       rollout, columns true, then each prediction in order; raises ``RenderUnavailable`` without GL.
@@ -86,6 +88,13 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
     """
     if renderer not in ("auto", "mujoco", "matplotlib"):
         raise ValueError(f"renderer must be 'auto', 'mujoco' or 'matplotlib', got {renderer!r}")
+    if marks is not None:
+        marks = np.asarray(marks, dtype=np.float64)
+        if marks.shape != (true.shape[0], 3):
+            raise ValueError(f"marks must be [K, 3] = [{true.shape[0]}, 3] world points, got {list(marks.shape)}")
+        if renderer == "mujoco":
+            raise ValueError("marks are drawn by renderer 'matplotlib' only")
+        renderer = "matplotlib"
     if renderer in ("auto", "mujoco"):
         try:
             specs = [_system_spec(dataset, int(i)) for i in instances]
@@ -125,10 +134,13 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
 
     # one scale for all panels, each centred on its own motion
     spans = []
-    for tw, pw, _ in panels:
-        pts = np.concatenate([tw.reshape(-1, 3)] + [v.reshape(-1, 3) for v in pw.values()])[:, axes]
+    for k, (tw, pw, _) in enumerate(panels):
+        extra = [marks[k:k + 1]] if marks is not None else []
+        pts = np.concatenate([tw.reshape(-1, 3)] + [v.reshape(-1, 3) for v in pw.values()] + extra)[:, axes]
         pts = pts[np.isfinite(pts).all(1)]
         lo, hi = np.percentile(pts, 1, 0), np.percentile(pts, 99, 0)
+        if extra:   # the mark in view, whatever the percentiles leave out
+            lo, hi = np.minimum(lo, extra[0][0, axes]), np.maximum(hi, extra[0][0, axes])
         spans.append(((lo + hi) / 2, (hi - lo).max() / 2))
     half = max(max(h for _, h in spans) * 1.15, 0.3)
 
@@ -151,9 +163,13 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
                           for s in range(n_seg)]}
         for j, name in enumerate(pw):
             lines[name] = [ax.plot([], [], color=colors[j % 3], lw=1.6, ls=dashes[j % 3])[0] for s in range(n_seg)]
+        if marks is not None:
+            ax.plot(marks[k, axes[0]], marks[k, axes[1]], "o", ms=9, mfc="none", mec="tab:red", mew=2)
         txt = ax.set_title("", fontsize=9)
         artists.append((lines, txt))
     handles = [plt.Line2D([], [], color="0.55", lw=5, label="true")]
+    if marks is not None:
+        handles.append(plt.Line2D([], [], ls="", marker="o", mfc="none", mec="tab:red", mew=2, label="target"))
     handles += [plt.Line2D([], [], color=colors[j % 3], lw=1.6, ls=dashes[j % 3], label=n)
                 for j, n in enumerate(preds)]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
@@ -177,9 +193,10 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
 
 
 def animate_system(states: np.ndarray, system, path, title: str = "", renderer: str = "auto",
-                   fps_max: float = 25.0) -> Path:
+                   fps_max: float = 25.0, marks=None) -> Path:
     """``animate`` for episodes of one built-in system (``gnwarp.sim.systems.System``, unparameterized):
-    ``states`` [K, T+1, B, 13] body states (the true motion, no prediction) at ``system.dt``."""
+    ``states`` [K, T+1, B, 13] body states (the true motion, no prediction) at ``system.dt``;
+    ``marks`` [K, 3]: a world point per episode (its target), as ``animate`` draws them."""
     states = np.asarray(states)
     if states.ndim != 4 or states.shape[2:] != (system.nbody, 13):
         raise ValueError(f"states must be [K, T+1, {system.nbody}, 13] for {system.name}, got {states.shape}")
@@ -187,4 +204,4 @@ def animate_system(states: np.ndarray, system, path, title: str = "", renderer: 
     shim = types.SimpleNamespace(meta={"system": system.name, "parameterized": False, "dt": system.dt},
                                  static={"n_node": np.full(k, system.nbody)})
     return animate(states, {}, shim, np.zeros(k, dtype=np.int64), path, dt=system.dt, fps_max=fps_max,
-                   title=title, renderer=renderer)
+                   title=title, renderer=renderer, marks=marks)

@@ -451,15 +451,16 @@ def run_rl(cfg: RLConfig) -> dict:
 
 
 def write_video(path: Path, states: torch.Tensor, system, title: str, renderer: str = "auto",
-                fps_max: float = 25.0) -> Path:
+                fps_max: float = 25.0, marks=None) -> Path:
     """A GIF of episodes' body states [K, T+1, B, 13] at ``path`` (at most ``fps_max`` frames a
-    second of simulated time), written whole or not at all (rendered into a temporary folder
-    beside it, then renamed)."""
+    second of simulated time; ``marks`` [K, 3]: each episode's target, drawn by the matplotlib
+    renderer), written whole or not at all (rendered into a temporary folder beside it, then
+    renamed)."""
     import tempfile
 
     from gnwarp.eval.animation import animate_system
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
         animate_system(states.numpy(), system, Path(tmp) / path.name, title=title, renderer=renderer,
-                       fps_max=fps_max)
+                       fps_max=fps_max, marks=marks)
         os.replace(Path(tmp) / path.name, path)
     return path
