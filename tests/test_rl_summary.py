@@ -68,13 +68,16 @@ def test_seed_lists_of_the_side_by_side_runner():
             rl_seeds.seeds_of(bad)
 
 
-def test_side_by_side_runner_exports_each_seeds_agent(tmp_path):
-    """``--export``: each seed's trained agent alone, loadable where the run folder is not."""
+def test_side_by_side_runner_exports_each_seeds_agent(tmp_path, capsys):
+    """``--export``: a seed's process (``_one``, here in this process) writes its trained agent
+    alone, loadable where the run folder is not."""
     from bench import rl_seeds
     from gnwarp.rl.run import AGENT_FILE, load_agent
-    assert rl_seeds.main(["--quick", "--seeds", "0", "--threads", "1", "--runs", str(tmp_path / "runs"),
-                          "--results", str(tmp_path / "res"), "--export", str(tmp_path / "exp")]) == 0
     exp = tmp_path / "exp" / "svg0-spinningup-mlp" / "s0"
+    cfg = {**rl_seeds.QUICK, "preset": "spinningup", "networks": "mlp", "progress": False, "seed": 0,
+           "out": str(tmp_path / "runs" / "s0"), "export": str(exp)}
+    assert rl_seeds._one(json.dumps(cfg)) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stop"] == "done"
     assert (exp / AGENT_FILE).is_file() and not (exp / "checkpoint.pt").exists()
-    agent, cfg, _ = load_agent(exp, "cpu")
-    assert cfg.seed == 0 and agent.env_steps == rl_seeds.QUICK["env_steps"]
+    agent, saved, _ = load_agent(exp, "cpu")
+    assert saved.seed == 0 and agent.env_steps == rl_seeds.QUICK["env_steps"]
