@@ -67,7 +67,10 @@ def _one(cfg_json: str) -> int:
     export = d.pop("export", None)
     r = run_rl(RLConfig.from_dict(d))
     if export:
-        export_agent(d["out"], export)
+        try:   # the training is saved either way: a failed export is reported, not a failed seed
+            export_agent(d["out"], export)
+        except (OSError, ValueError) as e:
+            print(f"export to {export} failed: {e}", file=sys.stderr)
     print(json.dumps({k: r[k] for k in ("stop", "env_steps", "updates", "rounds", "seconds")}))
     return 0
 

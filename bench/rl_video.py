@@ -1,11 +1,13 @@
 """A GIF of a trained ``gnwarp rl`` agent on the true simulator (MuJoCo C), from its run folder or
 an ``export_agent`` folder: ``--episodes`` deterministic-policy episodes side by side (initial
 states and targets of ``--seed``), ``--steps`` control steps each, at most ``--fps`` frames a
-second of simulated time; the episodes' returns are printed and written beside the GIF
-(``<gif>.json``), so that what the video shows is on record.
+second of simulated time; the episodes' returns (and a position task's targets) are printed and
+written beside the GIF (``<gif>.json``), so that what the video shows is on record. A position
+target (swimmer6's) is drawn as a red circle by the matplotlib renderer, which "auto" then
+picks; "mujoco" draws none.
 
-    PYTHONPATH=. MUJOCO_GL=egl python3 bench/rl_video.py bench/results/rl/agents/svg1-spinningup-mlp-s0 \\
-        --out bench/results/rl/svg1_swimmer6.gif --episodes 2 --renderer mujoco
+    PYTHONPATH=. python3 bench/rl_video.py bench/results/rl/agents/svg1-spinningup-mlp-s0 \\
+        --out bench/results/rl/svg1_swimmer6.gif --episodes 3 --fps 4 --renderer matplotlib
     PYTHONPATH=. python3 bench/rl_video.py RUN --out /tmp/v.gif --steps 20 --renderer matplotlib   # quick
 """
 from __future__ import annotations
@@ -49,16 +51,16 @@ def main(argv=None) -> int:
         returns, states = evaluate_policy(agent, env, a.seed, keep=a.episodes)
         title = (f"{cfg.agent} {task.name} after {agent.env_steps} env steps; returns "
                  + ", ".join(f"{r:.0f}" for r in returns) + f" over {a.steps} steps")
-        # a task's world-point targets (swimmer6's), drawn where the renderer can
-        tgt = env.targets
-        marks = (tgt[:a.episodes].double().cpu().numpy() if tgt is not None and tgt.ndim == 2 and tgt.shape[1] == 3
-                 and a.renderer != "mujoco" else None)
-        write_video(out, states, env.system, title, a.renderer, fps_max=a.fps, marks=marks)
+        # a task's world-point targets (swimmer6's): recorded always, drawn by matplotlib ("auto" picks it)
+        points = (env.targets[:a.episodes].double().cpu().numpy()
+                  if task.target == "position" and env.targets is not None else None)
+        write_video(out, states, env.system, title, a.renderer, fps_max=a.fps,
+                    marks=points if a.renderer != "mujoco" else None)
     finally:
         env.close()
     info = dict(run=str(a.run), task=task.name, agent=cfg.agent, env_steps=agent.env_steps, seed=a.seed,
                 steps=a.steps, returns=[float(r) for r in np.asarray(returns)], renderer=a.renderer, fps=a.fps,
-                targets=marks.round(4).tolist() if marks is not None else None)
+                targets=points.round(4).tolist() if points is not None else None)
     with atomic_write(Path(str(out) + ".json")) as tmp:
         Path(tmp).write_text(json.dumps(info, indent=1) + "\n")
     print(f"wrote {out}: returns {', '.join(f'{r:.1f}' for r in info['returns'])}")

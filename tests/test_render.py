@@ -79,5 +79,7 @@ def test_marks_are_drawn_where_they_are(cartpole, tmp_path):
     assert red(marked[0]) > red(plain[0]) + 20                 # the circle, in the panel
     with pytest.raises(ValueError, match=r"marks must be \[K, 3\]"):
         ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "c.gif", marks=np.zeros((K + 1, 3)))
+    with pytest.raises(ValueError, match="marks must be finite"):
+        ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "e.gif", marks=far * np.nan)
     with pytest.raises(ValueError, match="matplotlib"):
         ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "d.gif", renderer="mujoco", marks=at_cart)

@@ -3,8 +3,9 @@
 The gradient planner of ``bench/mpc_latency.py`` (untrained planning core, one system, N
 episodes, horizon H, iterations I), timed phase by phase with the device synchronized: planner
 construction (binding, engines), the sampled proposal (eager forward rollouts), the first planning
-iteration (on CUDA: run eagerly, Warp modules loaded), the second (recorded into a CUDA graph),
-the rest of the warm-up and the first control step's iterations (replays). Run it twice: the
+iteration (on CUDA: run eagerly, Warp modules loaded), the second (eager with the default
+``--capture-warmup 2``, recorded with 1), the rest of the warm-up and the first control step's
+iterations (the recording, where it was not yet made, then replays). Run it twice: the
 first process fills the kernel caches, the second is what a user waits for.
 
     python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto]

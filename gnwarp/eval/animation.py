@@ -92,6 +92,8 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
         marks = np.asarray(marks, dtype=np.float64)
         if marks.shape != (true.shape[0], 3):
             raise ValueError(f"marks must be [K, 3] = [{true.shape[0]}, 3] world points, got {list(marks.shape)}")
+        if not np.isfinite(marks).all():
+            raise ValueError("marks must be finite world points (a NaN or Inf is in them)")
         if renderer == "mujoco":
             raise ValueError("marks are drawn by renderer 'matplotlib' only")
         renderer = "matplotlib"
