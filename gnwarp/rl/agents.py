@@ -24,7 +24,22 @@ from gnwarp.rl.replay import Transitions
 from gnwarp.rl.settings import AgentSettings
 from gnwarp.validation import ConfigError
 
-__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss", "restore_generator"]
+__all__ = ["Agent", "DDPG", "SVG", "make_agent", "mse_model_loss", "restore_generator", "set_adam_mode"]
+
+
+def set_adam_mode(optimizers, capturable: bool) -> None:
+    """Adam's flags on each of ``optimizers``: fused where its parameters are on CUDA (as
+    ``_adam`` builds it), ``capturable`` as given (recordable in a CUDA graph; eager steps want it
+    off), and the step counts on the parameters' device where either flag needs them there. A
+    loaded state brings the flags of the device it was saved on; this sets this device's."""
+    for opt in optimizers:
+        for g in opt.param_groups:
+            g["fused"] = bool(g["params"]) and all(p.is_cuda for p in g["params"])
+            g["capturable"] = bool(capturable)
+            for p in g["params"]:
+                st = opt.state.get(p, {})
+                if isinstance(st.get("step"), torch.Tensor) and (g["fused"] or g["capturable"]):
+                    st["step"] = st["step"].to(p.device, torch.float32)
 
 
 def restore_generator(generator: torch.Generator, state: torch.Tensor) -> bool:
@@ -259,15 +274,7 @@ class Agent:
         for k, m in self._modules().items():
             if m is not None:
                 m.load_state_dict(state[k])
-        cuda = self.device.type == "cuda"
-        for opt in self.optimizers():   # a saved state brings its device's flags: keep this agent's own
-            for g in opt.param_groups:
-                g["fused"] = bool(g["params"]) and all(p.is_cuda for p in g["params"])   # as _adam builds it
-                g["capturable"] = bool(g.get("capturable")) and cuda
-                for p in g["params"]:    # fused or capturable Adam keeps its step count on the device
-                    st = opt.state.get(p, {})
-                    if isinstance(st.get("step"), torch.Tensor) and (g["fused"] or g["capturable"]):
-                        st["step"] = st["step"].to(p.device, torch.float32)
+        set_adam_mode(self.optimizers(), capturable=False)   # this device's flags; eager steps (an Updater records anew)
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
         restore_generator(self.generator, state["generator"])
         self.loads += 1   # the optimizers' state tensors are new: a recorded update is stale

@@ -20,6 +20,7 @@ import warnings
 
 import torch
 
+from gnwarp.rl.agents import set_adam_mode
 from gnwarp.rl.replay import ReplayBuffer
 
 __all__ = ["Updater"]
@@ -80,14 +81,8 @@ class Updater:
         return self.agent.update_step(batch, model_batch, self.noise)
 
     def _set_capturable(self, on: bool) -> None:
-        """Adam's steps recordable (``on``) or eager (no warning about capturable eager steps); the
-        step counts of fused Adam already live on the device."""
-        for opt in self.agent.optimizers():
-            for group in opt.param_groups:
-                group["capturable"] = on
-            for p, st in opt.state.items():
-                if on and "step" in st:
-                    st["step"] = st["step"].to(p.device, torch.float32)
+        """Adam's steps recordable (``on``) or eager (no warning about capturable eager steps)."""
+        set_adam_mode(self.agent.optimizers(), capturable=on)
 
     def _graphed_step(self) -> None:
         self._out = self._work()   # eager: this update's losses; recording: the graph's output tensors

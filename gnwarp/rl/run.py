@@ -212,9 +212,8 @@ def export_agent(run, dest) -> Path:
     checkpoint). ``load_agent(dest)``, planner "policy" and ``gnwarp mpc --policy`` read it like
     the run; it cannot resume training. Returns ``dest``."""
     run, dest = Path(run), Path(dest)
-    for name in (CONFIG_FILE, CHECKPOINT):
-        if not (run / name).is_file():
-            raise FileNotFoundError(f"no gnwarp rl run in {run}: its {name} is missing")
+    if agent_file(run).name != CHECKPOINT:   # an export is not a run
+        raise FileNotFoundError(f"no gnwarp rl run in {run}: its {CHECKPOINT} is missing")
     if dest.resolve() == run.resolve():
         raise ValueError(f"export_agent writes into another folder than the run's ({run})")
     if (dest / CHECKPOINT).exists() or ((dest / CONFIG_FILE).exists() and not (dest / AGENT_FILE).exists()):
