@@ -186,8 +186,10 @@ def headline(root: Path, doc: Path) -> list[str]:
                        min(r["train_efficiency"] for r in tte),
                        " and ".join(f"{r['time_to_error_ratio']:.2f}x" for r in tte), len(tte)),
                  link("distributed")])
-    rl = [r for r in json.loads((root / RESULTS / "rl" / "summary.json").read_text())
-          if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup" and r["networks"] == "mlp"]
+    every = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
+    rl = [r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup" and r["networks"] == "mlp"]
+    walker = {r["agent"]: r for r in every if r["task"] == "dmc-walker-walk" and r["env_steps"] == 500000
+              and r["networks"] == "mlp"}
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl") if r["batch"] == 100}
     names = {"svg1": "SVG(1)", "svg0": "SVG(0)", "ddpg": "DDPG"}
@@ -198,7 +200,10 @@ def headline(root: Path, doc: Path) -> list[str]:
     rows.append([f"RL on DMC swimmer6 (SpinningUp preset, MLPs, {seeds} seeds), return at 250k / 500k env steps, "
                  "mean +- s.e. over seeds",
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {at['ddpg', last]['mean']:.0f} +- "
-                 f"{at['ddpg', last]['se']:.0f} (SpinningUp 351 +- 19); updates replayed from a CUDA graph "
+                 f"{at['ddpg', last]['se']:.0f} (SpinningUp 351 +- 19); "
+                 + "".join(f"walker-walk {names[a]} at 500k {w['mean']:.0f} +- {w['se']:.0f} ({w['seeds']} seeds); "
+                           for a, w in sorted(walker.items()) if a in names)
+                 + "updates replayed from a CUDA graph "
                  f"**{ups['svg1']['graph_speedup']:.1f}x** eager's (SVG(1), one H100)", link("rl")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean
@@ -323,6 +328,29 @@ def control_loop(root: Path, doc: Path) -> list[str]:
 def rl_h1(root: Path, doc: Path) -> list[str]:
     """Figure H.1: a model trained on random-control swimmer6 data, on the trained SVG(1) agent's states."""
     return _loop_rows(root, "rl/h1_swimmer6/records.jsonl", "4, the trained SVG(1) policy's")
+
+
+@table("rl-curves")
+def rl_curves(root: Path, doc: Path) -> list[str]:
+    """Every learning curve of ``rl/summary.json`` (task, agent, networks) at 100k, 250k and 500k
+    env steps and at its last point: mean +- s.e. over seeds (median; seeds)."""
+    rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
+    groups: dict[tuple, dict[int, dict]] = {}
+    for r in rows:
+        groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"]), {})[r["env_steps"]] = r
+    cell = lambda r: "" if r is None else (   # noqa: E731
+        f"{r['mean']:.0f}" + (f" +- {r['se']:.0f}" if r["se"] is not None else "") + f" ({r['median']:.0f}; {r['seeds']})")
+    order = {"ddpg": -1}
+    out = []
+    for (task, agent, preset, nets), pts in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][3] != "mlp",
+                                                                                   order.get(kv[0][1], 0), kv[0][1])):
+        last = max(pts)
+        name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
+        out.append([task.replace("dmc-", ""), name, nets, *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
+                    f"{cell(pts[last])} at {last / 1000:.0f}k"])
+    return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "
+                   f"preset {', '.join(sorted({k[2] for k in groups}))}", "`summary.json`")]
+            + [""] + _md(["task", "agent", "networks", "100k", "250k", "500k", "last point"], out))
 
 
 @table("control-fig10")
