@@ -337,3 +337,19 @@ def test_checkpointed_random_states_and_collector_round_trip(tmp_path):
     assert none.obs is None and isinstance(arr.obs, np.ndarray) and np.array_equal(arr.obs, states[1].obs)
     assert np.array_equal(arr.episode_return, [1.5, -2.0]) and arr.owed == 0.25 and arr.obs.dtype == np.float64
     assert isinstance(ten.obs, torch.Tensor) and torch.equal(ten.obs, states[2].obs)
+
+
+def test_a_policy_that_stops_changing_is_reported(tmp_path):
+    """A policy whose updates cannot move it (a learning rate below float32's resolution of its
+    weights) evaluates to the same returns twice: the run warns; a learning one does not."""
+    from gnwarp.rl.run import FrozenPolicyWarning
+    frozen = dict(TINY, env_steps=80, agent_settings={"policy_lr": 1e-30})
+    with pytest.warns(FrozenPolicyWarning, match="repeats the previous one exactly"):
+        run_rl(RLConfig(**frozen, out=str(tmp_path / "frozen")))
+    recs = _eval_returns(tmp_path / "frozen")
+    assert recs[1][1] == recs[2][1]   # 40 and 80 env steps: the same actions
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FrozenPolicyWarning)
+        run_rl(RLConfig(**dict(TINY, env_steps=80), out=str(tmp_path / "learning")))
+    recs = _eval_returns(tmp_path / "learning")
+    assert recs[1][1] != recs[2][1]

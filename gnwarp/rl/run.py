@@ -39,7 +39,7 @@ from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, loa
 from gnwarp.validation import ConfigError
 
 __all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
-           "check_task", "observation_of", "AGENT_FILE"]
+           "check_task", "observation_of", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
 
@@ -253,6 +253,30 @@ def evaluate_policy(agent, env, seed: int, keep: int = 0, keep_steps: int | None
     return (total.tolist(), torch.stack(states, 1)) if keep else total.tolist()
 
 
+def frozen_policy_warning(previous: dict, returns: list, agent, saturated=None) -> bool:
+    """Warn (``FrozenPolicyWarning``) when an evaluation repeats the previous one's returns
+    exactly although the agent updated in between: the evaluation episodes start from the same
+    states, so its deterministic actions did not change. That is what a policy whose squashed
+    output sits on tanh's flat ends does (``agent.saturated``: its gradient vanishes). ``previous``
+    holds the last evaluation (``returns``, ``updates``) and is updated here; ``saturated``: a
+    callable giving the share of saturated actions, for the message. True when it warned."""
+    same = (previous.get("returns") == list(returns) and agent.updates > previous.get("updates", agent.updates))
+    if same:
+        share = saturated() if saturated is not None else None
+        warnings.warn(
+            f"the policy's evaluation at {agent.env_steps} env steps repeats the previous one exactly after "
+            f"{agent.updates - previous['updates']} updates: its deterministic actions did not change"
+            + (f" ({share:.0%} of them at the training envs' states sit at the action bounds)" if share is not None else "")
+            + ". A policy whose squashed output sits on tanh's flat ends gets no gradient; agent_settings "
+            "squash_penalty (e.g. 1e-3) or a lower policy_lr keeps it off them", FrozenPolicyWarning, stacklevel=2)
+    previous.update(returns=list(returns), updates=agent.updates)
+    return same
+
+
+class FrozenPolicyWarning(UserWarning):
+    """An RL run's policy stopped changing (``frozen_policy_warning``)."""
+
+
 def _rng_states() -> dict:
     d = dict(torch=torch.get_rng_state(), numpy=np.random.get_state(), python=random.getstate())
     if torch.cuda.is_available():
@@ -348,12 +372,16 @@ def run_rl(cfg: RLConfig) -> dict:
 
     video = {}   # the body states of this call's last evaluation, for video.gif
 
+    previous = {}   # this call's last evaluation: its returns and the updates made before it
+
     def evaluate():
         returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True), keep=cfg.video_episodes,
                                   keep_steps=cfg.video_steps)
         if cfg.video_episodes:
             returns, video["states"] = returns
             video["env_steps"] = agent.env_steps
+        frozen_policy_warning(previous, returns, agent,
+                              lambda: agent.saturated(state.obs) if state.obs is not None else None)
         c["last_eval"] = agent.env_steps
         rec = ResultRecord(
             experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
