@@ -151,3 +151,48 @@ def test_names_and_errors():
     with pytest.raises(ValueError, match="no DMC observation"):
         ObservationReward("reacher-easy")
     assert math.isclose(float(wrap_angle(torch.tensor(3 * math.pi / 2, dtype=torch.float64))), -math.pi / 2)
+
+
+@pytest.mark.parametrize("domain", ["cheetah", "walker"])
+def test_planar_chain_is_the_general_kinematics(domain):
+    """The planar fast path (what cheetah's and walker's rewards run) against the body-by-body
+    composition, at random joint coordinates far from the data: states and their gradients
+    (float64), and the same in float32."""
+    from gnwarp.rl.planar_fk import planar_chain
+    obs = DMCObservation(domain)
+    m, coords = obs.system.model, obs.coords
+    assert planar_chain(coords) is not None and planar_chain(coords) is planar_chain(coords)   # made once
+    g = torch.Generator().manual_seed(4)
+    qpos = (3 * torch.randn(2, 5, m.nq, generator=g, dtype=torch.float64)).requires_grad_(True)
+    qvel = (3 * torch.randn(2, 5, m.nv, generator=g, dtype=torch.float64)).requires_grad_(True)
+    fast = forward_kinematics(m, qpos, qvel, coords)
+    slow = forward_kinematics(m, qpos, qvel, coords, planar=False)
+    assert fast.shape == slow.shape == (2, 5, m.nbody, 13)
+    assert (fast - slow).abs().max() < 1e-12
+    w = torch.randn(fast.shape, generator=g, dtype=torch.float64)
+    gf = torch.autograd.grad((fast * w).sum(), (qpos, qvel))
+    gs = torch.autograd.grad((slow * w).sum(), (qpos, qvel))
+    assert all((a - b).abs().max() < 1e-11 for a, b in zip(gf, gs))
+    f32 = forward_kinematics(m, qpos.detach().float(), qvel.detach().float(), coords)
+    assert f32.dtype == torch.float32 and (f32.double() - slow).abs().max() < 1e-4
+
+
+def test_planar_chain_refuses_other_models():
+    from gnwarp.rl.observations import JointCoordinates
+    from gnwarp.rl.planar_fk import PlanarChain, not_planar, planar_chain
+    swimmer = DMCObservation("swimmer6").coords            # moves in the x-y plane
+    assert "out of the x-z plane" in not_planar(swimmer) and planar_chain(swimmer) is None
+    hinge_z = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint axis='0 0 1'/><geom size='.1'/></body></worldbody></mujoco>")
+    assert "hinge axis is not +-y" in not_planar(JointCoordinates(hinge_z))
+    side = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint type='slide' axis='0 1 0'/><geom size='.1'/></body></worldbody></mujoco>")
+    assert "out of the x-z plane" in not_planar(JointCoordinates(side))
+    tilted = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body quat='1 1 0 0'><joint axis='0 1 0'/><geom size='.1'/></body></worldbody></mujoco>")
+    with pytest.raises(ValueError, match="not a rotation about y"):
+        PlanarChain(JointCoordinates(tilted))
+    # the general path still serves them: the swimmer's bodies from its coordinates
+    m = DMCObservation("swimmer6").system.model
+    body = forward_kinematics(m, torch.zeros(1, m.nq, dtype=torch.float64), torch.zeros(1, m.nv, dtype=torch.float64))
+    assert body.shape == (1, m.nbody, 13) and torch.isfinite(body).all()

@@ -21,6 +21,7 @@ import torch
 
 from gnwarp.control.dmc import tolerance
 from gnwarp.rl.observations import DMCObservation, JointCoordinates, observation_domain
+from gnwarp.rl.planar_fk import planar_chain
 from gnwarp.state import quat_mul, quat_rotate
 
 __all__ = ["forward_kinematics", "ObservationReward", "OBSERVATION_REWARD_TASKS"]
@@ -37,12 +38,17 @@ def _axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
 
 
 def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Tensor,
-                       coords: JointCoordinates | None = None) -> torch.Tensor:
+                       coords: JointCoordinates | None = None, planar: bool = True) -> torch.Tensor:
     """Body states [..., B, 13] (world first) of a tree of slide and hinge joints at joint
     coordinates qpos [..., nq], qvel [..., nv] (the joints ``JointCoordinates`` reads), composed as
     MuJoCo's kinematics: slides along their axes, then one hinge about its anchor. Differentiable.
-    ``coords``: the model's ``JointCoordinates`` to reuse (its constants stay on the device)."""
+    ``coords``: the model's ``JointCoordinates`` to reuse (its constants stay on the device).
+    ``planar``: a chain that moves in the x-z plane only (cheetah, walker, hopper) runs as a
+    ``PlanarChain`` (False: body by body, as any other)."""
     coords = coords if coords is not None else JointCoordinates(model)   # validates the joint structure
+    chain = planar_chain(coords) if planar else None
+    if chain is not None:   # the same states in a tenth of the operations (gnwarp/rl/planar_fk.py)
+        return chain(qpos, qvel)
     if qpos.shape[-1] != coords.nq or qvel.shape[-1] != coords.nv or qpos.shape[:-1] != qvel.shape[:-1]:
         raise ValueError(f"qpos [..., {coords.nq}] and qvel [..., {coords.nv}] with the same leading shape expected, "
                      f"got {tuple(qpos.shape)} and {tuple(qvel.shape)}")
@@ -118,6 +124,18 @@ class ObservationReward:
             self.height_offset = float(m.body_pos[1, 2])
             self.rootz = [j for j in range(m.njnt) if m.jnt_bodyid[j] == 1 and m.jnt_type[j] != hinge
                           and abs(float(m.jnt_axis[j, 2]) - 1) < 1e-12]
+            # the same as index lists, for ``joints`` in a few operations: a hinge's pitch difference
+            # (child - parent; the root's parent the world, pitch 0) along its axis, then rootz
+            hinges = self.root_pitch + self.limb_joints
+            pitch_of = lambda b: int(b) - 1 if b >= 1 else None   # noqa: E731 - body -> its pitch column
+            self._child = [pitch_of(m.jnt_bodyid[j]) for j in hinges]
+            self._parent = [pitch_of(m.body_parentid[m.jnt_bodyid[j]]) if j in self.limb_joints else None
+                            for j in hinges]
+            self._axis = [float(m.jnt_axis[j, 1]) for j in hinges]
+            set_ = [int(m.jnt_qposadr[j]) for j in hinges + self.rootz]
+            rest = [a for a in range(m.nq) if a not in set_]     # rootx: 0
+            self._qpos_order = [(set_ + rest).index(a) for a in range(m.nq)]
+            self._consts: dict = {}
 
     def __deepcopy__(self, memo):
         # a fixed description of the model (its MjSpec does not copy): copies of networks share it
@@ -137,17 +155,26 @@ class ObservationReward:
             raise ValueError(f"{self.domain}: joint coordinates are not rebuilt from its observation")
         orient = obs[..., ob.parts["orientations"]].reshape(*obs.shape[:-1], -1, 2)
         pitch = torch.atan2(orient[..., 1], orient[..., 0])                   # [..., B-1] about world y
-        qpos = obs.new_zeros(*obs.shape[:-1], m.nq)
-        for j in self.root_pitch:
-            qpos[..., m.jnt_qposadr[j]] = pitch[..., 0] * float(m.jnt_axis[j, 1])
-        for j in self.limb_joints:
-            b = int(m.jnt_bodyid[j])
-            rel = pitch[..., b - 1] - pitch[..., int(m.body_parentid[b]) - 1]
-            rel = rel - 2 * math.pi * torch.round(rel / (2 * math.pi))
-            qpos[..., m.jnt_qposadr[j]] = rel * float(m.jnt_axis[j, 1])
-        for j in self.rootz:
-            qpos[..., m.jnt_qposadr[j]] = obs[..., ob.parts["height"]][..., 0] - self.height_offset
+        c = self._walker_constants(obs)
+        rel = pitch.index_select(-1, c["child"]) - torch.cat([pitch.new_zeros(*pitch.shape[:-1], 1), pitch], -1) \
+            .index_select(-1, c["parent"])
+        rel = rel - (2 * math.pi) * torch.round(rel / (2 * math.pi))
+        z = obs[..., ob.parts["height"]][..., :1].expand(*obs.shape[:-1], len(self.rootz)) - self.height_offset
+        rest = obs.new_zeros(*obs.shape[:-1], m.nq - len(self._axis) - len(self.rootz))
+        qpos = torch.cat([rel * c["axis"], z, rest], -1).index_select(-1, c["order"])
         return qpos, obs[..., ob.parts["velocity"]]
+
+    def _walker_constants(self, like: torch.Tensor) -> dict:
+        key = (like.device, like.dtype)
+        c = self._consts.get(key)
+        if c is None:
+            index = lambda v: torch.tensor(v, dtype=torch.long, device=like.device)   # noqa: E731
+            # parent column 0 is the world's pitch (0); body b's pitch is column b (shifted by one)
+            c = self._consts[key] = dict(child=index(self._child),
+                                         parent=index([0 if p is None else p + 1 for p in self._parent]),
+                                         axis=torch.tensor(self._axis, dtype=like.dtype, device=like.device),
+                                         order=index(self._qpos_order))
+        return c
 
     def __call__(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         ob = self.observation

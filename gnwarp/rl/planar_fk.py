@@ -1,0 +1,160 @@
+"""Forward kinematics of planar chains in few tensor operations, for rewards differentiated inside
+an update (SVG(N) on cheetah and walker: ``gnwarp.rl.obs_reward``).
+
+The general ``forward_kinematics`` composes quaternions body by body: some 2500 small torch
+operations forward and backward for DMC's cheetah, each a kernel launch on a GPU, even replayed
+from a CUDA graph. Where every body rotates about the world's y axis only (every body frame a
+rotation about y, every hinge axis +-y, every slide axis in the x-z plane: DMC's cheetah, walker
+and hopper), a body's orientation is one pitch angle and its x-z position and velocity one complex
+number each: a rotation by ``t`` is a product with ``exp(-i t)`` and ``w x r`` one with ``-i w``,
+and the y positions are constants. ``PlanarChain`` computes the bodies of one tree depth together
+(one level a few dozen operations), the same states as ``forward_kinematics`` to rounding
+(``tests/test_rl_observations.py``, float64, values and gradients).
+
+    >>> chain = planar_chain(JointCoordinates(model))      # None where the model is not planar
+    >>> body = chain(qpos, qvel)                             # [..., nbody, 13], world first
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from gnwarp.rl.observations import JointCoordinates
+
+__all__ = ["PlanarChain", "planar_chain", "not_planar"]
+
+_TOL = 1e-12
+
+
+def not_planar(coords: JointCoordinates) -> str | None:
+    """Why ``coords``' model is not a planar chain about y (None when it is)."""
+    for b, _, _, bquat, slides, hinge in coords.bodies:
+        if abs(bquat[1]) > _TOL or abs(bquat[3]) > _TOL:
+            return f"body {b}'s frame is not a rotation about y"
+        for s in slides:
+            if abs(s[2][1]) > _TOL:
+                return f"body {b} slides along an axis out of the x-z plane"
+        if hinge is not None and (abs(hinge[2][0]) > _TOL or abs(hinge[2][2]) > _TOL):
+            return f"body {b}'s hinge axis is not +-y"
+    return None
+
+
+def planar_chain(coords: JointCoordinates) -> "PlanarChain | None":
+    """``coords``' ``PlanarChain`` (made once, kept on ``coords``), or None where the model is not
+    planar about y."""
+    chain = getattr(coords, "_planar_chain", False)
+    if chain is False:
+        chain = PlanarChain(coords) if not_planar(coords) is None else None
+        coords._planar_chain = chain
+    return chain
+
+
+class PlanarChain:
+    """Body states [..., nbody, 13] of a planar chain (see the module docstring) at joint
+    coordinates qpos [..., nq], qvel [..., nv]; differentiable. Raises ValueError where
+    ``not_planar(coords)`` gives a reason."""
+
+    def __init__(self, coords: JointCoordinates):
+        why = not_planar(coords)
+        if why is not None:
+            raise ValueError(f"not a planar chain: {why}")
+        self.nbody, self.nq, self.nv = coords.nbody, coords.nq, coords.nv
+        depth, y = {0: 0}, {0: 0.0}
+        spec = {}
+        for b, p, bpos, bquat, slides, hinge in coords.bodies:
+            depth[b] = depth[p] + 1
+            y[b] = y[p] + float(bpos[1])     # rotations about y keep y; slides and hinges add none
+            spec[b] = (p, bpos, bquat, slides, hinge)
+        self.levels = []   # per depth >= 1: host lists of its bodies' constants
+        where = {0: (0, 0)}   # body -> (level, index in it)
+        for d in range(1, max(depth.values()) + 1):
+            bodies = [b for b in range(1, self.nbody) if depth[b] == d]
+            S = max(len(spec[b][3]) for b in bodies)
+            lv = dict(bodies=bodies, parent=[where[spec[b][0]][1] for b in bodies], S=S,
+                      beta=[2 * math.atan2(spec[b][2][2], spec[b][2][0]) for b in bodies],
+                      bpos=[complex(spec[b][1][0], spec[b][1][2]) for b in bodies],
+                      q=[], v=[], axis=[], ref=[], hinge=any(spec[b][4] is not None for b in bodies),
+                      hq=[], hv=[], sign=[], href=[], hpos=[])
+            for b in bodies:
+                slides, hinge = spec[b][3], spec[b][4]
+                pad = S - len(slides)
+                lv["q"].append([s[0] for s in slides] + [0] * pad)
+                lv["v"].append([s[1] for s in slides] + [0] * pad)
+                lv["axis"].append([complex(s[2][0], s[2][2]) for s in slides] + [0j] * pad)
+                lv["ref"].append([s[3] for s in slides] + [0.0] * pad)
+                lv["hq"].append(hinge[0] if hinge else 0)
+                lv["hv"].append(hinge[1] if hinge else 0)
+                lv["sign"].append(math.copysign(1.0, hinge[2][1]) if hinge else 0.0)
+                lv["href"].append(hinge[3] if hinge else 0.0)
+                lv["hpos"].append(complex(hinge[4][0], hinge[4][2]) if hinge else 0j)
+            for i, b in enumerate(bodies):
+                where[b] = (d, i)
+            self.levels.append(lv)
+        order = [0] + [b for lv in self.levels for b in lv["bodies"]]
+        self._perm = [order.index(b) for b in range(self.nbody)]   # level order -> body order
+        self._y = [y[b] for b in range(self.nbody)]
+        self._cache: dict = {}
+
+    def _constants(self, like: torch.Tensor) -> dict:
+        key = (like.device, like.dtype)
+        c = self._cache.get(key)
+        if c is None:
+            cd = torch.complex128 if like.dtype == torch.float64 else torch.complex64
+            real = lambda v: torch.tensor(v, dtype=like.dtype, device=like.device)   # noqa: E731
+            index = lambda v: torch.tensor(v, dtype=torch.long, device=like.device)  # noqa: E731
+            cplx = lambda v: torch.tensor(v, dtype=cd, device=like.device)           # noqa: E731
+            c = dict(levels=[], perm=index(self._perm), y=real(self._y), one=real(1.0), mi=cplx(-1j))
+            for lv in self.levels:
+                c["levels"].append(dict(
+                    parent=index(lv["parent"]), beta=real(lv["beta"]), bpos=cplx(lv["bpos"]),
+                    q=index(lv["q"]), v=index(lv["v"]), axis=cplx(lv["axis"]), ref=real(lv["ref"]),
+                    hq=index(lv["hq"]), hv=index(lv["hv"]), sign=real(lv["sign"]), href=real(lv["href"]),
+                    hpos=cplx(lv["hpos"])))
+            self._cache[key] = c
+        return c
+
+    def __call__(self, qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
+        if qpos.shape[-1] != self.nq or qvel.shape[-1] != self.nv or qpos.shape[:-1] != qvel.shape[:-1]:
+            raise ValueError(f"qpos [..., {self.nq}] and qvel [..., {self.nv}] with the same leading shape "
+                             f"expected, got {tuple(qpos.shape)} and {tuple(qvel.shape)}")
+        c = self._constants(qpos)
+        lead = qpos.shape[:-1]
+        rot = lambda t: torch.polar(c["one"].expand_as(t), -t)   # noqa: E731 - x + iz rotated by t about y
+        zero = qpos.new_zeros(*lead, 1)
+        th, w = [zero], [zero]
+        x = [torch.complex(zero, zero)]
+        v = [x[0]]
+        for h, lv in zip(self.levels, c["levels"]):   # host description, device constants
+            P = lv["parent"]
+            tp, wp = th[-1].index_select(-1, P), w[-1].index_select(-1, P)
+            xp, vp = x[-1].index_select(-1, P), v[-1].index_select(-1, P)
+            jw = wp * c["mi"]                                    # w x . as a product: -i w
+            r = rot(tp) * lv["bpos"]
+            xb, vb = xp + r, vp + jw * r
+            t0 = tp + lv["beta"]
+            e0 = rot(t0)
+            if h["S"]:
+                ax = e0[..., None] * lv["axis"]
+                xb = xb + (ax * (qpos[..., lv["q"]] - lv["ref"])).sum(-1)
+                vb = vb + (ax * qvel[..., lv["v"]]).sum(-1)
+            if h["hinge"]:
+                tb = t0 + lv["sign"] * (qpos[..., lv["hq"]] - lv["href"])
+                wb = wp + lv["sign"] * qvel[..., lv["hv"]]
+                a0, a = e0 * lv["hpos"], rot(tb) * lv["hpos"]
+                # about the anchor (xb + a0): x = anchor - a, v = v_anchor + w x (x - anchor)
+                xb = xb + a0 - a
+                vb = vb + jw * a0 - (wb * c["mi"]) * a
+            else:
+                tb, wb = t0, wp
+            th.append(tb)
+            w.append(wb)
+            x.append(xb)
+            v.append(vb)
+        P = c["perm"]
+        th, w = torch.cat(th, -1).index_select(-1, P), torch.cat(w, -1).index_select(-1, P)
+        x, v = torch.cat(x, -1).index_select(-1, P), torch.cat(v, -1).index_select(-1, P)
+        z = torch.zeros_like(th)
+        half = th / 2
+        return torch.stack([x.real, c["y"].expand_as(th), x.imag, torch.cos(half), z, torch.sin(half), z,
+                            v.real, z, v.imag, z, w, z], -1)
