@@ -63,8 +63,9 @@ class GradientMPCConfig:
     ``seed``: of those sequences. ``capture``: replay one planning iteration from a CUDA graph
     (None: on CUDA; ignored on the CPU); ``capture_warmup``: eager iterations before it is
     recorded (each costs about one eager iteration of the first action; 1, the default since
-    2026-11-27, saved 0.23 s of it on an H100 against 2, ``bench/results/first_action/``). ``fused``: the rollout engine's model step fused
-    (``ForwardModel.rollout_engine``; None: automatic). ``discount``: per-step weight of the
+    2026-11-27, saved 0.22 s of it on an H100 against 2, ``bench/results/first_action/``).
+    ``fused``: the rollout engine's model step fused (``ForwardModel.rollout_engine``; None:
+    automatic). ``discount``: per-step weight of the
     planned return (``gnwarp.control.returns.planned_return``; 1: the task's reward as is; < 1
     shortens the effective horizon of the gradient and weights a ``terminal`` value by
     discount^H). ``grad_norm``: "step" scales each time step's gradient to the plan's RMS step
