@@ -197,7 +197,7 @@ def headline(root: Path, doc: Path) -> list[str]:
     pts = [f"{names[a]} " + " / ".join(f"{at[a, s]['mean']:.0f} +- {at[a, s]['se']:.0f}" for s in (250000, 500000)
                                        if (a, s) in at) for a in names if (a, 250000) in at]
     last = max(s for (a, s) in at if a == "ddpg")
-    rows.append([f"RL on DMC swimmer6 (SpinningUp preset, MLPs, {seeds} seeds), return at 250k / 500k env steps, "
+    rows.append([f"RL on DMC (SpinningUp preset, MLPs): swimmer6 return at 250k / 500k env steps ({seeds} seeds), "
                  "mean +- s.e. over seeds",
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {at['ddpg', last]['mean']:.0f} +- "
                  f"{at['ddpg', last]['se']:.0f} (SpinningUp 351 +- 19); "

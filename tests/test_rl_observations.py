@@ -165,7 +165,8 @@ def test_planar_chain_is_the_general_kinematics(domain):
     g = torch.Generator().manual_seed(4)
     qpos = (3 * torch.randn(2, 5, m.nq, generator=g, dtype=torch.float64)).requires_grad_(True)
     qvel = (3 * torch.randn(2, 5, m.nv, generator=g, dtype=torch.float64)).requires_grad_(True)
-    fast = forward_kinematics(m, qpos, qvel, coords)
+    fast = planar_chain(coords)(qpos, qvel)
+    assert torch.equal(forward_kinematics(m, qpos, qvel, coords), fast)   # what the rewards run
     slow = forward_kinematics(m, qpos, qvel, coords, planar=False)
     assert fast.shape == slow.shape == (2, 5, m.nbody, 13)
     assert (fast - slow).abs().max() < 1e-12
@@ -196,3 +197,44 @@ def test_planar_chain_refuses_other_models():
     m = DMCObservation("swimmer6").system.model
     body = forward_kinematics(m, torch.zeros(1, m.nq, dtype=torch.float64), torch.zeros(1, m.nv, dtype=torch.float64))
     assert body.shape == (1, m.nbody, 13) and torch.isfinite(body).all()
+
+
+# a planar chain with what DMC's models lack: body frames rotated about y, slides off the root and
+# along an oblique axis, hinges about -y with offset anchors and references, a body without joints,
+# levels mixing all of these, and a second tree
+MIXED_PLANAR = """<mujoco><worldbody>
+  <body pos=".1 .2 .3" quat=".9238795 0 .3826834 0">
+    <joint type="slide" axis=".8 0 -.6" ref=".1"/><joint type="slide" axis=".6 0 .8"/>
+    <joint type="hinge" axis="0 1 0" pos=".05 .1 -.02" ref=".2"/><geom size=".05"/>
+    <body pos=".3 -.1 .1"><joint type="hinge" axis="0 -1 0" pos=".1 0 .05"/><geom size=".05"/>
+      <body pos="0 .05 -.2" quat=".7071068 0 -.7071068 0"><joint type="slide" axis="0 0 1" ref="-.3"/>
+        <geom size=".05"/></body></body>
+    <body pos="-.2 0 .1"><geom size=".05"/></body>
+  </body>
+  <body pos="1 0 0"><joint type="hinge" axis="0 1 0"/><geom size=".05"/></body>
+</worldbody></mujoco>"""
+
+
+def test_kinematics_of_a_mixed_planar_chain_are_mujocos():
+    """Both kinematics paths against MuJoCo's own body states on the chain above (a slide on a
+    rotating parent moves with it), and a non-finite coordinate stays in its own body."""
+    from gnwarp.rl.observations import JointCoordinates
+    from gnwarp.rl.planar_fk import planar_chain
+    m = mujoco.MjModel.from_xml_string(MIXED_PLANAR)
+    coords = JointCoordinates(m)
+    chain = planar_chain(coords)
+    assert chain is not None
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        d.qpos[:] = rng.normal(0, 1, m.nq)
+        d.qvel[:] = rng.normal(0, 2, m.nv)
+        mujoco.mj_forward(m, d)
+        ref = torch.tensor(body_states(m, d))
+        qpos, qvel = torch.tensor(d.qpos.copy())[None], torch.tensor(d.qvel.copy())[None]
+        for body in (chain(qpos, qvel)[0], forward_kinematics(m, qpos, qvel, coords, planar=False)[0]):
+            assert (body[1:] - ref[1:]).abs().max() < 1e-10
+    bad = qpos.clone()
+    bad[0, -1] = float("nan")                      # the second tree's hinge
+    body = chain(bad, qvel)[0]
+    assert torch.isfinite(body[:-1]).all() and not torch.isfinite(body[-1]).all()

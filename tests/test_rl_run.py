@@ -341,15 +341,29 @@ def test_checkpointed_random_states_and_collector_round_trip(tmp_path):
 
 def test_a_policy_that_stops_changing_is_reported(tmp_path):
     """A policy whose updates cannot move it (a learning rate below float32's resolution of its
-    weights) evaluates to the same returns twice: the run warns; a learning one does not."""
+    weights) gives the same outputs at two evaluations: the run warns; a learning one does not,
+    nor does one whose returns merely repeat (a check of the outputs, not the returns)."""
     from gnwarp.rl.run import FrozenPolicyWarning
     frozen = dict(TINY, env_steps=80, agent_settings={"policy_lr": 1e-30})
-    with pytest.warns(FrozenPolicyWarning, match="repeats the previous one exactly"):
+    with pytest.warns(FrozenPolicyWarning, match="no longer changes"):
         run_rl(RLConfig(**frozen, out=str(tmp_path / "frozen")))
     recs = _eval_returns(tmp_path / "frozen")
-    assert recs[1][1] == recs[2][1]   # 40 and 80 env steps: the same actions
+    assert recs[1][1] == recs[2][1]   # 40 and 80 env steps: the same actions, the same returns
     with warnings.catch_warnings():
         warnings.simplefilter("error", FrozenPolicyWarning)
         run_rl(RLConfig(**dict(TINY, env_steps=80), out=str(tmp_path / "learning")))
     recs = _eval_returns(tmp_path / "learning")
     assert recs[1][1] != recs[2][1]
+    from gnwarp.rl.run import frozen_policy_warning
+
+    class Agent:   # what the check reads of an agent
+        updates, env_steps = 10, 100
+    prev = {}
+    u = torch.ones(3, 2)
+    assert not frozen_policy_warning(prev, u, Agent())               # the first evaluation
+    Agent.updates = 20
+    assert not frozen_policy_warning(prev, u + 1e-6, Agent())        # changed, if only a little
+    Agent.updates = 30
+    with pytest.warns(FrozenPolicyWarning, match="no longer changes"):
+        assert frozen_policy_warning(prev, u + 1e-6, Agent(), saturated=1.0)
+    assert not frozen_policy_warning(prev, u + 1e-6, Agent())        # no update in between

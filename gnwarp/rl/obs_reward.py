@@ -44,10 +44,10 @@ def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Te
     MuJoCo's kinematics: slides along their axes, then one hinge about its anchor. Differentiable.
     ``coords``: the model's ``JointCoordinates`` to reuse (its constants stay on the device).
     ``planar``: a chain that moves in the x-z plane only (cheetah, walker, hopper) runs as a
-    ``PlanarChain`` (False: body by body, as any other)."""
+    ``PlanarChain`` in float32 / float64 (False: body by body, as any other)."""
     coords = coords if coords is not None else JointCoordinates(model)   # validates the joint structure
-    chain = planar_chain(coords) if planar else None
-    if chain is not None:   # the same states in a tenth of the operations (gnwarp/rl/planar_fk.py)
+    chain = planar_chain(coords) if planar and qpos.dtype in (torch.float32, torch.float64) else None
+    if chain is not None:   # the same states in a third of the operations (gnwarp/rl/planar_fk.py)
         return chain(qpos, qvel)
     if qpos.shape[-1] != coords.nq or qvel.shape[-1] != coords.nv or qpos.shape[:-1] != qvel.shape[:-1]:
         raise ValueError(f"qpos [..., {coords.nq}] and qvel [..., {coords.nv}] with the same leading shape expected, "
@@ -63,11 +63,12 @@ def forward_kinematics(model: mujoco.MjModel, qpos: torch.Tensor, qvel: torch.Te
         xp, qp, vp, wp = pos[p], quat[p], lin[p], ang[p]
         q0 = quat_mul(qp, c3(bquat))
         x = xp + quat_rotate(qp, c3(bpos))
-        v = vp + torch.linalg.cross(wp, x - xp, dim=-1)
+        v = vp
         for qa, da, axis, ref, _ in slides:
             ax = quat_rotate(q0, c3(axis))
             x = x + ax * (qpos[..., qa] - ref)[..., None]
             v = v + ax * qvel[..., da, None]
+        v = v + torch.linalg.cross(wp, x - xp, dim=-1)   # the parent's rotation carries the slid point too
         q, w = q0, wp
         if hinge is not None:
             qa, da, axis, ref, hpos = hinge

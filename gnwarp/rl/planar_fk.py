@@ -79,12 +79,12 @@ class PlanarChain:
             for b in bodies:
                 slides, hinge = spec[b][3], spec[b][4]
                 pad = S - len(slides)
-                lv["q"].append([s[0] for s in slides] + [0] * pad)
-                lv["v"].append([s[1] for s in slides] + [0] * pad)
+                lv["q"].append([s[0] for s in slides] + [-1] * pad)   # -1: padding (see _constants)
+                lv["v"].append([s[1] for s in slides] + [-1] * pad)
                 lv["axis"].append([complex(s[2][0], s[2][2]) for s in slides] + [0j] * pad)
                 lv["ref"].append([s[3] for s in slides] + [0.0] * pad)
-                lv["hq"].append(hinge[0] if hinge else 0)
-                lv["hv"].append(hinge[1] if hinge else 0)
+                lv["hq"].append(hinge[0] if hinge else -1)
+                lv["hv"].append(hinge[1] if hinge else -1)
                 lv["sign"].append(math.copysign(1.0, hinge[2][1]) if hinge else 0.0)
                 lv["href"].append(hinge[3] if hinge else 0.0)
                 lv["hpos"].append(complex(hinge[4][0], hinge[4][2]) if hinge else 0j)
@@ -105,12 +105,16 @@ class PlanarChain:
             index = lambda v: torch.tensor(v, dtype=torch.long, device=like.device)  # noqa: E731
             cplx = lambda v: torch.tensor(v, dtype=cd, device=like.device)           # noqa: E731
             c = dict(levels=[], perm=index(self._perm), y=real(self._y), one=real(1.0), mi=cplx(-1j))
+            # a padded slot reads column nq / nv: a zero appended to the coordinates (so that a
+            # non-finite coordinate stays in its own body, and no gradient flows to another's)
+            pad = lambda rows, n: [[n if k < 0 else k for k in r] for r in rows]   # noqa: E731
             for lv in self.levels:
                 c["levels"].append(dict(
                     parent=index(lv["parent"]), beta=real(lv["beta"]), bpos=cplx(lv["bpos"]),
-                    q=index(lv["q"]), v=index(lv["v"]), axis=cplx(lv["axis"]), ref=real(lv["ref"]),
-                    hq=index(lv["hq"]), hv=index(lv["hv"]), sign=real(lv["sign"]), href=real(lv["href"]),
-                    hpos=cplx(lv["hpos"])))
+                    q=index(sum(pad(lv["q"], self.nq), [])), v=index(sum(pad(lv["v"], self.nv), [])),
+                    axis=cplx(lv["axis"]), ref=real(lv["ref"]),
+                    hq=index(pad([lv["hq"]], self.nq)[0]), hv=index(pad([lv["hv"]], self.nv)[0]),
+                    sign=real(lv["sign"]), href=real(lv["href"]), hpos=cplx(lv["hpos"])))
             self._cache[key] = c
         return c
 
@@ -122,6 +126,7 @@ class PlanarChain:
         lead = qpos.shape[:-1]
         rot = lambda t: torch.polar(c["one"].expand_as(t), -t)   # noqa: E731 - x + iz rotated by t about y
         zero = qpos.new_zeros(*lead, 1)
+        qpos, qvel = torch.cat([qpos, zero], -1), torch.cat([qvel, zero], -1)   # column nq / nv: padding
         th, w = [zero], [zero]
         x = [torch.complex(zero, zero)]
         v = [x[0]]
@@ -130,17 +135,18 @@ class PlanarChain:
             tp, wp = th[-1].index_select(-1, P), w[-1].index_select(-1, P)
             xp, vp = x[-1].index_select(-1, P), v[-1].index_select(-1, P)
             jw = wp * c["mi"]                                    # w x . as a product: -i w
-            r = rot(tp) * lv["bpos"]
-            xb, vb = xp + r, vp + jw * r
+            xb, vb = xp + rot(tp) * lv["bpos"], vp
             t0 = tp + lv["beta"]
             e0 = rot(t0)
-            if h["S"]:
+            G, S = len(h["bodies"]), h["S"]
+            if S:
                 ax = e0[..., None] * lv["axis"]
-                xb = xb + (ax * (qpos[..., lv["q"]] - lv["ref"])).sum(-1)
-                vb = vb + (ax * qvel[..., lv["v"]]).sum(-1)
+                xb = xb + (ax * (qpos.index_select(-1, lv["q"]).view(*lead, G, S) - lv["ref"])).sum(-1)
+                vb = vb + (ax * qvel.index_select(-1, lv["v"]).view(*lead, G, S)).sum(-1)
+            vb = vb + jw * (xb - xp)                              # the parent's rotation carries the point
             if h["hinge"]:
-                tb = t0 + lv["sign"] * (qpos[..., lv["hq"]] - lv["href"])
-                wb = wp + lv["sign"] * qvel[..., lv["hv"]]
+                tb = t0 + lv["sign"] * (qpos.index_select(-1, lv["hq"]) - lv["href"])
+                wb = wp + lv["sign"] * qvel.index_select(-1, lv["hv"])
                 a0, a = e0 * lv["hpos"], rot(tb) * lv["hpos"]
                 # about the anchor (xb + a0): x = anchor - a, v = v_anchor + w x (x - anchor)
                 xb = xb + a0 - a

@@ -253,23 +253,26 @@ def evaluate_policy(agent, env, seed: int, keep: int = 0, keep_steps: int | None
     return (total.tolist(), torch.stack(states, 1)) if keep else total.tolist()
 
 
-def frozen_policy_warning(previous: dict, returns: list, agent, saturated=None) -> bool:
-    """Warn (``FrozenPolicyWarning``) when an evaluation repeats the previous one's returns
-    exactly although the agent updated in between: the evaluation episodes start from the same
-    states, so its deterministic actions did not change. That is what a policy whose squashed
-    output sits on tanh's flat ends does (``agent.saturated``: its gradient vanishes). ``previous``
-    holds the last evaluation (``returns``, ``updates``) and is updated here; ``saturated``: a
-    callable giving the share of saturated actions, for the message. True when it warned."""
-    same = (previous.get("returns") == list(returns) and agent.updates > previous.get("updates", agent.updates))
+def frozen_policy_warning(previous: dict, outputs: torch.Tensor, agent, saturated: float | None = None) -> bool:
+    """Warn (``FrozenPolicyWarning``) when the policy's unbounded outputs at a fixed batch of
+    observations (the evaluation's first states, ``agent.policy_output``) are exactly those of the
+    previous evaluation although the agent updated in between: the policy no longer changes, as
+    one whose squashed output sits on tanh's flat ends does (its gradient vanishes there). Equal
+    returns alone would not say so (a sparse task scores 0 whatever the actions). ``previous``
+    holds the last evaluation's (``outputs``, ``updates``) and is updated here; ``saturated``:
+    the share of those actions at the bounds, for the message. True when it warned."""
+    old = previous.get("outputs")
+    same = (old is not None and old.shape == outputs.shape and bool(torch.equal(old, outputs))
+            and agent.updates > previous["updates"])
     if same:
-        share = saturated() if saturated is not None else None
         warnings.warn(
-            f"the policy's evaluation at {agent.env_steps} env steps repeats the previous one exactly after "
-            f"{agent.updates - previous['updates']} updates: its deterministic actions did not change"
-            + (f" ({share:.0%} of them at the training envs' states sit at the action bounds)" if share is not None else "")
+            f"the policy at {agent.env_steps} env steps gives exactly the outputs it gave at the previous "
+            f"evaluation, {agent.updates - previous['updates']} updates ago: it no longer changes"
+            + (f" ({saturated:.0%} of its deterministic actions there sit at the action bounds)"
+               if saturated is not None else "")
             + ". A policy whose squashed output sits on tanh's flat ends gets no gradient; agent_settings "
             "squash_penalty (e.g. 1e-3) or a lower policy_lr keeps it off them", FrozenPolicyWarning, stacklevel=2)
-    previous.update(returns=list(returns), updates=agent.updates)
+    previous.update(outputs=outputs.detach().clone(), updates=agent.updates)
     return same
 
 
@@ -372,7 +375,7 @@ def run_rl(cfg: RLConfig) -> dict:
 
     video = {}   # the body states of this call's last evaluation, for video.gif
 
-    previous = {}   # this call's last evaluation: its returns and the updates made before it
+    previous = {}   # this call's last evaluation: the policy's outputs at its first states, the updates before
 
     def evaluate():
         returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True), keep=cfg.video_episodes,
@@ -380,8 +383,11 @@ def run_rl(cfg: RLConfig) -> dict:
         if cfg.video_episodes:
             returns, video["states"] = returns
             video["env_steps"] = agent.env_steps
-        frozen_policy_warning(previous, returns, agent,
-                              lambda: agent.saturated(state.obs) if state.obs is not None else None)
+        first, _ = eval_env.reset(seed=round_seed(cfg.seed, 0, True))   # the evaluation's first states
+        with torch.no_grad():
+            frozen_policy_warning(previous, agent.policy_output(torch.as_tensor(first, device=agent.device,
+                                                                                dtype=agent.dtype)),
+                                  agent, agent.saturated(first))
         c["last_eval"] = agent.env_steps
         rec = ResultRecord(
             experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
