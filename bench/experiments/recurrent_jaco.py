@@ -101,7 +101,7 @@ def main():
     system = proprio.proprio_jaco(args.lag, args.servo_scale)
     data = proprio.ProprioData.simulate(system, cfg["sequences"], num_steps=cfg["steps"], seed=args.seed,
                                         backend=backend, device=dev)
-    train, test = data.split("train"), data.split("test")
+    test = data.split("test")   # the train split is converted where training reads it
     print(f"simulated {cfg['sequences']} x {cfg['steps']} steps of {system.name} in {time.perf_counter() - t0:.1f} s")
 
     w = cfg["hidden"]
