@@ -191,7 +191,8 @@ def headline(root: Path, doc: Path) -> list[str]:
     walker = {r["agent"]: r for r in every if r["task"] == "dmc-walker-walk" and r["env_steps"] == 500000
               and r["networks"] == "mlp"}
     at = {(r["agent"], r["env_steps"]): r for r in rl}
-    ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl") if r["batch"] == 100}
+    ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl")
+           if r["batch"] == 100 and r.get("networks", "mlp") == "mlp"}
     names = {"svg1": "SVG(1)", "svg0": "SVG(0)", "ddpg": "DDPG"}
     seeds = min(at[a, s]["seeds"] for a in names for s in (250000, 500000) if (a, s) in at)
     pts = [f"{names[a]} " + " / ".join(f"{at[a, s]['mean']:.0f} +- {at[a, s]['se']:.0f}" for s in (250000, 500000)

@@ -1,9 +1,11 @@
-"""Benchmark: gradient updates per second of the RL agents (``gnwarp.rl.agents``) with MLP
+"""Benchmark: gradient updates per second of the RL agents (``gnwarp.rl.agents``) with MLP or GN
 networks, and actions per second of their policies, on one device.
 
-Swimmer6's sizes (25 observation features, 5 actions), the spinningup preset's 256 x 2 MLPs; per
-agent (DDPG, SVG(0), SVG(N) through a 256 x 2 MLP model trained jointly, a stand-in for the GN
-model) and batch size: a replay buffer of random transitions, then ``--updates`` updates, each
+Swimmer6's sizes (25 observation features, 5 actions); ``--networks mlp``: the spinningup preset's
+256 x 2 MLPs (SVG(N)'s model a 256 x 2 MLP trained jointly, a stand-in for the GN model); ``gn``:
+the GN policy, Q-function and model on swimmer6's observation graph (``gnwarp.rl.gn_nets``
+defaults: 2 blocks, latent 64, Warp blocks), what ``gnwarp rl --networks gn`` trains. Per networks,
+agent and batch size: a replay buffer of random transitions, then ``--updates`` updates, each
 sampling its batch (updates / s, after a warm-up), three ways in the same process: ``eager``
 (``agent.update(buffer.sample(...))``), ``updater`` (``gnwarp.rl.graphed.Updater`` uncaptured:
 what ``--cuda-graph false`` runs) and ``graph`` (the same, recorded in a CUDA graph and replayed:
@@ -11,12 +13,13 @@ what ``gnwarp rl`` runs on CUDA; ``first_graph_s``: its first two calls, the eag
 recording, what a run waits for once); and ``act`` on ``--envs`` observations at a time (env
 steps / s of the policy alone).
 
-    python bench/rl_agents.py [--agents ddpg,svg0,svg1,svg2] [--batches 100,256] [--updates 500]
+    python bench/rl_agents.py [--agents ddpg,svg0,svg1,svg2] [--batches 100,256] [--updates 500] [--networks mlp,gn]
     python bench/rl_agents.py --quick       # tiny sizes on the CPU: a smoke test of the script
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -67,10 +70,20 @@ def filled_buffer(dev, envs: int, steps: int, gen: torch.Generator) -> ReplayBuf
     return buf
 
 
-def _make(name: str, batch: int, hidden, dev):
+def _make(name: str, batch: int, hidden, dev, networks: str = "mlp"):
     s = AgentSettings(agent=name, hidden=hidden, batch_size=batch, start_steps=0)
-    model = MLPModel(hidden).to(dev) if s.horizon else None
-    return make_agent(s, OBS, [-1.0] * ACT, [1.0] * ACT, model=model, reward=reward if model else None, device=dev)
+    nets = {}
+    if networks == "gn":   # the paper's setting: policy, Q and model on the observation graph (Warp blocks)
+        from gnwarp.rl.gn_nets import GNObservationModel, make_networks
+        from gnwarp.rl.obs_graph import ObservationGraph
+        og = ObservationGraph("swimmer6")
+        policy, q = make_networks("gn", og, gaussian=s.kind == "svg")
+        nets = dict(policy=policy, q=q)
+        model = GNObservationModel(og).to(dev) if s.horizon else None
+    else:
+        model = MLPModel(hidden).to(dev) if s.horizon else None
+    return make_agent(s, OBS, [-1.0] * ACT, [1.0] * ACT, model=model, reward=reward if model else None, device=dev,
+                      **nets)
 
 
 def _rate(step, updates: int, dev) -> float:
@@ -83,20 +96,20 @@ def _rate(step, updates: int, dev) -> float:
     return updates / (time.perf_counter() - t0)
 
 
-def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int) -> dict:
+def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int, networks: str = "mlp") -> dict:
     gen = torch.Generator(dev).manual_seed(0)
-    agent = _make(name, batch, hidden, dev)
+    agent = _make(name, batch, hidden, dev, networks)
     out = {}
 
     def eager(n):
         for _ in range(n):
             out["m"] = agent.update(buf.sample(batch, gen))
     ups = _rate(eager, updates, dev)
-    updater = Updater(_make(name, batch, hidden, dev), buf, gen, capture=False)
+    updater = Updater(_make(name, batch, hidden, dev, networks), buf, gen, capture=False)
     ups_updater = _rate(updater.run, updates, dev)
     ups_graph = first_graph = None
     if dev.type == "cuda":
-        graphed = Updater(_make(name, batch, hidden, dev), buf, gen, capture=True)
+        graphed = Updater(_make(name, batch, hidden, dev, networks), buf, gen, capture=True)
         t0 = time.perf_counter()
         graphed.run(2)
         _sync(dev)
@@ -115,7 +128,8 @@ def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int)
     aps = envs * updates / (time.perf_counter() - t0)
     assert all(torch.isfinite(v) for v in m.values()), m
     r = lambda v, k=1: None if v is None else round(v, k)  # noqa: E731
-    return dict(agent=name, batch=batch, hidden=list(hidden), updates=updates, updates_per_s=round(ups, 1),
+    return dict(agent=name, networks=networks, batch=batch, hidden=list(hidden) if networks == "mlp" else None,
+                updates=updates, updates_per_s=round(ups, 1),
                 updater_updates_per_s=round(ups_updater, 1), graph_updates_per_s=r(ups_graph),
                 graph_speedup=r(ups_graph and ups_graph / ups, 2), first_graph_s=r(first_graph, 3),
                 envs=envs, act_env_steps_per_s=round(aps))
@@ -127,6 +141,8 @@ def main(argv=None):
     ap.add_argument("--batches", default="100,256")
     ap.add_argument("--updates", type=int, default=500)
     ap.add_argument("--envs", type=int, default=16)
+    ap.add_argument("--networks", default="mlp", help="mlp, gn or both (mlp,gn): GN policy, Q and model on "
+                                                         "swimmer6's observation graph, Warp blocks")
     ap.add_argument("--device", default="cuda")
     add_run_args(ap, "rl")   # --out, --quick
     args = ap.parse_args(argv)
@@ -137,19 +153,19 @@ def main(argv=None):
     gen = torch.Generator(dev).manual_seed(0)
     buf = filled_buffer(dev, args.envs, 64 if args.quick else 4096, gen)
     name, rows = device_name(dev), []
-    for agent in args.agents.split(","):
-        for batch in (int(b) for b in args.batches.split(",")):
-            row = dict(device=name, **time_agent(agent, batch, hidden, dev, buf, args.updates, args.envs))
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+    for networks, agent, batch in itertools.product(args.networks.split(","), args.agents.split(","),
+                                                    (int(b) for b in args.batches.split(","))):
+        row = dict(device=name, **time_agent(agent, batch, hidden, dev, buf, args.updates, args.envs, networks))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
     lines = [f"# RL agents: gradient updates per second, on {name}", "",
              f"`python bench/rl_agents.py` ({time.strftime('%Y-%m-%d')}): swimmer6 sizes ({OBS} observations, "
-             f"{ACT} actions), MLPs {'x'.join(map(str, hidden))}, SVG(N)'s model an MLP of the same widths "
-             "trained jointly; each update samples its batch from the replay buffer; acting: "
+             f"{ACT} actions); mlp: MLPs {'x'.join(map(str, hidden))}, SVG(N)'s model an MLP of the same widths "
+             "trained jointly; gn: GN policy, Q and model on the observation graph (2 blocks, latent 64); each update samples its batch from the replay buffer; acting: "
              f"`act` on {args.envs} observations.", "",
-             "| agent | batch | updates / s, eager | Updater uncaptured | CUDA graph | graph / eager "
-             "| first two graph updates (s) | acting, env steps / s |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['agent']} | {r['batch']} | {r['updates_per_s']} | {r['updater_updates_per_s']} | "
+             "| agent | networks | batch | updates / s, eager | Updater uncaptured | CUDA graph | graph / eager "
+             "| first two graph updates (s) | acting, env steps / s |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['agent']} | {r['networks']} | {r['batch']} | {r['updates_per_s']} | {r['updater_updates_per_s']} | "
               f"{r['graph_updates_per_s'] or '-'} | {r['graph_speedup'] or '-'} | {r['first_graph_s'] or '-'} | "
               f"{r['act_env_steps_per_s']} |" for r in rows]
     save_results(experiment_out("rl", args.out, args.quick), "rl_agents", name, args.quick, rows, lines)
