@@ -44,36 +44,32 @@ class _Count(TorchDispatchMode):
 
 def time_reward(task: str, batch: int, planar: bool, dev: torch.device, reps: int) -> dict:
     """One row: the reward of ``task`` forward and backward on ``batch`` observations."""
-    reward = ObservationReward(task)
-    coords = reward.observation.coords
-    saved = getattr(coords, "_planar_chain", False)
-    coords._planar_chain = planar_chain(coords) if planar else None   # the general path where False
-    try:
-        gen = torch.Generator(dev).manual_seed(0)
-        obs = torch.randn(batch, reward.observation.size, generator=gen, device=dev).requires_grad_(True)
+    reward = ObservationReward(task, planar=planar)
+    if planar and planar_chain(reward.observation.coords) is None:
+        raise ValueError(f"{task}: its model is not a planar chain")
+    gen = torch.Generator(dev).manual_seed(0)
+    obs = torch.randn(batch, reward.observation.size, generator=gen, device=dev).requires_grad_(True)
 
-        def step():
-            obs.grad = None
+    def step():
+        obs.grad = None
+        reward(None, None, obs).sum().backward()
+    step()   # constants made, modules loaded
+    with _Count() as c:
+        step()
+    eager = median_ms(step, dev, reps, warmup=3)
+    graph_ms = None
+    if dev.type == "cuda":
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(3):
+                step()
+        torch.cuda.current_stream().wait_stream(side)
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g):
             reward(None, None, obs).sum().backward()
-        step()   # constants made, modules loaded
-        with _Count() as c:
-            step()
-        eager = median_ms(step, dev, reps, warmup=3)
-        graph_ms = None
-        if dev.type == "cuda":
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):
-                for _ in range(3):
-                    step()
-            torch.cuda.current_stream().wait_stream(side)
-            g = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(g):
-                reward(None, None, obs).sum().backward()
-            graph_ms = median_ms(g.replay, dev, reps, warmup=3)
-        assert obs.grad is not None and bool(torch.isfinite(obs.grad).all())
-    finally:
-        coords._planar_chain = saved
+        graph_ms = median_ms(g.replay, dev, reps, warmup=3)
+    assert obs.grad is not None and bool(torch.isfinite(obs.grad).all())
     return dict(task=task, batch=batch, fk="planar" if planar else "general", ops=c.n, eager_ms=round(eager, 4),
                 graph_ms=None if graph_ms is None else round(graph_ms, 4))
 

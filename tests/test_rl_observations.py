@@ -176,6 +176,10 @@ def test_planar_chain_is_the_general_kinematics(domain):
     assert all((a - b).abs().max() < 1e-11 for a, b in zip(gf, gs))
     f32 = forward_kinematics(m, qpos.detach().float(), qvel.detach().float(), coords)
     assert f32.dtype == torch.float32 and (f32.double() - slow).abs().max() < 1e-4
+    task = {"cheetah": "cheetah-run", "walker": "walker-walk"}[domain]   # the reward on either path
+    x = torch.randn(6, obs.size, generator=g, dtype=torch.float64)
+    r_fast, r_slow = ObservationReward(task, obs)(x, None, x), ObservationReward(task, obs, planar=False)(x, None, x)
+    assert (r_fast - r_slow).abs().max() < 1e-12 and r_fast.abs().max() > 0
 
 
 def test_planar_chain_refuses_other_models():

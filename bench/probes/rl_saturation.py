@@ -34,11 +34,11 @@ VARIANTS = {"gn": dict(networks="gn", gn_impl="torch"),
             "mlp": dict(networks="mlp")}
 
 
-def random_data(cfg: RLConfig, task, obs_fn, envs: int, seed: int):
+def random_data(task, obs_fn, envs: int, seed: int, dev: torch.device):
     env = make_vector_env(task, envs, backend="mujoco", output="torch", observation=obs_fn)
     try:
         D, space = env.single_observation_space.shape[0], env.single_action_space
-        buf = ReplayBuffer(envs * 1000, D, space.shape[0], num_envs=envs)
+        buf = ReplayBuffer(envs * 1000, D, space.shape[0], num_envs=envs, device=dev)
         rng = np.random.default_rng(seed)
         obs, _ = env.reset(seed=seed)
         for _ in range(1000):
@@ -66,12 +66,12 @@ def main(argv=None):
     cfg0 = RLConfig.from_dict(base)
     task = check_task(cfg0)
     obs_fn = observation_of(cfg0, task)
-    buf, D, space = random_data(cfg0, task, obs_fn, a.envs, a.seed)
+    buf, D, space = random_data(task, obs_fn, a.envs, a.seed, dev)
     for name in a.variants.split(","):
         cfg = RLConfig.from_dict({**base, **VARIANTS[name]})
         agent, _ = build_agent(cfg, task, obs_fn, D, space.low, space.high, dev)
-        gen = torch.Generator().manual_seed(a.seed)
-        probe = buf.sample(256, gen).obs.to(dev)
+        gen = torch.Generator(dev).manual_seed(a.seed)
+        probe = buf.sample(256, gen).obs
         t0 = time.perf_counter()
         for k in range(a.updates + 1):
             if k % a.every == 0:

@@ -91,9 +91,10 @@ class ObservationReward:
     ``action`` [B, U] may be None: these rewards do not read it).
 
     ``task``: a task name of ``OBSERVATION_REWARD_TASKS`` (``"swimmer6"``, ``"cheetah-run"``,
-    ``"walker-walk"``, ...); ``observation``: its ``DMCObservation`` (built when omitted)."""
+    ``"walker-walk"``, ...); ``observation``: its ``DMCObservation`` (built when omitted);
+    ``planar``: ``forward_kinematics``' (False: body by body, e.g. to compare)."""
 
-    def __init__(self, task: str, observation: DMCObservation | None = None):
+    def __init__(self, task: str, observation: DMCObservation | None = None, planar: bool = True):
         from gnwarp.control.tasks import get_task
         self.task = get_task(task)
         self.domain = observation_domain(self.task.name)
@@ -106,7 +107,7 @@ class ObservationReward:
                              f"got {self.observation.domain}")
         ob = self.observation
         m = ob.model
-        self.model = m
+        self.model, self.planar = m, bool(planar)
         if self.domain == "swimmer6":
             t = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "target")
             self.target_size = float(m.geom_size[t, 0])
@@ -126,12 +127,11 @@ class ObservationReward:
             self.rootz = [j for j in range(m.njnt) if m.jnt_bodyid[j] == 1 and m.jnt_type[j] != hinge
                           and abs(float(m.jnt_axis[j, 2]) - 1) < 1e-12]
             # the same as index lists, for ``joints`` in a few operations: a hinge's pitch difference
-            # (child - parent; the root's parent the world, pitch 0) along its axis, then rootz
+            # (its body's - its parent's; columns of the pitch with the world's 0 in front, so body b
+            # is column b and the root's parent, the world, column 0) along its axis, then rootz
             hinges = self.root_pitch + self.limb_joints
-            pitch_of = lambda b: int(b) - 1 if b >= 1 else None   # noqa: E731 - body -> its pitch column
-            self._child = [pitch_of(m.jnt_bodyid[j]) for j in hinges]
-            self._parent = [pitch_of(m.body_parentid[m.jnt_bodyid[j]]) if j in self.limb_joints else None
-                            for j in hinges]
+            self._child = [int(m.jnt_bodyid[j]) for j in hinges]
+            self._parent = [int(m.body_parentid[b]) for b in self._child]
             self._axis = [float(m.jnt_axis[j, 1]) for j in hinges]
             set_ = [int(m.jnt_qposadr[j]) for j in hinges + self.rootz]
             rest = [a for a in range(m.nq) if a not in set_]     # rootx: 0
@@ -157,8 +157,8 @@ class ObservationReward:
         orient = obs[..., ob.parts["orientations"]].reshape(*obs.shape[:-1], -1, 2)
         pitch = torch.atan2(orient[..., 1], orient[..., 0])                   # [..., B-1] about world y
         c = self._walker_constants(obs)
-        rel = pitch.index_select(-1, c["child"]) - torch.cat([pitch.new_zeros(*pitch.shape[:-1], 1), pitch], -1) \
-            .index_select(-1, c["parent"])
+        pitch = torch.cat([pitch.new_zeros(*pitch.shape[:-1], 1), pitch], -1)   # column b: body b's
+        rel = pitch.index_select(-1, c["child"]) - pitch.index_select(-1, c["parent"])
         rel = rel - (2 * math.pi) * torch.round(rel / (2 * math.pi))
         z = obs[..., ob.parts["height"]][..., :1].expand(*obs.shape[:-1], len(self.rootz)) - self.height_offset
         rest = obs.new_zeros(*obs.shape[:-1], m.nq - len(self._axis) - len(self.rootz))
@@ -170,9 +170,7 @@ class ObservationReward:
         c = self._consts.get(key)
         if c is None:
             index = lambda v: torch.tensor(v, dtype=torch.long, device=like.device)   # noqa: E731
-            # parent column 0 is the world's pitch (0); body b's pitch is column b (shifted by one)
-            c = self._consts[key] = dict(child=index(self._child),
-                                         parent=index([0 if p is None else p + 1 for p in self._parent]),
+            c = self._consts[key] = dict(child=index(self._child), parent=index(self._parent),
                                          axis=torch.tensor(self._axis, dtype=like.dtype, device=like.device),
                                          order=index(self._qpos_order))
         return c
@@ -188,6 +186,6 @@ class ObservationReward:
             dist = torch.where(sq > 0, torch.where(sq > 0, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
             return tolerance(dist, bounds=(0, self.target_size), margin=5 * self.target_size, sigmoid="long_tail")
         qpos, qvel = self.joints(next_obs)
-        body = forward_kinematics(self.model, qpos, qvel, ob.coords)
+        body = forward_kinematics(self.model, qpos, qvel, ob.coords, planar=self.planar)
         a = action if action is not None else next_obs.new_zeros(next_obs.shape[0], self.model.nu)
         return self.step(body[:, None], a[:, None], None)[:, 0]

@@ -67,11 +67,11 @@ class PlanarChain:
             y[b] = y[p] + float(bpos[1])     # rotations about y keep y; slides and hinges add none
             spec[b] = (p, bpos, bquat, slides, hinge)
         self.levels = []   # per depth >= 1: host lists of its bodies' constants
-        where = {0: (0, 0)}   # body -> (level, index in it)
+        where = {0: 0}   # body -> its index in its level
         for d in range(1, max(depth.values()) + 1):
             bodies = [b for b in range(1, self.nbody) if depth[b] == d]
             S = max(len(spec[b][3]) for b in bodies)
-            lv = dict(bodies=bodies, parent=[where[spec[b][0]][1] for b in bodies], S=S,
+            lv = dict(bodies=bodies, parent=[where[spec[b][0]] for b in bodies], S=S,
                       beta=[2 * math.atan2(spec[b][2][2], spec[b][2][0]) for b in bodies],
                       bpos=[complex(spec[b][1][0], spec[b][1][2]) for b in bodies],
                       q=[], v=[], axis=[], ref=[], hinge=any(spec[b][4] is not None for b in bodies),
@@ -88,8 +88,7 @@ class PlanarChain:
                 lv["sign"].append(math.copysign(1.0, hinge[2][1]) if hinge else 0.0)
                 lv["href"].append(hinge[3] if hinge else 0.0)
                 lv["hpos"].append(complex(hinge[4][0], hinge[4][2]) if hinge else 0j)
-            for i, b in enumerate(bodies):
-                where[b] = (d, i)
+            where.update((b, i) for i, b in enumerate(bodies))
             self.levels.append(lv)
         order = [0] + [b for lv in self.levels for b in lv["bodies"]]
         self._perm = [order.index(b) for b in range(self.nbody)]   # level order -> body order

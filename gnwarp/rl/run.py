@@ -375,7 +375,7 @@ def run_rl(cfg: RLConfig) -> dict:
 
     video = {}   # the body states of this call's last evaluation, for video.gif
 
-    previous = {}   # this call's last evaluation: the policy's outputs at its first states, the updates before
+    previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
 
     def evaluate():
         returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True), keep=cfg.video_episodes,
@@ -383,11 +383,12 @@ def run_rl(cfg: RLConfig) -> dict:
         if cfg.video_episodes:
             returns, video["states"] = returns
             video["env_steps"] = agent.env_steps
-        first, _ = eval_env.reset(seed=round_seed(cfg.seed, 0, True))   # the evaluation's first states
+        if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
+            first, _ = eval_env.reset(seed=round_seed(cfg.seed, 0, True))
+            previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
         with torch.no_grad():
-            frozen_policy_warning(previous, agent.policy_output(torch.as_tensor(first, device=agent.device,
-                                                                                dtype=agent.dtype)),
-                                  agent, agent.saturated(first))
+            frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
+                                  agent.saturated(previous["probe"]))
         c["last_eval"] = agent.env_steps
         rec = ResultRecord(
             experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
