@@ -15,7 +15,7 @@ warm-up). Each configuration runs in fresh processes:
   (run again when it compiled anything, so that it loads all it runs from the caches),
   then ``--steps`` more control steps from the same states, each timed with CUDA events (wall
   time on the CPU). Steady = the median over the control steps after the first three (a captured
-  iteration records on its second call with the default ``capture_warmup`` of 1, its third with 2); model step fwd+bwd = steady / (iterations x horizon);
+  iteration records on its first call with the default ``capture_warmup`` of 0, its second with 1); model step fwd+bwd = steady / (iterations x horizon);
   the planner's own counters give the model evaluations per step (checked: every step ran the
   configured iterations over the configured horizon); real-time factor = control timestep /
   steady. The true environment is not stepped (planning time alone).

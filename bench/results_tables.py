@@ -333,20 +333,21 @@ def rl_h1(root: Path, doc: Path) -> list[str]:
 
 @table("rl-curves")
 def rl_curves(root: Path, doc: Path) -> list[str]:
-    """Every learning curve of ``rl/summary.json`` (task, agent, networks) at 100k, 250k and 500k
+    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd) at 100k, 250k and 500k
     env steps and at its last point: mean +- s.e. over seeds (median; seeds)."""
     rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
-        groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"]), {})[r["env_steps"]] = r
+        groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"], r.get("utd", 1.0)), {})[r["env_steps"]] = r
     cell = lambda r: "" if r is None else (   # noqa: E731
         f"{r['mean']:.0f}" + (f" +- {r['se']:.0f}" if r["se"] is not None else "") + f" ({r['median']:.0f}; {r['seeds']})")
     order = {"ddpg": -1}
     out = []
-    for (task, agent, preset, nets), pts in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][3] != "mlp",
-                                                                                   order.get(kv[0][1], 0), kv[0][1])):
+    for (task, agent, preset, nets, utd), pts in sorted(groups.items(), key=lambda kv: (
+            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4])):
         last = max(pts)
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
+        name += "" if utd == 1 else f", {utd:g} updates / env step"
         out.append([task.replace("dmc-", ""), name, nets, *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
     return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "

@@ -1,7 +1,7 @@
 """Several seeds of one RL run side by side on one machine: a process per seed (``run_rl`` in its
-own folder ``<runs>/<agent>-<preset>-<networks>/s<seed>``), each stopping within the budget and
-resumed by the next call; afterwards each seed's records and log are copied to
-``<results>/<task>/<agent>-<preset>-<networks>/s<seed>/`` for ``bench/rl_summary.py``.
+own folder ``<runs>/<agent>-<preset>-<networks>/s<seed>``, ``-utd<k>`` appended where ``--set utd=k``
+is not 1), each stopping within the budget and resumed by the next call; afterwards each seed's
+records and log are copied to ``<results>/<task>/<that name>/s<seed>/`` for ``bench/rl_summary.py``.
 
     PYTHONPATH=. python3 bench/rl_seeds.py --agent svg1 --task swimmer6 --seeds 0-5 --budget-seconds 480
     PYTHONPATH=. python3 bench/rl_seeds.py --quick            # CPU-sized, 2 seeds, seconds
@@ -109,7 +109,8 @@ def main(argv=None) -> int:
         except json.JSONDecodeError:
             base[key.strip()] = text
     seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
-    name = f"{base['agent']}-{base['preset']}-{base['networks']}"
+    utd = float(base.get("utd", 1.0))
+    name = f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
     env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     from gnwarp.distributed import close, launched, ranks

@@ -2,10 +2,12 @@
 
 Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp rl`` writes
 ``records.jsonl`` in its run folder: copy or concatenate those under ``bench/results/rl/``) and
-writes a list of rows, one per (task, agent, preset, networks, env_steps)::
+writes a list of rows, one per (task, agent, preset, networks, utd, env_steps)::
 
-    {"task", "agent", "preset", "networks", "env_steps", "seeds", "eval_episodes", "median",
+    {"task", "agent", "preset", "networks", "utd", "env_steps", "seeds", "eval_episodes", "median",
      "q25", "q75", "mean", "se"}
+
+(``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it).
 
 Each seed counts once per point: its evaluation's mean return (over its deterministic episodes;
 a rerun of a seed at the same env steps: the last record stands). ``median``, ``q25``, ``q75``:
@@ -55,12 +57,13 @@ def point(seed_means: list[float]) -> dict:
 def _group(rec) -> tuple:
     c = rec.config
     agent, preset, networks = (rec.variant.split("/") + ["", "", ""])[:3]
-    return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"))
+    return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"),
+            float(c.get("utd", 1.0)))
 
 
 def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
-    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, env steps."""
+    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd, env steps."""
     by: dict[tuple, dict] = {}
     for path in sorted((root / folder).rglob("*.jsonl")):
         try:
@@ -75,10 +78,15 @@ def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     for key in sorted(by):
         seeds = by[key]
         means = [float(np.nanmean(r.values)) for r in seeds.values()]
-        task, agent, preset, networks, steps = key
-        out.append(dict(task=task, agent=agent, preset=preset, networks=networks, env_steps=steps,
+        task, agent, preset, networks, utd, steps = key
+        out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, env_steps=steps,
                         seeds=len(seeds), eval_episodes=min(r.episodes for r in seeds.values()), **point(means)))
     return out
+
+
+def _run(row: dict) -> tuple:
+    """(agent, preset, networks, utd) of a summary row (utd 1 where the row predates it)."""
+    return row["agent"], row["preset"], row["networks"], row.get("utd", 1.0)
 
 
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
@@ -89,12 +97,12 @@ def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
     written = []
     for task in sorted({r["task"] for r in summary}):
         fig, (ax_med, ax_mean) = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-        runs = sorted({(r["agent"], r["preset"], r["networks"]) for r in summary if r["task"] == task})
+        runs = sorted({_run(r) for r in summary if r["task"] == task})
         for run in runs:
-            pts = sorted((r for r in summary if r["task"] == task and (r["agent"], r["preset"], r["networks"]) == run),
-                         key=lambda r: r["env_steps"])
+            pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
             x = np.array([p["env_steps"] for p in pts], dtype=float)
-            label = f"{run[0]} ({run[1]}, {run[2]}; {max(p['seeds'] for p in pts)} seeds)"
+            utd = "" if run[3] == 1 else f", {run[3]:g} updates a step"
+            label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
             line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
             ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)
             mean = np.array([p["mean"] for p in pts])

@@ -175,10 +175,16 @@ class Graphed:
     the record; every later call replays it. ``fn`` must read and write only tensors that live
     from one call to the next (allocated before, or made inside and kept by the graph's pool),
     and nothing in it may sync with the host. ``generator``: a random generator ``fn`` draws
-    from other than the device's default (registered with the graph)."""
+    from other than the device's default (registered with the graph). ``prime``: run once on
+    the side stream just before the recording, in place of eager calls of ``fn`` where ``fn``
+    is dear (with ``warmup=0``, the first call primes, records and replays): a cheaper call
+    that loads the same kernels and makes the same lazy state without changing what ``fn``
+    works on."""
 
-    def __init__(self, fn, warmup: int = 1, generator: torch.Generator | None = None):
-        self.fn, self.warmup, self.generator = fn, warmup, generator
+    def __init__(self, fn, warmup: int = 1, generator: torch.Generator | None = None, prime=None):
+        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
+            raise ValueError(f"warmup must be an integer >= 0 (eager calls before the recording), got {warmup!r}")
+        self.fn, self.warmup, self.generator, self.prime = fn, warmup, generator, prime
         self.graph: torch.cuda.CUDAGraph | None = None
         self.stream = torch.cuda.Stream()
 
@@ -191,6 +197,10 @@ class Graphed:
                 torch.cuda.current_stream().wait_stream(self.stream)
                 self.warmup -= 1
                 return
+            if self.prime is not None:
+                with torch.cuda.stream(self.stream):
+                    self.prime()
+                self.prime = None
             graph = torch.cuda.CUDAGraph()
             if self.generator is not None:
                 graph.register_generator_state(self.generator)

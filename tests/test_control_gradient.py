@@ -150,7 +150,10 @@ def test_clear_errors(model, pendulum_data):
     with pytest.raises(ConfigError, match="iterations"):
         GradientMPCConfig(iterations=0)
     with pytest.raises(ConfigError, match="capture_warmup"):
-        GradientMPCConfig(capture_warmup=0)   # a recording needs one eager call before it
+        GradientMPCConfig(capture_warmup=-1)
+    from gnwarp.interop import Graphed
+    with pytest.raises(ValueError, match="warmup must be an integer >= 0"):
+        Graphed(lambda: None, warmup=-1)      # refused before any CUDA call
 
 
 def test_cli_mpc(model, tmp_path, capsys):
@@ -216,6 +219,28 @@ def test_adam_state_is_shifted_with_the_plan(model, pendulum_data):
     assert p.z is z_buf and torch.equal(p._m[:, :-1], m[:, 1:]) and int(p._t) == 2
 
 
+@pytest.mark.parametrize("grad_decay", [1.0, 0.5])
+def test_prime_leaves_the_plan_and_sizes_the_store(model, pendulum_data, grad_decay):
+    """The prime before a recording (``capture_warmup`` 0) runs one model step forward and
+    backward but changes nothing the iteration works on (plan, Adam's moments and step, the
+    counts); it decides the rollout engine's store from that step, and the iterations after it
+    plan what a planner never primed plans."""
+    cfg = GradientMPCConfig(horizon=6, warmup=0, grad_decay=grad_decay)
+    p = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=cfg)
+    q = GradientMPC(model, "pendulum-balance", "pendulum", n=2, config=cfg)
+    x = p.check_state(x0(pendulum_data, 2))
+    p._x.copy_(x)
+    before = [t.clone() for t in (p.z, p._m, p._v, p._t)]
+    p._prime()
+    assert all(torch.equal(a, b) for a, b in zip(before, (p.z, p._m, p._v, p._t)))
+    assert p.iterations_run == p.evals == 0
+    store = (p._step_engine or p.engine).store
+    assert store is not None and store.sized and store.generation == (1 if grad_decay < 1 else 0)
+    assert not q.engine.store.sized
+    torch.testing.assert_close(p.iterate(x, 3), q.iterate(x, 3), rtol=0, atol=0)
+    torch.testing.assert_close(p.z, q.z, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("rows", [None, 9])
 def test_proposal_starts_adam_from_the_best_sequence(model, pendulum_data, monkeypatch, rows):
     """The proposal rolls out the reset's sequence, the mid sequence and random ones (in batches
@@ -272,10 +297,11 @@ def test_bounded_warmup_returns_stay_with_the_papers(model):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("capture_warmup", [1, 2])
+@pytest.mark.parametrize("capture_warmup", [0, 1, 2])
 def test_cuda_captured_planning_iteration_matches_eager(pendulum_data, capture_warmup):
     """One planning iteration replayed from a CUDA graph (rollout, reward, adjoint backward, Adam)
-    plans what eager iterations plan, step after step, recorded after one or two eager ones."""
+    plans what eager iterations plan, step after step, recorded after one or two eager ones, or
+    at once after the one-step prime (0)."""
     from gnwarp.models.factory import build_model
     torch.manual_seed(0)   # an untrained model on CUDA (the fixture's training runs Warp CPU kernels)
     cfg = TrainConfig(model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", precision="fp32")))

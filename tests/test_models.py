@@ -486,6 +486,49 @@ def test_rollout_engine_store_replays_exactly(pendulum):
         m.rollout_engine(inst, 5, store_bytes=-1)
 
 
+def test_rollout_engine_one_step_sizes_the_store(pendulum):
+    """``one_step`` makes an eager one-step engine like the engine (same store policy and
+    budget); after its forward and backward, ``size_store`` decides the engine's store from that
+    step's bytes before the engine records anything: kept within the budget (and the engine's
+    rollouts and gradients unchanged), dropped over it, untouched before the one step recorded."""
+    m, inst, x0, u = _store_case(pendulum)
+    plain = m.rollout_engine(inst, 5, store=False)
+    eng = m.rollout_engine(inst, 5, store="auto")
+    one = eng.one_step()
+    assert one.horizon == 1 and not one.cuda and one.store_policy == "auto" and one.fused == eng.fused
+    eng.size_store(one)                       # nothing recorded yet: nothing decided
+    assert eng.store is not None and not eng.store.sized
+    t1, l1 = _grads(one, x0, u[:, :1], 0)
+    _backward(t1, l1)
+    need = one.store.step_bytes(0)
+    assert need > 0
+    eng.size_store(one)
+    assert eng.store is not None and eng.store.sized and eng.store.enabled and eng.store.generation == 0
+    ta, la = _grads(plain, x0, u, 0)
+    tb, lb = _grads(eng, x0, u, 0)
+    assert torch.equal(ta, tb) and eng.store.valid
+    for a, b in zip(_backward(ta, la), _backward(tb, lb)):
+        assert torch.equal(a, b)
+    # a budget for four steps of five: dropped before any recording; the engine recomputes
+    tight = m.rollout_engine(inst, 5, store="auto", store_bytes=4 * need)
+    one = tight.one_step()
+    assert one.store_bytes == 4 * need
+    _backward(*_grads(one, x0, u[:, :1], 0))
+    assert one.store is not None              # one step fits
+    tight.size_store(one)
+    assert tight.store is None
+    tt, lt = _grads(tight, x0, u, 0)
+    for a, b in zip(_backward(tt, lt), _backward(*_grads(plain, x0, u, 0))):
+        assert torch.equal(a, b)
+    # one step over the budget: so is every step
+    none = m.rollout_engine(inst, 5, store="auto", store_bytes=need - 1)
+    one = none.one_step()
+    _backward(*_grads(one, x0, u[:, :1], 0))
+    assert one.store is None
+    none.size_store(one)
+    assert none.store is None
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
 def test_cuda_rollout_engine_replays(pendulum, dtype, tol):

@@ -15,11 +15,11 @@ from bench import rl_summary as rs  # noqa: E402
 from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
 
 
-def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl"):
+def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None):
     return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
                         dynamics="true_mjwarp", variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
                         episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
-                        config=dict(agent=agent, preset=preset, networks=networks))
+                        config=dict(agent=agent, preset=preset, networks=networks) | ({} if utd is None else {"utd": utd}))
 
 
 def test_point_statistics_against_numpy():
@@ -40,15 +40,18 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
         _rec("svg1", 0, 0, [1.0, 3.0]), _rec("svg1", 0, 1000, [10.0, 30.0]), _rec("svg1", 0, 1000, [40.0, 60.0])])
     write_records(folder / "svg1-s1" / "records.jsonl", [
         _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0]),
-        _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control")])
+        _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control"),
+        _rec("svg1", 1, 1000, [200.0, 400.0], utd=3)])   # another curve: 3 updates an env step
     (folder / "rl_agents_gpu.jsonl").write_text(json.dumps({"agent": "ddpg", "updates_per_s": 200}) + "\n")
     assert rs.main(["--root", str(tmp_path)]) == 0
     summary = json.loads((folder / "summary.json").read_text())
-    keys = {"task", "agent", "preset", "networks", "env_steps", "seeds", "eval_episodes", "median", "q25", "q75",
-            "mean", "se"}
+    keys = {"task", "agent", "preset", "networks", "utd", "env_steps", "seeds", "eval_episodes", "median", "q25",
+            "q75", "mean", "se"}
     assert all(set(r) == keys for r in summary)
-    got = {(r["agent"], r["env_steps"]): r for r in summary}
+    got = {(r["agent"], r["env_steps"]): r for r in summary if r["utd"] == 1}
     assert set(got) == {("ddpg", 1000), ("svg1", 0), ("svg1", 1000)}
+    (more,) = [r for r in summary if r["utd"] == 3]
+    assert more["agent"] == "svg1" and more["seeds"] == 1 and more["mean"] == 300.0
     late = got[("svg1", 1000)]   # seed 0's rerun (mean 50) stands; seed 1's mean 80; the control record is skipped
     assert late["seeds"] == 2 and late["eval_episodes"] == 2
     assert late["mean"] == 65.0 and late["median"] == 65.0 and late["se"] == pytest.approx(15.0)

@@ -62,8 +62,10 @@ class GradientMPCConfig:
     actions z. ``init_std``: the random initial z ~ N(0, init_std^2) (and the proposals').
     ``seed``: of those sequences. ``capture``: replay one planning iteration from a CUDA graph
     (None: on CUDA; ignored on the CPU); ``capture_warmup``: eager iterations before it is
-    recorded (each costs about one eager iteration of the first action; 1, the default since
-    2026-11-27, saved 0.22 s of it on an H100 against 2, ``bench/results/first_action/``).
+    recorded (each costs about one eager iteration of the first action,
+    ``bench/results/first_action/``); 0 (default): none, one model step forward and backward
+    through a one-step engine primes the kernels instead (``_prime``: the plan untouched), and
+    the first iteration is the recording.
     ``fused``: the rollout engine's model step fused (``ForwardModel.rollout_engine``; None:
     automatic). ``discount``: per-step weight of the
     planned return (``gnwarp.control.returns.planned_return``; 1: the task's reward as is; < 1
@@ -85,7 +87,7 @@ class GradientMPCConfig:
     betas: tuple[FloatRange(ge=0, le=0.999999), FloatRange(ge=0, le=0.999999)] = (0.9, 0.999)
     seed: IntRange(0) = 0
     capture: Flag | None = None
-    capture_warmup: PositiveInt = 1
+    capture_warmup: IntRange(0) = 0
     fused: Flag | None = None
     discount: FloatRange(gt=0, le=1) = 1.0
     grad_norm: Literal[GRAD_NORMS] = "none"
@@ -198,7 +200,9 @@ class GradientMPC(ActsOnPlan):
         self._t = torch.zeros((), device=dev, dtype=torch.float64)      # Adam's step count
         self._x = torch.zeros((n, self.B, DYN_NODE_SIZE), device=dev, dtype=dt)
         self._r = torch.zeros(n, device=dev, dtype=dt)                  # planned reward before the last step
-        self._graph = Graphed(self._iterate_once, warmup=self.settings.capture_warmup) if self.capture else None
+        w = self.settings.capture_warmup
+        self._graph = (Graphed(self._iterate_once, warmup=w, prime=self._prime if w == 0 else None)
+                       if self.capture else None)
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
         self.reset(n)
 
@@ -372,6 +376,24 @@ class GradientMPC(ActsOnPlan):
             r = self.planned_return(self.gradient_rollout(x, u), u, self.targets)
             (g,) = torch.autograd.grad(r.sum(), z)
         return r.detach(), g
+
+    def _prime(self) -> None:
+        """What recording the first iteration needs, without running one (``capture_warmup``
+        0): one model step forward and backward, eagerly, from ``_x`` under the plan's first
+        action, through a one-step engine like the iteration's (the step engine itself where
+        the gradient's rollout runs step by step), the return and its gradient as an iteration
+        makes them (Warp's modules load; torch's lazy state, the autograd thread, the GEMM
+        handles, are made); the engine's activation store is sized from that step's recording,
+        so that no budget query runs in the capture. The plan, Adam's moments and the counts
+        are untouched."""
+        one = self._step_engine if self._step_engine is not None else self.engine.one_step()
+        with torch.enable_grad():
+            z = self.z[:, :1].detach().clone().requires_grad_(True)
+            u = self.to_actions(z)
+            r = self.planned_return(one.rollout(self._x, u), u, self.targets)
+            torch.autograd.grad(r.sum(), z)
+        if one is not self._step_engine:
+            self.engine.size_store(one)
 
     def _iterate_once(self) -> None:
         """One planning iteration on the device buffers, in place, no host sync: rollout from

@@ -5,7 +5,7 @@ The first control step carries one-off costs (the first state's warm-up, kernel 
 recording of a CUDA graph on the steps after it), so a mean over every step mixes two things a
 user waits for differently: the first action, and every action after it. ``plan_timing`` keeps
 them apart; the steady time is the median over the steps after the first ``STEADY_AFTER`` (a
-captured planning iteration runs eagerly ``capture_warmup`` times, 1 by default, then records).
+captured planning iteration records on its first call by default, ``capture_warmup`` 0).
 
     >>> plan_timing(out["plan_seconds"], control_timestep(system))
     {'first_step_ms': 812.0, 'steady_ms': 14.1, 'real_time_factor': 1.42, 'steady_steps': 97, ...}

@@ -365,6 +365,8 @@ class RolloutEngine:
         if not ok:
             raise RolloutInputError(f"horizon must be an integer >= 1, got {horizon!r}")
         self.model = model
+        # what ``one_step`` needs to make a one-step engine like this one
+        self._args = dict(instance=instance, builder=builder, ctrl_policy=ctrl_policy, check=check)
         source = builder if builder is not None else model.builder
         if source is not None:
             n_inst, n_ctrl = source_info(source)
@@ -423,16 +425,43 @@ class RolloutEngine:
                              f"{tuple(b['ctrl'].shape)}, got {tuple(x0.shape)} and {tuple(ctrl.shape)}")
         return b
 
+    def one_step(self) -> "RolloutEngine":
+        """A new engine like this one (model, instances, control policy, store policy and
+        budget, step path) that rolls out one step, eagerly: what a caller runs before it
+        records a larger step around this engine in a CUDA graph without an eager warm-up
+        (Warp's modules load, torch's lazy state is made), then ``size_store`` with it."""
+        a = self._args
+        return RolloutEngine(self.model, a["instance"], 1, a["builder"], ctrl_policy=a["ctrl_policy"],
+                             check=a["check"], graphs=False, store=self.store_policy,
+                             store_bytes=self.store_bytes, fused=self.fused)
+
+    def size_store(self, one: "RolloutEngine") -> None:
+        """Decide this engine's store from the first recording of ``one`` (``one_step``: the
+        same blocks, so the same bytes a step): kept when every step's would fit the budget,
+        else dropped. A caller that records this engine's first forward inside a CUDA graph
+        does this first, so that no budget query runs in the capture. Nothing changes where
+        the store is already decided or ``one`` has recorded nothing yet."""
+        store = self._store
+        if store is None or store.sized:
+            return
+        if one.store is None:                 # one step over the budget: its store was dropped
+            self._store = None
+        elif one.store.sized:
+            store.sized = True
+            if not self._store_fits(one.store.step_bytes(0) * self.horizon):
+                self._store = None            # recompute, as a store dropped at its first recording
+
     @contextlib.contextmanager
     def _recording(self, t: int):
         """Context of step ``t`` of a recording forward; after the first step's first recording
-        (eager: before any capture), drops the store when every step's would not fit."""
+        (eager: before any capture; or decided earlier by ``size_store``), drops the store when
+        every step's would not fit."""
         store = self._store
         with store.recording(t):
             yield
         if t == 0 and not store.sized:
             store.sized = True
-            if not self._store_fits():
+            if not self._store_fits(store.step_bytes(0) * self.horizon):
                 store.drop()   # the remaining steps run without recording
 
     def _forward_fn(self, record: bool = False):
@@ -450,10 +479,8 @@ class RolloutEngine:
                 with self._recording(t) if record else contextlib.nullcontext():
                     traj[:, t + 1] = step(traj[:, t], b["ctrl"][:, t])
 
-    def _store_fits(self) -> bool:
-        """After the first step's first recording: whether every step's would fit the budget."""
-        store = self._store
-        need = store.step_bytes(0) * self.horizon
+    def _store_fits(self, need: int) -> bool:
+        """Whether a recording of ``need`` bytes (every step's) fits the budget."""
         if self.store_policy is True:
             return True
         budget = self.store_bytes
