@@ -187,9 +187,9 @@ def headline(root: Path, doc: Path) -> list[str]:
                        " and ".join(f"{r['time_to_error_ratio']:.2f}x" for r in tte), len(tte)),
                  link("distributed")])
     every = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
-    rl = [r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup" and r["networks"] == "mlp"]
-    walker = {r["agent"]: r for r in every if r["task"] == "dmc-walker-walk" and r["env_steps"] == 500000
-              and r["networks"] == "mlp"}
+    one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1]   # one update an env step
+    rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
+    walker = {r["agent"]: r for r in one if r["task"] == "dmc-walker-walk" and r["env_steps"] == 500000}
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl")
            if r["batch"] == 100 and r.get("networks", "mlp") == "mlp"}

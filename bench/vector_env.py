@@ -10,6 +10,14 @@ on its own.
 
     python bench/vector_env.py [--batches 256,4096] [--steps 200] [--backend auto]
     python bench/vector_env.py --quick       # tiny sizes on the CPU: a smoke test of the script
+
+``--task`` another task (its system's model for the learned row); ``--observation dmc``: the
+suite's observation (``gnwarp.rl.observations.DMCObservation``, what ``gnwarp rl`` trains on)
+instead of the body states; ``--dynamics true``: the true simulator's rows only. The RL loop's
+environment side, e.g. on the CPU:
+
+    python bench/vector_env.py --task dmc-swimmer-swimmer6 --observation dmc --dynamics true \
+        --batches 10 --backend mujoco --device cpu
 """
 from __future__ import annotations
 
@@ -25,6 +33,7 @@ import torch  # noqa: E402
 
 from bench.harness import PAPER, QUICK, device_name, experiment_out, save_results  # noqa: E402
 from gnwarp import data  # noqa: E402
+from gnwarp.control.tasks import get_task  # noqa: E402
 from gnwarp.control.vector_env import make_vector_env  # noqa: E402
 from gnwarp.models import ForwardModel, ModelConfig  # noqa: E402
 
@@ -76,36 +85,54 @@ def main(argv=None):
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--precision", default="tf32")
+    ap.add_argument("--task", default=TASK)
+    ap.add_argument("--observation", choices=("bodies", "dmc"), default="bodies")
+    ap.add_argument("--dynamics", default="true,learned", help="true, learned or both")
     ap.add_argument("--out", default=None, help="default: bench/results/vector_env (--quick: a temporary folder)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
     if args.quick:
         args.device, args.batches, args.steps, args.backend = "cpu", "8", 5, "mujoco"
     dev = torch.device(args.device)
-    ds = data.generate("cheetah", (16, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)
-    model = ForwardModel(ModelConfig(gn=QUICK if args.quick else PAPER), ds.layout).to(dev)
-    model.set_options(precision=args.precision)
-    for p in model.parameters():
-        p.requires_grad_(False)
+    kinds = [k.strip() for k in args.dynamics.split(",")]
+    if not kinds or set(kinds) - {"true", "learned"}:
+        ap.error(f"--dynamics: true, learned or both, got {args.dynamics!r}")
+    task = get_task(args.task)
+    obs = "bodies"
+    if args.observation == "dmc":
+        from gnwarp.rl.observations import DMCObservation
+        obs = DMCObservation(task.name)
+    model = None
+    if "learned" in kinds:
+        ds = data.generate(task.system, (16, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)
+        model = ForwardModel(ModelConfig(gn=QUICK if args.quick else PAPER), ds.layout).to(dev)
+        model.set_options(precision=args.precision)
+        for p in model.parameters():
+            p.requires_grad_(False)
     gen = torch.Generator().manual_seed(0)
     name, rows = device_name(dev), []
+    common = dict(task=task.name, observation=args.observation, device=name)
     for n in (int(b) for b in args.batches.split(",")):
-        true = make_vector_env(TASK, n, dynamics="true", backend=args.backend, episode_steps=10 ** 6, output="torch")
-        sps, reset_s = steps_per_second(true, args.steps, gen)
-        rows.append(dict(device=name, dynamics="true", backend=true.backend, envs=n, steps=args.steps,
-                         env_steps_per_s=round(sps), raw_env_steps_per_s=round(raw_steps_per_second(true, args.steps)),
-                         reset_s=round(reset_s, 4)))
-        true.close()
-        learned = make_vector_env(TASK, n, dynamics=model, episode_steps=10 ** 6, output="torch")
-        sps, reset_s = steps_per_second(learned, args.steps, gen)
-        rows.append(dict(device=name, dynamics="learned", backend=f"model ({args.precision})", envs=n,
-                         steps=args.steps, env_steps_per_s=round(sps), raw_env_steps_per_s=None,
-                         reset_s=round(reset_s, 4)))
-        learned.close()
-        for r in rows[-2:]:
-            print(json.dumps(r), flush=True)
+        if "true" in kinds:
+            true = make_vector_env(task, n, dynamics="true", backend=args.backend, episode_steps=10 ** 6,
+                                   output="torch", observation=obs)
+            sps, reset_s = steps_per_second(true, args.steps, gen)
+            rows.append(dict(common, dynamics="true", backend=true.backend, envs=n, steps=args.steps,
+                             env_steps_per_s=round(sps),
+                             raw_env_steps_per_s=round(raw_steps_per_second(true, args.steps)), reset_s=round(reset_s, 4)))
+            true.close()
+            print(json.dumps(rows[-1]), flush=True)
+        if model is not None:
+            learned = make_vector_env(task, n, dynamics=model, episode_steps=10 ** 6, output="torch", observation=obs)
+            sps, reset_s = steps_per_second(learned, args.steps, gen)
+            rows.append(dict(common, dynamics="learned", backend=f"model ({args.precision})", envs=n,
+                             steps=args.steps, env_steps_per_s=round(sps), raw_env_steps_per_s=None,
+                             reset_s=round(reset_s, 4)))
+            learned.close()
+            print(json.dumps(rows[-1]), flush=True)
     lines = [f"# Vector environments: env steps per second, on {name}", "",
-             f"`python bench/vector_env.py` ({time.strftime('%Y-%m-%d')}): {TASK}, random actions, output torch, "
+             f"`python bench/vector_env.py` ({time.strftime('%Y-%m-%d')}): {task.name}, {args.observation} observation, "
+             "random actions, output torch, "
              f"{args.steps} steps after a warm-up; the learned model is the {'quick' if args.quick else 'paper'} core "
              "(untrained); 'Env.step alone' is the true simulator without the vector env around it.", "",
              "| dynamics | backend | envs | env steps / s | Env.step alone, env steps / s | reset (s) |",

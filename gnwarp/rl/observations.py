@@ -112,37 +112,67 @@ class JointCoordinates:
             t = self._cache[key] = torch.tensor(values, dtype=like.dtype, device=like.device)
         return t
 
+    def _tables(self, like: torch.Tensor) -> dict:
+        """Every body's constants and every joint's entry as tensors of ``like``'s dtype and
+        device, made once: the bodies are composed together, a few operations for the whole
+        tree (not a few tens per body)."""
+        key = ("tables", like.device, like.dtype)
+        t = self._cache.get(key)
+        if t is None:
+            f = dict(dtype=like.dtype, device=like.device)
+            i = dict(dtype=torch.long, device=like.device)
+            hinges = [(k, h) for k, (*_, h) in enumerate(self.bodies) if h is not None]
+            slides = [(k, sl) for k, (*_, sls, _) in enumerate(self.bodies) for sl in sls]
+            t = self._cache[key] = dict(
+                body=torch.tensor([b for b, *_ in self.bodies], **i),
+                parent=torch.tensor([p for _, p, *_ in self.bodies], **i),
+                pos=torch.tensor([bp for _, _, bp, *_ in self.bodies], **f),
+                quat=torch.tensor([bq for _, _, _, bq, *_ in self.bodies], **f),
+                anchor=torch.tensor([h[4] if h is not None else (0.0, 0.0, 0.0) for *_, h in self.bodies], **f),
+                h_of=torch.tensor([k for k, _ in hinges], **i), h_qpos=torch.tensor([h[0] for _, h in hinges], **i),
+                h_dof=torch.tensor([h[1] for _, h in hinges], **i),
+                h_axis=torch.tensor([h[2] for _, h in hinges], **f).reshape(-1, 3),
+                h_ref=torch.tensor([h[3] for _, h in hinges], **f),
+                s_of=torch.tensor([k for k, _ in slides], **i), s_qpos=torch.tensor([sl[0] for _, sl in slides], **i),
+                s_dof=torch.tensor([sl[1] for _, sl in slides], **i),
+                s_axis=torch.tensor([sl[2] for _, sl in slides], **f).reshape(-1, 3),
+                s_ref=torch.tensor([sl[3] for _, sl in slides], **f))
+        return t
+
     def __call__(self, body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if body.ndim < 2 or body.shape[-2] != self.nbody or body.shape[-1] != DYN_NODE_SIZE:
             raise ValueError(f"body states must be [..., {self.nbody}, {DYN_NODE_SIZE}], got {tuple(body.shape)}")
         lead = body.shape[:-2]
+        T = self._tables(body)
         qpos = body.new_zeros(*lead, self.nq)
         qvel = body.new_zeros(*lead, self.nv)
-        const = lambda v: self.constant(tuple(v), body).expand(*lead, len(v))   # noqa: E731
         quat = quat_normalize(body[..., QUAT])
-        for b, p, bpos, bquat, slides, hinge in self.bodies:
-            xp, qp, vp, wp = body[..., p, POS], quat[..., p, :], body[..., p, LINVEL], body[..., p, ANGVEL]
-            xb, qb, vb, wb = body[..., b, POS], quat[..., b, :], body[..., b, LINVEL], body[..., b, ANGVEL]
-            q0 = quat_mul(qp, const(bquat))                     # the body's frame before its joints
-            p0 = xp + quat_rotate(qp, const(bpos))
-            rel = quat_mul(quat_conj(q0), qb)                   # the joints' rotation, in that frame
-            c = const(hinge[4] if hinge is not None else (0.0, 0.0, 0.0))
-            if hinge is not None:
-                qa, da, axis, ref, _ = hinge
-                s = (rel[..., 1:] * const(axis)).sum(-1)
-                w = rel[..., 0]
-                # the angle from cos and sin of the full angle: the same for q and -q
-                qpos[..., qa] = torch.atan2(2 * w * s, w * w - s * s) + ref
-                qvel[..., da] = ((wb - wp) * quat_rotate(qb, const(axis))).sum(-1)
-            if slides:
-                # hinge about anchor c: pos = p0 + R0 (d + c) - Rb c, so d = R0^T (pos - p0) - c + rel c
-                d = quat_rotate(quat_conj(q0), xb - p0) - c + quat_rotate(rel, c)
-                anchor = xb + quat_rotate(qb, c)
-                v_anchor = vb + torch.linalg.cross(wb, anchor - xb, dim=-1)
-                v_rel = v_anchor - vp - torch.linalg.cross(wp, anchor - xp, dim=-1)
-                for qa, da, axis, ref, _ in slides:
-                    qpos[..., qa] = (d * const(axis)).sum(-1) + ref
-                    qvel[..., da] = (v_rel * quat_rotate(q0, const(axis))).sum(-1)
+        # every moving body [..., K, .] beside its parent's state
+        xp, qp = body[..., T["parent"], :][..., POS], quat[..., T["parent"], :]
+        vp, wp = body[..., T["parent"], :][..., LINVEL], body[..., T["parent"], :][..., ANGVEL]
+        bb = body[..., T["body"], :]
+        xb, qb, vb, wb = bb[..., POS], quat[..., T["body"], :], bb[..., LINVEL], bb[..., ANGVEL]
+        K = T["body"].numel()
+        q0 = quat_mul(qp, T["quat"].expand(*lead, K, 4))        # each body's frame before its joints
+        rel = quat_mul(quat_conj(q0), qb)                        # its joints' rotation, in that frame
+        if T["h_of"].numel():
+            k, axis = T["h_of"], T["h_axis"].expand(*lead, -1, 3)
+            r = rel[..., k, :]
+            s, w = (r[..., 1:] * axis).sum(-1), r[..., 0]
+            # the angle from cos and sin of the full angle: the same for q and -q
+            qpos[..., T["h_qpos"]] = torch.atan2(2 * w * s, w * w - s * s) + T["h_ref"]
+            qvel[..., T["h_dof"]] = ((wb[..., k, :] - wp[..., k, :]) * quat_rotate(qb[..., k, :], axis)).sum(-1)
+        if T["s_of"].numel():
+            # hinge about anchor c: pos = p0 + R0 (d + c) - Rb c, so d = R0^T (pos - p0) - c + rel c
+            c = T["anchor"].expand(*lead, K, 3)
+            p0 = xp + quat_rotate(qp, T["pos"].expand(*lead, K, 3))
+            d = quat_rotate(quat_conj(q0), xb - p0) - c + quat_rotate(rel, c)
+            anchor = xb + quat_rotate(qb, c)
+            v_anchor = vb + torch.linalg.cross(wb, anchor - xb, dim=-1)
+            v_rel = v_anchor - vp - torch.linalg.cross(wp, anchor - xp, dim=-1)
+            k, axis = T["s_of"], T["s_axis"].expand(*lead, -1, 3)
+            qpos[..., T["s_qpos"]] = (d[..., k, :] * axis).sum(-1) + T["s_ref"]
+            qvel[..., T["s_dof"]] = (v_rel[..., k, :] * quat_rotate(q0[..., k, :], axis)).sum(-1)
         return qpos, qvel
 
 
