@@ -109,7 +109,10 @@ def main(argv=None) -> int:
         except json.JSONDecodeError:
             base[key.strip()] = text
     seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
-    utd = float(base.get("utd", 1.0))
+    try:
+        utd = float(base.get("utd", 1.0))
+    except (TypeError, ValueError):
+        ap.error(f"--set utd=...: updates per env step must be a number > 0, got {base.get('utd')!r}")
     name = f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
     env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)

@@ -87,7 +87,7 @@ def main(argv=None):
     ap.add_argument("--precision", default="tf32")
     ap.add_argument("--task", default=TASK)
     ap.add_argument("--observation", choices=("bodies", "dmc"), default="bodies")
-    ap.add_argument("--dynamics", default="true,learned", help="true, learned or both")
+    ap.add_argument("--dynamics", default="true,learned", help="true, learned, or true,learned")
     ap.add_argument("--out", default=None, help="default: bench/results/vector_env (--quick: a temporary folder)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
@@ -96,12 +96,15 @@ def main(argv=None):
     dev = torch.device(args.device)
     kinds = [k.strip() for k in args.dynamics.split(",")]
     if not kinds or set(kinds) - {"true", "learned"}:
-        ap.error(f"--dynamics: true, learned or both, got {args.dynamics!r}")
+        ap.error(f"--dynamics: true, learned, or true,learned, got {args.dynamics!r}")
     task = get_task(args.task)
     obs = "bodies"
     if args.observation == "dmc":
         from gnwarp.rl.observations import DMCObservation
-        obs = DMCObservation(task.name)
+        try:
+            obs = DMCObservation(task)
+        except ValueError as e:
+            ap.error(f"--observation dmc: {e}")
     model = None
     if "learned" in kinds:
         ds = data.generate(task.system, (16, 2, 2), num_steps=10, seed=0, backend="mujoco", progress=False)

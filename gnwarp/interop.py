@@ -179,7 +179,8 @@ class Graphed:
     the side stream just before the recording, in place of eager calls of ``fn`` where ``fn``
     is dear (with ``warmup=0``, the first call primes, records and replays): a cheaper call
     that loads the same kernels and makes the same lazy state without changing what ``fn``
-    works on."""
+    works on. ``warmup=0`` without ``prime`` records on the first call: only for an ``fn``
+    whose kernels are loaded and whose lazy state (GEMM handles, tables) is made already."""
 
     def __init__(self, fn, warmup: int = 1, generator: torch.Generator | None = None, prime=None):
         if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:

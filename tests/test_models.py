@@ -527,6 +527,10 @@ def test_rollout_engine_one_step_sizes_the_store(pendulum):
     assert one.store is None
     none.size_store(one)
     assert none.store is None
+    # decided once: a later one-step engine changes nothing; an engine unlike this one is refused
+    assert eng.store.sized and eng.size_store(eng.one_step()) is None and eng.store is not None
+    with pytest.raises(ValueError, match="store policy and budget"):
+        eng.size_store(m.rollout_engine(inst, 1, store=False))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -116,6 +116,15 @@ def test_reward_from_the_observation_is_the_suites(suite_physics, name):
     assert (ObservationReward(name)(ref.flatten(0, 1), None, ref.flatten(0, 1)) - reward.flatten()).abs().max() < 1e-9
 
 
+def test_joint_coordinates_of_a_model_without_joints_or_bodies():
+    """A world alone, and a body without joints: empty coordinates, no error."""
+    from gnwarp.rl.observations import JointCoordinates
+    for xml in ("<mujoco/>", "<mujoco><worldbody><body><geom size='.1'/></body></worldbody></mujoco>"):
+        m = mujoco.MjModel.from_xml_string(xml)
+        p, v = JointCoordinates(m)(torch.zeros(3, m.nbody, 13))
+        assert p.shape == (3, 0) and v.shape == (3, 0)
+
+
 def test_float32_and_a_learned_models_batch_shape():
     obs = DMCObservation("dmc-walker")
     m = obs.system.model

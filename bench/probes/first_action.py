@@ -3,9 +3,10 @@
 The gradient planner of ``bench/mpc_latency.py`` (untrained planning core, one system, N
 episodes, horizon H, iterations I), timed phase by phase with the device synchronized: planner
 construction (binding, engines), the sampled proposal (eager forward rollouts), the first planning
-iteration (on CUDA: run eagerly, Warp modules loaded), the second (recorded with the default
-``--capture-warmup 1``, eager with 2), the rest of the warm-up and the first control step's
-iterations (the recording, where it was not yet made, then replays). Run it twice: the
+iteration (on CUDA with the default ``--capture-warmup 0``: the one-step prime, the recording and
+its replay; with 1 or more: eager, Warp modules loaded), the second (a replay with 0, the
+recording with 1, eager with 2), the rest of the warm-up and the first control step's iterations
+(the recording, where it was not yet made, then replays). Run it twice: the
 first process fills the kernel caches, the second is what a user waits for.
 
     python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto]
@@ -83,7 +84,8 @@ def main(argv=None):
     ap.add_argument("--sample", type=float, default=0.0, help="sample every thread's stack every this many ms")
     ap.add_argument("--warp-log", action="store_true", help="Warp's info log: each module load's time")
     ap.add_argument("--cuda-output", choices=("auto", "ptx", "cubin"), default="auto")
-    ap.add_argument("--capture-warmup", type=int, default=1, help="eager iterations before the recording")
+    ap.add_argument("--capture-warmup", type=int, default=0,
+                    help="eager iterations before the recording (0: the one-step prime instead)")
     a = ap.parse_args(argv)
     wp = warp()   # initialized with gnwarp's log level, then the options
     if a.warp_log:

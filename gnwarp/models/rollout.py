@@ -440,7 +440,12 @@ class RolloutEngine:
         same blocks, so the same bytes a step): kept when every step's would fit the budget,
         else dropped. A caller that records this engine's first forward inside a CUDA graph
         does this first, so that no budget query runs in the capture. Nothing changes where
-        the store is already decided or ``one`` has recorded nothing yet."""
+        the store is already decided or ``one`` has recorded nothing yet. ``one`` must keep a
+        store as this engine does (``one_step`` makes such an engine): ValueError otherwise."""
+        if one.store_policy != self.store_policy or one.store_bytes != self.store_bytes:
+            raise ValueError(f"size_store needs a one-step engine with this engine's store policy and budget "
+                             f"(store={self.store_policy!r}, store_bytes={self.store_bytes!r}; one_step makes "
+                             f"one), got store={one.store_policy!r}, store_bytes={one.store_bytes!r}")
         store = self._store
         if store is None or store.sized:
             return

@@ -126,9 +126,10 @@ class JointCoordinates:
             t = self._cache[key] = dict(
                 body=torch.tensor([b for b, *_ in self.bodies], **i),
                 parent=torch.tensor([p for _, p, *_ in self.bodies], **i),
-                pos=torch.tensor([bp for _, _, bp, *_ in self.bodies], **f),
-                quat=torch.tensor([bq for _, _, _, bq, *_ in self.bodies], **f),
-                anchor=torch.tensor([h[4] if h is not None else (0.0, 0.0, 0.0) for *_, h in self.bodies], **f),
+                pos=torch.tensor([bp for _, _, bp, *_ in self.bodies], **f).reshape(-1, 3),
+                quat=torch.tensor([bq for _, _, _, bq, *_ in self.bodies], **f).reshape(-1, 4),
+                anchor=torch.tensor([h[4] if h is not None else (0.0, 0.0, 0.0) for *_, h in self.bodies],
+                                    **f).reshape(-1, 3),
                 h_of=torch.tensor([k for k, _ in hinges], **i), h_qpos=torch.tensor([h[0] for _, h in hinges], **i),
                 h_dof=torch.tensor([h[1] for _, h in hinges], **i),
                 h_axis=torch.tensor([h[2] for _, h in hinges], **f).reshape(-1, 3),
