@@ -141,11 +141,13 @@ def main(argv=None):
     ap.add_argument("--batches", default="100,256")
     ap.add_argument("--updates", type=int, default=500)
     ap.add_argument("--envs", type=int, default=16)
-    ap.add_argument("--networks", default="mlp", help="mlp, gn or both (mlp,gn): GN policy, Q and model on "
+    ap.add_argument("--networks", default="mlp", help="mlp, gn, or mlp,gn: GN policy, Q and model on "
                                                          "swimmer6's observation graph, Warp blocks")
     ap.add_argument("--device", default="cuda")
     add_run_args(ap, "rl")   # --out, --quick
     args = ap.parse_args(argv)
+    if not args.networks.split(",") or set(args.networks.split(",")) - {"mlp", "gn"}:
+        ap.error(f"--networks: mlp, gn, or mlp,gn, got {args.networks!r}")
     hidden = (256, 256)
     if args.quick:
         args.device, args.batches, args.updates, hidden = "cpu", "16", 5, (16, 16)

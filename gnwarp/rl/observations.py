@@ -149,9 +149,8 @@ class JointCoordinates:
         qvel = body.new_zeros(*lead, self.nv)
         quat = quat_normalize(body[..., QUAT])
         # every moving body [..., K, .] beside its parent's state
-        xp, qp = body[..., T["parent"], :][..., POS], quat[..., T["parent"], :]
-        vp, wp = body[..., T["parent"], :][..., LINVEL], body[..., T["parent"], :][..., ANGVEL]
-        bb = body[..., T["body"], :]
+        pb, bb = body[..., T["parent"], :], body[..., T["body"], :]
+        xp, qp, vp, wp = pb[..., POS], quat[..., T["parent"], :], pb[..., LINVEL], pb[..., ANGVEL]
         xb, qb, vb, wb = bb[..., POS], quat[..., T["body"], :], bb[..., LINVEL], bb[..., ANGVEL]
         K = T["body"].numel()
         q0 = quat_mul(qp, T["quat"].expand(*lead, K, 4))        # each body's frame before its joints
