@@ -86,6 +86,9 @@ def main(argv=None):
     ap.add_argument("--cuda-output", choices=("auto", "ptx", "cubin"), default="auto")
     ap.add_argument("--capture-warmup", type=int, default=0,
                     help="eager iterations before the recording (0: the one-step prime instead)")
+    ap.add_argument("--gemm-first", action="store_true",
+                    help="before construction, time one dense layer forward and backward of the model's "
+                         "widths (cuBLAS's first use in the process), as gemm_first_ms")
     a = ap.parse_args(argv)
     wp = warp()   # initialized with gnwarp's log level, then the options
     if a.warp_log:
@@ -101,6 +104,15 @@ def main(argv=None):
     cfg = GradientMPCConfig(horizon=a.horizon, iterations=a.iterations, seed=0, fused=fused,
                             capture_warmup=a.capture_warmup)
     sync()
+    first_use = {}
+    if a.gemm_first:   # what the process's first GEMMs cost alone (handle, workspace, heuristics)
+        t0 = time.perf_counter()
+        width = 256   # the planning core's MLP width (SIZES)
+        w = torch.randn(width, width, device=dev, requires_grad=True)
+        h = torch.randn(32, width, device=dev, requires_grad=True)
+        torch.nn.functional.linear(torch.relu(h @ w), w).sum().backward()
+        sync()
+        first_use["gemm_first_ms"] = round(1e3 * (time.perf_counter() - t0), 1)
     phases, t = {}, time.perf_counter()
     order = iter(["construct", "proposal", "iteration_1", "iteration_2", "iterations_rest", "end"])
     if sampler is not None:
@@ -128,7 +140,7 @@ def main(argv=None):
     mark(f"iterations_3_to_{rest + 2}_ms")
     row = {"system": a.system, "episodes": a.episodes, "horizon": a.horizon, "iterations": a.iterations,
            "fused": planner.engine.fused, "capture_warmup": a.capture_warmup, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
-           "imports_s": round(t_import, 2), **phases, "total_ms": round(sum(phases.values()), 1)}
+           "imports_s": round(t_import, 2), **first_use, **phases, "total_ms": round(sum(phases.values()), 1)}
     print(json.dumps(row), flush=True)
     if sampler is not None:
         sampler.report()
