@@ -189,21 +189,24 @@ def headline(root: Path, doc: Path) -> list[str]:
     every = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1]   # one update an env step
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
-    walker = {r["agent"]: r for r in one if r["task"] == "dmc-walker-walk" and r["env_steps"] == 500000}
+    at500 = {(r["task"].split("-", 1)[1], r["agent"]): r for r in one
+             if r["task"] in ("dmc-walker-walk", "dmc-cheetah-run") and r["env_steps"] == 500000}
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl")
            if r["batch"] == 100 and r.get("networks", "mlp") == "mlp"}
     names = {"svg1": "SVG(1)", "svg0": "SVG(0)", "ddpg": "DDPG"}
-    seeds = min(at[a, s]["seeds"] for a in names for s in (250000, 500000) if (a, s) in at)
-    pts = [f"{names[a]} " + " / ".join(f"{at[a, s]['mean']:.0f} +- {at[a, s]['se']:.0f}" for s in (250000, 500000)
-                                       if (a, s) in at) for a in names if (a, 250000) in at]
+
+    def mean_se(r):
+        return f"{r['mean']:.0f}" + (f" +- {r['se']:.0f}" if r["se"] is not None else "")
+    pts = [f"{names[a]} " + " / ".join(mean_se(at[a, s]) for s in (250000, 500000) if (a, s) in at)
+           + f" ({min(at[a, s]['seeds'] for s in (250000, 500000) if (a, s) in at)} seeds)"
+           for a in names if (a, 250000) in at]
     last = max(s for (a, s) in at if a == "ddpg")
-    rows.append([f"RL on DMC (SpinningUp preset, MLPs): swimmer6 return at 250k / 500k env steps ({seeds} seeds), "
-                 "mean +- s.e. over seeds",
-                 ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {at['ddpg', last]['mean']:.0f} +- "
-                 f"{at['ddpg', last]['se']:.0f} (SpinningUp 351 +- 19); "
-                 + "".join(f"walker-walk {names[a]} at 500k {w['mean']:.0f} +- {w['se']:.0f} ({w['seeds']} seeds); "
-                           for a, w in sorted(walker.items()) if a in names)
+    rows.append(["RL on DMC (SpinningUp preset, MLPs): swimmer6 return at 250k / 500k env steps, mean +- s.e. "
+                 "over seeds",
+                 ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {mean_se(at['ddpg', last])} (SpinningUp 351 +- 19); "
+                 + "".join(f"{t} {names[a]} at 500k {mean_se(w)} ({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
+                           for (t, a), w in sorted(at500.items()) if a in names)
                  + "updates replayed from a CUDA graph "
                  f"**{ups['svg1']['graph_speedup']:.1f}x** eager's (SVG(1), one H100)", link("rl")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
@@ -353,6 +356,33 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
     return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "
                    f"preset {', '.join(sorted({k[2] for k in groups}))}", "`summary.json`")]
             + [""] + _md(["task", "agent", "networks", "100k", "250k", "500k", "last point"], out))
+
+
+@table("rl-goals")
+def rl_goals(root: Path, doc: Path) -> list[str]:
+    """SVG(1) against SVG(0) on swimmer6 (spinningup, MLPs, one update an env step): at every
+    250k env steps both reached and at the last point both share, each run's mean +- s.e. over
+    seeds and the difference of means with its 95% bootstrap interval over seeds (unpaired)."""
+    from bench.rl_summary import difference, seed_means
+    by = seed_means(root)
+    run = lambda agent: {k[-1]: [m for m, _ in v.values()] for k, v in by.items()   # noqa: E731
+                         if k[:5] == ("dmc-swimmer-swimmer6", agent, "spinningup", "mlp", 1.0)}
+    one, zero = run("svg1"), run("svg0")
+    both = sorted(set(one) & set(zero))
+    at = [s for s in both if s and s % 250000 == 0]
+    at += [both[-1]] if both and both[-1] not in at else []
+
+    def cell(v):
+        return f"{statistics.fmean(v):.0f} +- {statistics.stdev(v) / math.sqrt(len(v)):.0f} ({len(v)})"
+    out = []
+    for s in at:
+        d, lo, hi = difference(one[s], zero[s])
+        out.append([f"{s / 1000:.0f}k", cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
+                    "yes" if lo > 0 or hi < 0 else "no"])
+    return [_note("swimmer6, spinningup preset, MLPs: mean +- standard error over seeds (seeds); the "
+                  "difference SVG(1) - SVG(0) and its percentile 95% bootstrap interval, the seeds of "
+                  "each run resampled independently", "the records under `swimmer6/`"), ""] + _md(
+        ["env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
 @table("control-fig10")

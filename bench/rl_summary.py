@@ -39,7 +39,7 @@ if str(ROOT) not in sys.path:
 from gnwarp.eval.records import RecordError, read_records  # noqa: E402
 from gnwarp.files import atomic_write, write_or_check  # noqa: E402
 
-__all__ = ["RL", "rows", "point", "plot_curves", "main"]
+__all__ = ["RL", "seed_means", "rows", "point", "difference", "plot_curves", "main"]
 
 RL = Path("bench") / "results" / "rl"
 
@@ -61,9 +61,10 @@ def _group(rec) -> tuple:
             float(c.get("utd", 1.0)))
 
 
-def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
-    """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
-    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd, env steps."""
+def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
+    """{(task, agent, preset, networks, utd, env_steps): {seed: (its evaluation's mean return, its
+    episodes)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
+    rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
     for path in sorted((root / folder).rglob("*.jsonl")):
         try:
@@ -73,15 +74,34 @@ def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
         for r in recs:
             if r.experiment != "rl" or r.returns is None or r.env_steps is None:
                 continue
-            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = r
+            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (float(np.nanmean(r.values)), r.episodes)
+    return by
+
+
+def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
+    """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
+    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd, env steps."""
+    by = seed_means(root, folder)
     out = []
     for key in sorted(by):
         seeds = by[key]
-        means = [float(np.nanmean(r.values)) for r in seeds.values()]
         task, agent, preset, networks, utd, steps = key
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, env_steps=steps,
-                        seeds=len(seeds), eval_episodes=min(r.episodes for r in seeds.values()), **point(means)))
+                        seeds=len(seeds), eval_episodes=min(n for _, n in seeds.values()),
+                        **point([m for m, _ in seeds.values()])))
     return out
+
+
+def difference(a, b, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float, float]:
+    """(mean(a) - mean(b), and its percentile 95% bootstrap interval): the seeds of each run
+    resampled independently (unpaired; at least two finite values each)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if min(a.size, b.size) < 2 or not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise ValueError(f"a difference needs at least two finite values a side, got {a.tolist()} and {b.tolist()}")
+    rng = np.random.default_rng(seed)
+    d = a[rng.integers(0, a.size, (n_boot, a.size))].mean(1) - b[rng.integers(0, b.size, (n_boot, b.size))].mean(1)
+    lo, hi = np.percentile(d, [2.5, 97.5])
+    return float(a.mean() - b.mean()), float(lo), float(hi)
 
 
 def _run(row: dict) -> tuple:

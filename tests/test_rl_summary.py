@@ -32,6 +32,32 @@ def test_point_statistics_against_numpy():
         rs.point([])
 
 
+def test_difference_interval_against_a_direct_bootstrap():
+    a, b = [400.0, 420.0, 380.0, 410.0], [100.0, 120.0, 90.0]
+    d, lo, hi = rs.difference(a, b, n_boot=2000, seed=3)
+    assert d == pytest.approx(np.mean(a) - np.mean(b))
+    rng = np.random.default_rng(3)   # the same draws, written out: a's resamples, then b's
+    va, vb = np.array(a), np.array(b)
+    boot = va[rng.integers(0, 4, (2000, 4))].mean(1) - vb[rng.integers(0, 3, (2000, 3))].mean(1)
+    assert (lo, hi) == pytest.approx(tuple(np.percentile(boot, [2.5, 97.5])))
+    assert lo > 0                      # separated runs: the interval excludes 0
+    d, lo, hi = rs.difference(a, a)
+    assert d == 0.0 and lo < 0 < hi    # a run against itself: it contains 0
+    with pytest.raises(ValueError, match="at least two finite values a side"):
+        rs.difference([1.0], b)
+    with pytest.raises(ValueError, match="at least two finite values a side"):
+        rs.difference(a, [1.0, float("nan")])
+
+
+def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
+    folder = tmp_path / "rl"
+    folder.mkdir()
+    write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
+                                       _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
+    by = rs.seed_means(tmp_path, Path("rl"))
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, 1000): {0: (10.0, 2), 1: (7.0, 3)}}
+
+
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     folder = tmp_path / rs.RL
     (folder / "svg1-s0").mkdir(parents=True)
