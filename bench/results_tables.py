@@ -187,7 +187,8 @@ def headline(root: Path, doc: Path) -> list[str]:
                        " and ".join(f"{r['time_to_error_ratio']:.2f}x" for r in tte), len(tte)),
                  link("distributed")])
     every = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
-    one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1]   # one update an env step
+    one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1   # one update an env step, in turn
+           and not r.get("act_ahead", False)]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
     at500 = {(r["task"].split("-", 1)[1], r["agent"]): r for r in one
              if r["task"] in ("dmc-walker-walk", "dmc-cheetah-run") and r["env_steps"] == 500000}
@@ -336,21 +337,22 @@ def rl_h1(root: Path, doc: Path) -> list[str]:
 
 @table("rl-curves")
 def rl_curves(root: Path, doc: Path) -> list[str]:
-    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd) at 100k, 250k and 500k
+    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead) at 100k, 250k and 500k
     env steps and at its last point: mean +- s.e. over seeds (median; seeds)."""
     rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
-        groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"], r.get("utd", 1.0)), {})[r["env_steps"]] = r
+        groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"], r.get("utd", 1.0),
+                           r.get("act_ahead", False)), {})[r["env_steps"]] = r
     cell = lambda r: "" if r is None else (   # noqa: E731
         f"{r['mean']:.0f}" + (f" +- {r['se']:.0f}" if r["se"] is not None else "") + f" ({r['median']:.0f}; {r['seeds']})")
     order = {"ddpg": -1}
     out = []
-    for (task, agent, preset, nets, utd), pts in sorted(groups.items(), key=lambda kv: (
-            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4])):
+    for (task, agent, preset, nets, utd, ahead), pts in sorted(groups.items(), key=lambda kv: (
+            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5])):
         last = max(pts)
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
-        name += "" if utd == 1 else f", {utd:g} updates / env step"
+        name += ("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
         out.append([task.replace("dmc-", ""), name, nets, *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
     return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "
@@ -360,13 +362,13 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
 
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
-    """SVG(1) against SVG(0) on swimmer6 (spinningup, MLPs, one update an env step): at every
+    """SVG(1) against SVG(0) on swimmer6 (spinningup, MLPs, one update an env step, in turn): at every
     250k env steps both reached and at the last point both share, each run's mean +- s.e. over
     seeds and the difference of means with its 95% bootstrap interval over seeds (unpaired)."""
     from bench.rl_summary import difference, seed_means
     by = seed_means(root)
     run = lambda agent: {k[-1]: [m for m, _ in v.values()] for k, v in by.items()   # noqa: E731
-                         if k[:5] == ("dmc-swimmer-swimmer6", agent, "spinningup", "mlp", 1.0)}
+                         if k[:6] == ("dmc-swimmer-swimmer6", agent, "spinningup", "mlp", 1.0, False)}
     one, zero = run("svg1"), run("svg0")
     both = sorted(set(one) & set(zero))
     at = [s for s in both if s and s % 250000 == 0]

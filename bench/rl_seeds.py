@@ -1,7 +1,8 @@
 """Several seeds of one RL run side by side on one machine: a process per seed (``run_rl`` in its
 own folder ``<runs>/<agent>-<preset>-<networks>/s<seed>``, ``-utd<k>`` appended where ``--set utd=k``
-is not 1), each stopping within the budget and resumed by the next call; afterwards each seed's
-records and log are copied to ``<results>/<task>/<that name>/s<seed>/`` for ``bench/rl_summary.py``.
+is not 1, ``-ahead`` where ``--set act_ahead=true``), each stopping within the budget and
+resumed by the next call; afterwards each seed's records and log are copied to
+``<results>/<task>/<that name>/s<seed>/`` for ``bench/rl_summary.py``.
 
     PYTHONPATH=. python3 bench/rl_seeds.py --agent svg1 --task swimmer6 --seeds 0-5 --budget-seconds 480
     PYTHONPATH=. python3 bench/rl_seeds.py --quick            # CPU-sized, 2 seeds, seconds
@@ -32,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-__all__ = ["seeds_of", "main", "rank_env"]
+__all__ = ["seeds_of", "run_name", "main", "rank_env"]
 
 # copied to <results>/<task>/<run>/s<seed>/ for bench/rl_summary.py
 COPIED = ("records.jsonl", "progress.csv", "config.json")
@@ -75,6 +76,20 @@ def _one(cfg_json: str) -> int:
     return 0
 
 
+def run_name(base: dict) -> str:
+    """The run's folder name: ``<agent>-<preset>-<networks>``, ``-utd<k>`` where ``utd`` is not 1,
+    ``-ahead`` where ``act_ahead`` is true (``ValueError`` naming a bad value)."""
+    try:
+        utd = float(base.get("utd", 1.0))
+    except (TypeError, ValueError):
+        raise ValueError(f"--set utd=...: updates per env step must be a number > 0, got {base.get('utd')!r}") from None
+    ahead = base.get("act_ahead", False)
+    if not isinstance(ahead, bool):
+        raise ValueError(f"--set act_ahead=...: true or false, got {ahead!r}")
+    return (f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
+            + ("-ahead" if ahead else ""))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--agent", default="svg1")
@@ -110,10 +125,9 @@ def main(argv=None) -> int:
             base[key.strip()] = text
     seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
     try:
-        utd = float(base.get("utd", 1.0))
-    except (TypeError, ValueError):
-        ap.error(f"--set utd=...: updates per env step must be a number > 0, got {base.get('utd')!r}")
-    name = f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
+        name = run_name(base)
+    except ValueError as e:
+        ap.error(str(e))
     env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     from gnwarp.distributed import close, launched, ranks

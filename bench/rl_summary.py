@@ -2,12 +2,14 @@
 
 Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp rl`` writes
 ``records.jsonl`` in its run folder: copy or concatenate those under ``bench/results/rl/``) and
-writes a list of rows, one per (task, agent, preset, networks, utd, env_steps)::
+writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, env_steps)::
 
-    {"task", "agent", "preset", "networks", "utd", "env_steps", "seeds", "eval_episodes", "median",
-     "q25", "q75", "mean", "se"}
+    {"task", "agent", "preset", "networks", "utd", "act_ahead", "env_steps", "seeds", "eval_episodes",
+     "median", "q25", "q75", "mean", "se"}
 
-(``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it).
+(``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it.
+``act_ahead``: the training loop picked each action before the previous step's updates,
+``RLConfig.act_ahead``; false for records without it.)
 
 Each seed counts once per point: its evaluation's mean return (over its deterministic episodes;
 a rerun of a seed at the same env steps: the last record stands). ``median``, ``q25``, ``q75``:
@@ -58,11 +60,11 @@ def _group(rec) -> tuple:
     c = rec.config
     agent, preset, networks = (rec.variant.split("/") + ["", "", ""])[:3]
     return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"),
-            float(c.get("utd", 1.0)))
+            float(c.get("utd", 1.0)), bool((c.get("agent_settings") or {}).get("act_ahead", False)))
 
 
 def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
-    """{(task, agent, preset, networks, utd, env_steps): {seed: (its evaluation's mean return, its
+    """{(task, agent, preset, networks, utd, act_ahead, env_steps): {seed: (its evaluation's mean return, its
     episodes)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
@@ -80,13 +82,15 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
 
 def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
-    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd, env steps."""
+    ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd,
+    act_ahead, env steps."""
     by = seed_means(root, folder)
     out = []
     for key in sorted(by):
         seeds = by[key]
-        task, agent, preset, networks, utd, steps = key
-        out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, env_steps=steps,
+        task, agent, preset, networks, utd, ahead, steps = key
+        out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
+                        env_steps=steps,
                         seeds=len(seeds), eval_episodes=min(n for _, n in seeds.values()),
                         **point([m for m, _ in seeds.values()])))
     return out
@@ -105,8 +109,9 @@ def difference(a, b, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float,
 
 
 def _run(row: dict) -> tuple:
-    """(agent, preset, networks, utd) of a summary row (utd 1 where the row predates it)."""
-    return row["agent"], row["preset"], row["networks"], row.get("utd", 1.0)
+    """(agent, preset, networks, utd, act_ahead) of a summary row (utd 1, act_ahead false where
+    the row predates them)."""
+    return row["agent"], row["preset"], row["networks"], row.get("utd", 1.0), row.get("act_ahead", False)
 
 
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
@@ -121,7 +126,7 @@ def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
         for run in runs:
             pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
             x = np.array([p["env_steps"] for p in pts], dtype=float)
-            utd = "" if run[3] == 1 else f", {run[3]:g} updates a step"
+            utd = ("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
             label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
             line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
             ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)

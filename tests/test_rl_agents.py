@@ -396,6 +396,73 @@ def test_short_run_on_a_vector_env(agent):
                       gen)
 
 
+def _pendulum_loop(ahead: bool):
+    """A DDPG agent, its buffer and generator, and the collector state of a 4-env pendulum."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from gnwarp.control import make_vector_env
+        env = make_vector_env("pendulum-balance", 4, episode_steps=20, backend="mujoco", autoreset_mode="same_step")
+    obs_dim, act = env.single_observation_space.shape[0], env.single_action_space
+    s = AgentSettings(agent="ddpg", hidden=(16, 16), batch_size=16, start_steps=24, update_after=40, seed=0,
+                      updates_per_step=0.5, act_ahead=ahead)
+    torch.manual_seed(0)   # the networks' initial weights
+    ag = make_agent(s, obs_dim, act.low, act.high)
+    buf = ReplayBuffer(1000, obs_dim, act.shape[0], num_envs=4)
+    return env, ag, buf, torch.Generator().manual_seed(0), CollectorState(env.reset(seed=0)[0], 4)
+
+
+@pytest.mark.parametrize("ahead", [False, True])
+def test_loop_equals_its_order_written_out(ahead):
+    """run_env_steps (two calls) against the same order written out step by step: act (ahead: the
+    next action picked before the previous step's updates, none carried between calls), step,
+    store, update; the same buffer, parameters and counts bit for bit."""
+    from gnwarp.rl.graphed import Updater
+    from gnwarp.rl.replay import reached_obs
+    env, ag, buf, gen, state = _pendulum_loop(ahead)
+    run_env_steps(ag, env, buf, state, 12, gen)
+    run_env_steps(ag, env, buf, state, 13, gen)
+    env2, ag2, buf2, gen2, state2 = _pendulum_loop(ahead)
+    up, obs, owed = Updater(ag2, buf2, gen2, capture=False), state2.obs, 0.0
+    for call in (12, 13):
+        picked = None
+        for i in range(call):
+            a = ag2.act(obs) if picked is None else picked
+            if picked is not None:
+                ag2.count_env_steps(4)
+            nxt, r, term, trunc, info = env2.step(a.numpy())
+            buf2.add(obs, a, r, reached_obs(nxt, info), term, trunc)
+            obs = nxt
+            picked = ag2.act(obs, count=False) if ahead and i + 1 < call else None
+            if ag2.env_steps >= 40:
+                owed += 0.5 * 4
+                up.run(int(owed))
+                owed -= int(owed)
+    env.close()
+    env2.close()
+    assert ag.env_steps == ag2.env_steps == 100 and ag.updates == ag2.updates == 32
+    for name in ("obs", "action", "reward", "next_obs"):
+        assert torch.equal(getattr(buf, name), getattr(buf2, name)), name
+    for p, q in zip(ag.policy.parameters(), ag2.policy.parameters()):
+        assert torch.equal(p, q)
+
+
+def test_acting_ahead_keeps_the_schedule_and_changes_only_what_follows_updates():
+    """Acting ahead takes the same env steps and updates; its transitions equal the in-turn
+    loop's until the first update (the policy has not changed yet); the action after it differs
+    (picked before the update, by the policy the in-turn loop no longer has)."""
+    runs = []
+    for ahead in (False, True):
+        env, ag, buf, gen, state = _pendulum_loop(ahead)
+        out = run_env_steps(ag, env, buf, state, 25, gen)
+        env.close()
+        runs.append((ag, buf, out))
+    (a, b, x), (a2, b2, x2) = runs
+    assert a.env_steps == a2.env_steps == 100 and x["updates"] == x2["updates"] == a.updates == a2.updates == 32
+    first = 40 // 4    # rows (vector steps) before the first update (it follows row first - 1)
+    assert torch.equal(b.obs[:first + 1], b2.obs[:first + 1]) and torch.equal(b.action[:first], b2.action[:first])
+    assert not torch.equal(b.action[first], b2.action[first])   # ahead: picked before the first update
+
+
 def test_model_trains_jointly_on_its_own_batch():
     seen = []
 

@@ -85,8 +85,9 @@ def test_video_of_the_last_evaluation(tmp_path):
     assert not run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 0}, out=str(tmp_path / "n")))["video"]
 
 
-def test_resume_equals_uninterrupted_bit_for_bit(tmp_path):
-    cfg = dict(TINY, agent="ddpg", env_steps=80)
+@pytest.mark.parametrize("ahead", [False, True])
+def test_resume_equals_uninterrupted_bit_for_bit(tmp_path, ahead):
+    cfg = dict(TINY, agent="ddpg", env_steps=80, act_ahead=ahead)
     run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
     first = run_rl(RLConfig(**cfg, out=str(tmp_path / "parts"), chunk=25))   # rounds to 2 whole rounds
     assert first["stop"] == "chunk" and first["env_steps"] == 40
@@ -99,6 +100,21 @@ def test_resume_equals_uninterrupted_bit_for_bit(tmp_path):
     assert _eval_returns(tmp_path / "whole") == _eval_returns(tmp_path / "parts")
     rows = [list(csv.DictReader(open(tmp_path / f / LOG_FILE))) for f in ("whole", "parts")]
     assert [r["q_loss"] for r in rows[0]] == [r["q_loss"] for r in rows[1]]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_acting_ahead_with_recorded_updates_equals_eager_cuda(tmp_path):
+    """On CUDA, acting ahead (the env stepped while the recorded updates run) gives what eager
+    updates in the same order give."""
+    params = []
+    for graph in (False, True):
+        cfg = RLConfig(**{**TINY, "agent": "ddpg", "device": "cuda", "act_ahead": True, "cuda_graph": graph},
+                       out=str(tmp_path / f"g{graph}"))
+        assert run_rl(cfg)["env_steps"] == 100
+        params.append(load_checkpoint(tmp_path / f"g{graph}" / CHECKPOINT)["agent"]["policy"])
+    assert params[0].keys() == params[1].keys()
+    for k in params[0]:
+        torch.testing.assert_close(params[0][k], params[1][k], rtol=1e-5, atol=1e-6)
 
 
 def test_killed_run_drops_rows_past_its_checkpoint(tmp_path):

@@ -15,11 +15,14 @@ from bench import rl_summary as rs  # noqa: E402
 from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
 
 
-def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None):
+def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None,
+         ahead=None):
     return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
                         dynamics="true_mjwarp", variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
                         episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
-                        config=dict(agent=agent, preset=preset, networks=networks) | ({} if utd is None else {"utd": utd}))
+                        config=dict(agent=agent, preset=preset, networks=networks)
+                        | ({} if utd is None else {"utd": utd})
+                        | ({} if ahead is None else {"agent_settings": {"act_ahead": ahead}}))
 
 
 def test_point_statistics_against_numpy():
@@ -55,7 +58,7 @@ def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
                                        _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
     by = rs.seed_means(tmp_path, Path("rl"))
-    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, 1000): {0: (10.0, 2), 1: (7.0, 3)}}
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, 1000): {0: (10.0, 2), 1: (7.0, 3)}}
 
 
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
@@ -67,20 +70,25 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     write_records(folder / "svg1-s1" / "records.jsonl", [
         _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0]),
         _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control"),
-        _rec("svg1", 1, 1000, [200.0, 400.0], utd=3)])   # another curve: 3 updates an env step
+        _rec("svg1", 1, 1000, [200.0, 400.0], utd=3),    # another curve: 3 updates an env step
+        _rec("svg1", 1, 1000, [500.0, 700.0], ahead=True), _rec("svg1", 0, 1000, [7.0, 7.0], ahead=False)])
     (folder / "rl_agents_gpu.jsonl").write_text(json.dumps({"agent": "ddpg", "updates_per_s": 200}) + "\n")
     assert rs.main(["--root", str(tmp_path)]) == 0
     summary = json.loads((folder / "summary.json").read_text())
-    keys = {"task", "agent", "preset", "networks", "utd", "env_steps", "seeds", "eval_episodes", "median", "q25",
-            "q75", "mean", "se"}
+    keys = {"task", "agent", "preset", "networks", "utd", "act_ahead", "env_steps", "seeds", "eval_episodes",
+            "median", "q25", "q75", "mean", "se"}
     assert all(set(r) == keys for r in summary)
-    got = {(r["agent"], r["env_steps"]): r for r in summary if r["utd"] == 1}
+    got = {(r["agent"], r["env_steps"]): r for r in summary if r["utd"] == 1 and not r["act_ahead"]}
     assert set(got) == {("ddpg", 1000), ("svg1", 0), ("svg1", 1000)}
     (more,) = [r for r in summary if r["utd"] == 3]
-    assert more["agent"] == "svg1" and more["seeds"] == 1 and more["mean"] == 300.0
-    late = got[("svg1", 1000)]   # seed 0's rerun (mean 50) stands; seed 1's mean 80; the control record is skipped
+    assert more["agent"] == "svg1" and more["seeds"] == 1 and more["mean"] == 300.0 and not more["act_ahead"]
+    (ahead,) = [r for r in summary if r["act_ahead"]]   # acting ahead: a curve of its own
+    assert ahead["seeds"] == 1 and ahead["mean"] == 600.0 and ahead["utd"] == 1
+    # seed 0's last record stands (act_ahead false said outright: the same curve as unsaid; mean 7);
+    # seed 1's mean 80; the control record is skipped
+    late = got[("svg1", 1000)]
     assert late["seeds"] == 2 and late["eval_episodes"] == 2
-    assert late["mean"] == 65.0 and late["median"] == 65.0 and late["se"] == pytest.approx(15.0)
+    assert late["mean"] == 43.5 and late["median"] == 43.5 and late["se"] == pytest.approx(36.5)
     assert got[("svg1", 0)]["eval_episodes"] == 2 and got[("svg1", 0)]["mean"] == 4.5
     assert got[("ddpg", 1000)]["se"] is None
     assert (folder / "learning_curves_dmc-swimmer-swimmer6.png").stat().st_size > 1000
@@ -95,6 +103,18 @@ def test_seed_lists_of_the_side_by_side_runner():
     for bad in ("", "1,1", "-1"):
         with pytest.raises(ValueError, match="seeds"):
             rl_seeds.seeds_of(bad)
+
+
+def test_run_names_of_the_side_by_side_runner():
+    from bench.rl_seeds import run_name
+    base = dict(agent="svg1", preset="spinningup", networks="mlp")
+    assert run_name(base) == "svg1-spinningup-mlp"
+    assert run_name({**base, "utd": 3, "act_ahead": True}) == "svg1-spinningup-mlp-utd3-ahead"
+    assert run_name({**base, "act_ahead": False, "utd": 1.0}) == "svg1-spinningup-mlp"
+    with pytest.raises(ValueError, match="act_ahead=...: true or false, got 'yes'"):
+        run_name({**base, "act_ahead": "yes"})
+    with pytest.raises(ValueError, match="utd=...: updates per env step"):
+        run_name({**base, "utd": "many"})
 
 
 def test_side_by_side_runner_exports_each_seeds_agent(tmp_path, capsys):

@@ -144,17 +144,23 @@ class Agent:
         return torch.randn(*shape, self.action_dim, generator=self.generator, device=self.device, dtype=self.dtype)
 
     @torch.no_grad()
-    def act(self, obs, deterministic: bool = False) -> torch.Tensor:
+    def act(self, obs, deterministic: bool = False, count: bool = True) -> torch.Tensor:
         """Actions [E, U] (in the action box) for observations ``obs`` [E, D]: the policy's mean
         when ``deterministic``; else exploring (uniform random for the first ``start_steps`` env
-        steps), counting E env steps."""
+        steps), counting E env steps (``count`` False: the caller counts them with
+        ``count_env_steps`` when it takes them)."""
         obs = self._obs(obs)
         if deterministic:
             return self._explore(obs, False)
         n = obs.shape[0]
         a = self._random_actions(n) if self.env_steps < self.settings.start_steps else self._explore(obs, True)
-        self.env_steps += n
+        if count:
+            self.count_env_steps(n)
         return a
+
+    def count_env_steps(self, n: int) -> None:
+        """Count ``n`` env steps taken (``act`` does, unless told not to)."""
+        self.env_steps += int(n)
 
     # -- learning -------------------------------------------------------------------------------
     def target_action(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:

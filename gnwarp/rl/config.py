@@ -21,7 +21,7 @@ CONFIG_FILE = "config.json"
 RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard", "cuda_graph",
              "video_episodes", "video_steps", "renderer", "sim_threads")
 # AgentSettings keys the run sets itself
-_RUN_AGENT_KEYS = ("agent", "preset", "seed", "updates_per_step")
+_RUN_AGENT_KEYS = ("agent", "preset", "seed", "updates_per_step", "act_ahead")
 
 
 @dataclasses.dataclass
@@ -36,7 +36,9 @@ class RLConfig:
     vector env's body-state layout). ``num_envs``: training episodes stepped together.
     ``episode_steps``: the time limit (None: the task's). ``env_steps``: env steps to train in
     all (control steps summed over envs; rounded up to whole rounds of ``num_envs`` episodes).
-    ``utd``: gradient updates per env step. ``update_after``, ``start_steps``, ``batch_size``,
+    ``utd``: gradient updates per env step. ``act_ahead``: the next action is picked before the
+    step's updates, so that on CUDA the CPU steps the environment while the GPU updates (the
+    policy acts one step's updates behind; ``AgentSettings.act_ahead``). ``update_after``, ``start_steps``, ``batch_size``,
     ``hidden``: as ``AgentSettings`` (None: its default / the preset's). ``latent``, ``blocks``:
     the GN networks' sizes; ``gn_impl``: their blocks on the Warp kernels or the torch reference. ``model_hidden``: the SVG(N) model's MLP widths (None: ``hidden`` for
     "mlp", (64,) for "gn"). ``buffer_size``: replay capacity in transitions. ``eval_every``:
@@ -65,6 +67,8 @@ class RLConfig:
     episode_steps: PositiveInt | None = described(None, "time limit in control steps (unset: the task's)")
     env_steps: PositiveInt = described(1_000_000, "env steps to train in all (a resumed run goes on to this many)")
     utd: PositiveFloat = described(1.0, "gradient updates per env step")
+    act_ahead: Flag = described(False, "pick the next action before the step's updates: the env steps on the CPU "
+                                       "while the GPU updates (the policy acts one step's updates behind)")
     update_after: Count | None = described(None, "env steps before the first update (unset: 1000)")
     start_steps: Count | None = described(None, "env steps of uniform random actions (unset: the preset's)")
     batch_size: PositiveInt | None = described(None, "transitions per update (unset: the preset's)")
@@ -121,7 +125,8 @@ class RLConfig:
                  if v is not None}
         try:
             return AgentSettings(**{**self.agent_settings, **extra, "agent": self.agent, "preset": self.preset,
-                                    "seed": self.seed, "updates_per_step": self.utd})
+                                    "seed": self.seed, "updates_per_step": self.utd,
+                                    "act_ahead": self.act_ahead})
         except TypeError as e:
             raise ConfigError("agent_settings", f"unknown AgentSettings key ({e})") from None
 

@@ -57,6 +57,13 @@ def _numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
+def _on_env_device(action: torch.Tensor, env) -> torch.Tensor:
+    """``action`` on the device the env simulates on (its ``device``; e.g. the CPU of MuJoCo C
+    behind torch output), copied now rather than inside ``env.step``."""
+    dev = getattr(env, "device", None)
+    return action if dev is None or torch.device(dev) == action.device else action.to(dev)
+
+
 def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps: int, generator: torch.Generator,
                   model_sequence: int | None = None, updater: Updater | None = None) -> dict:
     """``steps`` steps of the vector ``env`` (``steps x num_envs`` env steps) with ``agent.act``:
@@ -65,7 +72,12 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     (drawn with ``generator``; ``model_sequence``: the model's batch as sequences of that many
     steps), by ``updater`` (``gnwarp.rl.graphed.Updater``, made once and passed to every call: on
     CUDA it records the update in a CUDA graph once; None: eager updates). ``state`` is advanced
-    in place.
+    in place. With ``act_ahead`` (the agent's settings) each next action but the call's first is
+    picked, and copied to the host for a NumPy env, before the previous step's updates are
+    launched: on CUDA those updates run while the CPU steps the environment (the policy acts one
+    step's updates behind); without it each action follows the updates, strictly in turn. Either
+    way the env steps are counted as the actions are taken (the update schedule is the same), and
+    no action is left picked between calls.
     Returns {"returns": [finished episodes' returns], "metrics": the last update's losses (floats)
     or {}, "updates": updates taken}."""
     from gymnasium.vector import AutoresetMode
@@ -80,15 +92,24 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         raise ValueError("the updater was made for another agent, buffer, generator or model_sequence")
     returns, metrics, updates = [], {}, 0
     torch_env = isinstance(state.obs, torch.Tensor)
-    for _ in range(int(steps)):
-        action = agent.act(state.obs)
-        next_obs, reward, terminated, truncated, infos = env.step(action if torch_env else _numpy(action))
+    ahead = bool(getattr(s, "act_ahead", False))
+    steps = int(steps)
+    picked = host = None   # an action picked ahead, and its copy on the env's side (the host: NumPy or a CPU simulator)
+    for i in range(steps):
+        action = picked if picked is not None else agent.act(state.obs, count=False)
+        agent.count_env_steps(state.num_envs)
+        next_obs, reward, terminated, truncated, infos = env.step(
+            host if picked is not None else (action if torch_env else _numpy(action)))
+        picked = host = None
         buffer.add(state.obs, action, reward, reached_obs(next_obs, infos), terminated, truncated)
         state.episode_return += _numpy(reward)
         ended = _numpy(terminated) | _numpy(truncated)
         returns += state.episode_return[ended].tolist()
         state.episode_return[ended] = 0.0
         state.obs = next_obs
+        if ahead and i + 1 < steps:   # the next action now: its host copy waits for it, not for the updates
+            picked = agent.act(state.obs, count=False)
+            host = _on_env_device(picked, env) if torch_env else _numpy(picked)
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
             n = int(state.owed)

@@ -35,7 +35,10 @@ class AgentSettings:
     the preset's). ``batch_size``: transitions per update (None: the preset's). ``start_steps``:
     env steps of uniform random actions before the policy acts (None: the preset's).
     ``update_after``: env steps before the first update (for the training loop). ``updates_per_step``:
-    gradient updates per env step (for the training loop). ``target_update``: "hard" (copy every
+    gradient updates per env step (for the training loop). ``act_ahead`` (for the training loop):
+    pick each step's action before the previous step's updates rather than after them (the
+    policy acts one step's updates behind), so that on CUDA the environment steps on the CPU
+    while the GPU updates; False: strictly in turn. ``target_update``: "hard" (copy every
     ``target_period`` updates) or "polyak" (``target <- polyak * target + (1 - polyak) * online``
     after every update); None: the preset's. ``policy_lr``, ``q_lr``, ``model_lr``: Adam's step
     sizes. ``action_noise``: DDPG's Gaussian exploration noise, a fraction of the action box's
@@ -57,6 +60,7 @@ class AgentSettings:
     start_steps: Count | None = None
     update_after: Count = 1000
     updates_per_step: FloatRange(gt=0) = 1.0
+    act_ahead: Flag = False
     target_update: Literal["hard", "polyak"] | None = None
     target_period: PositiveInt = 1000
     polyak: FloatRange(ge=0, le=1) = 0.995
