@@ -1,0 +1,122 @@
+"""Benchmark: env steps a second of the RL training loop (``gnwarp.rl.loop.run_env_steps``), the
+actions picked in turn or ahead (``act_ahead``), on one device.
+
+What ``gnwarp rl`` runs between its evaluations: a run's parts as ``build_run`` makes them
+(``--task``, ``--agent``, MLPs of the spinningup preset, ``--envs`` envs on ``--backend``, the
+agent on ``--device``, every update replayed from a CUDA graph there), the replay buffer filled
+past ``update_after`` first (random actions, not timed), then per way ``--reps`` times
+``--steps`` vector steps, each way's repetitions alternating with the other's in the same
+process (env steps / s and updates / s of each repetition; the first, which records the update's
+graph, is reported apart as ``first_s``). Acting ahead lets the environment step on the CPU while
+the GPU updates; on a CPU device both ways run in turn (the ratio near 1 is the check).
+
+    python bench/rl_loop.py [--task swimmer6] [--agent svg1] [--steps 300] [--reps 3] [--device cuda]
+    python bench/rl_loop.py --quick       # tiny sizes on the CPU: a smoke test of the script
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from bench.harness import add_run_args, device_name, experiment_out, save_results  # noqa: E402
+from gnwarp.rl.config import RLConfig  # noqa: E402
+from gnwarp.rl.graphed import Updater  # noqa: E402
+from gnwarp.rl.loop import CollectorState, run_env_steps  # noqa: E402
+from gnwarp.rl.run import build_run  # noqa: E402
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def loop_parts(cfg: RLConfig) -> dict:
+    """A run's parts (``build_run``) with its buffer filled past ``update_after`` (the start steps'
+    random actions; the model normalized where SVG(N) has one) and the updater."""
+    from gnwarp.rl.run import _normalize_model   # what run_rl does once before the first update
+    p = build_run(cfg)
+    agent, env = p["agent"], p["env"]
+    state = CollectorState(env.reset(seed=0)[0], cfg.num_envs)
+    updater = Updater(agent, p["buffer"], p["generator"], capture=cfg.cuda_graph and p["device"].type == "cuda")
+    before = -(-agent.settings.update_after // cfg.num_envs)
+    run_env_steps(agent, env, p["buffer"], state, before, p["generator"], updater=updater)
+    if p["model"] is not None:
+        _normalize_model(p["model"], p["buffer"])
+    return dict(p, state=state, updater=updater)
+
+
+def time_steps(p: dict, steps: int) -> tuple[float, int]:
+    """(seconds, updates) of ``steps`` vector steps of the loop, the device synchronized."""
+    _sync(p["device"])
+    t = time.perf_counter()
+    out = run_env_steps(p["agent"], p["env"], p["buffer"], p["state"], steps, p["generator"], updater=p["updater"])
+    _sync(p["device"])
+    return time.perf_counter() - t, out["updates"]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--task", default="swimmer6")
+    ap.add_argument("--agent", default="svg1")
+    ap.add_argument("--envs", type=int, default=10, help="envs stepped together (gnwarp rl's num_envs)")
+    ap.add_argument("--steps", type=int, default=300, help="vector steps a repetition")
+    ap.add_argument("--reps", type=int, default=3, help="timed repetitions a way (after the first)")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--backend", default="mujoco", help="the true simulator (gnwarp rl's --backend)")
+    ap.add_argument("--threads", type=int, default=1, help="MuJoCo C's threads (sim_threads)")
+    add_run_args(ap, "rl")   # --out, --quick
+    a = ap.parse_args(argv)
+    if a.quick:
+        a.steps, a.reps, a.envs = 5, 1, 2
+    base = dict(task=a.task, agent=a.agent, num_envs=a.envs, device=a.device, backend=a.backend,
+                sim_threads=a.threads, progress=False, tensorboard=False, video_episodes=0, eval_episodes=1)
+    if a.quick:
+        base.update(task="pendulum-balance", agent="svg0", observation="bodies", device="cpu",
+                    episode_steps=20, hidden=(16,), batch_size=8, start_steps=10, update_after=10)
+    torch.set_num_threads(max(1, a.threads))
+    ways = {"in turn": False, "ahead": True}
+    parts = {w: loop_parts(RLConfig(**base, act_ahead=ahead, out="unused")) for w, ahead in ways.items()}
+    dev = parts["in turn"]["device"]
+    name = device_name(dev)
+    first = {w: time_steps(p, a.steps)[0] for w, p in parts.items()}   # records the update's graph
+    per: dict[str, list[tuple[float, int]]] = {w: [] for w in ways}
+    for _ in range(a.reps):
+        for w, p in parts.items():
+            per[w].append(time_steps(p, a.steps))
+    rows = []
+    for w, ahead in ways.items():
+        rates = [a.steps * a.envs / s for s, _ in per[w]]
+        ups = [n / s for s, n in per[w]]
+        rows.append(dict(device=name, task=parts[w]["task"].name, agent=parts[w]["agent"].settings.agent,
+                         way=w, act_ahead=ahead, envs=a.envs, steps=a.steps, reps=a.reps, backend=a.backend,
+                         env_steps_per_s=round(statistics.median(rates), 1), env_steps_per_s_each=[round(r, 1) for r in rates],
+                         updates_per_s=round(statistics.median(ups), 1), first_s=round(first[w], 3),
+                         date=time.strftime("%Y-%m-%d")))
+        print(json.dumps(rows[-1]), flush=True)
+    ratio = rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"]
+    for r in rows:
+        r["ahead_over_in_turn"] = round(ratio, 3)
+    for p in parts.values():
+        p["env"].close()
+        p["eval_env"].close()
+    lines = [f"# RL training loop: env steps a second, actions in turn or ahead, on {name}", "",
+             f"`python bench/rl_loop.py` ({time.strftime('%Y-%m-%d')}): {rows[0]['task']}, {rows[0]['agent']}, "
+             f"{a.envs} envs on {a.backend}, {a.steps} vector steps a repetition, median of {a.reps} "
+             "alternating repetitions (the first, which records the update's graph, apart).", "",
+             "| way | env steps / s | each | updates / s | first repetition (s) |", "|---|---|---|---|---|"]
+    lines += [f"| {r['way']} | {r['env_steps_per_s']} | {', '.join(map(str, r['env_steps_per_s_each']))} | "
+              f"{r['updates_per_s']} | {r['first_s']} |" for r in rows]
+    lines += ["", f"ahead / in turn: **{ratio:.2f}x**"]
+    save_results(experiment_out("rl", a.out, a.quick), "rl_loop", name, a.quick, rows, lines)
+
+
+if __name__ == "__main__":
+    main()

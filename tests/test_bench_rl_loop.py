@@ -1,0 +1,24 @@
+"""bench/rl_loop.py: both ways of the loop timed in one process, their rows and table (CPU, tiny)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench import rl_loop  # noqa: E402
+
+
+def test_both_ways_timed_with_the_same_schedule(tmp_path):
+    rl_loop.main(["--quick", "--out", str(tmp_path)])
+    (jsonl,) = tmp_path.glob("rl_loop_*_quick.jsonl")
+    rows = [json.loads(line) for line in jsonl.read_text().splitlines()]
+    assert [r["way"] for r in rows] == ["in turn", "ahead"] and [r["act_ahead"] for r in rows] == [False, True]
+    assert all(r["env_steps_per_s"] > 0 and len(r["env_steps_per_s_each"]) == r["reps"] == 1 for r in rows)
+    # the same updates a repetition either way: updates / s over env steps / s is the schedule's ratio
+    ratios = {round(r["updates_per_s"] / r["env_steps_per_s"], 6) for r in rows}
+    assert ratios == {1.0}
+    assert rows[0]["ahead_over_in_turn"] == round(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], 3)
+    assert "ahead / in turn" in jsonl.with_suffix(".md").read_text()
