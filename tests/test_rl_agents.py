@@ -463,6 +463,26 @@ def test_acting_ahead_keeps_the_schedule_and_changes_only_what_follows_updates()
     assert not torch.equal(b.action[first], b2.action[first])   # ahead: picked before the first update
 
 
+def test_state_saved_before_a_settings_key_existed_loads():
+    """An agent saved before ``act_ahead`` existed (its settings lack the key) loads where the key
+    holds its default, and is refused where it does not or where a saved key is unknown."""
+    s = AgentSettings(agent="ddpg", hidden=(8,), batch_size=4, seed=0)
+    torch.manual_seed(0)
+    ag = make_agent(s, 3, [-1.0], [1.0])
+    state = ag.state_dict()
+    old = dict(state, settings={k: v for k, v in state["settings"].items() if k != "act_ahead"})
+    torch.manual_seed(1)
+    back = make_agent(s, 3, [-1.0], [1.0])
+    back.load_state_dict(old)
+    assert all(torch.equal(p, q) for p, q in zip(ag.policy.parameters(), back.policy.parameters()))
+    ahead = make_agent(AgentSettings(agent="ddpg", hidden=(8,), batch_size=4, seed=0, act_ahead=True), 3,
+                       [-1.0], [1.0])
+    with pytest.raises(ConfigError, match=r"other settings \(\['act_ahead'\]\)"):
+        ahead.load_state_dict(old)
+    with pytest.raises(ConfigError, match="does not know"):
+        back.load_state_dict(dict(state, settings={**state["settings"], "warp_speed": 9}))
+
+
 def test_model_trains_jointly_on_its_own_batch():
     seen = []
 

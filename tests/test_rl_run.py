@@ -11,7 +11,8 @@ import torch
 from gnwarp.eval.records import read_records
 from gnwarp.rl.config import RLConfig
 from gnwarp.rl.run import run_rl
-from gnwarp.rl.run_log import CHECKPOINT, LOG_FILE, RECORDS_FILE, RLCheckpointError, load_checkpoint
+from gnwarp.rl.run_log import (CHECKPOINT, LOG_FILE, RECORDS_FILE, RLCheckpointError, load_checkpoint,
+                               save_checkpoint)
 from gnwarp.validation import ConfigError
 
 warnings.filterwarnings("ignore", message=".*glfw.*")
@@ -115,6 +116,27 @@ def test_acting_ahead_with_recorded_updates_equals_eager_cuda(tmp_path):
     assert params[0].keys() == params[1].keys()
     for k in params[0]:
         torch.testing.assert_close(params[0][k], params[1][k], rtol=1e-5, atol=1e-6)
+
+
+def test_run_saved_before_a_config_key_existed_resumes_bit_for_bit(tmp_path):
+    """A run folder written before ``act_ahead`` existed (its config.json, the checkpoint's config
+    and agent settings lack the key) resumes as the key's default, equal to an uninterrupted run."""
+    cfg = dict(TINY, agent="ddpg", env_steps=80)
+    run_rl(RLConfig(**cfg, out=str(tmp_path / "whole")))
+    out = tmp_path / "old"
+    run_rl(RLConfig(**cfg, out=str(out), chunk=25))
+    saved = json.loads((out / "config.json").read_text())
+    del saved["act_ahead"]
+    (out / "config.json").write_text(json.dumps(saved))
+    ck = load_checkpoint(out / CHECKPOINT)
+    del ck["config"]["act_ahead"], ck["agent"]["settings"]["act_ahead"]
+    save_checkpoint(out / CHECKPOINT, ck)
+    assert run_rl(RLConfig(**cfg, out=str(out)))["env_steps"] == 80
+    a, b = load_checkpoint(tmp_path / "whole" / CHECKPOINT), load_checkpoint(out / CHECKPOINT)
+    for key in ("agent", "buffer", "collector"):
+        _tensors_equal(a[key], b[key], key)
+    with pytest.raises(ConfigError, match="act_ahead: differs"):   # the default is what it was run with
+        run_rl(RLConfig(**{**cfg, "env_steps": 100, "act_ahead": True}, out=str(out)))
 
 
 def test_killed_run_drops_rows_past_its_checkpoint(tmp_path):

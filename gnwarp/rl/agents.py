@@ -273,9 +273,14 @@ class Agent:
         another kind of device (a CUDA-trained agent loaded on the CPU) loads too: the optimizers
         take this device's flags, and the generator keeps its seed where the saved state is of
         the other kind (``restore_generator``), so such a load acts the same but does not resume
-        the exploration noise bit for bit."""
-        if state["settings"] != self.settings.to_dict():
-            diff = sorted(k for k, v in state["settings"].items() if self.settings.to_dict().get(k) != v)
+        the exploration noise bit for bit. Settings saved before a key existed take its default."""
+        saved, mine = dict(state["settings"]), self.settings.to_dict()
+        unknown = sorted(set(saved) - set(mine))
+        if unknown:
+            raise ConfigError(unknown[0], f"the saved agent has settings this version does not know ({unknown})")
+        saved = {**AgentSettings(**saved).to_dict(), **saved}   # keys added since: their defaults
+        if saved != mine:
+            diff = sorted(k for k in mine if saved.get(k) != mine[k])
             raise ConfigError(diff[0] if diff else "", f"the saved agent has other settings ({diff})")
         for k, m in self._modules().items():
             if m is not None:

@@ -298,7 +298,8 @@ def _set_rng_states(d: dict) -> None:
 
 def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
     """Make ``cfg.out``; compare a saved config with ``cfg`` (only ``RESUMABLE`` keys may
-    differ) and save ``cfg``. Returns (folder, whether a checkpoint is there to resume)."""
+    differ; a key added since the run was saved counts as its default there) and save ``cfg``.
+    Returns (folder, whether a checkpoint is there to resume)."""
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     resume = (out / CHECKPOINT).is_file()
@@ -309,6 +310,8 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
     if resume and saved.is_file():
         old = json.loads(saved.read_text())
         new = json.loads(json.dumps(cfg.to_dict()))
+        defaults = json.loads(json.dumps(RLConfig().to_dict()))
+        old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
         diff = sorted(k for k in set(old) | set(new) if k not in RESUMABLE and k != "out" and old.get(k) != new.get(k))
         if diff:
             raise ConfigError(diff[0], f"differs from the run in {out} ({old.get(diff[0])!r} there, "
