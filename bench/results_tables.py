@@ -360,30 +360,46 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
             + [""] + _md(["task", "agent", "networks", "100k", "250k", "500k", "last point"], out))
 
 
+def _seed_ids(seeds) -> str:
+    """Seed numbers as runs: 0-2, 6."""
+    out, run = [], []
+    for s in sorted(seeds):
+        if run and s != run[-1] + 1:
+            out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+            run = []
+        run.append(s)
+    if run:
+        out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+    return ", ".join(out)
+
+
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
     """SVG(1) against SVG(0) on swimmer6 (spinningup, MLPs, one update an env step, in turn): at every
     250k env steps both reached and at the last point both share, each run's mean +- s.e. over
-    seeds and the difference of means with its 95% bootstrap interval over seeds (unpaired)."""
+    its seeds there (which seeds: a later point holds only those that got there) and the
+    difference of means with its 95% Welch interval."""
     from bench.rl_summary import difference, seed_means
     by = seed_means(root)
-    run = lambda agent: {k[-1]: [m for m, _ in v.values()] for k, v in by.items()   # noqa: E731
+    run = lambda agent: {k[-1]: {seed: m for seed, (m, _) in v.items()} for k, v in by.items()   # noqa: E731
                          if k[:6] == ("dmc-swimmer-swimmer6", agent, "spinningup", "mlp", 1.0, False)}
     one, zero = run("svg1"), run("svg0")
     both = sorted(set(one) & set(zero))
     at = [s for s in both if s and s % 250000 == 0]
     at += [both[-1]] if both and both[-1] not in at else []
 
-    def cell(v):
-        return f"{statistics.fmean(v):.0f} +- {statistics.stdev(v) / math.sqrt(len(v)):.0f} ({len(v)})"
+    def cell(v: dict) -> str:
+        x = list(v.values())
+        return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f} (seeds {_seed_ids(v)})"
     out = []
     for s in at:
-        d, lo, hi = difference(one[s], zero[s])
+        d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
         out.append([f"{s / 1000:.0f}k", cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
                     "yes" if lo > 0 or hi < 0 else "no"])
-    return [_note("swimmer6, spinningup preset, MLPs: mean +- standard error over seeds (seeds); the "
-                  "difference SVG(1) - SVG(0) and its percentile 95% bootstrap interval, the seeds of "
-                  "each run resampled independently", "the records under `swimmer6/`"), ""] + _md(
+    return [_note("swimmer6, spinningup preset, MLPs: mean +- standard error over the seeds at that point (a "
+                  "later point holds only the seeds that got there); the difference SVG(1) - SVG(0) and its "
+                  "95% Welch interval (Student's t at the Welch-Satterthwaite degrees of freedom, rounded down)",
+                  "the records under `swimmer6/`"), ""] + _md(
         ["env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 

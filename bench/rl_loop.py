@@ -7,8 +7,9 @@ agent on ``--device``, every update replayed from a CUDA graph there), the repla
 past ``update_after`` first (random actions, not timed), then per way ``--reps`` times
 ``--steps`` vector steps, each way's repetitions alternating with the other's in the same
 process (env steps / s and updates / s of each repetition; the first, which records the update's
-graph, is reported apart as ``first_s``). Acting ahead lets the environment step on the CPU while
-the GPU updates; on a CPU device both ways run in turn (the ratio near 1 is the check).
+graph, is reported apart as ``first_s``). Acting ahead lets a CPU simulator (``--backend mujoco``)
+step while the GPU updates; with the agent on the CPU (or the simulator on the GPU) nothing
+overlaps, the actions are still picked ahead (other numbers), and the ratio near 1 is the check.
 
     python bench/rl_loop.py [--task swimmer6] [--agent svg1] [--steps 300] [--reps 3] [--device cuda]
     python bench/rl_loop.py --quick       # tiny sizes on the CPU: a smoke test of the script

@@ -396,12 +396,14 @@ def test_short_run_on_a_vector_env(agent):
                       gen)
 
 
-def _pendulum_loop(ahead: bool):
-    """A DDPG agent, its buffer and generator, and the collector state of a 4-env pendulum."""
+def _pendulum_loop(ahead: bool, output: str = "numpy"):
+    """A DDPG agent, its buffer and generator, and the collector state of a 4-env pendulum
+    (observations as NumPy arrays or torch tensors)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         from gnwarp.control import make_vector_env
-        env = make_vector_env("pendulum-balance", 4, episode_steps=20, backend="mujoco", autoreset_mode="same_step")
+        env = make_vector_env("pendulum-balance", 4, episode_steps=20, backend="mujoco", autoreset_mode="same_step",
+                              output=output)
     obs_dim, act = env.single_observation_space.shape[0], env.single_action_space
     s = AgentSettings(agent="ddpg", hidden=(16, 16), batch_size=16, start_steps=24, update_after=40, seed=0,
                       updates_per_step=0.5, act_ahead=ahead)
@@ -411,17 +413,17 @@ def _pendulum_loop(ahead: bool):
     return env, ag, buf, torch.Generator().manual_seed(0), CollectorState(env.reset(seed=0)[0], 4)
 
 
-@pytest.mark.parametrize("ahead", [False, True])
-def test_loop_equals_its_order_written_out(ahead):
+@pytest.mark.parametrize("ahead,output", [(False, "numpy"), (True, "numpy"), (True, "torch")])
+def test_loop_equals_its_order_written_out(ahead, output):
     """run_env_steps (two calls) against the same order written out step by step: act (ahead: the
     next action picked before the previous step's updates, none carried between calls), step,
     store, update; the same buffer, parameters and counts bit for bit."""
     from gnwarp.rl.graphed import Updater
     from gnwarp.rl.replay import reached_obs
-    env, ag, buf, gen, state = _pendulum_loop(ahead)
+    env, ag, buf, gen, state = _pendulum_loop(ahead, output)
     run_env_steps(ag, env, buf, state, 12, gen)
     run_env_steps(ag, env, buf, state, 13, gen)
-    env2, ag2, buf2, gen2, state2 = _pendulum_loop(ahead)
+    env2, ag2, buf2, gen2, state2 = _pendulum_loop(ahead, output)
     up, obs, owed = Updater(ag2, buf2, gen2, capture=False), state2.obs, 0.0
     for call in (12, 13):
         picked = None
@@ -429,7 +431,7 @@ def test_loop_equals_its_order_written_out(ahead):
             a = ag2.act(obs) if picked is None else picked
             if picked is not None:
                 ag2.count_env_steps(4)
-            nxt, r, term, trunc, info = env2.step(a.numpy())
+            nxt, r, term, trunc, info = env2.step(a.numpy() if output == "numpy" else a)
             buf2.add(obs, a, r, reached_obs(nxt, info), term, trunc)
             obs = nxt
             picked = ag2.act(obs, count=False) if ahead and i + 1 < call else None

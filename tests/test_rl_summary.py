@@ -35,17 +35,20 @@ def test_point_statistics_against_numpy():
         rs.point([])
 
 
-def test_difference_interval_against_a_direct_bootstrap():
-    a, b = [400.0, 420.0, 380.0, 410.0], [100.0, 120.0, 90.0]
-    d, lo, hi = rs.difference(a, b, n_boot=2000, seed=3)
-    assert d == pytest.approx(np.mean(a) - np.mean(b))
-    rng = np.random.default_rng(3)   # the same draws, written out: a's resamples, then b's
-    va, vb = np.array(a), np.array(b)
-    boot = va[rng.integers(0, 4, (2000, 4))].mean(1) - vb[rng.integers(0, 3, (2000, 3))].mean(1)
-    assert (lo, hi) == pytest.approx(tuple(np.percentile(boot, [2.5, 97.5])))
+def test_difference_is_welchs_interval():
+    a, b = [400.0, 420.0, 380.0, 410.0], [100.0, 160.0, 90.0]
+    d, lo, hi = rs.difference(a, b)
+    va, vb = np.var(a, ddof=1) / 4, np.var(b, ddof=1) / 3
+    df = (va + vb) ** 2 / (va ** 2 / 3 + vb ** 2 / 2)          # 2.6: t at 2 degrees of freedom
+    assert 2 < df < 3 and d == pytest.approx(np.mean(a) - np.mean(b))
+    assert (lo, hi) == pytest.approx((d - 4.302653 * np.sqrt(va + vb), d + 4.302653 * np.sqrt(va + vb)), rel=2e-4)
     assert lo > 0                      # separated runs: the interval excludes 0
+    stats = pytest.importorskip("scipy.stats")
+    wide = stats.ttest_ind(a, b, equal_var=False).confidence_interval()   # fractional df: a shade narrower
+    assert lo <= wide.low and hi >= wide.high and hi - lo < 1.3 * (wide.high - wide.low)
     d, lo, hi = rs.difference(a, a)
     assert d == 0.0 and lo < 0 < hi    # a run against itself: it contains 0
+    assert rs.difference([2.0, 2.0], [1.0, 1.0]) == (1.0, 1.0, 1.0)   # no spread: the difference itself
     with pytest.raises(ValueError, match="at least two finite values a side"):
         rs.difference([1.0], b)
     with pytest.raises(ValueError, match="at least two finite values a side"):

@@ -37,8 +37,9 @@ class RLConfig:
     ``episode_steps``: the time limit (None: the task's). ``env_steps``: env steps to train in
     all (control steps summed over envs; rounded up to whole rounds of ``num_envs`` episodes).
     ``utd``: gradient updates per env step. ``act_ahead``: the next action is picked before the
-    step's updates, so that on CUDA the CPU steps the environment while the GPU updates (the
-    policy acts one step's updates behind; ``AgentSettings.act_ahead``). ``update_after``, ``start_steps``, ``batch_size``,
+    step's updates, so that with the agent on CUDA and the true simulator on the CPU (``backend``
+    "mujoco") the CPU steps the environment while the GPU updates (a simulator on the GPU gains
+    nothing); the policy acts one step's updates behind (``AgentSettings.act_ahead``). ``update_after``, ``start_steps``, ``batch_size``,
     ``hidden``: as ``AgentSettings`` (None: its default / the preset's). ``latent``, ``blocks``:
     the GN networks' sizes; ``gn_impl``: their blocks on the Warp kernels or the torch reference. ``model_hidden``: the SVG(N) model's MLP widths (None: ``hidden`` for
     "mlp", (64,) for "gn"). ``buffer_size``: replay capacity in transitions. ``eval_every``:
@@ -67,7 +68,7 @@ class RLConfig:
     episode_steps: PositiveInt | None = described(None, "time limit in control steps (unset: the task's)")
     env_steps: PositiveInt = described(1_000_000, "env steps to train in all (a resumed run goes on to this many)")
     utd: PositiveFloat = described(1.0, "gradient updates per env step")
-    act_ahead: Flag = described(False, "pick the next action before the step's updates: the env steps on the CPU "
+    act_ahead: Flag = described(False, "pick the next action before the step's updates: a CPU simulator steps "
                                        "while the GPU updates (the policy acts one step's updates behind)")
     update_after: Count | None = described(None, "env steps before the first update (unset: 1000)")
     start_steps: Count | None = described(None, "env steps of uniform random actions (unset: the preset's)")

@@ -57,11 +57,11 @@ def _numpy(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def _on_env_device(action: torch.Tensor, env) -> torch.Tensor:
-    """``action`` on the device the env simulates on (its ``device``; e.g. the CPU of MuJoCo C
-    behind torch output), copied now rather than inside ``env.step``."""
-    dev = getattr(env, "device", None)
-    return action if dev is None or torch.device(dev) == action.device else action.to(dev)
+def _on_env_device(action: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+    """``action`` on the device of the env's observations ``obs`` (where it simulates: the CPU for
+    MuJoCo C behind torch output, the GPU for MuJoCo-Warp; read from the observations, which any
+    wrapper passes on), copied now rather than inside ``env.step``."""
+    return action if obs.device == action.device else action.to(obs.device)
 
 
 def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps: int, generator: torch.Generator,
@@ -73,11 +73,14 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     steps), by ``updater`` (``gnwarp.rl.graphed.Updater``, made once and passed to every call: on
     CUDA it records the update in a CUDA graph once; None: eager updates). ``state`` is advanced
     in place. With ``act_ahead`` (the agent's settings) each next action but the call's first is
-    picked, and copied to the host for a NumPy env, before the previous step's updates are
-    launched: on CUDA those updates run while the CPU steps the environment (the policy acts one
-    step's updates behind); without it each action follows the updates, strictly in turn. Either
-    way the env steps are counted as the actions are taken (the update schedule is the same), and
-    no action is left picked between calls.
+    picked, and copied to the env's side (the host for a NumPy env or a CPU simulator), before
+    the previous step's updates are launched: with the agent on CUDA and the env on the CPU those
+    updates run while the CPU steps the environment (an env on the GPU queues behind them: no
+    overlap); the policy acts one step's updates behind. Without it each action follows the
+    updates, strictly in turn. Either way the env steps are counted as the actions are taken (the
+    update schedule is the same), and no action is left picked between calls, so a call's first
+    step runs in turn: the numbers depend on how the steps are split into calls (``run_rl``
+    splits each round the same way, so a resumed run equals an uninterrupted one).
     Returns {"returns": [finished episodes' returns], "metrics": the last update's losses (floats)
     or {}, "updates": updates taken}."""
     from gymnasium.vector import AutoresetMode
@@ -109,7 +112,7 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         state.obs = next_obs
         if ahead and i + 1 < steps:   # the next action now: its host copy waits for it, not for the updates
             picked = agent.act(state.obs, count=False)
-            host = _on_env_device(picked, env) if torch_env else _numpy(picked)
+            host = _on_env_device(picked, state.obs) if torch_env else _numpy(picked)
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
             n = int(state.owed)

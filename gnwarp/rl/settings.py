@@ -37,7 +37,7 @@ class AgentSettings:
     ``update_after``: env steps before the first update (for the training loop). ``updates_per_step``:
     gradient updates per env step (for the training loop). ``act_ahead`` (for the training loop):
     pick each step's action before the previous step's updates rather than after them (the
-    policy acts one step's updates behind), so that on CUDA the environment steps on the CPU
+    policy acts one step's updates behind), so that with the agent on CUDA a CPU simulator steps
     while the GPU updates; False: strictly in turn. ``target_update``: "hard" (copy every
     ``target_period`` updates) or "polyak" (``target <- polyak * target + (1 - polyak) * online``
     after every update); None: the preset's. ``policy_lr``, ``q_lr``, ``model_lr``: Adam's step
