@@ -42,7 +42,7 @@ def _sync(dev: torch.device) -> None:
 def loop_parts(cfg: RLConfig) -> dict:
     """A run's parts (``build_run``) with its buffer filled past ``update_after`` (the start steps'
     random actions; the model normalized where SVG(N) has one) and the updater."""
-    from gnwarp.rl.run import _normalize_model   # what run_rl does once before the first update
+    from gnwarp.rl.run import normalize_model   # what run_rl does once, before the first update
     p = build_run(cfg)
     agent, env = p["agent"], p["env"]
     state = CollectorState(env.reset(seed=0)[0], cfg.num_envs)
@@ -50,7 +50,7 @@ def loop_parts(cfg: RLConfig) -> dict:
     before = -(-agent.settings.update_after // cfg.num_envs)
     run_env_steps(agent, env, p["buffer"], state, before, p["generator"], updater=updater)
     if p["model"] is not None:
-        _normalize_model(p["model"], p["buffer"])
+        normalize_model(p["model"], p["buffer"])
     return dict(p, state=state, updater=updater)
 
 

@@ -39,7 +39,7 @@ from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, loa
 from gnwarp.validation import ConfigError
 
 __all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
-           "check_task", "observation_of", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
+           "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
 
@@ -322,7 +322,7 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
     return out, resume
 
 
-def _normalize_model(model, buffer: ReplayBuffer) -> bool:
+def normalize_model(model, buffer: ReplayBuffer) -> bool:
     """Set the model's normalization from the stored transitions (at least 2); whether it did."""
     n = buffer.filled
     if model is None or not hasattr(model, "normalize_from") or n * buffer.num_envs < 2:
@@ -439,7 +439,7 @@ def run_rl(cfg: RLConfig) -> dict:
                                                      updater=updater)["returns"]
                             left -= before
                             bar.update(before * E)
-                        _normalize_model(model, buffer)
+                        normalize_model(model, buffer)
                         c["normalized"] = True   # once, before the first update
                         continue
                 r = run_env_steps(agent, env, buffer, state, piece, gen, updater=updater)
