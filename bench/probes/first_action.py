@@ -9,11 +9,15 @@ recording with 1, eager with 2), the rest of the warm-up and the first control s
 (the recording, where it was not yet made, then replays). Run it twice: the
 first process fills the kernel caches, the second is what a user waits for.
 
-    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5] [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto]
+    python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5]
+        [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto] [--gemm-first]
 
 ``--sample MS``: also sample every thread's Python stack every MS milliseconds (the autograd
 engine runs a CUDA backward on its own thread, which cProfile does not see) and print, per phase,
 the functions (file:line name) that were on a stack in the most samples (inclusive time).
+``--gemm-first``: before construction, one dense layer of the model's width forward and backward,
+timed alone (``gemm_first_ms``: the process's first GEMMs, cuBLAS's handle, workspace and
+heuristics), so that the phases after it show what is left without that first use.
 ``--warp-log``: Warp's info log on (each module load's time, "(cached)" or "(compiled)").
 ``--cuda-output ptx|cubin``: ``wp.config.cuda_output`` (auto: Warp writes PTX where the driver
 is at least as new as its toolkit, and the driver compiles that PTX at every process's module
