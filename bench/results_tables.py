@@ -375,32 +375,35 @@ def _seed_ids(seeds) -> str:
 
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
-    """SVG(1) against SVG(0) on swimmer6 (spinningup, MLPs, one update an env step, in turn): at every
-    250k env steps both reached and at the last point both share, each run's mean +- s.e. over
-    its seeds there (which seeds: a later point holds only those that got there) and the
-    difference of means with its 95% Welch interval."""
+    """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, in turn): at every
+    250k env steps both reached and at the last point both share, where each has two seeds or
+    more, each run's mean +- s.e. over its seeds there (which seeds: a later point holds only
+    those that got there) and the difference of means with its 95% Welch interval."""
     from bench.rl_summary import difference, seed_means
     by = seed_means(root)
-    run = lambda agent: {k[-1]: {seed: m for seed, (m, _) in v.items()} for k, v in by.items()   # noqa: E731
-                         if k[:6] == ("dmc-swimmer-swimmer6", agent, "spinningup", "mlp", 1.0, False)}
-    one, zero = run("svg1"), run("svg0")
-    both = sorted(set(one) & set(zero))
-    at = [s for s in both if s and s % 250000 == 0]
-    at += [both[-1]] if both and both[-1] not in at else []
+    runs: dict[tuple[str, str], dict[int, dict[int, float]]] = {}
+    for k, v in by.items():
+        if k[2:6] == ("spinningup", "mlp", 1.0, False) and k[1] in ("svg0", "svg1"):
+            runs.setdefault((k[0], k[1]), {})[k[-1]] = {seed: m for seed, (m, _) in v.items()}
 
     def cell(v: dict) -> str:
         x = list(v.values())
         return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f} (seeds {_seed_ids(v)})"
     out = []
-    for s in at:
-        d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
-        out.append([f"{s / 1000:.0f}k", cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
-                    "yes" if lo > 0 or hi < 0 else "no"])
-    return [_note("swimmer6, spinningup preset, MLPs: mean +- standard error over the seeds at that point (a "
-                  "later point holds only the seeds that got there); the difference SVG(1) - SVG(0) and its "
-                  "95% Welch interval (Student's t at the Welch-Satterthwaite degrees of freedom, rounded down)",
-                  "the records under `swimmer6/`"), ""] + _md(
-        ["env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
+    for task in sorted({t for t, _ in runs}):
+        one, zero = runs.get((task, "svg1"), {}), runs.get((task, "svg0"), {})
+        both = sorted(s for s in set(one) & set(zero) if min(len(one[s]), len(zero[s])) >= 2)
+        at = [s for s in both if s and s % 250000 == 0]
+        at += [both[-1]] if both and both[-1] not in at else []
+        for s in at:
+            d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
+            out.append([task.replace("dmc-", ""), f"{s / 1000:.0f}k", cell(one[s]), cell(zero[s]), f"{d:+.0f}",
+                        f"[{lo:+.0f}, {hi:+.0f}]", "yes" if lo > 0 or hi < 0 else "no"])
+    return [_note("spinningup preset, MLPs, where both runs have two seeds or more: mean +- standard error over "
+                  "the seeds at that point (a later point holds only the seeds that got there); the difference "
+                  "SVG(1) - SVG(0) and its 95% Welch interval (Student's t at the Welch-Satterthwaite degrees "
+                  "of freedom, rounded down)", "the records"), ""] + _md(
+        ["task", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
 @table("control-fig10")
