@@ -80,3 +80,8 @@ def test_repository_tables_are_what_their_records_give():
     assert rt.run(ROOT, check=True) == [], "a generated table differs: run python bench/results_tables.py"
     readme = (ROOT / "README.md").read_text()
     assert "<!-- results:begin headline -->" in readme
+
+
+def test_seed_ids_as_runs():
+    assert rt._seed_ids([9, 0, 1, 2, 6, 8]) == "0-2, 6, 8-9"
+    assert rt._seed_ids([4]) == "4" and rt._seed_ids([]) == ""
