@@ -40,14 +40,15 @@ def _sync(dev: torch.device) -> None:
 
 
 def loop_parts(cfg: RLConfig) -> dict:
-    """A run's parts (``build_run``) with its buffer filled past ``update_after`` (the start steps'
-    random actions; the model normalized where SVG(N) has one) and the updater."""
+    """A run's parts (``build_run``) with its buffer filled up to the step before the first update
+    (the start steps' random actions), the model normalized from it where SVG(N) has one (as
+    ``run_rl`` does, before any update), and the updater."""
     from gnwarp.rl.run import normalize_model   # what run_rl does once, before the first update
     p = build_run(cfg)
     agent, env = p["agent"], p["env"]
     state = CollectorState(env.reset(seed=0)[0], cfg.num_envs)
     updater = Updater(agent, p["buffer"], p["generator"], capture=cfg.cuda_graph and p["device"].type == "cuda")
-    before = -(-agent.settings.update_after // cfg.num_envs)
+    before = -(-agent.settings.update_after // cfg.num_envs) - 1   # the next step's updates are the first
     run_env_steps(agent, env, p["buffer"], state, before, p["generator"], updater=updater)
     if p["model"] is not None:
         normalize_model(p["model"], p["buffer"])

@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch  # noqa: E402
 
-from bench.mpc_latency import planning_setup  # noqa: E402
+from bench.mpc_latency import SIZES, planning_setup  # noqa: E402
 from gnwarp.control import GradientMPC, GradientMPCConfig  # noqa: E402
 from gnwarp.interop import warp  # noqa: E402
 
@@ -111,7 +111,7 @@ def main(argv=None):
     first_use = {}
     if a.gemm_first:   # what the process's first GEMMs cost alone (handle, workspace, heuristics)
         t0 = time.perf_counter()
-        width = 256   # the planning core's MLP width (SIZES)
+        width = SIZES.edge_hidden[0]   # the planning core's MLP width
         w = torch.randn(width, width, device=dev, requires_grad=True)
         h = torch.randn(32, width, device=dev, requires_grad=True)
         torch.nn.functional.linear(torch.relu(h @ w), w).sum().backward()
