@@ -318,3 +318,41 @@ def test_cuda_captured_planning_iteration_matches_eager(pendulum_data, capture_w
         plans[capture] = (torch.stack(acts), p.actions.cpu())
     torch.testing.assert_close(plans[True][0], plans[False][0], rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(plans[True][1], plans[False][1], rtol=1e-4, atol=1e-5)
+
+
+def test_prime_dense_runs_each_weight_shape_once_and_leaves_the_model(model):
+    """cuBLAS's first use on a thread beside construction (``prime_dense``): every distinct 2-D
+    weight shape's GEMMs run on copies; the model's parameters and gradients are untouched, and
+    on the CPU no thread is started."""
+    from gnwarp.gn.mlp import prime_dense, prime_dense_async
+    params = list(model.parameters())
+    before = [p.detach().clone() for p in params]
+    shapes = {tuple(p.shape) for p in params if p.dim() == 2}
+    assert prime_dense(params) == min(len(shapes), 8) > 0
+    assert prime_dense(params, shapes=1) == 1
+    for p, b in zip(params, before):
+        assert p.grad is None
+        assert torch.equal(p.detach(), b)
+    assert prime_dense_async(model) is None     # CPU parameters: nothing to hide
+    with pytest.raises(ConfigError, match="prime_dense"):
+        GradientMPCConfig(prime_dense="yes")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_prime_dense_thread_plans_what_the_planner_plans_without_it(pendulum_data):
+    """The planner built with its GEMMs primed on a thread acts as one built without."""
+    from gnwarp.gn.mlp import prime_dense_async
+    from gnwarp.models.factory import build_model
+    torch.manual_seed(0)
+    cfg = TrainConfig(model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", precision="fp32")))
+    m = build_model(cfg.model, [pendulum_data]).to("cuda")
+    t = prime_dense_async(m)
+    t.join()
+    assert t.error is None
+    acts = {}
+    for prime in (True, False):
+        p = GradientMPC(m, "pendulum-balance", "pendulum", n=2,
+                        config=GradientMPCConfig(horizon=8, iterations=3, warmup=4, prime_dense=prime))
+        x = x0(pendulum_data, 2)
+        acts[prime] = torch.stack([p.step(x).cpu() for _ in range(3)])
+    torch.testing.assert_close(acts[True], acts[False], rtol=1e-5, atol=1e-6)

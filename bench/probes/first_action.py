@@ -10,7 +10,7 @@ recording with 1, eager with 2), the rest of the warm-up and the first control s
 first process fills the kernel caches, the second is what a user waits for.
 
     python bench/probes/first_action.py [--system pendulum] [--episodes 1] [--horizon 50] [--iterations 5]
-        [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto] [--gemm-first]
+        [--fused auto] [--sample 20] [--warp-log] [--cuda-output auto] [--gemm-first] [--no-prime-dense]
 
 ``--sample MS``: also sample every thread's Python stack every MS milliseconds (the autograd
 engine runs a CUDA backward on its own thread, which cProfile does not see) and print, per phase,
@@ -93,6 +93,8 @@ def main(argv=None):
     ap.add_argument("--gemm-first", action="store_true",
                     help="before construction, time one dense layer forward and backward of the model's "
                          "widths (cuBLAS's first use in the process), as gemm_first_ms")
+    ap.add_argument("--no-prime-dense", action="store_true",
+                    help="GradientMPCConfig(prime_dense=False): no cuBLAS first use on a thread beside construction")
     a = ap.parse_args(argv)
     wp = warp()   # initialized with gnwarp's log level, then the options
     if a.warp_log:
@@ -106,7 +108,7 @@ def main(argv=None):
     system, task, model, x, targets = planning_setup(a.system, a.episodes, dev)
     fused = {"auto": None, "on": True, "off": False}[a.fused]
     cfg = GradientMPCConfig(horizon=a.horizon, iterations=a.iterations, seed=0, fused=fused,
-                            capture_warmup=a.capture_warmup)
+                            capture_warmup=a.capture_warmup, prime_dense=not a.no_prime_dense)
     sync()
     first_use = {}
     if a.gemm_first:   # what the process's first GEMMs cost alone (handle, workspace, heuristics)
@@ -143,7 +145,8 @@ def main(argv=None):
     planner.iterate(xc, rest)
     mark(f"iterations_3_to_{rest + 2}_ms")
     row = {"system": a.system, "episodes": a.episodes, "horizon": a.horizon, "iterations": a.iterations,
-           "fused": planner.engine.fused, "capture_warmup": a.capture_warmup, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+           "fused": planner.engine.fused, "capture_warmup": a.capture_warmup,
+           "prime_dense": cfg.prime_dense, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
            "imports_s": round(t_import, 2), **first_use, **phases, "total_ms": round(sum(phases.values()), 1)}
     print(json.dumps(row), flush=True)
     if sampler is not None:

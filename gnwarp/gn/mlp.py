@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import threading
+
 import torch
 
 from gnwarp.gn import fp16x3
@@ -11,7 +13,7 @@ from gnwarp.interop import WP_DTYPE
 from gnwarp.kernels.gn import mlp as K
 
 __all__ = ["gemm", "linear", "mlp_forward", "relu_grad", "gemm_accumulates", "wgrad", "mlp_backward", "PackedMask",
-           "pack_mask"]
+           "pack_mask", "prime_dense", "prime_dense_async"]
 
 _ZERO_BIAS: dict[tuple, torch.Tensor] = {}
 
@@ -144,3 +146,52 @@ def mlp_backward(launch, run, side, g, hs, ws, gws, gbs, need_w: bool, summed: b
         relu_grad(launch, run, x, gh, gbs[l - 1] if need_w else None)
         g = gh
     return g
+
+
+def prime_dense(params, rows: int = 8, shapes: int = 8) -> int:
+    """Run once, on copies, the dense-layer GEMMs of every distinct 2-D weight shape in ``params``
+    (at most ``shapes`` of them; ``rows`` rows of random input): forward with and without the ReLU
+    epilogue (``linear``), the narrow-K ``gemm``, the input-gradient and weight-gradient GEMMs of
+    ``mlp_backward``. A process's first cuBLAS / cuBLASLt use (libraries, handle, workspace,
+    kernels) then happens here. Nothing of ``params`` is written. Returns the shapes run."""
+    seen = []
+    for p in params:
+        if p.dim() == 2 and p.is_floating_point() and tuple(p.shape) not in seen:
+            seen.append(tuple(p.shape))
+        if len(seen) >= shapes:
+            break
+    for p_shape in seen:
+        ref = next(p for p in params if tuple(p.shape) == p_shape)
+        out_f, in_f = p_shape
+        with torch.no_grad():
+            w = torch.randn(p_shape, device=ref.device, dtype=ref.dtype)
+            b = torch.zeros(out_f, device=ref.device, dtype=ref.dtype)
+            x = torch.randn(rows, in_f, device=ref.device, dtype=ref.dtype)
+            h = linear(x, w, b, relu=True)
+            linear(x, w, b, relu=False)
+            gemm(x, w.t())
+            wgrad(h.t(), x, torch.empty_like(w), accumulate=False)
+            torch.mm(h, w)
+    return len(seen)
+
+
+def prime_dense_async(model) -> threading.Thread | None:
+    """``prime_dense`` of ``model``'s parameters on a daemon thread, started here, when they are on
+    CUDA (None elsewhere: the CPU's GEMMs have no first-use cost worth hiding). The caller joins
+    it before recording a CUDA graph (a capture forbids other threads' CUDA work)."""
+    params = [p.detach() for p in model.parameters()]
+    if not params or params[0].device.type != "cuda":
+        return None
+    device = params[0].device
+
+    def run():
+        try:
+            with torch.cuda.device(device):
+                prime_dense(params)
+                torch.cuda.synchronize(device)
+        except Exception as e:   # an optimization only: the real GEMMs will meet the same problem
+            t.error = e
+    t = threading.Thread(target=run, name="gnwarp-prime-dense", daemon=True)
+    t.error = None
+    t.start()
+    return t
