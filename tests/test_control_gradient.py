@@ -320,39 +320,49 @@ def test_cuda_captured_planning_iteration_matches_eager(pendulum_data, capture_w
     torch.testing.assert_close(plans[True][1], plans[False][1], rtol=1e-4, atol=1e-5)
 
 
-def test_prime_dense_runs_each_weight_shape_once_and_leaves_the_model(model):
+def test_prime_dense_runs_each_weight_shape_and_leaves_the_model(model, monkeypatch):
     """cuBLAS's first use on a thread beside construction (``prime_dense``): every distinct 2-D
-    weight shape's GEMMs run on copies; the model's parameters and gradients are untouched, and
-    on the CPU no thread is started."""
-    from gnwarp.gn.mlp import prime_dense, prime_dense_async
+    weight shape's GEMMs run once, on stand-ins; the model's parameters and gradients and the
+    random generator are untouched, and on the CPU no thread is started."""
+    from gnwarp.gn import mlp
     params = list(model.parameters())
     before = [p.detach().clone() for p in params]
-    shapes = {tuple(p.shape) for p in params if p.dim() == 2}
-    assert prime_dense(params) == min(len(shapes), 8) > 0
-    assert prime_dense(params, shapes=1) == 1
+    shapes = list(dict.fromkeys(tuple(p.shape) for p in params if p.dim() == 2))
+    calls = []
+    real = mlp.linear
+    monkeypatch.setattr(mlp, "linear", lambda x, w, b, relu: calls.append((tuple(w.shape), relu)) or real(x, w, b, relu))
+    rng = torch.get_rng_state()
+    assert mlp.prime_dense(params) == min(len(shapes), 8) > 0
+    assert calls == [(s, r) for s in shapes[:8] for r in (True, False)]
+    assert mlp.prime_dense(params, shapes=1) == 1
+    assert torch.equal(torch.get_rng_state(), rng)
     for p, b in zip(params, before):
         assert p.grad is None
         assert torch.equal(p.detach(), b)
-    assert prime_dense_async(model) is None     # CPU parameters: nothing to hide
+    assert mlp.prime_dense_async(model) is None     # CPU parameters: nothing to hide
     with pytest.raises(ConfigError, match="prime_dense"):
         GradientMPCConfig(prime_dense="yes")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_prime_dense_thread_plans_what_the_planner_plans_without_it(pendulum_data):
-    """The planner built with its GEMMs primed on a thread acts as one built without."""
-    from gnwarp.gn.mlp import prime_dense_async
+    """The planner built with its GEMMs primed on a thread acts as one built without; the thread
+    has ended when construction returns, and also when construction fails after starting it."""
+    import threading
     from gnwarp.models.factory import build_model
     torch.manual_seed(0)
     cfg = TrainConfig(model=ModelConfig(gn=GNCoreConfig(**TINY), run=RunOptions(impl="warp", precision="fp32")))
     m = build_model(cfg.model, [pendulum_data]).to("cuda")
-    t = prime_dense_async(m)
-    t.join()
-    assert t.error is None
+    alive = lambda: [t for t in threading.enumerate() if t.name == "gnwarp-prime-dense" and t.is_alive()]  # noqa: E731
     acts = {}
     for prime in (True, False):
         p = GradientMPC(m, "pendulum-balance", "pendulum", n=2,
                         config=GradientMPCConfig(horizon=8, iterations=3, warmup=4, prime_dense=prime))
+        assert not alive()
         x = x0(pendulum_data, 2)
         acts[prime] = torch.stack([p.step(x).cpu() for _ in range(3)])
-    torch.testing.assert_close(acts[True], acts[False], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(acts[True], acts[False], rtol=1e-4, atol=1e-5)
+    with pytest.raises(TaskError, match="one entry per episode"):   # in the build, after the thread started
+        GradientMPC(m, "pendulum-balance", "pendulum", n=2, config=GradientMPCConfig(horizon=8),
+                    targets=torch.zeros(5, 7, 3))
+    assert not alive()

@@ -161,8 +161,6 @@ class GradientMPC(ActsOnPlan):
         if not isinstance(config, (GradientMPCConfig, type(None))):
             raise TypeError(f"config must be a GradientMPCConfig, got {type(config).__name__}")
         self.settings = config if config is not None else GradientMPCConfig()
-        # cuBLAS's first use on a thread while the rest is built (joined below, before any capture)
-        primer = prime_dense_async(model) if self.settings.prime_dense else None
         self.terminal = check_terminal(terminal, model.device)
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise PlanningError(f"n (episodes) must be an integer >= 1, got {n!r}")
@@ -171,6 +169,18 @@ class GradientMPC(ActsOnPlan):
                                for s in trained):
             raise PlanningError(f"the model was trained on {', '.join(trained)}, not on {self.system.name} "
                                 f"(task {self.task.name!r})")
+        # cuBLAS's first use on a thread while the rest is built; joined whatever happens, before
+        # anything can record a CUDA graph
+        primer = prime_dense_async(model) if self.settings.prime_dense else None
+        try:
+            self._build(model, instances, n, targets)
+        finally:
+            if primer is not None:
+                primer.join()
+        self.reset(n)
+
+    def _build(self, model, instances, n: int, targets) -> None:
+        """The binding, engines and device state of ``__init__`` (after its checks)."""
         try:
             model.bind(instances if instances is not None else self.system)
         except LayoutMismatchError as e:
@@ -210,9 +220,6 @@ class GradientMPC(ActsOnPlan):
         self._graph = (Graphed(self._iterate_once, warmup=w, prime=self._prime if w == 0 else None)
                        if self.capture else None)
         self.progress = None  # called with 1 after each planning iteration (e.g. a progress bar's update)
-        if primer is not None:
-            primer.join()
-        self.reset(n)
 
     def _rollout_engine(self, instance: torch.Tensor, graphs: bool, store: bool | str = "auto",
                         horizon: int | None = None):

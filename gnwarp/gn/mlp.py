@@ -149,24 +149,24 @@ def mlp_backward(launch, run, side, g, hs, ws, gws, gbs, need_w: bool, summed: b
 
 
 def prime_dense(params, rows: int = 8, shapes: int = 8) -> int:
-    """Run once, on copies, the dense-layer GEMMs of every distinct 2-D weight shape in ``params``
-    (at most ``shapes`` of them; ``rows`` rows of random input): forward with and without the ReLU
-    epilogue (``linear``), the narrow-K ``gemm``, the input-gradient and weight-gradient GEMMs of
-    ``mlp_backward``. A process's first cuBLAS / cuBLASLt use (libraries, handle, workspace,
-    kernels) then happens here. Nothing of ``params`` is written. Returns the shapes run."""
-    seen = []
+    """Run once, on constant stand-ins, the dense-layer GEMMs of every distinct 2-D weight shape
+    in ``params`` (at most ``shapes`` of them; ``rows`` rows of input): forward with and without
+    the ReLU epilogue (``linear``), the zero-bias ``gemm`` of the first layers, the input- and
+    weight-gradient GEMMs of ``mlp_backward``. A process's first cuBLAS / cuBLASLt use
+    (libraries, handle, workspace, kernels) then happens here. Nothing of ``params`` is written
+    and no random generator is drawn from. Returns the shapes run."""
+    seen = {}
     for p in params:
         if p.dim() == 2 and p.is_floating_point() and tuple(p.shape) not in seen:
-            seen.append(tuple(p.shape))
+            seen[tuple(p.shape)] = p
         if len(seen) >= shapes:
             break
-    for p_shape in seen:
-        ref = next(p for p in params if tuple(p.shape) == p_shape)
-        out_f, in_f = p_shape
+    for (out_f, in_f), ref in seen.items():
         with torch.no_grad():
-            w = torch.randn(p_shape, device=ref.device, dtype=ref.dtype)
-            b = torch.zeros(out_f, device=ref.device, dtype=ref.dtype)
-            x = torch.randn(rows, in_f, device=ref.device, dtype=ref.dtype)
+            like = dict(device=ref.device, dtype=ref.dtype)
+            w = torch.full((out_f, in_f), 0.01, **like)
+            b = torch.zeros(out_f, **like)
+            x = torch.ones(rows, in_f, **like)
             h = linear(x, w, b, relu=True)
             linear(x, w, b, relu=False)
             gemm(x, w.t())
@@ -176,9 +176,11 @@ def prime_dense(params, rows: int = 8, shapes: int = 8) -> int:
 
 
 def prime_dense_async(model) -> threading.Thread | None:
-    """``prime_dense`` of ``model``'s parameters on a daemon thread, started here, when they are on
-    CUDA (None elsewhere: the CPU's GEMMs have no first-use cost worth hiding). The caller joins
-    it before recording a CUDA graph (a capture forbids other threads' CUDA work)."""
+    """``prime_dense`` of ``model``'s parameters on a daemon thread and a CUDA stream of its own,
+    started here, when they are on CUDA (None elsewhere: the CPU's GEMMs have no first-use cost
+    worth hiding). The caller joins it before anything records a CUDA graph (a capture forbids
+    other threads' CUDA work); an error in it is kept in the thread's ``error`` (the real GEMMs
+    meet the same problem and report it)."""
     params = [p.detach() for p in model.parameters()]
     if not params or params[0].device.type != "cuda":
         return None
@@ -187,9 +189,11 @@ def prime_dense_async(model) -> threading.Thread | None:
     def run():
         try:
             with torch.cuda.device(device):
-                prime_dense(params)
-                torch.cuda.synchronize(device)
-        except Exception as e:   # an optimization only: the real GEMMs will meet the same problem
+                stream = torch.cuda.Stream(device)
+                with torch.cuda.stream(stream):
+                    prime_dense(params)
+                stream.synchronize()
+        except Exception as e:   # an optimization only
             t.error = e
     t = threading.Thread(target=run, name="gnwarp-prime-dense", daemon=True)
     t.error = None

@@ -1,0 +1,284 @@
+"""A sweep of RL runs over the GPUs of one machine, one call at a time: what a lent machine that
+keeps nothing between sessions and stops every command after 10 minutes needs.
+
+A spec (TOML) names, per GPU, the probes to run first (scripts of this repository with their
+arguments, run one after the other on that GPU, on the first call only: ``--probes``) and the
+runs to train there (each a ``bench/rl_seeds.py`` process with its seeds, side by side on that
+GPU). Every run gets the call's budget (``call_seconds - margin_seconds``, less what its GPU's
+probes took) and is resumed by the next call from its checkpoint; a run already done returns at
+once. The run folders are ``<work>/<task>/<run name>/s<seed>`` (``--work`` runs/rl: the
+``"out"`` that ``bench/results/rl/`` records), the records copied to ``<work>/_results/<task>/...``
+(the layout of ``bench/results/rl/``), each agent exported to ``<work>/_export/<task>/...``.
+``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
+probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
+(the agents) into DIR: what comes back from the machine.
+
+    PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
+    PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --dry-run     # the commands, nothing run
+
+A spec::
+
+    margin_seconds = 75            # of each call, left for starting, stopping and packing
+
+    [[gpu]]
+    index = 0
+    runs = [{agent = "svg1", task = "cheetah-run", seeds = "1", env_steps = 500000}]
+
+    [[gpu]]
+    index = 3
+    probes = [["bench/rl_loop.py", "--task", "swimmer6"]]
+    runs = [{agent = "svg1", task = "swimmer6", seeds = "0-1", env_steps = 1000000,
+             set = ["act_ahead=true"]}]
+
+A run's keys: ``agent``, ``task``, ``seeds`` (``"0-5"``, ``"0,2"``), and optionally ``env_steps``,
+``preset``, ``networks``, ``threads`` (CPU threads a seed, default 1), ``set`` (``RLConfig``
+keys as ``KEY=VALUE``), ``quick`` (``bench/rl_seeds.py --quick``: CPU-sized). ``index`` is a
+GPU's index (``CUDA_VISIBLE_DEVICES``) or ``"cpu"`` (nothing set).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import subprocess
+import sys
+import tarfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.rl_seeds import run_name, seeds_of  # noqa: E402
+from gnwarp.validation import ConfigError, parse_value, read_config_file  # noqa: E402
+
+__all__ = ["read_spec", "commands", "main", "pack", "start_mps"]
+
+RUN_KEYS = {"agent", "task", "seeds", "env_steps", "preset", "networks", "threads", "set", "quick"}
+GPU_KEYS = {"index", "probes", "runs"}
+SPEC_KEYS = {"margin_seconds", "gpu"}
+
+
+def _fail(where: str, why: str):
+    raise ConfigError(where, why)
+
+
+def read_spec(path) -> dict:
+    """The spec at ``path``, checked (``ConfigError`` naming the key and what is wrong)."""
+    d = read_config_file(path, "sweep keys")
+    for k in set(d) - SPEC_KEYS:
+        _fail(k, f"unknown sweep key (known: {', '.join(sorted(SPEC_KEYS))})")
+    margin = d.get("margin_seconds", 75)
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
+        _fail("margin_seconds", f"seconds >= 0, got {margin!r}")
+    gpus = d.get("gpu")
+    if not isinstance(gpus, list) or not gpus:
+        _fail("gpu", "one [[gpu]] table or more, each with its index and runs")
+    seen, names = set(), set()
+    for i, g in enumerate(gpus):
+        where = f"gpu[{i}]"
+        if not isinstance(g, dict):
+            _fail(where, f"a table, got {type(g).__name__}")
+        for k in set(g) - GPU_KEYS:
+            _fail(f"{where}.{k}", f"unknown key (known: {', '.join(sorted(GPU_KEYS))})")
+        idx = g.get("index")
+        if not (idx == "cpu" or (isinstance(idx, int) and not isinstance(idx, bool) and idx >= 0)):
+            _fail(f"{where}.index", f"a GPU index >= 0 or \"cpu\", got {idx!r}")
+        if idx in seen:
+            _fail(f"{where}.index", f"GPU {idx} appears twice: put its runs in one [[gpu]] table")
+        seen.add(idx)
+        probes = g.setdefault("probes", [])
+        if not isinstance(probes, list) or not all(isinstance(p, list) and p and all(isinstance(a, str) for a in p)
+                                                   for p in probes):
+            _fail(f"{where}.probes", "a list of commands, each a list of strings: a script of this repository "
+                                     "and its arguments")
+        for p in probes:
+            if not (ROOT / p[0]).is_file():
+                _fail(f"{where}.probes", f"no script {p[0]!r} in this repository")
+        runs = g.setdefault("runs", [])
+        if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+            _fail(f"{where}.runs", "a list of tables")
+        for j, r in enumerate(runs):
+            rw = f"{where}.runs[{j}]"
+            for k in set(r) - RUN_KEYS:
+                _fail(f"{rw}.{k}", f"unknown key (known: {', '.join(sorted(RUN_KEYS))})")
+            for k in ("agent", "task", "seeds"):
+                if not isinstance(r.get(k), str) or not r[k]:
+                    _fail(f"{rw}.{k}", f"required, a string; got {r.get(k)!r}")
+            try:
+                seeds = seeds_of(r["seeds"])
+            except ValueError as e:
+                _fail(f"{rw}.seeds", str(e))
+            if "env_steps" in r and (isinstance(r["env_steps"], bool) or not isinstance(r["env_steps"], int)
+                                     or r["env_steps"] < 1):
+                _fail(f"{rw}.env_steps", f"an integer >= 1, got {r['env_steps']!r}")
+            sets = r.setdefault("set", [])
+            if not isinstance(sets, list) or not all(isinstance(s, str) and "=" in s for s in sets):
+                _fail(f"{rw}.set", "a list of KEY=VALUE strings")
+            base = {"agent": r["agent"], "preset": r.get("preset", "spinningup"),
+                    "networks": r.get("networks", "mlp")}
+            base.update({s.partition("=")[0].strip(): parse_value(s.partition("=")[2]) for s in sets})
+            try:
+                name = run_name(base)
+            except ValueError as e:
+                _fail(f"{rw}.set", str(e))
+            for s in seeds:   # two processes must never train one run folder
+                key = (r["task"], name, s, bool(r.get("quick")))
+                if key in names:
+                    _fail(f"{rw}.seeds", f"{r['task']} {name} seed {s} is already in the sweep")
+                names.add(key)
+    return {"margin_seconds": float(margin), "gpu": gpus}
+
+
+def commands(spec: dict, work, budget: float) -> list[dict]:
+    """Per GPU: its environment, its probes' and runs' command lines (``budget`` seconds a run,
+    before the probes' time is taken off)."""
+    work = Path(work)
+    out = []
+    for g in spec["gpu"]:
+        env = {} if g["index"] == "cpu" else {"CUDA_VISIBLE_DEVICES": str(g["index"])}
+        probes = [[sys.executable, str(ROOT / p[0]), *p[1:]] for p in g["probes"]]
+        runs = []
+        for r in g["runs"]:
+            cmd = [sys.executable, str(ROOT / "bench" / "rl_seeds.py"), "--agent", r["agent"], "--task", r["task"],
+                   "--seeds", r["seeds"], "--threads", str(r.get("threads", 1)),
+                   "--runs", str(work / r["task"]), "--results", str(work / "_results"),
+                   "--export", str(work / "_export" / r["task"]), "--budget-seconds", f"{budget:.0f}"]
+            for k in ("preset", "networks"):
+                if k in r:
+                    cmd += [f"--{k}", r[k]]
+            if "env_steps" in r:
+                cmd += ["--env-steps", str(r["env_steps"])]
+            for s in r["set"]:
+                cmd += ["--set", s]
+            if r.get("quick"):
+                cmd += ["--quick"]
+            runs.append({"cmd": cmd, "log": f"{r['agent']}-{r['task']}-s{r['seeds'].replace(',', '_')}.log"})
+        out.append({"index": g["index"], "env": env, "probes": probes, "runs": runs})
+    return out
+
+
+def _gpu_job(job: dict, work: Path, started: float, budget: float, probes: bool, lines: list) -> None:
+    """One GPU's share: its probes (when asked), then its runs side by side with what is left."""
+    env = dict(os.environ, **job["env"], PYTHONUNBUFFERED="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    logs = work / "_logs"
+    if probes:
+        for k, cmd in enumerate(job["probes"]):
+            left = budget - (time.monotonic() - started)
+            name = f"probe-{job['index']}-{k}-{Path(cmd[1]).stem}.txt"
+            with open(logs / name, "w") as f:
+                try:
+                    rc = subprocess.run(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, timeout=max(1.0, left),
+                                        cwd=ROOT).returncode
+                except subprocess.TimeoutExpired:
+                    rc = "timeout"
+            lines.append(f"GPU {job['index']}: probe {shlex.join(cmd[1:])}: exit {rc}, "
+                         f"{time.monotonic() - started:.0f} s into the call")
+    left = budget - (time.monotonic() - started)
+    if left < 30:
+        lines.append(f"GPU {job['index']}: {left:.0f} s left after the probes: its runs wait for the next call")
+        return
+    procs = []
+    for r in job["runs"]:
+        cmd = list(r["cmd"])
+        cmd[cmd.index("--budget-seconds") + 1] = f"{left:.0f}"
+        f = open(logs / r["log"], "a")
+        procs.append((subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT), f, r["log"],
+                      f.tell()))
+    for p, f, log, start in procs:
+        rc = p.wait()
+        f.close()
+        with open(logs / log, errors="replace") as g:   # this call's lines only: the log is appended
+            g.seek(start)
+            tail = [ln.rstrip("\n") for ln in g if ln.startswith("seed ")][-8:]
+        lines.append(f"GPU {job['index']}: {log[:-4]}: exit {rc}" + "".join(f"\n  {t}" for t in tail))
+
+
+def start_mps() -> str:
+    """Start the CUDA MPS control daemon (``nvidia-cuda-mps-control -d``) unless one runs; what
+    happened, as a line."""
+    import shutil
+    exe = shutil.which("nvidia-cuda-mps-control")
+    if exe is None:
+        return "MPS: nvidia-cuda-mps-control not found; processes sharing a GPU take turns on it"
+    if subprocess.run(["pgrep", "-x", "nvidia-cuda-mps"], capture_output=True).returncode == 0:
+        return "MPS: the daemon runs already"
+    rc = subprocess.run([exe, "-d"], capture_output=True, text=True)
+    return "MPS: daemon started" if rc.returncode == 0 else f"MPS: could not start the daemon ({rc.stderr.strip()})"
+
+
+def pack(work, dest) -> list[Path]:
+    """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
+    written to a temporary name, then renamed)."""
+    work, dest = Path(work), Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    made = []
+    for name, mode, part in (("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"),
+                             ("export.tar", "w", "_export")):
+        tmp = dest / (name + ".tmp")
+        with tarfile.open(tmp, mode) as t:
+            if (work / part).exists():
+                t.add(work / part, arcname=part.lstrip("_"))
+            if name == "logs.tar.xz":   # the probes' own output folder, each seed's log in its run folder
+                if (work / "_probes").exists():
+                    t.add(work / "_probes", arcname="probes")
+                for log in sorted(work.glob("*/*/s*/*.log")):
+                    if not log.relative_to(work).parts[0].startswith("_"):
+                        t.add(log, arcname=str(Path("runs") / log.relative_to(work)))
+        tmp.replace(dest / name)
+        made.append(dest / name)
+    return made
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("spec", help="the sweep's TOML file")
+    ap.add_argument("--call-seconds", type=float, default=590.0, help="this call's length (the runs stop before)")
+    ap.add_argument("--work", default=str(Path("runs") / "rl"), help="folder of the runs (and of _results, _export, _logs)")
+    ap.add_argument("--probes", action="store_true", help="run each GPU's probes first (the first call)")
+    ap.add_argument("--pack", default=None, metavar="DIR", help="afterwards, the archives of what came out in DIR")
+    ap.add_argument("--mps", action="store_true",
+                    help="start the CUDA MPS daemon first where it is not running (processes sharing a GPU then "
+                         "run side by side instead of taking turns)")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands and stop")
+    a = ap.parse_args(argv)
+    try:
+        spec = read_spec(a.spec)
+    except (ConfigError, FileNotFoundError) as e:
+        print(f"rl_sweep: {e}", file=sys.stderr)
+        return 2
+    budget = a.call_seconds - spec["margin_seconds"]
+    if budget < 30:
+        print(f"rl_sweep: --call-seconds {a.call_seconds:g} leaves {budget:.0f} s after the margin of "
+              f"{spec['margin_seconds']:g} s: too little to train", file=sys.stderr)
+        return 2
+    jobs = commands(spec, a.work, budget)
+    if a.dry_run:
+        for j in jobs:
+            pre = " ".join(f"{k}={v}" for k, v in j["env"].items())
+            for c in (j["probes"] if a.probes else []) + [r["cmd"] for r in j["runs"]]:
+                print(f"GPU {j['index']}: {pre + ' ' if pre else ''}{shlex.join(c)}")
+        return 0
+    work = Path(a.work)
+    (work / "_logs").mkdir(parents=True, exist_ok=True)
+    if a.mps:
+        print(start_mps())
+    started, lines = time.monotonic(), []
+    threads = [threading.Thread(target=_gpu_job, args=(j, work, started, budget, a.probes, lines)) for j in jobs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    print("\n".join(sorted(lines)))
+    print(f"call: {time.monotonic() - started:.0f} s")
+    if a.pack:
+        for p in pack(work, a.pack):
+            print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,126 @@
+"""bench/rl_sweep.py: a sweep spec checked, its command lines, and one CPU-sized call packed."""
+import json
+import re
+import tarfile
+
+import pytest
+
+from bench import rl_sweep
+from gnwarp.validation import ConfigError
+
+SPEC = '''
+margin_seconds = 60
+[[gpu]]
+index = 0
+runs = [{agent = "svg1", task = "cheetah-run", seeds = "1-2", env_steps = 500000}]
+[[gpu]]
+index = 3
+probes = [["bench/rl_loop.py", "--task", "swimmer6"]]
+runs = [{agent = "svg1", task = "swimmer6", seeds = "0", set = ["act_ahead=true"]},
+        {agent = "svg0", task = "swimmer6", seeds = "0", networks = "gn"}]
+'''
+
+
+def write(tmp_path, text, name="spec.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_dry_run_prints_each_gpus_commands_with_the_calls_budget(tmp_path, capsys):
+    assert rl_sweep.main([str(write(tmp_path, SPEC)), "--dry-run", "--probes", "--call-seconds", "500",
+                          "--work", "w"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 4
+    assert all(ln.startswith("GPU 0: CUDA_VISIBLE_DEVICES=0 ") for ln in lines[:1])
+    assert lines[1].startswith("GPU 3: CUDA_VISIBLE_DEVICES=3 ") and "bench/rl_loop.py --task swimmer6" in lines[1]
+    assert "--seeds 1-2" in lines[0] and "--env-steps 500000" in lines[0] and "--budget-seconds 440" in lines[0]
+    assert "--runs w/cheetah-run" in lines[0] and "--results w/_results" in lines[0]
+    assert "--set act_ahead=true" in lines[2] and "--networks gn" in lines[3] and "--env-steps" not in lines[3]
+    capsys.readouterr()
+    rl_sweep.main([str(write(tmp_path, SPEC)), "--dry-run", "--call-seconds", "500"])
+    assert "rl_loop" not in capsys.readouterr().out     # probes only where asked
+
+
+@pytest.mark.parametrize("text, where, why", [
+    ("margin_seconds = 1\n", "gpu", "one [[gpu]] table"),
+    ("colour = 1\n[[gpu]]\nindex = 0\n", "colour", "unknown sweep key"),
+    ("[[gpu]]\nindex = -1\n", "gpu[0].index", "GPU index >= 0"),
+    ("[[gpu]]\nindex = 0\n[[gpu]]\nindex = 0\n", "gpu[1].index", "appears twice"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6'}]\n", "gpu[0].runs[0].seeds", "required"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '1,1'}]\n", "gpu[0].runs[0].seeds",
+     "distinct"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', speed = 2}]\n",
+     "gpu[0].runs[0].speed", "unknown key"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', env_steps = 0}]\n",
+     "gpu[0].runs[0].env_steps", "integer >= 1"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0-1'}]\n"
+     "[[gpu]]\nindex = 1\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '1'}]\n", "gpu[1].runs[0].seeds",
+     "already in the sweep"),
+    ("[[gpu]]\nindex = 0\nprobes = [['bench/no_such_probe.py']]\n", "gpu[0].probes", "no script"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', set = ['act_ahead=maybe']}]\n",
+     "gpu[0].runs[0].set", "true or false"),
+])
+def test_bad_specs_name_the_key(tmp_path, capsys, text, where, why):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=re.escape(why)) as e:
+        rl_sweep.read_spec(p)
+    assert e.value.path == where
+    assert rl_sweep.main([str(p), "--dry-run"]) == 2
+    assert where in capsys.readouterr().err
+
+
+def test_a_call_too_short_for_its_margin_is_refused(tmp_path, capsys):
+    assert rl_sweep.main([str(write(tmp_path, SPEC)), "--call-seconds", "80", "--dry-run"]) == 2
+    assert "too little to train" in capsys.readouterr().err
+
+
+def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
+    """A CPU-sized run (``quick``) through the whole call: its records copied to _results and
+    packed with its log and exported agent."""
+    spec = write(tmp_path, '[[gpu]]\nindex = "cpu"\nruns = [{agent = "svg0", task = "pendulum-balance", '
+                           'seeds = "0", quick = true}]\n')
+    work, out = tmp_path / "work", tmp_path / "out"
+    assert rl_sweep.main([str(spec), "--call-seconds", "300", "--work", str(work), "--pack", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "GPU cpu: svg0-pendulum-balance-s0: exit 0" in text and "seed 0: exit 0" in text
+    assert '"stop": "done"' in text
+    with tarfile.open(out / "results.tar.xz") as t:
+        names = t.getnames()
+        rec = t.extractfile("results/pendulum-balance/svg0-spinningup-mlp/s0/config.json")
+        assert json.load(rec)["out"] == str(work / "pendulum-balance" / "svg0-spinningup-mlp" / "s0")
+    assert "results/pendulum-balance/svg0-spinningup-mlp/s0/records.jsonl" in names
+    with tarfile.open(out / "logs.tar.xz") as t:
+        assert any(n.endswith("svg0-pendulum-balance-s0.log") for n in t.getnames())
+        assert "runs/pendulum-balance/svg0-spinningup-mlp/s0/call.log" in t.getnames()
+    with tarfile.open(out / "export.tar") as t:
+        assert any(n.startswith("export/pendulum-balance/svg0-spinningup-mlp/s0/") for n in t.getnames())
+    assert not list(out.glob("*.tmp"))
+
+
+def test_committed_sweep_specs_are_valid():
+    from pathlib import Path
+    specs = sorted((Path(rl_sweep.ROOT) / "bench" / "results" / "rl" / "sweeps").glob("*.toml"))
+    assert specs
+    for p in specs:
+        spec = rl_sweep.read_spec(p)
+        assert spec["gpu"] and all(g["runs"] or g["probes"] for g in spec["gpu"])
+
+
+def test_mps_is_started_only_where_it_can_be(monkeypatch):
+    import shutil
+    import subprocess
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    assert "not found" in rl_sweep.start_mps()
+    monkeypatch.setattr(shutil, "which", lambda name: "/x/" + name)
+    ran = []
+
+    def fake_run(cmd, **kw):
+        ran.append(cmd)
+        return subprocess.CompletedProcess(cmd, 0 if cmd[0] == "pgrep" and running else 1, "", "no GPU")
+    monkeypatch.setattr(subprocess, "run", fake_run)
+    running = True
+    assert rl_sweep.start_mps() == "MPS: the daemon runs already" and ran[-1][0] == "pgrep"
+    running = False
+    assert rl_sweep.start_mps() == "MPS: could not start the daemon (no GPU)"
+    assert ran[-1] == ["/x/nvidia-cuda-mps-control", "-d"]
