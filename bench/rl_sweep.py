@@ -6,7 +6,8 @@ arguments, run one after the other on that GPU, on the first call only: ``--prob
 runs to train there (each a ``bench/rl_seeds.py`` process with its seeds, side by side on that
 GPU). Every run gets the call's budget (``call_seconds - margin_seconds``, less what its GPU's
 probes took) and is resumed by the next call from its checkpoint; a run already done returns at
-once. The run folders are ``<work>/<task>/<run name>/s<seed>`` (``--work`` runs/rl: the
+once. Every process runs in a process group of its own; one still running ``PACK_SECONDS`` before
+the call's end is killed with its children, so the archives are always written. The run folders are ``<work>/<task>/<run name>/s<seed>`` (``--work`` runs/rl: the
 ``"out"`` that ``bench/results/rl/`` records), the records copied to ``<work>/_results/<task>/...``
 (the layout of ``bench/results/rl/``), each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
@@ -33,13 +34,16 @@ A spec::
 A run's keys: ``agent``, ``task``, ``seeds`` (``"0-5"``, ``"0,2"``), and optionally ``env_steps``,
 ``preset``, ``networks``, ``threads`` (CPU threads a seed, default 1), ``set`` (``RLConfig``
 keys as ``KEY=VALUE``), ``quick`` (``bench/rl_seeds.py --quick``: CPU-sized). ``index`` is a
-GPU's index (``CUDA_VISIBLE_DEVICES``) or ``"cpu"`` (nothing set).
+GPU's index (``CUDA_VISIBLE_DEVICES``) or ``"cpu"`` (no GPU visible). Each run's ``RLConfig`` and
+task are checked before anything starts, and two runs training one seed (the task however spelt)
+are refused.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import tarfile
@@ -51,7 +55,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.rl_seeds import run_name, seeds_of  # noqa: E402
+from bench.rl_seeds import QUICK, run_name, seeds_of  # noqa: E402
+from gnwarp.rl.config import RLConfig  # noqa: E402
+from gnwarp.rl.run import check_task  # noqa: E402
 from gnwarp.validation import ConfigError, parse_value, read_config_file  # noqa: E402
 
 __all__ = ["read_spec", "commands", "main", "pack", "start_mps"]
@@ -59,6 +65,7 @@ __all__ = ["read_spec", "commands", "main", "pack", "start_mps"]
 RUN_KEYS = {"agent", "task", "seeds", "env_steps", "preset", "networks", "threads", "set", "quick"}
 GPU_KEYS = {"index", "probes", "runs"}
 SPEC_KEYS = {"margin_seconds", "gpu"}
+PACK_SECONDS = 25   # of each call, kept for packing: a process still running then is killed
 
 
 def _fail(where: str, why: str):
@@ -117,19 +124,38 @@ def read_spec(path) -> dict:
             sets = r.setdefault("set", [])
             if not isinstance(sets, list) or not all(isinstance(s, str) and "=" in s for s in sets):
                 _fail(f"{rw}.set", "a list of KEY=VALUE strings")
-            base = {"agent": r["agent"], "preset": r.get("preset", "spinningup"),
-                    "networks": r.get("networks", "mlp")}
-            base.update({s.partition("=")[0].strip(): parse_value(s.partition("=")[2]) for s in sets})
+            if not isinstance(r.get("quick", False), bool):
+                _fail(f"{rw}.quick", f"true or false, got {r['quick']!r}")
+            threads = r.get("threads", 1)
+            if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+                _fail(f"{rw}.threads", f"an integer >= 1, got {threads!r}")
+            base = effective_run(r)
             try:
                 name = run_name(base)
+                cfg = RLConfig.from_dict({**base, "seed": seeds[0], "out": "unused"})
+                task = check_task(cfg).name
+            except ConfigError as e:   # (a ValueError too: first)
+                _fail(f"{rw}.{e.path}", e.reason)
             except ValueError as e:
                 _fail(f"{rw}.set", str(e))
-            for s in seeds:   # two processes must never train one run folder
-                key = (r["task"], name, s, bool(r.get("quick")))
+            for s in seeds:   # two processes must never train one run, nor one seed twice under two names
+                key = (task, name, s)
                 if key in names:
-                    _fail(f"{rw}.seeds", f"{r['task']} {name} seed {s} is already in the sweep")
+                    _fail(f"{rw}.seeds", f"{task} {name} seed {s} is already in the sweep")
                 names.add(key)
     return {"margin_seconds": float(margin), "gpu": gpus}
+
+
+def effective_run(r: dict) -> dict:
+    """The run's settings as ``bench/rl_seeds.py`` builds them (``quick``: its CPU-sized ones,
+    whose agent and task stand unless ``set`` changes them)."""
+    base = dict(QUICK) if r.get("quick") else {"task": r["task"], "agent": r["agent"]}
+    base.update(preset=r.get("preset", "spinningup"), networks=r.get("networks", "mlp"),
+                sim_threads=r.get("threads", 1), progress=False)
+    if "env_steps" in r:
+        base["env_steps"] = r["env_steps"]
+    base.update({s.partition("=")[0].strip(): parse_value(s.partition("=")[2]) for s in r["set"]})
+    return base
 
 
 def commands(spec: dict, work, budget: float) -> list[dict]:
@@ -138,7 +164,7 @@ def commands(spec: dict, work, budget: float) -> list[dict]:
     work = Path(work)
     out = []
     for g in spec["gpu"]:
-        env = {} if g["index"] == "cpu" else {"CUDA_VISIBLE_DEVICES": str(g["index"])}
+        env = {"CUDA_VISIBLE_DEVICES": "" if g["index"] == "cpu" else str(g["index"])}
         probes = [[sys.executable, str(ROOT / p[0]), *p[1:]] for p in g["probes"]]
         runs = []
         for r in g["runs"]:
@@ -155,46 +181,72 @@ def commands(spec: dict, work, budget: float) -> list[dict]:
                 cmd += ["--set", s]
             if r.get("quick"):
                 cmd += ["--quick"]
-            runs.append({"cmd": cmd, "log": f"{r['agent']}-{r['task']}-s{r['seeds'].replace(',', '_')}.log"})
+            base = effective_run(r)
+            log = f"{base['task']}-{run_name(base)}-s{r['seeds'].replace(',', '_')}.log"
+            runs.append({"cmd": cmd, "log": log})
         out.append({"index": g["index"], "env": env, "probes": probes, "runs": runs})
     return out
 
 
-def _gpu_job(job: dict, work: Path, started: float, budget: float, probes: bool, lines: list) -> None:
-    """One GPU's share: its probes (when asked), then its runs side by side with what is left."""
+def _wait(p: subprocess.Popen, deadline: float):
+    """``p``'s exit code, or, past ``deadline`` (monotonic), its whole process group killed."""
+    try:
+        return p.wait(timeout=max(0.0, deadline - time.monotonic()))
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(p.pid, signal.SIGKILL)   # its own children too (a probe's measuring process, the seeds)
+        except ProcessLookupError:
+            pass
+        p.wait()
+        return "killed at the call's deadline"
+
+
+def _gpu_job(job: dict, work: Path, started: float, budget: float, deadline: float, probes: bool,
+             lines: list) -> None:
+    """One GPU's share: its probes (when asked), then its runs side by side with what is left;
+    every process in a process group of its own, killed with its children at ``deadline``."""
     env = dict(os.environ, **job["env"], PYTHONUNBUFFERED="1")
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     logs = work / "_logs"
+    gpu = f"GPU {job['index']}"
     if probes:
         for k, cmd in enumerate(job["probes"]):
-            left = budget - (time.monotonic() - started)
             name = f"probe-{job['index']}-{k}-{Path(cmd[1]).stem}.txt"
             with open(logs / name, "w") as f:
-                try:
-                    rc = subprocess.run(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, timeout=max(1.0, left),
-                                        cwd=ROOT).returncode
-                except subprocess.TimeoutExpired:
-                    rc = "timeout"
-            lines.append(f"GPU {job['index']}: probe {shlex.join(cmd[1:])}: exit {rc}, "
-                         f"{time.monotonic() - started:.0f} s into the call")
+                p = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT,
+                                     start_new_session=True)
+                rc = _wait(p, min(deadline, started + budget))
+            lines.append((rc != 0, f"{gpu}: probe {shlex.join(cmd[1:])}: exit {rc}, "
+                                   f"{time.monotonic() - started:.0f} s into the call"))
     left = budget - (time.monotonic() - started)
-    if left < 30:
-        lines.append(f"GPU {job['index']}: {left:.0f} s left after the probes: its runs wait for the next call")
+    if left < 30 and job["runs"]:
+        lines.append((False, f"{gpu}: {left:.0f} s left after the probes: its runs wait for the next call"))
         return
     procs = []
     for r in job["runs"]:
         cmd = list(r["cmd"])
         cmd[cmd.index("--budget-seconds") + 1] = f"{left:.0f}"
         f = open(logs / r["log"], "a")
-        procs.append((subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT), f, r["log"],
-                      f.tell()))
+        start = f.tell()
+        procs.append((subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT,
+                                       start_new_session=True), f, r["log"], start))
     for p, f, log, start in procs:
-        rc = p.wait()
+        rc = _wait(p, deadline)
         f.close()
         with open(logs / log, errors="replace") as g:   # this call's lines only: the log is appended
             g.seek(start)
-            tail = [ln.rstrip("\n") for ln in g if ln.startswith("seed ")][-8:]
-        lines.append(f"GPU {job['index']}: {log[:-4]}: exit {rc}" + "".join(f"\n  {t}" for t in tail))
+            mine = [ln.rstrip("\n") for ln in g]
+        tail = [ln for ln in mine if ln.startswith("seed ")][-8:] if rc == 0 else mine[-8:]
+        lines.append((rc != 0, f"{gpu}: {log[:-4]}: exit {rc}" + "".join(f"\n  {t}" for t in tail)))
+
+
+def _guarded(job: dict, *args) -> None:
+    """``_gpu_job``, an error in it reported among the lines (the other GPUs go on)."""
+    lines = args[-1]
+    try:
+        _gpu_job(job, *args)
+    except Exception as e:   # reported, and the call still packs what exists
+        lines.append((True, f"GPU {job['index']}: failed: {type(e).__name__}: {e}"))
 
 
 def start_mps() -> str:
@@ -262,22 +314,30 @@ def main(argv=None) -> int:
             for c in (j["probes"] if a.probes else []) + [r["cmd"] for r in j["runs"]]:
                 print(f"GPU {j['index']}: {pre + ' ' if pre else ''}{shlex.join(c)}")
         return 0
-    work = Path(a.work)
+    # the processes run in the repository's root, where a relative --work lies
+    work = Path(a.work) if Path(a.work).is_absolute() else ROOT / a.work
     (work / "_logs").mkdir(parents=True, exist_ok=True)
     if a.mps:
         print(start_mps())
     started, lines = time.monotonic(), []
-    threads = [threading.Thread(target=_gpu_job, args=(j, work, started, budget, a.probes, lines)) for j in jobs]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    print("\n".join(sorted(lines)))
-    print(f"call: {time.monotonic() - started:.0f} s")
-    if a.pack:
-        for p in pack(work, a.pack):
-            print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
-    return 0
+    deadline = started + a.call_seconds - PACK_SECONDS
+    threads = [threading.Thread(target=_guarded, args=(j, work, started, budget, deadline, a.probes, lines))
+               for j in jobs]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        print("\n".join(text for _, text in sorted(lines, key=lambda x: x[1])))
+        print(f"call: {time.monotonic() - started:.0f} s")
+        if a.pack:
+            for p in pack(work, a.pack):
+                print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
+    failed = sum(bad for bad, _ in lines)
+    if failed:
+        print(f"rl_sweep: {failed} of the call's processes failed (above)", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -60,6 +60,18 @@ def test_dry_run_prints_each_gpus_commands_with_the_calls_budget(tmp_path, capsy
     ("[[gpu]]\nindex = 0\nprobes = [['bench/no_such_probe.py']]\n", "gpu[0].probes", "no script"),
     ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', set = ['act_ahead=maybe']}]\n",
      "gpu[0].runs[0].set", "true or false"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0'}, "
+     "{agent = 'svg1', task = 'dmc-swimmer-swimmer6', seeds = '0'}]\n", "gpu[0].runs[1].seeds", "already in the sweep"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'pendulum', seeds = '0', quick = true}, "
+     "{agent = 'ddpg', task = 'cartpole', seeds = '0', quick = true}]\n", "gpu[0].runs[1].seeds", "already in the sweep"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'no-such-task', seeds = '0'}]\n",
+     "gpu[0].runs[0].task", "no-such-task"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg9', task = 'swimmer6', seeds = '0'}]\n",
+     "gpu[0].runs[0].agent", "svg9"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', set = ['no_such_key=1']}]\n",
+     "gpu[0].runs[0].no_such_key", "unknown RL run config keys"),
+    ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', quick = 'false'}]\n",
+     "gpu[0].runs[0].quick", "true or false"),
 ])
 def test_bad_specs_name_the_key(tmp_path, capsys, text, where, why):
     p = write(tmp_path, text)
@@ -83,7 +95,7 @@ def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
     work, out = tmp_path / "work", tmp_path / "out"
     assert rl_sweep.main([str(spec), "--call-seconds", "300", "--work", str(work), "--pack", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "GPU cpu: svg0-pendulum-balance-s0: exit 0" in text and "seed 0: exit 0" in text
+    assert "GPU cpu: pendulum-balance-svg0-spinningup-mlp-s0: exit 0" in text and "seed 0: exit 0" in text
     assert '"stop": "done"' in text
     with tarfile.open(out / "results.tar.xz") as t:
         names = t.getnames()
@@ -91,7 +103,7 @@ def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
         assert json.load(rec)["out"] == str(work / "pendulum-balance" / "svg0-spinningup-mlp" / "s0")
     assert "results/pendulum-balance/svg0-spinningup-mlp/s0/records.jsonl" in names
     with tarfile.open(out / "logs.tar.xz") as t:
-        assert any(n.endswith("svg0-pendulum-balance-s0.log") for n in t.getnames())
+        assert "logs/pendulum-balance-svg0-spinningup-mlp-s0.log" in t.getnames()
         assert "runs/pendulum-balance/svg0-spinningup-mlp/s0/call.log" in t.getnames()
     with tarfile.open(out / "export.tar") as t:
         assert any(n.startswith("export/pendulum-balance/svg0-spinningup-mlp/s0/") for n in t.getnames())
@@ -124,3 +136,24 @@ def test_mps_is_started_only_where_it_can_be(monkeypatch):
     running = False
     assert rl_sweep.start_mps() == "MPS: could not start the daemon (no GPU)"
     assert ran[-1] == ["/x/nvidia-cuda-mps-control", "-d"]
+
+
+def test_a_failing_run_shows_its_log_and_a_late_one_is_killed_at_the_deadline(tmp_path):
+    """A run that fails reports its exit code and its log's last lines; one still running at the
+    call's deadline is killed with its process group (the call then packs)."""
+    import sys
+    import time
+    (tmp_path / "_logs").mkdir()
+    code = ("import subprocess, sys, time; print('boom', flush=True); "
+            "sys.exit(3) if sys.argv[-1] == 'fail' else (subprocess.Popen([sys.executable, '-c', "
+            "'import time; time.sleep(60)']), time.sleep(60))")
+    job = {"index": 7, "env": {}, "probes": [], "runs": [
+        {"cmd": [sys.executable, "-c", code, "--budget-seconds", "9", "fail"], "log": "a.log"},
+        {"cmd": [sys.executable, "-c", code, "--budget-seconds", "9", "sleep"], "log": "b.log"}]}
+    lines, t0 = [], time.monotonic()
+    rl_sweep._guarded(job, tmp_path, t0, 100.0, t0 + 3.0, False, lines)
+    assert time.monotonic() - t0 < 20
+    text = dict((t.split(":")[1].strip(), (bad, t)) for bad, t in lines)
+    assert text["a.log"[:-4]][0] and "exit 3" in text["a"][1] and "boom" in text["a"][1]
+    assert text["b"][0] and "killed at the call's deadline" in text["b"][1]
+    assert (tmp_path / "_logs" / "a.log").read_text().startswith("boom")
