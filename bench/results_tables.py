@@ -407,6 +407,36 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
         ["task", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
+@table("rl-policy-mpc")
+def rl_policy_mpc(root: Path, doc: Path) -> list[str]:
+    """A trained agent planned over with its own model and Q-function (``policy-mpc``) against its
+    policy alone, on the same initial states (``rl/policy_mpc/*.jsonl``): paired per episode."""
+    import numpy as np
+    from gnwarp.eval.summarize import t_quantile
+    recs = [r for p in sorted((root / RESULTS / "rl" / "policy_mpc").glob("*.jsonl")) for r in read_records(p)]
+    out = []
+    for r in (r for r in recs if r.planner == "policy-mpc"):
+        base = [b for b in recs if b.planner == "policy" and b.task == r.task and b.config["policy"] == r.config["policy"]
+                and b.config["initial_qpos"] == r.config["initial_qpos"] and len(b.returns) == len(r.returns)]
+        if not base:
+            raise LookupError(f"no policy record on the initial states of {r.task} {r.config['policy']}")
+        d = np.asarray(r.returns) - np.asarray(base[-1].returns)
+        half = t_quantile(len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)) if len(d) > 1 else math.nan
+        s = r.config["settings"]
+        se = lambda x: f"{np.mean(x):.0f} +- {np.std(x, ddof=1) / math.sqrt(len(x)):.0f}"   # noqa: E731
+        out.append([r.task.replace("dmc-", ""), f"`{Path(r.config['policy']).name}`", str(len(d)), se(base[-1].returns),
+                    se(r.returns), f"{d.mean():+.0f} [{d.mean() - half:+.0f}, {d.mean() + half:+.0f}]",
+                    f"H {s['horizon']}, {s['samples']} + {s['policy_samples']} sequences, {s['iterations']} iterations, "
+                    f"{s['elites']} elites, std {s['init_std']:g} to {s['min_std']:g}, temperature {s['temperature']:g}",
+                    f"{r.metrics['steady_ms']:.0f}"])
+    return ([_note("true returns (MuJoCo C, 1000-step episodes, the same initial states for both), mean +- standard "
+                   "error over episodes; the difference planned - policy per episode with its 95% t interval; "
+                   "steady ms a control step for all episodes together on the developers' 2-core CPU",
+                   "`rl/policy_mpc/*.jsonl`")] + [""]
+            + _md(["task", "agent", "episodes", "policy alone", "planned over (policy-mpc)", "difference [95%]",
+                   "planner", "ms / step"], out))
+
+
 @table("control-fig10")
 def control_fig10(root: Path, doc: Path) -> list[str]:
     gs = _groups(root, "control/fig10/results.jsonl")

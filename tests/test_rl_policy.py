@@ -111,3 +111,94 @@ def test_policy_is_registered_by_its_module_only():
             cp.get_planner("policy")
     finally:
         cp.PLANNERS["policy"] = entry
+
+
+class _NegSquare(torch.nn.Module):
+    """Q(x, a) = -w x^2 (a known value at the horizon)."""
+
+    def __init__(self, w: float):
+        super().__init__()
+        self.w = w
+
+    def forward(self, x, a):
+        return -self.w * (x ** 2).sum(-1)
+
+
+def _known_svg1(q_weight=1.0):
+    """An SVG(1) agent with a known model x' = x + a, reward -(x')^2 and Q -w x^2, actions in [-1, 1]."""
+    from gnwarp.rl.agents import make_agent
+    from gnwarp.rl.settings import AgentSettings
+    torch.manual_seed(0)
+    return make_agent(AgentSettings(agent="svg1", hidden=(8,), gamma=0.9), 1, [-1.0], [1.0],
+                      model=lambda x, a: x + a, reward=lambda x, a, x2: -(x2 ** 2).sum(-1), q=_NegSquare(q_weight))
+
+
+def test_policy_mpc_scores_sequences_as_written_and_plans_towards_the_best(rl_run):
+    """``PolicyMPC.returns`` is sum gamma^k r + gamma^H Q(x_H, pi(x_H)) through the agent's model;
+    its plan from x = 1.5 with the model x' = x + a (reward -(x')^2) heads to 0 at full speed
+    (the first action -1), where the untrained policy does not, and the plan is shifted to the
+    next step; bad settings are refused naming the key."""
+    from gnwarp.rl.planner import PolicyMPC, PolicyMPCSettings
+    agent = _known_svg1()
+    obs_of = lambda body, targets: body[:, 0, :1]   # noqa: E731
+    s = PolicyMPCSettings(run=str(rl_run), device="cpu", horizon=3, samples=64, policy_samples=4, iterations=4,
+                          elites=8, temperature=2.0)   # the agent given here, not the run's
+    planner = PolicyMPC(agent, obs_of, 2, settings=s)
+    obs = torch.tensor([[1.5], [-0.3]])
+    acts = torch.tensor([[[[-1.0], [-0.5], [0.0]], [[0.5], [0.0], [0.0]]],
+                         [[[0.3], [0.0], [0.0]], [[0.0], [0.0], [0.0]]]])      # [N=2, M=2, H=3, U=1]
+    want = torch.zeros(2, 2)
+    for i in range(2):
+        for m in range(2):
+            x = obs[i, 0]
+            for k in range(3):
+                x = x + acts[i, m, k, 0]
+                want[i, m] += 0.9 ** k * -(x ** 2)
+            want[i, m] += 0.9 ** 3 * -(x ** 2)
+    torch.testing.assert_close(planner.returns(obs, acts), want)
+    body = torch.zeros(2, 1, 13)
+    body[:, 0, 0] = obs[:, 0]
+    a = planner.step(body)
+    assert a.shape == (2, 1) and float(a[0, 0]) < -0.9 and abs(float(a[1, 0]) - 0.3) < 0.15
+    assert float(agent.act(obs, deterministic=True)[0, 0]) > -0.9     # the untrained policy does not
+    assert planner._mean.shape == (2, 3, 1)                              # the shifted plan, kept
+    again = PolicyMPC(agent, obs_of, 2, settings=s).step(body)
+    torch.testing.assert_close(a, again)                                 # the seed's draws
+    for bad, key in ((dict(elites=300), "elites"), (dict(min_std=1.5), "min_std"), (dict(horizon=0), "horizon")):
+        with pytest.raises(ConfigError, match=key):
+            PolicyMPCSettings(run=str(rl_run), **bad)
+
+
+def test_policy_mpc_from_a_run_needs_an_agent_with_a_model(rl_run):
+    """make_planner("policy-mpc") over a ddpg run (no model) is refused, naming why."""
+    from gnwarp.rl.planner import PolicyMPCSettings
+    assert get_planner("policy-mpc").settings is PolicyMPCSettings
+    with pytest.raises(ConfigError, match="learned model and reward: ddpg has none"):
+        make_planner("policy-mpc", None, "pendulum-balance", "pendulum", 1, {"run": str(rl_run), "device": "cpu"})
+
+
+def test_gnwarp_mpc_plans_over_a_trained_svg1_agent(tmp_path, capsys):
+    """``gnwarp mpc --policy RUN --planner policy-mpc``: a tiny SVG(1) run on swimmer6 planned
+    over with its own model and Q-function, in closed loop on MuJoCo C; its record names the
+    planner and the learned dynamics; planner settings go through --set and --horizon."""
+    from gnwarp.cli import main
+    from gnwarp.eval.records import read_records
+    run = tmp_path / "svg1"
+    run_rl(RLConfig(**{**RUN, "task": "swimmer6", "agent": "svg1", "observation": "dmc", "episode_steps": 10},
+                    out=str(run)))
+    rec_path = tmp_path / "r.jsonl"
+    args = ["mpc", "--task", "swimmer6", "--policy", str(run), "--planner", "policy-mpc", "--episodes", "2",
+            "--steps", "4", "--horizon", "2", "--set", "samples=8", "--set", "elites=4", "--set", "iterations=2",
+            "--backend", "mujoco", "--device", "cpu", "--video", "none", "--records", str(rec_path), "-q"]
+    assert main(args) == 0
+    assert "planning over the agent of" in capsys.readouterr().out
+    (rec,) = read_records(rec_path)
+    assert rec.planner == "policy-mpc" and rec.dynamics == "learned" and len(rec.returns) == 2
+    assert rec.config["settings"]["horizon"] == 2 and rec.config["settings"]["samples"] == 8
+    for extra, words in ((["--set", "elites=99"], "elites: at most samples + policy_samples"),
+                         (["--warmup", "3"], "--warmup does not apply to planner 'policy-mpc'"),
+                         (["--set", "colour=1"], "colour")):
+        assert main(args[:-1] + extra) == 2
+        assert words in capsys.readouterr().err
+    assert main(["mpc", "--task", "swimmer6", "--planner", "policy-mpc", "--video", "none"]) == 2
+    assert "give --policy RUN" in capsys.readouterr().err

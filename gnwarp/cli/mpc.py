@@ -15,6 +15,8 @@ __all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "timing_li
 PLANNERS = ("gradient", "hybrid", "sampling", "mppi")
 # the flags that set a planner's settings field of the same name, where its settings have one
 SETTING_FLAGS = ("horizon", "iterations", "warmup", "proposals", "lr")
+# planners over a trained gnwarp rl agent (--policy RUN): its policy alone, or planning with its model
+AGENT_PLANNERS = ("policy", "policy-mpc")
 
 
 def episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
@@ -44,6 +46,27 @@ def mpc_settings(args, task):
             return PolicySettings(run=args.policy or "", device=args.device or "auto")
         except ConfigError as e:
             raise ConfigError("--policy", e.reason) from None
+    if name == "policy-mpc":   # a trained SVG(N >= 1) agent, planned over with its model and Q-function
+        import gnwarp.rl.planner  # noqa: F401 - registers planner "policy-mpc"
+        if args.terminal is not None:
+            raise ValueError("--terminal: planner 'policy-mpc' ends its returns with the agent's own Q-function")
+        given = {"run": args.policy or "", "device": args.device or "auto", "seed": args.seed}
+        for flag in ("horizon", "iterations"):
+            if getattr(args, flag) is not None:
+                given[flag] = getattr(args, flag)
+        for flag in ("warmup", "proposals", "lr"):
+            if getattr(args, flag) is not None:
+                raise ValueError(f"--{flag} does not apply to planner 'policy-mpc' (its settings: horizon, samples, "
+                                 "policy_samples, iterations, elites, temperature, init_std, min_std, seed)")
+        for item in args.set or []:
+            key, eq, text = item.partition("=")
+            if not eq or not key.strip():
+                raise ConfigError("--set", f"expects KEY=VALUE (a field of PolicyMPCSettings), got {item!r}")
+            given[key.strip()] = parse_value(text)
+        try:
+            return planner_settings(name, given)
+        except ConfigError as e:
+            raise ConfigError("--policy" if e.path == "run" else e.path, f"{e.reason} (planner 'policy-mpc')") from None
     if name not in MODEL_PLANNERS:
         why = " (it does not plan through a learned model)" if name in ("ilqg", "random") else ""
         raise ValueError(f"--planner {name!r}{why}: gnwarp mpc plans through a learned model with one of "
@@ -83,6 +106,9 @@ def planner_summary(planner, name: str) -> str:
     s = planner.settings
     if name == "policy":
         return f"the trained policy of {s.run}, no planning"
+    if name == "policy-mpc":
+        return (f"planning over the agent of {s.run}: horizon {s.horizon}, {s.samples} sampled and "
+                f"{s.policy_samples} policy sequences, {s.iterations} iterations a step, its Q at the horizon")
     if name == "gradient":
         return (f"horizon {planner.horizon}, {s.iterations} iterations a step: {planner.model_evals_per_step} model "
                 "steps an episode")
@@ -114,15 +140,18 @@ def mpc_command(args) -> int:
     task = get_task(args.task)
     # refused before anything is loaded
     if args.policy is not None:
-        given = [f for f, v in (("--planner", args.planner not in (None, "policy")), ("--model", args.model),
+        given = [f for f, v in (("--planner", args.planner not in (None, *AGENT_PLANNERS)), ("--model", args.model),
                                 ("--impl", args.impl)) if v]
         if given:
             raise ValueError(f"--policy acts with a trained gnwarp rl policy: it takes no {' or '.join(given)}")
-    args.planner = "policy" if args.policy is not None else (args.planner or "gradient")
-    if args.model is None and args.planner != "policy":
+    if args.planner == "policy-mpc" and args.policy is None:
+        raise ValueError("planner 'policy-mpc' plans over a trained gnwarp rl agent: give --policy RUN")
+    args.planner = ((args.planner if args.planner in AGENT_PLANNERS else "policy") if args.policy is not None
+                    else (args.planner or "gradient"))
+    if args.model is None and args.planner not in AGENT_PLANNERS:
         raise ValueError(f"--model is required: planner {args.planner!r} plans through a learned model "
                          "(or act with a trained gnwarp rl policy: --policy RUN)")
-    policy = args.planner == "policy"
+    policy = args.planner in AGENT_PLANNERS   # an agent's run, no gnwarp model
     settings = mpc_settings(args, task)
     args.steps = args.steps if args.steps is not None else (getattr(task, "episode_steps", None) or 100)
     if args.episodes < 1 or args.steps < 1:
@@ -216,7 +245,8 @@ def mpc_command(args) -> int:
     fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
     horizon = getattr(planner, "horizon", None) or getattr(settings, "horizon", None)
     record = ResultRecord(
-        experiment="mpc", task=task.name, system=system.name, planner=kind, dynamics="none" if policy else "learned",
+        experiment="mpc", task=task.name, system=system.name, planner=kind,
+        dynamics="none" if kind == "policy" else "learned",
         seed=args.seed, episodes=n, episode_steps=args.steps, returns=[float(x) for x in r.double().cpu()],
         control_dt=float(system.dt), action_repeat=int(system.substeps),
         env_steps=planner.agent.env_steps if policy else training_env_steps(args.model),
@@ -290,12 +320,14 @@ def add_mpc(sub) -> None:
                            "steps). Prints the first control step and the steady state apart, with the real-time "
                            "factor (control timestep / steady time).",
                            "--policy RUN acts with the trained policy of a gnwarp rl run on the same task instead "
-                           "(no model, no planning: a baseline beside the planners).",
+                           "(no model, no planning: a baseline beside the planners); with --planner policy-mpc it "
+                           "plans over that agent (SVG(N >= 1)) with its own model, reward and Q-function.",
                            "On a CPU, start small: --episodes 2 --steps 20 --warmup 20."))
     m.add_argument("--model", help="checkpoint folder (e.g. runs/pendulum/best; default: none, required unless --policy)")
     m.add_argument("--policy", metavar="RUN",
                    help="act with the trained policy of the gnwarp rl run in folder RUN instead of planning "
-                        "(planner 'policy'; no --model; default: none)")
+                        "(planner 'policy'; no --model; default: none), or plan over that agent with "
+                        "--planner policy-mpc (its model, reward and Q-function; settings through --set)")
     m.add_argument("--task", required=True, help="task name (gnwarp.control.TASKS, e.g. pendulum-balance, cheetah-run)")
     m.add_argument("--system", help="system to control (default: the model's system that fits the task; with "
                                     "--policy, the task's)")

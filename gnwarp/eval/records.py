@@ -31,9 +31,9 @@ __all__ = ["FORMAT", "VERSION", "PLANNERS", "DYNAMICS", "RecordError", "ResultRe
 
 FORMAT, VERSION = "gnwarp-result", 1
 # planner or agent names a record may carry (the planner registry's names; "policy": a trained
-# agent's policy, gnwarp.rl.planner.PolicyPlanner); "none": a record of a model's accuracy, where
-# nothing plans
-PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "hybrid", "policy", "none")
+# agent's policy, gnwarp.rl.planner.PolicyPlanner; "policy-mpc": planning over such an agent with
+# its model and Q-function, PolicyMPC); "none": a record of a model's accuracy, where nothing plans
+PLANNERS = ("gradient", "sampling", "mppi", "ilqg", "random", "hybrid", "policy", "policy-mpc", "none")
 # what the planner predicts with: a learned model, the true simulator on MuJoCo-Warp or MuJoCo C,
 # or nothing (random actions, model-accuracy records)
 DYNAMICS = ("learned", "true_mjwarp", "true_mujoco_c", "none")
