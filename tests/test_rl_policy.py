@@ -162,6 +162,8 @@ def test_policy_mpc_scores_sequences_as_written_and_plans_towards_the_best(rl_ru
     assert a.shape == (2, 1) and float(a[0, 0]) < -0.9 and abs(float(a[1, 0]) - 0.3) < 0.15
     assert float(agent.act(obs, deterministic=True)[0, 0]) > -0.9     # the untrained policy does not
     assert planner._mean.shape == (2, 3, 1)                              # the shifted plan, kept
+    assert torch.equal(planner.act(body, 0), a) and torch.equal(planner.act(body, 0), a)   # reads, plans nothing
+    assert torch.equal(planner.act(body, 1), planner.plan[:, 1]) and torch.equal(planner.act(body, 9), planner.plan[:, 2])
     again = PolicyMPC(agent, obs_of, 2, settings=s).step(body)
     torch.testing.assert_close(a, again)                                 # the seed's draws
     for bad, key in ((dict(elites=300), "elites"), (dict(min_std=1.5), "min_std"), (dict(horizon=0), "horizon")):
@@ -195,10 +197,28 @@ def test_gnwarp_mpc_plans_over_a_trained_svg1_agent(tmp_path, capsys):
     (rec,) = read_records(rec_path)
     assert rec.planner == "policy-mpc" and rec.dynamics == "learned" and len(rec.returns) == 2
     assert rec.config["settings"]["horizon"] == 2 and rec.config["settings"]["samples"] == 8
-    for extra, words in ((["--set", "elites=99"], "elites: at most samples + policy_samples"),
+    for extra, words in ((["--set", "temperature=-1"], "temperature"),
                          (["--warmup", "3"], "--warmup does not apply to planner 'policy-mpc'"),
+                         (["--set", "horizon=3"], "--set horizon=3 and --horizon both set horizon"),
+                         (["--set", "run=elsewhere"], "both set run: give --policy"),
                          (["--set", "colour=1"], "colour")):
         assert main(args[:-1] + extra) == 2
         assert words in capsys.readouterr().err
     assert main(["mpc", "--task", "swimmer6", "--planner", "policy-mpc", "--video", "none"]) == 2
     assert "give --policy RUN" in capsys.readouterr().err
+
+
+def test_policy_mpc_never_plans_a_diverging_rollout(rl_run):
+    """Sequences whose predicted return is NaN (a model that diverges there) are never elites."""
+    from gnwarp.rl.agents import make_agent
+    from gnwarp.rl.planner import PolicyMPC, PolicyMPCSettings
+    from gnwarp.rl.settings import AgentSettings
+    torch.manual_seed(0)
+    nan_left = lambda x, a: torch.where(a < 0, torch.full_like(a, float("nan")), x + a)   # noqa: E731
+    agent = make_agent(AgentSettings(agent="svg1", hidden=(8,)), 1, [-1.0], [1.0], model=nan_left,
+                       reward=lambda x, a, x2: -((x2 - 0.5) ** 2).sum(-1), q=_NegSquare(0.0))
+    s = PolicyMPCSettings(run=str(rl_run), device="cpu", horizon=2, samples=32, policy_samples=4, iterations=3,
+                          elites=4, temperature=1.0)   # the agent given here, not the run's
+    planner = PolicyMPC(agent, lambda body, t: body[:, 0, :1], 1, settings=s)
+    a = planner.step(torch.zeros(1, 1, 13))
+    assert torch.isfinite(planner.plan).all() and float(a) >= 0

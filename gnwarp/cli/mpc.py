@@ -51,18 +51,24 @@ def mpc_settings(args, task):
         if args.terminal is not None:
             raise ValueError("--terminal: planner 'policy-mpc' ends its returns with the agent's own Q-function")
         given = {"run": args.policy or "", "device": args.device or "auto", "seed": args.seed}
+        source = {"run": "--policy", "device": "--device", "seed": "--seed"}
         for flag in ("horizon", "iterations"):
             if getattr(args, flag) is not None:
-                given[flag] = getattr(args, flag)
+                given[flag], source[flag] = getattr(args, flag), f"--{flag}"
         for flag in ("warmup", "proposals", "lr"):
             if getattr(args, flag) is not None:
                 raise ValueError(f"--{flag} does not apply to planner 'policy-mpc' (its settings: horizon, samples, "
                                  "policy_samples, iterations, elites, temperature, init_std, min_std, seed)")
         for item in args.set or []:
             key, eq, text = item.partition("=")
-            if not eq or not key.strip():
+            key = key.strip()
+            if not eq or not key:
                 raise ConfigError("--set", f"expects KEY=VALUE (a field of PolicyMPCSettings), got {item!r}")
-            given[key.strip()] = parse_value(text)
+            if key in source:   # one source a setting: the record names --policy, --seed and --device
+                raise ValueError(f"--set {item} and {source[key]} both set {key}: give {source[key]}"
+                                 if key in ("run", "device", "seed") else
+                                 f"--set {item} and {source[key]} both set {key}: give one")
+            given[key], source[key] = parse_value(text), f"--set {item}"
         try:
             return planner_settings(name, given)
         except ConfigError as e:
@@ -332,11 +338,12 @@ def add_mpc(sub) -> None:
     m.add_argument("--system", help="system to control (default: the model's system that fits the task; with "
                                     "--policy, the task's)")
     m.add_argument("--planner", default=None, metavar="NAME",
-                   help=f"planner through the model: {', '.join(PLANNERS)} (gnwarp.control.PLANNERS; default: "
-                        "gradient)")
+                   help=f"planner through the model: {', '.join(p for p in PLANNERS if p not in AGENT_PLANNERS)} "
+                        "(gnwarp.control.PLANNERS; default: gradient); with --policy RUN: policy (default) or "
+                        "policy-mpc (planning over the agent)")
     m.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a field of the planner's settings (repeatable; values parsed as JSON when they parse, "
-                        "e.g. --set samples=128 --set noise=0.3; default: none)")
+                        "e.g. --set samples=128 --set noise=0.3; policy-mpc: PolicyMPCSettings' fields; default: none)")
     m.add_argument("--terminal", metavar="VALUE_FILE",
                    help="a terminal value (gnwarp.control.value.TerminalValue.save) added to planned returns "
                         "(default: none)")
@@ -344,9 +351,9 @@ def add_mpc(sub) -> None:
     m.add_argument("--steps", type=int, default=None,
                    help="control steps per episode (default: the task's episode length, DMC's 1000, else 100; every "
                         "state is kept in memory: a run that cannot fit in the available memory is refused first)")
-    m.add_argument("--horizon", type=int, help="planning horizon (default: the task's)")
-    m.add_argument("--iterations", type=int, help="gradient iterations per control step (gradient, hybrid; "
-                                                   "default: the planner's, 5)")
+    m.add_argument("--horizon", type=int, help="planning horizon (default: the task's; policy-mpc: 5)")
+    m.add_argument("--iterations", type=int, help="iterations per control step (gradient, hybrid: gradient steps, "
+                                                   "default 5; policy-mpc: sampling rounds, default 4)")
     m.add_argument("--warmup", type=int, help="extra iterations at the first state (gradient, hybrid; default: 4 x "
                                               "iterations; the paper: iterations x horizon, with --proposals 0)")
     m.add_argument("--proposals", type=int,

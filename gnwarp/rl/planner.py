@@ -166,8 +166,8 @@ class PolicyMPC(PolicyPlanner):
         super().reset(n, targets)
         s = self.settings
         self._gen = torch.Generator(self.agent.device).manual_seed(s.seed if seed is None else int(seed))
-        self._mean = None
-        self._action = None
+        self._mean = None   # where the next control step's search starts
+        self.plan = None    # [N, H, U]: the last plan (``act`` reads it)
 
     @torch.no_grad()
     def returns(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -182,7 +182,8 @@ class PolicyMPC(PolicyPlanner):
             x2 = a.model(x, acts[:, k])
             total = total + gamma ** k * a.reward(x, acts[:, k], x2).reshape(-1)
             x = x2
-        total = total + gamma ** H * a.q(x, a.squash(a.policy(x)[0])).reshape(-1)
+        u = torch.maximum(torch.minimum(a.squash(a.policy(x)[0]), a.high), a.low)
+        total = total + gamma ** H * a.q(x, u).reshape(-1)
         return total.reshape(N, M)
 
     @torch.no_grad()
@@ -198,7 +199,7 @@ class PolicyMPC(PolicyPlanner):
             if sample:
                 eps = torch.randn(mean.shape, generator=self._gen, device=mean.device, dtype=mean.dtype)
                 mean = mean + log_std.exp() * eps
-            u = torch.maximum(torch.minimum(a.squash(mean), a.high), a.low)
+            u = torch.maximum(torch.minimum(a.squash(mean).nan_to_num(0.0), a.high), a.low)   # finite, in the box
             out.append(u)
             x = a.model(x, u)
         return torch.stack(out, 1).reshape(N, count, H, -1)
@@ -223,21 +224,22 @@ class PolicyMPC(PolicyPlanner):
             acts = torch.maximum(torch.minimum(mean[:, None] + std[:, None] * eps, high), low)
             if pol is not None:
                 acts = torch.cat([acts, pol], 1)
-            g = self.returns(obs, acts)                                     # [N, M]
+            # a diverging rollout (NaN or infinite return) ranks last and weighs nothing
+            g = self.returns(obs, acts).nan_to_num(nan=-1e30, posinf=-1e30, neginf=-1e30)
             top, idx = g.topk(s.elites, dim=1)                              # [N, K]
             elite = torch.gather(acts, 1, idx[:, :, None, None].expand(N, s.elites, H, U))
             w = torch.softmax(s.temperature * (top - top[:, :1]), dim=1)[:, :, None, None]
             mean = (w * elite).sum(1)
             std = ((w * (elite - mean[:, None]) ** 2).sum(1)).sqrt().clamp(min=s.min_std * half, max=s.init_std * half)
-        self._action = mean[:, 0].clone()
+        self.plan = mean
         self._mean = torch.cat([mean[:, 1:], mean[:, -1:]], 1)              # shifted: the next step's start
 
     def act(self, state, time: int = 0) -> torch.Tensor:
-        """The planned first actions [N, U] (planned now if ``optimize`` has not run)."""
-        if self._action is None:
+        """The last plan's actions [N, U] ``time`` steps ahead (its last beyond the horizon;
+        planned from ``state`` first if nothing is planned yet)."""
+        if self.plan is None:
             self.optimize(state)
-        out, self._action = self._action, None
-        return out
+        return self.plan[:, min(max(int(time), 0), self.horizon - 1)].clone()
 
     def step(self, state) -> torch.Tensor:
         self.optimize(state)
