@@ -58,15 +58,17 @@ def make(name: str, model, env):
     raise AssertionError(f"no test planner for {name}")
 
 
-# the planners of gnwarp.control; "policy" (a trained gnwarp rl agent, registered when gnwarp.rl.planner
-# is imported, as another test module may have done) acts without planning: tests/test_rl_policy.py
-CONTROL_PLANNERS = [n for n in PLANNERS if n != "policy"]
+# the planners of gnwarp.control; "policy" and "policy-mpc" (a trained gnwarp rl agent, registered when
+# gnwarp.rl.planner is imported, as another test module may have done) act with or plan over that agent:
+# tests/test_rl_policy.py
+AGENT_PLANNERS = {"policy", "policy-mpc"}
+CONTROL_PLANNERS = [n for n in PLANNERS if n not in AGENT_PLANNERS]
 
 
 def test_every_registered_planner_runs_in_run_episodes(model):
     env = make_env("pendulum", N, backend="mujoco")
     assert set(CONTROL_PLANNERS) == {"gradient", "sampling", "mppi", "ilqg", "random", "hybrid"}
-    assert set(PLANNERS) - set(CONTROL_PLANNERS) <= {"policy"}
+    assert set(PLANNERS) - set(CONTROL_PLANNERS) <= AGENT_PLANNERS
     for name in CONTROL_PLANNERS:
         planner = make(name, model, env)
         assert isinstance(planner, Planner) and planner_name(planner) == name
