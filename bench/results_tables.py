@@ -423,7 +423,7 @@ def rl_policy_mpc(root: Path, doc: Path) -> list[str]:
         d = np.asarray(r.returns) - np.asarray(base[-1].returns)
         half = t_quantile(len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)) if len(d) > 1 else math.nan
         s = r.config["settings"]
-        se = lambda x: f"{np.mean(x):.0f} +- {np.std(x, ddof=1) / math.sqrt(len(x)):.0f}"   # noqa: E731
+        se = lambda x: _mean_se({"mean": np.mean(x), "se": np.std(x, ddof=1) / math.sqrt(len(x))})   # noqa: E731
         out.append([r.task.replace("dmc-", ""), f"`{Path(r.config['policy']).name}`", str(len(d)), se(base[-1].returns),
                     se(r.returns), f"{d.mean():+.0f} [{d.mean() - half:+.0f}, {d.mean() + half:+.0f}]",
                     f"H {s['horizon']}, {s['samples']} + {s['policy_samples']} sequences, {s['iterations']} iterations, "

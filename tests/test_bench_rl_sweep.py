@@ -154,6 +154,6 @@ def test_a_failing_run_shows_its_log_and_a_late_one_is_killed_at_the_deadline(tm
     rl_sweep._guarded(job, tmp_path, t0, 100.0, t0 + 3.0, False, lines)
     assert time.monotonic() - t0 < 20
     text = dict((t.split(":")[1].strip(), (bad, t)) for bad, t in lines)
-    assert text["a.log"[:-4]][0] and "exit 3" in text["a"][1] and "boom" in text["a"][1]
+    assert text["a"][0] and "exit 3" in text["a"][1] and "boom" in text["a"][1]
     assert text["b"][0] and "killed at the call's deadline" in text["b"][1]
     assert (tmp_path / "_logs" / "a.log").read_text().startswith("boom")

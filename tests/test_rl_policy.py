@@ -161,7 +161,7 @@ def test_policy_mpc_scores_sequences_as_written_and_plans_towards_the_best(rl_ru
     a = planner.step(body)
     assert a.shape == (2, 1) and float(a[0, 0]) < -0.9 and abs(float(a[1, 0]) - 0.3) < 0.15
     assert float(agent.act(obs, deterministic=True)[0, 0]) > -0.9     # the untrained policy does not
-    assert planner._mean.shape == (2, 3, 1)                              # the shifted plan, kept
+    assert planner.plan.shape == (2, 3, 1)                               # the plan, kept (shifted next step)
     assert torch.equal(planner.act(body, 0), a) and torch.equal(planner.act(body, 0), a)   # reads, plans nothing
     assert torch.equal(planner.act(body, 1), planner.plan[:, 1]) and torch.equal(planner.act(body, 9), planner.plan[:, 2])
     again = PolicyMPC(agent, obs_of, 2, settings=s).step(body)

@@ -31,7 +31,7 @@ def mpc_settings(args, task):
     (each where the settings have that field; elsewhere ValueError), ``--seed``, then ``--set
     KEY=VALUE``; the horizon defaults to the task's, and ``knots`` to at most the horizon. An
     unknown key raises ``ConfigError`` naming the planner's fields, a bad value where it came from."""
-    from gnwarp.control.planner import MODEL_PLANNERS, get_planner, planner_settings
+    from gnwarp.control.planner import MODEL_PLANNERS, planner_settings
     from gnwarp.validation import ConfigError
     name = args.planner
     if name == "policy":   # a trained agent acts: no planner settings, no model
@@ -52,23 +52,8 @@ def mpc_settings(args, task):
             raise ValueError("--terminal: planner 'policy-mpc' ends its returns with the agent's own Q-function")
         given = {"run": args.policy or "", "device": args.device or "auto", "seed": args.seed}
         source = {"run": "--policy", "device": "--device", "seed": "--seed"}
-        for flag in ("horizon", "iterations"):
-            if getattr(args, flag) is not None:
-                given[flag], source[flag] = getattr(args, flag), f"--{flag}"
-        for flag in ("warmup", "proposals", "lr"):
-            if getattr(args, flag) is not None:
-                raise ValueError(f"--{flag} does not apply to planner 'policy-mpc' (its settings: horizon, samples, "
-                                 "policy_samples, iterations, elites, temperature, init_std, min_std, seed)")
-        for item in args.set or []:
-            key, eq, text = item.partition("=")
-            key = key.strip()
-            if not eq or not key:
-                raise ConfigError("--set", f"expects KEY=VALUE (a field of PolicyMPCSettings), got {item!r}")
-            if key in source:   # one source a setting: the record names --policy, --seed and --device
-                raise ValueError(f"--set {item} and {source[key]} both set {key}: give {source[key]}"
-                                 if key in ("run", "device", "seed") else
-                                 f"--set {item} and {source[key]} both set {key}: give one")
-            given[key], source[key] = parse_value(text), f"--set {item}"
+        # the record names --policy, --device and --seed: --set may not change them
+        _flags_and_sets(args, name, given, source, pinned=("run", "device", "seed"))
         try:
             return planner_settings(name, given)
         except ConfigError as e:
@@ -77,26 +62,8 @@ def mpc_settings(args, task):
         why = " (it does not plan through a learned model)" if name in ("ilqg", "random") else ""
         raise ValueError(f"--planner {name!r}{why}: gnwarp mpc plans through a learned model with one of "
                          f"{', '.join(MODEL_PLANNERS)}")
-    entry = get_planner(name)
-    fields = {f.name: f for f in dataclasses.fields(entry.settings)}
-    given, source = {}, {}
-    for flag in SETTING_FLAGS:
-        value = getattr(args, flag)
-        if value is None:
-            continue
-        if flag not in fields:
-            raise ValueError(f"--{flag} does not apply to planner {name!r} ({entry.settings.__name__} has no "
-                             f"{flag}; its settings: {', '.join(fields)})")
-        given[flag], source[flag] = value, f"--{flag}"
-    given["seed"], source["seed"] = args.seed, "--seed"
-    for item in args.set or []:
-        key, eq, text = item.partition("=")
-        key = key.strip()
-        if not eq or not key:
-            raise ConfigError("--set", f"expects KEY=VALUE (a field of {entry.settings.__name__}), got {item!r}")
-        if key in source and source[key] != "--seed":
-            raise ValueError(f"--set {item} and {source[key]} both set {key}: give one")
-        given[key], source[key] = parse_value(text), f"--set {item}"
+    given, source = {"seed": args.seed}, {"seed": "--seed"}
+    fields = _flags_and_sets(args, name, given, source)
     if "horizon" not in given:   # the task's (every planner's default), here also to bound the knots
         given["horizon"] = task.horizon
     if "knots" in fields and "knots" not in given:
@@ -105,6 +72,35 @@ def mpc_settings(args, task):
         return planner_settings(name, given)
     except ConfigError as e:   # the key, the value's source and the planner's fields
         raise ConfigError(e.path, f"{e.reason} (planner {name!r}, from {source.get(e.path, 'the defaults')})") from None
+
+
+def _flags_and_sets(args, name: str, given: dict, source: dict, pinned: tuple = ()) -> dict:
+    """Into ``given`` (``source``: where each came from): the flags of ``SETTING_FLAGS`` given (each
+    where planner ``name``'s settings have that field; elsewhere ValueError), then ``--set
+    KEY=VALUE``; a key set twice is refused, but ``--set seed`` may replace ``--seed`` unless
+    ``pinned`` holds it (nor may --set change any other pinned key). Returns the settings' fields."""
+    from gnwarp.control.planner import get_planner
+    from gnwarp.validation import ConfigError
+    entry = get_planner(name)
+    fields = {f.name: f for f in dataclasses.fields(entry.settings)}
+    for flag in SETTING_FLAGS:
+        value = getattr(args, flag)
+        if value is None:
+            continue
+        if flag not in fields:
+            raise ValueError(f"--{flag} does not apply to planner {name!r} ({entry.settings.__name__} has no "
+                             f"{flag}; its settings: {', '.join(fields)})")
+        given[flag], source[flag] = value, f"--{flag}"
+    for item in args.set or []:
+        key, eq, text = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ConfigError("--set", f"expects KEY=VALUE (a field of {entry.settings.__name__}), got {item!r}")
+        if key in source and (key in pinned or source[key] != "--seed"):
+            raise ValueError(f"--set {item} and {source[key]} both set {key}: "
+                             f"give {source[key] if key in pinned else 'one'}")
+        given[key], source[key] = parse_value(text), f"--set {item}"
+    return fields
 
 
 def planner_summary(planner, name: str) -> str:

@@ -166,8 +166,7 @@ class PolicyMPC(PolicyPlanner):
         super().reset(n, targets)
         s = self.settings
         self._gen = torch.Generator(self.agent.device).manual_seed(s.seed if seed is None else int(seed))
-        self._mean = None   # where the next control step's search starts
-        self.plan = None    # [N, H, U]: the last plan (``act`` reads it)
+        self.plan = None    # [N, H, U]: the last plan (``act`` reads it; shifted, the next search's start)
 
     @torch.no_grad()
     def returns(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -214,9 +213,10 @@ class PolicyMPC(PolicyPlanner):
         obs = a._obs(self.observation(body, self.targets))
         N, H, U = self.n, self.horizon, a.action_dim
         half, low, high = a.half, a.low, a.high
-        if self._mean is None:   # the first step: the policy's mean plan
-            self._mean = self._policy_sequences(obs, 1, sample=False)[:, 0]
-        mean = self._mean
+        if self.plan is None:   # the first step: the policy's mean plan
+            mean = self._policy_sequences(obs, 1, sample=False)[:, 0]
+        else:                   # the last plan shifted one step
+            mean = torch.cat([self.plan[:, 1:], self.plan[:, -1:]], 1)
         std = (s.init_std * half).expand(N, H, U).clone()
         pol = self._policy_sequences(obs, s.policy_samples, sample=True) if s.policy_samples else None
         for _ in range(s.iterations):
@@ -232,7 +232,6 @@ class PolicyMPC(PolicyPlanner):
             mean = (w * elite).sum(1)
             std = ((w * (elite - mean[:, None]) ** 2).sum(1)).sqrt().clamp(min=s.min_std * half, max=s.init_std * half)
         self.plan = mean
-        self._mean = torch.cat([mean[:, 1:], mean[:, -1:]], 1)              # shifted: the next step's start
 
     def act(self, state, time: int = 0) -> torch.Tensor:
         """The last plan's actions [N, U] ``time`` steps ahead (its last beyond the horizon;
