@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-__all__ = ["seeds_of", "run_name", "main", "rank_env"]
+__all__ = ["seeds_of", "run_name", "seed_config", "main", "rank_env"]
 
 # copied to <results>/<task>/<run>/s<seed>/ for bench/rl_summary.py
 COPIED = ("records.jsonl", "progress.csv", "config.json")
@@ -90,6 +90,23 @@ def run_name(base: dict) -> str:
             + ("-ahead" if ahead else ""))
 
 
+def seed_config(quick: bool, task: str, agent: str, preset: str, networks: str, threads: int,
+                env_steps: int | None, sets, **more) -> dict:
+    """The ``RLConfig`` keys every seed of a call shares: ``QUICK``'s (whose agent and task stand
+    unless ``sets`` change them) or ``task`` and ``agent``; then the preset, networks, MuJoCo C's
+    threads (``sim_threads``: processes side by side share the cores), ``env_steps`` where given,
+    ``more``, and ``sets`` (``KEY=VALUE``, values parsed as JSON where they parse)."""
+    from gnwarp.validation import parse_value
+    base: dict = dict(QUICK) if quick else dict(task=task, agent=agent)
+    base.update(preset=preset, networks=networks, progress=False, sim_threads=threads, **more)
+    if env_steps is not None:
+        base["env_steps"] = env_steps
+    for item in sets:
+        key, _, text = item.partition("=")
+        base[key.strip()] = parse_value(text)
+    return base
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--agent", default="svg1")
@@ -112,17 +129,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.one:
         return _one(a.one)
-    base: dict = dict(QUICK) if a.quick else dict(task=a.task, agent=a.agent)
-    base.update(preset=a.preset, networks=a.networks, budget_seconds=a.budget_seconds, progress=False,
-                sim_threads=a.threads)   # MuJoCo C's pool too: processes side by side share the cores
-    if a.env_steps is not None:
-        base["env_steps"] = a.env_steps
-    for item in a.set:
-        key, _, text = item.partition("=")
-        try:
-            base[key.strip()] = json.loads(text)
-        except json.JSONDecodeError:
-            base[key.strip()] = text
+    base = seed_config(a.quick, a.task, a.agent, a.preset, a.networks, a.threads, a.env_steps, a.set,
+                       budget_seconds=a.budget_seconds)
     seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
     try:
         name = run_name(base)

@@ -55,10 +55,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.rl_seeds import QUICK, run_name, seeds_of  # noqa: E402
+from bench.rl_seeds import run_name, seed_config, seeds_of  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.run import check_task  # noqa: E402
-from gnwarp.validation import ConfigError, parse_value, read_config_file  # noqa: E402
+from gnwarp.validation import ConfigError, read_config_file  # noqa: E402
 
 __all__ = ["read_spec", "commands", "main", "pack", "start_mps"]
 
@@ -147,15 +147,9 @@ def read_spec(path) -> dict:
 
 
 def effective_run(r: dict) -> dict:
-    """The run's settings as ``bench/rl_seeds.py`` builds them (``quick``: its CPU-sized ones,
-    whose agent and task stand unless ``set`` changes them)."""
-    base = dict(QUICK) if r.get("quick") else {"task": r["task"], "agent": r["agent"]}
-    base.update(preset=r.get("preset", "spinningup"), networks=r.get("networks", "mlp"),
-                sim_threads=r.get("threads", 1), progress=False)
-    if "env_steps" in r:
-        base["env_steps"] = r["env_steps"]
-    base.update({s.partition("=")[0].strip(): parse_value(s.partition("=")[2]) for s in r["set"]})
-    return base
+    """The run's settings as ``bench/rl_seeds.py`` builds them (``seed_config``)."""
+    return seed_config(bool(r.get("quick")), r["task"], r["agent"], r.get("preset", "spinningup"),
+                       r.get("networks", "mlp"), r.get("threads", 1), r.get("env_steps"), r["set"])
 
 
 def commands(spec: dict, work, budget: float) -> list[dict]:
