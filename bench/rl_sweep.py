@@ -9,7 +9,8 @@ probes took) and is resumed by the next call from its checkpoint; a run already 
 once. Every process runs in a process group of its own; one still running ``PACK_SECONDS`` before
 the call's end is killed with its children, so the archives are always written. The run folders are ``<work>/<task>/<run name>/s<seed>`` (``--work`` runs/rl: the
 ``"out"`` that ``bench/results/rl/`` records), the records copied to ``<work>/_results/<task>/...``
-(the layout of ``bench/results/rl/``), each agent exported to ``<work>/_export/<task>/...``.
+(the layout of ``bench/results/rl/``) at the call's end, a killed run's evaluations so far
+included, each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
 probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
 (the agents) into DIR: what comes back from the machine.
@@ -55,12 +56,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.rl_seeds import run_name, seed_config, seeds_of  # noqa: E402
+from bench.rl_seeds import COPIED, run_name, seed_config, seeds_of  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.run import check_task  # noqa: E402
 from gnwarp.validation import ConfigError, read_config_file  # noqa: E402
 
-__all__ = ["read_spec", "commands", "main", "pack", "start_mps"]
+__all__ = ["read_spec", "commands", "main", "collect", "pack", "start_mps"]
 
 RUN_KEYS = {"agent", "task", "seeds", "env_steps", "preset", "networks", "threads", "set", "quick"}
 GPU_KEYS = {"index", "probes", "runs"}
@@ -256,6 +257,28 @@ def start_mps() -> str:
     return "MPS: daemon started" if rc.returncode == 0 else f"MPS: could not start the daemon ({rc.stderr.strip()})"
 
 
+def collect(work) -> int:
+    """Copy every run folder's records (``records.jsonl``, ``progress.csv``, ``config.json``) to
+    ``<work>/_results`` as ``bench/rl_seeds.py`` does when a seed's process ends: also for a process
+    killed at the deadline, whose evaluations up to then are kept. The number of seeds copied."""
+    import shutil
+    work, n = Path(work), 0
+    for rec in sorted(work.glob("*/*/s*/records.jsonl")):
+        seed_dir = rec.parent
+        rel = seed_dir.relative_to(work)
+        if rel.parts[0].startswith("_"):
+            continue
+        dest = work / "_results" / rel
+        dest.mkdir(parents=True, exist_ok=True)
+        for f in COPIED:
+            if (seed_dir / f).is_file():
+                tmp = dest / (f + ".tmp")
+                shutil.copyfile(seed_dir / f, tmp)
+                tmp.replace(dest / f)
+        n += 1
+    return n
+
+
 def pack(work, dest) -> list[Path]:
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
     written to a temporary name, then renamed)."""
@@ -325,6 +348,7 @@ def main(argv=None) -> int:
     finally:
         print("\n".join(text for _, text in sorted(lines, key=lambda x: x[1])))
         print(f"call: {time.monotonic() - started:.0f} s")
+        print(f"records of {collect(work)} seeds under {work / '_results'}")
         if a.pack:
             for p in pack(work, a.pack):
                 print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")

@@ -166,3 +166,23 @@ def test_a_failing_run_shows_its_log_and_a_late_one_is_killed_at_the_deadline(tm
             return False
     assert not alive(child)                      # killed with its parent's group, not left running
     assert (tmp_path / "_logs" / "a.log").read_text().startswith("boom")
+
+
+def test_collect_keeps_a_killed_runs_records(tmp_path):
+    """A run folder's records reach _results at the call's end whether or not its process
+    finished (rl_seeds copies them only on a clean exit); the _-folders are not runs."""
+    seed = tmp_path / "swimmer6" / "svg1-spinningup-mlp-ahead" / "s3"
+    seed.mkdir(parents=True)
+    (seed / "records.jsonl").write_text('{"env_steps": 10000}\n')
+    (seed / "progress.csv").write_text("env_steps\n10000\n")
+    (seed / "checkpoint.pt").write_bytes(b"x")
+    old = tmp_path / "_results" / "swimmer6" / "svg1-spinningup-mlp-ahead" / "s3"
+    old.mkdir(parents=True)
+    (old / "records.jsonl").write_text("stale\n")
+    (tmp_path / "_export" / "a" / "b" / "s0").mkdir(parents=True)
+    (tmp_path / "_export" / "a" / "b" / "s0" / "records.jsonl").write_text("not a run\n")
+    assert rl_sweep.collect(tmp_path) == 1
+    assert (old / "records.jsonl").read_text() == '{"env_steps": 10000}\n'
+    assert (old / "progress.csv").is_file() and not (old / "checkpoint.pt").exists()
+    assert not (old / "config.json").exists() and not list(old.glob("*.tmp"))
+    assert not (tmp_path / "_results" / "_export").exists()

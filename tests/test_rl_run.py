@@ -155,6 +155,27 @@ def test_budget_stops_at_a_round_end(tmp_path):
     assert r["stop"] == "budget" and r["env_steps"] == 20 and r["rounds"] == 1
 
 
+def test_budget_keeps_time_for_the_calls_video(tmp_path, monkeypatch):
+    """The budget counts the call's end: the video's time, guessed until a call has timed it."""
+    import time
+
+    import gnwarp.rl.run as run_mod
+
+    def slow_video(path, *a, **k):
+        time.sleep(0.3)
+        path.write_bytes(b"GIF89a")
+        return path
+    monkeypatch.setattr(run_mod, "write_video", slow_video)
+    monkeypatch.setattr(run_mod, "VIDEO_SECONDS_GUESS", 1e3)
+    cfg = dict(TINY, video_episodes=1, video_steps=5, out=str(tmp_path / "v"), budget_seconds=60.0)
+    r = run_rl(RLConfig(**cfg))     # the guess (1000 s) leaves no second round within 60 s
+    assert r["stop"] == "budget" and r["rounds"] == 1 and r["video"]
+    timed = load_checkpoint(tmp_path / "v" / CHECKPOINT)["counters"]["video_seconds"]
+    assert 0.3 <= timed < 30
+    r = run_rl(RLConfig(**cfg))     # the time measured (0.3 s) does
+    assert r["stop"] == "done" and r["rounds"] == 5
+
+
 def test_svg1_gn_on_swimmer6(tmp_path):
     pytest.importorskip("dm_control")
     cfg = RLConfig(task="swimmer6", agent="svg1", networks="gn", gn_impl="torch", num_envs=2, episode_steps=6,

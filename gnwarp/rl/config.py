@@ -49,7 +49,8 @@ class RLConfig:
     ...). ``seed``: of the networks, the agent, the env and the evaluation. ``device``: the
     agent's; ``backend``: the true simulator's. ``chunk``: env steps at most in this call;
     ``budget_seconds``: stop before a round expected to end past this many seconds of this
-    call; both stop at episode ends only, so a resumed run equals an uninterrupted one.
+    call, the call's end (final checkpoint, video) counted; both stop at episode ends only, so a
+    resumed run equals an uninterrupted one.
     ``sim_threads``: the threads of MuJoCo C's rollout pool in each env (results do not depend on
     it; several runs side by side want few each). ``cuda_graph``: on CUDA, the gradient update is
     recorded once in a CUDA graph and replayed

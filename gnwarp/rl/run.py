@@ -45,6 +45,9 @@ AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buf
 
 _PIECE = 50   # vector steps between progress-bar updates
 VIDEO_FILE = "video.gif"
+# what the budget keeps for the call's video until a call of the run has timed one (swimmer6's
+# default video, 2 x 300 steps, took 25-30 s on one CPU core; the budget then uses the time measured)
+VIDEO_SECONDS_GUESS = 30.0
 
 
 def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
@@ -371,12 +374,21 @@ def run_rl(cfg: RLConfig) -> dict:
     dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
 
     def checkpoint():
+        t = time.perf_counter()
         save_checkpoint(out / CHECKPOINT, dict(
             agent=agent.state_dict(), buffer=buffer.state_dict(), generator=gen.get_state(),
             collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
             env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
+        timing["checkpoint"] = time.perf_counter() - t
+
+    def finish_reserve() -> float:
+        """Seconds the call's end takes after its last round: the final checkpoint, and the video
+        (timed by an earlier call of this run, else ``VIDEO_SECONDS_GUESS``)."""
+        vid = c.get("video_seconds", VIDEO_SECONDS_GUESS) if cfg.video_episodes else 0.0
+        return timing["checkpoint"] + vid
 
     video = {}   # the body states of this call's last evaluation, for video.gif
+    timing = {"checkpoint": 0.0}   # seconds the last checkpoint took
 
     previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
 
@@ -420,7 +432,8 @@ def run_rl(cfg: RLConfig) -> dict:
             if rounds_cap is not None and done_here >= rounds_cap:
                 stop = "chunk"
                 break
-            if cfg.budget_seconds is not None and done_here and elapsed + last_round_s > cfg.budget_seconds:
+            if (cfg.budget_seconds is not None and done_here
+                    and elapsed + last_round_s + finish_reserve() > cfg.budget_seconds):
                 stop = "budget"
                 break
             t0 = time.perf_counter()
@@ -468,8 +481,8 @@ def run_rl(cfg: RLConfig) -> dict:
             last_round_s = time.perf_counter() - t0   # with its evaluation and checkpoint: the budget's unit
         if c["round"] >= total_rounds:
             stop = "done"
-        checkpoint()
-        if video:
+        if video:   # before the final checkpoint, which keeps its time for the next call's budget
+            t = time.perf_counter()
             try:
                 write_video(out / VIDEO_FILE, video["states"], env.system, f"{cfg.agent} {task.name}, "
                             f"deterministic policy after {video['env_steps']} env steps", cfg.renderer)
@@ -477,6 +490,8 @@ def run_rl(cfg: RLConfig) -> dict:
                 video.clear()
                 warnings.warn(f"no video written ({type(e).__name__}: {e}); renderer 'matplotlib' needs no "
                               "OpenGL", RuntimeWarning, stacklevel=2)
+            c["video_seconds"] = time.perf_counter() - t
+        checkpoint()
     finally:
         bar.close()
         log.close()
