@@ -193,7 +193,7 @@ def headline(root: Path, doc: Path) -> list[str]:
                  link("distributed")])
     every = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1   # one update an env step, in turn
-           and not r.get("act_ahead", False)]
+           and not r.get("act_ahead", False) and not r.get("settings")]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
     at500 = {(r["task"].split("-", 1)[1], r["agent"]): r for r in one
              if r["task"] in ("dmc-walker-walk", "dmc-cheetah-run") and r["env_steps"] == 500000}
@@ -339,21 +339,22 @@ def rl_h1(root: Path, doc: Path) -> list[str]:
 
 @table("rl-curves")
 def rl_curves(root: Path, doc: Path) -> list[str]:
-    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead) at 100k, 250k and 500k
+    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead, settings) at 100k, 250k and 500k
     env steps and at its last point: mean +- s.e. over seeds (median; seeds)."""
     rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
         groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"], r.get("utd", 1.0),
-                           r.get("act_ahead", False)), {})[r["env_steps"]] = r
+                           r.get("act_ahead", False), r.get("settings", "")), {})[r["env_steps"]] = r
     cell = lambda r: "" if r is None else f"{_mean_se(r)} ({r['median']:.0f}; {r['seeds']})"   # noqa: E731
     order = {"ddpg": -1}
     out = []
-    for (task, agent, preset, nets, utd, ahead), pts in sorted(groups.items(), key=lambda kv: (
-            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5])):
+    for (task, agent, preset, nets, utd, ahead, tag), pts in sorted(groups.items(), key=lambda kv: (
+            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5], kv[0][6])):
         last = max(pts)
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
-        name += ("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
+        name += (("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
+                 + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else ""))
         out.append([task.replace("dmc-", ""), name, nets, *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
     return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "
@@ -384,7 +385,7 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
     by = seed_means(root)
     runs: dict[tuple[str, str], dict[int, dict[int, float]]] = {}
     for k, v in by.items():
-        if k[2:6] == ("spinningup", "mlp", 1.0, False) and k[1] in ("svg0", "svg1"):
+        if k[2:7] == ("spinningup", "mlp", 1.0, False, "") and k[1] in ("svg0", "svg1"):
             runs.setdefault((k[0], k[1]), {})[k[-1]] = {seed: m for seed, (m, _) in v.items()}
 
     def cell(v: dict) -> str:

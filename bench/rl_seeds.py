@@ -78,7 +78,9 @@ def _one(cfg_json: str) -> int:
 
 def run_name(base: dict) -> str:
     """The run's folder name: ``<agent>-<preset>-<networks>``, ``-utd<k>`` where ``utd`` is not 1,
-    ``-ahead`` where ``act_ahead`` is true (``ValueError`` naming a bad value)."""
+    ``-ahead`` where ``act_ahead`` is true, then each agent setting off its default
+    (``gnwarp.rl.settings.settings_tag``: ``-squash_penalty0.001``) (``ValueError`` naming a bad
+    value)."""
     try:
         utd = float(base.get("utd", 1.0))
     except (TypeError, ValueError):
@@ -86,8 +88,17 @@ def run_name(base: dict) -> str:
     ahead = base.get("act_ahead", False)
     if not isinstance(ahead, bool):
         raise ValueError(f"--set act_ahead=...: true or false, got {ahead!r}")
+    extra = base.get("agent_settings") or {}
+    if not isinstance(extra, dict):
+        raise ValueError(f"--set agent_settings=...: a JSON object of agent settings, got {extra!r}")
+    from gnwarp.rl.settings import settings_tag
+    from gnwarp.validation import ConfigError
+    try:
+        tag = settings_tag({"agent": base["agent"], "preset": base.get("preset", "spinningup"), **extra})
+    except ConfigError as e:
+        raise ValueError(f"--set agent_settings=...: {e}") from None
     return (f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
-            + ("-ahead" if ahead else ""))
+            + ("-ahead" if ahead else "") + ("-" + tag.replace("=", "").replace(",", "-") if tag else ""))
 
 
 def seed_config(quick: bool, task: str, agent: str, preset: str, networks: str, threads: int,

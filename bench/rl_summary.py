@@ -2,14 +2,15 @@
 
 Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp rl`` writes
 ``records.jsonl`` in its run folder: copy or concatenate those under ``bench/results/rl/``) and
-writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, env_steps)::
+writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, settings, env_steps)::
 
-    {"task", "agent", "preset", "networks", "utd", "act_ahead", "env_steps", "seeds", "eval_episodes",
-     "median", "q25", "q75", "mean", "se"}
+    {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
+     "eval_episodes", "median", "q25", "q75", "mean", "se"}
 
 (``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it.
 ``act_ahead``: the training loop picked each action before the previous step's updates,
-``RLConfig.act_ahead``; false for records without it.)
+``RLConfig.act_ahead``; false for records without it. ``settings``: the agent settings off
+their defaults, ``gnwarp.rl.settings.settings_tag``: "" for none.)
 
 Each seed counts once per point: its evaluation's mean return (over its deterministic episodes;
 a rerun of a seed at the same env steps: the last record stands). ``median``, ``q25``, ``q75``:
@@ -17,7 +18,8 @@ of those seed means (linear interpolation); ``mean`` and its standard error ``se
 standard deviation / sqrt(seeds); null for one seed). ``eval_episodes``: the fewest episodes
 of any seed at that point.
 
-Plots (``learning_curves_<task>.png``): per task, each (agent, preset, networks) against env
+Plots (``learning_curves_<task>.png``): per task, each run variant (agent, preset, networks, utd,
+act_ahead, settings) against env
 steps: the median with its 25-75% band (left) and the mean with +- one standard error (right).
 
     PYTHONPATH=. python3 bench/rl_summary.py              # rewrite summary.json and the plots
@@ -41,6 +43,7 @@ if str(ROOT) not in sys.path:
 from gnwarp.eval.records import RecordError, read_records  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write, write_or_check  # noqa: E402
+from gnwarp.rl.settings import settings_tag  # noqa: E402
 
 __all__ = ["RL", "seed_means", "rows", "point", "difference", "plot_curves", "main"]
 
@@ -60,12 +63,15 @@ def point(seed_means: list[float]) -> dict:
 def _group(rec) -> tuple:
     c = rec.config
     agent, preset, networks = (rec.variant.split("/") + ["", "", ""])[:3]
-    return (rec.task, c.get("agent", agent), c.get("preset", preset), c.get("networks", networks or "mlp"),
-            float(c.get("utd", 1.0)), bool((c.get("agent_settings") or {}).get("act_ahead", False)))
+    agent, preset = c.get("agent", agent), c.get("preset", preset)
+    given = c.get("agent_settings") or {}
+    return (rec.task, agent, preset, c.get("networks", networks or "mlp"),
+            float(c.get("utd", 1.0)), bool(given.get("act_ahead", False)),
+            settings_tag({**given, "agent": agent, "preset": preset}))
 
 
 def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
-    """{(task, agent, preset, networks, utd, act_ahead, env_steps): {seed: (its evaluation's mean return, its
+    """{(task, agent, preset, networks, utd, act_ahead, settings, env_steps): {seed: (its evaluation's mean return, its
     episodes)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
@@ -84,13 +90,14 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
 def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
     ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd,
-    act_ahead, env steps."""
+    act_ahead, settings, env steps."""
     by = seed_means(root, folder)
     out = []
     for key in sorted(by):
         seeds = by[key]
-        task, agent, preset, networks, utd, ahead, steps = key
+        task, agent, preset, networks, utd, ahead, tag, steps = key
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
+                        settings=tag,
                         env_steps=steps,
                         seeds=len(seeds), eval_episodes=min(n for _, n in seeds.values()),
                         **point([m for m, _ in seeds.values()])))
@@ -114,9 +121,10 @@ def difference(a, b) -> tuple[float, float, float]:
 
 
 def _run(row: dict) -> tuple:
-    """(agent, preset, networks, utd, act_ahead) of a summary row (utd 1, act_ahead false where
-    the row predates them)."""
-    return row["agent"], row["preset"], row["networks"], row.get("utd", 1.0), row.get("act_ahead", False)
+    """(agent, preset, networks, utd, act_ahead, settings) of a summary row (utd 1, act_ahead
+    false, settings "" where the row predates them)."""
+    return (row["agent"], row["preset"], row["networks"], row.get("utd", 1.0), row.get("act_ahead", False),
+            row.get("settings", ""))
 
 
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
@@ -131,7 +139,8 @@ def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
         for run in runs:
             pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
             x = np.array([p["env_steps"] for p in pts], dtype=float)
-            utd = ("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
+            utd = (("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
+                   + (f", {run[5]}" if run[5] else ""))
             label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
             line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
             ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)

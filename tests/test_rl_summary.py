@@ -16,13 +16,14 @@ from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
 
 
 def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None,
-         ahead=None):
+         ahead=None, settings=None):
     return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
                         dynamics="true_mjwarp", variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
                         episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
                         config=dict(agent=agent, preset=preset, networks=networks)
                         | ({} if utd is None else {"utd": utd})
-                        | ({} if ahead is None else {"agent_settings": {"act_ahead": ahead}}))
+                        | ({} if ahead is None and settings is None else
+                           {"agent_settings": ({} if ahead is None else {"act_ahead": ahead}) | (settings or {})}))
 
 
 def test_point_statistics_against_numpy():
@@ -61,7 +62,7 @@ def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
                                        _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
     by = rs.seed_means(tmp_path, Path("rl"))
-    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, 1000): {0: (10.0, 2), 1: (7.0, 3)}}
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", 1000): {0: (10.0, 2), 1: (7.0, 3)}}
 
 
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
@@ -74,20 +75,26 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
         _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0]),
         _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control"),
         _rec("svg1", 1, 1000, [200.0, 400.0], utd=3),    # another curve: 3 updates an env step
-        _rec("svg1", 1, 1000, [500.0, 700.0], ahead=True), _rec("svg1", 0, 1000, [7.0, 7.0], ahead=False)])
+        _rec("svg1", 1, 1000, [500.0, 700.0], ahead=True),
+        _rec("svg1", 1, 1000, [900.0, 900.0], settings={"squash_penalty": 1e-3, "seed": 1}),
+        _rec("svg1", 0, 1000, [7.0, 7.0], ahead=False, settings={"squash_penalty": 0.0, "hidden": [256, 256]})])
     (folder / "rl_agents_gpu.jsonl").write_text(json.dumps({"agent": "ddpg", "updates_per_s": 200}) + "\n")
     assert rs.main(["--root", str(tmp_path)]) == 0
     summary = json.loads((folder / "summary.json").read_text())
-    keys = {"task", "agent", "preset", "networks", "utd", "act_ahead", "env_steps", "seeds", "eval_episodes",
-            "median", "q25", "q75", "mean", "se"}
+    keys = {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
+            "eval_episodes", "median", "q25", "q75", "mean", "se"}
     assert all(set(r) == keys for r in summary)
-    got = {(r["agent"], r["env_steps"]): r for r in summary if r["utd"] == 1 and not r["act_ahead"]}
+    got = {(r["agent"], r["env_steps"]): r for r in summary
+           if r["utd"] == 1 and not r["act_ahead"] and not r["settings"]}
+    (tuned,) = [r for r in summary if r["settings"]]   # a setting off its default: a curve of its own
+    assert tuned["settings"] == "squash_penalty=0.001" and tuned["mean"] == 900.0
     assert set(got) == {("ddpg", 1000), ("svg1", 0), ("svg1", 1000)}
     (more,) = [r for r in summary if r["utd"] == 3]
     assert more["agent"] == "svg1" and more["seeds"] == 1 and more["mean"] == 300.0 and not more["act_ahead"]
     (ahead,) = [r for r in summary if r["act_ahead"]]   # acting ahead: a curve of its own
     assert ahead["seeds"] == 1 and ahead["mean"] == 600.0 and ahead["utd"] == 1
-    # seed 0's last record stands (act_ahead false said outright: the same curve as unsaid; mean 7);
+    # seed 0's last record stands (act_ahead false and defaults said outright: the same curve as
+    # unsaid; mean 7);
     # seed 1's mean 80; the control record is skipped
     late = got[("svg1", 1000)]
     assert late["seeds"] == 2 and late["eval_episodes"] == 2
@@ -118,6 +125,15 @@ def test_run_names_of_the_side_by_side_runner():
         run_name({**base, "act_ahead": "yes"})
     with pytest.raises(ValueError, match="utd=...: updates per env step"):
         run_name({**base, "utd": "many"})
+    # agent settings off their defaults name a run of their own; a default said outright does not
+    assert (run_name({**base, "act_ahead": True, "agent_settings": {"squash_penalty": 1e-3, "entropy_weight": 0.0}})
+            == "svg1-spinningup-mlp-ahead-squash_penalty0.001")
+    assert run_name({**base, "agent_settings": {"hidden": [64, 64], "gamma": 0.98}}) == (
+        "svg1-spinningup-mlp-gamma0.98-hidden64x64")
+    with pytest.raises(ValueError, match="agent_settings=...: .*squash_penalt.*unknown agent setting"):
+        run_name({**base, "agent_settings": {"squash_penalt": 1e-3}})
+    with pytest.raises(ValueError, match="a JSON object"):
+        run_name({**base, "agent_settings": "squash_penalty=1e-3"})
 
 
 def test_side_by_side_runner_exports_each_seeds_agent(tmp_path, capsys):

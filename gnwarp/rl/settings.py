@@ -9,7 +9,7 @@ from typing import Literal
 
 from gnwarp.validation import ConfigError, Count, Flag, FloatRange, PositiveFloat, PositiveInt, Widths, check_fields
 
-__all__ = ["AgentSettings", "PRESETS", "MAX_HORIZON", "agent_names"]
+__all__ = ["AgentSettings", "PRESETS", "MAX_HORIZON", "agent_names", "settings_tag"]
 
 MAX_HORIZON = 50   # longest SVG(N) model rollout accepted
 
@@ -107,3 +107,28 @@ class AgentSettings:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+# keys a run's name and its results' grouping carry on their own (or that are not a variant)
+_UNTAGGED = ("agent", "preset", "seed", "act_ahead", "updates_per_step")
+
+
+def settings_tag(settings: dict) -> str:
+    """The agent settings of ``settings`` (an ``AgentSettings``' dict, whole or only the keys set;
+    ``agent`` and ``preset`` included) that differ from that agent's and preset's defaults, as
+    ``key=value`` joined by commas, sorted ("" for none): the variant that a run's name and its
+    learning curve carry. Its seed, ``act_ahead`` and ``updates_per_step`` are not part of it."""
+    agent, preset = settings.get("agent", "ddpg"), settings.get("preset", "spinningup")
+    default = AgentSettings(agent=agent, preset=preset).to_dict()
+    out = []
+    for key in sorted(set(settings) - set(_UNTAGGED)):
+        if key not in default:
+            raise ConfigError(key, "unknown agent setting")
+        value = settings[key]
+        value = tuple(value) if isinstance(value, list) else value
+        if value is None or value == default[key]:
+            continue
+        text = "x".join(f"{v:g}" for v in value) if isinstance(value, tuple) else (
+            f"{value:g}" if isinstance(value, float) else str(value))
+        out.append(f"{key}={text}")
+    return ",".join(out)
