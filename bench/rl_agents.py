@@ -14,6 +14,7 @@ recording, what a run waits for once); and ``act`` on ``--envs`` observations at
 steps / s of the policy alone).
 
     python bench/rl_agents.py [--agents ddpg,svg0,svg1,svg2] [--batches 100,256] [--updates 500] [--networks mlp,gn]
+                              [--compile inductor]   # and with the losses compiled (torch.compile)
     python bench/rl_agents.py --quick       # tiny sizes on the CPU: a smoke test of the script
 """
 from __future__ import annotations
@@ -96,7 +97,8 @@ def _rate(step, updates: int, dev) -> float:
     return updates / (time.perf_counter() - t0)
 
 
-def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int, networks: str = "mlp") -> dict:
+def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int, networks: str = "mlp",
+               compile_backend: str | None = None) -> dict:
     gen = torch.Generator(dev).manual_seed(0)
     agent = _make(name, batch, hidden, dev, networks)
     out = {}
@@ -116,6 +118,16 @@ def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int,
         first_graph = time.perf_counter() - t0
         ups_graph = _rate(graphed.run, updates, dev)
         assert graphed.captured
+    ups_comp = first_comp = None
+    if compile_backend:   # the losses compiled (Agent.compile_update), recorded in the graph on CUDA
+        ag = _make(name, batch, hidden, dev, networks)
+        ag.compile_update(compile_backend)
+        comp = Updater(ag, buf, gen, capture=dev.type == "cuda")
+        t0 = time.perf_counter()
+        comp.run(3)   # eager, compiling, recording
+        _sync(dev)
+        first_comp = time.perf_counter() - t0
+        ups_comp = _rate(comp.run, updates, dev)
     m = out["m"]
     obs = torch.randn(envs, OBS, device=dev)
     for _ in range(3):
@@ -132,6 +144,9 @@ def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int,
                 updates=updates, updates_per_s=round(ups, 1),
                 updater_updates_per_s=round(ups_updater, 1), graph_updates_per_s=r(ups_graph),
                 graph_speedup=r(ups_graph and ups_graph / ups, 2), first_graph_s=r(first_graph, 3),
+                compile_backend=compile_backend, compiled_updates_per_s=r(ups_comp),
+                compiled_speedup=r(ups_comp and ups_comp / (ups_graph or ups_updater), 2),
+                first_compiled_s=r(first_comp, 2),
                 envs=envs, act_env_steps_per_s=round(aps))
 
 
@@ -144,6 +159,9 @@ def main(argv=None):
     ap.add_argument("--networks", default="mlp", help="mlp, gn, or mlp,gn: GN policy, Q and model on "
                                                          "swimmer6's observation graph, Warp blocks")
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--compile", default=None, choices=("inductor", "aot_eager"),
+                    help="also time the updates with their losses compiled by torch.compile (this backend), "
+                         "recorded in the CUDA graph on CUDA")
     add_run_args(ap, "rl")   # --out, --quick
     args = ap.parse_args(argv)
     if not args.networks.split(",") or set(args.networks.split(",")) - {"mlp", "gn"}:
@@ -157,7 +175,8 @@ def main(argv=None):
     name, rows = device_name(dev), []
     for networks, agent, batch in itertools.product(args.networks.split(","), args.agents.split(","),
                                                     (int(b) for b in args.batches.split(","))):
-        row = dict(device=name, **time_agent(agent, batch, hidden, dev, buf, args.updates, args.envs, networks))
+        row = dict(device=name, **time_agent(agent, batch, hidden, dev, buf, args.updates, args.envs, networks,
+                                             args.compile))
         rows.append(row)
         print(json.dumps(row), flush=True)
     lines = [f"# RL agents: gradient updates per second, on {name}", "",
@@ -166,10 +185,15 @@ def main(argv=None):
              "trained jointly; gn: GN policy, Q and model on the observation graph (2 blocks, latent 64); each update samples its batch from the replay buffer; acting: "
              f"`act` on {args.envs} observations.", "",
              "| agent | networks | batch | updates / s, eager | Updater uncaptured | CUDA graph | graph / eager "
-             "| first two graph updates (s) | acting, env steps / s |", "|---|---|---|---|---|---|---|---|---|"]
+             "| first two graph updates (s) | compiled losses | compiled / graph | first three compiled updates (s) "
+             "| acting, env steps / s |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['agent']} | {r['networks']} | {r['batch']} | {r['updates_per_s']} | {r['updater_updates_per_s']} | "
               f"{r['graph_updates_per_s'] or '-'} | {r['graph_speedup'] or '-'} | {r['first_graph_s'] or '-'} | "
+              f"{r['compiled_updates_per_s'] or '-'} | {r['compiled_speedup'] or '-'} | {r['first_compiled_s'] or '-'} | "
               f"{r['act_env_steps_per_s']} |" for r in rows]
+    if args.compile:
+        lines += ["", f"Compiled losses: `Agent.compile_update(\"{args.compile}\")`; compiled / graph: against the "
+                      "CUDA-graph column (uncaptured on a CPU)."]
     save_results(experiment_out("rl", args.out, args.quick), "rl_agents", name, args.quick, rows, lines)
 
 

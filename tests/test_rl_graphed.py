@@ -71,6 +71,37 @@ def test_updater_draws_and_computes_as_eager_updates(agent, seq):
     assert up.run(0) == {}
 
 
+@pytest.mark.parametrize("agent,seq,kw", [("ddpg", None, {"squash_penalty": 1e-2}), ("svg0", None, {}),
+                                          ("svg1", None, {"squash_penalty": 1e-2}), ("svg2", 2, {})])
+def test_compiled_updates_compute_as_eager_ones(agent, seq, kw):
+    """The update's losses traced by torch.compile ("aot_eager": the traced graphs run by eager
+    kernels, no compiler needed) give the eager update's numbers."""
+    runs = []
+    for backend in (None, "aot_eager"):
+        ag, buf = _setup(agent, **kw)
+        if backend:
+            ag.compile_update(backend)
+            assert ag.compiled == backend and hasattr(ag.q_loss.compiled, "_torchdynamo_orig_callable")
+            torch._dynamo.reset()
+        from torch._dynamo.utils import counters
+        counters.clear()
+        up = Updater(ag, buf, torch.Generator().manual_seed(7), model_sequence=seq)
+        ms = [{k: float(v) for k, v in up.run(1).items()}]
+        assert counters["stats"]["unique_graphs"] == 0       # the first update: eager, compiled or not
+        ms += [{k: float(v) for k, v in up.run(4).items()} for _ in range(2)]
+        runs.append((_params(ag), ms))
+        if backend:   # then the losses were traced: graphs compiled, not run as plain Python
+            assert counters["stats"]["unique_graphs"] >= 2 and ag.q_loss.calls == 9
+    (p0, m0), (p1, m1) = runs
+    for a, b in zip(p0, p1):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(m0, m1):
+        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-5 * (1 + abs(a[k])) for k in a)
+    ag, _ = _setup(agent)
+    with pytest.raises(Exception, match="inductor or aot_eager"):
+        ag.compile_update("tensorrt")
+
+
 def test_hard_target_copies_counted_and_loads_noticed():
     ag, buf = _setup("ddpg", preset="paper", target_period=3)
     up = Updater(ag, buf, torch.Generator().manual_seed(0))
@@ -105,6 +136,27 @@ def test_captured_updates_equal_eager_ones_cuda(agent, seq):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
     for a, b in zip(m0, m1):
         assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-5 * (1 + abs(a[k])) for k in a)
+
+
+@pytest.mark.skipif(not CUDA, reason="needs CUDA")
+@pytest.mark.parametrize("agent,seq", [("svg0", None), ("svg1", None)])
+def test_compiled_captured_updates_equal_eager_ones_cuda(agent, seq):
+    """Inductor's kernels recorded in the Updater's CUDA graph: the eager update's numbers up to
+    rounding."""
+    runs = []
+    for backend in (None, "inductor"):
+        ag, buf = _setup(agent, device="cuda")
+        if backend:
+            ag.compile_update(backend)
+        up = Updater(ag, buf, torch.Generator("cuda").manual_seed(7), model_sequence=seq, capture=True)
+        ms = [{k: float(v) for k, v in up.run(4).items()} for _ in range(5)]
+        assert up.captured and up.failure is None
+        runs.append((_params(ag), ms))
+    (p0, m0), (p1, m1) = runs
+    for a, b in zip(p0, p1):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    for a, b in zip(m0, m1):
+        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-4 * (1 + abs(a[k])) for k in a)
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")

@@ -220,6 +220,17 @@ def test_resume_with_other_settings_refused(tmp_path):
         run_rl(RLConfig(**{**TINY, "batch_size": 16}, out=str(tmp_path / "r")))
 
 
+def test_compiled_run_trains_and_keeps_its_compile_setting(tmp_path):
+    """``torch_compile`` traces the update's losses (aot_eager: no compiler needed) with the same
+    numbers as eager updates here; a resumed run must keep it (rounding may differ with inductor)."""
+    eager = run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "e")))
+    comp = run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "c"), torch_compile="aot_eager"))
+    assert comp["updates"] == eager["updates"] == 22
+    assert _eval_returns(tmp_path / "c") == _eval_returns(tmp_path / "e")
+    with pytest.raises(ConfigError, match="torch_compile"):
+        run_rl(RLConfig(**TINY, out=str(tmp_path / "c")))
+
+
 def test_cli_runs_and_resumes(tmp_path, capsys):
     from gnwarp.cli import main
     out = str(tmp_path / "cli")

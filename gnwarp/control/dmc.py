@@ -151,9 +151,19 @@ def _subtree(m: mujoco.MjModel, root: int) -> list[int]:
     return out
 
 
-@functools.lru_cache(maxsize=None)
+_CONSTANTS: dict[str, dict] = {}
+
+
 def _constants(system: str) -> dict:
-    """Numpy constants the rewards of ``system`` read: body indices, masses, offsets, sizes."""
+    """Numpy constants the rewards of ``system`` read: body indices, masses, offsets, sizes; made
+    once (a plain dict, which ``torch.compile`` reads as constants once filled)."""
+    c = _CONSTANTS.get(system)
+    if c is None:
+        c = _CONSTANTS[system] = _make_constants(system)
+    return c
+
+
+def _make_constants(system: str) -> dict:
     m = _model(system)
     B, G, S, J = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_SITE, mujoco.mjtObj.mjOBJ_JOINT
     c: dict = {}

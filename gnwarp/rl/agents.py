@@ -74,6 +74,20 @@ def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return low, high
 
 
+class _EagerFirst:
+    """``fn`` eagerly on its first call (the caches it fills on first use, such as a reward's
+    model constants, are then plain values to the tracer), compiled by ``torch.compile`` with
+    ``backend`` from the second on."""
+
+    def __init__(self, fn, backend: str):
+        self.fn, self.calls = fn, 0
+        self.compiled = torch.compile(fn, backend=backend, dynamic=False)
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return (self.fn if self.calls == 1 else self.compiled)(*args, **kwargs)
+
+
 def _adam(net, lr: float) -> torch.optim.Adam | None:
     """Adam on ``net``'s trainable parameters (None for a network without any: a fixed one)."""
     params = [p for p in net.parameters() if p.requires_grad] if isinstance(net, nn.Module) else []
@@ -109,6 +123,7 @@ class Agent:
         self.generator = torch.Generator(self.device).manual_seed(settings.seed)
         self.updates, self.env_steps = 0, 0
         self.loads = 0    # load_state_dict calls
+        self.compiled = None   # the torch.compile backend of the update's losses (compile_update)
 
     # -- actions --------------------------------------------------------------------------------
     def squash(self, u: torch.Tensor) -> torch.Tensor:
@@ -226,9 +241,7 @@ class Agent:
         target_noise, policy_noise = (None, None) if noise is None else (noise[0], noise[1:])
         q_loss = self.q_loss(batch, target_noise)
         self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
-        pi_loss = self.policy_loss(batch.obs, policy_noise)
-        if self.settings.squash_penalty > 0:   # keep the unbounded output off tanh's flat ends
-            pi_loss = pi_loss + self.settings.squash_penalty * self.policy_output(batch.obs).square().mean()
+        pi_loss = self.policy_update_loss(batch.obs, policy_noise)
         self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
         metrics.update(self._extra_update(batch if model_batch is None else model_batch))
@@ -236,6 +249,34 @@ class Agent:
             with torch.no_grad():
                 torch._foreach_lerp_(self._targets, self._online, 1 - self.settings.polyak)
         return metrics
+
+    def policy_update_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """The policy's loss of an update: ``policy_loss`` plus ``squash_penalty`` x the mean
+        square of its unbounded output (kept off tanh's flat ends)."""
+        loss = self.policy_loss(obs, noise)
+        if self.settings.squash_penalty > 0:
+            loss = loss + self.settings.squash_penalty * self.policy_output(obs).square().mean()
+        return loss
+
+    def compile_update(self, backend: str = "inductor") -> None:
+        """Compile the update's losses with ``torch.compile`` (``backend``: "inductor" generates
+        fused kernels; "aot_eager" only traces, a check of the tracing): the Q loss, the policy's
+        and (SVG(N)) the model's, each a forward and a backward of fewer, larger kernels than the
+        eager operations (an update of small MLPs is hundreds of kernels). The first update runs
+        eagerly (filling what is made on first use), the second compiles (tens of seconds with
+        inductor); a CUDA graph (``Updater``: after both) records the compiled kernels as it records
+        eager ones. Floating-point sums may round differently from the eager
+        update's. Networks that call Warp kernels (GN) are compiled around them (graph breaks)."""
+        if backend not in ("inductor", "aot_eager"):
+            raise ConfigError("torch_compile", f"a torch.compile backend: inductor or aot_eager, got {backend!r}")
+        if self.compiled is not None:
+            raise RuntimeError(f"the update's losses are compiled already ({self.compiled})")
+        for name in self._compiled_losses():
+            setattr(self, name, _EagerFirst(getattr(self, name), backend))
+        self.compiled = backend
+
+    def _compiled_losses(self) -> tuple[str, ...]:
+        return ("q_loss", "policy_update_loss")
 
     def count_update(self) -> None:
         """Count an update done by ``update_step``; with hard target updates, copy the networks
@@ -393,10 +434,17 @@ class SVG(Agent):
             loss = loss - self.settings.entropy_weight * self.policy(obs)[1].sum(-1).mean()
         return loss
 
+    def model_update_loss(self, batch: Transitions) -> torch.Tensor:
+        """The model's loss of an update: ``model_loss(model, batch)``."""
+        return self.model_loss(self.model, batch)
+
+    def _compiled_losses(self) -> tuple[str, ...]:
+        return super()._compiled_losses() + (("model_update_loss",) if self.model_opt is not None else ())
+
     def _extra_update(self, batch: Transitions) -> dict[str, torch.Tensor]:
         if self.model_opt is None:
             return {}
-        loss = self.model_loss(self.model, batch)
+        loss = self.model_update_loss(batch)
         self._step(self.model_opt, loss, self.model_opt.param_groups[0]["params"])
         return {"model_loss": loss.detach()}
 

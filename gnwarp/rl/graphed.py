@@ -10,8 +10,9 @@ Each update draws its randomness eagerly, before the recorded work: the batch's 
 generator), into static tensors; the recorded part gathers the batch from the buffer's rings
 (fixed storage) and runs ``agent.update_step``. Uncaptured (the CPU, ``capture=False``) the same
 draws and the same work run eagerly, so both modes give the same numbers and a run resumes
-exactly in either. The first update runs eagerly (it creates the optimizers' state); the
-second records the graph (``gnwarp.interop.Graphed``, as the trainer and gradient MPC do). Loading the agent's state (``load_state_dict``: new optimizer
+exactly in either. The first update runs eagerly (it creates the optimizers' state; an agent's
+compiled losses, ``Agent.compile_update``, compile on the second, eagerly too); the next records
+the graph (``gnwarp.interop.Graphed``, as the trainer and gradient MPC do). Loading the agent's state (``load_state_dict``: new optimizer
 tensors) records it again.
 """
 from __future__ import annotations
@@ -101,8 +102,8 @@ class Updater:
             if not self.capture:
                 metrics = self._work()
             else:
-                if self._graphed is None:
-                    self._graphed = Graphed(self._graphed_step, warmup=1)
+                if self._graphed is None:   # compiled losses: one more, the compiling one, before recording
+                    self._graphed = Graphed(self._graphed_step, warmup=2 if self.agent.compiled else 1)
                 recording = self._graphed.graph is None and self._graphed.warmup == 0
                 if recording:
                     self._set_capturable(True)

@@ -67,6 +67,12 @@ def _name(m: mujoco.MjModel, obj, i: int, fallback: str) -> str:
     return mujoco.mj_id2name(m, obj, i) or f"{fallback}{i}"
 
 
+def _floats(values) -> tuple[float, ...]:
+    """A model array's row as Python floats (constants, not NumPy scalars: a traced function
+    (``torch.compile``) branches on them as on any number)."""
+    return tuple(float(v) for v in values)
+
+
 class JointCoordinates:
     """qpos and qvel of ``model`` (an ``MjModel``) from body states; see the module docstring.
 
@@ -90,8 +96,8 @@ class JointCoordinates:
                 if hinge is not None:
                     raise ValueError(f"joint {name!r} follows a hinge in its body: only slides then one hinge "
                                      "per body are derived from body states")
-                entry = (int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j]), tuple(model.jnt_axis[j]),
-                         float(model.qpos0[model.jnt_qposadr[j]]), tuple(model.jnt_pos[j]))
+                entry = (int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j]), _floats(model.jnt_axis[j]),
+                         float(model.qpos0[model.jnt_qposadr[j]]), _floats(model.jnt_pos[j]))
                 if kind == _SLIDE:
                     slides.append(entry)
                 else:
@@ -101,7 +107,8 @@ class JointCoordinates:
                 if not torch.allclose(a @ a.T, torch.eye(len(slides), dtype=torch.float64), atol=1e-9):
                     raise ValueError(f"body {_name(model, mujoco.mjtObj.mjOBJ_BODY, b, 'body')!r}: its slide axes "
                                      "are not orthonormal")
-            self.bodies.append((b, self.parent[b], tuple(model.body_pos[b]), tuple(model.body_quat[b]), slides, hinge))
+            self.bodies.append((b, self.parent[b], _floats(model.body_pos[b]), _floats(model.body_quat[b]), slides,
+                                hinge))
         self._cache: dict = {}
 
     def constant(self, values: tuple, like: torch.Tensor) -> torch.Tensor:

@@ -117,6 +117,9 @@ class PlanarChain:
             self._cache[key] = c
         return c
 
+    # run as is inside a compiled function (``torch.compile``: its complex arithmetic is not
+    # compiled; the agent's compiled update breaks its graph here, the rest stays compiled)
+    @torch.compiler.disable
     def __call__(self, qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
         if qpos.shape[-1] != self.nq or qvel.shape[-1] != self.nv or qpos.shape[:-1] != qvel.shape[:-1]:
             raise ValueError(f"qpos [..., {self.nq}] and qvel [..., {self.nv}] with the same leading shape "

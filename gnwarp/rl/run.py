@@ -134,6 +134,8 @@ def build_agent(cfg: RLConfig, task, obs_fn, obs_dim: int, action_low, action_hi
         return reward_fn(obs, action, next_obs).to(obs.dtype)
     agent = make_agent(settings, D, action_low, action_high, model=model,
                        reward=reward if reward_fn is not None else None, device=device, **nets)
+    if cfg.torch_compile != "none":
+        agent.compile_update(cfg.torch_compile)
     return agent, model
 
 
