@@ -141,7 +141,6 @@ def test_mps_is_started_only_where_it_can_be(monkeypatch):
 def test_a_failing_run_shows_its_log_and_a_late_one_is_killed_at_the_deadline(tmp_path):
     """A run that fails reports its exit code and its log's last lines; one still running at the
     call's deadline is killed with its process group (the call then packs)."""
-    import os
     import sys
     import time
     (tmp_path / "_logs").mkdir()
