@@ -120,6 +120,7 @@ def time_agent(name: str, batch: int, hidden, dev, buf, updates: int, envs: int,
         assert graphed.captured
     ups_comp = first_comp = None
     if compile_backend:   # the losses compiled (Agent.compile_update), recorded in the graph on CUDA
+        torch._dynamo.reset()   # each row compiles afresh (else past the recompile limit it would run eagerly)
         ag = _make(name, batch, hidden, dev, networks)
         ag.compile_update(compile_backend)
         comp = Updater(ag, buf, gen, capture=dev.type == "cuda")

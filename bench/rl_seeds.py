@@ -1,6 +1,7 @@
 """Several seeds of one RL run side by side on one machine: a process per seed (``run_rl`` in its
 own folder ``<runs>/<agent>-<preset>-<networks>/s<seed>``, ``-utd<k>`` appended where ``--set utd=k``
-is not 1, ``-ahead`` where ``--set act_ahead=true``), each stopping within the budget and
+is not 1, ``-ahead`` where ``--set act_ahead=true``, then each agent setting off its default, e.g.
+``-squash_penalty0.001``: ``run_name``), each stopping within the budget and
 resumed by the next call; afterwards each seed's records and log are copied to
 ``<results>/<task>/<that name>/s<seed>/`` for ``bench/rl_summary.py``.
 
@@ -78,9 +79,10 @@ def _one(cfg_json: str) -> int:
 
 def run_name(base: dict) -> str:
     """The run's folder name: ``<agent>-<preset>-<networks>``, ``-utd<k>`` where ``utd`` is not 1,
-    ``-ahead`` where ``act_ahead`` is true, then each agent setting off its default
-    (``gnwarp.rl.settings.settings_tag``: ``-squash_penalty0.001``) (``ValueError`` naming a bad
-    value)."""
+    ``-ahead`` where ``act_ahead`` is true, then each agent setting off its default, the run's
+    own (``batch_size``, ``hidden``, ``start_steps``, ``update_after``) and ``agent_settings``'
+    (``gnwarp.rl.settings.settings_tag``, as ``bench/rl_summary.py`` groups the records:
+    ``-squash_penalty0.001``) (``ValueError`` naming a bad value)."""
     try:
         utd = float(base.get("utd", 1.0))
     except (TypeError, ValueError):
@@ -91,12 +93,11 @@ def run_name(base: dict) -> str:
     extra = base.get("agent_settings") or {}
     if not isinstance(extra, dict):
         raise ValueError(f"--set agent_settings=...: a JSON object of agent settings, got {extra!r}")
+    from gnwarp.rl.config import RLConfig
     from gnwarp.rl.settings import settings_tag
-    from gnwarp.validation import ConfigError
-    try:
-        tag = settings_tag({"agent": base["agent"], "preset": base.get("preset", "spinningup"), **extra})
-    except ConfigError as e:
-        raise ValueError(f"--set agent_settings=...: {e}") from None
+    # the agent settings the run's records will hold, its own keys (batch_size, hidden, ...) too; a
+    # refused setting raises ConfigError (a ValueError) naming its key
+    tag = settings_tag(RLConfig.from_dict({**base, "out": "unused"}).agent_config().to_dict())
     return (f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
             + ("-ahead" if ahead else "") + ("-" + tag.replace("=", "").replace(",", "-") if tag else ""))
 

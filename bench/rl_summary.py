@@ -67,7 +67,7 @@ def _group(rec) -> tuple:
     given = c.get("agent_settings") or {}
     return (rec.task, agent, preset, c.get("networks", networks or "mlp"),
             float(c.get("utd", 1.0)), bool(given.get("act_ahead", False)),
-            settings_tag({**given, "agent": agent, "preset": preset}))
+            settings_tag({**given, "agent": agent, "preset": preset}, strict=False))
 
 
 def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:

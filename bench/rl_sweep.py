@@ -261,6 +261,7 @@ def collect(work) -> int:
     """Copy every run folder's records (``records.jsonl``, ``progress.csv``, ``config.json``) to
     ``<work>/_results`` as ``bench/rl_seeds.py`` does when a seed's process ends: also for a process
     killed at the deadline, whose evaluations up to then are kept. The number of seeds copied."""
+    import json
     import shutil
     work, n = Path(work), 0
     for rec in sorted(work.glob("*/*/s*/records.jsonl")):
@@ -268,7 +269,11 @@ def collect(work) -> int:
         rel = seed_dir.relative_to(work)
         if rel.parts[0].startswith("_"):
             continue
-        dest = work / "_results" / rel
+        try:   # under the task its config names, as rl_seeds files it (a quick run's differs from the spec's)
+            task = json.loads((seed_dir / "config.json").read_text())["task"]
+        except (OSError, ValueError, KeyError, TypeError):
+            task = rel.parts[0]
+        dest = work / "_results" / task / rel.parts[1] / rel.parts[2]
         dest.mkdir(parents=True, exist_ok=True)
         for f in COPIED:
             if (seed_dir / f).is_file():

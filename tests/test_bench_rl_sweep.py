@@ -21,6 +21,10 @@ runs = [{agent = "svg1", task = "swimmer6", seeds = "0", set = ["act_ahead=true"
 '''
 
 
+# the quick run's name: its own sizes are settings off the defaults (bench/rl_seeds.run_name)
+QUICK_RUN = "svg0-spinningup-mlp-batch_size16-hidden16-start_steps40-update_after40"
+
+
 def write(tmp_path, text, name="spec.toml"):
     p = tmp_path / name
     p.write_text(text)
@@ -95,18 +99,18 @@ def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
     work, out = tmp_path / "work", tmp_path / "out"
     assert rl_sweep.main([str(spec), "--call-seconds", "300", "--work", str(work), "--pack", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "GPU cpu: pendulum-balance-svg0-spinningup-mlp-s0: exit 0" in text and "seed 0: exit 0" in text
+    assert f"GPU cpu: pendulum-balance-{QUICK_RUN}-s0: exit 0" in text and "seed 0: exit 0" in text
     assert '"stop": "done"' in text
     with tarfile.open(out / "results.tar.xz") as t:
         names = t.getnames()
-        rec = t.extractfile("results/pendulum-balance/svg0-spinningup-mlp/s0/config.json")
-        assert json.load(rec)["out"] == str(work / "pendulum-balance" / "svg0-spinningup-mlp" / "s0")
-    assert "results/pendulum-balance/svg0-spinningup-mlp/s0/records.jsonl" in names
+        rec = t.extractfile(f"results/pendulum-balance/{QUICK_RUN}/s0/config.json")
+        assert json.load(rec)["out"] == str(work / "pendulum-balance" / QUICK_RUN / "s0")
+    assert f"results/pendulum-balance/{QUICK_RUN}/s0/records.jsonl" in names
     with tarfile.open(out / "logs.tar.xz") as t:
-        assert "logs/pendulum-balance-svg0-spinningup-mlp-s0.log" in t.getnames()
-        assert "runs/pendulum-balance/svg0-spinningup-mlp/s0/call.log" in t.getnames()
+        assert f"logs/pendulum-balance-{QUICK_RUN}-s0.log" in t.getnames()
+        assert f"runs/pendulum-balance/{QUICK_RUN}/s0/call.log" in t.getnames()
     with tarfile.open(out / "export.tar") as t:
-        assert any(n.startswith("export/pendulum-balance/svg0-spinningup-mlp/s0/") for n in t.getnames())
+        assert any(n.startswith(f"export/pendulum-balance/{QUICK_RUN}/s0/") for n in t.getnames())
     assert not list(out.glob("*.tmp"))
 
 
@@ -180,7 +184,13 @@ def test_collect_keeps_a_killed_runs_records(tmp_path):
     (old / "records.jsonl").write_text("stale\n")
     (tmp_path / "_export" / "a" / "b" / "s0").mkdir(parents=True)
     (tmp_path / "_export" / "a" / "b" / "s0" / "records.jsonl").write_text("not a run\n")
-    assert rl_sweep.collect(tmp_path) == 1
+    quick = tmp_path / "cheetah-run" / "svg0-x" / "s0"   # a quick run: its config names another task
+    quick.mkdir(parents=True)
+    (quick / "records.jsonl").write_text("{}\n")
+    (quick / "config.json").write_text('{"task": "pendulum-balance"}')
+    assert rl_sweep.collect(tmp_path) == 2
+    assert (tmp_path / "_results" / "pendulum-balance" / "svg0-x" / "s0" / "config.json").is_file()
+    assert not (tmp_path / "_results" / "cheetah-run").exists()
     assert (old / "records.jsonl").read_text() == '{"env_steps": 10000}\n'
     assert (old / "progress.csv").is_file() and not (old / "checkpoint.pt").exists()
     assert not (old / "config.json").exists() and not list(old.glob("*.tmp"))

@@ -170,10 +170,13 @@ def test_budget_keeps_time_for_the_calls_video(tmp_path, monkeypatch):
     cfg = dict(TINY, video_episodes=1, video_steps=5, out=str(tmp_path / "v"), budget_seconds=60.0)
     r = run_rl(RLConfig(**cfg))     # the guess (1000 s) leaves no second round within 60 s
     assert r["stop"] == "budget" and r["rounds"] == 1 and r["video"]
-    timed = load_checkpoint(tmp_path / "v" / CHECKPOINT)["counters"]["video_seconds"]
-    assert 0.3 <= timed < 30
-    r = run_rl(RLConfig(**cfg))     # the time measured (0.3 s) does
+    timing = json.loads((tmp_path / "v" / "timing.json").read_text())
+    assert 0.3 / 5 <= timing["video_seconds_per_step"] < 30 / 5 and timing["checkpoint_seconds"] > 0
+    r = run_rl(RLConfig(**cfg))     # the time measured (0.3 s for 5 steps) does
     assert r["stop"] == "done" and r["rounds"] == 5
+    (tmp_path / "v" / "timing.json").write_text('{"video_seconds_per_step": "soon"}')   # unreadable: guessed
+    r = run_rl(RLConfig(**{**cfg, "env_steps": 140}))
+    assert r["stop"] == "budget" and r["rounds"] == 6
 
 
 def test_svg1_gn_on_swimmer6(tmp_path):

@@ -13,7 +13,8 @@ go on, and a resumed run equals an uninterrupted one bit for bit on the CPU.
 The folder holds ``config.json``, ``checkpoint.pt`` (agent, replay buffer, loop state, counters,
 random generators; written after each evaluation and at the end of a call), ``progress.csv`` (a
 row per round), ``records.jsonl`` (a ``ResultRecord`` per evaluation: experiment "rl", planner
-"policy") and ``tb/`` (TensorBoard, where it imports).
+"policy"), ``tb/`` (TensorBoard, where it imports), ``video.gif`` and ``timing.json`` (the last
+checkpoint's and video's times: what ``budget_seconds`` keeps for a call's end).
 """
 from __future__ import annotations
 
@@ -48,6 +49,20 @@ VIDEO_FILE = "video.gif"
 # what the budget keeps for the call's video until a call of the run has timed one (swimmer6's
 # default video, 2 x 300 steps, took 25-30 s on one CPU core; the budget then uses the time measured)
 VIDEO_SECONDS_GUESS = 30.0
+TIMING_FILE = "timing.json"   # the run's last checkpoint and video times: the budget's estimate of a call's end
+
+
+def _read_timing(out: Path) -> dict:
+    """The run folder's timing estimates {"checkpoint_seconds", "video_seconds_per_step"} (each
+    a finite number >= 0); {} where the file is missing or any entry is not such a number (an
+    estimate only: the budget then guesses)."""
+    try:
+        d = json.loads((out / TIMING_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    ok = isinstance(d, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                     and v >= 0 for v in d.values())
+    return {k: float(v) for k, v in d.items() if k in ("checkpoint_seconds", "video_seconds_per_step")} if ok else {}
 
 
 def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
@@ -381,16 +396,23 @@ def run_rl(cfg: RLConfig) -> dict:
             agent=agent.state_dict(), buffer=buffer.state_dict(), generator=gen.get_state(),
             collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
             env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
-        timing["checkpoint"] = time.perf_counter() - t
+        timing["checkpoint_seconds"] = time.perf_counter() - t
 
-    def finish_reserve() -> float:
-        """Seconds the call's end takes after its last round: the final checkpoint, and the video
-        (timed by an earlier call of this run, else ``VIDEO_SECONDS_GUESS``)."""
-        vid = c.get("video_seconds", VIDEO_SECONDS_GUESS) if cfg.video_episodes else 0.0
-        return timing["checkpoint"] + vid
+    video_steps = cfg.video_episodes * min(cfg.video_steps, T)   # the video's episode-steps
+
+    def finish_reserve(next_evaluates: bool) -> float:
+        """Seconds the call's end takes after its last round: the final checkpoint (as long as
+        the last one took) and, where this call will write a video (it evaluated, or the next
+        round evaluates), the video (at the rate an earlier call of the run wrote one, else
+        ``VIDEO_SECONDS_GUESS``)."""
+        vid = 0.0
+        if video_steps and (video or next_evaluates):
+            per = timing.get("video_seconds_per_step")
+            vid = VIDEO_SECONDS_GUESS if per is None else per * video_steps
+        return timing.get("checkpoint_seconds", 0.0) + vid
 
     video = {}   # the body states of this call's last evaluation, for video.gif
-    timing = {"checkpoint": 0.0}   # seconds the last checkpoint took
+    timing = _read_timing(out) if resume else {}   # seconds of the last checkpoint, of a video's step
 
     previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
 
@@ -434,8 +456,10 @@ def run_rl(cfg: RLConfig) -> dict:
             if rounds_cap is not None and done_here >= rounds_cap:
                 stop = "chunk"
                 break
+            next_evaluates = ((agent.env_steps + per_round) // cfg.eval_every > c["last_eval"] // cfg.eval_every
+                              or c["round"] + 1 == total_rounds)
             if (cfg.budget_seconds is not None and done_here
-                    and elapsed + last_round_s + finish_reserve() > cfg.budget_seconds):
+                    and elapsed + last_round_s + finish_reserve(next_evaluates) > cfg.budget_seconds):
                 stop = "budget"
                 break
             t0 = time.perf_counter()
@@ -483,7 +507,8 @@ def run_rl(cfg: RLConfig) -> dict:
             last_round_s = time.perf_counter() - t0   # with its evaluation and checkpoint: the budget's unit
         if c["round"] >= total_rounds:
             stop = "done"
-        if video:   # before the final checkpoint, which keeps its time for the next call's budget
+        checkpoint()
+        if video:
             t = time.perf_counter()
             try:
                 write_video(out / VIDEO_FILE, video["states"], env.system, f"{cfg.agent} {task.name}, "
@@ -492,8 +517,10 @@ def run_rl(cfg: RLConfig) -> dict:
                 video.clear()
                 warnings.warn(f"no video written ({type(e).__name__}: {e}); renderer 'matplotlib' needs no "
                               "OpenGL", RuntimeWarning, stacklevel=2)
-            c["video_seconds"] = time.perf_counter() - t
-        checkpoint()
+            if video_steps:
+                timing["video_seconds_per_step"] = (time.perf_counter() - t) / video_steps
+        with atomic_write(out / TIMING_FILE) as tmp:   # for the next call's budget
+            Path(tmp).write_text(json.dumps(timing))
     finally:
         bar.close()
         log.close()

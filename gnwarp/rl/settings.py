@@ -113,22 +113,32 @@ class AgentSettings:
 _UNTAGGED = ("agent", "preset", "seed", "act_ahead", "updates_per_step")
 
 
-def settings_tag(settings: dict) -> str:
+def _text(v) -> str:
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def settings_tag(settings: dict, strict: bool = True) -> str:
     """The agent settings of ``settings`` (an ``AgentSettings``' dict, whole or only the keys set;
     ``agent`` and ``preset`` included) that differ from that agent's and preset's defaults, as
     ``key=value`` joined by commas, sorted ("" for none): the variant that a run's name and its
-    learning curve carry. Its seed, ``act_ahead`` and ``updates_per_step`` are not part of it."""
+    learning curve carry. Its seed, ``act_ahead`` and ``updates_per_step`` are not part of it.
+    ``strict``: an unknown key (or agent, or preset) raises ``ConfigError``; else (records of
+    another version) such a key is tagged as it is."""
     agent, preset = settings.get("agent", "ddpg"), settings.get("preset", "spinningup")
-    default = AgentSettings(agent=agent, preset=preset).to_dict()
+    try:
+        default = AgentSettings(agent=agent, preset=preset).to_dict()
+    except ConfigError:
+        if strict:
+            raise
+        default = {}
     out = []
     for key in sorted(set(settings) - set(_UNTAGGED)):
-        if key not in default:
+        if key not in default and strict:
             raise ConfigError(key, "unknown agent setting")
         value = settings[key]
         value = tuple(value) if isinstance(value, list) else value
-        if value is None or value == default[key]:
+        if value is None or value == default.get(key, object()):
             continue
-        text = "x".join(f"{v:g}" for v in value) if isinstance(value, tuple) else (
-            f"{value:g}" if isinstance(value, float) else str(value))
+        text = "x".join(map(_text, value)) if isinstance(value, tuple) else _text(value)
         out.append(f"{key}={text}")
     return ",".join(out)
