@@ -50,6 +50,15 @@ def _params(ag):
     return [p.detach().cpu().clone() for n in nets for p in n.parameters()]
 
 
+def _assert_runs_agree(runs, rtol, atol):
+    """Two runs' (parameters, per-call metrics) equal up to ``rtol`` / ``atol``."""
+    (p0, m0), (p1, m1) = runs
+    for a, b in zip(p0, p1):
+        torch.testing.assert_close(a, b, rtol=rtol, atol=atol)
+    for a, b in zip(m0, m1):
+        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= rtol * (1 + abs(a[k])) for k in a)
+
+
 @pytest.mark.parametrize("agent,seq", [("ddpg", None), ("svg0", None), ("svg1", None), ("svg2", 2)])
 def test_updater_draws_and_computes_as_eager_updates(agent, seq):
     ag, buf = _setup(agent)
@@ -92,11 +101,7 @@ def test_compiled_updates_compute_as_eager_ones(agent, seq, kw):
         runs.append((_params(ag), ms))
         if backend:   # then the losses were traced: graphs compiled, not run as plain Python
             assert counters["stats"]["unique_graphs"] >= 2 and ag.q_loss.calls == 9
-    (p0, m0), (p1, m1) = runs
-    for a, b in zip(p0, p1):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-    for a, b in zip(m0, m1):
-        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-5 * (1 + abs(a[k])) for k in a)
+    _assert_runs_agree(runs, 1e-5, 1e-6)
     ag, _ = _setup(agent)
     with pytest.raises(Exception, match="inductor or aot_eager"):
         ag.compile_update("tensorrt")
@@ -131,11 +136,7 @@ def test_captured_updates_equal_eager_ones_cuda(agent, seq):
         ms = [{k: float(v) for k, v in up.run(4).items()} for _ in range(5)]
         assert up.captured == capture and up.recordings == int(capture)
         runs.append((_params(ag), ms))
-    (p0, m0), (p1, m1) = runs
-    for a, b in zip(p0, p1):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-    for a, b in zip(m0, m1):
-        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-5 * (1 + abs(a[k])) for k in a)
+    _assert_runs_agree(runs, 1e-5, 1e-6)
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
@@ -152,11 +153,7 @@ def test_compiled_captured_updates_equal_eager_ones_cuda(agent, seq):
         ms = [{k: float(v) for k, v in up.run(4).items()} for _ in range(5)]
         assert up.captured and up.failure is None
         runs.append((_params(ag), ms))
-    (p0, m0), (p1, m1) = runs
-    for a, b in zip(p0, p1):
-        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
-    for a, b in zip(m0, m1):
-        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-4 * (1 + abs(a[k])) for k in a)
+    _assert_runs_agree(runs, 1e-4, 1e-5)
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
