@@ -195,3 +195,18 @@ def test_collect_keeps_a_killed_runs_records(tmp_path):
     assert (old / "progress.csv").is_file() and not (old / "checkpoint.pt").exists()
     assert not (old / "config.json").exists() and not list(old.glob("*.tmp"))
     assert not (tmp_path / "_results" / "_export").exists()
+
+
+def test_device_tests_probe_exits_with_pytests_code(tmp_path):
+    """bench/probes/device_tests.py: pytest's exit code, so a failing test fails the sweep's probe."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = Path(rl_sweep.ROOT) / "bench" / "probes" / "device_tests.py"
+    (tmp_path / "test_ok.py").write_text("def test_ok():\n    assert 1 + 1 == 2\n")
+    (tmp_path / "test_bad.py").write_text("def test_bad():\n    assert 1 + 1 == 3\n")
+    run = lambda name: subprocess.run([sys.executable, str(script), "-q", "-p", "no:cacheprovider",  # noqa: E731
+                                       str(tmp_path / name)], capture_output=True, text=True, cwd=tmp_path)
+    ok, bad = run("test_ok.py"), run("test_bad.py")
+    assert ok.returncode == 0 and "1 passed" in ok.stdout
+    assert bad.returncode == 1 and "1 failed" in bad.stdout
