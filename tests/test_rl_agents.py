@@ -61,8 +61,9 @@ def quadratic_reward(x, a, x2):
     return -((x2 @ torch.tensor(P_R)) * x2).sum(-1) - ((a @ torch.tensor(R_R)) * a).sum(-1) + x @ torch.tensor(C_R)
 
 
-def reference_objective(params, obs, noise, horizon, gaussian, squash):
-    """mean_B of sum_{k<N} gamma^k r_k + gamma^N Q(x_N, a_N) in NumPy float64."""
+def reference_objective(params, obs, noise, horizon, gaussian, squash, xi=None):
+    """mean_B of sum_{k<N} gamma^k r_k + gamma^N Q(x_N, a_N) in NumPy float64; ``xi`` [B, D]:
+    added to the first predicted state (the replayed transition's residual, model_noise "inferred")."""
     K, k, log_std = params
     low, high = np.array([-1.0, -2.0]), np.array([1.5, 1.0])
 
@@ -73,7 +74,7 @@ def reference_objective(params, obs, noise, horizon, gaussian, squash):
     x, total = obs, 0.0
     for j in range(horizon):
         a = action(x, noise[j])
-        x2 = x @ A_MAT.T + a @ B_MAT.T
+        x2 = x @ A_MAT.T + a @ B_MAT.T + (xi if j == 0 and xi is not None else 0.0)
         r = -np.einsum("bi,ij,bj->b", x2, P_R, x2) - np.einsum("bi,ij,bj->b", a, R_R, a) + x @ C_R
         total = total + GAMMA ** j * r
         x = x2
@@ -109,6 +110,38 @@ def test_policy_gradient_matches_finite_differences(agent, squash):
         got = np.zeros_like(fd) if g is None else -g.numpy()
         assert np.abs(fd).max() > 1e-3 or i == 2    # the gradient is not trivially zero
         np.testing.assert_allclose(got, fd, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("agent", ["svg1", "svg2"])
+def test_inferred_model_noise_gradient_matches_finite_differences(agent):
+    """model_noise "inferred": the first predicted state is the replayed next state moved by the
+    model's change from the replayed action to the policy's; values and gradients against NumPy."""
+    s = AgentSettings(agent=agent, gamma=GAMMA, hidden=(4,), squash="tanh", model_noise="inferred")
+    ag = make_agent(s, D, [-1.0, -2.0], [1.5, 1.0], policy=LinearPolicy(True), q=QuadraticQ(), model=linear_model,
+                    reward=quadratic_reward, dtype=torch.float64)
+    obs = torch.tensor(RNG.standard_normal((B, D)))
+    noise = torch.tensor(RNG.standard_normal((s.horizon + 1, B, U)))
+    a_rep, x_rep = torch.tensor(RNG.uniform(-1, 1, (B, U))), torch.tensor(RNG.standard_normal((B, D)))
+    xi = x_rep.numpy() - (obs.numpy() @ A_MAT.T + a_rep.numpy() @ B_MAT.T)     # the model's residual there
+    assert np.abs(xi).max() > 0.1
+    loss = ag.policy_loss(obs, noise, (a_rep, x_rep))
+    params = [ag.policy.K, ag.policy.k, ag.policy.log_std]
+    grads = torch.autograd.grad(loss, params)
+    values = [p.detach().numpy().copy() for p in params]
+    ref = lambda v: reference_objective(v, obs.numpy(), noise.numpy(), s.horizon, True, "tanh", xi)  # noqa: E731
+    assert np.isclose(-loss.item(), ref(values), rtol=1e-12, atol=1e-12)
+    assert not np.isclose(ref(values), reference_objective(values, obs.numpy(), noise.numpy(), s.horizon, True, "tanh"))
+    h = 1e-6
+    for i, g in enumerate(grads):
+        fd = np.zeros_like(values[i])
+        for idx in np.ndindex(values[i].shape):
+            up, dn = [v.copy() for v in values], [v.copy() for v in values]
+            up[i][idx] += h
+            dn[i][idx] -= h
+            fd[idx] = (ref(up) - ref(dn)) / (2 * h)
+        np.testing.assert_allclose(-g.numpy(), fd, rtol=1e-6, atol=1e-7)
+    with pytest.raises(ConfigError, match="model_noise"):
+        AgentSettings(agent="svg0", model_noise="inferred")
 
 
 def _batch(n=4, d=D, u=U, dtype=torch.float64, **over):

@@ -81,7 +81,8 @@ def test_updater_draws_and_computes_as_eager_updates(agent, seq):
 
 
 @pytest.mark.parametrize("agent,seq,kw", [("ddpg", None, {"squash_penalty": 1e-2}), ("svg0", None, {}),
-                                          ("svg1", None, {"squash_penalty": 1e-2}), ("svg2", 2, {})])
+                                          ("svg1", None, {"squash_penalty": 1e-2, "model_noise": "inferred"}),
+                                          ("svg2", 2, {})])
 def test_compiled_updates_compute_as_eager_ones(agent, seq, kw):
     """The update's losses traced by torch.compile ("aot_eager": the traced graphs run by eager
     kernels, no compiler needed) give the eager update's numbers."""
@@ -105,6 +106,20 @@ def test_compiled_updates_compute_as_eager_ones(agent, seq, kw):
     ag, _ = _setup(agent)
     with pytest.raises(Exception, match="inductor or aot_eager"):
         ag.compile_update("tensorrt")
+
+
+def test_inferred_model_noise_reaches_the_update():
+    """An update with model_noise "inferred" scores the policy from the replayed transitions: other
+    policy steps than with the model's own predictions, the same Q and model steps."""
+    out = {}
+    for mode in ("none", "inferred"):
+        ag, buf = _setup("svg1", model_noise=mode)
+        Updater(ag, buf, torch.Generator().manual_seed(7)).run(3)
+        out[mode] = ag
+    a, b = out["none"], out["inferred"]
+    assert not all(torch.equal(p, q) for p, q in zip(a.policy.parameters(), b.policy.parameters()))
+    # the model learns from replayed transitions only: the same steps either way
+    assert all(torch.equal(p, q) for p, q in zip(a.model.parameters(), b.model.parameters()))
 
 
 def test_hard_target_copies_counted_and_loads_noticed():

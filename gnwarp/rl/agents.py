@@ -198,7 +198,10 @@ class Agent:
         """Mean squared Bellman error of the online Q on ``batch`` (eq. 3)."""
         return (self.q(batch.obs, batch.action) - self.q_target_values(batch, noise)).pow(2).mean()
 
-    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None, ground=None) -> torch.Tensor:
+        """The policy's loss at ``obs`` [B, D]; ``noise``: its draws; ``ground``: the replayed
+        (action [B, U], next_obs [B, D]) of these observations, for SVG(N)'s ``model_noise``
+        "inferred" (None otherwise)."""
         raise NotImplementedError
 
     def optimizers(self) -> list[torch.optim.Optimizer]:
@@ -241,7 +244,8 @@ class Agent:
         target_noise, policy_noise = (None, None) if noise is None else (noise[0], noise[1:])
         q_loss = self.q_loss(batch, target_noise)
         self._step(self.q_opt, q_loss, self.q_opt.param_groups[0]["params"] if self.q_opt else [])
-        pi_loss = self.policy_update_loss(batch.obs, policy_noise)
+        ground = (batch.action, batch.next_obs) if self.settings.model_noise == "inferred" else None
+        pi_loss = self.policy_update_loss(batch.obs, policy_noise, ground)
         self._step(self.policy_opt, pi_loss, self.policy_opt.param_groups[0]["params"] if self.policy_opt else [])
         metrics = {"q_loss": q_loss.detach(), "policy_loss": pi_loss.detach()}
         metrics.update(self._extra_update(batch if model_batch is None else model_batch))
@@ -250,10 +254,10 @@ class Agent:
                 torch._foreach_lerp_(self._targets, self._online, 1 - self.settings.polyak)
         return metrics
 
-    def policy_update_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+    def policy_update_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None, ground=None) -> torch.Tensor:
         """The policy's loss of an update: ``policy_loss`` plus ``squash_penalty`` x the mean
         square of its unbounded output (kept off tanh's flat ends)."""
-        loss = self.policy_loss(obs, noise)
+        loss = self.policy_loss(obs, noise, ground)
         if self.settings.squash_penalty > 0:
             loss = loss + self.settings.squash_penalty * self.policy_output(obs).square().mean()
         return loss
@@ -357,8 +361,8 @@ class DDPG(Agent):
     def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
         return self.policy(obs)
 
-    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-        """-mean_B Q(x, squash(mu(x))) (eq. 4); ``noise`` is unused."""
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None, ground=None) -> torch.Tensor:
+        """-mean_B Q(x, squash(mu(x))) (eq. 4); ``noise`` and ``ground`` are unused."""
         return -self.q(obs, self.squash(self.policy(obs))).mean()
 
 
@@ -410,10 +414,15 @@ class SVG(Agent):
     def policy_output(self, obs: torch.Tensor) -> torch.Tensor:
         return self.policy(obs)[0]
 
-    def policy_objective(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+    def policy_objective(self, obs: torch.Tensor, noise: torch.Tensor | None = None, ground=None) -> torch.Tensor:
         """J [B]: sum_{k<N} gamma^k r_k + gamma^N Q(x_N, a_N) from x_0 = ``obs`` [B, D], with
         a_k = squash(mean(x_k) + std(x_k) ``noise[k]``) and x_{k+1} = model(x_k, a_k); ``noise``
-        [N + 1, B, U] (None: drawn from the agent's generator). N = 0: Q(x_0, a_0) (eq. 5)."""
+        [N + 1, B, U] (None: drawn from the agent's generator). N = 0: Q(x_0, a_0) (eq. 5).
+        ``ground`` = (a [B, U], x' [B, D]), the replayed transition from x_0: then
+        x_1 = x' + model(x_0, a_0) - model(x_0, a), the model's residual on the replayed
+        transition held fixed (its noise inferred from the data, as SVG(1) with replay does in
+        Heess et al. 2015): J is scored near the states the environment reached, and its gradient
+        still flows through the model. Later steps have no data: x_{k+1} = model(x_k, a_k)."""
         n, gamma = self.horizon, self.settings.gamma
         if noise is None:
             noise = self._noise(n + 1, obs.shape[0])
@@ -423,13 +432,16 @@ class SVG(Agent):
         for k in range(n):
             a = self._sample(self.policy, x, noise[k])
             x2 = self.model(x, a)
+            if k == 0 and ground is not None:
+                x2 = x2 + (ground[1] - self.model(x, ground[0])).detach()
             total = total + gamma ** k * self.reward(x, a, x2)
             x = x2
         return total + gamma ** n * self.q(x, self._sample(self.policy, x, noise[n]))
 
-    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-        """-mean_B J (``policy_objective``) - entropy_weight x the policy's mean log-std at ``obs``."""
-        loss = -self.policy_objective(obs, noise).mean()
+    def policy_loss(self, obs: torch.Tensor, noise: torch.Tensor | None = None, ground=None) -> torch.Tensor:
+        """-mean_B J (``policy_objective``, ``ground`` as there) - entropy_weight x the policy's
+        mean log-std at ``obs``."""
+        loss = -self.policy_objective(obs, noise, ground).mean()
         if self.settings.entropy_weight > 0:
             loss = loss - self.settings.entropy_weight * self.policy(obs)[1].sum(-1).mean()
         return loss

@@ -50,7 +50,9 @@ class AgentSettings:
     none). ``squash``: "tanh" maps the policy's unbounded output
     into the action box; "none" takes it as the action (clamped to the box only when acting).
     ``train_model``: SVG(N) trains its model jointly on the replayed transitions (when it has
-    parameters). ``max_grad_norm``: each network's gradient norm is clipped to it before its Adam
+    parameters). ``model_noise`` (SVG(N), N >= 1): "none", the predicted states as the model gives
+    them (the paper's); "inferred", the first predicted state is the replayed next state moved by
+    the model's change from the replayed action to the policy's (``SVG.policy_objective``). ``max_grad_norm``: each network's gradient norm is clipped to it before its Adam
     step (None: not clipped). ``seed``: of the agent's generator (random actions, exploration and policy noise)."""
     agent: str = "ddpg"
     preset: Literal["spinningup", "paper"] = "spinningup"
@@ -73,6 +75,7 @@ class AgentSettings:
     squash_penalty: FloatRange(ge=0) = 0.0
     squash: Literal["tanh", "none"] = "tanh"
     train_model: Flag = True
+    model_noise: Literal["none", "inferred"] = "none"
     max_grad_norm: PositiveFloat | None = None
     seed: Count = 0
 
@@ -91,6 +94,9 @@ class AgentSettings:
             name = f"svg{n}"
         self.agent = name
         check_fields(self)
+        if self.model_noise != "none" and self.horizon < 1:
+            raise ConfigError("model_noise", f"{self.model_noise!r} moves SVG(N)'s predicted states: {self.agent} "
+                                             "predicts none (svg1 .. svg<N>)")
         for key, value in PRESETS[self.preset].items():
             if getattr(self, key) is None:
                 setattr(self, key, value)
