@@ -100,17 +100,19 @@ def test_map_sharded_in_one_process_and_unshard():
 
 def test_rl_seeds_on_two_ranks_run_each_seed_once_and_rank_0_prints_them_in_order(tmp_path):
     runs, results = tmp_path / "runs", tmp_path / "res"
-    # every seed's process stops at once on a bad config key: what is measured is who ran it and who printed
+    # every seed's process stops at once on an unknown task (a bad key is refused before any starts):
+    # what is measured is who ran it and who printed
     codes, outs = start_ranks([str(ROOT / "bench" / "rl_seeds.py"), "--quick", "--seeds", "0-2", "--threads", "1",
-                               "--runs", str(runs), "--results", str(results), "--set", "no_such_key=1"])
+                               "--runs", str(runs), "--results", str(results), "--set", "task=no-such-task"])
     assert codes == [1, 0], "\n".join(outs)
     lines = [line for line in outs[0].splitlines() if line.startswith("seed ")]
     assert [line.split(":")[0] for line in lines] == ["seed 0", "seed 1", "seed 2"], outs[0]
-    assert all("exit 1" in line for line in lines) and "3 seeds in" in outs[0] and "on 2 ranks" in outs[0]
-    assert "seed " not in outs[1] and "no_such_key" in outs[0]
+    assert all("exit 1" in line for line in lines), lines
+    assert "3 seeds in" in outs[0] and "on 2 ranks" in outs[0]
+    assert "seed " not in outs[1] and "no-such-task" in outs[0]
     logs = sorted(p.parent.name for p in runs.rglob("call.log"))
     assert logs == ["s0", "s1", "s2"]
-    assert all("no_such_key" in p.read_text() for p in runs.rglob("call.log"))
+    assert all("no-such-task" in p.read_text() for p in runs.rglob("call.log"))
     assert not results.exists()
 
 

@@ -147,6 +147,15 @@ def test_run_names_of_the_side_by_side_runner():
         run_name({**base, "agent_settings": "squash_penalty=1e-3"})
 
 
+def test_side_by_side_runner_refuses_a_bad_setting_before_any_seed_starts(tmp_path, capsys):
+    from bench import rl_seeds
+    with pytest.raises(SystemExit) as e:
+        rl_seeds.main(["--quick", "--seeds", "0-1", "--runs", str(tmp_path / "runs"), "--results",
+                       str(tmp_path / "res"), "--set", "no_such_key=1"])
+    assert e.value.code == 2 and "no_such_key" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
 def test_side_by_side_runner_exports_each_seeds_agent(tmp_path, capsys):
     """``--export``: a seed's process (``_one``, here in this process) writes its trained agent
     alone, loadable where the run folder is not."""
