@@ -110,7 +110,8 @@ def test_compiled_updates_compute_as_eager_ones(agent, seq, kw):
 
 def test_inferred_model_noise_reaches_the_update():
     """An update with model_noise "inferred" scores the policy from the replayed transitions: other
-    policy steps than with the model's own predictions, the same Q and model steps."""
+    policy steps than with the model's own predictions; the model's steps, which read replayed
+    transitions only, the same."""
     out = {}
     for mode in ("none", "inferred"):
         ag, buf = _setup("svg1", model_noise=mode)
@@ -142,11 +143,12 @@ def test_updater_refuses_capture_off_cuda():
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
-@pytest.mark.parametrize("agent,seq", [("ddpg", None), ("svg0", None), ("svg1", None), ("svg2", 2)])
-def test_captured_updates_equal_eager_ones_cuda(agent, seq):
+@pytest.mark.parametrize("agent,seq,kw", [("ddpg", None, {}), ("svg0", None, {}), ("svg1", None, {}), ("svg2", 2, {}),
+                                          ("svg1", None, {"model_noise": "inferred"})])
+def test_captured_updates_equal_eager_ones_cuda(agent, seq, kw):
     runs = []
     for capture in (False, True):
-        ag, buf = _setup(agent, device="cuda")
+        ag, buf = _setup(agent, device="cuda", **kw)
         up = Updater(ag, buf, torch.Generator("cuda").manual_seed(7), model_sequence=seq, capture=capture)
         ms = [{k: float(v) for k, v in up.run(4).items()} for _ in range(5)]
         assert up.captured == capture and up.recordings == int(capture)
@@ -155,13 +157,13 @@ def test_captured_updates_equal_eager_ones_cuda(agent, seq):
 
 
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
-@pytest.mark.parametrize("agent,seq", [("svg0", None), ("svg1", None)])
-def test_compiled_captured_updates_equal_eager_ones_cuda(agent, seq):
+@pytest.mark.parametrize("agent,seq,kw", [("svg0", None, {}), ("svg1", None, {}), ("svg1", None, {"model_noise": "inferred"})])
+def test_compiled_captured_updates_equal_eager_ones_cuda(agent, seq, kw):
     """Inductor's kernels recorded in the Updater's CUDA graph: the eager update's numbers up to
     rounding."""
     runs = []
     for backend in (None, "inductor"):
-        ag, buf = _setup(agent, device="cuda")
+        ag, buf = _setup(agent, device="cuda", **kw)
         if backend:
             ag.compile_update(backend)
         up = Updater(ag, buf, torch.Generator("cuda").manual_seed(7), model_sequence=seq, capture=True)

@@ -179,6 +179,18 @@ def test_budget_keeps_time_for_the_calls_video(tmp_path, monkeypatch):
     assert r["stop"] == "budget" and r["rounds"] == 6
 
 
+def test_a_failed_video_times_nothing(tmp_path, monkeypatch):
+    import gnwarp.rl.run as run_mod
+
+    def broken(*a, **k):
+        raise RuntimeError("no display")
+    monkeypatch.setattr(run_mod, "write_video", broken)
+    with pytest.warns(RuntimeWarning, match="no video written"):
+        r = run_rl(RLConfig(**dict(TINY, video_episodes=1, video_steps=5, env_steps=40), out=str(tmp_path / "f")))
+    timing = json.loads((tmp_path / "f" / "timing.json").read_text())
+    assert r["video"] is None and "video_seconds_per_step" not in timing and timing["checkpoint_seconds"] > 0
+
+
 def test_svg1_gn_on_swimmer6(tmp_path):
     pytest.importorskip("dm_control")
     cfg = RLConfig(task="swimmer6", agent="svg1", networks="gn", gn_impl="torch", num_envs=2, episode_steps=6,

@@ -420,9 +420,10 @@ class SVG(Agent):
         [N + 1, B, U] (None: drawn from the agent's generator). N = 0: Q(x_0, a_0) (eq. 5).
         ``ground`` = (a [B, U], x' [B, D]), the replayed transition from x_0: then
         x_1 = x' + model(x_0, a_0) - model(x_0, a), the model's residual on the replayed
-        transition held fixed (its noise inferred from the data, as SVG(1) with replay does in
-        Heess et al. 2015): J is scored near the states the environment reached, and its gradient
-        still flows through the model. Later steps have no data: x_{k+1} = model(x_k, a_k)."""
+        transition held fixed (its noise inferred from the data, after SVG(1) with replay in
+        Heess et al. 2015, here without its policy-noise inference and importance weights): J is
+        scored near the states the environment reached, and its gradient still flows through the
+        model. Later steps have no data: x_{k+1} = model(x_k, a_k)."""
         n, gamma = self.horizon, self.settings.gamma
         if noise is None:
             noise = self._noise(n + 1, obs.shape[0])
@@ -433,7 +434,9 @@ class SVG(Agent):
             a = self._sample(self.policy, x, noise[k])
             x2 = self.model(x, a)
             if k == 0 and ground is not None:
-                x2 = x2 + (ground[1] - self.model(x, ground[0])).detach()
+                with torch.no_grad():   # the model's residual on the replayed transition, held fixed
+                    residual = ground[1] - self.model(x, ground[0])
+                x2 = x2 + residual
             total = total + gamma ** k * self.reward(x, a, x2)
             x = x2
         return total + gamma ** n * self.q(x, self._sample(self.policy, x, noise[n]))

@@ -517,7 +517,7 @@ def run_rl(cfg: RLConfig) -> dict:
                 video.clear()
                 warnings.warn(f"no video written ({type(e).__name__}: {e}); renderer 'matplotlib' needs no "
                               "OpenGL", RuntimeWarning, stacklevel=2)
-            if video_steps:
+            if video and video_steps:   # written: its rate for the next call's budget
                 timing["video_seconds_per_step"] = (time.perf_counter() - t) / video_steps
         with atomic_write(out / TIMING_FILE) as tmp:   # for the next call's budget
             Path(tmp).write_text(json.dumps(timing))
