@@ -377,35 +377,39 @@ def _seed_ids(seeds) -> str:
 
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
-    """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, in turn): at every
+    """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, default agent
+    settings; SVG(0) in turn, SVG(1) in turn and, as a row of its own, acting ahead): at every
     250k env steps both reached and at the last point both share, where each has two seeds or
     more, each run's mean +- s.e. over its seeds there (which seeds: a later point holds only
     those that got there) and the difference of means with its 95% Welch interval."""
     from bench.rl_summary import difference, seed_means
     by = seed_means(root)
-    runs: dict[tuple[str, str], dict[int, dict[int, float]]] = {}
+    runs: dict[tuple[str, str, bool], dict[int, dict[int, float]]] = {}
     for k, v in by.items():
-        if k[2:7] == ("spinningup", "mlp", 1.0, False, "") and k[1] in ("svg0", "svg1"):
-            runs.setdefault((k[0], k[1]), {})[k[-1]] = {seed: m for seed, (m, _) in v.items()}
+        task, agent, preset, nets, utd, ahead, tag, steps = k
+        if (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "") and (agent, ahead) in (
+                ("svg0", False), ("svg1", False), ("svg1", True)):
+            runs.setdefault((task, agent, ahead), {})[steps] = {seed: m for seed, (m, _) in v.items()}
 
     def cell(v: dict) -> str:
         x = list(v.values())
         return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f} (seeds {_seed_ids(v)})"
     out = []
-    for task in sorted({t for t, _ in runs}):
-        one, zero = runs.get((task, "svg1"), {}), runs.get((task, "svg0"), {})
+    for task, ahead in sorted({(t, a) for t, ag, a in runs if ag == "svg1"}):
+        one, zero = runs.get((task, "svg1", ahead), {}), runs.get((task, "svg0", False), {})
         both = sorted(s for s in set(one) & set(zero) if min(len(one[s]), len(zero[s])) >= 2)
         at = [s for s in both if s and s % 250000 == 0]
         at += [both[-1]] if both and both[-1] not in at else []
         for s in at:
             d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
-            out.append([task.replace("dmc-", ""), f"{s / 1000:.0f}k", cell(one[s]), cell(zero[s]), f"{d:+.0f}",
-                        f"[{lo:+.0f}, {hi:+.0f}]", "yes" if lo > 0 or hi < 0 else "no"])
+            out.append([task.replace("dmc-", ""), "acting ahead" if ahead else "in turn", f"{s / 1000:.0f}k",
+                        cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
+                        "yes" if lo > 0 or hi < 0 else "no"])
     return [_note("spinningup preset, MLPs, where both runs have two seeds or more: mean +- standard error over "
                   "the seeds at that point (a later point holds only the seeds that got there); the difference "
-                  "SVG(1) - SVG(0) and its 95% Welch interval (Student's t at the Welch-Satterthwaite degrees "
-                  "of freedom, rounded down)", "the records"), ""] + _md(
-        ["task", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
+                  "SVG(1) - SVG(0) (SVG(0) in turn) and its 95% Welch interval (Student's t at the "
+                  "Welch-Satterthwaite degrees of freedom, rounded down)", "the records"), ""] + _md(
+        ["task", "SVG(1) loop", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
 @table("rl-policy-mpc")

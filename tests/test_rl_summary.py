@@ -169,3 +169,23 @@ def test_side_by_side_runner_exports_each_seeds_agent(tmp_path, capsys):
     assert (exp / AGENT_FILE).is_file() and not (exp / "checkpoint.pt").exists()
     agent, saved, _ = load_agent(exp, "cpu")
     assert saved.seed == 0 and agent.env_steps == rl_seeds.QUICK["env_steps"]
+
+
+def test_goals_table_compares_each_svg1_loop_with_svg0_in_turn(tmp_path):
+    """rl-goals: SVG(1) in turn and acting ahead each against SVG(0) in turn, two seeds or more a
+    side; runs with other agent settings stay out."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    recs = [_rec("svg0", s, 250000, [100.0 + 10 * s] * 2) for s in (0, 1, 2)]
+    recs += [_rec("svg1", s, 250000, [300.0 + 10 * s] * 2, ahead=True) for s in (0, 1)]
+    recs += [_rec("svg1", s, 250000, [900.0] * 2, settings={"squash_penalty": 1e-3}) for s in (0, 1)]
+    recs += [_rec("svg1", 0, 250000, [50.0] * 2)]   # in turn: one seed, no row
+    write_records(folder / "records.jsonl", recs)
+    lines = rt.rl_goals(tmp_path, None)
+    rows = [ln for ln in lines if ln.startswith("| swimmer")]
+    assert len(rows) == 1, lines
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert cells[:3] == ["swimmer-swimmer6", "acting ahead", "250k"]
+    assert cells[3].startswith("305 +- 5 (seeds 0-1)") and cells[4].startswith("110 +- 6 (seeds 0-2)")
+    assert cells[5] == "+195" and cells[7] == "yes"
