@@ -171,7 +171,8 @@ def test_budget_keeps_time_for_the_calls_video(tmp_path, monkeypatch):
     r = run_rl(RLConfig(**cfg))     # the guess (1000 s) leaves no second round within 60 s
     assert r["stop"] == "budget" and r["rounds"] == 1 and r["video"]
     timing = json.loads((tmp_path / "v" / "timing.json").read_text())
-    assert 0.3 / 5 <= timing["video_seconds_per_step"] < 30 / 5 and timing["checkpoint_seconds"] > 0
+    # the video's time, its 0.3-s sleep included, per step; the checkpoint's
+    assert timing["video_seconds_per_step"] >= 0.3 / 5 and timing["checkpoint_seconds"] > 0
     r = run_rl(RLConfig(**cfg))     # the time measured (0.3 s for 5 steps) does
     assert r["stop"] == "done" and r["rounds"] == 5
     (tmp_path / "v" / "timing.json").write_text('{"video_seconds_per_step": "soon"}')   # unreadable: guessed

@@ -400,6 +400,11 @@ def run_rl(cfg: RLConfig) -> dict:
 
     video_steps = cfg.video_episodes * min(cfg.video_steps, T)   # the video's episode-steps
 
+    def evaluates(env_steps: int, rnd: int) -> bool:
+        """Whether the round ending at ``env_steps`` (round ``rnd``, counted from 1) evaluates: the
+        first end past a multiple of ``eval_every`` since the last evaluation, and the last round."""
+        return env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every or rnd == total_rounds
+
     def finish_reserve(next_evaluates: bool) -> float:
         """Seconds the call's end takes after its last round: the final checkpoint (as long as
         the last one took) and, where this call will write a video (it evaluated, or the next
@@ -456,8 +461,7 @@ def run_rl(cfg: RLConfig) -> dict:
             if rounds_cap is not None and done_here >= rounds_cap:
                 stop = "chunk"
                 break
-            next_evaluates = ((agent.env_steps + per_round) // cfg.eval_every > c["last_eval"] // cfg.eval_every
-                              or c["round"] + 1 == total_rounds)
+            next_evaluates = evaluates(agent.env_steps + per_round, c["round"] + 1)
             if (cfg.budget_seconds is not None and done_here
                     and elapsed + last_round_s + finish_reserve(next_evaluates) > cfg.budget_seconds):
                 stop = "budget"
@@ -494,8 +498,7 @@ def run_rl(cfg: RLConfig) -> dict:
             row = dict(env_steps=agent.env_steps, round=c["round"], updates=agent.updates, episodes=c["episodes"],
                        seconds=c["seconds"], round_seconds=train_s, train_return=float(np.mean(returns)) if returns else None,
                        saturated=agent.saturated(state.obs), **metrics)   # deterministic actions at the bounds
-            evaluating = (agent.env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every
-                          or c["round"] == total_rounds)
+            evaluating = evaluates(agent.env_steps, c["round"])
             if evaluating:
                 last_eval = evaluate()
                 row.update(eval_median=float(np.median(last_eval)), eval_mean=float(np.mean(last_eval)))
