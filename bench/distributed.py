@@ -440,10 +440,12 @@ def main(argv=None) -> int:
         if not Path(a.data).exists():
             raise SystemExit(f"no dataset at {a.data}: run with --prepare first")
         from gnwarp.distributed import close
+        done = False
         try:
             main_launch(a)
+            done = True
         finally:
-            close()   # leave the process group before exit (else gloo may abort the process at exit)
+            close(sync=done)   # leave the process group before exit (else gloo may abort the process at exit)
     return 0
 
 

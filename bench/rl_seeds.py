@@ -182,10 +182,12 @@ def main(argv=None) -> int:
             done.append({"seed": s, "rc": rc, "lines": lines, "task": task, "files": files})
         return done
 
+    done = False
     try:
         results = r.map_sharded(seeds, run, batched=True, what="rl seeds")
+        done = True
     finally:
-        close()   # leave the process group before exit (else gloo may abort the process at exit)
+        close(sync=done)   # leave the process group before exit (else gloo may abort the process at exit)
     if not r.main:
         return 0
     failed = 0

@@ -325,8 +325,12 @@ def ranks(device: str | torch.device | None = "auto") -> Ranks:
     return _RANKS
 
 
-def close() -> None:
+def close(sync: bool = False) -> None:
     """Leave the process group at the end of a job (a later ``ranks()`` joins a new one on gloo).
+
+    ``sync``: every rank finished its work (the job's success path): on gloo the ranks meet at a
+    barrier first, so that none tears its side down (rank 0: the store) while a peer still talks
+    to it. The error path leaves it out: a peer that will not come would hold this rank there.
 
     On NCCL the default group is left to the process's exit: ``destroy_process_group`` hangs once
     NCCL collectives were captured in a CUDA graph (pytorch/pytorch#115388; two 2-GPU benchmark
@@ -344,5 +348,10 @@ def close() -> None:
             if _OBJECTS is not None:
                 dist.destroy_process_group(_OBJECTS)
         else:
+            if sync:
+                try:
+                    dist.monitored_barrier(timeout=datetime.timedelta(seconds=timeout_seconds()))
+                except RuntimeError:   # a peer already gone: leave all the same
+                    pass
             dist.destroy_process_group()
     _RANKS = _OBJECTS = None

@@ -73,7 +73,9 @@ def main(what, data, out):
 
 if __name__ == "__main__":
     from gnwarp.distributed import close
+    done = False
     try:
         main(*sys.argv[1:4])
+        done = True
     finally:
-        close()   # leave the process group before exit (else gloo may abort the process at exit)
+        close(sync=done)   # leave the process group before exit (else gloo may abort the process at exit)

@@ -77,7 +77,7 @@ def main(argv=None) -> int:
         if not isinstance(e, DistributedError):   # a broken group is left as it is
             close()
         return 2
-    close()   # under torchrun: leave the process group before exit (else gloo may abort the process)
+    close(sync=True)   # under torchrun: leave the process group before exit (else gloo may abort the process)
     return code
 
 
