@@ -198,13 +198,22 @@ def main(argv=None) -> int:
             failed += 1
             print("\n".join(d["lines"][-15:]), file=sys.stderr)
             continue
-        dest = Path(a.results) / d["task"] / name / f"s{d['seed']}"
-        dest.mkdir(parents=True, exist_ok=True)
-        for f, data in d["files"].items():
-            (dest / f).write_bytes(data)
+        file_seed(a.results, d["task"], name, d["seed"], d["files"])
     where = f" on {r.world} ranks" if r.distributed else ""
     print(f"{len(seeds)} seeds in {time.perf_counter() - started:.0f} s{where}; records under {a.results}")
     return 1 if failed else 0
+
+
+def file_seed(results, task: str, name: str, seed, files: dict) -> Path:
+    """Write a seed's copied files (``{file name: bytes}``, of ``COPIED``) to
+    ``<results>/<task>/<name>/s<seed>``, each to a temporary name, then renamed; the folder."""
+    from gnwarp.files import atomic_write
+    dest = Path(results) / task / name / f"s{seed}"
+    dest.mkdir(parents=True, exist_ok=True)
+    for f, data in files.items():
+        with atomic_write(dest / f) as tmp:
+            tmp.write_bytes(data)
+    return dest
 
 
 def rank_env(local_rank: int, device) -> dict:

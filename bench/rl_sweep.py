@@ -56,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.rl_seeds import COPIED, run_name, seed_config, seeds_of  # noqa: E402
+from bench.rl_seeds import COPIED, file_seed, run_name, seed_config, seeds_of  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.run import check_task  # noqa: E402
 from gnwarp.validation import ConfigError, read_config_file  # noqa: E402
@@ -258,11 +258,10 @@ def start_mps() -> str:
 
 
 def collect(work) -> int:
-    """Copy every run folder's records (``records.jsonl``, ``progress.csv``, ``config.json``) to
-    ``<work>/_results`` as ``bench/rl_seeds.py`` does when a seed's process ends: also for a process
-    killed at the deadline, whose evaluations up to then are kept. The number of seeds copied."""
+    """Copy every run folder's records (``COPIED``) to ``<work>/_results`` as ``bench/rl_seeds.py``
+    files them when a seed's process ends (``file_seed``): also for a process killed at the
+    deadline, whose evaluations up to then are kept. The number of seeds copied."""
     import json
-    import shutil
     work, n = Path(work), 0
     for rec in sorted(work.glob("*/*/s*/records.jsonl")):
         seed_dir = rec.parent
@@ -273,13 +272,8 @@ def collect(work) -> int:
             task = json.loads((seed_dir / "config.json").read_text())["task"]
         except (OSError, ValueError, KeyError, TypeError):
             task = rel.parts[0]
-        dest = work / "_results" / task / rel.parts[1] / rel.parts[2]
-        dest.mkdir(parents=True, exist_ok=True)
-        for f in COPIED:
-            if (seed_dir / f).is_file():
-                tmp = dest / (f + ".tmp")
-                shutil.copyfile(seed_dir / f, tmp)
-                tmp.replace(dest / f)
+        files = {f: (seed_dir / f).read_bytes() for f in COPIED if (seed_dir / f).is_file()}
+        file_seed(work / "_results", task, rel.parts[1], rel.parts[2][1:], files)
         n += 1
     return n
 
