@@ -112,7 +112,7 @@ def main(argv=None):
                 row[f"{key}_peak_mb"] = round(peak_mb(fn, dev), 1)
             st = engine.store
             row["store_mb"] = round(st.step_bytes(0) * T / 2 ** 20, 1) if st is not None else 0.0
-            del recompute
+            recompute = None   # its engine's memory freed before the plain autograd run
             if N <= args.plain_max:
                 row["fwdbwd_plain_ms_per_step"] = round(median_ms(plain, dev, args.reps, 1) / T, 4)
                 row["fwdbwd_plain_peak_mb"] = round(peak_mb(plain, dev), 1)
