@@ -111,10 +111,24 @@ def vjp(output: torch.Tensor, inputs, grad: torch.Tensor) -> tuple:
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
-    """``"auto"`` (or None): CUDA when torch sees it, else the CPU; anything else as torch reads it."""
+    """``"auto"`` (or None): CUDA when torch sees it, else the CPU; anything else as torch reads it,
+    refused (``ValueError``) where it cannot run here: a misspelt device, CUDA where torch sees
+    none, a GPU index beyond those visible."""
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    try:
+        d = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"device {device!r} is not a device (cpu, cuda, cuda:N or auto): {e}") from None
+    if d.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {device!r} asked for, but torch sees no CUDA device here (a CPU-only torch "
+                             "build, or no GPU visible): use cpu or auto")
+        if d.index is not None and d.index >= torch.cuda.device_count():
+            raise ValueError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) visible")
+    elif d.type not in ("cpu", "meta"):
+        raise ValueError(f"device {device!r}: gnwarp runs on cpu or cuda")
+    return d
 
 
 # torch dtype -> Warp dtype

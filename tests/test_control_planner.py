@@ -164,6 +164,28 @@ def test_registry_and_run_episodes_refusals(model):
         s.reset(3)      # the targets held are for 2 episodes
 
 
+@pytest.mark.parametrize("name", ["gradient", "sampling", "ilqg", "hybrid"])
+def test_targets_are_checked_and_a_task_of_another_system_refused(name, model):
+    """Targets with a NaN, or not one per episode, are refused by every planner that takes them
+    (they would be planned for and scored silently); so is a position task's wrong width; and
+    ``run_episodes`` refuses to score a task of another system than the env's."""
+    env = make_env("pendulum", N, backend="mujoco")
+    p = make(name, model, env)
+    for bad, words in ((torch.full((N, 3), float("nan")), "finite"), (torch.zeros(N + 1, 3), "one entry per episode")):
+        with pytest.raises(ValueError, match=words):
+            p.reset(N, targets=bad)
+    with pytest.raises(ValueError, match="task 'cheetah-forward' is for cheetah, but the env's system is pendulum"):
+        run_episodes(p, env, "cheetah-forward", 2, qpos0=Q0, qvel0=V0)
+    if name == "sampling":   # a position task takes [N, 2] or [N, 3]
+        sw = make_env("swimmer3", N, backend="mujoco")
+        s = SamplingPlanner(true_dynamics("swimmer3", N, 4, backend="mujoco", source=sw), "swimmer-reach",
+                            sw.ctrlrange, N, SamplingConfig(horizon=3, samples=4, knots=2))
+        with pytest.raises(ValueError, match=r"target positions \[2, 2\] or \[2, 3\], got shape \(2, 7\)"):
+            s.reset(N, targets=torch.ones(N, 7))
+        s.reset(N, targets=torch.ones(N, 2))
+        assert s.targets.shape == (N, 2)
+
+
 def test_learned_models_implement_dynamics(pendulum, model):
     mlp = MLPForwardModel(pendulum.layout, n_node=2, n_edge=2, size="3x128")
     for m in (model, mlp):

@@ -165,3 +165,14 @@ def test_reported_means_of_several_seeds_pool_over_the_seeds():
     assert summarize.groups(recs + [rerun])[0].mean == pytest.approx(np.mean([0.5, *means[1:]]))  # the rerun stands
     with pytest.raises(ValueError, match="cannot be pooled"):
         summarize.groups(recs + [record(planner="none", variant="IN", seed=9, episode_steps=20)])
+
+
+def test_a_binary_file_is_refused_as_records_naming_it(tmp_path):
+    """A records path that names another kind of file (a dataset, say) is one RecordError naming
+    the file and line, not a decoder's error; the file is left as it was."""
+    from gnwarp.eval.records import RecordError, read_records
+    f = tmp_path / "data.h5"
+    f.write_bytes(b"\x89HDF\r\n\x1a\n\xff\xfe\x00binary")
+    with pytest.raises(RecordError, match=r"data\.h5, line 1: not text"):
+        read_records(f)
+    assert f.read_bytes().startswith(b"\x89HDF")

@@ -430,3 +430,22 @@ def test_batch_unbatch_round_trip_property(gs, to_torch):
     k = len(gs) // 2
     if 0 < k < len(gs):
         _same(batch([batch(gs[:k]), batch(gs[k:])]), b)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="asks for CUDA where torch sees none")
+@pytest.mark.parametrize("command", [["evaluate", "{ck}", "--data", "{data}"], ["mpc", "--model", "{ck}", "--task",
+                                     "pendulum-balance", "--video", "none", "--records", "{tmp}/r.jsonl"],
+                                     ["train", "--data", "{data}", "--quick", "-o", "{tmp}/t"]])
+def test_a_device_that_is_not_here_is_one_clear_error(command, tmp_path, capsys):
+    """--device cuda on a CPU-only torch (and a misspelt device) end in one line naming the device,
+    before any work (no checkpoint or dataset is even read: none exists here)."""
+    from gnwarp.interop import resolve_device
+    fill = dict(ck=str(tmp_path / "ck"), data=str(tmp_path / "d.h5"), tmp=str(tmp_path))
+    args = [a.format(**fill) for a in command]
+    args += ["--set", "device=cuda"] if command[0] == "train" else ["--device", "cuda"]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "device 'cuda' asked for, but torch sees no CUDA device" in err and "Traceback" not in err
+    with pytest.raises(ValueError, match="'cdua' is not a device"):
+        resolve_device("cdua")
+    assert resolve_device("auto") == torch.device("cpu") and resolve_device("cpu") == torch.device("cpu")

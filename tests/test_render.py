@@ -83,3 +83,35 @@ def test_marks_are_drawn_where_they_are(cartpole, tmp_path):
         ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "e.gif", marks=far * np.nan)
     with pytest.raises(ValueError, match="matplotlib"):
         ev.animate(te.body, {}, cartpole, te.instance, tmp_path / "d.gif", renderer="mujoco", marks=at_cart)
+
+
+def test_a_video_is_checked_first_and_written_whole(tmp_path, monkeypatch):
+    """A path whose ending names no video format is refused before drawing and an existing file
+    there is left as it was; a write that fails midway leaves the old video and no temporary."""
+    import imageio.v3 as iio
+
+    from gnwarp.eval.video import check_video_path, write_video
+    from gnwarp.sim import systems
+    pend = systems.make("pendulum")
+    states = np.zeros((1, 3, pend.nbody, 13))
+    states[..., 3] = 1.0   # unit quaternions
+    data_file = tmp_path / "data.h5"
+    data_file.write_bytes(b"precious")
+    with pytest.raises(ValueError, match=r"\.h5 video.*\.gif"):
+        ev.animate_system(states, pend, data_file, renderer="matplotlib")
+    assert data_file.read_bytes() == b"precious"
+    with pytest.raises(FileNotFoundError):
+        check_video_path(tmp_path / "missing" / "v.gif")
+    for suffix in (".gif", ".webp", ".png"):
+        out = ev.animate_system(states, pend, tmp_path / f"v{suffix}", renderer="matplotlib")
+        assert iio.imread(out, index=0).ndim == 3
+    old = (tmp_path / "v.gif").read_bytes()
+
+    def broken(path, *a, **k):
+        open(path, "wb").write(b"half a video")
+        raise OSError("disk full")
+    monkeypatch.setattr(iio, "imwrite", broken)
+    with pytest.raises(OSError, match="disk full"):
+        write_video(tmp_path / "v.gif", np.zeros((2, 4, 4, 3), np.uint8), 40)
+    assert (tmp_path / "v.gif").read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.h5", "v.gif", "v.png", "v.webp"]

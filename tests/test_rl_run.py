@@ -236,6 +236,36 @@ def test_resume_with_other_settings_refused(tmp_path):
         run_rl(RLConfig(**{**TINY, "batch_size": 16}, out=str(tmp_path / "r")))
 
 
+def test_a_folder_whose_records_starting_over_would_lose_is_refused(tmp_path):
+    """No checkpoint to resume: records of another experiment, or evaluations past step 0 (the
+    run's checkpoint is gone), stay as they are and the run is refused; a run killed between its
+    step-0 evaluation and first checkpoint starts over."""
+    from gnwarp.eval.records import ResultRecord, write_records
+    foreign = tmp_path / "f"
+    foreign.mkdir()
+    write_records(foreign / RECORDS_FILE, [ResultRecord(experiment="mpc", task="pendulum-balance", planner="gradient",
+                                                        dynamics="learned", episodes=1, episode_steps=5,
+                                                        returns=[1.0])])
+    before = (foreign / RECORDS_FILE).read_bytes()
+    with pytest.raises(ConfigError, match="experiment 'mpc'"):
+        run_rl(RLConfig(**TINY, out=str(foreign)))
+    assert (foreign / RECORDS_FILE).read_bytes() == before
+    lost = tmp_path / "l"
+    run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(lost)))
+    (lost / CHECKPOINT).unlink()
+    before = (lost / RECORDS_FILE).read_bytes()
+    with pytest.raises(ConfigError, match="up to 40 env steps but no checkpoint"):
+        run_rl(RLConfig(**{**TINY, "agent": "ddpg"}, out=str(lost)))
+    assert (lost / RECORDS_FILE).read_bytes() == before
+    assert json.loads((lost / "config.json").read_text())["agent"] == "svg0"   # not rewritten
+    early = tmp_path / "e"
+    run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(early)))
+    (early / CHECKPOINT).unlink()
+    write_records(early / RECORDS_FILE, [r for r in read_records(early / RECORDS_FILE) if r.env_steps == 0],
+                  append=False)   # as if killed after the step-0 evaluation, before the first checkpoint
+    assert run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(early)))["stop"] == "done"
+
+
 def test_compiled_run_trains_and_keeps_its_compile_setting(tmp_path):
     """``torch_compile`` traces the update's losses (aot_eager: no compiler needed) with the same
     numbers as eager updates here; a resumed run must keep it (rounding may differ with inductor)."""

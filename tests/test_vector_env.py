@@ -455,3 +455,15 @@ def test_a_diverged_learned_env_is_reported(pendulum_model, output):
     true = pendulum_env(3)
     true.reset(seed=0)
     assert true.step(np.zeros((3, 1)))[4] == {}          # the true simulator reports no such key
+
+
+def test_reset_refuses_targets_with_a_nan_or_the_wrong_width():
+    """options['targets'] with a NaN would give NaN observations and rewards; a width the task
+    does not read would plan and score silently: both are refused, naming what is wrong."""
+    env = make_vector_env("swimmer-reach", 2, dynamics="true", backend="mujoco", episode_steps=5, system="swimmer3")
+    with pytest.raises(VectorEnvError, match="finite"):
+        env.reset(seed=0, options={"targets": np.full((2, 3), np.nan)})
+    with pytest.raises(VectorEnvError, match=r"target positions \[2, 2\] or \[2, 3\]"):
+        env.reset(seed=0, options={"targets": np.ones((2, 7))})
+    obs, _ = env.reset(seed=0, options={"targets": np.ones((2, 3))})
+    assert np.isfinite(np.asarray(obs)).all()

@@ -51,6 +51,9 @@ def evaluate_command(args) -> int:
     if args.out:  # a folder that cannot be made is refused before anything loads
         from gnwarp.files import check_output_path
         check_output_path(args.out, folder=True)
+    if args.device is not None:   # a device that is not here, likewise
+        from gnwarp.interop import resolve_device
+        resolve_device(args.device)
 
     from gnwarp.data.dataset import load
     from gnwarp.eval.metrics import evaluate

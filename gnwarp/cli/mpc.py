@@ -289,16 +289,20 @@ def timing_line(timing: dict, planner, n: int) -> str:
 
 
 def check_outputs(records, video) -> None:
-    """Refuse output paths that cannot be written (``files.check_output_path``) and a records file
-    that is not one, before any work, with ``OSError`` / ``RecordError`` naming them."""
+    """Refuse output paths that cannot be written (``files.check_output_path``), a video format
+    that cannot be (``eval.video.check_video_path``) and a records file that is not one, before
+    any work, with ``OSError`` / ``ValueError`` / ``RecordError`` naming them."""
     from gnwarp.eval.records import read_records
+    from gnwarp.eval.video import check_video_path
     from gnwarp.files import check_output_path
-    for what, path in (("--records", records), ("--video", video)):
+    for what, path, check in (("--records", records, check_output_path), ("--video", video, check_video_path)):
         if path is not None:
             try:
-                check_output_path(path)
+                check(path)
             except OSError as e:
                 raise type(e)(f"{what} {path}: {e}") from None
+            except ValueError as e:   # the message names the path
+                raise ValueError(f"{what}: {e}") from None
     if records.exists():
         read_records(records)   # appended to: it must hold valid records
 

@@ -48,6 +48,9 @@ def run_episodes(planner: Planner, env, task, steps: int, x0=None, *, target=Non
                         f"{', '.join(missing)}")
     if isinstance(task, (str, Task)):
         task = get_task(task)
+        system = getattr(getattr(env, "system", None), "name", None)
+        if system is not None:   # a task of another system would score the wrong bodies, silently
+            task.check_system(system, "env's system")
     elif not (callable(getattr(task, "reward", None)) or callable(task)):
         raise TypeError(f"task must be a task name, a Task or a reward callable, got {type(task).__name__}")
     if qpos0 is not None:

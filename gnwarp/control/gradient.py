@@ -37,7 +37,8 @@ import torch
 
 from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, condition_gradient,
                                     planned_return, scale_gradient)
-from gnwarp.control.tasks import Task, TaskError, get_task
+from gnwarp.control.tasks import Task, get_task
+from gnwarp.control.task_base import check_targets
 from gnwarp.data.layout import LayoutMismatchError
 from gnwarp.gn.mlp import prime_dense_async
 from gnwarp.state import DYN_NODE_SIZE
@@ -248,10 +249,7 @@ class GradientMPC(ActsOnPlan):
 
     # -- the action sequence ------------------------------------------------------------------------
     def _targets(self, targets) -> torch.Tensor:
-        t = torch.as_tensor(targets).to(self.device, self.dtype)
-        if t.shape[:1] != (self.n,):
-            raise TaskError(f"targets must have one entry per episode ({self.n}), got shape {tuple(t.shape)}")
-        return t
+        return check_targets(targets, self.n, self.task).to(self.device, self.dtype)
 
     def reset(self, n: int | None = None, targets=None, seed: int | None = None) -> None:
         """A new random sequence drawn from ``seed`` (None: the settings' seed) and fresh Adam

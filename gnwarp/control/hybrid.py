@@ -41,6 +41,7 @@ from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientM
 from gnwarp.control.returns import GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, planned_return
 from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
+from gnwarp.control.task_base import check_targets
 from gnwarp.dynamics import Dynamics
 from gnwarp.sim.env import Observation
 from gnwarp.validation import ConfigError, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
@@ -172,10 +173,7 @@ class HybridPlanner(ActsOnPlan):
             raise PlanningError(f"this planner plans {self.n} episodes (its rollouts' batch), got n={n!r}")
         held = self.targets if targets is None else targets
         if held is not None:
-            held = torch.as_tensor(held).to(self.device)
-            if held.shape[:1] != (self.n,):
-                raise PlanningError(f"targets must have one entry per episode ({self.n}), got shape "
-                                    f"{tuple(held.shape)}")
+            held = check_targets(held, self.n, self.task, PlanningError).to(self.device)
         self.targets = held
         if self.refiner is not None:
             self.refiner.reset(targets=None if held is None else held.repeat_interleave(self.settings.elites, 0))

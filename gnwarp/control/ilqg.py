@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from gnwarp.control.returns import plan_action
+from gnwarp.control.task_base import check_targets
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.body_state import body_states
 from gnwarp.validation import ConfigError, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt, check_fields
@@ -382,10 +383,8 @@ class ILQG:
                 raise ValueError(f"n (episodes) must be an integer >= 1, got {n!r}")
             self.n = int(n)
         if targets is not None:
-            t = np.asarray(torch.as_tensor(targets).detach().cpu())
-            if t.shape[:1] != (self.n,):
-                raise ValueError(f"targets must have one entry per episode ({self.n}), got shape {t.shape}")
-            self.targets = t
+            self.targets = np.asarray(check_targets(torch.as_tensor(targets).detach().cpu(), self.n,
+                                                    getattr(self, "task", None), ValueError))
         elif self.targets is not None and self.targets.shape[0] != self.n:
             raise ValueError(f"the targets held are for {self.targets.shape[0]} episodes, not {self.n}: give targets")
         self._U = None

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from gnwarp.control.returns import ActsOnPlan, check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
+from gnwarp.control.task_base import check_targets
 from gnwarp.sim.actuators import Actuators
 from gnwarp.sim.env import Env, Observation, make_env
 from gnwarp.sim.excitation import catmull_rom
@@ -253,7 +254,7 @@ class SamplingPlanner(ActsOnPlan):
         [n, ...] for a task's reward (None: those held)."""
         self.n = self.n if n is None else _episodes(n)
         held = self.targets if targets is None else targets
-        self.targets = None if held is None else _targets(held, self.n, self.device)
+        self.targets = None if held is None else check_targets(held, self.n, self.task, ValueError).to(self.device)
         self._gen.manual_seed(self.settings.seed if seed is None else seed)
         mid = 0.5 * (self.lo + self.hi)
         self.knots = mid.expand(self.n, self.settings.knots, self.nu).clone()
@@ -376,8 +377,5 @@ def _episodes(n) -> int:
     return int(n)
 
 
-def _targets(targets, n: int, device) -> torch.Tensor:
-    t = torch.as_tensor(targets).to(device)
-    if t.shape[:1] != (n,):
-        raise ValueError(f"targets must have one entry per episode ({n}), got shape {tuple(t.shape)}")
-    return t
+def _targets(targets, n: int, device, task=None) -> torch.Tensor:
+    return check_targets(targets, n, task, ValueError).to(device)

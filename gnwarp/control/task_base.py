@@ -15,7 +15,7 @@ import torch
 
 from gnwarp.sim.families import family_name
 
-__all__ = ["Task", "TaskError", "Reward", "Initial", "SUITES"]
+__all__ = ["Task", "TaskError", "Reward", "Initial", "SUITES", "check_targets"]
 
 SUITES = ("paper", "dmc")
 
@@ -81,3 +81,18 @@ class Task:
         """``TaskError`` unless the task applies to ``system``."""
         if not self.fits(system):
             raise TaskError(f"task {self.name!r} is for {self.system}, but the {what} is {system}")
+
+
+def check_targets(targets, n: int, task: Task | None = None, error: type[Exception] = TaskError) -> torch.Tensor:
+    """``targets`` as a tensor once it is known to give each of ``n`` episodes a finite target of
+    the shape ``task`` reads (a "position" task: [n, 2] or [n, 3]); else ``error`` naming what is
+    wrong. A NaN or a wrong width would otherwise be planned for and scored without a word."""
+    t = torch.as_tensor(np.asarray(targets) if not isinstance(targets, torch.Tensor) else targets)
+    if t.shape[:1] != (n,):
+        raise error(f"targets must have one entry per episode ({n}), got shape {tuple(t.shape)}")
+    if (t.is_floating_point() or t.is_complex()) and not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).reshape(n, -1).any(1).nonzero()[0, 0])
+        raise error(f"targets must be finite: episode {bad}'s holds a NaN or Inf")
+    if task is not None and task.target == "position" and (t.ndim != 2 or t.shape[1] not in (2, 3)):
+        raise error(f"task {task.name!r} takes target positions [{n}, 2] or [{n}, 3], got shape {tuple(t.shape)}")
+    return t

@@ -69,6 +69,7 @@ from gymnasium.vector.utils import batch_space
 
 from gnwarp.control.env_observation import ObservationLayout
 from gnwarp.control.tasks import Task, episode_starts, get_task, sample_targets
+from gnwarp.control.task_base import check_targets
 
 __all__ = ["make_vector_env", "ControlVectorEnv", "VectorEnvError", "AutoresetMode", "OUTPUTS"]
 
@@ -344,6 +345,7 @@ class ControlVectorEnv(VectorEnv):
             if self.task.target is None:
                 raise VectorEnvError(f"task {self.task.name!r} has no targets; options['targets'] is not taken")
             given = torch.as_tensor(options["targets"]).detach().cpu().float()
+            check_targets(given, self.num_envs, self.task, VectorEnvError)
             if tgt is None or given.shape != tgt.shape:
                 raise VectorEnvError(f"options['targets'] must have shape {None if tgt is None else tuple(tgt.shape)}, "
                                      f"got {tuple(given.shape)}")

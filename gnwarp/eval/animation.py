@@ -10,6 +10,7 @@ import mujoco
 import numpy as np
 
 from gnwarp.eval.render import RenderUnavailable, render_rollouts
+from gnwarp.eval.video import check_video_path, write_video
 from gnwarp.sim.systems import make
 from gnwarp.state import POS, body_points, quat_rotate
 
@@ -88,6 +89,7 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
     """
     if renderer not in ("auto", "mujoco", "matplotlib"):
         raise ValueError(f"renderer must be 'auto', 'mujoco' or 'matplotlib', got {renderer!r}")
+    path = check_video_path(path)   # a format it can write, a writable place: before drawing anything
     if marks is not None:
         marks = np.asarray(marks, dtype=np.float64)
         if marks.shape != (true.shape[0], 3):
@@ -104,7 +106,6 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
         except (RenderUnavailable, ValueError):
             if renderer == "mujoco":
                 raise
-    import imageio.v3 as iio
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -189,9 +190,7 @@ def animate(true: np.ndarray, preds: dict[str, np.ndarray], dataset, instances, 
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
-    path = Path(path)
-    iio.imwrite(path, np.stack(frames), duration=int(round(1000 * stride * dt)), loop=0)
-    return path
+    return write_video(path, np.stack(frames), int(round(1000 * stride * dt)))
 
 
 def animate_system(states: np.ndarray, system, path, title: str = "", renderer: str = "auto",

@@ -241,11 +241,16 @@ def read_records(path: str | os.PathLike) -> list[ResultRecord]:
     not parse or is no valid record raises ``RecordError`` naming the file and line number."""
     path = Path(path)
     out = []
-    with open(path) as f:
-        for n, line in enumerate(f, 1):
+    with open(path, "rb") as f:   # bytes: a binary file is refused by line, not by a decoder's error
+        for n, raw in enumerate(f, 1):
+            where = f"{path}, line {n}"
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError:
+                raise RecordError(f"{where}: not text (a records file holds JSON lines; is this another kind "
+                                  "of file?)") from None
             if not line.strip():
                 continue
-            where = f"{path}, line {n}"
             try:
                 d = json.loads(line)
             except json.JSONDecodeError as e:

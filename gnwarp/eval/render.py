@@ -23,6 +23,7 @@ import numpy as np
 
 from gnwarp.sim.systems import from_mjcf, make
 from gnwarp.state import POS, QUAT, geom_poses
+from gnwarp.eval.video import check_video_path, write_video
 
 __all__ = ["RenderUnavailable", "render_rollouts"]
 
@@ -33,7 +34,6 @@ class RenderUnavailable(RuntimeError):
 
 def _render_job(job: dict, arrays: dict) -> None:
     """In the child process: render every frame and write the animation."""
-    import imageio.v3 as iio
     import mujoco
 
     W, H = job["width"], job["height"]
@@ -75,7 +75,7 @@ def _render_job(job: dict, arrays: dict) -> None:
                     frames[f, :, j * W:(j + 1) * W] = r.render()
         rows.append(frames)
     video = np.concatenate(rows, axis=1)
-    iio.imwrite(job["path"], video, duration=job["duration_ms"], loop=0)
+    write_video(job["path"], video, job["duration_ms"])
 
 
 def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs: list[dict], path, dt: float,
@@ -88,7 +88,7 @@ def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs
     ("egl", "osmesa"; default: $MUJOCO_GL or "egl"). Raises ``RenderUnavailable`` when no GL
     context can be made.
     """
-    path = Path(path)
+    path = check_video_path(path)
     K, H1 = true.shape[:2]
     stride = max(1, int(round(1.0 / (fps_max * dt))))
     job = {"pred_names": list(preds), "systems": system_specs, "width": width, "height": height,

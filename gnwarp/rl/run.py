@@ -71,11 +71,11 @@ def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
 
 
 def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device", "cuda asked for, but torch sees no CUDA device")
-    return torch.device(name)
+    from gnwarp.interop import resolve_device
+    try:
+        return resolve_device(name)
+    except ValueError as e:
+        raise ConfigError("device", str(e)) from None
 
 
 def _backend(cfg: RLConfig) -> str:
@@ -327,8 +327,16 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
         raise ConfigError("out", f"{out} holds an exported agent ({AGENT_FILE}), which cannot resume training; "
                                  "train in another folder")
     saved = out / CONFIG_FILE
-    if resume and saved.is_file():
-        old = json.loads(saved.read_text())
+    if not resume:
+        _refuse_orphans(out)
+    if resume and saved.is_file():   # (without a checkpoint and records, nothing of an earlier start is lost)
+        try:
+            old = json.loads(saved.read_text())
+            if not isinstance(old, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ConfigError("out", f"{saved} is not a run's config ({e}); train in another folder or remove "
+                                     "it") from None
         new = json.loads(json.dumps(cfg.to_dict()))
         defaults = json.loads(json.dumps(RLConfig().to_dict()))
         old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
@@ -340,6 +348,31 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
     with atomic_write(saved) as tmp:
         Path(tmp).write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
     return out, resume
+
+
+def _refuse_orphans(out: Path) -> None:
+    """Refuse a folder with no checkpoint whose ``records.jsonl`` starting over would lose: records
+    that are not an RL run's, or evaluations past the first (env steps > 0: the run trained, and
+    its checkpoint is gone). The first evaluation (step 0) precedes the first checkpoint; a run
+    killed between the two starts over."""
+    path = out / RECORDS_FILE
+    if not path.is_file():
+        return
+    from gnwarp.eval.records import RecordError, read_records
+    try:
+        recs = read_records(path)
+    except (RecordError, OSError) as e:
+        raise ConfigError("out", f"{out} holds a {RECORDS_FILE} that is not a run's records ({e}); train in "
+                                 "another folder") from None
+    foreign = [r for r in recs if r.experiment != "rl"]
+    if foreign:
+        raise ConfigError("out", f"{out} holds {RECORDS_FILE} of experiment {foreign[0].experiment!r}, not of a "
+                                 "gnwarp rl run; train in another folder")
+    trained = max((r.env_steps or 0 for r in recs), default=0)
+    if trained > 0:
+        raise ConfigError("out", f"{out} holds a run's evaluations up to {trained} env steps but no {CHECKPOINT} "
+                                 f"to resume from (it was removed or lost): starting over would drop them. Train "
+                                 f"in another folder, or move {RECORDS_FILE} away to start this one over")
 
 
 def normalize_model(model, buffer: ReplayBuffer) -> bool:
