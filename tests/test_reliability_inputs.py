@@ -194,6 +194,28 @@ def test_evaluate_reports_the_first_nonfinite_step(pendulum, tmp_path, monkeypat
     assert "| none |" in capsys.readouterr().out
 
 
+def test_evaluate_names_the_steps_a_short_dataset_allows_and_refuses_what_it_would_drop(pendulum, monkeypatch,
+                                                                                        capsys):
+    """A horizon longer than the data's sequences is labelled with the steps used (not as a
+    rollout of its own length); --names must name every checkpoint; system-identification and
+    forward checkpoints are not mixed (the forward ones were dropped) and sysid takes no -o."""
+    import gnwarp.data.dataset as dataset_module
+    import gnwarp.train as train_module
+    import gnwarp.train.checkpoint as checkpoint_module
+    monkeypatch.setattr(dataset_module, "load", lambda path: pendulum)
+    monkeypatch.setattr(train_module, "load_model", lambda path, **kw: TruthModel(pendulum, 99))
+    assert cli.main(["evaluate", "ck", "--data", "x.h5", "--horizons", "3", "1000"]) == 0
+    head = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| model |"))
+    assert "| 3-step rollout |" in head and "| 8-step rollout (1000 asked: the data's length) |" in head, head
+    assert cli.main(["evaluate", "a", "b", "--names", "A", "--data", "x.h5"]) == 2
+    assert "--names gives 1 names for 2 checkpoints" in capsys.readouterr().err
+    monkeypatch.setattr(checkpoint_module, "checkpoint_config", lambda p: {"kind": "sysid" if p == "sid" else "forward"})
+    assert cli.main(["evaluate", "sid", "fwd", "--data", "x.h5"]) == 2
+    assert "(sid) and forward models (fwd) are evaluated apart" in capsys.readouterr().err
+    assert cli.main(["evaluate", "sid", "--data", "x.h5", "-o", "out"]) == 2
+    assert "-o/--out: not taken for system-identification checkpoints" in capsys.readouterr().err
+
+
 # -- the GN block's index --------------------------------------------------------------------------
 def _two_graphs(senders=(0, 1, 2, 3)):
     return GraphsTuple(nodes=torch.randn(4, 4), edges=torch.randn(4, 3), receivers=torch.tensor([1, 0, 3, 2]),

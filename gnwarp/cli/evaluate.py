@@ -20,14 +20,17 @@ def evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
 
     from gnwarp.eval.sysid import sysid_error_rows
     from gnwarp.train.sysid import load_sysid, trained_param_stats
-    print("| model | identified from | " + " | ".join(f"{h}-step rollout" for h in horizons) + " |")
+    from gnwarp.eval.report import rollout_label
+    models = {path: load_sysid(path, device=args.device) for path in paths}
+    left = min(ds[args.split].ctrl.shape[1] - m.window for m in models.values())   # steps after the window
+    print("| model | identified from | " + " | ".join(rollout_label(h, min(h, left)) for h in horizons) + " |")
     print("|---|---|" + "---|" * len(horizons))
     bad = False
-    for path in paths:
-        m = load_sysid(path, device=args.device)
+    for k, (path, m) in enumerate(models.items()):
+        name = args.names[k] if args.names else Path(path).resolve().parent.name
         for label, errs in sysid_error_rows(m, ds, args.split, horizons, sequences, trained_param_stats(m, ds.system)):
             bad |= not all(math.isfinite(e) for e in errs)
-            print(f"| {Path(path).resolve().parent.name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
+            print(f"| {name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
     if bad:
         raise FloatingPointError("a system-identification rollout left the finite range")
     return 0
@@ -48,6 +51,8 @@ def evaluate_command(args) -> int:
         if sequences < 1:
             raise ValueError(f"-n/--sequences must be an integer >= 1, got {args.sequences!r}")
     horizons = tuple(dict.fromkeys(positive_ints("--horizons", args.horizons)))
+    if args.names and len(args.names) != len(args.checkpoints):
+        raise ValueError(f"--names gives {len(args.names)} names for {len(args.checkpoints)} checkpoints: one each")
     if args.out:  # a folder that cannot be made is refused before anything loads
         from gnwarp.files import check_output_path
         check_output_path(args.out, folder=True)
@@ -71,9 +76,17 @@ def evaluate_command(args) -> int:
             return None
     sysid = [p for p in args.checkpoints if kind(p) == "sysid"]
     if sysid:  # system identification: G_ID from each sequence's first window, then rollouts
+        others = [p for p in args.checkpoints if p not in sysid]
+        if others:
+            raise ValueError(f"system-identification checkpoints ({', '.join(sysid)}) and forward models "
+                             f"({', '.join(others)}) are evaluated apart: give one kind at a time")
+        unused = [f for f, v in (("-o/--out", args.out), ("--impl", args.impl)) if v]
+        if unused:
+            raise ValueError(f"{' and '.join(unused)}: not taken for system-identification checkpoints (their "
+                             "table is printed)")
         return evaluate_sysid(sysid, ds, args, sequences, horizons)
     for k, path in enumerate(args.checkpoints):
-        name = args.names[k] if args.names and k < len(args.names) else Path(path).resolve().parent.name
+        name = args.names[k] if args.names else Path(path).resolve().parent.name
         m = load_model(path, device=args.device, **({"impl": args.impl} if args.impl else {}))
         results[name] = evaluate(m, ds, args.split, sequences, horizons, keep_predictions=bool(args.out))
     if args.out:

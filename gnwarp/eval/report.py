@@ -47,13 +47,30 @@ def _nonfinite(r: dict) -> str:
     return f"one-step: {n} predictions" if n else "none"
 
 
+def rollout_label(asked: int, used: int | None = None, short: bool = False) -> str:
+    """A rollout column's name: "H-step rollout", or, where the data's sequences held fewer steps
+    than asked, the steps used with the ones asked ("19-step rollout (100 asked: the data's
+    length)"), so that two columns of the same steps never read as different horizons."""
+    word = "step" if short else "step rollout"
+    if used is None or int(used) == int(asked):
+        return f"{asked}-{word}"
+    return f"{used}-{word} ({asked} asked: the data's length)"
+
+
+def _column(key: str, r: dict, short: bool = False) -> str:
+    if key == "one_step":
+        return "one-step"
+    return rollout_label(int(key.split("_")[1]), r[key].get("steps"), short)
+
+
 def markdown_table(results: dict[str, dict], system: str = "") -> str:
     """Markdown tables of normalized errors: ``results`` is {model name: ``evaluate`` output}; a
     "constant" row (1 by definition) is added. First the mean over groups per horizon, with the
     first rollout step at which a model's predictions left the finite range ("non-finite"
     errors), then the per-group ratios of each horizon."""
-    keys = [k for k in next(iter(results.values())) if k == "one_step" or k.startswith("rollout_")]
-    head = {k: ("one-step" if k == "one_step" else f"{k.split('_')[1]}-step rollout") for k in keys}
+    first = next(iter(results.values()))
+    keys = [k for k in first if k == "one_step" or k.startswith("rollout_")]
+    head = {k: _column(k, first) for k in keys}
     lines = [f"Normalized error{f' on {system}' if system else ''} (model / constant-prediction baseline; "
              f"lower is better):", "", "| model | " + " | ".join(head[k] for k in keys) + " | first non-finite step |",
              "|---|" + "---|" * (len(keys) + 1)]
@@ -84,7 +101,7 @@ def plot_errors(results: dict[str, dict], path, title: str = "") -> Path:
         c = "0.6" if n == "constant" else colors[i % (len(colors) - 1)]
         ax.bar(np.arange(len(keys)) + (i - (len(names) - 1) / 2) * width, vals[i], width, label=n, color=c)
     ax.set_xticks(np.arange(len(keys)))
-    ax.set_xticklabels(["one-step" if k == "one_step" else f"{k.split('_')[1]}-step" for k in keys])
+    ax.set_xticklabels([_column(k, results[names[0]], short=True) for k in keys])
     ax.set_yscale("log")
     ax.set_ylabel("error / constant baseline")
     ax.set_title(title)
