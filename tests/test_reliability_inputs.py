@@ -471,3 +471,12 @@ def test_a_device_that_is_not_here_is_one_clear_error(command, tmp_path, capsys)
     with pytest.raises(ValueError, match="'cdua' is not a device"):
         resolve_device("cdua")
     assert resolve_device("auto") == torch.device("cpu") and resolve_device("cpu") == torch.device("cpu")
+
+
+def test_generate_refuses_dt_and_substeps_for_a_built_in_system(tmp_path, capsys):
+    """--dt and --substeps shape an MJCF's data; a built-in system keeps its own timestep, so
+    they are refused there instead of ignored (the data would not have the dt asked for)."""
+    for flag in (["--dt", "0.01"], ["--substeps", "0"]):
+        out = tmp_path / "b.h5"
+        assert cli.main(["generate", "pendulum", "-n", "3", "--steps", "5", *flag, "-o", str(out), "-q"]) == 2
+        assert "--dt and --substeps apply to --mjcf only" in capsys.readouterr().err and not out.exists()

@@ -467,3 +467,13 @@ def test_reset_refuses_targets_with_a_nan_or_the_wrong_width():
         env.reset(seed=0, options={"targets": np.ones((2, 7))})
     obs, _ = env.reset(seed=0, options={"targets": np.ones((2, 3))})
     assert np.isfinite(np.asarray(obs)).all()
+
+
+@pytest.mark.parametrize("seed", [1.5, -1, "ab", [0, -3], [0, 1, 2]])
+def test_reset_refuses_seeds_numpy_would_not_take(seed):
+    """A seed that is not an integer >= 0 (or a list of one per env) is one VectorEnvError
+    naming it, not numpy's or Python's own error."""
+    env = make_vector_env("pendulum-balance", 2, dynamics="true", backend="mujoco", episode_steps=5)
+    with pytest.raises(VectorEnvError, match="seed"):
+        env.reset(seed=seed)
+    env.reset(seed=[0, 1])

@@ -69,7 +69,11 @@ def generate_command(args) -> int:
     if out.exists() and not args.overwrite:  # fail before simulating, not after
         raise FileExistsError(f"output exists: {out} (use --overwrite)")
     remove_stale_temporaries(out)  # what a killed generate to this path left
-    system = from_mjcf(args.mjcf, dt=args.dt, substeps=args.substeps) if args.mjcf else args.system
+    if not args.mjcf and (args.dt is not None or args.substeps is not None):
+        raise ValueError("--dt and --substeps apply to --mjcf only: a built-in system keeps its own timestep "
+                         "(`gnwarp systems` lists them)")
+    system = (from_mjcf(args.mjcf, dt=args.dt, substeps=1 if args.substeps is None else args.substeps)
+              if args.mjcf else args.system)
     t0 = time.perf_counter()
     from gnwarp.distributed import launched
     if launched():   # under torchrun: each rank simulates its share, rank 0 writes the dataset
@@ -134,7 +138,7 @@ def add_generate(sub) -> None:
     g.add_argument("system", nargs="?", default="pendulum", help="built-in system name (see: gnwarp systems)")
     g.add_argument("--mjcf", help="simulate this MJCF file instead of a built-in system (default: none)")
     g.add_argument("--dt", type=float, help="data timestep for --mjcf (default: its timestep x substeps)")
-    g.add_argument("--substeps", type=int, default=1, help="physics steps per data step for --mjcf")
+    g.add_argument("--substeps", type=int, default=None, help="physics steps per data step for --mjcf (default: 1)")
     g.add_argument("-n", "--num-sequences", type=int, default=None,
                    help="total sequences, split like the paper (default: the paper's sizes)")
     g.add_argument("--train", type=int, help="train sequences, instead of -n (default: the paper's)")

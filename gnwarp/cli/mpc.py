@@ -7,7 +7,7 @@ import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
 
-__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "timing_line", "check_outputs", "PLANNERS",
+__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "timing_line", "check_outputs", "PLANNERS",
            "SETTING_FLAGS"]
 
 # the registered planners that plan through a learned model (``gnwarp.control.planner.MODEL_PLANNERS``,
@@ -24,6 +24,14 @@ def episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
     [n, steps+1, bodies, 13] and actions [n, steps, nu], each per step and stacked, and about
     500 bytes of Python objects a step."""
     return 2 * 4 * (n * (steps + 1) * bodies * 13 + n * steps * nu) + 500 * steps
+
+
+def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1) -> int:
+    """A floor on the memory a planner holds for ``n`` episodes of ``candidates`` rollouts each
+    over ``horizon`` steps: float32 states and actions a step, about eight copies (rollouts,
+    their gradients, the plan and its optimizer's moments, the best found), and about a kilobyte
+    of Python objects a planned step (the rollout engine's per-step slots)."""
+    return 4 * 8 * n * candidates * (horizon + 1) * (bodies * 13 + nu) + 1000 * horizon
 
 
 def mpc_settings(args, task):
@@ -175,6 +183,11 @@ def mpc_command(args) -> int:
     check_memory(episode_bytes(n, args.steps, system.nbody, system.nu),
                  f"{n} episodes x {args.steps} steps x {system.nbody} bodies (every state kept)",
                  "Use fewer --steps or --episodes")
+    horizon = getattr(settings, "horizon", None) or task.horizon
+    candidates = int(getattr(settings, "samples", 1) or 1)
+    check_memory(plan_bytes(n, horizon, system.nbody, system.nu, candidates),
+                 f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies",
+                 "Use a shorter --horizon (or fewer samples or episodes)")
     terminal = None
     if args.terminal is not None:
         from gnwarp.control.value import TerminalValue
@@ -369,7 +382,8 @@ def add_mpc(sub) -> None:
     m.add_argument("-o", "--out", "--records", dest="records", metavar="PATH",
                    help="results records file (JSON lines, appended; default: mpc-<task>.jsonl): per-episode "
                         "returns, initial states, targets and settings (gnwarp.eval.records)")
-    m.add_argument("--video", help="video path (default: mpc-<task>.gif; 'none': no video)")
+    m.add_argument("--video", help="video path, .gif, .png or .webp (.mp4 with imageio-ffmpeg) (default: mpc-<task>.gif; "
+                        "'none': no video)")
     m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"],
                    help="how the video is drawn: MuJoCo's renderer (EGL/OSMesa), matplotlib, or auto "
                         "(MuJoCo where it renders, else matplotlib)")

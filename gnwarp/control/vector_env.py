@@ -233,17 +233,25 @@ class ControlVectorEnv(VectorEnv):
             if not self.per_env_seeds:
                 return rngs if rngs[0] is not None else [np.random.default_rng()] * n
             return [r if r is not None else np.random.default_rng() for r in rngs]
+        def whole(s) -> bool:   # a seed numpy takes: an integer >= 0
+            return isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 0
         if not self.per_env_seeds:
-            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-                raise VectorEnvError(f"with per_env_seeds=False, seed must be None or an int, got {seed!r}")
+            if not whole(seed):
+                raise VectorEnvError(f"with per_env_seeds=False, seed must be None or an integer >= 0, got {seed!r}")
             return [np.random.default_rng(int(seed))] * n
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+        if whole(seed):
             seeds = [int(seed) + i for i in range(n)]
         else:
+            if isinstance(seed, (str, bytes)) or not hasattr(seed, "__len__"):
+                raise VectorEnvError(f"seed must be None, an integer >= 0 or a list of {n} of them (one per env), "
+                                     f"got {seed!r}")
             seeds = list(seed)
             if len(seeds) != n:
                 raise VectorEnvError(f"seed must be None, an int or a list of {n} seeds (one per env), "
                                      f"got {len(seeds)}")
+            bad = [s for s in seeds if s is not None and not whole(s)]
+            if bad:
+                raise VectorEnvError(f"seeds must be integers >= 0 (or None), got {bad[0]!r}")
         return [np.random.default_rng(s) for s in seeds]
 
     def _draw(self, mask: np.ndarray, rngs: list):
