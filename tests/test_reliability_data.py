@@ -205,6 +205,39 @@ def test_old_file_without_checksums_loads_with_a_warning(good, tmp_path):
         _load_all(old)
 
 
+def test_metadata_is_checksummed_and_its_values_checked(good, tmp_path):
+    """The metadata (system, dt, ...) has a SHA-256 beside it: a changed byte is detected; values
+    no reader can use (dt <= 0) are refused even where the checksum matches; a file from before
+    the metadata had a checksum still loads."""
+    import json
+    import shutil
+
+    from gnwarp.data.format import meta_digest
+    cases = {"changed": (lambda m: m.update(system="acrobot"), False, "metadata was changed or damaged"),
+             "dt": (lambda m: m.update(dt=-1), True, "metadata 'dt' must be the data timestep"),
+             "steps": (lambda m: m.update(num_steps=0), True, "metadata 'num_steps' must be an integer >= 1"),
+             "older": (lambda m: None, None, None)}
+    for name, (change, rehash, words) in cases.items():
+        p = tmp_path / f"{name}.h5"
+        shutil.copy(good[1], p)
+        with h5py.File(p, "r+") as f:
+            m = json.loads(f.attrs["meta"])
+            change(m)
+            text = json.dumps(m)
+            f.attrs["meta"] = text
+            if rehash:
+                f.attrs["meta_sha256"] = meta_digest(text)
+            elif rehash is None:   # as written before the checksum existed
+                del f.attrs["meta_sha256"]
+        if words is None:
+            data.load(p).close()
+            assert check(p)[-1].startswith("ok:")
+            continue
+        with pytest.raises(data.DatasetError, match=words):
+            data.load(p)
+        assert any(x.startswith("error:") and words in x for x in check(p)), check(p)
+
+
 def test_unreadable_files_are_dataset_errors(good, tmp_path):
     (tmp_path / "folder.h5").mkdir()
     with pytest.raises(data.DatasetError, match="is a folder"):

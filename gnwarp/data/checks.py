@@ -206,6 +206,22 @@ def _check_places(meta: dict, B: int, nu) -> list[str]:
     return []
 
 
+def check_meta(meta: dict) -> list[str]:
+    """Problems of the metadata values every reader relies on: the system's name, the data
+    timestep ``dt`` (finite, > 0) and the steps per sequence; [] when valid."""
+    import math
+    p = []
+    if not isinstance(meta.get("system"), str) or not meta.get("system"):
+        p.append(f"metadata 'system' must be the system's name, got {meta.get('system')!r}")
+    dt = meta.get("dt")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        p.append(f"metadata 'dt' must be the data timestep in seconds (finite, > 0), got {dt!r}")
+    steps = meta.get("num_steps")
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+        p.append(f"metadata 'num_steps' must be an integer >= 1, got {steps!r}")
+    return p
+
+
 def check_static(static: dict, meta: dict, n_ctrl: int | None) -> list[str]:
     """Problems of the static arrays (dtypes, shapes, values, index ranges, counts): [] when valid.
     ``n_ctrl``: the controls per sequence (U), or None when unknown."""

@@ -25,9 +25,9 @@ import numpy as np
 
 from gnwarp.data.builder import GraphBuilder
 from gnwarp.data.checks import (bad_value, check_body_structure, check_dataset_values, check_split_layout,
-                                check_static, index_map, read_problem, rows_of, summary, with_count)
+                                check_meta, check_static, index_map, read_problem, rows_of, summary, with_count)
 from gnwarp.data.format import (ARRAYS, FORMAT, SPLITS, VERSION, DatasetError, DatasetWarning, gib, nbytes, open_file,
-                                write_file)
+                                meta_digest, write_file)
 from gnwarp.data.layout import FeatureLayout
 from gnwarp.files import atomic_write, remove_stale_temporaries
 from gnwarp.graphs import GraphsTuple
@@ -205,7 +205,15 @@ def _inspect(path: Path, f) -> tuple[dict, dict, list[str], list[str]]:
         raise DatasetError(f"{path} has dataset version {f.attrs.get('version')}, newer than this gnwarp ({VERSION})")
     if not f.attrs.get("complete", False):
         raise DatasetError(f"{path} was not completely written")
-    meta = json.loads(f.attrs["meta"])
+    text = f.attrs["meta"]
+    text = text.decode("utf-8", "replace") if isinstance(text, bytes) else str(text)
+    digest = f.attrs.get("meta_sha256")   # written since the metadata had one (older files: none)
+    if digest is not None and (digest.decode() if isinstance(digest, bytes) else str(digest)) != meta_digest(text):
+        raise DatasetError(f"{path}: its metadata was changed or damaged (its SHA-256 checksum does not match)")
+    try:
+        meta = json.loads(text)
+    except ValueError as e:
+        raise DatasetError(f"{path}: its metadata is not JSON ({e})") from None
     if not isinstance(meta, dict):
         raise DatasetError(f"{path}: its metadata is not a JSON object")
     if "static" not in f:
@@ -231,7 +239,7 @@ def _inspect(path: Path, f) -> tuple[dict, dict, list[str], list[str]]:
             if not f[name][k].fletcher32:
                 unchecked.append(f"/{name}/{k}")
     ctrl = f["train"]["ctrl"]
-    problems = check_static(static, meta, int(ctrl.shape[2]) if ctrl.ndim == 3 else None)
+    problems = check_meta(meta) + check_static(static, meta, int(ctrl.shape[2]) if ctrl.ndim == 3 else None)
     for name in SPLITS:
         problems += check_split_layout(name, {k: f[name][k] for k in ARRAYS}, static, meta)
     return meta, static, problems, unchecked

@@ -89,6 +89,12 @@ def write_array(group, name: str, a: np.ndarray, chunks, compression):
                                 compression=compression, fletcher32=True)
 
 
+def meta_digest(text: str) -> str:
+    """The SHA-256 of a dataset's metadata text (the ``meta_sha256`` attribute beside it)."""
+    import hashlib
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def write_file(path, meta: dict, static: dict, splits: dict, compression: str | None = None) -> None:
     """Write a dataset to the HDF5 file ``path`` in the layout above: ``meta`` (JSON), the
     ``static`` arrays, each split's ``ARRAYS`` (attributes of ``splits[name]``), every array with
@@ -96,7 +102,9 @@ def write_file(path, meta: dict, static: dict, splits: dict, compression: str | 
     with h5py.File(path, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["version"] = VERSION
-        f.attrs["meta"] = json.dumps(meta)
+        text = json.dumps(meta)
+        f.attrs["meta"] = text
+        f.attrs["meta_sha256"] = meta_digest(text)   # the arrays have Fletcher-32; the metadata this
         g = f.create_group("static")
         for k, v in static.items():
             write_array(g, k, np.asarray(v[...]), None, None)
