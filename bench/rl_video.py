@@ -45,6 +45,8 @@ def main(argv=None) -> int:
     task = check_task(cfg)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    from gnwarp.eval.video import check_video_path
+    check_video_path(out)   # a format it can write: before the episodes, not after
     env = make_vector_env(task, a.episodes, backend="mujoco", episode_steps=a.steps, output="torch",
                           observation=obs_fn, seed=a.seed)
     try:

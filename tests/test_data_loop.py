@@ -2,6 +2,7 @@
 grows the dataset and writes its record, a loop resumes without redoing or double-counting an
 iteration (also after a kill between its shard and its training), a corrupt state file is
 refused, and the errors before training are those of the planning model on the new states."""
+import dataclasses
 import json
 import shutil
 
@@ -13,7 +14,7 @@ from gnwarp.control.data_loop import LoopConfig, LoopStateError, run_loop
 from gnwarp.control.loop_store import read_state
 from gnwarp.data.dataset import check, load
 from gnwarp.eval.metrics import evaluate
-from gnwarp.eval.records import read_records
+from gnwarp.eval.records import read_records, write_records
 from gnwarp.files import sha256_file
 from gnwarp.validation import ConfigError
 
@@ -136,6 +137,25 @@ def test_a_corrupt_or_inconsistent_state_file_is_refused(loop, tmp_path):
     (out / "data/iter-0002.h5").unlink()
     with pytest.raises(LoopStateError, match="lists data/iter-0002.h5, which is missing"):
         run_loop(config(out, 2))
+
+
+def test_records_a_lost_state_would_drop_are_refused_not_trimmed(loop, tmp_path):
+    """Without state.json, records of iterations past 0 (the state was lost) or of another
+    experiment stay as they are and the loop is refused, naming them."""
+    out = tmp_path / "run"
+    shutil.copytree(loop[0], out)
+    (out / "state.json").unlink()
+    before = (out / "records.jsonl").read_bytes()
+    with pytest.raises(ValueError, match="records of iterations past 0 but the folder has no loop state"):
+        run_loop(config(out, 2))
+    assert (out / "records.jsonl").read_bytes() == before
+    other = tmp_path / "other"
+    other.mkdir()
+    rec = read_records(out / "records.jsonl")[0]
+    write_records(other / "records.jsonl", [dataclasses.replace(rec, experiment="mpc")])
+    with pytest.raises(ValueError, match="records of experiment 'mpc', not of a data loop"):
+        run_loop(config(other, 1))
+    assert len(read_records(other / "records.jsonl")) == 1
 
 
 def test_errors_before_training_are_the_planning_models_on_the_new_states(loop):

@@ -176,3 +176,15 @@ def test_a_binary_file_is_refused_as_records_naming_it(tmp_path):
     with pytest.raises(RecordError, match=r"data\.h5, line 1: not text"):
         read_records(f)
     assert f.read_bytes().startswith(b"\x89HDF")
+
+
+def test_summarize_refuses_a_file_where_its_folder_goes(tmp_path, capsys):
+    """--out naming a file (or a binary file given as records) is one error line, not a traceback."""
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    assert summarize.main([str(SMALL), "--out", str(taken)]) == 2
+    assert "is a file" in capsys.readouterr().err and taken.read_text() == "mine"
+    binary = tmp_path / "x.h5"
+    binary.write_bytes(b"\x89HDF\xff\xfe")
+    assert summarize.main([str(binary), "--out", str(tmp_path / "s")]) == 2
+    assert "x.h5, line 1: not text" in capsys.readouterr().err

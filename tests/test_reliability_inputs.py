@@ -322,6 +322,8 @@ def _nan_at(x, index):
 
 ROLLOUT_CASES = [
     ("NaN in the initial state", lambda x, u: dict(initial_body=_nan_at(x, (1, 1, 4))), "initial_body\\[1, 1\\]"),
+    ("zero quaternion", lambda x, u: dict(initial_body=x.clone().index_fill_(2, torch.arange(3, 7), 0.0)),
+     "initial_body\\[0, 0\\] has a zero orientation quaternion"),
     ("Inf in the controls", lambda x, u: dict(ctrl=_nan_at(u, (0, 2, 0)).nan_to_num(posinf=math.inf, nan=math.inf)),
      "ctrl contains NaN or Inf \\(at ctrl\\[0, 2, 0\\]\\)"),
     ("two controls for one actuator", lambda x, u: dict(ctrl=torch.zeros(2, 3, 2)), "got shape \\(2, 3, 2\\).*1 control"),
@@ -480,3 +482,17 @@ def test_generate_refuses_dt_and_substeps_for_a_built_in_system(tmp_path, capsys
         out = tmp_path / "b.h5"
         assert cli.main(["generate", "pendulum", "-n", "3", "--steps", "5", *flag, "-o", str(out), "-q"]) == 2
         assert "--dt and --substeps apply to --mjcf only" in capsys.readouterr().err and not out.exists()
+
+
+def test_resolve_device_refuses_a_gpu_index_beyond_those_visible(monkeypatch):
+    """Any machine: with one CUDA device visible (patched), cuda:3 is refused naming the count;
+    cuda:0, torch.device objects and the CPU pass."""
+    from gnwarp.interop import resolve_device
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match="'cuda:3': only 1 CUDA device"):
+        resolve_device("cuda:3")
+    assert resolve_device("cuda:0") == torch.device("cuda", 0)
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    with pytest.raises(ValueError, match="runs on cpu or cuda"):
+        resolve_device("xla")

@@ -266,6 +266,21 @@ def test_a_folder_whose_records_starting_over_would_lose_is_refused(tmp_path):
     assert run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(early)))["stop"] == "done"
 
 
+def test_gnwarp_check_reads_a_run_folder_as_a_run(tmp_path, capsys):
+    """``gnwarp check RUN``: a run's checkpoint.pt read as a resume reads it (not a model
+    checkpoint missing model.pt); a damaged one is an error line and exit 1."""
+    from gnwarp.cli import main
+    out = tmp_path / "c"
+    run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(out)))
+    assert main(["check", str(out)]) == 0
+    assert "a gnwarp rl run; checkpoint.pt read and verified" in capsys.readouterr().out
+    raw = bytearray((out / CHECKPOINT).read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (out / CHECKPOINT).write_bytes(bytes(raw))
+    assert main(["check", str(out)]) == 1
+    assert capsys.readouterr().out.startswith("error:")
+
+
 def test_compiled_run_trains_and_keeps_its_compile_setting(tmp_path):
     """``torch_compile`` traces the update's losses (aot_eager: no compiler needed) with the same
     numbers as eager updates here; a resumed run must keep it (rounding may differ with inductor)."""

@@ -158,6 +158,15 @@ def test_cli_trains_and_evaluates_system_identification(pendulum, tmp_path, caps
     assert main(["evaluate", str(tmp_path / "run" / "best"), "--data", str(path), "--horizons", "5"]) == 0
     out = capsys.readouterr().out
     assert "same instance" in out and "another instance" in out
+    # gnwarp check reads it as what it is (it used to call it a checkpoint that describes no model)
+    assert main(["check", str(tmp_path / "run" / "best")]) == 0
+    assert "a system-identification checkpoint (window" in capsys.readouterr().out
+    weights = tmp_path / "run" / "best" / "model.pt"
+    good = weights.read_bytes()
+    weights.write_bytes(good[:-9] + bytes([good[-9] ^ 1]) + good[-8:])
+    assert main(["check", str(tmp_path / "run" / "best")]) == 1
+    assert "error:" in capsys.readouterr().out
+    weights.write_bytes(good)
     assert load_sysid(tmp_path / "run" / "best").config.transitions is False
     assert main(["train", "--data", str(path), "--sysid", "--transitions", "--readout", "ridge", "--ridge-head", "8",
                  "--ridge-features", "3", "--param-loss", "1", "--param-teacher", "1", "-o", str(tmp_path / "run-t"),
@@ -1276,6 +1285,7 @@ def test_datasets_with_malformed_param_places_are_refused(pendulum, tmp_path):
             meta = json.loads(f.attrs["meta"])
             meta["param_places"] = bad
             f.attrs["meta"] = json.dumps(meta)
+            del f.attrs["meta_sha256"]   # as a file written before the metadata's checksum: its values checked
         with pytest.raises(data.DatasetError, match="param_places"):
             data.load(p2)
 

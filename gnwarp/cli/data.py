@@ -106,14 +106,45 @@ def check_command(args) -> int:
     if not path.exists():
         raise FileNotFoundError(f"nothing at {path}")
     if path.is_dir():
-        from gnwarp.train.checkpoint import check_checkpoint  # lines starting with "error:" are problems
-        lines = [str(x) for x in check_checkpoint(path)]
+        lines = _check_folder(path)   # lines starting with "error:" are problems
     else:
         from gnwarp.data.dataset import check
         lines = check(path)
     for line in lines:
         print(line)
     return 1 if any(line.startswith("error:") for line in lines) else 0
+
+
+def _check_folder(path) -> list[str]:
+    """``gnwarp check``'s findings for a folder: a forward model's checkpoint (its full check), a
+    system-identification checkpoint (loaded as ``load_sysid`` loads it: manifest, checksums,
+    config, finite weights that fit) or a ``gnwarp rl`` run (its ``checkpoint.pt`` read as a
+    resume reads it)."""
+    from gnwarp.train.checkpoint import CheckpointError, check_checkpoint, checkpoint_config
+    from gnwarp.rl.run_log import CHECKPOINT
+    if (path / CHECKPOINT).is_file() and not (path / "model.pt").is_file():
+        from gnwarp.rl.run_log import RLCheckpointError, load_checkpoint
+        try:
+            ck = load_checkpoint(path / CHECKPOINT)
+        except RLCheckpointError as e:
+            return [f"error: {e}"]
+        env = ck.get("env", {}) if isinstance(ck, dict) else {}
+        return [f"ok: {path}: a gnwarp rl run; {CHECKPOINT} read and verified (no code run), "
+                f"{env.get('control_steps', '?')} env steps"]
+    try:
+        kind = checkpoint_config(path).get("kind")
+    except CheckpointError:
+        kind = None   # check_checkpoint names what is wrong
+    if kind == "sysid":
+        from gnwarp.train.sysid import load_sysid
+        try:
+            m = load_sysid(path, device="cpu")
+        except (CheckpointError, ValueError, OSError) as e:
+            return [f"error: {e}"]
+        n = sum(p.numel() for p in m.parameters())
+        return [f"ok: {path}: a system-identification checkpoint (window {m.window}); manifest and checksums "
+                f"match, {n} weight elements finite and fitting its config"]
+    return [str(x) for x in check_checkpoint(path)]
 
 
 def add_systems(sub) -> None:

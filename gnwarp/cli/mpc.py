@@ -7,7 +7,7 @@ import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
 
-__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "timing_line", "check_outputs", "PLANNERS",
+__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "check_plan_memory", "timing_line", "check_outputs", "PLANNERS",
            "SETTING_FLAGS"]
 
 # the registered planners that plan through a learned model (``gnwarp.control.planner.MODEL_PLANNERS``,
@@ -26,12 +26,32 @@ def episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
     return 2 * 4 * (n * (steps + 1) * bodies * 13 + n * steps * nu) + 500 * steps
 
 
-def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1) -> int:
-    """A floor on the memory a planner holds for ``n`` episodes of ``candidates`` rollouts each
-    over ``horizon`` steps: float32 states and actions a step, about eight copies (rollouts,
-    their gradients, the plan and its optimizer's moments, the best found), and about a kilobyte
-    of Python objects a planned step (the rollout engine's per-step slots)."""
-    return 4 * 8 * n * candidates * (horizon + 1) * (bodies * 13 + nu) + 1000 * horizon
+def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1, copies: int = 8) -> int:
+    """A floor on the memory of a planner's rollouts: ``n`` episodes x ``candidates`` rollouts
+    over ``horizon`` steps of float32 states and actions, ``copies`` of them (gradient planners
+    ~8: the rollouts, their gradients, the plan and its optimizer's moments, the best found;
+    sampling planners ~2)."""
+    return 4 * copies * n * candidates * (horizon + 1) * (bodies * 13 + nu)
+
+
+def check_plan_memory(n: int, horizon: int, system, candidates: int, copies: int, device) -> None:
+    """Refuse, before planning, a horizon whose rollouts cannot fit: ``plan_bytes`` in the
+    device's free memory (the host's for the CPU) and ~1 kB of Python objects a planned step (the
+    rollout engine's per-step slots) in the host's, each ``ValueError`` naming the sizes."""
+    import torch
+
+    from gnwarp.validation import check_memory
+    what = f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies"
+    hint = "Use a shorter --horizon (or fewer samples or episodes)"
+    arrays = plan_bytes(n, horizon, system.nbody, system.nu, candidates, copies)
+    device = torch.device(device)
+    if device.type == "cuda":
+        free = torch.cuda.mem_get_info(device)[0]
+        if arrays > free:
+            raise ValueError(f"{what} needs about {arrays / 2**30:.3g} GiB of GPU memory; {device} has "
+                             f"{free / 2**30:.3g} GiB free. {hint}")
+        arrays = 0
+    check_memory(arrays + 1000 * horizon, what, hint)
 
 
 def mpc_settings(args, task):
@@ -183,11 +203,9 @@ def mpc_command(args) -> int:
     check_memory(episode_bytes(n, args.steps, system.nbody, system.nu),
                  f"{n} episodes x {args.steps} steps x {system.nbody} bodies (every state kept)",
                  "Use fewer --steps or --episodes")
-    horizon = getattr(settings, "horizon", None) or task.horizon
     candidates = int(getattr(settings, "samples", 1) or 1)
-    check_memory(plan_bytes(n, horizon, system.nbody, system.nu, candidates),
-                 f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies",
-                 "Use a shorter --horizon (or fewer samples or episodes)")
+    check_plan_memory(n, getattr(settings, "horizon", None) or task.horizon, system, candidates,
+                      8 if args.planner in ("gradient", "hybrid") else 2, model.device if model is not None else "cpu")
     terminal = None
     if args.terminal is not None:
         from gnwarp.control.value import TerminalValue
@@ -382,7 +400,7 @@ def add_mpc(sub) -> None:
     m.add_argument("-o", "--out", "--records", dest="records", metavar="PATH",
                    help="results records file (JSON lines, appended; default: mpc-<task>.jsonl): per-episode "
                         "returns, initial states, targets and settings (gnwarp.eval.records)")
-    m.add_argument("--video", help="video path, .gif, .png or .webp (.mp4 with imageio-ffmpeg) (default: mpc-<task>.gif; "
+    m.add_argument("--video", help="video path, .gif, .png (APNG) or .webp (default: mpc-<task>.gif; "
                         "'none': no video)")
     m.add_argument("--renderer", default="auto", choices=["auto", "mujoco", "matplotlib"],
                    help="how the video is drawn: MuJoCo's renderer (EGL/OSMesa), matplotlib, or auto "

@@ -408,14 +408,23 @@ def _seed_data(cfg: LoopConfig, system, out: Path):
     return ds
 
 
-def _trim_records(path: Path, iterations: int) -> None:
+def _trim_records(path: Path, iterations: int | None) -> None:
     """Drop the records of iterations past ``iterations`` (written before a kill that left the
-    state behind them)."""
+    state behind them). ``iterations`` None: the folder has no loop state; records past iteration
+    0 there (the state was lost) and records of another experiment are refused, not dropped."""
     from gnwarp.eval.records import read_records, write_records
     if not path.exists():
         return
     recs = read_records(path)
-    keep = [r for r in recs if int(r.metrics.get("iteration", 0)) <= iterations]
+    foreign = [r for r in recs if r.experiment != "loop"]
+    if foreign:
+        raise ValueError(f"{path} holds records of experiment {foreign[0].experiment!r}, not of a data loop: "
+                         "run the loop in another folder")
+    if iterations is None and any(int(r.metrics.get("iteration", 0)) > 0 for r in recs):
+        raise ValueError(f"{path} holds records of iterations past 0 but the folder has no loop state "
+                         f"(its state.json is gone): starting over would drop them. Run the loop in "
+                         "another folder, or move the records away to start this one over")
+    keep = [r for r in recs if int(r.metrics.get("iteration", 0)) <= (iterations or 0)]
     if len(keep) != len(recs):
         write_records(path, keep, append=False)
 
@@ -479,7 +488,7 @@ def run_loop(config: LoopConfig) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         _check_folder_config(out, cfg)
         st = read_state(out)
-        _trim_records(records, st.iteration if st is not None else 0)
+        _trim_records(records, st.iteration if st is not None else None)
         _seed_data(cfg, system, out)
         return st
     state = rk.on_main(f"preparing {out}", prepare)

@@ -331,7 +331,6 @@ class SamplingPlanner(ActsOnPlan):
         self.knots = torch.einsum("qp,npu->nqu", self._shift, chosen)
 
 
-
 class RandomPlanner(ActsOnPlan):
     """The random-actions baseline (a ``Planner``): uniform in ``ctrlrange`` [U, 2], independent
     each step: ``optimize`` draws them, ``act`` returns them. ``seed``: ``RandomSettings.seed``.
@@ -370,12 +369,9 @@ class RandomPlanner(ActsOnPlan):
         self.plan = (self.lo + u * (self.hi - self.lo))[:, None]
 
 
-
 def _episodes(n) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n (episodes) must be an integer >= 1, got {n!r}")
     return int(n)
 
 
-def _targets(targets, n: int, device, task=None) -> torch.Tensor:
-    return check_targets(targets, n, task, ValueError).to(device)

@@ -24,6 +24,7 @@ import numpy as np
 from gnwarp.sim.systems import from_mjcf, make
 from gnwarp.state import POS, QUAT, geom_poses
 from gnwarp.eval.video import check_video_path, write_video
+from gnwarp.files import temporary_of
 
 __all__ = ["RenderUnavailable", "render_rollouts"]
 
@@ -81,7 +82,7 @@ def _render_job(job: dict, arrays: dict) -> None:
 def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs: list[dict], path, dt: float,
                     fps_max: float = 25.0, width: int = 240, height: int = 200, gl: str | None = None,
                     timeout: float = 600.0) -> Path:
-    """Render rollouts to an animated GIF (or MP4 by suffix) with MuJoCo's renderer.
+    """Render rollouts to an animated GIF (APNG or WebP by suffix) with MuJoCo's renderer.
 
     ``true`` [K, H+1, B, 13], ``preds`` {name: [K, H+1, B, 13]}, ``system_specs`` one dict per
     rollout: {"name", "params"} of a built-in system or {"mjcf": path}. ``gl``: MuJoCo's GL backend
@@ -104,12 +105,16 @@ def render_rollouts(true: np.ndarray, preds: dict[str, np.ndarray], system_specs
         try:
             # gnwarp.eval imports this module before runpy runs it as __main__: silence runpy's note of that
             quiet = "ignore:'gnwarp.eval.render' found in sys.modules:RuntimeWarning"
-            res = subprocess.run([sys.executable, "-W", quiet, "-m", "gnwarp.eval.render", tmp], env=env,
-                                 capture_output=True, text=True, timeout=timeout)
+            child = subprocess.Popen([sys.executable, "-W", quiet, "-m", "gnwarp.eval.render", tmp], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            out, err = child.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
+            child.kill()
+            child.communicate()
+            temporary_of(path, pid=child.pid).unlink(missing_ok=True)   # the killed child's half-written video
             raise RenderUnavailable(f"MuJoCo rendering did not finish in {timeout:g} s") from None
-    if res.returncode != 0 or not path.exists():
-        last = (res.stderr or res.stdout).strip().splitlines()[-1:] or ["no output"]
+    if child.returncode != 0 or not path.exists():
+        last = (err or out).strip().splitlines()[-1:] or ["no output"]
         raise RenderUnavailable(f"MuJoCo offscreen rendering failed (MUJOCO_GL={env['MUJOCO_GL']}): {last[0]}")
     return path
 

@@ -247,7 +247,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-plot", action="store_true", help="write summary.md only")
     args = ap.parse_args(argv)
     from gnwarp.eval.records import RecordError
+    from gnwarp.files import check_output_path
     try:
+        check_output_path(args.out, folder=True)   # before reading: a file where the folder goes, say
         records = [r for p in args.records for r in read_records(p)]
     except (RecordError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)

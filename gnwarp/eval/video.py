@@ -3,7 +3,6 @@ or not at all (to a temporary file beside it, then renamed), so that a failed wr
 existing file as it was."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -12,16 +11,13 @@ from gnwarp.files import atomic_write, check_output_path
 
 __all__ = ["video_suffixes", "check_video_path", "write_video"]
 
-# animated through Pillow (an imageio dependency); the container formats need an ffmpeg plugin
-PILLOW_SUFFIXES = (".gif", ".png", ".webp")
-FFMPEG_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi")
+# animated through Pillow (an imageio dependency): the formats written with a frame duration and looping
+VIDEO_SUFFIXES = (".gif", ".png", ".webp")
 
 
 def video_suffixes() -> tuple[str, ...]:
-    """The file endings a video may have here: GIF, APNG (.png) and WebP always; MP4 and other
-    containers where imageio has an ffmpeg plugin (``imageio-ffmpeg`` or ``av``)."""
-    ffmpeg = any(importlib.util.find_spec(m) is not None for m in ("imageio_ffmpeg", "av"))
-    return PILLOW_SUFFIXES + (FFMPEG_SUFFIXES if ffmpeg else ())
+    """The file endings a video may have: GIF, APNG (.png) and WebP."""
+    return VIDEO_SUFFIXES
 
 
 def check_video_path(path) -> Path:
@@ -31,9 +27,8 @@ def check_video_path(path) -> Path:
     p = check_output_path(path)
     suffix = p.suffix.lower()
     if suffix not in video_suffixes():
-        more = "" if suffix not in FFMPEG_SUFFIXES else " (install imageio-ffmpeg for it)"
-        raise ValueError(f"video {p}: cannot write a {suffix or 'suffix-less'} video{more}; its name must end in "
-                         f"one of {', '.join(video_suffixes())}")
+        raise ValueError(f"video {p}: cannot write a {suffix or 'suffix-less'} video; its name must end in one of "
+                         f"{', '.join(video_suffixes())}")
     return p
 
 

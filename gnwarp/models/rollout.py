@@ -207,8 +207,11 @@ class RolloutInputs:
         one host sync (none when ``check`` is off and the policy is not "error")."""
         flags, names = [], []
         if self.check:
-            flags += [torch.isfinite(self.template.nodes(body)).all(), torch.isfinite(ctrl).all()]
-            names += ["initial_body", "ctrl"]
+            nodes = self.template.nodes(body)
+            # a real body's orientation: a quaternion of norm ~1 (zero is none; NaN is caught first)
+            flags += [torch.isfinite(nodes).all(), torch.isfinite(ctrl).all(),
+                      (torch.linalg.vector_norm(nodes[..., 3:7], dim=-1) > 0.1).all()]
+            names += ["initial_body", "ctrl", "quaternion"]
         if self.ranges is not None and self.ctrl_policy == "error":
             lo, hi = (r.to(ctrl.device, ctrl.dtype)[:, None] for r in self.ranges)
             flags.append(((ctrl >= lo) & (ctrl <= hi) | ~torch.isfinite(ctrl)).all())
@@ -225,6 +228,13 @@ class RolloutInputs:
                         f"ctrl[{n}, {t}, {u}] = {float(ctrl[n, t, u]):g} is outside actuator {u}'s control range "
                         f"[{float(lo[n, t, u]):g}, {float(hi[n, t, u]):g}] (ctrl_policy='error'; 'clamp' clamps "
                         "it as MuJoCo does)")
+                if name == "quaternion":
+                    tm = self.template
+                    bad = int((torch.linalg.vector_norm(self.template.nodes(body)[..., 3:7], dim=-1) <= 0.1)
+                              .nonzero()[0, 0])
+                    r = bad if tm.rows is None else int(tm.rows[bad])
+                    raise RolloutInputError(f"initial_body[{r // tm.B}, {r % tm.B}] has a zero orientation quaternion "
+                                            "(columns 3:7, w x y z): a body's state needs a unit quaternion")
                 x = self.template.nodes(body) if name == "initial_body" else ctrl
                 where = tuple(int(i) for i in (~torch.isfinite(x)).nonzero()[0])
                 if name == "initial_body":
