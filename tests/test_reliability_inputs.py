@@ -314,6 +314,12 @@ def _inputs(pendulum):
     return torch.as_tensor(sp.body[:2, 0]), torch.as_tensor(sp.ctrl[:2, :3])
 
 
+def _scaled_quat(x, at, factor):
+    x = x.clone()
+    x[at][3:7] *= factor
+    return x
+
+
 def _nan_at(x, index):
     x = x.clone()
     x[index] = float("nan")
@@ -323,7 +329,9 @@ def _nan_at(x, index):
 ROLLOUT_CASES = [
     ("NaN in the initial state", lambda x, u: dict(initial_body=_nan_at(x, (1, 1, 4))), "initial_body\\[1, 1\\]"),
     ("zero quaternion", lambda x, u: dict(initial_body=x.clone().index_fill_(2, torch.arange(3, 7), 0.0)),
-     "initial_body\\[0, 0\\] has a zero orientation quaternion"),
+     "initial_body\\[0, 0\\] has an orientation quaternion of norm 0 "),
+    ("quaternion of norm 0.05", lambda x, u: dict(initial_body=_scaled_quat(x, (1, 1), 0.05)),
+     "initial_body\\[1, 1\\] has an orientation quaternion of norm 0.05 "),
     ("Inf in the controls", lambda x, u: dict(ctrl=_nan_at(u, (0, 2, 0)).nan_to_num(posinf=math.inf, nan=math.inf)),
      "ctrl contains NaN or Inf \\(at ctrl\\[0, 2, 0\\]\\)"),
     ("two controls for one actuator", lambda x, u: dict(ctrl=torch.zeros(2, 3, 2)), "got shape \\(2, 3, 2\\).*1 control"),

@@ -115,12 +115,14 @@ def test_rollout_clamp_reads_the_systems_actuator_record(unlimited):
     tmpl, layout = _template(sim.make("pendulum"))
     assert tmpl.actuators is not None and tmpl.actuators[0].limited.all()
     inp = RolloutInputs(tmpl, layout)
-    assert torch.equal(inp.values(torch.zeros(2, tmpl.B, 13), big), big.clamp(-1.0, 1.0))
+    still = torch.zeros(2, tmpl.B, 13)
+    still[..., 3] = 1.0   # bodies at rest, unit quaternions
+    assert torch.equal(inp.values(still, big), big.clamp(-1.0, 1.0))
     # the record decides, not the features: a narrower record range clamps there
     tmpl, layout = _template(sim.make("pendulum"))
     rec = tmpl.actuators[0]
     tmpl.actuators = [Actuators(low=rec.low / 2, high=rec.high / 2, limited=rec.limited, clamped=rec.clamped)] * 2
-    x0 = torch.zeros(2, tmpl.B, 13)
+    x0 = still
     assert torch.equal(RolloutInputs(tmpl, layout).values(x0, big), big.clamp(-0.5, 0.5))
     # a dataset's graphs (no System at hand): the static features hold the same range
     static, layout, _ = static_arrays([sim.make("pendulum")])
@@ -132,6 +134,6 @@ def test_rollout_clamp_reads_the_systems_actuator_record(unlimited):
     assert not tmpl.actuators[0].limited.any()
     inp = RolloutInputs(tmpl, layout)
     assert inp.ranges is None
-    assert torch.equal(inp.values(torch.zeros(2, tmpl.B, 13), big), big)
+    assert torch.equal(inp.values(still, big), big)
     # and "error" has nothing to refuse: the same controls pass
-    assert torch.equal(RolloutInputs(tmpl, layout, ctrl_policy="error").values(torch.zeros(2, tmpl.B, 13), big), big)
+    assert torch.equal(RolloutInputs(tmpl, layout, ctrl_policy="error").values(still, big), big)

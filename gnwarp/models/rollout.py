@@ -38,6 +38,9 @@ __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICI
 CTRL_POLICIES = ("clamp", "error", "none")
 
 
+QUAT_MIN = 0.1   # the least norm of an initial body state's orientation quaternion: below it, none at all
+
+
 class RolloutInputError(ValueError):
     """Rollout inputs refused before any launch: a shape, an instance, a non-finite value or a
     control outside its actuator's range; the message names the argument."""
@@ -208,9 +211,10 @@ class RolloutInputs:
         flags, names = [], []
         if self.check:
             nodes = self.template.nodes(body)
-            # a real body's orientation: a quaternion of norm ~1 (zero is none; NaN is caught first)
+            # a real body's orientation: a quaternion, not ~zero (NaN is caught first). Other norms pass
+            # as given: perturbed states (gradients, sensitivities) are the model's to read
             flags += [torch.isfinite(nodes).all(), torch.isfinite(ctrl).all(),
-                      (torch.linalg.vector_norm(nodes[..., 3:7], dim=-1) > 0.1).all()]
+                      (nodes[..., 3:7].square().sum(-1) > QUAT_MIN ** 2).all()]
             names += ["initial_body", "ctrl", "quaternion"]
         if self.ranges is not None and self.ctrl_policy == "error":
             lo, hi = (r.to(ctrl.device, ctrl.dtype)[:, None] for r in self.ranges)
@@ -230,11 +234,12 @@ class RolloutInputs:
                         "it as MuJoCo does)")
                 if name == "quaternion":
                     tm = self.template
-                    bad = int((torch.linalg.vector_norm(self.template.nodes(body)[..., 3:7], dim=-1) <= 0.1)
-                              .nonzero()[0, 0])
+                    sq = self.template.nodes(body)[..., 3:7].square().sum(-1)
+                    bad = int((sq <= QUAT_MIN ** 2).nonzero()[0, 0])
                     r = bad if tm.rows is None else int(tm.rows[bad])
-                    raise RolloutInputError(f"initial_body[{r // tm.B}, {r % tm.B}] has a zero orientation quaternion "
-                                            "(columns 3:7, w x y z): a body's state needs a unit quaternion")
+                    raise RolloutInputError(f"initial_body[{r // tm.B}, {r % tm.B}] has an orientation quaternion of "
+                                            f"norm {float(sq[bad].sqrt()):.4g} (columns 3:7, w x y z): a body's state needs "
+                                            "its orientation, a unit quaternion")
                 x = self.template.nodes(body) if name == "initial_body" else ctrl
                 where = tuple(int(i) for i in (~torch.isfinite(x)).nonzero()[0])
                 if name == "initial_body":
