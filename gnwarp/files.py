@@ -64,6 +64,25 @@ def temporary_of(path: str | Path, kind: str = "tmp", pid: int | None = None) ->
 
 
 @contextlib.contextmanager
+def locked(path: str | Path):
+    """Hold an exclusive lock for ``path`` for the block: ``flock`` on its folder (no lock file is
+    left behind), so that writers that read a file, add to it and rename it over
+    (``write_records``) take turns instead of losing each other's additions. Where the system
+    has no ``fcntl`` (Windows), the block runs unlocked."""
+    try:
+        import fcntl
+    except ImportError:   # no advisory locks here
+        yield
+        return
+    fd = os.open(Path(path).parent, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)   # (closing releases the lock)
+
+
+@contextlib.contextmanager
 def atomic_write(path: str | Path, folder: bool = False):
     """Write the file (or, with ``folder``, the folder) ``path`` whole or not at all.
 

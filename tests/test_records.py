@@ -188,3 +188,26 @@ def test_summarize_refuses_a_file_where_its_folder_goes(tmp_path, capsys):
     binary.write_bytes(b"\x89HDF\xff\xfe")
     assert summarize.main([str(binary), "--out", str(tmp_path / "s")]) == 2
     assert "x.h5, line 1: not text" in capsys.readouterr().err
+
+
+def _append_many(path, k, n):
+    for i in range(n):
+        write_records(path, [ResultRecord(experiment=f"w{k}", task="pendulum-balance", planner="gradient",
+                                          dynamics="learned", episodes=1, episode_steps=5, returns=[1.0], seed=i)])
+
+
+def test_writers_appending_at_once_keep_every_record(tmp_path):
+    """Each append reads the file, adds to it and renames it over: writers in several processes
+    take turns (a lock on the folder), so none loses another's records; nothing else is left."""
+    import multiprocessing as mp
+    path = tmp_path / "r.jsonl"
+    procs = [mp.get_context("fork").Process(target=_append_many, args=(path, k, 40)) for k in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+    assert [p.exitcode for p in procs] == [0, 0, 0]
+    recs = read_records(path)
+    assert len(recs) == 120 and {(r.experiment, r.seed) for r in recs} == {(f"w{k}", i) for k in range(3)
+                                                                            for i in range(40)}
+    assert [p.name for p in tmp_path.iterdir()] == ["r.jsonl"]

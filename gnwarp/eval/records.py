@@ -222,17 +222,19 @@ def write_records(path: str | os.PathLike, records: Iterable[ResultRecord], appe
         r.check()
     if not path.parent.is_dir():
         raise FileNotFoundError(f"folder of the records file does not exist: {path.parent}")
-    old = path.read_text() if append and path.exists() else ""
-    if old and not old.endswith("\n"):
-        old += "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(old + "".join(_dumps(r) + "\n" for r in recs))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    from gnwarp.files import locked
+    with locked(path):   # another writer's read-add-rename waits: none loses the other's records
+        old = path.read_text() if append and path.exists() else ""
+        if old and not old.endswith("\n"):
+            old += "\n"
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(old + "".join(_dumps(r) + "\n" for r in recs))
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
     return path
 
 
