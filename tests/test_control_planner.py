@@ -186,6 +186,28 @@ def test_targets_are_checked_and_a_task_of_another_system_refused(name, model):
         assert s.targets.shape == (N, 2)
 
 
+@pytest.mark.parametrize("name", ["gradient", "sampling", "hybrid"])
+def test_states_without_values_or_orientation_are_refused(name, model):
+    """A NaN in the state, or a body without orientation (a ~zero quaternion), is refused by
+    every planner given body states, naming the episode and body (it used to be planned from)."""
+    from gnwarp.control import PlanningError
+    env = make_env("pendulum", N, backend="mujoco")
+    p = make(name, model, env) if name != "sampling" else SamplingPlanner(
+        true_dynamics("pendulum", N, 4, backend="mujoco", source=env), "pendulum-balance", env.ctrlrange, N,
+        SamplingConfig(horizon=4, samples=4, knots=2))
+    p.reset(N)
+    x = torch.as_tensor(env.reset(Q0, V0)).float()
+    bad = x.clone()
+    bad[1, 1, 5] = float("nan")
+    with pytest.raises(PlanningError, match="episode 1 has NaN or Inf \\(body 1, feature 5\\)"):
+        p.step(bad)
+    flat = x.clone()
+    flat[0, 1, 3:7] = 0.0
+    with pytest.raises(PlanningError, match="episode 0 has no orientation \\(body 1's quaternion"):
+        p.step(flat)
+    assert p.step(x).shape == (N, 1)
+
+
 def test_learned_models_implement_dynamics(pendulum, model):
     mlp = MLPForwardModel(pendulum.layout, n_node=2, n_edge=2, size="3x128")
     for m in (model, mlp):

@@ -19,6 +19,13 @@ class Diverged:
         return s
 
 
+def _rest(n, bodies):
+    """Body states at rest: zeros but the unit quaternions (a planner refuses ~zero ones)."""
+    x = torch.zeros(n, bodies, 13)
+    x[..., 3] = 1.0
+    return x
+
+
 def _planner(dynamics, method):
     return SamplingPlanner(dynamics, lambda s, a: s[:, 1:, 1, 0].sum(1), [[-1.0, 1.0]], 2,
                            SamplingConfig(horizon=4, samples=8, knots=2, method=method, noise=0.5))
@@ -28,7 +35,7 @@ def _planner(dynamics, method):
 def test_every_rollout_diverged_keeps_the_nominal(method):
     p = _planner(Diverged(), method)
     nominal = p.nominal().clone()
-    a = p.step(torch.zeros(2, 2, 13))
+    a = p.step(_rest(2, 2))
     assert torch.isfinite(a).all()
     torch.testing.assert_close(p.plan, nominal)
 
@@ -44,6 +51,6 @@ def test_mppi_weights_only_finite_rollouts():
         cand = orig()
         return cand
     p.candidates = spy
-    p.step(torch.zeros(2, 2, 13))
+    p.step(_rest(2, 2))
     torch.testing.assert_close(p.plan[0], p.actions(cand[0, 3]))
     torch.testing.assert_close(p.plan[1], p.actions(cand[1, 0]))

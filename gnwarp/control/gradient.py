@@ -35,7 +35,7 @@ from typing import Literal
 
 import torch
 
-from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, condition_gradient,
+from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_states, check_terminal, condition_gradient,
                                     planned_return, scale_gradient)
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.control.task_base import check_targets
@@ -289,12 +289,7 @@ class GradientMPC(ActsOnPlan):
         if tuple(x.shape) != want:
             raise PlanningError(f"states must be [N, B, 13] = {list(want)} (episodes, bodies of "
                                 f"{self.system.name}), got {list(x.shape)}")
-        bad = ~torch.isfinite(x)
-        if bool(bad.any()):
-            e, b, f = (int(i) for i in bad.nonzero()[0])
-            raise PlanningError(f"the state of episode {e} has NaN or Inf (body {b}, feature {f}): the true "
-                                "simulator diverged or was given bad values")
-        return x.to(self.device, self.dtype)
+        return check_states(x, self.n, self.B).to(self.device, self.dtype)
 
     def planned_reward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         """[N] the model's predicted reward of the plan (or of ``z``) from states ``x``."""

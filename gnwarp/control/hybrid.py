@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from gnwarp.control.gradient import WARMUP_PER_ITERATION, GradientMPC, GradientMPCConfig
-from gnwarp.control.returns import GRAD_NORMS, ActsOnPlan, PlanningError, check_terminal, planned_return
+from gnwarp.control.returns import GRAD_NORMS, ActsOnPlan, PlanningError, check_states, check_terminal, planned_return
 from gnwarp.control.sampling import INTERPOLATIONS, EnvDynamics, model_dynamics, score_rollouts, spline_basis
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.control.task_base import check_targets
@@ -188,9 +188,7 @@ class HybridPlanner(ActsOnPlan):
         """One planning budget from the episodes' true states ``obs`` (body states [n, B, 13] or an
         ``Observation``): sample, score, refine the elites (``iterations``; after a reset
         ``warmup`` more); the best becomes ``plan`` and, shifted one step, the next nominal."""
-        body = obs.body if isinstance(obs, Observation) else torch.as_tensor(obs)
-        if body.ndim != 3 or body.shape[0] != self.n:
-            raise PlanningError(f"states must be [N, B, 13] with N = {self.n} episodes, got {list(body.shape)}")
+        body = check_states(obs.body if isinstance(obs, Observation) else obs, self.n)
         cfg, N, K, E = self.settings, self.n, self.settings.samples, self.settings.elites
         eps = self._noise((N, K - 1, cfg.knots, self.U), cfg.noise)
         eps = torch.cat([torch.zeros_like(eps[:, :1]), eps], 1)                     # the nominal first

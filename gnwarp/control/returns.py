@@ -125,6 +125,27 @@ class PlanningError(ValueError):
     acting before any plan."""
 
 
+def check_states(x, n: int, bodies: int | None = None) -> torch.Tensor:
+    """Episodes' body states ``x`` [n, B, 13] (B = ``bodies`` where given) as a tensor once they
+    are states a planner can plan from: finite, each body's orientation a quaternion (not ~zero);
+    else ``PlanningError`` naming the episode and body (a planner would plan on them silently)."""
+    x = torch.as_tensor(x)
+    if x.ndim != 3 or x.shape[0] != n or x.shape[2] != 13 or (bodies is not None and x.shape[1] != bodies):
+        raise PlanningError(f"states must be [N, B, 13] = [{n}, {bodies if bodies is not None else 'B'}, 13] "
+                            f"(episodes, bodies), got {list(x.shape)}")
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        e, b, f = (int(i) for i in bad.nonzero()[0])
+        raise PlanningError(f"the state of episode {e} has NaN or Inf (body {b}, feature {f}): the true "
+                            "simulator diverged or was given bad values")
+    flat = x[..., 3:7].square().sum(-1) <= 0.01   # norm <= 0.1: no orientation at all
+    if bool(flat.any()):
+        e, b = (int(i) for i in flat.nonzero()[0])
+        raise PlanningError(f"the state of episode {e} has no orientation (body {b}'s quaternion, features 3:7, "
+                            "is ~zero): body states carry unit quaternions")
+    return x
+
+
 def plan_action(plan, time):
     """``plan`` [N, T, U] (a tensor or an array) at step ``time`` (clamped to the last): [N, U];
     ``PlanningError`` before any plan (``plan`` None) or for a ``time`` that is no integer >= 0."""

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gnwarp.control.returns import ActsOnPlan, check_terminal, planned_return
+from gnwarp.control.returns import ActsOnPlan, check_states, check_terminal, planned_return
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.control.task_base import check_targets
 from gnwarp.sim.actuators import Actuators
@@ -138,9 +138,11 @@ class ModelDynamics:
     ``rollout_fn(x0 [M, B, 13], actions [M, T, U]) -> [M, T+1, B, 13]`` from the episodes' body
     states, without gradients."""
 
-    def __init__(self, rollout_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], device=None):
+    def __init__(self, rollout_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], device=None,
+                 bodies: int | None = None):
         self.rollout_fn = rollout_fn
         self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.bodies = bodies   # B of the states it rolls out (None: not known)
 
     def rollout(self, obs, actions: torch.Tensor, samples: int) -> torch.Tensor:
         body = obs.body if isinstance(obs, Observation) else torch.as_tensor(obs)
@@ -200,7 +202,7 @@ def model_dynamics(model, n_episodes: int, samples: int, horizon: int) -> ModelD
     engine = model.rollout_engine(torch.zeros(n_episodes * samples, dtype=torch.int64), horizon, ctrl_policy="none",
                                   check=False)
     return ModelDynamics(lambda x, u: engine.rollout(x.to(model.dtype), u.to(model.device, model.dtype)),
-                         device=model.device)
+                         device=model.device, bodies=int(engine.template.B))
 
 
 def ensemble_dynamics(models, n_episodes: int, samples: int, horizon: int, penalty: float = 1.0) -> EnsembleDynamics:
@@ -308,9 +310,12 @@ class SamplingPlanner(ActsOnPlan):
         """One planning budget from the episodes' true states ``obs`` (an ``Observation``, or body
         states [N, B, 13]): K candidates rolled out and scored; the chosen sequences become the
         plan [N, T, U] (``act``) and, shifted one step, the nominal."""
-        n = (obs.body if isinstance(obs, Observation) else obs).shape[0]
+        body = obs.body if isinstance(obs, Observation) else obs
+        n = torch.as_tensor(body).shape[0] if torch.as_tensor(body).ndim else None
         if n != self.n:
             raise ValueError(f"this planner holds {self.n} episodes, got states of {n}")
+        if not isinstance(obs, Observation):   # body states: planned from as given (the true env's are its own)
+            obs = check_states(obs, self.n, getattr(self.dynamics, "bodies", None))
         cfg, N, K = self.settings, self.n, self.settings.samples
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)
