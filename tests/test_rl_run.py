@@ -435,6 +435,30 @@ def test_exported_agent_loads_as_the_run_and_cannot_train(tmp_path):
         load_agent(dest, "cpu")
 
 
+def test_a_loaded_agent_refuses_nan_weights_other_networks_and_nan_observations(tmp_path):
+    """load_agent refuses weights with NaN (they would act NaN) and weights of other networks
+    (a clear error, not torch's size mismatch); act refuses NaN observations, naming the env."""
+    from gnwarp.rl.run import AGENT_FILE, export_agent, load_agent
+    run_rl(RLConfig(**{**TINY, "env_steps": 20}, out=str(tmp_path / "r")))
+    agent, _, _ = load_agent(tmp_path / "r", "cpu")
+    obs = torch.zeros(3, agent.obs_dim)
+    obs[2, 1] = float("nan")
+    with pytest.raises(ValueError, match="obs of env 2 has NaN or Inf \\(feature 1\\)"):
+        agent.act(obs, deterministic=True)
+    dest = export_agent(tmp_path / "r", tmp_path / "x")
+    state = load_checkpoint(dest / AGENT_FILE)
+    name = next(iter(state["agent"]["policy"]))
+    state["agent"]["policy"][name].fill_(float("nan"))
+    save_checkpoint(dest / AGENT_FILE, state)
+    with pytest.raises(ValueError, match=f"policy.{name} holds NaN or Inf"):
+        load_agent(dest, "cpu")
+    wide = export_agent(tmp_path / "r", tmp_path / "w")
+    cfg = json.loads((wide / "config.json").read_text())
+    (wide / "config.json").write_text(json.dumps({**cfg, "task": "cartpole-balance"}))   # other observations
+    with pytest.raises(ConfigError, match="the saved agent's policy does not fit this agent's"):
+        load_agent(wide, "cpu")
+
+
 def test_sim_threads_change_no_result(tmp_path):
     cfg = dict(TINY, agent="ddpg", env_steps=40, num_envs=3)
     a = run_rl(RLConfig(**cfg, out=str(tmp_path / "a")))

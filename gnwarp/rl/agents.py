@@ -159,12 +159,19 @@ class Agent:
         return torch.randn(*shape, self.action_dim, generator=self.generator, device=self.device, dtype=self.dtype)
 
     @torch.no_grad()
-    def act(self, obs, deterministic: bool = False, count: bool = True) -> torch.Tensor:
+    def act(self, obs, deterministic: bool = False, count: bool = True, check: bool = True) -> torch.Tensor:
         """Actions [E, U] (in the action box) for observations ``obs`` [E, D]: the policy's mean
         when ``deterministic``; else exploring (uniform random for the first ``start_steps`` env
         steps), counting E env steps (``count`` False: the caller counts them with
-        ``count_env_steps`` when it takes them)."""
+        ``count_env_steps`` when it takes them). ``check``: refuse NaN / Inf observations
+        (``ValueError`` naming the env; one host sync on CUDA: the training loop, whose replay
+        buffer checks what it stores, leaves it off)."""
         obs = self._obs(obs)
+        if check:
+            bad = ~torch.isfinite(obs)
+            if bool(bad.any()):
+                e, d = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(f"obs of env {e} has NaN or Inf (feature {d}): the policy would act on it")
         if deterministic:
             return self._explore(obs, False)
         n = obs.shape[0]
@@ -329,7 +336,17 @@ class Agent:
             raise ConfigError(diff[0] if diff else "", f"the saved agent has other settings ({diff})")
         for k, m in self._modules().items():
             if m is not None:
-                m.load_state_dict(state[k])
+                try:
+                    m.load_state_dict(state[k])
+                except (RuntimeError, KeyError) as e:   # another network's shapes (networks, task, sizes)
+                    detail = str(e).strip().splitlines()
+                    raise ConfigError("", f"the saved agent's {k} does not fit this agent's (another networks, task "
+                                          f"or sizes: {detail[-1].strip() if detail else type(e).__name__})") from None
+        bad = next((f"{k}.{n}" for k, m in self._modules().items() if isinstance(m, nn.Module)
+                    for n, t in m.state_dict().items() if t.is_floating_point() and not bool(torch.isfinite(t).all())),
+                   None)
+        if bad is not None:
+            raise ValueError(f"the saved agent's {bad} holds NaN or Inf: it diverged or the file was damaged")
         set_adam_mode(self.optimizers(), capturable=False)   # this device's flags; eager steps (an Updater records anew)
         self.updates, self.env_steps = int(state["updates"]), int(state["env_steps"])
         restore_generator(self.generator, state["generator"])

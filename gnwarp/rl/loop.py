@@ -99,7 +99,7 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     steps = int(steps)
     picked = host = None   # an action picked ahead, and its copy on the env's side (the host: NumPy or a CPU simulator)
     for i in range(steps):
-        action = picked if picked is not None else agent.act(state.obs, count=False)
+        action = picked if picked is not None else agent.act(state.obs, count=False, check=False)
         agent.count_env_steps(state.num_envs)
         next_obs, reward, terminated, truncated, infos = env.step(
             host if picked is not None else (action if torch_env else _numpy(action)))
@@ -111,7 +111,7 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         state.episode_return[ended] = 0.0
         state.obs = next_obs
         if ahead and i + 1 < steps:   # the next action now: its host copy waits for it, not for the updates
-            picked = agent.act(state.obs, count=False)
+            picked = agent.act(state.obs, count=False, check=False)
             host = _on_env_device(picked, state.obs) if torch_env else _numpy(picked)
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
