@@ -63,6 +63,18 @@ def temporary_of(path: str | Path, kind: str = "tmp", pid: int | None = None) ->
     return path.parent / f".{path.name}.{kind}-{os.getpid() if pid is None else pid}"
 
 
+def tensor_digest(tensors: dict, keys=None) -> str:
+    """The SHA-256 of tensors (``{name: tensor}``, in the order of ``keys``, default sorted names):
+    each one's name, dtype, shape and bytes, so that a changed value, shape or name changes it.
+    Files of tensors keep it beside them and compare it on loading (corruption detected)."""
+    h = hashlib.sha256()
+    for k in (sorted(tensors) if keys is None else keys):
+        t = tensors[k]
+        h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 @contextlib.contextmanager
 def locked(path: str | Path):
     """Hold an exclusive lock for ``path`` for the block: ``flock`` on its folder (no lock file is

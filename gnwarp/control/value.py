@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from gnwarp.control.returns import step_rewards
-from gnwarp.files import atomic_write
+from gnwarp.files import atomic_write, tensor_digest
 from gnwarp.sim.systems import translation_axes
 from gnwarp.state import DYN_NODE_SIZE
 
@@ -195,8 +195,9 @@ class TerminalValue(torch.nn.Module):
         """Write the value (config and state_dict) to ``path``, atomically; returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        blob = {"format": VALUE_FORMAT, "version": VALUE_VERSION, "config": self.config(),
-                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()}}
+        sd = {k: v.detach().cpu() for k, v in self.state_dict().items()}
+        blob = {"format": VALUE_FORMAT, "version": VALUE_VERSION, "config": self.config(), "state_dict": sd,
+                "sha256": tensor_digest(sd)}
         with atomic_write(path) as tmp:
             torch.save(blob, tmp)
         return path
@@ -236,6 +237,9 @@ class TerminalValue(torch.nn.Module):
                                      f"{list(getattr(v, 'shape', []))}")
             if v.is_floating_point() and not bool(torch.isfinite(v).all()):
                 raise ValueFileError(f"{path}: state_dict[{k!r}] has NaN or Inf")
+        digest = blob.get("sha256")   # (files written before it had one: none to compare)
+        if digest is not None and digest != tensor_digest(sd):
+            raise ValueFileError(f"{path}: its weights were changed or damaged (their SHA-256 does not match)")
         value.load_state_dict(sd)
         return value.to(device) if device is not None else value
 

@@ -4,13 +4,12 @@ graph for rollout engines and planners (``FixedGIDModel``, from ``SysIDModel.wit
 A G_ID that is missing, corrupt or of another model's widths or topology raises ``GIDError``."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import torch
 
 from gnwarp.data.builder import GraphTemplate
-from gnwarp.files import atomic_write
+from gnwarp.files import atomic_write, tensor_digest
 from gnwarp.graphs import GraphsTuple
 from gnwarp.models.recurrent import KINDS
 from gnwarp.models.rollout import RolloutEngine, RolloutInputs
@@ -107,12 +106,7 @@ _FIELDS = ("nodes", "edges", "globals", "senders", "receivers", "n_node", "n_edg
 
 
 def _digest(tensors: dict) -> str:
-    h = hashlib.sha256()
-    for k in _FIELDS:
-        t = tensors[k]
-        h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
-        h.update(t.contiguous().numpy().tobytes())
-    return h.hexdigest()
+    return tensor_digest(tensors, _FIELDS)
 
 
 def save_gid(path, g_id: GraphsTuple) -> Path:
