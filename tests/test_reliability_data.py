@@ -546,3 +546,16 @@ def test_stale_temporaries_of_dead_writers_only_are_removed(tmp_path):
         p.write_bytes(b"")
     assert remove_stale_temporaries(path) == [stale]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name])
+
+
+def test_generate_refuses_split_names_counts_and_systems_it_would_misread():
+    """A misspelt split would silently leave the valid split empty; 2.5 sequences would become 2;
+    a system that is neither a name nor a System failed deep inside: each is a clear error first."""
+    for sizes, words in (({"train": 3, "val": 1, "test": 1}, "unknown splits \\['val'\\]"),
+                         (2.5, "num_sequences must be a whole number of sequences, got 2.5"),
+                         ((2, 1.5, 1), "num_sequences' valid must be a whole number")):
+        with pytest.raises(ValueError, match=words):
+            data.generate("pendulum", sizes, num_steps=3, backend="mujoco", progress=False)
+    with pytest.raises(TypeError, match="system must be a built-in system's name or a System"):
+        data.generate(3, 3, num_steps=3)
+    assert data.split_sizes({"train": np.int64(2), "test": 1}, False) == {"train": 2, "valid": 0, "test": 1}

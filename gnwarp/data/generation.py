@@ -20,7 +20,7 @@ from gnwarp.sim.common import resolve_backend, topology_signature
 from gnwarp.sim.excitation import control_range, random_spline_controls
 from gnwarp.sim.families import family_of
 from gnwarp.sim.backends import simulate
-from gnwarp.sim.systems import check_model, make, param_places
+from gnwarp.sim.systems import System, check_model, make, param_places
 from gnwarp.state import DYN_NODE_NAMES, DYN_NODE_SIZE
 from gnwarp.version import __version__
 from gnwarp.validation import available_memory
@@ -72,14 +72,22 @@ def split_sizes(num_sequences, parameterized: bool) -> dict[str, int]:
     paper = PAPER_SIZES[bool(parameterized)]
     if num_sequences is None:
         return dict(paper)
+
+    def count(x, what: str) -> int:   # a whole number: 2.5 sequences is a mistake, not 2
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+            raise ValueError(f"{what} must be a whole number of sequences, got {x!r}")
+        return int(x)
     if isinstance(num_sequences, dict):
-        sizes = {k: int(num_sequences.get(k, 0)) for k in SPLITS}
+        unknown = sorted(set(num_sequences) - set(SPLITS))
+        if unknown:
+            raise ValueError(f"num_sequences names unknown splits {unknown}: the splits are {', '.join(SPLITS)}")
+        sizes = {k: count(num_sequences.get(k, 0), f"num_sequences[{k!r}]") for k in SPLITS}
     elif isinstance(num_sequences, (tuple, list)):
         if len(num_sequences) != 3:
             raise ValueError(f"num_sequences as a sequence must be (train, valid, test), got {num_sequences}")
-        sizes = dict(zip(SPLITS, (int(x) for x in num_sequences)))
+        sizes = {k: count(x, f"num_sequences' {k}") for k, x in zip(SPLITS, num_sequences)}
     else:
-        n = int(num_sequences)
+        n = count(num_sequences, "num_sequences")
         if n < 1:
             raise ValueError(f"num_sequences must be >= 1, got {n}")
         tot = sum(paper.values())
@@ -173,11 +181,14 @@ def generate(system, num_sequences=None, num_steps: int = 100, seed: int = 0, pa
     if isinstance(system, str):
         name = system
         base_sys = make(name)
-    else:
+    elif isinstance(system, System):
         base_sys, name = system, system.name
         if parameterized:
             raise ValueError("parameterized=True needs a built-in system name, not a System instance")
         check_model(base_sys.model, f"system '{name}'")
+    else:
+        raise TypeError(f"system must be a built-in system's name or a System (gnwarp.systems.make / from_mjcf), "
+                        f"got {type(system).__name__} {system!r}"[:300])
     if base_sys.model.nu == 0:
         raise ValueError(f"system '{name}' has no actuators: random-control datasets need at least one")
     check_actuators(base_sys.model, f"system '{name}'")   # before simulating: train could not use the data
