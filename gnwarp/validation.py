@@ -90,6 +90,7 @@ MAX_LAYERS = 64        # most hidden layers of one MLP
 Flag = Annotated[bool, BeforeValidator(_plain_bool), Strict(), Allowed("true or false")]
 Count = IntRange(0)                 # an integer >= 0
 PositiveInt = IntRange(1)           # an integer >= 1
+BatchSize = IntRange(1, 1 << 24)    # examples a gradient step: more is a mistake, not a batch
 Width = IntRange(1, MAX_WIDTH)
 InputWidth = IntRange(0, 1 << 20)     # input widths: a model's static features plus latents
 LayerCount = IntRange(0, MAX_LAYERS)

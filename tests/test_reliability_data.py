@@ -559,3 +559,8 @@ def test_generate_refuses_split_names_counts_and_systems_it_would_misread():
     with pytest.raises(TypeError, match="system must be a built-in system's name or a System"):
         data.generate(3, 3, num_steps=3)
     assert data.split_sizes({"train": np.int64(2), "test": 1}, False) == {"train": 2, "valid": 0, "test": 1}
+
+
+def test_graphs_of_no_sequences_is_a_clear_error(good):
+    with pytest.raises(ValueError, match="no sequences asked for"):
+        data.load(good[1]).graphs("train", [], [])

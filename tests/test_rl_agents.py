@@ -615,3 +615,12 @@ def test_default_model_loss_weighs_each_entry_by_its_change_spread():
     assert torch.allclose(mse_model_loss(model, batch), err.pow(2).mean())
     assert mse_model_loss(model, batch) < 0.1 * (model(obs, act) - nxt).pow(2).mean()   # not the raw loss
     assert mse_model_loss(lambda o, a: o, batch) == (obs - nxt).pow(2).mean()   # no delta_std: raw units
+
+
+def test_a_batch_no_machine_holds_is_refused_as_a_setting():
+    """batch_size is capped as TrainConfig's is: 10**12 transitions an update is a mistake (it
+    failed at the first sample, asking the allocator for terabytes)."""
+    from gnwarp.rl.settings import AgentSettings
+    with pytest.raises(ConfigError, match="batch_size"):
+        AgentSettings(batch_size=10**12)
+    assert AgentSettings(batch_size=256).batch_size == 256

@@ -7,7 +7,8 @@ import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
 
-__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "check_plan_memory", "timing_line", "check_outputs", "PLANNERS",
+__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "check_plan_memory", "timing_line",
+           "check_outputs", "PLANNERS",
            "SETTING_FLAGS"]
 
 # the registered planners that plan through a learned model (``gnwarp.control.planner.MODEL_PLANNERS``,

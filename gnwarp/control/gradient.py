@@ -35,7 +35,8 @@ from typing import Literal
 
 import torch
 
-from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_states, check_terminal, condition_gradient,
+from gnwarp.control.returns import (GRAD_NORMS, ActsOnPlan, PlanningError, check_states, check_terminal,
+                                    condition_gradient,
                                     planned_return, scale_gradient)
 from gnwarp.control.tasks import Task, get_task
 from gnwarp.control.task_base import check_targets

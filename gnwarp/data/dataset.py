@@ -127,6 +127,8 @@ class Dataset:
         if seq.dtype.kind not in "iu" or t.dtype.kind not in "iu" or seq.ndim != 1 or seq.shape != t.shape:
             raise ValueError(f"graphs(): seq and t must be integer arrays of one length, got {seq.dtype} "
                              f"{seq.shape} and {t.dtype} {t.shape}")
+        if not seq.size:
+            raise ValueError("graphs(): no sequences asked for (seq and t are empty): a batch needs at least one graph")
         if seq.size and (seq.min() < 0 or seq.max() >= S):
             raise IndexError(f"graphs(): sequence index {int(seq.min() if seq.min() < 0 else seq.max())} "
                              f"outside split '{split}' of {S} sequences")

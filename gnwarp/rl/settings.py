@@ -7,7 +7,8 @@ import dataclasses
 import re
 from typing import Literal
 
-from gnwarp.validation import ConfigError, Count, Flag, FloatRange, PositiveFloat, PositiveInt, Widths, check_fields
+from gnwarp.validation import (BatchSize, ConfigError, Count, Flag, FloatRange, PositiveFloat, PositiveInt, Widths,
+                               check_fields)
 
 __all__ = ["AgentSettings", "PRESETS", "MAX_HORIZON", "agent_names", "settings_tag"]
 
@@ -58,7 +59,7 @@ class AgentSettings:
     preset: Literal["spinningup", "paper"] = "spinningup"
     gamma: FloatRange(ge=0, le=1) = 0.99
     hidden: Widths | None = None
-    batch_size: PositiveInt | None = None
+    batch_size: BatchSize | None = None
     start_steps: Count | None = None
     update_after: Count = 1000
     updates_per_step: FloatRange(gt=0) = 1.0

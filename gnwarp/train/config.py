@@ -8,7 +8,8 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field
 
-from gnwarp.validation import (Allowed, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat, PositiveInt,
+from gnwarp.validation import (Allowed, BatchSize, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat,
+                               PositiveInt,
                                check_fields, check_keys)
 from gnwarp.models.config import ModelConfig
 
@@ -17,7 +18,6 @@ __all__ = ["TrainConfig", "SCHEDULES", "ConfigError"]
 SCHEDULES = {"fast": 50_000, "slow": 200_000}   # D.8: learning-rate decay period in steps
 
 # the allowed values of TrainConfig's fields (gnwarp.gn.config validates them)
-BatchSize = IntRange(1, 1 << 24)
 Seed = IntRange(0, (1 << 63) - 1)
 DecaySteps = Annotated[Union[PositiveInt, Literal["fast", "slow"]],
                        Allowed("an integer >= 1, or 'fast' (50000) or 'slow' (200000)")]
