@@ -553,3 +553,12 @@ def test_ema_checkpoint_with_a_bad_average_state_is_refused(tmp_path, pendulum):
 def _fresh_params(tmp_path, pendulum, impl):
     r = train(config(tmp_path, "zero", impl=impl, steps=0, valid_every=20), [pendulum])
     return list(load_model(r["last"], device="cpu").parameters())
+
+
+def test_training_without_a_valid_split_says_so(tmp_path):
+    """Data without valid sequences trains (its best/ is the last model), with a warning that
+    nothing was validated, instead of in silence."""
+    ds = data.generate("pendulum", (6, 0, 1), num_steps=6, seed=0, backend="mujoco", progress=False)
+    with pytest.warns(UserWarning, match="no dataset has a valid split: nothing is validated"):
+        r = train(config(tmp_path, steps=4, log_every=2, checkpoint_every=4), [ds])
+    assert r["best_step"] == -1 and (tmp_path / "run" / "best" / "model.pt").is_file()

@@ -109,6 +109,10 @@ class Trainer:
             self._join_model()
         self.sampler = self.make_sampler()
         self.valid = [d for d in self.datasets if len(d["valid"]) > 0]
+        if not self.valid and self.ranks.main:   # allowed (a last model is still a model), but said
+            warnings.warn("no dataset has a valid split: nothing is validated, and best/ will be the last model, "
+                          "not a validated one (generate with valid sequences, e.g. -n's paper proportions)",
+                          stacklevel=2)
         cuda = self.device.type == "cuda"
         # a CUDA graph replays the device's default generator by itself; others need registering
         self.generator = (default_generator(self.device) if cuda and config.capture and not registers_generators()
