@@ -50,6 +50,10 @@ def test_reset_step_shapes_and_dataset_states(backend):
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.zeros((3, 1)))
     q0, v0 = dataset_states(ds, "test", [2, 0, 1])
+    for seqs, t, words in (([5], 0, "must be in \\[0, 3\\)"), ([-1], 0, "must be in"), ([0], 6, "step 6 outside"),
+                           ([], 0, "no sequences")):
+        with pytest.raises(IndexError, match=words):
+            dataset_states(ds, "test", seqs, t)
     body = env.reset(q0, v0)
     sp = ds["test"]
     order = [2, 0, 1]

@@ -411,6 +411,12 @@ def dataset_states(dataset, split: str = "test", seqs=None, t: int = 0) -> tuple
     (default: all) of ``split`` at data step ``t``, for ``env.reset``."""
     sp = dataset[split]
     seqs = np.arange(len(sp)) if seqs is None else np.asarray(seqs, dtype=np.int64).reshape(-1)
+    S, T = len(sp), sp.num_steps
+    if seqs.size == 0 or seqs.min() < 0 or seqs.max() >= S:
+        raise IndexError(f"dataset_states: sequences {seqs.tolist()[:8]} must be in [0, {S}) (split '{split}' has "
+                         f"{S})" if seqs.size else "dataset_states: no sequences asked for")
+    if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t <= T:
+        raise IndexError(f"dataset_states: step {t!r} outside [0, {T}] of split '{split}'")
     rows, back = np.unique(seqs, return_inverse=True)   # a file's arrays read sorted, unique rows
     read = lambda a: np.asarray(a[rows, t], dtype=np.float64)[back]   # noqa: E731
     return read(sp.qpos), read(sp.qvel)
