@@ -86,9 +86,16 @@ def locked(path: str | Path):
     except ImportError:   # no advisory locks here
         yield
         return
-    fd = os.open(Path(path).parent, os.O_RDONLY)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        fd = os.open(Path(path).parent, os.O_RDONLY)
+    except OSError:   # a folder that cannot be opened for reading: the write itself will say what is wrong
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:   # a file system without flock (some network mounts): unlocked, as before
+            pass
         yield
     finally:
         os.close(fd)   # (closing releases the lock)
