@@ -143,8 +143,8 @@ def main(argv=None) -> int:
         return _one(a.one)
     base = seed_config(a.quick, a.task, a.agent, a.preset, a.networks, a.threads, a.env_steps, a.set,
                        budget_seconds=a.budget_seconds)
-    seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
     try:
+        seeds = seeds_of("0-1" if a.quick and a.seeds == "0-5" else a.seeds)
         name = run_name(base)
     except ValueError as e:
         ap.error(str(e))

@@ -91,6 +91,7 @@ Flag = Annotated[bool, BeforeValidator(_plain_bool), Strict(), Allowed("true or 
 Count = IntRange(0)                 # an integer >= 0
 PositiveInt = IntRange(1)           # an integer >= 1
 BatchSize = IntRange(1, 1 << 24)    # examples a gradient step: more is a mistake, not a batch
+Seed = IntRange(0, (1 << 63) - 1)   # what numpy and torch take as a seed
 Width = IntRange(1, MAX_WIDTH)
 InputWidth = IntRange(0, 1 << 20)     # input widths: a model's static features plus latents
 LayerCount = IntRange(0, MAX_LAYERS)

@@ -215,3 +215,12 @@ def test_device_tests_probe_exits_with_pytests_code(tmp_path):
     ok, bad = run("test_ok.py"), run("test_bad.py")
     assert ok.returncode == 0 and "1 passed" in ok.stdout
     assert bad.returncode == 1 and "1 failed" in bad.stdout
+
+
+@pytest.mark.parametrize("seeds", ["5-0", "x", "-1"])
+def test_rl_seeds_refuses_a_seed_list_it_cannot_read(seeds, capsys):
+    """An unreadable --seeds is argparse's usage error (exit 2), not a traceback."""
+    from bench.rl_seeds import main
+    with pytest.raises(SystemExit) as e:
+        main(["--quick", "--seeds", seeds])
+    assert e.value.code == 2 and "error:" in capsys.readouterr().err

@@ -216,6 +216,8 @@ def test_svg1_gn_on_swimmer6(tmp_path):
     (dict(agent="svg1"), "observation", "ObservationReward"),
     (dict(agent_settings={"gama": 0.9}), "agent_settings", "gama"),
     (dict(agent_settings={"seed": 3}), "agent_settings.seed", ""),
+    (dict(utd=1e308), "utd", "<= 1000"),            # int(inf) owed updates: a traceback, saved in the folder
+    (dict(seed=10**20), "seed", "9223372036854775807"),
 ])
 def test_bad_settings_refused(kw, key, words):
     with pytest.raises(ConfigError) as e:

@@ -562,3 +562,19 @@ def test_training_without_a_valid_split_says_so(tmp_path):
     with pytest.warns(UserWarning, match="no dataset has a valid split: nothing is validated"):
         r = train(config(tmp_path, steps=4, log_every=2, checkpoint_every=4), [ds])
     assert r["best_step"] == -1 and (tmp_path / "run" / "best" / "model.pt").is_file()
+
+
+def test_cli_names_the_validation_horizon_it_used(tmp_path, pendulum, capsys):
+    """The closing line names the horizon validated (the config's, cut to the valid sequences'
+    length), not a fixed 20."""
+    from gnwarp.cli import main
+    path = tmp_path / "p.h5"
+    pendulum.save(path)
+    sets = ["steps=4", "valid_every=2", "valid_sequences=2", "batch_size=8", "device=cpu", "model.gn.latent=8",
+            "model.gn.edge_hidden=[8]", "model.gn.node_hidden=[8]", "model.gn.global_hidden=[8]",
+            "model.run.impl=torch"]
+    for horizon, said in ((3, 3), (1000, 20)):
+        argv = ["train", "--data", str(path), "-o", str(tmp_path / f"r{horizon}"), "-q",
+                "--set", f"valid_horizon={horizon}"]
+        assert main(argv + [a for kv in sets for a in ("--set", kv)]) == 0
+        assert f"best {said}-step validation error" in capsys.readouterr().out

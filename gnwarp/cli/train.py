@@ -47,7 +47,8 @@ def train_command(args) -> int:
     ranks = f" on {r['ranks']} ranks" if r.get("ranks", 1) > 1 else ""
     print(f"trained {r['steps']} steps{ranks} in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
           f"stop: {r['stop']}); "
-          f"best 20-step validation error {r['best_error']:.4g} at step {r['best_step']}; checkpoints in {r['out']}")
+          + (f"best {r['valid_horizon']}-step validation error {r['best_error']:.4g} at step {r['best_step']}"
+             if r.get("valid_horizon") else "not validated (no valid split)") + f"; checkpoints in {r['out']}")
     return 0
 
 

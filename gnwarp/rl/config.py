@@ -10,8 +10,8 @@ from dataclasses import field
 from typing import Literal
 
 from gnwarp.rl.settings import AgentSettings
-from gnwarp.validation import (ConfigError, Count, Flag, PositiveFloat, PositiveInt, Widths, check_fields, check_keys,
-                               described)
+from gnwarp.validation import (ConfigError, Count, Flag, FloatRange, PositiveFloat, PositiveInt, Seed, Widths,
+                               check_fields, check_keys, described)
 
 __all__ = ["RLConfig", "RESUMABLE", "MAX_RL_HORIZON", "CONFIG_FILE"]
 
@@ -69,7 +69,7 @@ class RLConfig:
     num_envs: PositiveInt = described(10, "training episodes stepped together")
     episode_steps: PositiveInt | None = described(None, "time limit in control steps (unset: the task's)")
     env_steps: PositiveInt = described(1_000_000, "env steps to train in all (a resumed run goes on to this many)")
-    utd: PositiveFloat = described(1.0, "gradient updates per env step")
+    utd: FloatRange(gt=0.0, le=1000.0) = described(1.0, "gradient updates per env step (at most 1000)")
     act_ahead: Flag = described(False, "pick the next action before the step's updates: a CPU simulator steps "
                                        "while the GPU updates (the policy acts one step's updates behind)")
     update_after: Count | None = described(None, "env steps before the first update (unset: 1000)")
@@ -84,7 +84,7 @@ class RLConfig:
     eval_every: PositiveInt = described(10_000, "env steps between evaluations")
     eval_episodes: PositiveInt = described(20, "deterministic evaluation episodes, batched")
     agent_settings: dict = field(default_factory=dict)
-    seed: Count = described(0, "seed of networks, agent, envs and evaluation")
+    seed: Seed = described(0, "seed of networks, agent, envs and evaluation")
     device: Literal["auto", "cpu", "cuda"] = described("auto", "the agent's device")
     backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
         "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")

@@ -8,7 +8,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field
 
-from gnwarp.validation import (Allowed, BatchSize, ConfigError, Count, Flag, FloatRange, IntRange, PositiveFloat,
+from gnwarp.validation import (Allowed, BatchSize, ConfigError, Seed, Count, Flag, FloatRange, PositiveFloat,
                                PositiveInt,
                                check_fields, check_keys)
 from gnwarp.models.config import ModelConfig
@@ -18,7 +18,6 @@ __all__ = ["TrainConfig", "SCHEDULES", "ConfigError"]
 SCHEDULES = {"fast": 50_000, "slow": 200_000}   # D.8: learning-rate decay period in steps
 
 # the allowed values of TrainConfig's fields (gnwarp.gn.config validates them)
-Seed = IntRange(0, (1 << 63) - 1)
 DecaySteps = Annotated[Union[PositiveInt, Literal["fast", "slow"]],
                        Allowed("an integer >= 1, or 'fast' (50000) or 'slow' (200000)")]
 Paths = Annotated[list[str], Allowed("a list of file paths (strings)")]

@@ -552,7 +552,10 @@ class Trainer:
         summary = {"out": str(out), "best": str(out / "best"), "last": str(out / "last"), "steps": st["step"],
                    "best_step": st["best_step"], "best_error": st["best_error"], "stop": stop,
                    "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9),
-                   "rank": self.ranks.rank, "ranks": self.ranks.world}
+                   "rank": self.ranks.rank, "ranks": self.ranks.world,
+                   # the steps validation rolled out: the config's, cut to the shortest valid sequences
+                   "valid_horizon": min([self.config.valid_horizon] + [d["valid"].num_steps for d in self.valid])
+                   if self.valid else None}
         self.emit("end", summary=summary)
         return summary
 
