@@ -79,8 +79,8 @@ def read_spec(path) -> dict:
     for k in set(d) - SPEC_KEYS:
         _fail(k, f"unknown sweep key (known: {', '.join(sorted(SPEC_KEYS))})")
     margin = d.get("margin_seconds", 75)
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
-        _fail("margin_seconds", f"seconds >= 0, got {margin!r}")
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin >= 0 or margin == float("inf"):
+        _fail("margin_seconds", f"finite seconds >= 0, got {margin!r}")
     gpus = d.get("gpu")
     if not isinstance(gpus, list) or not gpus:
         _fail("gpu", "one [[gpu]] table or more, each with its index and runs")
@@ -319,9 +319,9 @@ def main(argv=None) -> int:
         print(f"rl_sweep: {e}", file=sys.stderr)
         return 2
     budget = a.call_seconds - spec["margin_seconds"]
-    if budget < 30:
+    if not budget >= 30 or budget == float("inf"):   # (NaN and Inf fail too)
         print(f"rl_sweep: --call-seconds {a.call_seconds:g} leaves {budget:.0f} s after the margin of "
-              f"{spec['margin_seconds']:g} s: too little to train", file=sys.stderr)
+              f"{spec['margin_seconds']:g} s: a call needs a finite 30 s or more to train", file=sys.stderr)
         return 2
     jobs = commands(spec, a.work, budget)
     if a.dry_run:

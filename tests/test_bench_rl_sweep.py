@@ -87,8 +87,11 @@ def test_bad_specs_name_the_key(tmp_path, capsys, text, where, why):
 
 
 def test_a_call_too_short_for_its_margin_is_refused(tmp_path, capsys):
-    assert rl_sweep.main([str(write(tmp_path, SPEC)), "--call-seconds", "80", "--dry-run"]) == 2
-    assert "too little to train" in capsys.readouterr().err
+    for seconds in ("80", "nan", "inf"):   # NaN killed every run at 0 s
+        assert rl_sweep.main([str(write(tmp_path, SPEC)), "--call-seconds", seconds, "--dry-run"]) == 2
+        assert "a call needs a finite 30 s or more to train" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="finite seconds >= 0"):
+        rl_sweep.read_spec(write(tmp_path, SPEC.replace("margin_seconds = 60", "margin_seconds = nan")))
 
 
 def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
