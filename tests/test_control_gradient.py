@@ -201,17 +201,13 @@ def test_cli_mpc_checks_output_paths_first(tmp_path, capsys, option):
 def test_cli_mpc_refuses_a_horizon_that_cannot_fit_before_planning(model, tmp_path, capsys):
     """A horizon whose rollouts need more memory than the machine has is refused, naming the
     sizes, before any planning (it used to run until the machine ran out)."""
-    import time
-
     from gnwarp.cli import main
     from gnwarp.cli.mpc import plan_bytes
     assert plan_bytes(1, 10**8, 2, 1) == 4 * 8 * (10**8 + 1) * 27 and plan_bytes(2, 9, 2, 1, 64, 2) == 4 * 2 * 128 * 10 * 27
     args = ["mpc", "--model", str(model.path), "--task", "pendulum-balance", "--episodes", "1", "--steps", "1",
             "--horizon", str(10**9), "--iterations", "1", "--warmup", "0", "--backend", "mujoco", "--video", "none",
             "--records", str(tmp_path / "r.jsonl")]
-    t0 = time.perf_counter()
     assert main(args) == 2
-    assert time.perf_counter() - t0 < 30
     err = capsys.readouterr().err
     assert "planning 1 episodes x 1 rollouts x horizon 1000000000 x 2 bodies needs about" in err, err
     assert "Use a shorter --horizon" in err and not (tmp_path / "r.jsonl").exists()

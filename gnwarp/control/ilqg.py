@@ -383,8 +383,8 @@ class ILQG:
                 raise ValueError(f"n (episodes) must be an integer >= 1, got {n!r}")
             self.n = int(n)
         if targets is not None:
-            self.targets = np.asarray(check_targets(torch.as_tensor(targets).detach().cpu(), self.n,
-                                                    getattr(self, "task", None), ValueError))
+            # no task to read a width from: for_task refuses the position tasks iLQG has no cost for
+            self.targets = np.asarray(check_targets(torch.as_tensor(targets).detach().cpu(), self.n, None, ValueError))
         elif self.targets is not None and self.targets.shape[0] != self.n:
             raise ValueError(f"the targets held are for {self.targets.shape[0]} episodes, not {self.n}: give targets")
         self._U = None

@@ -134,12 +134,13 @@ def check_states(x, n: int, bodies: int | None = None) -> torch.Tensor:
         raise PlanningError(f"states must be [N, B, 13] = [{n}, {bodies if bodies is not None else 'B'}, 13] "
                             f"(episodes, bodies), got {list(x.shape)}")
     bad = ~torch.isfinite(x)
-    if bool(bad.any()):
+    flat = x[..., 3:7].square().sum(-1) <= 0.01   # norm <= 0.1: no orientation at all
+    any_bad, any_flat = torch.stack([bad.any(), flat.any()]).tolist()   # one host sync a planning step
+    if any_bad:
         e, b, f = (int(i) for i in bad.nonzero()[0])
         raise PlanningError(f"the state of episode {e} has NaN or Inf (body {b}, feature {f}): the true "
                             "simulator diverged or was given bad values")
-    flat = x[..., 3:7].square().sum(-1) <= 0.01   # norm <= 0.1: no orientation at all
-    if bool(flat.any()):
+    if any_flat:
         e, b = (int(i) for i in flat.nonzero()[0])
         raise PlanningError(f"the state of episode {e} has no orientation (body {b}'s quaternion, features 3:7, "
                             "is ~zero): body states carry unit quaternions")

@@ -310,12 +310,11 @@ class SamplingPlanner(ActsOnPlan):
         """One planning budget from the episodes' true states ``obs`` (an ``Observation``, or body
         states [N, B, 13]): K candidates rolled out and scored; the chosen sequences become the
         plan [N, T, U] (``act``) and, shifted one step, the nominal."""
-        body = obs.body if isinstance(obs, Observation) else obs
-        n = torch.as_tensor(body).shape[0] if torch.as_tensor(body).ndim else None
-        if n != self.n:
-            raise ValueError(f"this planner holds {self.n} episodes, got states of {n}")
+        body = torch.as_tensor(obs.body if isinstance(obs, Observation) else obs)
+        if body.ndim == 0 or body.shape[0] != self.n:
+            raise ValueError(f"this planner holds {self.n} episodes, got states of shape {list(body.shape)}")
         if not isinstance(obs, Observation):   # body states: planned from as given (the true env's are its own)
-            obs = check_states(obs, self.n, getattr(self.dynamics, "bodies", None))
+            obs = check_states(body, self.n, getattr(self.dynamics, "bodies", None))
         cfg, N, K = self.settings, self.n, self.settings.samples
         cand = self.candidates()                                       # [N, K, P, U]
         acts = self.actions(cand).reshape(N * K, cfg.horizon, self.nu)

@@ -342,9 +342,10 @@ class Agent:
                     detail = str(e).strip().splitlines()
                     raise ConfigError("", f"the saved agent's {k} does not fit this agent's (another networks, task "
                                           f"or sizes: {detail[-1].strip() if detail else type(e).__name__})") from None
-        bad = next((f"{k}.{n}" for k, m in self._modules().items() if isinstance(m, nn.Module)
-                    for n, t in m.state_dict().items() if t.is_floating_point() and not bool(torch.isfinite(t).all())),
-                   None)
+        floats = [(f"{k}.{n}", t) for k, m in self._modules().items() if isinstance(m, nn.Module)
+                  for n, t in m.state_dict().items() if t.is_floating_point()]
+        finite = torch.stack([torch.isfinite(t).all() for _, t in floats]).tolist() if floats else []   # one sync
+        bad = next((name for (name, _), ok in zip(floats, finite) if not ok), None)
         if bad is not None:
             raise ValueError(f"the saved agent's {bad} holds NaN or Inf: it diverged or the file was damaged")
         set_adam_mode(self.optimizers(), capturable=False)   # this device's flags; eager steps (an Updater records anew)
