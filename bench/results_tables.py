@@ -195,8 +195,12 @@ def headline(root: Path, doc: Path) -> list[str]:
     one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1   # one update an env step, in turn
            and not r.get("act_ahead", False) and not r.get("settings")]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
-    at500 = {(r["task"].split("-", 1)[1], r["agent"]): r for r in one
-             if r["task"] in ("dmc-walker-walk", "dmc-cheetah-run") and r["env_steps"] == 500000}
+    at500 = {}   # (task, agent): the 500k row in turn, else acting ahead (walker-walk SVG(1))
+    for r in sorted((r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1
+                     and not r.get("settings") and r["env_steps"] == 500000
+                     and r["task"] in ("dmc-walker-walk", "dmc-cheetah-run")),
+                    key=lambda r: not r.get("act_ahead", False)):
+        at500[r["task"].split("-", 1)[1], r["agent"]] = r
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl")
            if r["batch"] == 100 and r.get("networks", "mlp") == "mlp"}
@@ -208,7 +212,8 @@ def headline(root: Path, doc: Path) -> list[str]:
     rows.append(["RL on DMC (SpinningUp preset, MLPs): swimmer6 return at 250k / 500k env steps, mean +- s.e. "
                  "over seeds",
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {_mean_se(at['ddpg', last])} (SpinningUp 351 +- 19); "
-                 + "".join(f"{t} {names[a]} at 500k {_mean_se(w)} ({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
+                 + "".join(f"{t} {names[a]}{' acting ahead' * bool(w.get('act_ahead'))} at 500k {_mean_se(w)} "
+                           f"({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
                            for (t, a), w in sorted(at500.items()) if a in names)
                  + "updates replayed from a CUDA graph "
                  f"**{ups['svg1']['graph_speedup']:.1f}x** eager's (SVG(1), one H100)", link("rl")])
