@@ -13,7 +13,8 @@ the call's end is killed with its children, so the archives are always written. 
 included, each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
 probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
-(the agents) into DIR: what comes back from the machine.
+(the agents; over 15 MiB, in parts ``export.tar.part-NN``: ``cat export.tar.part-* > export.tar``)
+into DIR: what comes back from the machine.
 
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --dry-run     # the commands, nothing run
@@ -278,11 +279,37 @@ def collect(work) -> int:
     return n
 
 
-def pack(work, dest) -> list[Path]:
+PART_BYTES = 15 * 2**20   # a file the lent machine sends back holds at most 16 MiB
+
+
+def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
+    """``path`` itself where it fits in ``part_bytes``, else its parts ``<name>.part-00``,
+    ``.part-01``, ... (each written to a temporary name, then renamed; ``path`` removed):
+    ``cat <name>.part-* > <name>`` joins them."""
+    size = path.stat().st_size
+    if size <= part_bytes:
+        return [path]
+    parts = []
+    with open(path, "rb") as f:
+        for i in range(-(-size // part_bytes)):
+            part = path.with_name(f"{path.name}.part-{i:02d}")
+            tmp = part.with_name(part.name + ".tmp")
+            tmp.write_bytes(f.read(part_bytes))
+            tmp.replace(part)
+            parts.append(part)
+    path.unlink()
+    return parts
+
+
+def pack(work, dest, part_bytes: int = PART_BYTES) -> list[Path]:
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
-    written to a temporary name, then renamed)."""
+    written to a temporary name, then renamed); an ``export.tar`` over ``part_bytes`` is split
+    into ``export.tar.part-NN`` files (``split_file``), so the agents come back from a machine
+    that sends no file over 16 MiB."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
+    for old in dest.glob("export.tar.part-*"):   # a previous call's parts would join into a corrupt tar
+        old.unlink()
     made = []
     for name, mode, part in (("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"),
                              ("export.tar", "w", "_export")):
@@ -297,7 +324,7 @@ def pack(work, dest) -> list[Path]:
                     if not log.relative_to(work).parts[0].startswith("_"):
                         t.add(log, arcname=str(Path("runs") / log.relative_to(work)))
         tmp.replace(dest / name)
-        made.append(dest / name)
+        made += split_file(dest / name, part_bytes) if name == "export.tar" else [dest / name]
     return made
 
 

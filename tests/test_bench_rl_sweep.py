@@ -3,6 +3,7 @@ import json
 import re
 import tarfile
 
+import numpy as np
 import pytest
 
 from bench import rl_sweep
@@ -115,6 +116,27 @@ def test_one_cpu_call_trains_copies_and_packs(tmp_path, capsys):
     with tarfile.open(out / "export.tar") as t:
         assert any(n.startswith(f"export/pendulum-balance/{QUICK_RUN}/s0/") for n in t.getnames())
     assert not list(out.glob("*.tmp"))
+
+
+def test_an_export_over_the_part_size_comes_in_parts_that_join(tmp_path):
+    """The agents' tar over ``part_bytes`` is split into parts that ``cat`` joins into the same
+    tar; a previous call's stale part is removed first, a small export stays one file."""
+    blob = np.random.default_rng(0).bytes(5000)
+    (tmp_path / "work" / "_export" / "a" / "b" / "s0").mkdir(parents=True)
+    (tmp_path / "work" / "_export" / "a" / "b" / "s0" / "agent.pt").write_bytes(blob)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "export.tar.part-07").write_bytes(b"stale")
+    made = rl_sweep.pack(tmp_path / "work", out, part_bytes=2048)
+    parts = sorted(out.glob("export.tar.part-*"))
+    assert [p.name for p in parts] == [f"export.tar.part-{i:02d}" for i in range(len(parts))]
+    assert len(parts) >= 3 and set(parts) <= set(made) and not (out / "export.tar").exists()
+    assert all(p.stat().st_size <= 2048 for p in parts) and not list(out.glob("*.tmp"))
+    (tmp_path / "joined.tar").write_bytes(b"".join(p.read_bytes() for p in parts))
+    with tarfile.open(tmp_path / "joined.tar") as t:
+        assert t.extractfile("export/a/b/s0/agent.pt").read() == blob
+    made = rl_sweep.pack(tmp_path / "work", out)   # the default part size: one file, no parts left
+    assert (out / "export.tar").exists() and not list(out.glob("export.tar.part-*"))
 
 
 def test_committed_sweep_specs_are_valid():
