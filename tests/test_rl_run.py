@@ -86,6 +86,32 @@ def test_video_of_the_last_evaluation(tmp_path):
     assert not run_rl(RLConfig(**{**TINY, "env_steps": 40, "video_episodes": 0}, out=str(tmp_path / "n")))["video"]
 
 
+def test_a_finished_run_killed_in_its_video_writes_it_on_the_next_call(tmp_path):
+    """A call killed while writing the final video (checkpoint saved as done, no video.gif, a
+    temporary left): the next call writes the same video, adds no record, and removes the
+    killed write's temporary."""
+    import subprocess
+    import sys
+
+    import imageio.v3 as iio
+    cfg = RLConfig(**{**TINY, "video_episodes": 1, "video_steps": 6, "renderer": "matplotlib", "env_steps": 40},
+                   out=str(tmp_path / "v"))
+    first = run_rl(cfg)
+    frames = iio.imread(first["video"], index=None)
+    records = (tmp_path / "v" / "records.jsonl").read_text()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    (tmp_path / "v" / "video.gif").unlink()
+    (tmp_path / "v" / f".video.gif.tmp-{dead}").write_bytes(b"GIF89a half")   # the killed write's
+    again = run_rl(cfg)
+    assert again["stop"] == "done" and again["rounds"] == first["rounds"] and again["video"]
+    assert np.array_equal(iio.imread(again["video"], index=None), frames)
+    assert (tmp_path / "v" / "records.jsonl").read_text() == records
+    assert not [p.name for p in (tmp_path / "v").iterdir() if p.name.startswith(".video")]
+    third = run_rl(cfg)   # done, with its video: nothing evaluated or written again
+    assert third["video"] is None and (tmp_path / "v" / "video.gif").exists()
+
+
 @pytest.mark.parametrize("ahead", [False, True])
 def test_resume_equals_uninterrupted_bit_for_bit(tmp_path, ahead):
     cfg = dict(TINY, agent="ddpg", env_steps=80, act_ahead=ahead)

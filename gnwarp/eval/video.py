@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gnwarp.files import atomic_write, check_output_path
+from gnwarp.files import atomic_write, check_output_path, remove_stale_temporaries
 
 __all__ = ["video_suffixes", "check_video_path", "write_video"]
 
@@ -34,12 +34,14 @@ def check_video_path(path) -> Path:
 
 def write_video(path, frames: np.ndarray, duration_ms: int) -> Path:
     """Write ``frames`` [F, H, W, 3] uint8 to ``path`` in the format its ending names, each frame
-    shown ``duration_ms``, looping; whole or not at all."""
+    shown ``duration_ms``, looping; whole or not at all (the temporaries of earlier writes that
+    were killed removed)."""
     import imageio.v3 as iio
     p = check_video_path(path)
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] < 1:
         raise ValueError(f"video {p}: frames must be [F >= 1, H, W, 3], got {frames.shape}")
+    remove_stale_temporaries(p)   # what a write to this path killed before its rename left
     with atomic_write(p) as tmp:
         iio.imwrite(tmp, frames, extension=p.suffix.lower(), duration=int(duration_ms), loop=0)
     return p

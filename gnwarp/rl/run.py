@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import random
 import warnings
 import time
@@ -544,6 +543,12 @@ def run_rl(cfg: RLConfig) -> dict:
         if c["round"] >= total_rounds:
             stop = "done"
         checkpoint()
+        if stop == "done" and not video and video_steps and not (out / VIDEO_FILE).exists():
+            # a finished run without its video (a call killed while writing it): the last
+            # evaluation's episodes again, not recorded (the same seed and policy: the same states)
+            _, video["states"] = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True),
+                                                 keep=cfg.video_episodes, keep_steps=cfg.video_steps)
+            video["env_steps"] = agent.env_steps
         if video:
             t = time.perf_counter()
             try:
@@ -571,13 +576,7 @@ def write_video(path: Path, states: torch.Tensor, system, title: str, renderer: 
                 fps_max: float = 25.0, marks=None) -> Path:
     """A GIF of episodes' body states [K, T+1, B, 13] at ``path`` (at most ``fps_max`` frames a
     second of simulated time; ``marks`` [K, 3]: each episode's target, drawn by the matplotlib
-    renderer), written whole or not at all (rendered into a temporary folder beside it, then
-    renamed)."""
-    import tempfile
-
+    renderer), written whole or not at all (``gnwarp.eval.video.write_video``)."""
     from gnwarp.eval.animation import animate_system
-    with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
-        animate_system(states.numpy(), system, Path(tmp) / path.name, title=title, renderer=renderer,
-                       fps_max=fps_max, marks=marks)
-        os.replace(Path(tmp) / path.name, path)
+    animate_system(states.numpy(), system, path, title=title, renderer=renderer, fps_max=fps_max, marks=marks)
     return path
