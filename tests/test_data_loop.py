@@ -110,6 +110,10 @@ def test_a_kill_between_shard_and_training_resumes_without_planning_again(loop, 
     recs = read_records(out / "records.jsonl")
     assert r["stop"] == "chunk" and [x.metrics["iteration"] for x in recs] == [1, 2, 3]
     assert r["env_steps"] == recs[-1].env_steps == SEED_SEQ * SEQ + 3 * EPISODES * STEPS
+    # the kept shard's planning times, from its meta (not planned this call, not 0)
+    kept = load(out / "data/iter-0003.h5").meta["loop"]
+    assert recs[-1].metrics["plan_seconds"] == kept["plan_seconds"] > 0
+    assert recs[-1].metrics["eval_seconds"] == kept["eval_seconds"]
     # a budget the last iteration's duration says the next would overrun: no iteration starts
     r = run_loop(config(out, 9, budget_seconds=recs[-1].metrics["iteration_seconds"] / 2))
     assert r["stop"] == "budget" and r["iterations"] == 3

@@ -525,7 +525,6 @@ def run_loop(config: LoopConfig) -> dict:
         path = out / shard_path(i)
         if rk.broadcast_object(path.exists()):   # planned before a kill: kept, not planned again
             shard = load(path, lazy=False)
-            plan_s = eval_s = 0.0
         else:
             plan_model = member_checkpoint(out, i, 0)
             rk.on_main(f"copying the models iteration {i} plans with", lambda: _copy_members(cfg, out, i, keep=True))
@@ -533,7 +532,8 @@ def run_loop(config: LoopConfig) -> dict:
                         dynamic_ncols=True, position=1)
             shard = _collect(cfg, rk, task, system, plan_model, trained, i, steps, ebar)
             ebar.close()
-            plan_s, eval_s = shard.meta["loop"]["plan_seconds"], shard.meta["loop"]["eval_seconds"]
+        # the times the shard's planning took (kept in its meta: the same after a kill)
+        plan_s, eval_s = (shard.meta.get("loop", {}).get(k) for k in ("plan_seconds", "eval_seconds"))
         t1 = time.perf_counter()
         model_env_steps = state.env_steps
         r = _train(cfg, concat_train(seed, shards + [shard]), state.train_steps + cfg.train_steps)
