@@ -114,9 +114,11 @@ def test_a_kill_between_shard_and_training_resumes_without_planning_again(loop, 
     kept = load(out / "data/iter-0003.h5").meta["loop"]
     assert recs[-1].metrics["plan_seconds"] == kept["plan_seconds"] > 0
     assert recs[-1].metrics["eval_seconds"] == kept["eval_seconds"]
-    # a budget the last iteration's duration says the next would overrun: no iteration starts
+    # a budget the last iteration's duration says the next would overrun: the call's first
+    # iteration starts all the same (every call makes progress), no second one
+    monkeypatch.undo()
     r = run_loop(config(out, 9, budget_seconds=recs[-1].metrics["iteration_seconds"] / 2))
-    assert r["stop"] == "budget" and r["iterations"] == 3
+    assert r["stop"] == "budget" and r["iterations"] == 4
 
 
 def test_a_corrupt_or_inconsistent_state_file_is_refused(loop, tmp_path):
@@ -203,6 +205,13 @@ def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys, tm
     (tmp_path / "file").write_text("")
     assert main(["loop", "-o", str(tmp_path / "file" / "run"), "-q"]) == 2   # refused before any work
     assert "gnwarp loop: error:" in capsys.readouterr().err and sorted(tmp_path.iterdir()) == [tmp_path / "file"]
+    # --budget-seconds and --chunk bind one call: a rerun without them does not take them from config.json
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    assert main(["loop", "-o", str(run), "--iterations", "4", "--budget-seconds", "0.001", "--no-plot", "-q"]) == 0
+    assert "3 of 4 iterations finished (budget)" in capsys.readouterr().out
+    assert main(["loop", "-o", str(run), "--no-plot", "-q"]) == 0
+    assert "4 of 4 iterations finished (iterations)" in capsys.readouterr().out
 
 
 def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):

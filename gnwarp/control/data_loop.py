@@ -82,7 +82,9 @@ class LoopConfig:
     max_seconds, progress, device). ``seed``: of the seed data, initial states, targets and the
     planner. ``backend``: the true simulator. ``device``: the model's. ``chunk``: iterations at
     most in one call. ``budget_seconds``: start no iteration in this call that the last one's
-    duration says would end past it (the seed data and its training are not budgeted).
+    duration says would end past it, the call's first excepted (every call makes progress; the
+    seed data and its training are not budgeted). Both bind one call: ``gnwarp loop`` does not
+    take them from a resumed folder's config.json.
     ``value``: a learned terminal value (``gnwarp.control.loop_value.ValueSettings``; a table,
     ``{}`` its defaults) fitted after each iteration's training and added by the planner at its
     horizon; None: none (the ablation). Its gamma must equal ``planner_settings.discount``.
@@ -119,7 +121,7 @@ class LoopConfig:
     device: Literal["auto", "cpu", "cuda"] = described("auto", "the model's device")
     chunk: PositiveInt | None = described(None, "iterations at most in this call (unset: up to iterations)")
     budget_seconds: PositiveFloat | None = described(None, "stop before an iteration expected to end past this many "
-                                                           "seconds of this call")
+                                                           "seconds of this call (its first always starts)")
     progress: Flag = described(True, "progress bars")
     ensemble: PositiveInt = described(1, "models trained on the same data from different seeds, planned over "
                                          "together (sampling, mppi, hybrid; 1: one model)")
@@ -513,8 +515,9 @@ def run_loop(config: LoopConfig) -> dict:
         why = None
         if cfg.chunk is not None and state.iteration - first >= cfg.chunk:
             why = "chunk"
-        elif cfg.budget_seconds is not None and spent + (state.last_seconds or 0.0) > cfg.budget_seconds:
-            why = "budget"
+        elif (cfg.budget_seconds is not None and state.iteration > first
+              and spent + (state.last_seconds or 0.0) > cfg.budget_seconds):
+            why = "budget"   # (a call's first iteration always starts: every call makes progress)
         why = rk.broadcast_object(why)   # rank 0's clock decides: every rank leaves together
         if why is not None:
             stop = why

@@ -13,7 +13,9 @@ from gnwarp.control.data_loop import RESUMABLE, LoopConfig, run_loop
 from gnwarp.control.loop_store import CONFIG_FILE
 from gnwarp.validation import add_config_flags, apply_overrides, config_flags_given, read_config_file
 
-__all__ = ["add_loop_arguments", "loop_command", "LOOP_DESCRIPTION"]
+__all__ = ["add_loop_arguments", "loop_command", "LOOP_DESCRIPTION", "PER_CALL"]
+
+PER_CALL = ("chunk", "budget_seconds")   # limits of one call: not taken from a resumed folder's config.json
 
 # the fields with a flag of their own (the nested tables go through a config file or --set)
 _FLAGGED = [n for n in LoopConfig.__dataclass_fields__ if n not in ("out", "progress", "planner_settings", "train", "value")]
@@ -51,11 +53,11 @@ def _read(path: str) -> dict:
 
 
 def loop_config(args) -> LoopConfig:
-    """The config of a ``gnwarp loop`` call: the folder's config.json (a resumed loop), then the
-    config file, ``--set`` and the flags on top."""
+    """The config of a ``gnwarp loop`` call: the folder's config.json (a resumed loop, less its
+    per-call limits ``PER_CALL``), then the config file, ``--set`` and the flags on top."""
     out = args.out or (_read(args.config).get("out") if args.config else None) or "runs/loop"
     saved = Path(out) / CONFIG_FILE
-    raw = _read(str(saved)) if saved.is_file() else {}
+    raw = {k: v for k, v in _read(str(saved)).items() if k not in PER_CALL} if saved.is_file() else {}
     if args.config:
         raw.update(_read(args.config))
     apply_overrides(raw, args.set)
