@@ -202,7 +202,7 @@ def test_cli_mpc_refuses_a_horizon_that_cannot_fit_before_planning(model, tmp_pa
     """A horizon whose rollouts need more memory than the machine has is refused, naming the
     sizes, before any planning (it used to run until the machine ran out)."""
     from gnwarp.cli import main
-    from gnwarp.cli.mpc import plan_bytes
+    from gnwarp.control.planner import plan_bytes
     assert plan_bytes(1, 10**8, 2, 1) == 4 * 8 * (10**8 + 1) * 27 and plan_bytes(2, 9, 2, 1, 64, 2) == 4 * 2 * 128 * 10 * 27
     args = ["mpc", "--model", str(model.path), "--task", "pendulum-balance", "--episodes", "1", "--steps", "1",
             "--horizon", str(10**9), "--iterations", "1", "--warmup", "0", "--backend", "mujoco", "--video", "none",

@@ -192,6 +192,12 @@ def test_config_refusals(loop, tmp_path):
         config(tmp_path, 1, planner_settings={"iterations": 0})
     with pytest.raises(ConfigError, match="holds a loop of another config.*task"):
         run_loop(config(loop[0], 2, task="acrobot-swingup"))
+    # a horizon whose rollouts cannot fit: refused before the folder is written, so the corrected
+    # rerun in the same folder is taken
+    huge = dict(planner_settings={"iterations": 1, "horizon": 10**9, "warmup": 0, "proposals": 1})
+    with pytest.raises(ValueError, match="planning 2 episodes x 1 rollouts x horizon 1000000000 .* needs about"):
+        run_loop(config(tmp_path / "new", 1, **huge))
+    assert not (tmp_path / "new").exists()
 
 
 def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys, tmp_path):

@@ -7,7 +7,7 @@ import time
 
 from gnwarp.cli.common import IMPLS, paragraphs, parse_value
 
-__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "plan_bytes", "check_plan_memory", "timing_line",
+__all__ = ["add_mpc", "mpc_command", "mpc_settings", "episode_bytes", "timing_line",
            "check_outputs", "PLANNERS",
            "SETTING_FLAGS"]
 
@@ -25,34 +25,6 @@ def episode_bytes(n: int, steps: int, bodies: int, nu: int) -> int:
     [n, steps+1, bodies, 13] and actions [n, steps, nu], each per step and stacked, and about
     500 bytes of Python objects a step."""
     return 2 * 4 * (n * (steps + 1) * bodies * 13 + n * steps * nu) + 500 * steps
-
-
-def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1, copies: int = 8) -> int:
-    """A floor on the memory of a planner's rollouts: ``n`` episodes x ``candidates`` rollouts
-    over ``horizon`` steps of float32 states and actions, ``copies`` of them (gradient planners
-    ~8: the rollouts, their gradients, the plan and its optimizer's moments, the best found;
-    sampling planners ~2)."""
-    return 4 * copies * n * candidates * (horizon + 1) * (bodies * 13 + nu)
-
-
-def check_plan_memory(n: int, horizon: int, system, candidates: int, copies: int, device) -> None:
-    """Refuse, before planning, a horizon whose rollouts cannot fit: ``plan_bytes`` in the
-    device's free memory (the host's for the CPU) and ~1 kB of Python objects a planned step (the
-    rollout engine's per-step slots) in the host's, each ``ValueError`` naming the sizes."""
-    import torch
-
-    from gnwarp.validation import check_memory
-    what = f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies"
-    hint = "Use a shorter --horizon (or fewer samples or episodes)"
-    arrays = plan_bytes(n, horizon, system.nbody, system.nu, candidates, copies)
-    device = torch.device(device)
-    if device.type == "cuda":
-        free = torch.cuda.mem_get_info(device)[0]
-        if arrays > free:
-            raise ValueError(f"{what} needs about {arrays / 2**30:.3g} GiB of GPU memory; {device} has "
-                             f"{free / 2**30:.3g} GiB free. {hint}")
-        arrays = 0
-    check_memory(arrays + 1000 * horizon, what, hint)
 
 
 def mpc_settings(args, task):
@@ -159,7 +131,7 @@ def mpc_command(args) -> int:
 
     from gnwarp.control import control_timestep, episode_starts, get_task, plan_timing, run_episodes
     from gnwarp.control.gradient import model_systems
-    from gnwarp.control.planner import make_planner, planner_name
+    from gnwarp.control.planner import check_plan_memory, make_planner, planner_name
     from gnwarp.distributed import ranks
     from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
     from gnwarp.sim import make_env, systems
@@ -204,9 +176,8 @@ def mpc_command(args) -> int:
     check_memory(episode_bytes(n, args.steps, system.nbody, system.nu),
                  f"{n} episodes x {args.steps} steps x {system.nbody} bodies (every state kept)",
                  "Use fewer --steps or --episodes")
-    candidates = int(getattr(settings, "samples", 1) or 1)
-    check_plan_memory(n, getattr(settings, "horizon", None) or task.horizon, system, candidates,
-                      8 if args.planner in ("gradient", "hybrid") else 2, model.device if model is not None else "cpu")
+    check_plan_memory(args.planner, settings, n, task, system, model.device if model is not None else "cpu",
+                      hint="Use a shorter --horizon (or fewer samples or episodes)")
     terminal = None
     if args.terminal is not None:
         from gnwarp.control.value import TerminalValue

@@ -472,18 +472,22 @@ def run_loop(config: LoopConfig) -> dict:
     from gnwarp.data.dataset import load
     from gnwarp.distributed import ranks
     from gnwarp.eval.records import write_records
+    from gnwarp.control.planner import check_plan_memory, planner_settings
     from gnwarp.files import check_output_path
+    from gnwarp.interop import resolve_device
     cfg = config
     t_call = time.perf_counter()
     out = check_output_path(cfg.out, folder=True)
     task = get_task(cfg.task)
     system = loop_system(cfg, task)
     steps = cfg.episode_length(task)
-    gamma = None
-    if cfg.value is not None:
-        from gnwarp.control.planner import planner_settings
-        gamma = check_value_discount(cfg.value, cfg.planner, planner_settings(cfg.planner, cfg.planner_settings))
+    settings = planner_settings(cfg.planner, cfg.planner_settings)
+    gamma = None if cfg.value is None else check_value_discount(cfg.value, cfg.planner, settings)
     rk = ranks(cfg.device)   # rank 0 of 1 unless started by torchrun
+    for n in {cfg.episodes, cfg.eval_episodes} - {0}:   # before the folder is written: a corrected rerun is taken
+        check_plan_memory(cfg.planner, settings, len(rk.shard(n)), get_task(cfg.task, system.name), system,
+                          rk.device if rk.distributed else resolve_device(cfg.device),
+                          hint="Use a shorter planner_settings.horizon (or fewer samples or episodes)")
     records = out / RECORDS_FILE
 
     def prepare():   # rank 0: the folder checked, its records trimmed, the seed data there

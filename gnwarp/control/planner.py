@@ -38,7 +38,7 @@ from gnwarp.control.ilqg import ILQG, ILQGSettings
 from gnwarp.control.sampling import RandomPlanner, RandomSettings, SamplingConfig, SamplingPlanner
 
 __all__ = ["Planner", "PlannerEntry", "PLANNERS", "MODEL_PLANNERS", "planner_name", "get_planner", "planner_settings",
-           "make_planner"]
+           "make_planner", "plan_bytes", "check_plan_memory"]
 
 
 @runtime_checkable
@@ -185,3 +185,34 @@ def make_planner(name: str, dynamics, task, system, n: int, settings=None, targe
         raise ValueError(f"planner {name!r} ({entry.cls.__name__}) is not built through a dynamics model; "
                          f"make_planner builds {', '.join(MODEL_PLANNERS)} and random")
     return build(dynamics, task, system, n, settings, targets)
+
+
+def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1, copies: int = 8) -> int:
+    """A floor on the memory of a planner's rollouts: ``n`` episodes x ``candidates`` rollouts
+    over ``horizon`` steps of float32 states and actions, ``copies`` of them (gradient planners
+    ~8: the rollouts, their gradients, the plan and its optimizer's moments, the best found;
+    sampling planners ~2)."""
+    return 4 * copies * n * candidates * (horizon + 1) * (bodies * 13 + nu)
+
+
+def check_plan_memory(planner: str, settings, n: int, task, system, device,
+                      hint: str = "Use a shorter horizon (or fewer samples or episodes)") -> None:
+    """Refuse, before planning, settings whose rollouts cannot fit: planner ``planner``'s
+    ``settings`` (their ``horizon``, else ``task``'s; their ``samples``, else 1) for ``n``
+    episodes of ``system``: ``plan_bytes`` in ``device``'s free memory (the host's for the CPU)
+    and ~1 kB of Python objects a planned step (the rollout engine's per-step slots) in the
+    host's, each ``ValueError`` naming the sizes, then ``hint``."""
+    from gnwarp.validation import check_memory
+    horizon = getattr(settings, "horizon", None) or task.horizon
+    candidates = int(getattr(settings, "samples", 1) or 1)
+    copies = 8 if planner in ("gradient", "hybrid") else 2
+    what = f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies"
+    arrays = plan_bytes(n, horizon, system.nbody, system.nu, candidates, copies)
+    device = torch.device(device)
+    if device.type == "cuda":
+        free = torch.cuda.mem_get_info(device)[0]
+        if arrays > free:
+            raise ValueError(f"{what} needs about {arrays / 2**30:.3g} GiB of GPU memory; {device} has "
+                             f"{free / 2**30:.3g} GiB free. {hint}")
+        arrays = 0
+    check_memory(arrays + 1000 * horizon, what, hint)
