@@ -504,3 +504,33 @@ def test_resolve_device_refuses_a_gpu_index_beyond_those_visible(monkeypatch):
     assert resolve_device(torch.device("cpu")) == torch.device("cpu")
     with pytest.raises(ValueError, match="runs on cpu or cuda"):
         resolve_device("xla")
+
+
+def test_sysid_table_names_the_steps_each_models_window_leaves(monkeypatch, capsys):
+    """Sysid checkpoints of different windows roll out for different steps at a long horizon: the
+    column says so and each cell names its own steps (the label once showed the shortest)."""
+    from types import SimpleNamespace
+
+    import gnwarp.eval.sysid as eval_sysid
+    import gnwarp.train.sysid as train_sysid
+    from gnwarp.cli.evaluate import evaluate_sysid
+    models = {"a/ck": SimpleNamespace(window=4), "b/ck": SimpleNamespace(window=10)}
+    monkeypatch.setattr(train_sysid, "load_sysid", lambda path, device=None: models[path])
+    monkeypatch.setattr(train_sysid, "trained_param_stats", lambda m, system: None)
+    monkeypatch.setattr(eval_sysid, "sysid_error_rows",
+                        lambda m, ds, split, hs, n, oracle: [("same instance", [0.5 * m.window] * len(hs))])
+
+    class Data(dict):
+        system = "pendulum"
+    ds = Data(test=SimpleNamespace(ctrl=np.zeros((3, 20, 1))))
+    assert evaluate_sysid(["a/ck", "b/ck"], ds, SimpleNamespace(device="cpu", split="test", names=["A", "B"]),
+                          None, (5, 12, 30)) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == ("| model | identified from | 5-step rollout | 12-step rollout (fewer where a model's "
+                        "window leaves fewer steps: in its cells) | 30-step rollout (fewer where a model's window "
+                        "leaves fewer steps: in its cells) |"), lines[0]
+    assert lines[2] == "| A | same instance | 2 | 2 | 2 (16 steps) |", lines[2]
+    assert lines[3] == "| B | same instance | 5 | 5 (10 steps) | 5 (10 steps) |", lines[3]
+    # one window: the steps used in the header, as for forward models
+    assert evaluate_sysid(["b/ck"], ds, SimpleNamespace(device="cpu", split="test", names=None), None, (12,)) == 0
+    assert "| 10-step rollout (12 asked: the data's length) |" in capsys.readouterr().out

@@ -22,15 +22,23 @@ def evaluate_sysid(paths, ds, args, sequences, horizons) -> int:
     from gnwarp.train.sysid import load_sysid, trained_param_stats
     from gnwarp.eval.report import rollout_label
     models = {path: load_sysid(path, device=args.device) for path in paths}
-    left = min(ds[args.split].ctrl.shape[1] - m.window for m in models.values())   # steps after the window
-    print("| model | identified from | " + " | ".join(rollout_label(h, min(h, left)) for h in horizons) + " |")
+    steps = ds[args.split].ctrl.shape[1]
+    # the rollout steps each model's window leaves (a rollout starts where its window ends)
+    used = {path: [min(h, steps - m.window) for h in horizons] for path, m in models.items()}
+    same = [len({u[i] for u in used.values()}) == 1 for i in range(len(horizons))]
+    print("| model | identified from | " + " | ".join(
+        rollout_label(h, next(iter(used.values()))[i]) if same[i]
+        else f"{h}-step rollout (fewer where a model's window leaves fewer steps: in its cells)"
+        for i, h in enumerate(horizons)) + " |")
     print("|---|---|" + "---|" * len(horizons))
     bad = False
     for k, (path, m) in enumerate(models.items()):
         name = args.names[k] if args.names else Path(path).resolve().parent.name
         for label, errs in sysid_error_rows(m, ds, args.split, horizons, sequences, trained_param_stats(m, ds.system)):
             bad |= not all(math.isfinite(e) for e in errs)
-            print(f"| {name} | {label} | " + " | ".join(f"{e:.4g}" for e in errs) + " |")
+            print(f"| {name} | {label} | " + " | ".join(
+                f"{e:.4g}" + ("" if same[i] or used[path][i] == h else f" ({used[path][i]} steps)")
+                for i, (h, e) in enumerate(zip(horizons, errs))) + " |")
     if bad:
         raise FloatingPointError("a system-identification rollout left the finite range")
     return 0
