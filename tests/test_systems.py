@@ -434,6 +434,24 @@ def test_from_mjcf(tmp_path):
     assert systems.describe(system)["parameters"] == {}
 
 
+def test_from_mjcf_warns_of_actuator_activations_the_graphs_do_not_hold(tmp_path):
+    """An actuator with its own state (dyntype filter) makes the data non-Markov in body states:
+    loading it warns, naming the actuator; a plain motor loads silently."""
+    import warnings
+    lagged = PENDULUM_XML.replace('<motor joint="hinge" ctrlrange="-1 1"/>',
+                                  '<general name="lag" joint="hinge" ctrlrange="-1 1" dyntype="filter" dynprm="0.2"/>')
+    with pytest.warns(UserWarning, match=r"actuator 'lag' carries an activation state \(MuJoCo's act, 1 in all"):
+        system = systems.from_mjcf_string(lagged, name="lagged")
+    assert system.model.na == 1
+    path = tmp_path / "lagged.xml"
+    path.write_text(lagged)
+    with pytest.warns(UserWarning, match="lagged.xml: actuator 'lag' carries"):
+        systems.from_mjcf(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        systems.from_mjcf_string(PENDULUM_XML, name="plain")
+
+
 def test_from_mjcf_missing_file(tmp_path):
     missing = tmp_path / "nope.xml"
     with pytest.raises(FileNotFoundError, match="nope.xml"):

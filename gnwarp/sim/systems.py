@@ -345,6 +345,7 @@ def from_mjcf(path, dt: float | None = None, substeps: int = 1) -> System:
     _check_timing(path, dt, substeps)
     spec, model, dt = _compile_checked(lambda: mujoco.MjSpec.from_file(str(path)), str(path), dt, substeps,
                                        lambda: _check_mjcf_numbers(path))
+    _warn_activations(model, str(path))
     return System(name=path.stem, model=model, dt=dt, substeps=int(substeps), source=str(path), spec=spec)
 
 
@@ -360,8 +361,23 @@ def from_mjcf_string(xml: str, assets: dict | None = None, name: str = "model", 
     axes = _axes(name, translation_axes)
     spec, model, dt = _compile_checked(lambda: mujoco.MjSpec.from_string(xml, assets or {}), name, dt, substeps,
                                        lambda: _check_mjcf_text(xml, name))
+    _warn_activations(model, name)
     return System(name=name, model=model, dt=dt, substeps=int(substeps), source=source, spec=spec,
                   translation_axes=axes)
+
+
+def _warn_activations(model: mujoco.MjModel, name: str) -> None:
+    """Warn where actuators carry a state of their own (MuJoCo's ``act``: ``dyntype`` filter,
+    integrator, muscle, ...): the graphs hold body states and controls, not that state, so the
+    data is not Markov in what a forward model sees."""
+    if model.na == 0:
+        return
+    names = [_obj_name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, int(i), "actuator")
+             for i in np.flatnonzero(model.actuator_dyntype != mujoco.mjtDyn.mjDYN_NONE)]
+    warnings.warn(f"{name}: {', '.join(names)} carr{'ies' if len(names) == 1 else 'y'} an activation state "
+                  f"(MuJoCo's act, {model.na} in all, from the actuator's dyntype) that the graphs do not hold: "
+                  "the data is not Markov in body states and controls, so a feed-forward model cannot predict "
+                  "exactly (a recurrent model can infer it: docs/models.md)", UserWarning, stacklevel=3)
 
 
 def _axes(name: str, axes) -> tuple[int, ...]:
