@@ -52,3 +52,14 @@ def test_train_help_still_lists_config_keys_and_sysid_options(capsys):
     text = capsys.readouterr().out
     assert "steps=100000" in text and "--sysid" in text and "system identification" in text
     assert "system identification" not in build_parser("mpc").format_help()
+
+
+def test_python_m_gnwarp_runs_the_command():
+    """``python -m gnwarp`` is the ``gnwarp`` command (its help and exit codes)."""
+    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-m", "gnwarp", "--help"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120, env=env)
+    assert out.returncode == 0 and "usage: gnwarp" in out.stdout, out.stderr
+    bad = subprocess.run([sys.executable, "-m", "gnwarp", "no-such-command"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120, env=env)
+    assert bad.returncode == 2 and "no-such-command" in bad.stderr
