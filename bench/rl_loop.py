@@ -13,6 +13,10 @@ overlaps, the actions are still picked ahead (other numbers), and the ratio near
 
     python bench/rl_loop.py [--task swimmer6] [--agent svg1] [--steps 300] [--reps 3] [--device cuda]
     python bench/rl_loop.py --quick       # tiny sizes on the CPU: a smoke test of the script
+
+``--profile``: afterwards one more repetition of each way under ``torch.profiler`` (CPU, and CUDA
+where the agent is), its operators' self times (top 30 by CPU time, then by CUDA time) written
+to ``rl_loop_profile_<device>_<task>_<way>.txt`` beside the table: where a vector step's time goes.
 """
 from __future__ import annotations
 
@@ -27,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import add_run_args, device_name, experiment_out, save_results  # noqa: E402
+from bench.harness import add_run_args, device_name, experiment_out, save_results, slug  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.graphed import Updater  # noqa: E402
 from gnwarp.rl.loop import CollectorState, run_env_steps  # noqa: E402
@@ -64,6 +68,25 @@ def time_steps(p: dict, steps: int) -> tuple[float, int]:
     return time.perf_counter() - t, out["updates"]
 
 
+def profile_steps(p: dict, steps: int, path: Path) -> Path:
+    """One more repetition of ``steps`` vector steps under ``torch.profiler`` (CPU, and CUDA where
+    the agent is): its operators' self times, the top 30 by CPU time then by CUDA time, and the
+    repetition's wall time, written to ``path``."""
+    from torch.profiler import ProfilerActivity, profile
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if p["device"].type == "cuda" else [])
+    with profile(activities=acts) as prof:
+        secs, _ = time_steps(p, steps)
+    table = prof.key_averages()
+    text = [f"{steps} vector steps of {p['env'].num_envs} envs in {secs:.3f} s under the profiler "
+            f"({1e3 * secs / steps:.2f} ms a vector step)", "",
+            table.table(sort_by="self_cpu_time_total", row_limit=30)]
+    if p["device"].type == "cuda":
+        text += ["", table.table(sort_by="self_cuda_time_total", row_limit=30)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(text) + "\n")
+    return path
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--task", default="swimmer6")
@@ -74,6 +97,8 @@ def main(argv=None):
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--backend", default="mujoco", help="the true simulator (gnwarp rl's --backend)")
     ap.add_argument("--threads", type=int, default=1, help="MuJoCo C's threads (sim_threads)")
+    ap.add_argument("--profile", action="store_true", help="then one repetition a way under torch.profiler "
+                    "(its operator table written beside the results)")
     add_run_args(ap, "rl")   # --out, --quick
     a = ap.parse_args(argv)
     if a.quick:
@@ -106,6 +131,11 @@ def main(argv=None):
     ratio = rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"]
     for r in rows:
         r["ahead_over_in_turn"] = round(ratio, 3)
+    out = experiment_out("rl", a.out, a.quick)
+    if a.profile:
+        for w, p in parts.items():
+            path = profile_steps(p, a.steps, out / f"rl_loop_profile_{slug(name)}_{rows[0]['task']}_{w.replace(' ', '_')}.txt")
+            print(f"wrote {path}")
     for p in parts.values():
         p["env"].close()
         p["eval_env"].close()
@@ -117,7 +147,7 @@ def main(argv=None):
     lines += [f"| {r['way']} | {r['env_steps_per_s']} | {', '.join(map(str, r['env_steps_per_s_each']))} | "
               f"{r['updates_per_s']} | {r['first_s']} |" for r in rows]
     lines += ["", f"ahead / in turn: **{ratio:.2f}x**"]
-    save_results(experiment_out("rl", a.out, a.quick), "rl_loop", name, a.quick, rows, lines)
+    save_results(out, "rl_loop", name, a.quick, rows, lines)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from bench import rl_loop  # noqa: E402
 
 
 def test_both_ways_timed_with_the_same_schedule(tmp_path):
-    rl_loop.main(["--quick", "--out", str(tmp_path)])
+    rl_loop.main(["--quick", "--profile", "--out", str(tmp_path)])
     (jsonl,) = tmp_path.glob("rl_loop_*_quick.jsonl")
     rows = [json.loads(line) for line in jsonl.read_text().splitlines()]
     assert [r["way"] for r in rows] == ["in turn", "ahead"] and [r["act_ahead"] for r in rows] == [False, True]
@@ -22,3 +22,9 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     assert ratios == {1.0}
     assert rows[0]["ahead_over_in_turn"] == round(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], 3)
     assert "ahead / in turn" in jsonl.with_suffix(".md").read_text()
+    # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it
+    for way in ("in_turn", "ahead"):
+        (prof,) = tmp_path.glob(f"rl_loop_profile_*_{way}.txt")
+        text = prof.read_text()
+        assert text.startswith("5 vector steps of 2 envs in ") and all(
+            f"rl.{part}" in text for part in ("act", "env_step", "store", "updates")), text[:400]

@@ -14,6 +14,7 @@ import dataclasses
 
 import numpy as np
 import torch
+from torch.profiler import record_function
 
 from gnwarp.rl.graphed import Updater
 from gnwarp.rl.replay import ReplayBuffer, reached_obs
@@ -98,26 +99,31 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     ahead = bool(getattr(s, "act_ahead", False))
     steps = int(steps)
     picked = host = None   # an action picked ahead, and its copy on the env's side (the host: NumPy or a CPU simulator)
-    for i in range(steps):
-        action = picked if picked is not None else agent.act(state.obs, count=False, check=False)
+    for i in range(steps):   # the ranges named "rl." show in a torch.profiler trace (bench/rl_loop.py --profile)
+        with record_function("rl.act"):
+            action = picked if picked is not None else agent.act(state.obs, count=False, check=False)
         agent.count_env_steps(state.num_envs)
-        next_obs, reward, terminated, truncated, infos = env.step(
-            host if picked is not None else (action if torch_env else _numpy(action)))
+        with record_function("rl.env_step"):
+            next_obs, reward, terminated, truncated, infos = env.step(
+                host if picked is not None else (action if torch_env else _numpy(action)))
         picked = host = None
-        buffer.add(state.obs, action, reward, reached_obs(next_obs, infos), terminated, truncated)
+        with record_function("rl.store"):
+            buffer.add(state.obs, action, reward, reached_obs(next_obs, infos), terminated, truncated)
         state.episode_return += _numpy(reward)
         ended = _numpy(terminated) | _numpy(truncated)
         returns += state.episode_return[ended].tolist()
         state.episode_return[ended] = 0.0
         state.obs = next_obs
         if ahead and i + 1 < steps:   # the next action now: its host copy waits for it, not for the updates
-            picked = agent.act(state.obs, count=False, check=False)
-            host = _on_env_device(picked, state.obs) if torch_env else _numpy(picked)
+            with record_function("rl.act"):
+                picked = agent.act(state.obs, count=False, check=False)
+                host = _on_env_device(picked, state.obs) if torch_env else _numpy(picked)
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
             n = int(state.owed)
             if n:
-                metrics = updater.run(n)
+                with record_function("rl.updates"):
+                    metrics = updater.run(n)
                 state.owed -= n
                 updates += n
     return {"returns": returns, "metrics": {k: float(v) for k, v in metrics.items()}, "updates": updates}
