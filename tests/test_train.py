@@ -78,7 +78,12 @@ def test_resume_continues_exactly(tmp_path, pendulum):
     full = train(config(tmp_path, "full", steps=40, valid_every=20, checkpoint_every=20), [pendulum])
     train(config(tmp_path, "half", steps=20, valid_every=20, checkpoint_every=20), [pendulum])
     resumed = train(config(tmp_path, "half", steps=40, valid_every=20, checkpoint_every=20), [pendulum])
-    assert resumed["steps"] == 40
+    assert resumed["steps"] == 40 and resumed["steps_this_call"] == 20
+    # the rate is the run's: its steps over its seconds, all calls counted
+    assert resumed["steps_per_second"] == pytest.approx(40 / resumed["seconds"])
+    again = train(config(tmp_path, "half", steps=40, valid_every=20, checkpoint_every=20), [pendulum])
+    assert again["steps_this_call"] == 0 and again["seconds"] == resumed["seconds"]
+    assert again["steps_per_second"] == resumed["steps_per_second"]
     a, b = load_model(full["last"], device="cpu"), load_model(resumed["last"], device="cpu")
     for k, v in a.state_dict().items():
         torch.testing.assert_close(v, b.state_dict()[k], rtol=1e-6, atol=1e-7, msg=k)

@@ -45,8 +45,9 @@ def train_command(args) -> int:
     if r.get("rank", 0) != 0:   # under torchrun, rank 0 reports for all
         return 0
     ranks = f" on {r['ranks']} ranks" if r.get("ranks", 1) > 1 else ""
+    again = "" if r.get("steps_this_call", r["steps"]) else ", none left to train this call"
     print(f"trained {r['steps']} steps{ranks} in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
-          f"stop: {r['stop']}); "
+          f"stop: {r['stop']}{again}); "
           + (f"best {r['valid_horizon']}-step validation error {r['best_error']:.4g} at step {r['best_step']}"
              if r.get("valid_horizon") else "not validated (no valid split)") + f"; checkpoints in {r['out']}")
     return 0

@@ -551,7 +551,9 @@ class Trainer:
         steps_run = st["step"] - start_step
         summary = {"out": str(out), "best": str(out / "best"), "last": str(out / "last"), "steps": st["step"],
                    "best_step": st["best_step"], "best_error": st["best_error"], "stop": stop,
-                   "seconds": st["seconds"], "steps_per_second": steps_run / max(st["seconds"], 1e-9),
+                   # the run's steps and seconds over all its calls, and the steps this call added
+                   "seconds": st["seconds"], "steps_per_second": st["step"] / max(st["seconds"], 1e-9),
+                   "steps_this_call": steps_run,
                    "rank": self.ranks.rank, "ranks": self.ranks.world,
                    # the steps validation rolled out: the config's, cut to the shortest valid sequences
                    "valid_horizon": min([self.config.valid_horizon] + [d["valid"].num_steps for d in self.valid])
