@@ -361,6 +361,18 @@ def summarize(out: Path) -> list[Path]:
 
 # -- the grid -------------------------------------------------------------------------------------
 
+def resolve_defaults(args) -> None:
+    """The grid's flags left unset, filled in place: every system and path, a cold process for
+    every configuration; with ``--quick`` (a smoke test of the script in well under a minute on
+    a CPU, not the grid) the pendulum, the Warp paths and no cold process."""
+    if args.systems is None:
+        args.systems = "pendulum" if args.quick else ",".join(TASKS)
+    if args.paths is None:
+        args.paths = "unfused,fused" if args.quick else ",".join(PATHS)
+    if args.cold is None:
+        args.cold = "none" if args.quick else "all"
+
+
 def run(args) -> int:
     quick = args.quick
     out = Path(args.out) if args.out else (Path(tempfile.mkdtemp(prefix=f"{NAME}_quick_")) / NAME if quick
@@ -370,6 +382,7 @@ def run(args) -> int:
         for p in summarize(out):
             print(f"wrote {p}")
         return 0
+    resolve_defaults(args)
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
     unknown = [s for s in systems if s not in TASKS]
     if unknown:
@@ -466,16 +479,18 @@ def report(rec: ResultRecord) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--systems", default=",".join(TASKS), help="comma-separated systems")
+    ap.add_argument("--systems", default=None, help="comma-separated systems (default: all; --quick: pendulum)")
     ap.add_argument("--configs", default=None,
                     help="comma-separated EPISODESxHORIZONxITERATIONS (default: the issue's five; --quick: tiny)")
-    ap.add_argument("--paths", default=",".join(PATHS), help="comma-separated: " + ", ".join(PATHS))
+    ap.add_argument("--paths", default=None, help="comma-separated: " + ", ".join(PATHS)
+                    + " (default: all; --quick: unfused,fused)")
     ap.add_argument("--steps", type=int, default=None, help="control steps timed after the first (default 20; quick 4)")
-    ap.add_argument("--cold", choices=("all", "once", "none"), default="all",
+    ap.add_argument("--cold", choices=("all", "once", "none"), default=None,
                     help="all: for every configuration a process on new, empty caches times the cold first action "
                          "and the warm process runs on the caches it filled; once: the cold process for the first "
                          "configuration of each system and path, whose caches the later ones reuse; none: one "
-                         "process on the machine's own caches. A warm process that compiled anything runs again")
+                         "process on the machine's own caches. A warm process that compiled anything runs again "
+                         "(default: all; --quick: none)")
     ap.add_argument("--compile-mode", default="default",
                     help="torch.compile mode of the torch_compile path (e.g. default, max-autotune-no-cudagraphs)")
     ap.add_argument("--budget", type=float, default=None,

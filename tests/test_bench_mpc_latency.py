@@ -74,3 +74,18 @@ def test_rows_keep_the_latest_record_and_errors(tmp_path):
     assert ml.parse_configs("1x50x5, 16x50x5") == [(1, 50, 5), (16, 50, 5)]
     with pytest.raises(ValueError, match="EPISODESxHORIZONxITERATIONS"):
         ml.parse_configs("1x50")
+
+
+def test_quick_is_a_small_grid_and_the_full_one_the_default():
+    """--quick without grid flags is a smoke test (pendulum, the Warp paths, no cold process: well
+    under a minute on a CPU), not the whole grid of 100 processes; given flags are kept."""
+    from types import SimpleNamespace
+    a = SimpleNamespace(quick=True, systems=None, paths=None, cold=None)
+    ml.resolve_defaults(a)
+    assert (a.systems, a.paths, a.cold) == ("pendulum", "unfused,fused", "none")
+    a = SimpleNamespace(quick=False, systems=None, paths=None, cold=None)
+    ml.resolve_defaults(a)
+    assert (a.systems.split(","), a.paths.split(","), a.cold) == (list(ml.TASKS), list(ml.PATHS), "all")
+    a = SimpleNamespace(quick=True, systems="cheetah", paths="torch_graph", cold="once")
+    ml.resolve_defaults(a)
+    assert (a.systems, a.paths, a.cold) == ("cheetah", "torch_graph", "once")
