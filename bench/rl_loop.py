@@ -73,9 +73,15 @@ def profile_steps(p: dict, steps: int, path: Path) -> Path:
     the agent is): its operators' self times, the top 30 by CPU time then by CUDA time, and the
     repetition's wall time, written to ``path``."""
     from torch.profiler import ProfilerActivity, profile
+
+    from gnwarp.rl import loop
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if p["device"].type == "cuda" else [])
-    with profile(activities=acts) as prof:
-        secs, _ = time_steps(p, steps)
+    loop.PROFILE_RANGES = True   # the loop's named ranges in the trace
+    try:
+        with profile(activities=acts) as prof:
+            secs, _ = time_steps(p, steps)
+    finally:
+        loop.PROFILE_RANGES = False
     table = prof.key_averages()
     text = [f"{steps} vector steps of {p['env'].num_envs} envs in {secs:.3f} s under the profiler "
             f"({1e3 * secs / steps:.2f} ms a vector step)", "",

@@ -13,7 +13,7 @@ the call's end is killed with its children, so the archives are always written. 
 included, each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
 probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
-(the agents; over 15 MiB, in parts ``export.tar.part-NN``: ``cat export.tar.part-* > export.tar``)
+(the agents; over 15 MiB, in parts ``export.tar.part-NNN``: ``cat export.tar.part-* > export.tar``)
 into DIR: what comes back from the machine.
 
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
@@ -283,8 +283,8 @@ PART_BYTES = 15 * 2**20   # a file the lent machine sends back holds at most 16 
 
 
 def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
-    """``path`` itself where it fits in ``part_bytes``, else its parts ``<name>.part-00``,
-    ``.part-01``, ... (each written to a temporary name, then renamed; ``path`` removed):
+    """``path`` itself where it fits in ``part_bytes``, else its parts ``<name>.part-000``,
+    ``.part-001``, ... (each written to a temporary name, then renamed; ``path`` removed):
     ``cat <name>.part-* > <name>`` joins them."""
     size = path.stat().st_size
     if size <= part_bytes:
@@ -292,7 +292,7 @@ def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
     parts = []
     with open(path, "rb") as f:
         for i in range(-(-size // part_bytes)):
-            part = path.with_name(f"{path.name}.part-{i:02d}")
+            part = path.with_name(f"{path.name}.part-{i:03d}")
             tmp = part.with_name(part.name + ".tmp")
             tmp.write_bytes(f.read(part_bytes))
             tmp.replace(part)
@@ -304,7 +304,7 @@ def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
 def pack(work, dest, part_bytes: int = PART_BYTES) -> list[Path]:
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
     written to a temporary name, then renamed); an ``export.tar`` over ``part_bytes`` is split
-    into ``export.tar.part-NN`` files (``split_file``), so the agents come back from a machine
+    into ``export.tar.part-NNN`` files (``split_file``), so the agents come back from a machine
     that sends no file over 16 MiB."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,10 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     assert ratios == {1.0}
     assert rows[0]["ahead_over_in_turn"] == round(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], 3)
     assert "ahead / in turn" in jsonl.with_suffix(".md").read_text()
-    # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it
+    # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it,
+    # switched on for the profiled repetition only
+    from gnwarp.rl import loop
+    assert loop.PROFILE_RANGES is False
     for way in ("in_turn", "ahead"):
         (prof,) = tmp_path.glob(f"rl_loop_profile_*_{way}.txt")
         text = prof.read_text()

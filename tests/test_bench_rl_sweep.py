@@ -126,10 +126,10 @@ def test_an_export_over_the_part_size_comes_in_parts_that_join(tmp_path):
     (tmp_path / "work" / "_export" / "a" / "b" / "s0" / "agent.pt").write_bytes(blob)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "export.tar.part-07").write_bytes(b"stale")
+    (out / "export.tar.part-007").write_bytes(b"stale")
     made = rl_sweep.pack(tmp_path / "work", out, part_bytes=2048)
     parts = sorted(out.glob("export.tar.part-*"))
-    assert [p.name for p in parts] == [f"export.tar.part-{i:02d}" for i in range(len(parts))]
+    assert [p.name for p in parts] == [f"export.tar.part-{i:03d}" for i in range(len(parts))]
     assert len(parts) >= 3 and set(parts) <= set(made) and not (out / "export.tar").exists()
     assert all(p.stat().st_size <= 2048 for p in parts) and not list(out.glob("*.tmp"))
     (tmp_path / "joined.tar").write_bytes(b"".join(p.read_bytes() for p in parts))

@@ -214,10 +214,19 @@ def test_the_command_resumes_a_folder_from_its_config_and_plots(loop, capsys, tm
     # --budget-seconds and --chunk bind one call: a rerun without them does not take them from config.json
     run = tmp_path / "run"
     shutil.copytree(out, run)
-    assert main(["loop", "-o", str(run), "--iterations", "4", "--budget-seconds", "0.001", "--no-plot", "-q"]) == 0
-    assert "3 of 4 iterations finished (budget)" in capsys.readouterr().out
-    assert main(["loop", "-o", str(run), "--no-plot", "-q"]) == 0
-    assert "4 of 4 iterations finished (iterations)" in capsys.readouterr().out
+    assert main(["loop", "-o", str(run), "--iterations", "5", "--budget-seconds", "0.001", "--chunk", "9",
+                 "--no-plot", "-q"]) == 0
+    assert "3 of 5 iterations finished (budget)" in capsys.readouterr().out   # the call's first iteration only
+    import argparse
+
+    from gnwarp.control.loop_command import add_loop_arguments, loop_config
+    parser = argparse.ArgumentParser()
+    add_loop_arguments(parser)
+    cfg = loop_config(parser.parse_args(["-o", str(run)]))   # config.json holds both; a rerun takes neither
+    assert json.loads((run / "config.json").read_text())["chunk"] == 9
+    assert (cfg.iterations, cfg.chunk, cfg.budget_seconds) == (5, None, None)
+    assert main(["loop", "-o", str(run), "--no-plot", "-q"]) == 0   # the two left (read back: 4 of 5, budget)
+    assert "5 of 5 iterations finished (iterations)" in capsys.readouterr().out
 
 
 def test_the_tasks_own_initial_states_and_episode_length(tmp_path, monkeypatch):

@@ -80,3 +80,26 @@ def test_loop_on_two_ranks_collects_one_process_episodes_and_rank_0_writes(tmp_p
     # and resumable (the ranks resumed the folder one process left): its state agrees with its files
     r = run_loop(LoopConfig(**KEYS, out=str(two), iterations=1))
     assert r["iterations"] == 1 and r["stop"] == "iterations" and len(read_records(two / "records.jsonl")) == 2
+
+
+def test_one_ranks_plan_memory_refusal_stops_every_rank_before_the_folder_is_written(tmp_path):
+    """Each rank checks its share of the planning memory on its own device; rank 1's refusal
+    (rank 0's passes) stops both ranks before rank 0 writes the folder, so a corrected rerun is
+    taken there."""
+    worker = """
+import os, sys
+import gnwarp.control.planner
+if os.environ["RANK"] == "1":
+    def short(*a, **k):
+        raise ValueError("rank 1: planning needs more memory than it has")
+    gnwarp.control.planner.check_plan_memory = short
+from gnwarp.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+    out = tmp_path / "run"
+    codes, outs = start_ranks(["-c", worker, "loop", "-o", str(out), "--task", "pendulum-balance",
+                               "--iterations", "1", "--device", "cpu", "--backend", "mujoco", "-q", "--no-plot"],
+                              env={"PYTHONPATH": str(ROOT)})
+    assert codes == [2, 2], "\n".join(outs)
+    assert all("rank 1: planning needs more memory than it has" in o for o in outs), outs
+    assert not out.exists()

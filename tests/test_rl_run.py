@@ -216,6 +216,13 @@ def test_a_failed_video_times_nothing(tmp_path, monkeypatch):
         r = run_rl(RLConfig(**dict(TINY, video_episodes=1, video_steps=5, env_steps=40), out=str(tmp_path / "f")))
     timing = json.loads((tmp_path / "f" / "timing.json").read_text())
     assert r["video"] is None and "video_seconds_per_step" not in timing and timing["checkpoint_seconds"] > 0
+    assert timing["video_failed"] is True
+    # the finished run's next call does not evaluate again for a video that failed
+    monkeypatch.setattr(run_mod, "evaluate_policy", lambda *a, **k: pytest.fail("evaluated again"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = run_rl(RLConfig(**dict(TINY, video_episodes=1, video_steps=5, env_steps=40), out=str(tmp_path / "f")))
+    assert again["stop"] == "done" and again["video"] is None
 
 
 def test_svg1_gn_on_swimmer6(tmp_path):

@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # Modules under everything: any stage may import them; they import only each other.
 FOUNDATION = {"version", "validation", "files", "graphs", "interop", "distributed", "state", "dynamics"}
 # The pipeline stages, lowest first: a stage imports foundation modules, itself and lower stages.
-STAGES = ["sim", "data", "gn", "models", "eval", "train", "control", "rl", "demo", "cli"]
+STAGES = ["sim", "data", "gn", "models", "eval", "train", "control", "rl", "demo", "cli", "__main__"]
 MAX_LINES = 700
 
 

@@ -45,7 +45,7 @@ def train_command(args) -> int:
     if r.get("rank", 0) != 0:   # under torchrun, rank 0 reports for all
         return 0
     ranks = f" on {r['ranks']} ranks" if r.get("ranks", 1) > 1 else ""
-    again = "" if r.get("steps_this_call", r["steps"]) else ", none left to train this call"
+    again = ", none left to train this call" if r["stop"] == "steps" and r.get("steps_this_call") == 0 else ""
     print(f"trained {r['steps']} steps{ranks} in {r['seconds']:.1f} s ({r['steps_per_second']:.1f} steps/s, "
           f"stop: {r['stop']}{again}); "
           + (f"best {r['valid_horizon']}-step validation error {r['best_error']:.4g} at step {r['best_step']}"

@@ -484,10 +484,20 @@ def run_loop(config: LoopConfig) -> dict:
     settings = planner_settings(cfg.planner, cfg.planner_settings)
     gamma = None if cfg.value is None else check_value_discount(cfg.value, cfg.planner, settings)
     rk = ranks(cfg.device)   # rank 0 of 1 unless started by torchrun
-    for n in {cfg.episodes, cfg.eval_episodes} - {0}:   # before the folder is written: a corrected rerun is taken
-        check_plan_memory(cfg.planner, settings, len(rk.shard(n)), get_task(cfg.task, system.name), system,
-                          rk.device if rk.distributed else resolve_device(cfg.device),
-                          hint="Use a shorter planner_settings.horizon (or fewer samples or episodes)")
+    # before the folder is written (a corrected rerun is then taken); every rank checks its share on
+    # its device, and one rank's refusal stops them all
+    refused = None
+    try:
+        for n in {cfg.episodes, cfg.eval_episodes} - {0}:
+            check_plan_memory(cfg.planner, settings, len(rk.shard(n)), task, system,
+                              rk.device if rk.distributed else resolve_device(cfg.device), models=cfg.ensemble,
+                              hint="Use a shorter planner_settings.horizon (or fewer samples or episodes)")
+    except ValueError as e:
+        refused = str(e)
+    every = rk.gather_objects(refused)
+    refused = rk.broadcast_object(next((r for r in every if r), None) if rk.main else None)
+    if refused:
+        raise ValueError(refused)
     records = out / RECORDS_FILE
 
     def prepare():   # rank 0: the folder checked, its records trimmed, the seed data there

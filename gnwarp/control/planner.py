@@ -195,16 +195,17 @@ def plan_bytes(n: int, horizon: int, bodies: int, nu: int, candidates: int = 1, 
     return 4 * copies * n * candidates * (horizon + 1) * (bodies * 13 + nu)
 
 
-def check_plan_memory(planner: str, settings, n: int, task, system, device,
+def check_plan_memory(planner: str, settings, n: int, task, system, device, models: int = 1,
                       hint: str = "Use a shorter horizon (or fewer samples or episodes)") -> None:
     """Refuse, before planning, settings whose rollouts cannot fit: planner ``planner``'s
     ``settings`` (their ``horizon``, else ``task``'s; their ``samples``, else 1) for ``n``
-    episodes of ``system``: ``plan_bytes`` in ``device``'s free memory (the host's for the CPU)
+    episodes of ``system``, through ``models`` models (an ensemble: a sampling planner rolls every
+    sample through each): ``plan_bytes`` in ``device``'s free memory (the host's for the CPU)
     and ~1 kB of Python objects a planned step (the rollout engine's per-step slots) in the
     host's, each ``ValueError`` naming the sizes, then ``hint``."""
     from gnwarp.validation import check_memory
     horizon = getattr(settings, "horizon", None) or task.horizon
-    candidates = int(getattr(settings, "samples", 1) or 1)
+    candidates = int(getattr(settings, "samples", 1) or 1) * max(1, int(models))
     copies = 8 if planner in ("gradient", "hybrid") else 2
     what = f"planning {n} episodes x {candidates} rollouts x horizon {horizon} x {system.nbody} bodies"
     arrays = plan_bytes(n, horizon, system.nbody, system.nu, candidates, copies)

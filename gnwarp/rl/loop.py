@@ -10,16 +10,28 @@ the final observation of an ended episode).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import numpy as np
 import torch
-from torch.profiler import record_function
 
 from gnwarp.rl.graphed import Updater
 from gnwarp.rl.replay import ReplayBuffer, reached_obs
 
-__all__ = ["CollectorState", "run_env_steps"]
+__all__ = ["CollectorState", "run_env_steps", "PROFILE_RANGES"]
+
+# the loop's parts as named ranges of a torch.profiler trace (rl.act, rl.env_step, rl.store,
+# rl.updates): off unless a profiler wants them (bench/rl_loop.py --profile sets it), since a
+# range costs ~10 us even with no profiler running
+PROFILE_RANGES = False
+
+
+def _span(name: str):
+    if PROFILE_RANGES:
+        from torch.profiler import record_function
+        return record_function(name)
+    return contextlib.nullcontext()
 
 
 @dataclasses.dataclass
@@ -99,15 +111,15 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
     ahead = bool(getattr(s, "act_ahead", False))
     steps = int(steps)
     picked = host = None   # an action picked ahead, and its copy on the env's side (the host: NumPy or a CPU simulator)
-    for i in range(steps):   # the ranges named "rl." show in a torch.profiler trace (bench/rl_loop.py --profile)
-        with record_function("rl.act"):
+    for i in range(steps):   # the ranges "rl." where PROFILE_RANGES is set
+        with _span("rl.act"):
             action = picked if picked is not None else agent.act(state.obs, count=False, check=False)
         agent.count_env_steps(state.num_envs)
-        with record_function("rl.env_step"):
+        with _span("rl.env_step"):
             next_obs, reward, terminated, truncated, infos = env.step(
                 host if picked is not None else (action if torch_env else _numpy(action)))
         picked = host = None
-        with record_function("rl.store"):
+        with _span("rl.store"):
             buffer.add(state.obs, action, reward, reached_obs(next_obs, infos), terminated, truncated)
         state.episode_return += _numpy(reward)
         ended = _numpy(terminated) | _numpy(truncated)
@@ -115,14 +127,14 @@ def run_env_steps(agent, env, buffer: ReplayBuffer, state: CollectorState, steps
         state.episode_return[ended] = 0.0
         state.obs = next_obs
         if ahead and i + 1 < steps:   # the next action now: its host copy waits for it, not for the updates
-            with record_function("rl.act"):
+            with _span("rl.act"):
                 picked = agent.act(state.obs, count=False, check=False)
                 host = _on_env_device(picked, state.obs) if torch_env else _numpy(picked)
         if agent.env_steps >= s.update_after:
             state.owed += s.updates_per_step * state.num_envs
             n = int(state.owed)
             if n:
-                with record_function("rl.updates"):
+                with _span("rl.updates"):
                     metrics = updater.run(n)
                 state.owed -= n
                 updates += n

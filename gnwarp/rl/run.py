@@ -53,15 +53,20 @@ TIMING_FILE = "timing.json"   # the run's last checkpoint and video times: the b
 
 def _read_timing(out: Path) -> dict:
     """The run folder's timing estimates {"checkpoint_seconds", "video_seconds_per_step"} (each
-    a finite number >= 0); {} where the file is missing or any entry is not such a number (an
-    estimate only: the budget then guesses)."""
+    a finite number >= 0) and "video_failed" (true where the last video could not be written);
+    {} where the file is missing or any estimate is not such a number (an estimate only: the
+    budget then guesses)."""
     try:
         d = json.loads((out / TIMING_FILE).read_text())
     except (OSError, ValueError):
         return {}
-    ok = isinstance(d, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                                     and v >= 0 for v in d.values())
-    return {k: float(v) for k, v in d.items() if k in ("checkpoint_seconds", "video_seconds_per_step")} if ok else {}
+    if not isinstance(d, dict):
+        return {}
+    est = {k: d[k] for k in ("checkpoint_seconds", "video_seconds_per_step") if k in d}
+    ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+             for v in est.values())
+    return ({k: float(v) for k, v in est.items()} | ({"video_failed": True} if d.get("video_failed") is True else {})
+            if ok else {})
 
 
 def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
@@ -543,7 +548,8 @@ def run_rl(cfg: RLConfig) -> dict:
         if c["round"] >= total_rounds:
             stop = "done"
         checkpoint()
-        if stop == "done" and not video and video_steps and not (out / VIDEO_FILE).exists():
+        if (stop == "done" and not video and video_steps and not (out / VIDEO_FILE).exists()
+                and not timing.get("video_failed")):
             # a finished run without its video (a call killed while writing it): the last
             # evaluation's episodes again, not recorded (the same seed and policy: the same states)
             _, video["states"] = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True),
@@ -556,10 +562,12 @@ def run_rl(cfg: RLConfig) -> dict:
                             f"deterministic policy after {video['env_steps']} env steps", cfg.renderer)
             except Exception as e:  # noqa: BLE001 - training is saved; a video that fails is reported, not fatal
                 video.clear()
+                timing["video_failed"] = True   # a finished run does not evaluate again for it
                 warnings.warn(f"no video written ({type(e).__name__}: {e}); renderer 'matplotlib' needs no "
                               "OpenGL", RuntimeWarning, stacklevel=2)
             if video and video_steps:   # written: its rate for the next call's budget
                 timing["video_seconds_per_step"] = (time.perf_counter() - t) / video_steps
+                timing.pop("video_failed", None)
         with atomic_write(out / TIMING_FILE) as tmp:   # for the next call's budget
             Path(tmp).write_text(json.dumps(timing))
     finally:
