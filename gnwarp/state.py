@@ -22,7 +22,7 @@ __all__ = [
     "DYN_NODE_NAMES", "DYN_NODE_SIZE", "POS", "QUAT", "LINVEL", "ANGVEL", "GROUPS",
     "quat_mul", "quat_conj", "quat_normalize", "quat_canonical", "quat_rotate", "quat_to_mat",
     "quat_axis_angle", "state_delta", "apply_delta", "rotation_loss", "world_state", "body_points",
-    "geom_poses",
+    "geom_poses", "QUAT_MIN",
 ]
 
 DYN_NODE_NAMES = ("pos_x", "pos_y", "pos_z", "quat_w", "quat_x", "quat_y", "quat_z",
@@ -30,6 +30,9 @@ DYN_NODE_NAMES = ("pos_x", "pos_y", "pos_z", "quat_w", "quat_x", "quat_y", "quat
 DYN_NODE_SIZE = 13
 POS, QUAT, LINVEL, ANGVEL = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 GROUPS = {"pos": POS, "quat": QUAT, "linvel": LINVEL, "angvel": ANGVEL}
+# the least norm of a body state's orientation quaternion that still is one: below it, a state has
+# no orientation at all (zeros where a state was never filled); rollouts and planners refuse it
+QUAT_MIN = 0.1
 
 
 def _torch(x) -> bool:

@@ -33,8 +33,10 @@ from typing import Callable
 import numpy as np
 import torch
 
+from gnwarp.state import QUAT, QUAT_MIN
+
 __all__ = ["step_rewards", "planned_return", "condition_gradient", "check_terminal", "scale_gradient", "GRAD_NORMS",
-           "PlanningError", "plan_action", "ActsOnPlan"]
+           "PlanningError", "plan_action", "ActsOnPlan", "check_states"]
 
 GRAD_NORMS = ("none", "step")
 
@@ -134,7 +136,7 @@ def check_states(x, n: int, bodies: int | None = None) -> torch.Tensor:
         raise PlanningError(f"states must be [N, B, 13] = [{n}, {bodies if bodies is not None else 'B'}, 13] "
                             f"(episodes, bodies), got {list(x.shape)}")
     bad = ~torch.isfinite(x)
-    flat = x[..., 3:7].square().sum(-1) <= 0.01   # norm <= 0.1: no orientation at all
+    flat = x[..., QUAT].square().sum(-1) <= QUAT_MIN ** 2   # no orientation at all
     any_bad, any_flat = torch.stack([bad.any(), flat.any()]).tolist()   # one host sync a planning step
     if any_bad:
         e, b, f = (int(i) for i in bad.nonzero()[0])

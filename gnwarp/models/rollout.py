@@ -26,7 +26,7 @@ import torch
 from gnwarp.gn.replay import ActivationStore
 from gnwarp.interop import Graphed, vjp
 from gnwarp.models.fused_step import frozen_parameters, fused_step_for
-from gnwarp.state import DYN_NODE_SIZE
+from gnwarp.state import DYN_NODE_SIZE, QUAT_MIN
 
 __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICIES", "RolloutInputError",
            "check_instance", "RolloutInputs"]
@@ -36,9 +36,6 @@ __all__ = ["adjoint_loop", "rollout_with_adjoint", "RolloutEngine", "CTRL_POLICI
 # range is ``gnwarp.sim.actuators.Actuators``' low / high (+-inf where unlimited): the bound
 # Systems' own record, or for a dataset the static edge features it stores the record's values in.
 CTRL_POLICIES = ("clamp", "error", "none")
-
-
-QUAT_MIN = 0.1   # the least norm of an initial body state's orientation quaternion: below it, none at all
 
 
 class RolloutInputError(ValueError):
