@@ -87,7 +87,7 @@ def profile_steps(p: dict, steps: int, path: Path) -> Path:
             f"({1e3 * secs / steps:.2f} ms a vector step)", "",
             table.table(sort_by="self_cpu_time_total", row_limit=30)]
     if p["device"].type == "cuda":
-        text += ["", table.table(sort_by="self_cuda_time_total", row_limit=30)]
+        text += ["", table.table(sort_by="self_device_time_total", row_limit=30)]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(text) + "\n")
     return path
