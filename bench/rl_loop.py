@@ -14,9 +14,12 @@ overlaps, the actions are still picked ahead (other numbers), and the ratio near
     python bench/rl_loop.py [--task swimmer6] [--agent svg1] [--steps 300] [--reps 3] [--device cuda]
     python bench/rl_loop.py --quick       # tiny sizes on the CPU: a smoke test of the script
 
-``--profile``: afterwards one more repetition of each way under ``torch.profiler`` (CPU, and CUDA
-where the agent is), its operators' self times (top 30 by CPU time, then by CUDA time) written
-to ``rl_loop_profile_<device>_<task>_<way>.txt`` beside the table: where a vector step's time goes.
+``--profile``: afterwards ``--profile-steps`` more vector steps of each way under ``torch.profiler``
+(CPU, and CUDA where the agent is), its operators' self times (top 30 by CPU time, then by CUDA
+time) and the device operations an update launches written to
+``rl_loop_profile_<device>_<task>_<way>.txt`` beside the table: where a vector step's time goes.
+Keep the profiled window short: the profiler's tables of 200 walker steps (~3M kernel events)
+took ~8 minutes to build on the device.
 """
 from __future__ import annotations
 
@@ -35,7 +38,7 @@ from bench.harness import add_run_args, device_name, experiment_out, save_result
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.graphed import Updater  # noqa: E402
 from gnwarp.rl.loop import CollectorState, run_env_steps  # noqa: E402
-from gnwarp.rl.run import build_run  # noqa: E402
+from gnwarp.rl.run import build_run, compile_backend  # noqa: E402
 
 
 def _sync(dev: torch.device) -> None:
@@ -56,7 +59,7 @@ def loop_parts(cfg: RLConfig) -> dict:
     run_env_steps(agent, env, p["buffer"], state, before, p["generator"], updater=updater)
     if p["model"] is not None:
         normalize_model(p["model"], p["buffer"])
-    return dict(p, state=state, updater=updater)
+    return dict(p, state=state, updater=updater, agent_cfg=cfg)
 
 
 def time_steps(p: dict, steps: int) -> tuple[float, int]:
@@ -68,10 +71,23 @@ def time_steps(p: dict, steps: int) -> tuple[float, int]:
     return time.perf_counter() - t, out["updates"]
 
 
+def device_ops(table, updates: int) -> str:
+    """A line: the device operations (kernels, copies, sets) of a profile's averaged table, their
+    number an update and their mean time; the loop's own ranges (``rl.*``) are not operations."""
+    from torch.autograd import DeviceType
+    ops = [e for e in table if e.device_type == DeviceType.CUDA and not e.key.startswith("rl.")]
+    n = sum(e.count for e in ops)
+    us = sum(e.self_device_time_total for e in ops)
+    if not n or not updates:
+        return "no device operations recorded"
+    return (f"device operations: {n} ({n / updates:.0f} an update), {us / 1e3:.1f} ms of device time "
+            f"({us / n:.2f} us each, {us / 1e3 / updates:.3f} ms an update)")
+
+
 def profile_steps(p: dict, steps: int, path: Path) -> Path:
-    """One more repetition of ``steps`` vector steps under ``torch.profiler`` (CPU, and CUDA where
-    the agent is): its operators' self times, the top 30 by CPU time then by CUDA time, and the
-    repetition's wall time, written to ``path``."""
+    """``steps`` more vector steps under ``torch.profiler`` (CPU, and CUDA where the agent is): their
+    wall time, the device operations an update launches, and the operators' self times, the top 30
+    by CPU time then by CUDA time, written to ``path``."""
     from torch.profiler import ProfilerActivity, profile
 
     from gnwarp.rl import loop
@@ -79,13 +95,15 @@ def profile_steps(p: dict, steps: int, path: Path) -> Path:
     loop.PROFILE_RANGES = True   # the loop's named ranges in the trace
     try:
         with profile(activities=acts) as prof:
-            secs, _ = time_steps(p, steps)
+            secs, updates = time_steps(p, steps)
     finally:
         loop.PROFILE_RANGES = False
     table = prof.key_averages()
     text = [f"{steps} vector steps of {p['env'].num_envs} envs in {secs:.3f} s under the profiler "
-            f"({1e3 * secs / steps:.2f} ms a vector step)", "",
-            table.table(sort_by="self_cpu_time_total", row_limit=30)]
+            f"({1e3 * secs / steps:.2f} ms a vector step), {updates} updates"]
+    if p["device"].type == "cuda":
+        text.append(device_ops(table, updates))
+    text += ["", table.table(sort_by="self_cpu_time_total", row_limit=30)]
     if p["device"].type == "cuda":
         text += ["", table.table(sort_by="self_device_time_total", row_limit=30)]
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -103,14 +121,18 @@ def main(argv=None):
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--backend", default="mujoco", help="the true simulator (gnwarp rl's --backend)")
     ap.add_argument("--threads", type=int, default=1, help="MuJoCo C's threads (sim_threads)")
-    ap.add_argument("--profile", action="store_true", help="then one repetition a way under torch.profiler "
-                    "(its operator table written beside the results)")
+    ap.add_argument("--torch-compile", default="auto", choices=("auto", "none", "inductor"),
+                    help="the update's torch.compile (gnwarp rl's torch_compile; the rows name the one used)")
+    ap.add_argument("--profile", action="store_true", help="then --profile-steps more vector steps a way under "
+                    "torch.profiler (its operator table written beside the results)")
+    ap.add_argument("--profile-steps", type=int, default=20, help="vector steps profiled a way (keep it short: "
+                    "the profiler's tables take minutes for millions of kernel events)")
     add_run_args(ap, "rl")   # --out, --quick
     a = ap.parse_args(argv)
     if a.quick:
-        a.steps, a.reps, a.envs = 5, 1, 2
+        a.steps, a.reps, a.envs, a.profile_steps = 5, 1, 2, 3
     base = dict(task=a.task, agent=a.agent, num_envs=a.envs, device=a.device, backend=a.backend,
-                sim_threads=a.threads, progress=False, tensorboard=False, video_episodes=0, eval_episodes=1)
+                sim_threads=a.threads, torch_compile=a.torch_compile, progress=False, tensorboard=False, video_episodes=0, eval_episodes=1)
     if a.quick:
         base.update(task="pendulum-balance", agent="svg0", observation="bodies", device="cpu",
                     episode_steps=20, hidden=(16,), batch_size=8, start_steps=10, update_after=10)
@@ -130,6 +152,7 @@ def main(argv=None):
         ups = [n / s for s, n in per[w]]
         rows.append(dict(device=name, task=parts[w]["task"].name, agent=parts[w]["agent"].settings.agent,
                          way=w, act_ahead=ahead, envs=a.envs, steps=a.steps, reps=a.reps, backend=a.backend,
+                         torch_compile=compile_backend(parts[w]["agent_cfg"], dev),
                          env_steps_per_s=round(statistics.median(rates), 1), env_steps_per_s_each=[round(r, 1) for r in rates],
                          updates_per_s=round(statistics.median(ups), 1), first_s=round(first[w], 3),
                          date=time.strftime("%Y-%m-%d")))
@@ -140,14 +163,14 @@ def main(argv=None):
     out = experiment_out("rl", a.out, a.quick)
     if a.profile:
         for w, p in parts.items():
-            path = profile_steps(p, a.steps, out / f"rl_loop_profile_{slug(name)}_{rows[0]['task']}_{w.replace(' ', '_')}.txt")
+            path = profile_steps(p, a.profile_steps, out / f"rl_loop_profile_{slug(name)}_{rows[0]['task']}_{w.replace(' ', '_')}.txt")
             print(f"wrote {path}")
     for p in parts.values():
         p["env"].close()
         p["eval_env"].close()
     lines = [f"# RL training loop: env steps a second, actions in turn or ahead, on {name}", "",
              f"`python bench/rl_loop.py` ({time.strftime('%Y-%m-%d')}): {rows[0]['task']}, {rows[0]['agent']}, "
-             f"{a.envs} envs on {a.backend}, {a.steps} vector steps a repetition, median of {a.reps} "
+             f"{a.envs} envs on {a.backend}, update compiled: {rows[0]['torch_compile']}, {a.steps} vector steps a repetition, median of {a.reps} "
              "alternating repetitions (the first, which records the update's graph, apart).", "",
              "| way | env steps / s | each | updates / s | first repetition (s) |", "|---|---|---|---|---|"]
     lines += [f"| {r['way']} | {r['env_steps_per_s']} | {', '.join(map(str, r['env_steps_per_s_each']))} | "

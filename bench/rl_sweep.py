@@ -30,9 +30,12 @@ A spec::
     [[gpu]]
     index = 3
     probes = [["bench/rl_loop.py", "--task", "swimmer6"]]
+    probe_seconds = 240
     runs = [{agent = "svg1", task = "swimmer6", seeds = "0-1", env_steps = 1000000,
              set = ["act_ahead=true"]}]
 
+A GPU's ``probe_seconds`` caps its probes (together, from the call's start): one still running
+then is killed with its children and the runs start.
 A run's keys: ``agent``, ``task``, ``seeds`` (``"0-5"``, ``"0,2"``), and optionally ``env_steps``,
 ``preset``, ``networks``, ``threads`` (CPU threads a seed, default 1), ``set`` (``RLConfig``
 keys as ``KEY=VALUE``), ``quick`` (``bench/rl_seeds.py --quick``: CPU-sized). ``index`` is a
@@ -65,7 +68,7 @@ from gnwarp.validation import ConfigError, read_config_file  # noqa: E402
 __all__ = ["read_spec", "commands", "main", "collect", "pack", "start_mps"]
 
 RUN_KEYS = {"agent", "task", "seeds", "env_steps", "preset", "networks", "threads", "set", "quick"}
-GPU_KEYS = {"index", "probes", "runs"}
+GPU_KEYS = {"index", "probes", "probe_seconds", "runs"}
 SPEC_KEYS = {"margin_seconds", "gpu"}
 PACK_SECONDS = 25   # of each call, kept for packing: a process still running then is killed
 
@@ -106,6 +109,9 @@ def read_spec(path) -> dict:
         for p in probes:
             if not (ROOT / p[0]).is_file():
                 _fail(f"{where}.probes", f"no script {p[0]!r} in this repository")
+        cap = g.get("probe_seconds")
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float)) or not 0 < cap < float("inf")):
+            _fail(f"{where}.probe_seconds", f"finite seconds > 0, got {cap!r}")
         runs = g.setdefault("runs", [])
         if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
             _fail(f"{where}.runs", "a list of tables")
@@ -180,12 +186,14 @@ def commands(spec: dict, work, budget: float) -> list[dict]:
             base = effective_run(r)
             log = f"{base['task']}-{run_name(base)}-s{r['seeds'].replace(',', '_')}.log"
             runs.append({"cmd": cmd, "log": log})
-        out.append({"index": g["index"], "env": env, "probes": probes, "runs": runs})
+        out.append({"index": g["index"], "env": env, "probes": probes, "probe_seconds": g.get("probe_seconds"),
+                    "runs": runs})
     return out
 
 
-def _wait(p: subprocess.Popen, deadline: float):
-    """``p``'s exit code, or, past ``deadline`` (monotonic), its whole process group killed."""
+def _wait(p: subprocess.Popen, deadline: float, why: str = "the call's deadline"):
+    """``p``'s exit code, or, past ``deadline`` (monotonic), its whole process group killed (``why``:
+    what the deadline is, for the report)."""
     try:
         return p.wait(timeout=max(0.0, deadline - time.monotonic()))
     except subprocess.TimeoutExpired:
@@ -194,7 +202,7 @@ def _wait(p: subprocess.Popen, deadline: float):
         except ProcessLookupError:
             pass
         p.wait()
-        return "killed at the call's deadline"
+        return f"killed at {why}"
 
 
 def _gpu_job(job: dict, work: Path, started: float, budget: float, deadline: float, probes: bool,
@@ -206,12 +214,15 @@ def _gpu_job(job: dict, work: Path, started: float, budget: float, deadline: flo
     logs = work / "_logs"
     gpu = f"GPU {job['index']}"
     if probes:
+        stop, why = min(deadline, started + budget), "the call's deadline"   # the probes' end, or their cap
+        if job.get("probe_seconds") is not None and started + job["probe_seconds"] < stop:
+            stop, why = started + job["probe_seconds"], f"the GPU's probe_seconds ({job['probe_seconds']:g} s)"
         for k, cmd in enumerate(job["probes"]):
             name = f"probe-{job['index']}-{k}-{Path(cmd[1]).stem}.txt"
             with open(logs / name, "w") as f:
                 p = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT,
                                      start_new_session=True)
-                rc = _wait(p, min(deadline, started + budget))
+                rc = _wait(p, stop, why)
             lines.append((rc != 0, f"{gpu}: probe {shlex.join(cmd[1:])}: exit {rc}, "
                                    f"{time.monotonic() - started:.0f} s into the call"))
     left = budget - (time.monotonic() - started)

@@ -20,6 +20,7 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     # the same updates a repetition either way: updates / s over env steps / s is the schedule's ratio
     ratios = {round(r["updates_per_s"] / r["env_steps_per_s"], 6) for r in rows}
     assert ratios == {1.0}
+    assert {r["torch_compile"] for r in rows} == {"none"}   # "auto" on the CPU: eager
     assert rows[0]["ahead_over_in_turn"] == round(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], 3)
     assert "ahead / in turn" in jsonl.with_suffix(".md").read_text()
     # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it,
@@ -29,5 +30,20 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     for way in ("in_turn", "ahead"):
         (prof,) = tmp_path.glob(f"rl_loop_profile_*_{way}.txt")
         text = prof.read_text()
-        assert text.startswith("5 vector steps of 2 envs in ") and all(
+        assert text.startswith("3 vector steps of 2 envs in ") and all(
             f"rl.{part}" in text for part in ("act", "env_step", "store", "updates")), text[:400]
+
+
+def test_device_ops_counts_kernels_an_update_but_not_the_loops_ranges():
+    from types import SimpleNamespace
+
+    from torch.autograd import DeviceType
+    cuda, cpu = DeviceType.CUDA, DeviceType.CPU
+    table = [SimpleNamespace(key="rl.updates", device_type=cuda, count=10, self_device_time_total=9e6),
+             SimpleNamespace(key="sgemm", device_type=cuda, count=40, self_device_time_total=400.0),
+             SimpleNamespace(key="elementwise", device_type=cuda, count=160, self_device_time_total=200.0),
+             SimpleNamespace(key="aten::mul", device_type=cpu, count=500, self_device_time_total=0.0)]
+    line = rl_loop.device_ops(table, updates=10)
+    assert line == ("device operations: 200 (20 an update), 0.6 ms of device time "
+                    "(3.00 us each, 0.060 ms an update)"), line
+    assert rl_loop.device_ops(table[:1], updates=10) == "no device operations recorded"

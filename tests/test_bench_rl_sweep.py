@@ -63,6 +63,8 @@ def test_dry_run_prints_each_gpus_commands_with_the_calls_budget(tmp_path, capsy
      "[[gpu]]\nindex = 1\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '1'}]\n", "gpu[1].runs[0].seeds",
      "already in the sweep"),
     ("[[gpu]]\nindex = 0\nprobes = [['bench/no_such_probe.py']]\n", "gpu[0].probes", "no script"),
+    ("[[gpu]]\nindex = 0\nprobe_seconds = 0\n", "gpu[0].probe_seconds", "finite seconds > 0"),
+    ("[[gpu]]\nindex = 0\nprobe_seconds = inf\n", "gpu[0].probe_seconds", "finite seconds > 0"),
     ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0', set = ['act_ahead=maybe']}]\n",
      "gpu[0].runs[0].set", "true or false"),
     ("[[gpu]]\nindex = 0\nruns = [{agent = 'svg1', task = 'swimmer6', seeds = '0'}, "
@@ -249,3 +251,27 @@ def test_rl_seeds_refuses_a_seed_list_it_cannot_read(seeds, capsys):
     with pytest.raises(SystemExit) as e:
         main(["--quick", "--seeds", seeds])
     assert e.value.code == 2 and "error:" in capsys.readouterr().err
+
+
+def test_probe_seconds_stops_a_long_probe_and_the_runs_start(tmp_path):
+    """A GPU's probes past its ``probe_seconds`` are killed (reported), and its runs start with the
+    call's budget less the time the probes took."""
+    import sys
+    import time
+    (tmp_path / "_logs").mkdir()
+    sleeper = [sys.executable, "-c", "import time; print('probing', flush=True); time.sleep(60)"]
+    run = [sys.executable, "-c", "import sys; print('seed 0: budget', sys.argv[2], flush=True)",
+           "--budget-seconds", "999"]
+    job = {"index": 5, "env": {}, "probes": [sleeper + ["probe.py"]], "probe_seconds": 1.5,
+           "runs": [{"cmd": run, "log": "r.log"}]}
+    lines, t0 = [], time.monotonic()
+    rl_sweep._guarded(job, tmp_path, t0, 100.0, t0 + 60.0, True, lines)
+    assert time.monotonic() - t0 < 30                     # not the probe's 60 s
+    (probe_bad, probe_line), (run_bad, run_line) = lines
+    assert probe_bad and "probe" in probe_line and "killed at the GPU's probe_seconds (1.5 s)" in probe_line
+    assert not run_bad and "exit 0" in run_line
+    budget = float(run_line.split("seed 0: budget ")[1].split()[0])
+    assert 95 <= budget <= 99                             # 100 s less the ~1.5 s the probe took
+    spec = rl_sweep.read_spec(write(tmp_path, SPEC.replace("index = 3\n", "index = 3\nprobe_seconds = 240\n")))
+    jobs = rl_sweep.commands(spec, tmp_path / "w", 500)
+    assert [j["probe_seconds"] for j in jobs] == [None, 240]

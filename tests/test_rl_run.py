@@ -316,15 +316,61 @@ def test_gnwarp_check_reads_a_run_folder_as_a_run(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("error:")
 
 
-def test_compiled_run_trains_and_keeps_its_compile_setting(tmp_path):
+def test_compiled_run_trains_like_the_eager_one_and_may_change_its_compile_setting(tmp_path):
     """``torch_compile`` traces the update's losses (aot_eager: no compiler needed) with the same
-    numbers as eager updates here; a resumed run must keep it (rounding may differ with inductor)."""
-    eager = run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "e")))
+    numbers as eager updates here; a resumed run may change it (as it may change its device: the
+    rest of the run rounds as the new setting does)."""
+    eager = run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "e"), torch_compile="none"))
     comp = run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "c"), torch_compile="aot_eager"))
     assert comp["updates"] == eager["updates"] == 22
     assert _eval_returns(tmp_path / "c") == _eval_returns(tmp_path / "e")
-    with pytest.raises(ConfigError, match="torch_compile"):
-        run_rl(RLConfig(**TINY, out=str(tmp_path / "c")))
+    more = run_rl(RLConfig(**TINY, out=str(tmp_path / "c"), torch_compile="none"))
+    assert more["env_steps"] == TINY["env_steps"] > 40
+    assert json.loads((tmp_path / "c" / "config.json").read_text())["torch_compile"] == "none"
+
+
+def test_auto_compiles_mlp_updates_on_cuda_with_triton_only(monkeypatch):
+    from gnwarp.rl.run import compile_backend
+    import torch.utils._triton as triton_check
+    cfg = RLConfig(**TINY, out="unused")
+    assert cfg.torch_compile == "auto" and compile_backend(cfg, "cpu") == "none"
+    monkeypatch.setattr(triton_check, "has_triton", lambda: True)
+    assert compile_backend(cfg, "cuda") == "inductor"
+    assert compile_backend(RLConfig(**{**TINY, "networks": "gn", "observation": "dmc", "task": "swimmer6"},
+                                    out="unused"), "cuda") == "none"
+    assert compile_backend(RLConfig(**TINY, out="unused", torch_compile="none"), "cuda") == "none"
+    assert compile_backend(RLConfig(**TINY, out="unused", torch_compile="aot_eager"), "cpu") == "aot_eager"
+    monkeypatch.setattr(triton_check, "has_triton", lambda: False)
+    assert compile_backend(cfg, "cuda") == "none"
+
+
+def test_a_failing_compiler_falls_back_to_eager_only_where_asked(monkeypatch):
+    """``compile_update(fallback=True)`` (``torch_compile`` "auto"): a compiler error at the second
+    update warns and the losses stay eager with the same values; without it the error surfaces."""
+    import warnings
+
+    import torch._dynamo.exc as dynamo_exc
+    from gnwarp.rl.agents import _EagerFirst
+
+    def broken(fn, **kw):
+        def call(*a, **k):
+            raise dynamo_exc.BackendCompilerFailed(lambda *a: None, RuntimeError("no triton"), None)
+        return call
+    monkeypatch.setattr(torch, "compile", broken)
+    f = _EagerFirst(lambda x: x * 2, "inductor", fallback=True)
+    assert f(torch.tensor(3.0)) == 6.0
+    with pytest.warns(UserWarning, match="runs eagerly: BackendCompilerFailed"):
+        assert f(torch.tensor(4.0)) == 8.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert f(torch.tensor(5.0)) == 10.0          # eager from then on, no more warnings
+    g = _EagerFirst(lambda x: x * 2, "inductor")
+    g(torch.tensor(1.0))
+    with pytest.raises(dynamo_exc.BackendCompilerFailed):
+        g(torch.tensor(1.0))
+    h = _EagerFirst(lambda x: x.undefined_method(), "inductor", fallback=True)
+    with pytest.raises(AttributeError):              # the function's own error, at its eager first call
+        h(torch.tensor(1.0))
 
 
 def test_cli_runs_and_resumes(tmp_path, capsys):

@@ -77,15 +77,29 @@ def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
 class _EagerFirst:
     """``fn`` eagerly on its first call (the caches it fills on first use, such as a reward's
     model constants, are then plain values to the tracer), compiled by ``torch.compile`` with
-    ``backend`` from the second on."""
+    ``backend`` from the second on. With ``fallback``, a failure of the compiler (a
+    ``TorchDynamoException``: no Triton, a backend error) warns and leaves ``fn`` eager; errors of
+    ``fn`` itself surface at its eager first call either way."""
 
-    def __init__(self, fn, backend: str):
-        self.fn, self.calls = fn, 0
+    def __init__(self, fn, backend: str, fallback: bool = False):
+        self.fn, self.calls, self.backend, self.fallback = fn, 0, backend, fallback
         self.compiled = torch.compile(fn, backend=backend, dynamic=False)
 
     def __call__(self, *args, **kwargs):
         self.calls += 1
-        return (self.fn if self.calls == 1 else self.compiled)(*args, **kwargs)
+        if self.calls == 1:
+            return self.fn(*args, **kwargs)
+        if self.calls == 2 and self.fallback:
+            from torch._dynamo.exc import TorchDynamoException
+            try:
+                return self.compiled(*args, **kwargs)
+            except TorchDynamoException as e:
+                import warnings
+                warnings.warn(f"torch.compile ({self.backend}) of the update failed, the update runs eagerly: "
+                              f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", stacklevel=2)
+                self.compiled = self.fn
+                return self.fn(*args, **kwargs)
+        return self.compiled(*args, **kwargs)
 
 
 def _adam(net, lr: float) -> torch.optim.Adam | None:
@@ -269,7 +283,7 @@ class Agent:
             loss = loss + self.settings.squash_penalty * self.policy_output(obs).square().mean()
         return loss
 
-    def compile_update(self, backend: str = "inductor") -> None:
+    def compile_update(self, backend: str = "inductor", fallback: bool = False) -> None:
         """Compile the update's losses with ``torch.compile`` (``backend``: "inductor" generates
         fused kernels; "aot_eager" only traces, a check of the tracing): the Q loss, the policy's
         and (SVG(N)) the model's, each a forward and a backward of fewer, larger kernels than the
@@ -277,13 +291,14 @@ class Agent:
         eagerly (filling what is made on first use), the second compiles (tens of seconds with
         inductor); a CUDA graph (``Updater``: after both) records the compiled kernels as it records
         eager ones. Floating-point sums may round differently from the eager
-        update's. Networks that call Warp kernels (GN) are compiled around them (graph breaks)."""
+        update's. Networks that call Warp kernels (GN) are compiled around them (graph breaks).
+        ``fallback``: a compiler's failure warns and leaves the update eager (else it raises)."""
         if backend not in ("inductor", "aot_eager"):
             raise ConfigError("torch_compile", f"a torch.compile backend: inductor or aot_eager, got {backend!r}")
         if self.compiled is not None:
             raise RuntimeError(f"the update's losses are compiled already ({self.compiled})")
         for name in self._compiled_losses():
-            setattr(self, name, _EagerFirst(getattr(self, name), backend))
+            setattr(self, name, _EagerFirst(getattr(self, name), backend, fallback))
         self.compiled = backend
 
     def _compiled_losses(self) -> tuple[str, ...]:

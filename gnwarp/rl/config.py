@@ -19,7 +19,7 @@ MAX_RL_HORIZON = 5     # SVG(N) runs accept N <= this (the paper's SVG(5+) did n
 CONFIG_FILE = "config.json"
 # keys a resumed run may change; the others must equal the folder's config.json
 RESUMABLE = ("env_steps", "chunk", "budget_seconds", "progress", "device", "tensorboard", "cuda_graph",
-             "video_episodes", "video_steps", "renderer", "sim_threads")
+             "torch_compile", "video_episodes", "video_steps", "renderer", "sim_threads")
 # AgentSettings keys the run sets itself
 _RUN_AGENT_KEYS = ("agent", "preset", "seed", "updates_per_step", "act_ahead")
 
@@ -55,7 +55,9 @@ class RLConfig:
     it; several runs side by side want few each). ``cuda_graph``: on CUDA, the gradient update is
     recorded once in a CUDA graph and replayed
     (``gnwarp.rl.graphed.Updater``; the same numbers as eager updates, several times faster).
-    ``torch_compile``: the update's losses compiled (``Agent.compile_update``; "none": eager).
+    ``torch_compile``: the update's losses compiled (``Agent.compile_update``; "none": eager;
+    "auto": "inductor" for MLP networks on CUDA where Triton imports, eager elsewhere, and eager
+    with a warning if compiling fails; ``compile_backend``).
     ``video_episodes``, ``video_steps``, ``renderer``: at the end of a call that evaluated, a GIF
     ``video.gif`` of the first ``video_steps`` steps of that many episodes of its last evaluation
     (the deterministic policy on the true simulator; ``gnwarp.eval.animate_system``).
@@ -96,9 +98,9 @@ class RLConfig:
                                                            "seconds of this call")
     tensorboard: Flag = described(True, "TensorBoard logs where torch.utils.tensorboard imports")
     cuda_graph: Flag = described(True, "on CUDA, record the gradient update in a CUDA graph and replay it")
-    torch_compile: Literal["none", "inductor", "aot_eager"] = described(
-        "none", "compile the update's losses with torch.compile (inductor: fused kernels; the first update "
-                "compiles; rounding may differ from eager updates)")
+    torch_compile: Literal["auto", "none", "inductor", "aot_eager"] = described(
+        "auto", "compile the update's losses with torch.compile (inductor: fused kernels; the second update "
+                "compiles; rounding may differ from eager updates; auto: inductor for MLPs on CUDA, else none)")
     video_episodes: Count = described(2, "episodes of the call's last evaluation in video.gif (0: no video)")
     video_steps: PositiveInt = described(300, "control steps of each episode in the video")
     renderer: Literal["auto", "mujoco", "matplotlib"] = described(

@@ -38,7 +38,7 @@ from gnwarp.rl.replay import ReplayBuffer
 from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
+__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
@@ -153,9 +153,25 @@ def build_agent(cfg: RLConfig, task, obs_fn, obs_dim: int, action_low, action_hi
         return reward_fn(obs, action, next_obs).to(obs.dtype)
     agent = make_agent(settings, D, action_low, action_high, model=model,
                        reward=reward if reward_fn is not None else None, device=device, **nets)
-    if cfg.torch_compile != "none":
-        agent.compile_update(cfg.torch_compile)
+    backend = compile_backend(cfg, device)
+    if backend != "none":
+        agent.compile_update(backend, fallback=cfg.torch_compile == "auto")
     return agent, model
+
+
+def compile_backend(cfg: RLConfig, device) -> str:
+    """The ``torch.compile`` backend of the run's update: ``cfg.torch_compile``, where "auto" is
+    "inductor" for MLP networks on CUDA with Triton importable (1.3x the training rate of SVG(1)
+    on swimmer6, H200, eighth sweep) and "none" elsewhere (the CPU, GN networks)."""
+    if cfg.torch_compile != "auto":
+        return cfg.torch_compile
+    if torch.device(device).type != "cuda" or cfg.networks != "mlp":
+        return "none"
+    try:
+        from torch.utils._triton import has_triton
+    except ImportError:
+        return "none"
+    return "inductor" if has_triton() else "none"
 
 
 def build_run(cfg: RLConfig) -> dict:
