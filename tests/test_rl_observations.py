@@ -191,6 +191,39 @@ def test_planar_chain_is_the_general_kinematics(domain):
     assert (r_fast - r_slow).abs().max() < 1e-12 and r_fast.abs().max() > 0
 
 
+@pytest.mark.parametrize("domain", ["cheetah", "walker"])
+def test_planar_chain_in_real_pairs_is_the_complex_one(domain):
+    """The chain's complex numbers as pairs of real tensors (what runs inside torch.compile) give
+    the complex tensors' states and gradients (float64)."""
+    from gnwarp.rl.planar_fk import planar_chain
+    obs = DMCObservation(domain)
+    m, chain = obs.system.model, planar_chain(obs.coords)
+    g = torch.Generator().manual_seed(7)
+    qpos = (3 * torch.randn(4, m.nq, generator=g, dtype=torch.float64)).requires_grad_(True)
+    qvel = (3 * torch.randn(4, m.nv, generator=g, dtype=torch.float64)).requires_grad_(True)
+    cx, pr = chain(qpos, qvel), chain(qpos, qvel, pairs=True)
+    assert pr.shape == cx.shape and (pr - cx).abs().max() < 1e-12
+    w = torch.randn(cx.shape, generator=g, dtype=torch.float64)
+    gc = torch.autograd.grad((cx * w).sum(), (qpos, qvel))
+    gp = torch.autograd.grad((pr * w).sum(), (qpos, qvel))
+    assert all((a - b).abs().max() < 1e-11 for a, b in zip(gc, gp))
+
+
+def test_the_planar_reward_traces_whole_for_torch_compile():
+    """Walker's reward (its planar kinematics included) traces into one graph: no graph break, so
+    an update compiled by inductor fuses it; the traced function computes the eager reward."""
+    import torch._dynamo
+    obs = DMCObservation("walker")
+    reward = ObservationReward("walker-walk", obs)
+    x = torch.randn(5, obs.size, generator=torch.Generator().manual_seed(2))
+    eager = reward(x, None, x)
+    torch._dynamo.reset()
+    explained = torch._dynamo.explain(lambda o: reward(o, None, o))(x)
+    assert explained.graph_break_count == 0 and explained.graph_count == 1, explained.break_reasons
+    traced = torch.compile(lambda o: reward(o, None, o), backend="aot_eager", fullgraph=True)(x)
+    assert (traced - eager).abs().max() < 1e-5
+
+
 def test_planar_chain_refuses_other_models():
     from gnwarp.rl.observations import JointCoordinates
     from gnwarp.rl.planar_fk import PlanarChain, not_planar, planar_chain
@@ -245,7 +278,8 @@ def test_kinematics_of_a_mixed_planar_chain_are_mujocos():
         mujoco.mj_forward(m, d)
         ref = torch.tensor(body_states(m, d))
         qpos, qvel = torch.tensor(d.qpos.copy())[None], torch.tensor(d.qvel.copy())[None]
-        for body in (chain(qpos, qvel)[0], forward_kinematics(m, qpos, qvel, coords, planar=False)[0]):
+        for body in (chain(qpos, qvel)[0], chain(qpos, qvel, pairs=True)[0],
+                     forward_kinematics(m, qpos, qvel, coords, planar=False)[0]):
             assert (body[1:] - ref[1:]).abs().max() < 1e-10
     bad = qpos.clone()
     bad[0, -1] = float("nan")                      # the second tree's hinge

@@ -9,7 +9,9 @@ and hopper), a body's orientation is one pitch angle and its x-z position and ve
 number each: a rotation by ``t`` is a product with ``exp(-i t)`` and ``w x r`` one with ``-i w``,
 and the y positions are constants. ``PlanarChain`` computes the bodies of one tree depth together
 (one level a few dozen operations), the same states as ``forward_kinematics`` to rounding
-(``tests/test_rl_observations.py``, float64, values and gradients).
+(``tests/test_rl_observations.py``, float64, values and gradients). Inside ``torch.compile``
+(an update compiled by ``torch_compile``) the complex numbers are pairs of real tensors
+(``_Pair``): inductor compiles no complex arithmetic, and so fuses the chain with the reward.
 
     >>> chain = planar_chain(JointCoordinates(model))      # None where the model is not planar
     >>> body = chain(qpos, qvel)                             # [..., nbody, 13], world first
@@ -25,6 +27,49 @@ from gnwarp.rl.observations import JointCoordinates
 __all__ = ["PlanarChain", "planar_chain", "not_planar"]
 
 _TOL = 1e-12
+
+
+class _Pair:
+    """x + iz as two real tensors (``real``, ``imag``) with the methods of a complex tensor that
+    ``PlanarChain`` calls (``add``, ``sub``, ``mul`` by a pair or a real tensor, ``unsqueeze``,
+    ``index_select``, ``sum``), in real operations. Methods, not operators: torch.compile (2.13)
+    traces a user class's method calls but breaks its graph at its operators."""
+
+    def __init__(self, real: torch.Tensor, imag: torch.Tensor):
+        self.real, self.imag = real, imag
+
+    def add(self, o: "_Pair") -> "_Pair":
+        return _Pair(self.real + o.real, self.imag + o.imag)
+
+    def sub(self, o: "_Pair") -> "_Pair":
+        return _Pair(self.real - o.real, self.imag - o.imag)
+
+    def mul(self, o) -> "_Pair":
+        if isinstance(o, _Pair):
+            return _Pair(self.real * o.real - self.imag * o.imag, self.real * o.imag + self.imag * o.real)
+        return _Pair(self.real * o, self.imag * o)
+
+    def unsqueeze(self, dim: int) -> "_Pair":
+        return _Pair(self.real.unsqueeze(dim), self.imag.unsqueeze(dim))
+
+    def index_select(self, dim: int, index: torch.Tensor) -> "_Pair":
+        return _Pair(self.real.index_select(dim, index), self.imag.index_select(dim, index))
+
+    def sum(self, dim: int) -> "_Pair":
+        return _Pair(self.real.sum(dim), self.imag.sum(dim))
+
+
+def _complex_ops(c: dict) -> dict:
+    """The chain's complex numbers as torch complex tensors (eager: fewest operations)."""
+    return dict(rot=lambda t: torch.polar(c["one"].expand_as(t), -t), make=torch.complex, cat=torch.cat,
+                const=lambda k: k)
+
+
+def _pair_ops(c: dict) -> dict:
+    """The chain's complex numbers as ``_Pair`` s (inside ``torch.compile``)."""
+    return dict(rot=lambda t: _Pair(torch.cos(t), -torch.sin(t)), make=_Pair,
+                cat=lambda xs, dim: _Pair(torch.cat([x.real for x in xs], dim), torch.cat([x.imag for x in xs], dim)),
+                const=lambda k: _Pair(*k))
 
 
 def not_planar(coords: JointCoordinates) -> str | None:
@@ -103,7 +148,11 @@ class PlanarChain:
             real = lambda v: torch.tensor(v, dtype=like.dtype, device=like.device)   # noqa: E731
             index = lambda v: torch.tensor(v, dtype=torch.long, device=like.device)  # noqa: E731
             cplx = lambda v: torch.tensor(v, dtype=cd, device=like.device)           # noqa: E731
-            c = dict(levels=[], perm=index(self._perm), y=real(self._y), one=real(1.0), mi=cplx(-1j))
+            # a pair constant as (real, imag) tensors: its _Pair is made where it is used, inside
+            # the traced function (torch.compile traces the arithmetic of pairs made there)
+            pair = lambda v: (real([z.real for z in v]), real([z.imag for z in v]))   # noqa: E731
+            c = dict(levels=[], perm=index(self._perm), y=real(self._y), one=real(1.0), mi=cplx(-1j),
+                     pairs=dict(mi=(real(0.0), real(-1.0)), levels=[]))
             # a padded slot reads column nq / nv: a zero appended to the coordinates (so that a
             # non-finite coordinate stays in its own body, and no gradient flows to another's)
             pad = lambda rows, n: [[n if k < 0 else k for k in r] for r in rows]   # noqa: E731
@@ -114,45 +163,56 @@ class PlanarChain:
                     axis=cplx(lv["axis"]), ref=real(lv["ref"]),
                     hq=index(pad([lv["hq"]], self.nq)[0]), hv=index(pad([lv["hv"]], self.nv)[0]),
                     sign=real(lv["sign"]), href=real(lv["href"]), hpos=cplx(lv["hpos"])))
+                c["pairs"]["levels"].append(dict(c["levels"][-1], bpos=pair(lv["bpos"]),
+                                                 axis=(real([[z.real for z in r] for r in lv["axis"]]),
+                                                       real([[z.imag for z in r] for r in lv["axis"]])),
+                                                 hpos=pair(lv["hpos"])))
             self._cache[key] = c
         return c
 
-    # run as is inside a compiled function (``torch.compile``: its complex arithmetic is not
-    # compiled; the agent's compiled update breaks its graph here, the rest stays compiled)
-    @torch.compiler.disable
-    def __call__(self, qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
+    def __call__(self, qpos: torch.Tensor, qvel: torch.Tensor, pairs: bool | None = None) -> torch.Tensor:
+        """``pairs``: the complex numbers as pairs of real tensors (None: inside ``torch.compile``
+        only; eager, torch's complex tensors take fewer operations)."""
         if qpos.shape[-1] != self.nq or qvel.shape[-1] != self.nv or qpos.shape[:-1] != qvel.shape[:-1]:
             raise ValueError(f"qpos [..., {self.nq}] and qvel [..., {self.nv}] with the same leading shape "
                              f"expected, got {tuple(qpos.shape)} and {tuple(qvel.shape)}")
         c = self._constants(qpos)
+        if pairs is None:
+            pairs = torch.compiler.is_compiling()
+        ops = _pair_ops(c) if pairs else _complex_ops(c)
+        k = ops["const"]   # a constant complex number (a pair: made here, from its two tensors)
+        mi, levels = (k(c["pairs"]["mi"]), c["pairs"]["levels"]) if pairs else (c["mi"], c["levels"])
         lead = qpos.shape[:-1]
-        rot = lambda t: torch.polar(c["one"].expand_as(t), -t)   # noqa: E731 - x + iz rotated by t about y
+        rot = ops["rot"]   # x + iz rotated by t about y: a product with exp(-i t)
         zero = qpos.new_zeros(*lead, 1)
         qpos, qvel = torch.cat([qpos, zero], -1), torch.cat([qvel, zero], -1)   # column nq / nv: padding
         th, w = [zero], [zero]
-        x = [torch.complex(zero, zero)]
+        x = [ops["make"](zero, zero)]
         v = [x[0]]
-        for h, lv in zip(self.levels, c["levels"]):   # host description, device constants
+        for h, lv in zip(self.levels, levels):   # host description, device constants
             P = lv["parent"]
             tp, wp = th[-1].index_select(-1, P), w[-1].index_select(-1, P)
             xp, vp = x[-1].index_select(-1, P), v[-1].index_select(-1, P)
-            jw = wp * c["mi"]                                    # w x . as a product: -i w
-            xb, vb = xp + rot(tp) * lv["bpos"], vp
+            # complex arithmetic as method calls, a complex number on the left: the same code runs
+            # on torch's complex tensors (eager) and on _Pairs (inside torch.compile)
+            jw = mi.mul(wp)                                      # w x . as a product: -i w
+            xb, vb = xp.add(rot(tp).mul(k(lv["bpos"]))), vp
             t0 = tp + lv["beta"]
             e0 = rot(t0)
             G, S = len(h["bodies"]), h["S"]
             if S:
-                ax = e0[..., None] * lv["axis"]
-                xb = xb + (ax * (qpos.index_select(-1, lv["q"]).view(*lead, G, S) - lv["ref"])).sum(-1)
-                vb = vb + (ax * qvel.index_select(-1, lv["v"]).view(*lead, G, S)).sum(-1)
-            vb = vb + jw * (xb - xp)                              # the parent's rotation carries the point
+                ax = e0.unsqueeze(-1).mul(k(lv["axis"]))
+                xb = xb.add(ax.mul(qpos.index_select(-1, lv["q"]).view(*lead, G, S) - lv["ref"]).sum(-1))
+                vb = vb.add(ax.mul(qvel.index_select(-1, lv["v"]).view(*lead, G, S)).sum(-1))
+            vb = vb.add(jw.mul(xb.sub(xp)))                      # the parent's rotation carries the point
             if h["hinge"]:
                 tb = t0 + lv["sign"] * (qpos.index_select(-1, lv["hq"]) - lv["href"])
                 wb = wp + lv["sign"] * qvel.index_select(-1, lv["hv"])
-                a0, a = e0 * lv["hpos"], rot(tb) * lv["hpos"]
+                hpos = k(lv["hpos"])
+                a0, a = e0.mul(hpos), rot(tb).mul(hpos)
                 # about the anchor (xb + a0): x = anchor - a, v = v_anchor + w x (x - anchor)
-                xb = xb + a0 - a
-                vb = vb + jw * a0 - (wb * c["mi"]) * a
+                xb = xb.add(a0).sub(a)
+                vb = vb.add(jw.mul(a0)).sub(mi.mul(wb).mul(a))
             else:
                 tb, wb = t0, wp
             th.append(tb)
@@ -161,7 +221,7 @@ class PlanarChain:
             v.append(vb)
         P = c["perm"]
         th, w = torch.cat(th, -1).index_select(-1, P), torch.cat(w, -1).index_select(-1, P)
-        x, v = torch.cat(x, -1).index_select(-1, P), torch.cat(v, -1).index_select(-1, P)
+        x, v = ops["cat"](x, -1).index_select(-1, P), ops["cat"](v, -1).index_select(-1, P)
         z = torch.zeros_like(th)
         half = th / 2
         return torch.stack([x.real, c["y"].expand_as(th), x.imag, torch.cos(half), z, torch.sin(half), z,
