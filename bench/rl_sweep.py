@@ -14,7 +14,9 @@ included, each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
 probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
 (the agents; over 15 MiB, in parts ``export.tar.part-NNN``: ``cat export.tar.part-* > export.tar``)
-into DIR: what comes back from the machine.
+into DIR: what comes back from the machine. With ``--slim``, ``slim.tar`` (parts likewise) in
+place of ``export.tar``: each run's slim copy (``gnwarp.rl.slim``), which a later machine's call
+takes up with ``--restore slim.tar`` (its runs go on, their replay buffers rebuilt first).
 
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --dry-run     # the commands, nothing run
@@ -312,18 +314,83 @@ def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
     return parts
 
 
-def pack(work, dest, part_bytes: int = PART_BYTES) -> list[Path]:
+def _run_folders(work: Path) -> list[Path]:
+    """The run folders ``<work>/<task>/<name>/s<seed>`` that hold a checkpoint."""
+    return [c.parent for c in sorted(work.glob("*/*/s*/checkpoint.pt")) if not c.relative_to(work).parts[0].startswith("_")]
+
+
+def make_slim(work) -> int:
+    """Each run folder's slim copy (``gnwarp.rl.slim.slim_run``: no replay buffer's transitions)
+    into ``<work>/_slim/<task>/<name>/s<seed>`` (an earlier call's copies replaced). How many."""
+    import shutil
+
+    from gnwarp.rl.slim import slim_run
+    work = Path(work)
+    shutil.rmtree(work / "_slim", ignore_errors=True)
+    runs = _run_folders(work)
+    for run in runs:
+        slim_run(run, work / "_slim" / run.relative_to(work))
+    return len(runs)
+
+
+def restore(work, source) -> list[str]:
+    """Put the slim copies of ``source`` (a ``slim.tar`` that ``pack(..., slim=True)`` wrote, its
+    parts ``slim.tar.part-NNN`` beside the name, or a folder holding either) into ``work`` as run
+    folders, where no run folder holds a checkpoint yet: those runs resume from them (their
+    buffers rebuilt). Only plain files and folders under ``slim/`` are read. The runs put, as
+    ``task/name/sN``."""
+    import io
+    import shutil
+    work, source = Path(work), Path(source)
+    if source.is_dir():
+        source = source / "slim.tar"
+    parts = sorted(source.parent.glob(source.name + ".part-*"))
+    if source.is_file():
+        data = source.read_bytes()
+    elif parts:
+        data = b"".join(p.read_bytes() for p in parts)
+    else:
+        raise FileNotFoundError(f"no slim copies at {source} (nor its parts {source.name}.part-NNN)")
+    put = []
+    with tarfile.open(fileobj=io.BytesIO(data)) as t:
+        members = t.getmembers()
+        for m in members:
+            rel = Path(m.name)
+            if (rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.parts[0] != "slim"
+                    or not (m.isfile() or m.isdir())):
+                raise ValueError(f"{source}: {m.name!r} is not a plain file or folder under slim/: refused")
+        runs = sorted({Path(*Path(m.name).parts[1:4]) for m in members if len(Path(m.name).parts) >= 5})
+        for run in runs:
+            dest = work / run
+            if (dest / "checkpoint.pt").exists():
+                continue
+            if dest.exists():
+                shutil.rmtree(dest)
+            for m in members:
+                rel = Path(*Path(m.name).parts[1:])
+                if m.isfile() and rel.parts[:3] == run.parts:
+                    (work / rel).parent.mkdir(parents=True, exist_ok=True)
+                    (work / rel).write_bytes(t.extractfile(m).read())
+            put.append(str(run))
+    return put
+
+
+def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False) -> list[Path]:
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
     written to a temporary name, then renamed); an ``export.tar`` over ``part_bytes`` is split
     into ``export.tar.part-NNN`` files (``split_file``), so the agents come back from a machine
-    that sends no file over 16 MiB."""
+    that sends no file over 16 MiB. ``slim``: ``slim.tar`` of the runs' slim copies
+    (``make_slim``: the agents and all a run needs to go on elsewhere, ``restore``) in place of
+    ``export.tar``, split the same way."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
-    for old in dest.glob("export.tar.part-*"):   # a previous call's parts would join into a corrupt tar
-        old.unlink()
+    for old in (*dest.glob("export.tar.part-*"), *dest.glob("slim.tar.part-*")):   # a previous call's parts
+        old.unlink()                                                                # would join into a corrupt tar
     made = []
-    for name, mode, part in (("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"),
-                             ("export.tar", "w", "_export")):
+    if slim:
+        make_slim(work)
+    third = ("slim.tar", "w", "_slim") if slim else ("export.tar", "w", "_export")
+    for name, mode, part in (("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), third):
         tmp = dest / (name + ".tmp")
         with tarfile.open(tmp, mode) as t:
             if (work / part).exists():
@@ -335,7 +402,7 @@ def pack(work, dest, part_bytes: int = PART_BYTES) -> list[Path]:
                     if not log.relative_to(work).parts[0].startswith("_"):
                         t.add(log, arcname=str(Path("runs") / log.relative_to(work)))
         tmp.replace(dest / name)
-        made += split_file(dest / name, part_bytes) if name == "export.tar" else [dest / name]
+        made += split_file(dest / name, part_bytes) if name in ("export.tar", "slim.tar") else [dest / name]
     return made
 
 
@@ -349,6 +416,12 @@ def main(argv=None) -> int:
     ap.add_argument("--mps", action="store_true",
                     help="start the CUDA MPS daemon first where it is not running (processes sharing a GPU then "
                          "run side by side instead of taking turns)")
+    ap.add_argument("--slim", action="store_true",
+                    help="pack the runs' slim copies (slim.tar: the agents and what a run needs to go on on another "
+                         "machine, its replay buffer rebuilt there) in place of the exported agents")
+    ap.add_argument("--restore", default=None, metavar="PATH",
+                    help="first, the slim copies of PATH (a slim.tar, its parts, or their folder) as run folders where "
+                         "none holds a checkpoint: those runs go on from them")
     ap.add_argument("--dry-run", action="store_true", help="print the commands and stop")
     a = ap.parse_args(argv)
     try:
@@ -371,6 +444,13 @@ def main(argv=None) -> int:
     # the processes run in the repository's root, where a relative --work lies
     work = Path(a.work) if Path(a.work).is_absolute() else ROOT / a.work
     (work / "_logs").mkdir(parents=True, exist_ok=True)
+    if a.restore:
+        try:
+            put = restore(work, a.restore)
+        except (OSError, ValueError, tarfile.TarError) as e:
+            print(f"rl_sweep: --restore: {e}", file=sys.stderr)
+            return 2
+        print(f"restored {len(put)} runs from their slim copies: {', '.join(put) or 'none'}")
     if a.mps:
         print(start_mps())
     started, lines = time.monotonic(), []
@@ -387,7 +467,7 @@ def main(argv=None) -> int:
         print(f"call: {time.monotonic() - started:.0f} s")
         print(f"records of {collect(work)} seeds under {work / '_results'}")
         if a.pack:
-            for p in pack(work, a.pack):
+            for p in pack(work, a.pack, slim=a.slim):
                 print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
     failed = sum(bad for bad, _ in lines)
     if failed:

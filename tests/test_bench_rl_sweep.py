@@ -275,3 +275,34 @@ def test_probe_seconds_stops_a_long_probe_and_the_runs_start(tmp_path):
     spec = rl_sweep.read_spec(write(tmp_path, SPEC.replace("index = 3\n", "index = 3\nprobe_seconds = 240\n")))
     jobs = rl_sweep.commands(spec, tmp_path / "w", 500)
     assert [j["probe_seconds"] for j in jobs] == [None, 240]
+
+
+def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
+    """A call with ``--slim`` packs each run's slim copy (no export); a call in another work folder
+    with ``--restore`` takes them up and the runs go on from where they stopped (their replay
+    buffers rebuilt), their records kept; a tar with a path out of slim/ is refused."""
+    run = 'runs = [{agent = "svg0", task = "pendulum-balance", seeds = "0", quick = true, env_steps = %d}]\n'
+    spec1 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % 80, "one.toml")
+    spec2 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % 160, "two.toml")
+    out1, out2 = tmp_path / "out1", tmp_path / "out2"
+    assert rl_sweep.main([str(spec1), "--call-seconds", "300", "--work", str(tmp_path / "w1"), "--pack", str(out1),
+                          "--slim"]) == 0
+    assert (out1 / "slim.tar").exists() and not (out1 / "export.tar").exists()
+    with tarfile.open(out1 / "slim.tar") as t:
+        assert f"slim/pendulum-balance/{QUICK_RUN}/s0/checkpoint.pt" in t.getnames()
+    capsys.readouterr()
+    assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w2"), "--pack", str(out2),
+                          "--restore", str(out1)]) == 0
+    text = capsys.readouterr().out
+    assert f"restored 1 runs from their slim copies: pendulum-balance/{QUICK_RUN}/s0" in text
+    assert '"env_steps": 160' in text and '"stop": "done"' in text
+    with tarfile.open(out2 / "results.tar.xz") as t:
+        recs = t.extractfile(f"results/pendulum-balance/{QUICK_RUN}/s0/records.jsonl").read().decode()
+    steps = [json.loads(line)["env_steps"] for line in recs.splitlines()]
+    assert steps == [0, 80, 160]          # the first call's evaluations kept, the second's added
+    bad = tmp_path / "bad.tar"
+    with tarfile.open(bad, "w") as t:
+        t.add(spec1, arcname="slim/../../escape.toml")
+    assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w3"),
+                          "--restore", str(bad)]) == 2
+    assert "not a plain file or folder under slim/" in capsys.readouterr().err

@@ -129,8 +129,11 @@ def _check_folder(path) -> list[str]:
         except RLCheckpointError as e:
             return [f"error: {e}"]
         env = ck.get("env", {}) if isinstance(ck, dict) else {}
+        buf = ck.get("buffer") if isinstance(ck, dict) else None
+        slim = ("; a slim copy: its replay buffer's transitions are rebuilt on resuming (gnwarp.rl.slim)"
+                if isinstance(buf, dict) and buf.get("actions_only") else "")
         return [f"ok: {path}: a gnwarp rl run; {CHECKPOINT} read and verified (no code run), "
-                f"{env.get('control_steps', '?')} env steps"]
+                f"{env.get('control_steps', '?')} env steps{slim}"]
     try:
         kind = checkpoint_config(path).get("kind")
     except CheckpointError:

@@ -46,6 +46,9 @@ def add_rl(sub, full: bool = True) -> None:
     p.add_argument("--no-tensorboard", dest="tensorboard", action="store_false", default=None,
                    help="no TensorBoard logs (default: written where torch.utils.tensorboard imports)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--slim", metavar="DEST", help="train nothing: write a resumable copy of the run in -o without "
+                   "its replay buffer's transitions (its actions and their digest; rebuilt by re-simulating them "
+                   "when DEST resumes) into the new folder DEST: the run moved in MBs (gnwarp.rl.slim; default: train)")
     p.set_defaults(func=rl_command)
 
 
@@ -118,7 +121,16 @@ def rl_config(args):
 
 
 def rl_command(args) -> int:
-    """Run ``gnwarp rl``; prints where it stopped and the last evaluation."""
+    """Run ``gnwarp rl``; prints where it stopped and the last evaluation (``--slim``: writes the
+    run's slim copy instead)."""
+    if args.slim:
+        from gnwarp.rl.slim import slim_run
+        run = Path(args.out or "runs/rl")
+        dest = slim_run(run, args.slim)
+        size = sum(f.stat().st_size for f in Path(dest).iterdir() if f.is_file())
+        print(f"wrote {dest}: the run in {run} without its replay buffer's transitions ({size / 2**20:.1f} MiB); "
+              f"gnwarp rl -o {dest} rebuilds them and trains on")
+        return 0
     cfg = rl_config(args)
     from gnwarp.rl.run import run_rl
     r = run_rl(cfg)

@@ -10,6 +10,8 @@ never cross an episode's end (SVG(N)'s and a model's multi-step data).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import re
 
 import numpy as np
 import torch
@@ -93,6 +95,8 @@ class ReplayBuffer:
         self.filled = 0   # rows holding data (<= rows)
         self.added = 0    # steps added in all (transitions: added x num_envs)
         self._starts = None   # (length, added, ptr), cumulative count of valid starts, their number
+        # set by loading an actions-only state: the digest the rebuilt buffer must have (gnwarp.rl.slim)
+        self.pending_digest: str | None = None
 
     @property
     def capacity(self) -> int:
@@ -130,16 +134,22 @@ class ReplayBuffer:
         ``next_obs`` must be the step's own final observation where it ends an episode (a vector
         env's ``infos["final_obs"]`` in "same_step" autoreset); under "next_step" autoreset, skip
         the reset step's transition."""
+        self.put(self.ptr, obs, action, reward, next_obs, terminated, truncated)
+        self.ptr = (self.ptr + 1) % self.rows
+        self.filled = min(self.filled + 1, self.rows)
+        self.added += 1
+
+    def put(self, row: int, obs, action, reward, next_obs, terminated, truncated) -> None:
+        """Write one step of every env into ring row ``row`` (checked as ``add`` checks them),
+        leaving the counters: what ``add`` and a rebuild (``gnwarp.rl.slim.rebuild_buffer``) do."""
         E, D, U = self.num_envs, self.obs_dim, self.action_dim
         vals = (self._values("obs", obs, (E, D)), self._values("action", action, (E, U)),
                 self._values("reward", reward, (E,)), self._values("next_obs", next_obs, (E, D)),
                 self._values("terminated", terminated, (E,), flag=True),
                 self._values("truncated", truncated, (E,), flag=True))
         for name, v in zip(_FIELDS, vals):
-            getattr(self, name)[self.ptr] = v
-        self.ptr = (self.ptr + 1) % self.rows
-        self.filled = min(self.filled + 1, self.rows)
-        self.added += 1
+            getattr(self, name)[row] = v
+        self._starts = None
 
     # -- sampling -------------------------------------------------------------------------------
     def _check_batch(self, batch: int, generator) -> None:
@@ -149,6 +159,9 @@ class ReplayBuffer:
             raise ReplayError(f"the generator is on {generator.device}; the buffer on {self.device}")
         if self.filled == 0:
             raise ReplayError("the replay buffer is empty: add transitions before sampling")
+        if self.pending_digest is not None:
+            raise ReplayError("the replay buffer holds its actions only (a slim checkpoint): rebuild it first "
+                              "(gnwarp.rl.slim.rebuild_buffer; run_rl does on resuming)")
 
     def gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
         """The stored transitions at ``rows`` (ring rows) and ``envs`` (any equal shapes, from
@@ -215,13 +228,28 @@ class ReplayBuffer:
         return self.gather(*self.sequence_index(batch, length, generator))
 
     # -- saving ---------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
+    def digest(self) -> str:
+        """SHA-256 (hex) of the counters and every ring's filled rows (their bytes on the host, in
+        ring order): what a buffer rebuilt from its actions must give again."""
+        if self.pending_digest is not None:
+            raise ReplayError("the replay buffer holds its actions only: it has no digest of its own until rebuilt")
+        h = hashlib.sha256(f"{self.ptr},{self.filled},{self.added},{self.dtype}".encode())
+        for name in _FIELDS:
+            h.update(getattr(self, name)[:self.filled].cpu().contiguous().numpy().tobytes())
+        return h.hexdigest()
+
+    def state_dict(self, actions_only: bool = False) -> dict:
         """Everything needed to resume exactly: the rings' filled rows (tensors; the rows past
-        them were never written) and the counters."""
+        them were never written) and the counters. ``actions_only``: the actions alone and the
+        whole buffer's ``digest`` (a slim checkpoint, ``gnwarp.rl.slim``: the rest is rebuilt by
+        re-simulating the actions)."""
         n = self.filled   # copied to the host (a GPU buffer's copy takes no device memory)
-        d = {name: getattr(self, name)[:n].to("cpu", copy=True) for name in _FIELDS}
+        names = ("action",) if actions_only else _FIELDS
+        d = {name: getattr(self, name)[:n].to("cpu", copy=True) for name in names}
         d.update(ptr=self.ptr, filled=self.filled, added=self.added, rows=self.rows, num_envs=self.num_envs,
                  obs_dim=self.obs_dim, action_dim=self.action_dim)
+        if actions_only:
+            d.update(actions_only=True, digest=self.digest())
         return d
 
     def load_state_dict(self, state: dict) -> None:
@@ -234,12 +262,22 @@ class ReplayBuffer:
                 and (n == self.rows or ptr == n)):
             raise ReplayError(f"the saved buffer's counters are inconsistent (filled={n}, ptr={ptr}, added={added}, "
                               f"{self.rows} rows): a damaged checkpoint")
-        for name in _FIELDS:
+        slim = bool(state.get("actions_only", False))
+        digest = state.get("digest") if slim else None
+        if slim and not (isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest)):
+            raise ReplayError("the saved buffer holds actions only but no valid digest of the rest: a damaged "
+                              "checkpoint")
+        names = ("action",) if slim else _FIELDS
+        for name in names:   # every saved ring checked before any is written
             ring, saved = getattr(self, name), state[name]
             if saved.shape[0] not in (n, self.rows) or saved.shape[1:] != ring.shape[1:]:
                 raise ReplayError(f"the saved buffer's {name} has shape {tuple(saved.shape)}; expected "
                                   f"{(n,) + tuple(ring.shape[1:])} ({n} filled rows)")
+        for name in _FIELDS:
+            ring = getattr(self, name)
             ring.zero_()
-            ring[:n].copy_(saved[:n])
+            if name in names:
+                ring[:n].copy_(state[name][:n])
         self.ptr, self.filled, self.added = ptr, n, added
         self._starts = None
+        self.pending_digest = digest

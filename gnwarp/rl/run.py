@@ -35,10 +35,11 @@ from gnwarp.rl.agents import restore_generator
 from gnwarp.rl.config import CONFIG_FILE, RESUMABLE, RLConfig
 from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.replay import ReplayBuffer
-from gnwarp.rl.run_log import CHECKPOINT, RECORDS_FILE, RunLog, cut_records, load_checkpoint, save_checkpoint
+from gnwarp.rl.run_log import (CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cut_records, load_checkpoint,
+                               save_checkpoint)
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
+__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
@@ -48,7 +49,6 @@ VIDEO_FILE = "video.gif"
 # what the budget keeps for the call's video until a call of the run has timed one (swimmer6's
 # default video, 2 x 300 steps, took 25-30 s on one CPU core; the budget then uses the time measured)
 VIDEO_SECONDS_GUESS = 30.0
-TIMING_FILE = "timing.json"   # the run's last checkpoint and video times: the budget's estimate of a call's end
 
 
 def _read_timing(out: Path) -> dict:
@@ -174,6 +174,24 @@ def compile_backend(cfg: RLConfig, device) -> str:
     return "inductor" if has_triton() else "none"
 
 
+def _env_kw(cfg: RLConfig, obs_fn, threads: int | None = None) -> dict:
+    """``make_vector_env``'s settings of the run's envs (``threads``: MuJoCo C's, default the run's)."""
+    kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    threads = threads if threads is not None else cfg.sim_threads
+    if threads is not None and _backend(cfg) == "mujoco":
+        kw["nthread"] = threads
+    return kw
+
+
+def training_env(cfg: RLConfig):
+    """The run's training env ("same_step" autoreset, ``num_envs`` envs), seeded at reset: what a
+    slim copy's rebuild steps (``gnwarp.rl.slim.rebuild_buffer``; a module-level function of a
+    config, so that worker processes can make their own)."""
+    from gnwarp.control.vector_env import make_vector_env
+    task = check_task(cfg)
+    return make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", **_env_kw(cfg, observation_of(cfg, task)))
+
+
 def build_run(cfg: RLConfig) -> dict:
     """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
     "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
@@ -182,9 +200,7 @@ def build_run(cfg: RLConfig) -> dict:
     task = check_task(cfg)
     device = _device(cfg.device)
     obs_fn = observation_of(cfg, task)
-    env_kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
-    if cfg.sim_threads is not None and _backend(cfg) == "mujoco":
-        env_kw["nthread"] = cfg.sim_threads
+    env_kw = _env_kw(cfg, obs_fn)
     env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
     eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
@@ -427,6 +443,11 @@ def run_rl(cfg: RLConfig) -> dict:
         ck = load_checkpoint(out / CHECKPOINT)
         agent.load_state_dict(ck["agent"])
         buffer.load_state_dict(ck["buffer"])
+        if buffer.pending_digest is not None:   # a slim copy (gnwarp.rl.slim): its transitions simulated again
+            from functools import partial
+
+            from gnwarp.rl.slim import rebuild_buffer
+            rebuild_buffer(buffer, partial(training_env, cfg), partial(round_seed, cfg.seed), T, progress=cfg.progress)
         if not restore_generator(gen, ck["generator"]):
             warnings.warn(f"{out} was saved on another kind of device: its replay sampling and the agent's "
                           "exploration noise go on from their seeds, not bit for bit", RuntimeWarning, stacklevel=2)
