@@ -38,7 +38,7 @@ from bench.harness import add_run_args, device_name, experiment_out, save_result
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.graphed import Updater  # noqa: E402
 from gnwarp.rl.loop import CollectorState, run_env_steps  # noqa: E402
-from gnwarp.rl.run import build_run, compile_backend  # noqa: E402
+from gnwarp.rl.run import build_run  # noqa: E402
 
 
 def _sync(dev: torch.device) -> None:
@@ -59,7 +59,7 @@ def loop_parts(cfg: RLConfig) -> dict:
     run_env_steps(agent, env, p["buffer"], state, before, p["generator"], updater=updater)
     if p["model"] is not None:
         normalize_model(p["model"], p["buffer"])
-    return dict(p, state=state, updater=updater, agent_cfg=cfg)
+    return dict(p, state=state, updater=updater)
 
 
 def time_steps(p: dict, steps: int) -> tuple[float, int]:
@@ -152,7 +152,7 @@ def main(argv=None):
         ups = [n / s for s, n in per[w]]
         rows.append(dict(device=name, task=parts[w]["task"].name, agent=parts[w]["agent"].settings.agent,
                          way=w, act_ahead=ahead, envs=a.envs, steps=a.steps, reps=a.reps, backend=a.backend,
-                         torch_compile=compile_backend(parts[w]["agent_cfg"], dev),
+                         torch_compile=parts[w]["agent"].compile_used,   # what ran (eager after a failure)
                          env_steps_per_s=round(statistics.median(rates), 1), env_steps_per_s_each=[round(r, 1) for r in rates],
                          updates_per_s=round(statistics.median(ups), 1), first_s=round(first[w], 3),
                          date=time.strftime("%Y-%m-%d")))

@@ -14,9 +14,10 @@ included, each agent exported to ``<work>/_export/<task>/...``.
 ``--pack DIR`` then writes ``results.tar.xz`` (records), ``logs.tar.xz`` (each process's log, the
 probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) and ``export.tar``
 (the agents; over 15 MiB, in parts ``export.tar.part-NNN``: ``cat export.tar.part-* > export.tar``)
-into DIR: what comes back from the machine. With ``--slim``, ``slim.tar`` (parts likewise) in
-place of ``export.tar``: each run's slim copy (``gnwarp.rl.slim``), which a later machine's call
-takes up with ``--restore slim.tar`` (its runs go on, their replay buffers rebuilt first).
+into DIR: what comes back from the machine. With ``--slim``, also ``slim.tar`` (parts likewise):
+each unfinished run's slim copy (``gnwarp.rl.slim``; ~20 MB a 1M-step swimmer6 run), which a
+later machine's call takes up with ``--restore slim.tar`` (its runs go on, their replay buffers
+rebuilt first).
 
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --dry-run     # the commands, nothing run
@@ -49,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -65,6 +67,7 @@ if str(ROOT) not in sys.path:
 from bench.rl_seeds import COPIED, file_seed, run_name, seed_config, seeds_of  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.run import check_task  # noqa: E402
+from gnwarp.rl.run_log import CHECKPOINT  # noqa: E402
 from gnwarp.validation import ConfigError, read_config_file  # noqa: E402
 
 __all__ = ["read_spec", "commands", "main", "collect", "pack", "start_mps"]
@@ -271,17 +274,21 @@ def start_mps() -> str:
     return "MPS: daemon started" if rc.returncode == 0 else f"MPS: could not start the daemon ({rc.stderr.strip()})"
 
 
+def _run_folders(work: Path, holding: str) -> list[Path]:
+    """The run folders ``<work>/<task>/<name>/s<seed>`` (not the sweep's own ``_*`` folders) that
+    hold a file matching ``holding``, each once."""
+    found = {f.parent for f in work.glob(f"*/*/s*/{holding}") if not f.relative_to(work).parts[0].startswith("_")}
+    return sorted(found)
+
+
 def collect(work) -> int:
     """Copy every run folder's records (``COPIED``) to ``<work>/_results`` as ``bench/rl_seeds.py``
     files them when a seed's process ends (``file_seed``): also for a process killed at the
     deadline, whose evaluations up to then are kept. The number of seeds copied."""
     import json
     work, n = Path(work), 0
-    for rec in sorted(work.glob("*/*/s*/records.jsonl")):
-        seed_dir = rec.parent
+    for seed_dir in _run_folders(work, "records.jsonl"):
         rel = seed_dir.relative_to(work)
-        if rel.parts[0].startswith("_"):
-            continue
         try:   # under the task its config names, as rl_seeds files it (a quick run's differs from the spec's)
             task = json.loads((seed_dir / "config.json").read_text())["task"]
         except (OSError, ValueError, KeyError, TypeError):
@@ -314,23 +321,33 @@ def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
     return parts
 
 
-def _run_folders(work: Path) -> list[Path]:
-    """The run folders ``<work>/<task>/<name>/s<seed>`` that hold a checkpoint."""
-    return [c.parent for c in sorted(work.glob("*/*/s*/checkpoint.pt")) if not c.relative_to(work).parts[0].startswith("_")]
-
-
-def make_slim(work) -> int:
-    """Each run folder's slim copy (``gnwarp.rl.slim.slim_run``: no replay buffer's transitions)
-    into ``<work>/_slim/<task>/<name>/s<seed>`` (an earlier call's copies replaced). How many."""
+def make_slim(work) -> list[str]:
+    """Each unfinished run's slim copy (``gnwarp.rl.slim.slim_run``: no replay buffer's
+    transitions) into ``<work>/_slim/<task>/<name>/s<seed>`` (an earlier call's copies replaced);
+    a run still slim (restored, not yet checkpointed since) copied as it is; a finished run has
+    none (its agent is exported). A run that fails is reported, the others go on. The lines."""
+    import json
     import shutil
 
+    from gnwarp.rl.run_log import load_checkpoint
     from gnwarp.rl.slim import slim_run
     work = Path(work)
     shutil.rmtree(work / "_slim", ignore_errors=True)
-    runs = _run_folders(work)
-    for run in runs:
-        slim_run(run, work / "_slim" / run.relative_to(work))
-    return len(runs)
+    lines = []
+    for run in _run_folders(work, CHECKPOINT):
+        rel = run.relative_to(work)
+        try:
+            ck = load_checkpoint(run / CHECKPOINT)
+            if ck["agent"]["env_steps"] >= json.loads((run / "config.json").read_text())["env_steps"]:
+                continue   # finished: nothing to go on with
+            if ck["buffer"].get("actions_only"):
+                shutil.copytree(run, work / "_slim" / rel)
+            else:
+                slim_run(run, work / "_slim" / rel)
+            lines.append(f"slim copy of {rel} ({ck['agent']['env_steps']} env steps)")
+        except Exception as e:   # noqa: BLE001 - one run's failure must not cost the call's archives
+            lines.append(f"no slim copy of {rel}: {type(e).__name__}: {e}")
+    return lines
 
 
 def restore(work, source) -> list[str]:
@@ -354,15 +371,19 @@ def restore(work, source) -> list[str]:
     put = []
     with tarfile.open(fileobj=io.BytesIO(data)) as t:
         members = t.getmembers()
-        for m in members:
+        for m in members:   # slim/, slim/<task>/<name>/s<seed>/ and the run folders' own files only
             rel = Path(m.name)
-            if (rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.parts[0] != "slim"
-                    or not (m.isfile() or m.isdir())):
-                raise ValueError(f"{source}: {m.name!r} is not a plain file or folder under slim/: refused")
-        runs = sorted({Path(*Path(m.name).parts[1:4]) for m in members if len(Path(m.name).parts) >= 5})
+            ok = (not rel.is_absolute() and ".." not in rel.parts and rel.parts and rel.parts[0] == "slim"
+                  and all(not part.startswith(("_", ".")) for part in rel.parts[1:3])
+                  and (len(rel.parts) < 4 or re.fullmatch(r"s\d+", rel.parts[3]))
+                  and ((m.isdir() and len(rel.parts) <= 4) or (m.isfile() and len(rel.parts) == 5)))
+            if not ok:
+                raise ValueError(f"{source}: {m.name!r} is not a run folder's plain file or a folder under "
+                                 "slim/<task>/<run>/s<seed>: refused")
+        runs = sorted({Path(*Path(m.name).parts[1:4]) for m in members if len(Path(m.name).parts) == 5})
         for run in runs:
             dest = work / run
-            if (dest / "checkpoint.pt").exists():
+            if (dest / CHECKPOINT).exists():
                 continue
             if dest.exists():
                 shutil.rmtree(dest)
@@ -379,18 +400,19 @@ def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False) -> list[P
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
     written to a temporary name, then renamed); an ``export.tar`` over ``part_bytes`` is split
     into ``export.tar.part-NNN`` files (``split_file``), so the agents come back from a machine
-    that sends no file over 16 MiB. ``slim``: ``slim.tar`` of the runs' slim copies
-    (``make_slim``: the agents and all a run needs to go on elsewhere, ``restore``) in place of
-    ``export.tar``, split the same way."""
+    that sends no file over 16 MiB. ``slim``: also ``slim.tar`` of the unfinished runs' slim
+    copies (``make_slim``: all a run needs to go on elsewhere, ``restore``), split the same way."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     for old in (*dest.glob("export.tar.part-*"), *dest.glob("slim.tar.part-*")):   # a previous call's parts
         old.unlink()                                                                # would join into a corrupt tar
     made = []
+    archives = [("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), ("export.tar", "w", "_export")]
     if slim:
-        make_slim(work)
-    third = ("slim.tar", "w", "_slim") if slim else ("export.tar", "w", "_export")
-    for name, mode, part in (("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), third):
+        for line in make_slim(work):   # after the records and logs are safe: a run's copy may fail
+            print(line)
+        archives.append(("slim.tar", "w", "_slim"))
+    for name, mode, part in archives:
         tmp = dest / (name + ".tmp")
         with tarfile.open(tmp, mode) as t:
             if (work / part).exists():
@@ -398,8 +420,8 @@ def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False) -> list[P
             if name == "logs.tar.xz":   # the probes' own output folder, each seed's log in its run folder
                 if (work / "_probes").exists():
                     t.add(work / "_probes", arcname="probes")
-                for log in sorted(work.glob("*/*/s*/*.log")):
-                    if not log.relative_to(work).parts[0].startswith("_"):
+                for run in _run_folders(work, "*.log"):
+                    for log in sorted(run.glob("*.log")):
                         t.add(log, arcname=str(Path("runs") / log.relative_to(work)))
         tmp.replace(dest / name)
         made += split_file(dest / name, part_bytes) if name in ("export.tar", "slim.tar") else [dest / name]
@@ -417,8 +439,8 @@ def main(argv=None) -> int:
                     help="start the CUDA MPS daemon first where it is not running (processes sharing a GPU then "
                          "run side by side instead of taking turns)")
     ap.add_argument("--slim", action="store_true",
-                    help="pack the runs' slim copies (slim.tar: the agents and what a run needs to go on on another "
-                         "machine, its replay buffer rebuilt there) in place of the exported agents")
+                    help="also pack the unfinished runs' slim copies (slim.tar: what a run needs to go on on another "
+                         "machine, its replay buffer rebuilt there)")
     ap.add_argument("--restore", default=None, metavar="PATH",
                     help="first, the slim copies of PATH (a slim.tar, its parts, or their folder) as run folders where "
                          "none holds a checkpoint: those runs go on from them")

@@ -281,18 +281,18 @@ def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
     """A call with ``--slim`` packs each run's slim copy (no export); a call in another work folder
     with ``--restore`` takes them up and the runs go on from where they stopped (their replay
     buffers rebuilt), their records kept; a tar with a path out of slim/ is refused."""
-    run = 'runs = [{agent = "svg0", task = "pendulum-balance", seeds = "0", quick = true, env_steps = %d}]\n'
-    spec1 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % 80, "one.toml")
-    spec2 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % 160, "two.toml")
+    run = 'runs = [{agent = "svg0", task = "pendulum-balance", seeds = "0", quick = true, env_steps = 160%s}]\n'
+    spec1 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % ', set = ["chunk=40"]', "one.toml")   # stops at 40
+    spec2 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % "", "two.toml")
     out1, out2 = tmp_path / "out1", tmp_path / "out2"
     assert rl_sweep.main([str(spec1), "--call-seconds", "300", "--work", str(tmp_path / "w1"), "--pack", str(out1),
                           "--slim"]) == 0
-    assert (out1 / "slim.tar").exists() and not (out1 / "export.tar").exists()
+    assert (out1 / "slim.tar").exists() and (out1 / "export.tar").exists()
     with tarfile.open(out1 / "slim.tar") as t:
         assert f"slim/pendulum-balance/{QUICK_RUN}/s0/checkpoint.pt" in t.getnames()
-    capsys.readouterr()
+    assert f"slim copy of pendulum-balance/{QUICK_RUN}/s0 (40 env steps)" in capsys.readouterr().out
     assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w2"), "--pack", str(out2),
-                          "--restore", str(out1)]) == 0
+                          "--restore", str(out1), "--slim"]) == 0
     text = capsys.readouterr().out
     assert f"restored 1 runs from their slim copies: pendulum-balance/{QUICK_RUN}/s0" in text
     assert '"env_steps": 160' in text and '"stop": "done"' in text
@@ -300,9 +300,31 @@ def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
         recs = t.extractfile(f"results/pendulum-balance/{QUICK_RUN}/s0/records.jsonl").read().decode()
     steps = [json.loads(line)["env_steps"] for line in recs.splitlines()]
     assert steps == [0, 80, 160]          # the first call's evaluations kept, the second's added
-    bad = tmp_path / "bad.tar"
-    with tarfile.open(bad, "w") as t:
-        t.add(spec1, arcname="slim/../../escape.toml")
-    assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w3"),
-                          "--restore", str(bad)]) == 2
-    assert "not a plain file or folder under slim/" in capsys.readouterr().err
+    with tarfile.open(out2 / "slim.tar") as t:   # a finished run has no slim copy
+        assert not [n for n in t.getnames() if n.endswith(".pt")]
+    for name in ("slim/../../escape.toml", "slim/_results/t/s0/f", "slim/t/n/s0/deeper/f", "slim/t/n/x0/f"):
+        bad = tmp_path / "bad.tar"
+        with tarfile.open(bad, "w") as t:
+            t.add(spec1, arcname=name)
+        assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w3"),
+                              "--restore", str(bad)]) == 2
+        assert "refused" in capsys.readouterr().err, name
+
+
+def test_make_slim_copies_a_still_slim_run_and_reports_a_failing_one(tmp_path):
+    """A restored run not yet checkpointed is copied as it is; a run whose copy fails is reported
+    and the others still get theirs (the call's archives must not be lost)."""
+    from gnwarp.rl.config import RLConfig
+    from gnwarp.rl.run import run_rl
+    from gnwarp.rl.slim import slim_run
+    from tests.test_rl_run import TINY
+    work = tmp_path / "w"
+    run_rl(RLConfig(**{**TINY, "agent": "ddpg"}, out=str(work / "t" / "a" / "s0"), chunk=20))
+    slim_run(work / "t" / "a" / "s0", work / "t" / "b" / "s0")          # still slim: copied as it is
+    (work / "t" / "c" / "s0").mkdir(parents=True)
+    (work / "t" / "c" / "s0" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    lines = rl_sweep.make_slim(work)
+    assert any(ln.startswith("no slim copy of t/c/s0") for ln in lines), lines
+    assert "slim copy of t/a/s0 (20 env steps)" in lines and "slim copy of t/b/s0 (20 env steps)" in lines
+    assert (work / "_slim" / "t" / "b" / "s0" / "checkpoint.pt").read_bytes() == \
+        (work / "t" / "b" / "s0" / "checkpoint.pt").read_bytes()

@@ -368,6 +368,22 @@ def test_a_failing_compiler_falls_back_to_eager_only_where_asked(monkeypatch):
     g(torch.tensor(1.0))
     with pytest.raises(dynamo_exc.BackendCompilerFailed):
         g(torch.tensor(1.0))
+    monkeypatch.undo()
+    # a backend whose forward compiles but whose backward does not: the failure shows at the
+    # compiling call (not at a later backward()), and the loss goes on eagerly with its gradient
+    from torch._dynamo.backends.common import aot_autograd
+
+    def no_backward(gm, example_inputs):
+        raise RuntimeError("no backward compiler here")
+    half = aot_autograd(fw_compiler=lambda gm, ex: gm, bw_compiler=no_backward)
+    torch._dynamo.reset()
+    w = torch.tensor([1.5, -2.0], requires_grad=True)
+    k = _EagerFirst(lambda x: (w * x).square().sum(), half, fallback=True)
+    k(torch.ones(2))
+    with pytest.warns(UserWarning, match="runs eagerly"):
+        loss = k(torch.tensor([2.0, 3.0]))
+    loss.backward()
+    assert k.fell_back and torch.allclose(w.grad, 2 * w.detach() * torch.tensor([4.0, 9.0]))
     h = _EagerFirst(lambda x: x.undefined_method(), "inductor", fallback=True)
     with pytest.raises(AttributeError):              # the function's own error, at its eager first call
         h(torch.tensor(1.0))

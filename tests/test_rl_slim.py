@@ -89,7 +89,7 @@ def test_rebuild_refuses_a_buffer_of_partial_rounds():
     buf.added, buf.filled, buf.ptr = 15, 15, 15 % buf.rows   # 15 steps: not whole rounds of 10
     buf.pending_digest = "0" * 64
 
-    def no_env(n):
+    def no_env():
         raise AssertionError("no env is made for a buffer that cannot be rebuilt")
     with pytest.raises(ReplayError, match="not whole rounds"):
         rebuild_buffer(buf, no_env, lambda r: r, 10)
@@ -151,3 +151,12 @@ def test_svg1_slim_copy_on_the_suites_swimmer_resumes_bit_for_bit(tmp_path):
     for key in ("agent", "buffer", "generator", "collector"):
         _tensors_equal(a[key], b[key], key)
     assert _eval_returns(tmp_path / "run") == _eval_returns(tmp_path / "slim")
+
+
+def test_a_buffer_that_keeps_part_of_a_round_is_refused_at_slim_time(tmp_path):
+    """25 rows a ring with 10-step episodes: once wrapped, the oldest kept round lost its first
+    steps' actions, so a copy could never rebuild it; slim_run says so before anything is written."""
+    run_rl(RLConfig(**{**TINY, "agent": "ddpg", "buffer_size": 50}, out=str(tmp_path / "run")))
+    with pytest.raises(ValueError, match="not whole rounds of 10 steps"):
+        slim_run(tmp_path / "run", tmp_path / "slim")
+    assert not (tmp_path / "slim").exists()

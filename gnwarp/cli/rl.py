@@ -101,12 +101,17 @@ def _set(d: dict, item: str) -> None:
     d[leaf] = value
 
 
+def _out(args) -> str:
+    """The run folder of a ``gnwarp rl`` call: -o, else the config file's ``out``, else runs/rl."""
+    return args.out or (_read(Path(args.config)).get("out") if args.config else None) or "runs/rl"
+
+
 def rl_config(args):
     """The ``RLConfig`` of a ``gnwarp rl`` call: the folder's config.json (a resumed run, less its
     per-call limits), then the config file, ``--set`` and the flags on top."""
     from gnwarp.rl.config import CONFIG_FILE, RLConfig
     from gnwarp.validation import config_flags_given
-    out = args.out or (_read(Path(args.config)).get("out") if args.config else None) or "runs/rl"
+    out = _out(args)
     saved = Path(out) / CONFIG_FILE
     raw = {k: v for k, v in _read(saved).items() if k not in _PER_CALL} if saved.is_file() else {}
     if args.config:
@@ -125,7 +130,7 @@ def rl_command(args) -> int:
     run's slim copy instead)."""
     if args.slim:
         from gnwarp.rl.slim import slim_run
-        run = Path(args.out or "runs/rl")
+        run = Path(_out(args))
         dest = slim_run(run, args.slim)
         size = sum(f.stat().st_size for f in Path(dest).iterdir() if f.is_file())
         print(f"wrote {dest}: the run in {run} without its replay buffer's transitions ({size / 2**20:.1f} MiB); "

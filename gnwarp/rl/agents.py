@@ -77,29 +77,44 @@ def _bounds(low, high, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
 class _EagerFirst:
     """``fn`` eagerly on its first call (the caches it fills on first use, such as a reward's
     model constants, are then plain values to the tracer), compiled by ``torch.compile`` with
-    ``backend`` from the second on. With ``fallback``, a failure of the compiler (a
-    ``TorchDynamoException``: no Triton, a backend error) warns and leaves ``fn`` eager; errors of
-    ``fn`` itself surface at its eager first call either way."""
+    ``backend`` from the second on; that call also compiles the backward (not lazily at the first
+    ``backward()``), so that a compiler's failure shows there. With ``fallback``, such a failure
+    (a ``TorchDynamoException``: no Triton, a backend error) warns and leaves ``fn`` eager
+    (``fell_back``); errors of ``fn`` itself surface at its eager first call either way."""
 
-    def __init__(self, fn, backend: str, fallback: bool = False):
-        self.fn, self.calls, self.backend, self.fallback = fn, 0, backend, fallback
+    def __init__(self, fn, backend, fallback: bool = False):
+        self.fn, self.calls, self.backend, self.fallback, self.fell_back = fn, 0, backend, fallback, False
         self.compiled = torch.compile(fn, backend=backend, dynamic=False)
 
     def __call__(self, *args, **kwargs):
         self.calls += 1
         if self.calls == 1:
             return self.fn(*args, **kwargs)
-        if self.calls == 2 and self.fallback:
-            from torch._dynamo.exc import TorchDynamoException
-            try:
+        if self.calls > 2:
+            return self.compiled(*args, **kwargs)
+        from torch._dynamo.exc import TorchDynamoException
+        try:
+            with _backward_compiled_now():
                 return self.compiled(*args, **kwargs)
-            except TorchDynamoException as e:
-                import warnings
-                warnings.warn(f"torch.compile ({self.backend}) of the update failed, the update runs eagerly: "
-                              f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", stacklevel=2)
-                self.compiled = self.fn
-                return self.fn(*args, **kwargs)
-        return self.compiled(*args, **kwargs)
+        except TorchDynamoException as e:
+            if not self.fallback:
+                raise
+            import warnings
+            warnings.warn(f"torch.compile ({self.backend}) of the update failed, the update runs eagerly: "
+                          f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", stacklevel=2)
+            self.compiled, self.fell_back = self.fn, True
+            return self.fn(*args, **kwargs)
+
+
+def _backward_compiled_now():
+    """AOTAutograd compiling the backward with the forward (torch's
+    ``force_non_lazy_backward_lowering``; a no-op where this torch has no such setting)."""
+    import contextlib
+    try:
+        import torch._functorch.config as functorch_config
+        return functorch_config.patch(force_non_lazy_backward_lowering=True)
+    except (ImportError, AttributeError, KeyError):
+        return contextlib.nullcontext()
 
 
 def _adam(net, lr: float) -> torch.optim.Adam | None:
@@ -300,6 +315,14 @@ class Agent:
         for name in self._compiled_losses():
             setattr(self, name, _EagerFirst(getattr(self, name), backend, fallback))
         self.compiled = backend
+
+    @property
+    def compile_used(self) -> str:
+        """The backend the update's losses run compiled with: ``compiled``, or "none" where they
+        run eagerly (never compiled, or back to eager after a compiler's failure)."""
+        if self.compiled is None or any(getattr(getattr(self, n), "fell_back", False) for n in self._compiled_losses()):
+            return "none"
+        return self.compiled
 
     def _compiled_losses(self) -> tuple[str, ...]:
         return ("q_loss", "policy_update_loss")

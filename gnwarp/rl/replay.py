@@ -124,7 +124,8 @@ class ReplayBuffer:
             raise ReplayError(f"{name} must hold real numbers, got {v.dtype}")
         v = v.to(self.device, self.dtype)
         if self.check_finite and not bool(torch.isfinite(v).all()):
-            bad = (~torch.isfinite(v.reshape(self.num_envs, -1))).any(-1).nonzero().flatten().tolist()
+            envs = len(shape) - (2 if name in ("obs", "next_obs", "action") else 1)   # the envs' axis
+            bad = (~torch.isfinite(v)).movedim(envs, 0).reshape(self.num_envs, -1).any(-1).nonzero().flatten().tolist()
             raise ReplayError(f"{name} has NaN or Inf values (envs {bad})")
         return v
 
@@ -141,15 +142,32 @@ class ReplayBuffer:
 
     def put(self, row: int, obs, action, reward, next_obs, terminated, truncated) -> None:
         """Write one step of every env into ring row ``row`` (checked as ``add`` checks them),
-        leaving the counters: what ``add`` and a rebuild (``gnwarp.rl.slim.rebuild_buffer``) do."""
+        leaving the counters (what ``add`` does)."""
+        self._write(row, (), obs, action, reward, next_obs, terminated, truncated)
+
+    def put_rows(self, rows, obs, action, reward, next_obs, terminated, truncated) -> None:
+        """Write ``len(rows)`` steps of every env into ring rows ``rows`` at once: values with a
+        leading axis of that length (``obs`` [n, E, D], ...), checked as ``add`` checks them,
+        leaving the counters (a rebuild, ``gnwarp.rl.slim.rebuild_buffer``, writes a round so)."""
+        rows = torch.as_tensor(rows, dtype=torch.long, device=self.device)
+        if rows.ndim != 1 or not bool(((rows >= 0) & (rows < self.rows)).all()):
+            raise ReplayError(f"rows must be a list of ring rows in [0, {self.rows}), got {rows.tolist()}")
+        self._write(rows, (len(rows),), obs, action, reward, next_obs, terminated, truncated)
+
+    def _write(self, index, lead: tuple, *values) -> None:
         E, D, U = self.num_envs, self.obs_dim, self.action_dim
-        vals = (self._values("obs", obs, (E, D)), self._values("action", action, (E, U)),
-                self._values("reward", reward, (E,)), self._values("next_obs", next_obs, (E, D)),
-                self._values("terminated", terminated, (E,), flag=True),
-                self._values("truncated", truncated, (E,), flag=True))
+        shapes = ((E, D), (E, U), (E,), (E, D), (E,), (E,))
+        vals = [self._values(name, v, lead + shape, flag=name in ("terminated", "truncated"))
+                for name, v, shape in zip(_FIELDS, values, shapes)]
         for name, v in zip(_FIELDS, vals):
-            getattr(self, name)[row] = v
+            getattr(self, name)[index] = v
         self._starts = None
+
+    def _check_rebuilt(self) -> None:
+        """Refuse to read or save a buffer that holds its actions only (loaded from a slim checkpoint)."""
+        if self.pending_digest is not None:
+            raise ReplayError("the replay buffer holds its actions only (a slim checkpoint): rebuild it first "
+                              "(gnwarp.rl.slim.rebuild_buffer; run_rl does on resuming)")
 
     # -- sampling -------------------------------------------------------------------------------
     def _check_batch(self, batch: int, generator) -> None:
@@ -159,14 +177,13 @@ class ReplayBuffer:
             raise ReplayError(f"the generator is on {generator.device}; the buffer on {self.device}")
         if self.filled == 0:
             raise ReplayError("the replay buffer is empty: add transitions before sampling")
-        if self.pending_digest is not None:
-            raise ReplayError("the replay buffer holds its actions only (a slim checkpoint): rebuild it first "
-                              "(gnwarp.rl.slim.rebuild_buffer; run_rl does on resuming)")
+        self._check_rebuilt()
 
     def gather(self, rows: torch.Tensor, envs: torch.Tensor) -> Transitions:
         """The stored transitions at ``rows`` (ring rows) and ``envs`` (any equal shapes, from
         ``sample_index`` or ``sequence_index``): ``Transitions`` of that shape. No host sync, so a
         CUDA graph may record it with the indices in static tensors."""
+        self._check_rebuilt()
         return Transitions(*(getattr(self, name)[rows, envs] for name in _FIELDS))
 
     def sample_index(self, batch: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -243,6 +260,7 @@ class ReplayBuffer:
         them were never written) and the counters. ``actions_only``: the actions alone and the
         whole buffer's ``digest`` (a slim checkpoint, ``gnwarp.rl.slim``: the rest is rebuilt by
         re-simulating the actions)."""
+        self._check_rebuilt()
         n = self.filled   # copied to the host (a GPU buffer's copy takes no device memory)
         names = ("action",) if actions_only else _FIELDS
         d = {name: getattr(self, name)[:n].to("cpu", copy=True) for name in names}

@@ -183,13 +183,15 @@ def _env_kw(cfg: RLConfig, obs_fn, threads: int | None = None) -> dict:
     return kw
 
 
-def training_env(cfg: RLConfig):
-    """The run's training env ("same_step" autoreset, ``num_envs`` envs), seeded at reset: what a
-    slim copy's rebuild steps (``gnwarp.rl.slim.rebuild_buffer``; a module-level function of a
-    config, so that worker processes can make their own)."""
+def training_env(cfg: RLConfig, threads: int | None = None):
+    """The run's training env ("same_step" autoreset, ``num_envs`` envs; ``threads``: MuJoCo C's,
+    default the run's), seeded at reset: what a slim copy's rebuild steps
+    (``gnwarp.rl.slim.rebuild_buffer``; a module-level function of a config, so that worker
+    processes can make their own)."""
     from gnwarp.control.vector_env import make_vector_env
     task = check_task(cfg)
-    return make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", **_env_kw(cfg, observation_of(cfg, task)))
+    return make_vector_env(task, cfg.num_envs, autoreset_mode="same_step",
+                           **_env_kw(cfg, observation_of(cfg, task), threads))
 
 
 def build_run(cfg: RLConfig) -> dict:
@@ -420,6 +422,17 @@ def normalize_model(model, buffer: ReplayBuffer) -> bool:
     return True
 
 
+def _rebuild(cfg: RLConfig, buffer: ReplayBuffer, episode_steps: int) -> None:
+    """A slim copy's replay buffer rebuilt (``gnwarp.rl.slim.rebuild_buffer``): on MuJoCo C in
+    worker processes of one thread each, on a GPU simulator in this process."""
+    from functools import partial
+
+    from gnwarp.rl.slim import rebuild_buffer
+    cpu_sim = _backend(cfg) == "mujoco"
+    rebuild_buffer(buffer, partial(training_env, cfg, 1 if cpu_sim else None), partial(round_seed, cfg.seed),
+                   episode_steps, workers=None if cpu_sim else 1, progress=cfg.progress)
+
+
 def run_rl(cfg: RLConfig) -> dict:
     """Train (or go on training) the run of ``cfg`` in ``cfg.out`` until ``cfg.env_steps``, the
     ``chunk`` or the ``budget_seconds``. Returns {"stop": "done" | "chunk" | "budget",
@@ -440,21 +453,23 @@ def run_rl(cfg: RLConfig) -> dict:
     c = dict(round=0, episodes=0, seconds=0.0, last_eval=None, normalized=False)
     keep_until = None
     if resume:
-        ck = load_checkpoint(out / CHECKPOINT)
-        agent.load_state_dict(ck["agent"])
-        buffer.load_state_dict(ck["buffer"])
-        if buffer.pending_digest is not None:   # a slim copy (gnwarp.rl.slim): its transitions simulated again
-            from functools import partial
-
-            from gnwarp.rl.slim import rebuild_buffer
-            rebuild_buffer(buffer, partial(training_env, cfg), partial(round_seed, cfg.seed), T, progress=cfg.progress)
-        if not restore_generator(gen, ck["generator"]):
-            warnings.warn(f"{out} was saved on another kind of device: its replay sampling and the agent's "
-                          "exploration noise go on from their seeds, not bit for bit", RuntimeWarning, stacklevel=2)
-        state = CollectorState.from_state_dict(ck["collector"], parts["device"])
-        c = ck["counters"]
-        _set_rng_states(ck["rng"])
-        keep_until = agent.env_steps
+        try:
+            ck = load_checkpoint(out / CHECKPOINT)
+            agent.load_state_dict(ck["agent"])
+            buffer.load_state_dict(ck["buffer"])
+            if buffer.pending_digest is not None:   # a slim copy (gnwarp.rl.slim): its transitions simulated again
+                _rebuild(cfg, buffer, T)
+            if not restore_generator(gen, ck["generator"]):
+                warnings.warn(f"{out} was saved on another kind of device: its replay sampling and the agent's "
+                              "exploration noise go on from their seeds, not bit for bit", RuntimeWarning, stacklevel=2)
+            state = CollectorState.from_state_dict(ck["collector"], parts["device"])
+            c = ck["counters"]
+            _set_rng_states(ck["rng"])
+            keep_until = agent.env_steps
+        except BaseException:   # a refused checkpoint or rebuild: the envs made above closed
+            env.close()
+            eval_env.close()
+            raise
     records_path = out / RECORDS_FILE
     cut_records(records_path, keep_until)
     log = RunLog(out, keep_until, cfg.tensorboard)

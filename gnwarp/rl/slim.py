@@ -2,8 +2,8 @@
 from it: a run moved between machines (a lent GPU that keeps nothing between sessions) in the
 size of its actions.
 
-A run's checkpoint holds its whole replay buffer: on swimmer6 at 1M env steps ~250 MB of
-observations, next observations and rewards beside ~20 MB of actions. Every round of a run starts
+A run's checkpoint holds its whole replay buffer: on swimmer6 at 1M env steps 217 MB, of which
+the actions are 20 MB (``bench/rl_slim.py``). Every round of a run starts
 its episodes from seeded resets (``round_seed``) and the simulator is deterministic, so stepping
 the stored actions again gives the stored transitions again. ``slim_run(run, dest)`` writes a
 folder that ``run_rl`` resumes like the run: its checkpoint holds the agent, the loop's state, the
@@ -68,7 +68,15 @@ def slim_run(run, dest) -> Path:
         raise RLCheckpointError(f"{run / CHECKPOINT} holds no replay buffer")
     if ck["buffer"].get("actions_only"):
         raise ValueError(f"{run} is a slim copy already: copy its folder as it is")
-    ck["buffer"] = _buffer_of(ck["buffer"]).state_dict(actions_only=True)
+    buf = _buffer_of(ck["buffer"])
+    T = (ck.get("env") or {}).get("episode_steps") if isinstance(ck.get("env"), dict) else None
+    if not isinstance(T, int) or T < 1:
+        raise RLCheckpointError(f"{run / CHECKPOINT} does not name its episodes' length (env.episode_steps)")
+    if buf.added % T or (buf.added - buf.filled) % T:
+        raise ValueError(f"the run's replay buffer keeps {buf.filled} of its {buf.added} steps, not whole rounds of "
+                         f"{T} steps (its {buf.rows} rows a ring are not a multiple of the episode length, and it "
+                         "wrapped): a slim copy of it could not be rebuilt. Copy the run's folder as it is")
+    ck["buffer"] = buf.state_dict(actions_only=True)
     cfg["out"] = str(dest)
     if isinstance(ck.get("config"), dict):
         ck["config"]["out"] = str(dest)
@@ -126,8 +134,10 @@ def rebuild_buffer(buffer: ReplayBuffer, make_env: Callable[[], object], seed_of
     its ring row. ``make_env()``: the run's training env ("same_step" autoreset, ``num_envs``
     envs: the very shapes the run stepped, so that every operation rounds as it did).
     ``workers`` processes re-simulate rounds side by side, each with its own env (``make_env``
-    then must pickle); None: one per core up to 16, or this process alone below
-    ``IN_PROCESS_STEPS`` env steps. Raises ``ReplayError`` unless the rebuilt buffer has the
+    then must pickle; they start as new interpreters, "spawn", which import the calling script:
+    a script guards its own work with ``if __name__ == "__main__"``); None: one per core up to
+    16, or this process alone below ``IN_PROCESS_STEPS`` env steps. An env on the GPU
+    (MuJoCo-Warp) wants 1: one process holds the device. Raises ``ReplayError`` unless the rebuilt buffer has the
     saved digest (it is then left actions-only). Returns the seconds it took (0 where nothing
     was pending)."""
     digest = buffer.pending_digest
@@ -151,10 +161,9 @@ def rebuild_buffer(buffer: ReplayBuffer, make_env: Callable[[], object], seed_of
     try:
         with tqdm(total=len(rounds) * T * E, unit="step", unit_scale=True, desc="rebuilding the replay buffer",
                   disable=not progress, dynamic_ncols=True) as bar:
-            def write(r: int, out: dict) -> None:
-                for t, row in enumerate(at[r]):
-                    buffer.put(row, out["obs"][t], buffer.action[row], out["reward"][t], out["next_obs"][t],
-                               out["terminated"][t], out["truncated"][t])
+            def write(r: int, out: dict) -> None:   # a round at once: few copies to a GPU buffer
+                buffer.put_rows(at[r], out["obs"], buffer.action[at[r]], out["reward"], out["next_obs"],
+                                out["terminated"], out["truncated"])
                 bar.update(T * E)
             if workers <= 1:
                 env = make_env()
