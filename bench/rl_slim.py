@@ -80,6 +80,8 @@ def main(argv=None):
     add_run_args(ap, "rl")
     a = ap.parse_args(argv)
     tasks = ["pendulum-balance"] if a.quick else [t for t in a.tasks.split(",") if t]
+    if a.quick:
+        a.workers = 1   # a smoke test: no worker processes to start (tests/test_rl_slim.py runs them)
     torch.set_num_threads(1)
     rows = []
     for task in tasks:

@@ -43,17 +43,19 @@ def test_actions_only_state_refuses_sampling_until_rebuilt():
         ReplayBuffer(12, obs_dim=2, action_dim=1, num_envs=2).load_state_dict({**slim, "digest": "xyz"})
 
 
-@pytest.mark.parametrize("ahead", [False, True])
-def test_slim_copy_resumes_bit_for_bit(tmp_path, ahead):
+@pytest.mark.parametrize("ahead, buffer_size", [(False, 1000), (True, 20)])
+def test_slim_copy_resumes_bit_for_bit(tmp_path, ahead, buffer_size):
     """A run stopped at 40 env steps, copied slim, resumed to 80 in the copy: the same agent,
-    buffer, loop state and evaluations as the run that went on in its own folder."""
-    cfg = dict(TINY, agent="ddpg", env_steps=80, act_ahead=ahead)
+    buffer, loop state and evaluations as the run that went on in its own folder (acting ahead,
+    a buffer of one round that has wrapped: rebuilt here, in this process)."""
+    cfg = dict(TINY, agent="ddpg", env_steps=80, act_ahead=ahead, buffer_size=buffer_size)
     assert run_rl(RLConfig(**cfg, out=str(tmp_path / "run"), chunk=25))["env_steps"] == 40
     slim_run(tmp_path / "run", tmp_path / "slim")
     full_mb, slim_mb = ((tmp_path / f / CHECKPOINT).stat().st_size for f in ("run", "slim"))
     assert slim_mb < full_mb
     ck = load_checkpoint(tmp_path / "slim" / CHECKPOINT)
     assert ck["buffer"]["actions_only"] and "obs" not in ck["buffer"] and ck["config"]["out"] == str(tmp_path / "slim")
+    assert (ck["buffer"]["added"], ck["buffer"]["filled"]) == ((20, 10) if buffer_size == 20 else (20, 20))
     assert json.loads((tmp_path / "slim" / "config.json").read_text())["out"] == str(tmp_path / "slim")
     assert (tmp_path / "slim" / RECORDS_FILE).read_text() == (tmp_path / "run" / RECORDS_FILE).read_text()
     run_rl(RLConfig(**cfg, out=str(tmp_path / "run")))
@@ -96,10 +98,10 @@ def test_rebuild_refuses_a_buffer_of_partial_rounds():
     assert buf.pending_digest == "0" * 64
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_rounds_rebuilt_in_worker_processes_give_the_buffer(tmp_path, workers):
-    """Rounds re-simulated here or in two worker processes (each with its own training env) give
-    the saved buffer, on a buffer that has wrapped."""
+def test_rounds_rebuilt_in_worker_processes_give_the_buffer(tmp_path):
+    """Rounds re-simulated in two worker processes (each with its own training env) give the
+    saved buffer, on a buffer that has wrapped (in-process rebuilds: the resume tests above)."""
+    workers = 2
     from functools import partial
 
     from gnwarp.rl.run import round_seed, training_env
