@@ -278,35 +278,37 @@ def test_probe_seconds_stops_a_long_probe_and_the_runs_start(tmp_path):
 
 
 def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
-    """A call with ``--slim`` packs each run's slim copy (no export); a call in another work folder
-    with ``--restore`` takes them up and the runs go on from where they stopped (their replay
-    buffers rebuilt), their records kept; a tar with a path out of slim/ is refused."""
+    """A call with ``--slim`` packs each unfinished run's slim copy; ``restore`` in another work
+    folder puts it in place and the run goes on from where it stopped (its replay buffer rebuilt),
+    its records kept; a tar with a name out of slim/<task>/<run>/s<seed>/ is refused."""
+    import json as _json
+
+    from gnwarp.rl.config import RLConfig
+    from gnwarp.rl.run import run_rl
     run = 'runs = [{agent = "svg0", task = "pendulum-balance", seeds = "0", quick = true, env_steps = 160%s}]\n'
     spec1 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % ', set = ["chunk=40"]', "one.toml")   # stops at 40
-    spec2 = write(tmp_path, '[[gpu]]\nindex = "cpu"\n' + run % "", "two.toml")
-    out1, out2 = tmp_path / "out1", tmp_path / "out2"
+    out1 = tmp_path / "out1"
     assert rl_sweep.main([str(spec1), "--call-seconds", "300", "--work", str(tmp_path / "w1"), "--pack", str(out1),
                           "--slim"]) == 0
     assert (out1 / "slim.tar").exists() and (out1 / "export.tar").exists()
     with tarfile.open(out1 / "slim.tar") as t:
         assert f"slim/pendulum-balance/{QUICK_RUN}/s0/checkpoint.pt" in t.getnames()
     assert f"slim copy of pendulum-balance/{QUICK_RUN}/s0 (40 env steps)" in capsys.readouterr().out
-    assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w2"), "--pack", str(out2),
-                          "--restore", str(out1), "--slim"]) == 0
-    text = capsys.readouterr().out
-    assert f"restored 1 runs from their slim copies: pendulum-balance/{QUICK_RUN}/s0" in text
-    assert '"env_steps": 160' in text and '"stop": "done"' in text
-    with tarfile.open(out2 / "results.tar.xz") as t:
-        recs = t.extractfile(f"results/pendulum-balance/{QUICK_RUN}/s0/records.jsonl").read().decode()
-    steps = [json.loads(line)["env_steps"] for line in recs.splitlines()]
-    assert steps == [0, 80, 160]          # the first call's evaluations kept, the second's added
-    with tarfile.open(out2 / "slim.tar") as t:   # a finished run has no slim copy
-        assert not [n for n in t.getnames() if n.endswith(".pt")]
+    w2 = tmp_path / "w2"
+    assert rl_sweep.restore(w2, out1) == [f"pendulum-balance/{QUICK_RUN}/s0"]
+    assert rl_sweep.restore(w2, out1) == []               # a run folder with a checkpoint stays as it is
+    folder = w2 / "pendulum-balance" / QUICK_RUN / "s0"
+    cfg = _json.loads((folder / "config.json").read_text())
+    r = run_rl(RLConfig.from_dict({**cfg, "out": str(folder), "chunk": None}))
+    assert r["stop"] == "done" and r["env_steps"] == 160
+    steps = [_json.loads(line)["env_steps"] for line in (folder / "records.jsonl").read_text().splitlines()]
+    assert steps == [0, 80, 160]          # the first call's evaluation kept, the rest added
+    assert rl_sweep.make_slim(w2) == []   # finished: no slim copy
     for name in ("slim/../../escape.toml", "slim/_results/t/s0/f", "slim/t/n/s0/deeper/f", "slim/t/n/x0/f"):
         bad = tmp_path / "bad.tar"
         with tarfile.open(bad, "w") as t:
             t.add(spec1, arcname=name)
-        assert rl_sweep.main([str(spec2), "--call-seconds", "300", "--work", str(tmp_path / "w3"),
+        assert rl_sweep.main([str(spec1), "--call-seconds", "300", "--work", str(tmp_path / "w3"),
                               "--restore", str(bad)]) == 2
         assert "refused" in capsys.readouterr().err, name
 
