@@ -72,10 +72,7 @@ def slim_run(run, dest) -> Path:
     T = (ck.get("env") or {}).get("episode_steps") if isinstance(ck.get("env"), dict) else None
     if not isinstance(T, int) or T < 1:
         raise RLCheckpointError(f"{run / CHECKPOINT} does not name its episodes' length (env.episode_steps)")
-    if buf.added % T or (buf.added - buf.filled) % T:
-        raise ValueError(f"the run's replay buffer keeps {buf.filled} of its {buf.added} steps, not whole rounds of "
-                         f"{T} steps (its {buf.rows} rows a ring are not a multiple of the episode length, and it "
-                         "wrapped): a slim copy of it could not be rebuilt. Copy the run's folder as it is")
+    _rounds_kept(buf, T)   # refused now, not on the other machine
     ck["buffer"] = buf.state_dict(actions_only=True)
     cfg["out"] = str(dest)
     if isinstance(ck.get("config"), dict):
@@ -91,13 +88,26 @@ def slim_run(run, dest) -> Path:
     return dest
 
 
+def _rounds_kept(buffer: ReplayBuffer, T: int) -> range:
+    """The rounds of ``T`` steps whose every step ``buffer`` keeps; ``ReplayError`` where it keeps
+    part of one (a ring of rows not a multiple of ``T`` that has wrapped: the oldest round lost its
+    first actions, so no copy of it can be rebuilt)."""
+    added, filled = buffer.added, buffer.filled
+    if added % T or (added - filled) % T:
+        raise ReplayError(f"the replay buffer keeps {filled} of its {added} steps, not whole rounds of {T} steps "
+                          f"(its ring of {buffer.rows} rows is not a multiple of the episode length, and it "
+                          "wrapped): it cannot be rebuilt by re-simulating rounds. Copy the run's folder as it is")
+    return range((added - filled) // T, added // T)
+
+
 # a rebuild of fewer env steps runs in this process: starting worker processes costs seconds
 IN_PROCESS_STEPS = 200_000
 
 
-def _simulate_round(env, seed: int, actions: torch.Tensor) -> dict:
+def _simulate_round(env, seed: int, actions: torch.Tensor, host: bool = False) -> dict:
     """One round re-simulated: ``env`` reset with ``seed`` (env i: seed + i) and stepped with
-    ``actions`` [T, E, U]; its transitions as CPU tensors [T, E, ...]."""
+    ``actions`` [T, E, U]; its transitions as tensors [T, E, ...] where the env gives them, on the
+    host with ``host`` (a worker's, to send back: copied once at the end, not a sync a step)."""
     obs, _ = env.reset(seed=seed)
     out = {k: [] for k in ("obs", "reward", "next_obs", "terminated", "truncated")}
     for a in actions:
@@ -108,9 +118,9 @@ def _simulate_round(env, seed: int, actions: torch.Tensor) -> dict:
         next_obs, reward, terminated, truncated, infos = env.step(sent)
         for k, v in (("obs", obs), ("reward", reward), ("next_obs", reached_obs(next_obs, infos)),
                      ("terminated", terminated), ("truncated", truncated)):
-            out[k].append(torch.as_tensor(v).cpu())
+            out[k].append(torch.as_tensor(v))
         obs = next_obs
-    return {k: torch.stack(v) for k, v in out.items()}
+    return {k: torch.stack(v).cpu() if host else torch.stack(v) for k, v in out.items()}
 
 
 _WORKER_ENV = None
@@ -123,7 +133,7 @@ def _start_worker(make_env) -> None:
 
 
 def _simulate_in_worker(job: tuple) -> dict:
-    return _simulate_round(_WORKER_ENV, *job)
+    return _simulate_round(_WORKER_ENV, *job, host=True)
 
 
 def rebuild_buffer(buffer: ReplayBuffer, make_env: Callable[[], object], seed_of: Callable[[int], int],
@@ -144,13 +154,8 @@ def rebuild_buffer(buffer: ReplayBuffer, make_env: Callable[[], object], seed_of
     if digest is None:
         return 0.0
     t0 = time.perf_counter()
-    T, E = int(episode_steps), buffer.num_envs
-    added, filled, rows = buffer.added, buffer.filled, buffer.rows
-    first = added - filled   # the oldest step kept
-    if added % T or first % T:
-        raise ReplayError(f"the buffer's {filled} kept steps of {added} are not whole rounds of {T} steps: "
-                          "it cannot be rebuilt by re-simulating rounds")
-    rounds = list(range(first // T, added // T))
+    T, E, rows = int(episode_steps), buffer.num_envs, buffer.rows
+    rounds = list(_rounds_kept(buffer, T))
     at = {r: [(r * T + t) % rows for t in range(T)] for r in rounds}
     jobs = [(seed_of(r), buffer.action[at[r]].cpu()) for r in rounds]
     if workers is None:
