@@ -34,6 +34,7 @@ __all__ = ["TABLES", "BLOCK", "render", "documents", "run", "main"]
 BLOCK = re.compile(r"(<!-- results:begin (?P<name>[\w./-]+) -->\n)(?P<body>.*?)(<!-- results:end (?P=name) -->)", re.S)
 TABLES: dict[str, Callable[[Path, Path], list[str]]] = {}
 RESULTS = Path("bench") / "results"
+SIMULATORS = {"true_mujoco_c": "MuJoCo C", "true_mjwarp": "MuJoCo-Warp"}   # a record's "dynamics", in a table
 
 
 def table(name: str):
@@ -195,6 +196,9 @@ def headline(root: Path, doc: Path) -> list[str]:
     one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1   # one update an env step, in turn
            and not r.get("act_ahead", False) and not r.get("settings")]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
+    at1m = max((r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["agent"] == "svg1"
+                and r["networks"] == "mlp" and r.get("utd", 1.0) == 1 and not r.get("settings")
+                and r["env_steps"] == 1000000), key=lambda r: r["seeds"], default=None)
     at500 = {}   # (task, agent): the 500k row in turn, else acting ahead (walker-walk SVG(1))
     for r in sorted((r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1
                      and not r.get("settings") and r["env_steps"] == 500000
@@ -212,6 +216,8 @@ def headline(root: Path, doc: Path) -> list[str]:
     rows.append(["RL on DMC (SpinningUp preset, MLPs): swimmer6 return at 250k / 500k env steps, mean +- s.e. "
                  "over seeds",
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {_mean_se(at['ddpg', last])} (SpinningUp 351 +- 19); "
+                 + ("" if at1m is None else f"SVG(1){' acting ahead' * bool(at1m.get('act_ahead'))} at 1M "
+                    f"{_mean_se(at1m)} ({at1m['seeds']} seed{'s' * (at1m['seeds'] > 1)}); ")
                  + "".join(f"{t} {names[a]}{' acting ahead' * bool(w.get('act_ahead'))} at 500k {_mean_se(w)} "
                            f"({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
                            for (t, a), w in sorted(at500.items()) if a in names)
@@ -345,7 +351,7 @@ def rl_h1(root: Path, doc: Path) -> list[str]:
 @table("rl-curves")
 def rl_curves(root: Path, doc: Path) -> list[str]:
     """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead, settings) at 100k, 250k and 500k
-    env steps and at its last point: mean +- s.e. over seeds (median; seeds)."""
+    env steps and at its last point: mean +- s.e. over seeds (median; seeds); the true simulators its seeds ran."""
     rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
@@ -360,11 +366,13 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
         name += (("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
                  + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else ""))
-        out.append([task.replace("dmc-", ""), name, nets, *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
+        sims = sorted({SIMULATORS.get(d, d) for r in pts.values() for d in r.get("dynamics", ["true_mujoco_c"])})
+        out.append([task.replace("dmc-", ""), name, nets, " and ".join(sims),
+                    *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
     return ([_note("mean +- standard error over seeds of each seed's mean evaluation return (median; seeds); "
                    f"preset {', '.join(sorted({k[2] for k in groups}))}", "`summary.json`")]
-            + [""] + _md(["task", "agent", "networks", "100k", "250k", "500k", "last point"], out))
+            + [""] + _md(["task", "agent", "networks", "simulator", "100k", "250k", "500k", "last point"], out))
 
 
 def _seed_ids(seeds) -> str:
@@ -394,7 +402,7 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
         task, agent, preset, nets, utd, ahead, tag, steps = k
         if (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "") and (agent, ahead) in (
                 ("svg0", False), ("svg1", False), ("svg1", True)):
-            runs.setdefault((task, agent, ahead), {})[steps] = {seed: m for seed, (m, _) in v.items()}
+            runs.setdefault((task, agent, ahead), {})[steps] = {seed: m for seed, (m, *_) in v.items()}
 
     def cell(v: dict) -> str:
         x = list(v.values())

@@ -5,12 +5,15 @@ Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp r
 writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, settings, env_steps)::
 
     {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
-     "eval_episodes", "median", "q25", "q75", "mean", "se"}
+     "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics"}
 
 (``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it.
 ``act_ahead``: the training loop picked each action before the previous step's updates,
 ``RLConfig.act_ahead``; false for records without it. ``settings``: the agent settings off
-their defaults, ``gnwarp.rl.settings.settings_tag``: "" for none.)
+their defaults, ``gnwarp.rl.settings.settings_tag``: "" for none. ``dynamics``: the true
+simulators its seeds trained and evaluated on, sorted, the records' own field: "true_mujoco_c"
+(MuJoCo C), "true_mjwarp" (MuJoCo-Warp). One curve holds both: the same MJCF, and a trained
+policy scores the same on either, episode by episode: ``results/rl/simulators``.)
 
 Each seed counts once per point: its evaluation's mean return (over its deterministic episodes;
 a rerun of a seed at the same env steps: the last record stands). ``median``, ``q25``, ``q75``:
@@ -72,7 +75,7 @@ def _group(rec) -> tuple:
 
 def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
     """{(task, agent, preset, networks, utd, act_ahead, settings, env_steps): {seed: (its evaluation's mean return, its
-    episodes)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
+    episodes, its true simulator)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
     for path in sorted((root / folder).rglob("*.jsonl")):
@@ -83,7 +86,8 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
         for r in recs:
             if r.experiment != "rl" or r.returns is None or r.env_steps is None:
                 continue
-            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (float(np.nanmean(r.values)), r.episodes)
+            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (float(np.nanmean(r.values)), r.episodes,
+                                                                      r.dynamics)
     return by
 
 
@@ -99,8 +103,8 @@ def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
                         settings=tag,
                         env_steps=steps,
-                        seeds=len(seeds), eval_episodes=min(n for _, n in seeds.values()),
-                        **point([m for m, _ in seeds.values()])))
+                        seeds=len(seeds), eval_episodes=min(n for _, n, _ in seeds.values()),
+                        **point([m for m, _, _ in seeds.values()]), dynamics=sorted({d for *_, d in seeds.values()})))
     return out
 
 

@@ -22,7 +22,17 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     assert ratios == {1.0}
     assert {r["torch_compile"] for r in rows} == {"none"}   # "auto" on the CPU: eager
     assert rows[0]["ahead_over_in_turn"] == round(rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"], 3)
-    assert "ahead / in turn" in jsonl.with_suffix(".md").read_text()
+    md = jsonl.with_suffix(".md").read_text()
+    assert "ahead / in turn" in md and md.count("| pendulum-balance |") == 1
+    # the table holds every run of the file: a second run's line beside the first, --summarize alike
+    with jsonl.open("a") as f:
+        for r in rows:
+            f.write(json.dumps({**r, "backend": "mujoco_warp", "env_steps_per_s": 2 * r["env_steps_per_s"]}) + "\n")
+    rl_loop.main(["--summarize", str(jsonl)])
+    lines = [ln for ln in jsonl.with_suffix(".md").read_text().splitlines() if "| pendulum-balance |" in ln]
+    assert [ln.split(" | ")[3] for ln in lines] == ["2 on mujoco", "2 on mujoco_warp"], lines
+    ratio = rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"]
+    assert all(f"**{ratio:.2f}x**" in ln for ln in lines), lines
     # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it,
     # switched on for the profiled repetition only
     from gnwarp.rl import loop

@@ -619,3 +619,48 @@ def test_a_policy_that_stops_changing_is_reported(tmp_path):
     with pytest.warns(FrozenPolicyWarning, match="no longer changes"):
         assert frozen_policy_warning(prev, u + 1e-6, Agent(), saturated=1.0)
     assert not frozen_policy_warning(prev, u + 1e-6, Agent())        # no update in between
+
+
+def test_eval_seed_shares_the_evaluation_states_between_runs():
+    """Runs of other seeds with one ``eval_seed`` evaluate from the same initial states; without
+    it each run evaluates from states of its own seed (the records name the setting)."""
+    from gnwarp.rl.run import build_run, eval_reset_seed
+    first = {}
+    for seed, shared in ((0, None), (1, None), (0, 7), (1, 7)):
+        cfg = RLConfig(**{**TINY, "env_steps": 40}, seed=seed, eval_seed=shared, out="unused")
+        parts = build_run(cfg)
+        try:
+            first[seed, shared], _ = parts["eval_env"].reset(seed=eval_reset_seed(cfg))
+        finally:
+            parts["env"].close()
+            parts["eval_env"].close()
+    assert np.array_equal(first[0, 7], first[1, 7])
+    assert not np.array_equal(first[0, None], first[1, None])
+    with pytest.raises(ConfigError, match="eval_seed"):
+        RLConfig(**TINY, eval_seed=-1, out="unused")
+
+
+def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp_path, monkeypatch):
+    """"auto": MuJoCo C where a run acts ahead (the CPU steps while the GPU updates) or no CUDA is,
+    MuJoCo-Warp otherwise; the choice is saved, and a resumed run keeps the simulator it started
+    on (a run saved with "auto" before the choice was saved: MuJoCo-Warp on CUDA, as then)."""
+    from gnwarp.rl import run as rl_run
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert rl_run._backend(RLConfig(act_ahead=True)) == "mujoco"
+    assert rl_run._backend(RLConfig()) == "mujoco_warp"
+    assert rl_run._backend(RLConfig(backend="mujoco_warp_cpu", act_ahead=True)) == "mujoco_warp_cpu"
+    fresh = RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(tmp_path / "f"))
+    _, resume, cfg = rl_run._prepare_folder(fresh)
+    assert not resume and cfg.backend == "mujoco"
+    assert json.loads((tmp_path / "f" / "config.json").read_text())["backend"] == "mujoco"
+    for saved, expect in (("auto", "mujoco_warp"), ("mujoco_warp", "mujoco_warp"), ("mujoco", "mujoco")):
+        out = tmp_path / saved
+        out.mkdir()
+        (out / "config.json").write_text(json.dumps({**RLConfig(**TINY, act_ahead=True, out=str(out)).to_dict(),
+                                                     "backend": saved}))
+        (out / CHECKPOINT).write_bytes(b"")   # a run to resume (its checkpoint is read later)
+        _, resume, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(out)))
+        assert resume and cfg.backend == expect, saved
+        assert json.loads((out / "config.json").read_text())["backend"] == expect
+    with pytest.raises(ConfigError, match="backend"):   # named explicitly, another simulator: refused
+        rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco"}, act_ahead=True, out=str(tmp_path / "auto")))

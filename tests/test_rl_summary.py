@@ -16,9 +16,9 @@ from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
 
 
 def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None,
-         ahead=None, settings=None):
+         ahead=None, settings=None, dynamics="true_mjwarp"):
     return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
-                        dynamics="true_mjwarp", variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
+                        dynamics=dynamics, variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
                         episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
                         config=dict(agent=agent, preset=preset, networks=networks)
                         | ({} if utd is None else {"utd": utd})
@@ -62,7 +62,7 @@ def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
                                        _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
     by = rs.seed_means(tmp_path, Path("rl"))
-    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", 1000): {0: (10.0, 2), 1: (7.0, 3)}}
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", 1000): {0: (10.0, 2, "true_mjwarp"), 1: (7.0, 3, "true_mjwarp")}}
 
 
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
@@ -72,7 +72,7 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     write_records(folder / "svg1-s0" / "records.jsonl", [
         _rec("svg1", 0, 0, [1.0, 3.0]), _rec("svg1", 0, 1000, [10.0, 30.0]), _rec("svg1", 0, 1000, [40.0, 60.0])])
     write_records(folder / "svg1-s1" / "records.jsonl", [
-        _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0]),
+        _rec("svg1", 1, 0, [5.0, 7.0, 9.0]), _rec("svg1", 1, 1000, [70.0, 90.0], dynamics="true_mujoco_c"),
         _rec("ddpg", 1, 1000, [1.0, 2.0]), _rec("svg1", 1, 1000, [1.0, 1.0], experiment="control"),
         _rec("svg1", 1, 1000, [200.0, 400.0], utd=3),    # another curve: 3 updates an env step
         _rec("svg1", 1, 1000, [500.0, 700.0], ahead=True),
@@ -82,7 +82,7 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     assert rs.main(["--root", str(tmp_path)]) == 0
     summary = json.loads((folder / "summary.json").read_text())
     keys = {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
-            "eval_episodes", "median", "q25", "q75", "mean", "se"}
+            "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics"}
     assert all(set(r) == keys for r in summary)
     got = {(r["agent"], r["env_steps"]): r for r in summary
            if r["utd"] == 1 and not r["act_ahead"] and not r["settings"]}
@@ -98,6 +98,8 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     # seed 1's mean 80; the control record is skipped
     late = got[("svg1", 1000)]
     assert late["seeds"] == 2 and late["eval_episodes"] == 2
+    assert late["dynamics"] == ["true_mjwarp", "true_mujoco_c"]   # one curve, both simulators named
+    assert got[("svg1", 0)]["dynamics"] == ["true_mjwarp"]
     assert late["mean"] == 43.5 and late["median"] == 43.5 and late["se"] == pytest.approx(36.5)
     assert got[("svg1", 0)]["eval_episodes"] == 2 and got[("svg1", 0)]["mean"] == 4.5
     assert got[("ddpg", 1000)]["se"] is None

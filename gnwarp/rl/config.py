@@ -45,9 +45,13 @@ class RLConfig:
     "mlp", (64,) for "gn"). ``buffer_size``: replay capacity in transitions. ``eval_every``:
     evaluate at the first episode end at or past each multiple of this many env steps (and
     before training, and at the end); ``eval_episodes``: deterministic-policy episodes, batched
-    in a separate vector env. ``agent_settings``: further ``AgentSettings`` keys (gamma, q_lr,
+    in a separate vector env, from the initial states of ``eval_seed`` (None: the run's ``seed``;
+    the same for runs to compare: on swimmer6 the returns are bimodal by the target's distance,
+    and which targets a seed's evaluation draws is half or more of the spread between seeds,
+    ``bench/results/rl/README.md``). ``agent_settings``: further ``AgentSettings`` keys (gamma, q_lr,
     ...). ``seed``: of the networks, the agent, the env and the evaluation. ``device``: the
-    agent's; ``backend``: the true simulator's. ``chunk``: env steps at most in this call;
+    agent's; ``backend``: the true simulator's ("auto": MuJoCo C where the run acts ahead or no
+    GPU is, MuJoCo-Warp otherwise; the choice is saved with the run, ``gnwarp.rl.run._backend``). ``chunk``: env steps at most in this call;
     ``budget_seconds``: stop before a round expected to end past this many seconds of this
     call, the call's end (final checkpoint, video) counted; both stop at episode ends only, so a
     resumed run equals an uninterrupted one.
@@ -85,11 +89,14 @@ class RLConfig:
     buffer_size: PositiveInt = described(1_000_000, "replay buffer capacity in transitions")
     eval_every: PositiveInt = described(10_000, "env steps between evaluations")
     eval_episodes: PositiveInt = described(20, "deterministic evaluation episodes, batched")
+    eval_seed: Seed | None = described(None, "seed of the evaluation's initial states (unset: the run's seed; "
+                                             "runs that share it evaluate on the same states)")
     agent_settings: dict = field(default_factory=dict)
     seed: Seed = described(0, "seed of networks, agent, envs and evaluation")
     device: Literal["auto", "cpu", "cuda"] = described("auto", "the agent's device")
     backend: Literal["auto", "mujoco", "mujoco_warp", "mujoco_warp_cpu"] = described(
-        "auto", "true simulator (auto: MuJoCo-Warp on a GPU, else MuJoCo C)")
+        "auto", "true simulator (auto: MuJoCo C acting ahead or without a GPU, else MuJoCo-Warp; saved in the "
+                "run's config, kept on resume)")
     sim_threads: PositiveInt | None = described(
         None, "MuJoCo C's threads stepping the envs (unset: one per env up to the CPU count; few where runs go "
               "side by side: bench/rl_seeds.py sets its --threads; other backends ignore it)")

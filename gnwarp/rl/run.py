@@ -23,6 +23,7 @@ import math
 import random
 import warnings
 import time
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -39,7 +40,7 @@ from gnwarp.rl.run_log import (CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cu
                                save_checkpoint)
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed",
+__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
@@ -74,6 +75,15 @@ def round_seed(seed: int, k: int, evaluation: bool = False) -> int:
     return int(np.random.SeedSequence([int(seed), 2 if evaluation else 1, int(k)]).generate_state(1)[0])
 
 
+def eval_reset_seed(cfg: RLConfig) -> int:
+    """The reset seed of every evaluation of the run ``cfg`` (``round_seed``'s evaluation seed of
+    ``cfg.eval_seed``, else of the run's own seed)."""
+    return round_seed(cfg.seed if cfg.eval_seed is None else cfg.eval_seed, 0, True)
+
+
+_SIMULATORS = ("mujoco", "mujoco_warp", "mujoco_warp_cpu")   # RLConfig.backend's values but "auto"
+
+
 def _device(name: str) -> torch.device:
     from gnwarp.interop import resolve_device
     try:
@@ -83,9 +93,14 @@ def _device(name: str) -> torch.device:
 
 
 def _backend(cfg: RLConfig) -> str:
+    """The true simulator of ``cfg``: its ``backend``, or for "auto" MuJoCo C where CUDA is not,
+    or where the run acts ahead (its CPU steps the envs while the GPU updates: 1483 env steps a
+    second against 795 on MuJoCo-Warp, SVG(1) on swimmer6, one H200, ``bench/rl_loop.py``), and
+    MuJoCo-Warp otherwise. ``run_rl`` saves the choice in the run's config, so a run keeps its
+    simulator on resume."""
     if cfg.backend != "auto":
         return cfg.backend
-    return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
+    return "mujoco_warp" if torch.cuda.is_available() and not cfg.act_ahead else "mujoco"
 
 
 def check_task(cfg: RLConfig):
@@ -204,7 +219,7 @@ def build_run(cfg: RLConfig) -> dict:
     obs_fn = observation_of(cfg, task)
     env_kw = _env_kw(cfg, obs_fn)
     env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
-    eval_env = make_vector_env(task, cfg.eval_episodes, seed=round_seed(cfg.seed, 0, True), **env_kw)
+    eval_env = make_vector_env(task, cfg.eval_episodes, seed=eval_reset_seed(cfg), **env_kw)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
     agent, model = build_agent(cfg, task, obs_fn, D, env.single_action_space.low, env.single_action_space.high,
                                device)
@@ -354,10 +369,12 @@ def _set_rng_states(d: dict) -> None:
         torch.cuda.set_rng_state_all(d["cuda"])
 
 
-def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
+def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
     """Make ``cfg.out``; compare a saved config with ``cfg`` (only ``RESUMABLE`` keys may
-    differ; a key added since the run was saved counts as its default there) and save ``cfg``.
-    Returns (folder, whether a checkpoint is there to resume)."""
+    differ; a key added since the run was saved counts as its default there; ``backend`` "auto"
+    takes the saved run's) and save ``cfg`` with its ``backend`` resolved (``_backend``; a run
+    saved with "auto" before runs recorded their choice: MuJoCo-Warp where CUDA is, as then).
+    Returns (folder, whether a checkpoint is there to resume, ``cfg`` so resolved)."""
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     resume = (out / CHECKPOINT).is_file()
@@ -378,14 +395,22 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool]:
         new = json.loads(json.dumps(cfg.to_dict()))
         defaults = json.loads(json.dumps(RLConfig().to_dict()))
         old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
+        if cfg.backend == "auto" and old.get("backend") in _SIMULATORS:
+            cfg = replace(cfg, backend=old["backend"])   # the run's own simulator
+            new["backend"] = cfg.backend
+        elif cfg.backend == "auto" and old.get("backend") == "auto":   # saved before "auto" was resolved
+            cfg = replace(cfg, backend="mujoco_warp" if torch.cuda.is_available() else "mujoco")
+            old["backend"] = new["backend"] = cfg.backend
         diff = sorted(k for k in set(old) | set(new) if k not in RESUMABLE and k != "out" and old.get(k) != new.get(k))
         if diff:
             raise ConfigError(diff[0], f"differs from the run in {out} ({old.get(diff[0])!r} there, "
                                        f"{new.get(diff[0])!r} here); only {', '.join(RESUMABLE)} may change "
                                        "when resuming (or use another folder)")
+    if cfg.backend == "auto":
+        cfg = replace(cfg, backend=_backend(cfg))
     with atomic_write(saved) as tmp:
         Path(tmp).write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
-    return out, resume
+    return out, resume, cfg
 
 
 def _refuse_orphans(out: Path) -> None:
@@ -442,7 +467,7 @@ def run_rl(cfg: RLConfig) -> dict:
     from tqdm.auto import tqdm
     started = time.perf_counter()
     check_task(cfg)
-    out, resume = _prepare_folder(cfg)
+    out, resume, cfg = _prepare_folder(cfg)
     parts = build_run(cfg)
     env, eval_env, agent, buffer, gen = (parts[k] for k in ("env", "eval_env", "agent", "buffer", "generator"))
     task, model = parts["task"], parts["model"]
@@ -511,13 +536,13 @@ def run_rl(cfg: RLConfig) -> dict:
     previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
 
     def evaluate():
-        returns = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True), keep=cfg.video_episodes,
+        returns = evaluate_policy(agent, eval_env, eval_reset_seed(cfg), keep=cfg.video_episodes,
                                   keep_steps=cfg.video_steps)
         if cfg.video_episodes:
             returns, video["states"] = returns
             video["env_steps"] = agent.env_steps
         if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
-            first, _ = eval_env.reset(seed=round_seed(cfg.seed, 0, True))
+            first, _ = eval_env.reset(seed=eval_reset_seed(cfg))
             previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
         with torch.no_grad():
             frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
@@ -530,7 +555,7 @@ def run_rl(cfg: RLConfig) -> dict:
             returns=returns, env_steps=agent.env_steps,
             metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
             config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
-                        num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes,
+                        num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
                         agent_settings=agent.settings.to_dict()),
             date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
         write_records(records_path, [rec])
@@ -604,7 +629,7 @@ def run_rl(cfg: RLConfig) -> dict:
                 and not timing.get("video_failed")):
             # a finished run without its video (a call killed while writing it): the last
             # evaluation's episodes again, not recorded (the same seed and policy: the same states)
-            _, video["states"] = evaluate_policy(agent, eval_env, round_seed(cfg.seed, 0, True),
+            _, video["states"] = evaluate_policy(agent, eval_env, eval_reset_seed(cfg),
                                                  keep=cfg.video_episodes, keep_steps=cfg.video_steps)
             video["env_steps"] = agent.env_steps
         if video:
