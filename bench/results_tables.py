@@ -356,16 +356,18 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
         groups.setdefault((r["task"], r["agent"], r["preset"], r["networks"], r.get("utd", 1.0),
-                           r.get("act_ahead", False), r.get("settings", "")), {})[r["env_steps"]] = r
+                           r.get("act_ahead", False), r.get("settings", ""), r.get("eval_seed")), {})[r["env_steps"]] = r
     cell = lambda r: "" if r is None else f"{_mean_se(r)} ({r['median']:.0f}; {r['seeds']})"   # noqa: E731
     order = {"ddpg": -1}
     out = []
-    for (task, agent, preset, nets, utd, ahead, tag), pts in sorted(groups.items(), key=lambda kv: (
-            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5], kv[0][6])):
+    for (task, agent, preset, nets, utd, ahead, tag, es), pts in sorted(groups.items(), key=lambda kv: (
+            kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5], kv[0][6],
+            -1 if kv[0][7] is None else kv[0][7])):
         last = max(pts)
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
         name += (("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
-                 + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else ""))
+                 + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else "")
+                 + ("" if es is None else f", evaluated on the states of eval_seed {es}"))
         sims = sorted({SIMULATORS.get(d, d) for r in pts.values() for d in r.get("dynamics", ["true_mujoco_c"])})
         out.append([task.replace("dmc-", ""), name, nets, " and ".join(sims),
                     *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
@@ -391,31 +393,35 @@ def _seed_ids(seeds) -> str:
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
     """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, default agent
-    settings; SVG(0) in turn, SVG(1) in turn and, as a row of its own, acting ahead): at every
+    settings; SVG(0) in turn, SVG(1) in turn and, as a row of its own, acting ahead; runs evaluated
+    on shared states, ``eval_seed``, against the SVG(0) run of the same loop and states): at every
     250k env steps both reached and at the last point both share, where each has two seeds or
     more, each run's mean +- s.e. over its seeds there (which seeds: a later point holds only
     those that got there) and the difference of means with its 95% Welch interval."""
     from bench.rl_summary import difference, seed_means
     by = seed_means(root)
-    runs: dict[tuple[str, str, bool], dict[int, dict[int, float]]] = {}
+    runs: dict[tuple, dict[int, dict[int, float]]] = {}
     for k, v in by.items():
-        task, agent, preset, nets, utd, ahead, tag, steps = k
-        if (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "") and (agent, ahead) in (
-                ("svg0", False), ("svg1", False), ("svg1", True)):
-            runs.setdefault((task, agent, ahead), {})[steps] = {seed: m for seed, (m, *_) in v.items()}
+        task, agent, preset, nets, utd, ahead, tag, es, steps = k
+        if (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "") and agent in ("svg0", "svg1") and (
+                es is not None or (agent, ahead) != ("svg0", True)):
+            runs.setdefault((task, agent, ahead, es), {})[steps] = {seed: m for seed, (m, *_) in v.items()}
 
     def cell(v: dict) -> str:
         x = list(v.values())
         return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f} (seeds {_seed_ids(v)})"
     out = []
-    for task, ahead in sorted({(t, a) for t, ag, a in runs if ag == "svg1"}):
-        one, zero = runs.get((task, "svg1", ahead), {}), runs.get((task, "svg0", False), {})
+    for task, ahead, es in sorted({(t, a, e) for t, ag, a, e in runs if ag == "svg1"},
+                                  key=lambda k: (k[0], k[1], k[2] is not None, k[2] or 0)):
+        one = runs.get((task, "svg1", ahead, es), {})
+        zero = runs.get((task, "svg0", False, None) if es is None else (task, "svg0", ahead, es), {})
         both = sorted(s for s in set(one) & set(zero) if min(len(one[s]), len(zero[s])) >= 2)
         at = [s for s in both if s and s % 250000 == 0]
         at += [both[-1]] if both and both[-1] not in at else []
         for s in at:
             d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
-            out.append([task.replace("dmc-", ""), "acting ahead" if ahead else "in turn", f"{s / 1000:.0f}k",
+            out.append([task.replace("dmc-", ""), ("acting ahead" if ahead else "in turn")
+                        + ("" if es is None else f", both on the states of eval_seed {es}"), f"{s / 1000:.0f}k",
                         cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
                         "yes" if lo > 0 or hi < 0 else "no"])
     return [_note("spinningup preset, MLPs, where both runs have two seeds or more: mean +- standard error over "

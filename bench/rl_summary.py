@@ -2,15 +2,18 @@
 
 Reads every results-record file (``gnwarp.eval.records``, JSON lines; ``gnwarp rl`` writes
 ``records.jsonl`` in its run folder: copy or concatenate those under ``bench/results/rl/``) and
-writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, settings, env_steps)::
+writes a list of rows, one per (task, agent, preset, networks, utd, act_ahead, settings, eval_seed,
+env_steps)::
 
-    {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
-     "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics"}
+    {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "eval_seed", "env_steps",
+     "seeds", "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics"}
 
 (``utd``: gradient updates per env step, ``RLConfig.utd``; 1 for records without it.
 ``act_ahead``: the training loop picked each action before the previous step's updates,
 ``RLConfig.act_ahead``; false for records without it. ``settings``: the agent settings off
-their defaults, ``gnwarp.rl.settings.settings_tag``: "" for none. ``dynamics``: the true
+their defaults, ``gnwarp.rl.settings.settings_tag``: "" for none. ``eval_seed``: the shared
+evaluation states' seed, ``RLConfig.eval_seed``; null where each run evaluated on its own seed's.
+``dynamics``: the true
 simulators its seeds trained and evaluated on, sorted, the records' own field: "true_mujoco_c"
 (MuJoCo C), "true_mjwarp" (MuJoCo-Warp). One curve holds both: the same MJCF, and a trained
 policy scores the same on either, episode by episode: ``results/rl/simulators``.)
@@ -70,11 +73,11 @@ def _group(rec) -> tuple:
     given = c.get("agent_settings") or {}
     return (rec.task, agent, preset, c.get("networks", networks or "mlp"),
             float(c.get("utd", 1.0)), bool(given.get("act_ahead", False)),
-            settings_tag({**given, "agent": agent, "preset": preset}, strict=False))
+            settings_tag({**given, "agent": agent, "preset": preset}, strict=False), c.get("eval_seed"))
 
 
 def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
-    """{(task, agent, preset, networks, utd, act_ahead, settings, env_steps): {seed: (its evaluation's mean return, its
+    """{(task, agent, preset, networks, utd, act_ahead, settings, eval_seed, env_steps): {seed: (its evaluation's mean return, its
     episodes, its true simulator)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
@@ -94,14 +97,14 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
 def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     """The summary's rows from every records file under ``folder`` (``bench/results/rl``) of
     ``root`` (records of experiment "rl" only), sorted by task, agent, preset, networks, utd,
-    act_ahead, settings, env steps."""
+    act_ahead, settings, eval_seed (unset first), env steps."""
     by = seed_means(root, folder)
     out = []
-    for key in sorted(by):
+    for key in sorted(by, key=lambda k: (*k[:7], k[7] is not None, k[7] or 0, k[8])):
         seeds = by[key]
-        task, agent, preset, networks, utd, ahead, tag, steps = key
+        task, agent, preset, networks, utd, ahead, tag, eval_seed, steps = key
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
-                        settings=tag,
+                        settings=tag, eval_seed=eval_seed,
                         env_steps=steps,
                         seeds=len(seeds), eval_episodes=min(n for _, n, _ in seeds.values()),
                         **point([m for m, _, _ in seeds.values()]), dynamics=sorted({d for *_, d in seeds.values()})))
@@ -125,10 +128,10 @@ def difference(a, b) -> tuple[float, float, float]:
 
 
 def _run(row: dict) -> tuple:
-    """(agent, preset, networks, utd, act_ahead, settings) of a summary row (utd 1, act_ahead
-    false, settings "" where the row predates them)."""
+    """(agent, preset, networks, utd, act_ahead, settings, eval_seed) of a summary row (utd 1,
+    act_ahead false, settings "", eval_seed -1 for unset, where the row predates them)."""
     return (row["agent"], row["preset"], row["networks"], row.get("utd", 1.0), row.get("act_ahead", False),
-            row.get("settings", ""))
+            row.get("settings", ""), -1 if row.get("eval_seed") is None else row["eval_seed"])
 
 
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
@@ -144,7 +147,7 @@ def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
             pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
             x = np.array([p["env_steps"] for p in pts], dtype=float)
             utd = (("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
-                   + (f", {run[5]}" if run[5] else ""))
+                   + (f", {run[5]}" if run[5] else "") + (f", eval_seed {run[6]}" if run[6] >= 0 else ""))
             label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
             line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
             ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)

@@ -16,12 +16,12 @@ from gnwarp.eval.records import ResultRecord, write_records  # noqa: E402
 
 
 def _rec(agent, seed, env_steps, returns, preset="spinningup", networks="mlp", experiment="rl", utd=None,
-         ahead=None, settings=None, dynamics="true_mjwarp"):
+         ahead=None, settings=None, dynamics="true_mjwarp", eval_seed=None):
     return ResultRecord(experiment=experiment, task="dmc-swimmer-swimmer6", planner="policy",
                         dynamics=dynamics, variant=f"{agent}/{preset}/{networks}", episodes=len(returns),
                         episode_steps=1000, returns=list(map(float, returns)), seed=seed, env_steps=env_steps,
                         config=dict(agent=agent, preset=preset, networks=networks)
-                        | ({} if utd is None else {"utd": utd})
+                        | ({} if utd is None else {"utd": utd}) | ({} if eval_seed is None else {"eval_seed": eval_seed})
                         | ({} if ahead is None and settings is None else
                            {"agent_settings": ({} if ahead is None else {"act_ahead": ahead}) | (settings or {})}))
 
@@ -62,7 +62,7 @@ def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
                                        _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
     by = rs.seed_means(tmp_path, Path("rl"))
-    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", 1000): {0: (10.0, 2, "true_mjwarp"), 1: (7.0, 3, "true_mjwarp")}}
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", None, 1000): {0: (10.0, 2, "true_mjwarp"), 1: (7.0, 3, "true_mjwarp")}}
 
 
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
@@ -82,7 +82,7 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     assert rs.main(["--root", str(tmp_path)]) == 0
     summary = json.loads((folder / "summary.json").read_text())
     keys = {"task", "agent", "preset", "networks", "utd", "act_ahead", "settings", "env_steps", "seeds",
-            "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics"}
+            "eval_episodes", "median", "q25", "q75", "mean", "se", "dynamics", "eval_seed"}
     assert all(set(r) == keys for r in summary)
     got = {(r["agent"], r["env_steps"]): r for r in summary
            if r["utd"] == 1 and not r["act_ahead"] and not r["settings"]}
@@ -183,11 +183,21 @@ def test_goals_table_compares_each_svg1_loop_with_svg0_in_turn(tmp_path):
     recs += [_rec("svg1", s, 250000, [300.0 + 10 * s] * 2, ahead=True) for s in (0, 1)]
     recs += [_rec("svg1", s, 250000, [900.0] * 2, settings={"squash_penalty": 1e-3}) for s in (0, 1)]
     recs += [_rec("svg1", 0, 250000, [50.0] * 2)]   # in turn: one seed, no row
+    # on shared evaluation states: against SVG(0) of the same loop and states (not SVG(0) in turn)
+    recs += [_rec("svg1", s, 250000, [600.0 + s] * 2, ahead=True, eval_seed=0) for s in (4, 5)]
+    recs += [_rec("svg0", s, 250000, [500.0 + 20 * s] * 2, ahead=True, eval_seed=0) for s in (4, 5)]
+    recs += [_rec("svg0", s, 250000, [0.0] * 2, ahead=True) for s in (6, 7)]   # own states: compared with nothing
     write_records(folder / "records.jsonl", recs)
     lines = rt.rl_goals(tmp_path, None)
     rows = [ln for ln in lines if ln.startswith("| swimmer")]
-    assert len(rows) == 1, lines
+    assert len(rows) == 2, lines
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     assert cells[:3] == ["swimmer-swimmer6", "acting ahead", "250k"]
     assert cells[3].startswith("305 +- 5 (seeds 0-1)") and cells[4].startswith("110 +- 6 (seeds 0-2)")
     assert cells[5] == "+195" and cells[7] == "yes"
+    cells = [c.strip() for c in rows[1].strip("|").split("|")]
+    assert cells[:3] == ["swimmer-swimmer6", "acting ahead, both on the states of eval_seed 0", "250k"]
+    assert cells[3].startswith("604 +- 0 (seeds 4-5)") and cells[4].startswith("590 +- 10 (seeds 4-5)")
+    assert cells[5] == "+14"
+    summary = rs.rows(tmp_path)
+    assert {r["eval_seed"] for r in summary} == {None, 0}   # a curve of its own
