@@ -27,14 +27,13 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from gnwarp.eval.records import read_records  # noqa: E402
-from gnwarp.eval.summarize import Group, groups, ratio  # noqa: E402
+from gnwarp.eval.summarize import DYNAMICS_LABELS, Group, groups, ratio  # noqa: E402
 
 __all__ = ["TABLES", "BLOCK", "render", "documents", "run", "main"]
 
 BLOCK = re.compile(r"(<!-- results:begin (?P<name>[\w./-]+) -->\n)(?P<body>.*?)(<!-- results:end (?P=name) -->)", re.S)
 TABLES: dict[str, Callable[[Path, Path], list[str]]] = {}
 RESULTS = Path("bench") / "results"
-SIMULATORS = {"true_mujoco_c": "MuJoCo C", "true_mjwarp": "MuJoCo-Warp"}   # a record's "dynamics", in a table
 
 
 def table(name: str):
@@ -197,8 +196,9 @@ def headline(root: Path, doc: Path) -> list[str]:
            and not r.get("act_ahead", False) and not r.get("settings")]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
     at1m = max((r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["agent"] == "svg1"
-                and r["networks"] == "mlp" and r.get("utd", 1.0) == 1 and not r.get("settings")
-                and r["env_steps"] == 1000000), key=lambda r: r["seeds"], default=None)
+                and r["preset"] == "spinningup" and r["networks"] == "mlp" and r.get("utd", 1.0) == 1
+                and not r.get("settings") and r.get("eval_seed") is None and r["env_steps"] == 1000000),
+               key=lambda r: r["seeds"], default=None)
     at500 = {}   # (task, agent): the 500k row in turn, else acting ahead (walker-walk SVG(1))
     for r in sorted((r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1
                      and not r.get("settings") and r["env_steps"] == 500000
@@ -350,8 +350,9 @@ def rl_h1(root: Path, doc: Path) -> list[str]:
 
 @table("rl-curves")
 def rl_curves(root: Path, doc: Path) -> list[str]:
-    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead, settings) at 100k, 250k and 500k
-    env steps and at its last point: mean +- s.e. over seeds (median; seeds); the true simulators its seeds ran."""
+    """Every learning curve of ``rl/summary.json`` (task, agent, networks, utd, act_ahead, settings, eval_seed) at 100k,
+    250k and 500k env steps and at its last point: mean +- s.e. over seeds (median; seeds); the true simulators its seeds ran."""
+    from bench.rl_summary import eval_order
     rows = json.loads((root / RESULTS / "rl" / "summary.json").read_text())
     groups: dict[tuple, dict[int, dict]] = {}
     for r in rows:
@@ -362,13 +363,14 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
     out = []
     for (task, agent, preset, nets, utd, ahead, tag, es), pts in sorted(groups.items(), key=lambda kv: (
             kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5], kv[0][6],
-            -1 if kv[0][7] is None else kv[0][7])):
+            eval_order(kv[0][7]))):
         last = max(pts)
         name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
         name += (("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
                  + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else "")
                  + ("" if es is None else f", evaluated on the states of eval_seed {es}"))
-        sims = sorted({SIMULATORS.get(d, d) for r in pts.values() for d in r.get("dynamics", ["true_mujoco_c"])})
+        sims = sorted({DYNAMICS_LABELS.get(d, d).removeprefix("true, ") for r in pts.values()
+                       for d in r.get("dynamics", ["true_mujoco_c"])})
         out.append([task.replace("dmc-", ""), name, nets, " and ".join(sims),
                     *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
@@ -398,7 +400,7 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
     250k env steps both reached and at the last point both share, where each has two seeds or
     more, each run's mean +- s.e. over its seeds there (which seeds: a later point holds only
     those that got there) and the difference of means with its 95% Welch interval."""
-    from bench.rl_summary import difference, seed_means
+    from bench.rl_summary import difference, eval_order, seed_means
     by = seed_means(root)
     runs: dict[tuple, dict[int, dict[int, float]]] = {}
     for k, v in by.items():
@@ -412,7 +414,7 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
         return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f} (seeds {_seed_ids(v)})"
     out = []
     for task, ahead, es in sorted({(t, a, e) for t, ag, a, e in runs if ag == "svg1"},
-                                  key=lambda k: (k[0], k[1], k[2] is not None, k[2] or 0)):
+                                  key=lambda k: (k[0], k[1], eval_order(k[2]))):
         one = runs.get((task, "svg1", ahead, es), {})
         zero = runs.get((task, "svg0", False, None) if es is None else (task, "svg0", ahead, es), {})
         both = sorted(s for s in set(one) & set(zero) if min(len(one[s]), len(zero[s])) >= 2)

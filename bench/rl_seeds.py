@@ -82,7 +82,8 @@ def run_name(base: dict) -> str:
     ``-ahead`` where ``act_ahead`` is true, then each agent setting off its default, the run's
     own (``batch_size``, ``hidden``, ``start_steps``, ``update_after``) and ``agent_settings``'
     (``gnwarp.rl.settings.settings_tag``, as ``bench/rl_summary.py`` groups the records:
-    ``-squash_penalty0.001``) (``ValueError`` naming a bad value)."""
+    ``-squash_penalty0.001``), and ``-eval<k>`` where ``eval_seed`` is k (its runs evaluate on
+    shared states: a curve of their own) (``ValueError`` naming a bad value)."""
     try:
         utd = float(base.get("utd", 1.0))
     except (TypeError, ValueError):
@@ -98,8 +99,10 @@ def run_name(base: dict) -> str:
     # the agent settings the run's records will hold, its own keys (batch_size, hidden, ...) too; a
     # refused setting raises ConfigError (a ValueError) naming its key
     tag = settings_tag(RLConfig.from_dict({**base, "out": "unused"}).agent_config().to_dict())
+    es = base.get("eval_seed")
     return (f"{base['agent']}-{base['preset']}-{base['networks']}" + ("" if utd == 1 else f"-utd{utd:g}")
-            + ("-ahead" if ahead else "") + ("-" + tag.replace("=", "").replace(",", "-") if tag else ""))
+            + ("-ahead" if ahead else "") + ("-" + tag.replace("=", "").replace(",", "-") if tag else "")
+            + ("" if es is None else f"-eval{es}"))
 
 
 def seed_config(quick: bool, task: str, agent: str, preset: str, networks: str, threads: int,

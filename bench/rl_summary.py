@@ -51,7 +51,7 @@ from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write, write_or_check  # noqa: E402
 from gnwarp.rl.settings import settings_tag  # noqa: E402
 
-__all__ = ["RL", "seed_means", "rows", "point", "difference", "plot_curves", "main"]
+__all__ = ["RL", "seed_means", "rows", "point", "difference", "eval_order", "plot_curves", "main"]
 
 RL = Path("bench") / "results" / "rl"
 
@@ -76,7 +76,7 @@ def _group(rec) -> tuple:
             settings_tag({**given, "agent": agent, "preset": preset}, strict=False), c.get("eval_seed"))
 
 
-def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int]]]:
+def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int, str]]]:
     """{(task, agent, preset, networks, utd, act_ahead, settings, eval_seed, env_steps): {seed: (its evaluation's mean return, its
     episodes, its true simulator)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
@@ -100,7 +100,7 @@ def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
     act_ahead, settings, eval_seed (unset first), env steps."""
     by = seed_means(root, folder)
     out = []
-    for key in sorted(by, key=lambda k: (*k[:7], k[7] is not None, k[7] or 0, k[8])):
+    for key in sorted(by, key=lambda k: (*k[:7], eval_order(k[7]), k[8])):
         seeds = by[key]
         task, agent, preset, networks, utd, ahead, tag, eval_seed, steps = key
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
@@ -129,9 +129,14 @@ def difference(a, b) -> tuple[float, float, float]:
 
 def _run(row: dict) -> tuple:
     """(agent, preset, networks, utd, act_ahead, settings, eval_seed) of a summary row (utd 1,
-    act_ahead false, settings "", eval_seed -1 for unset, where the row predates them)."""
+    act_ahead false, settings "", eval_seed None where the row predates them)."""
     return (row["agent"], row["preset"], row["networks"], row.get("utd", 1.0), row.get("act_ahead", False),
-            row.get("settings", ""), -1 if row.get("eval_seed") is None else row["eval_seed"])
+            row.get("settings", ""), row.get("eval_seed"))
+
+
+def eval_order(eval_seed) -> tuple:
+    """Sort key of an ``eval_seed``: unset (each run on its own seed's states) first, then by seed."""
+    return (eval_seed is not None, eval_seed or 0)
 
 
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
@@ -142,12 +147,12 @@ def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
     written = []
     for task in sorted({r["task"] for r in summary}):
         fig, (ax_med, ax_mean) = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-        runs = sorted({_run(r) for r in summary if r["task"] == task})
+        runs = sorted({_run(r) for r in summary if r["task"] == task}, key=lambda run: (*run[:6], eval_order(run[6])))
         for run in runs:
             pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
             x = np.array([p["env_steps"] for p in pts], dtype=float)
             utd = (("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
-                   + (f", {run[5]}" if run[5] else "") + (f", eval_seed {run[6]}" if run[6] >= 0 else ""))
+                   + (f", {run[5]}" if run[5] else "") + (f", eval_seed {run[6]}" if run[6] is not None else ""))
             label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
             line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
             ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)

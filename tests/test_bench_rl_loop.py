@@ -25,12 +25,15 @@ def test_both_ways_timed_with_the_same_schedule(tmp_path):
     md = jsonl.with_suffix(".md").read_text()
     assert "ahead / in turn" in md and md.count("| pendulum-balance |") == 1
     # the table holds every run of the file: a second run's line beside the first, --summarize alike
-    with jsonl.open("a") as f:
+    with jsonl.open("a") as f:   # another simulator, then the same settings again: each a line, whole
         for r in rows:
             f.write(json.dumps({**r, "backend": "mujoco_warp", "env_steps_per_s": 2 * r["env_steps_per_s"]}) + "\n")
+        for r in rows:
+            f.write(json.dumps(r) + "\n")
     rl_loop.main(["--summarize", str(jsonl)])
     lines = [ln for ln in jsonl.with_suffix(".md").read_text().splitlines() if "| pendulum-balance |" in ln]
-    assert [ln.split(" | ")[3] for ln in lines] == ["2 on mujoco", "2 on mujoco_warp"], lines
+    assert [ln.split(" | ")[3] for ln in lines] == ["2 on mujoco", "2 on mujoco_warp", "2 on mujoco"], lines
+    assert lines[0] == lines[2] and " - " not in lines[2], lines
     ratio = rows[1]["env_steps_per_s"] / rows[0]["env_steps_per_s"]
     assert all(f"**{ratio:.2f}x**" in ln for ln in lines), lines
     # --profile: each way's operator table, the loop's named ranges (act, env step, store, updates) in it,

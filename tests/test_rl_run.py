@@ -640,6 +640,19 @@ def test_eval_seed_shares_the_evaluation_states_between_runs():
         RLConfig(**TINY, eval_seed=-1, out="unused")
 
 
+def test_a_run_evaluates_from_its_eval_seeds_states(tmp_path, monkeypatch):
+    """run_rl's evaluations (and their first states) start from ``eval_seed``'s reset seed; the
+    records say which."""
+    from gnwarp.rl import run as rl_run
+    seen = []
+    real = rl_run.evaluate_policy
+    monkeypatch.setattr(rl_run, "evaluate_policy", lambda agent, env, seed, **kw: seen.append(seed) or real(
+        agent, env, seed, **kw))
+    run_rl(RLConfig(**{**TINY, "env_steps": 40}, seed=3, eval_seed=5, out=str(tmp_path / "r")))
+    assert seen and set(seen) == {rl_run.round_seed(5, 0, True)} != {rl_run.round_seed(3, 0, True)}
+    assert {r.config["eval_seed"] for r in read_records(tmp_path / "r" / RECORDS_FILE)} == {5}
+
+
 def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp_path, monkeypatch):
     """"auto": MuJoCo C where a run acts ahead (the CPU steps while the GPU updates) or no CUDA is,
     MuJoCo-Warp otherwise; the choice is saved, and a resumed run keeps the simulator it started
@@ -664,3 +677,12 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
         assert json.loads((out / "config.json").read_text())["backend"] == expect
     with pytest.raises(ConfigError, match="backend"):   # named explicitly, another simulator: refused
         rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco"}, act_ahead=True, out=str(tmp_path / "auto")))
+    old = tmp_path / "old"   # saved with "auto" by older code, resumed naming the simulator it ran on
+    old.mkdir()
+    (old / "config.json").write_text(json.dumps({**RLConfig(**TINY, out=str(old)).to_dict(), "backend": "auto"}))
+    (old / CHECKPOINT).write_bytes(b"")
+    _, _, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco_warp"}, out=str(old)))
+    assert cfg.backend == "mujoco_warp"
+    (old / "config.json").unlink()   # a checkpoint without its config: "auto" cannot know the run's simulator
+    with pytest.raises(ConfigError, match="backend.*name it"):
+        rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(old)))

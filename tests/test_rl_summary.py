@@ -134,6 +134,7 @@ def test_run_names_of_the_side_by_side_runner():
     assert run_name(base) == "svg1-spinningup-mlp"
     assert run_name({**base, "utd": 3, "act_ahead": True}) == "svg1-spinningup-mlp-utd3-ahead"
     assert run_name({**base, "act_ahead": False, "utd": 1.0}) == "svg1-spinningup-mlp"
+    assert run_name({**base, "act_ahead": True, "eval_seed": 0}) == "svg1-spinningup-mlp-ahead-eval0"
     with pytest.raises(ValueError, match="act_ahead=...: true or false, got 'yes'"):
         run_name({**base, "act_ahead": "yes"})
     with pytest.raises(ValueError, match="utd=...: updates per env step"):

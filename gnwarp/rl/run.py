@@ -38,6 +38,7 @@ from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.replay import ReplayBuffer
 from gnwarp.rl.run_log import (CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cut_records, load_checkpoint,
                                save_checkpoint)
+from gnwarp.sim.common import BACKENDS
 from gnwarp.validation import ConfigError
 
 __all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed",
@@ -81,9 +82,6 @@ def eval_reset_seed(cfg: RLConfig) -> int:
     return round_seed(cfg.seed if cfg.eval_seed is None else cfg.eval_seed, 0, True)
 
 
-_SIMULATORS = ("mujoco", "mujoco_warp", "mujoco_warp_cpu")   # RLConfig.backend's values but "auto"
-
-
 def _device(name: str) -> torch.device:
     from gnwarp.interop import resolve_device
     try:
@@ -100,7 +98,15 @@ def _backend(cfg: RLConfig) -> str:
     simulator on resume."""
     if cfg.backend != "auto":
         return cfg.backend
-    return "mujoco_warp" if torch.cuda.is_available() and not cfg.act_ahead else "mujoco"
+    return "mujoco" if cfg.act_ahead else _legacy_backend()
+
+
+SIMULATORS = tuple(b for b in BACKENDS if b != "auto")   # the true simulators a run names
+
+
+def _legacy_backend() -> str:
+    """What "auto" meant before runs saved their simulator: MuJoCo-Warp where CUDA is, else MuJoCo C."""
+    return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
 
 
 def check_task(cfg: RLConfig):
@@ -384,6 +390,10 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
     saved = out / CONFIG_FILE
     if not resume:
         _refuse_orphans(out)
+    if resume and not saved.is_file() and cfg.backend == "auto":
+        raise ConfigError("backend", f"the run in {out} has no {CONFIG_FILE} to tell which simulator it trained "
+                                     "on: name it (mujoco, mujoco_warp or mujoco_warp_cpu; its records' "
+                                     "dynamics say which)")
     if resume and saved.is_file():   # (without a checkpoint and records, nothing of an earlier start is lost)
         try:
             old = json.loads(saved.read_text())
@@ -395,12 +405,11 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
         new = json.loads(json.dumps(cfg.to_dict()))
         defaults = json.loads(json.dumps(RLConfig().to_dict()))
         old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
-        if cfg.backend == "auto" and old.get("backend") in _SIMULATORS:
+        if old.get("backend") == "auto":   # saved before "auto" was resolved: what it meant then
+            old["backend"] = _legacy_backend()
+        if cfg.backend == "auto" and old.get("backend") in SIMULATORS:
             cfg = replace(cfg, backend=old["backend"])   # the run's own simulator
             new["backend"] = cfg.backend
-        elif cfg.backend == "auto" and old.get("backend") == "auto":   # saved before "auto" was resolved
-            cfg = replace(cfg, backend="mujoco_warp" if torch.cuda.is_available() else "mujoco")
-            old["backend"] = new["backend"] = cfg.backend
         diff = sorted(k for k in set(old) | set(new) if k not in RESUMABLE and k != "out" and old.get(k) != new.get(k))
         if diff:
             raise ConfigError(diff[0], f"differs from the run in {out} ({old.get(diff[0])!r} there, "
