@@ -202,3 +202,15 @@ def test_goals_table_compares_each_svg1_loop_with_svg0_in_turn(tmp_path):
     assert cells[5] == "+14"
     summary = rs.rows(tmp_path)
     assert {r["eval_seed"] for r in summary} == {None, 0}   # a curve of its own
+
+
+def test_fastest_1m_run_is_the_one_with_the_fewest_training_seconds(tmp_path):
+    from bench import results_tables as rt
+    for name, secs, steps in (("slow", 2000.0, 1000000), ("fast", 700.0, 1000000), ("short", 10.0, 500000)):
+        d = tmp_path / rs.RL / name
+        d.mkdir(parents=True)
+        (d / "progress.csv").write_text(f"env_steps,seconds\n10000,1.0\n{steps},{secs}\n")
+        write_records(d / "records.jsonl", [_rec("svg1", 0, steps, [1.0])])
+    secs, rec = rt._fastest_1m(tmp_path)
+    assert secs == 700.0 and rec.env_steps == 1000000
+    assert rt._fastest_1m(tmp_path / "none") is None
