@@ -17,10 +17,12 @@ probes' output and ``<work>/_probes``, where a probe's own ``--out`` can point) 
 into DIR: what comes back from the machine. With ``--slim``, also ``slim.tar`` (parts likewise):
 each unfinished run's slim copy (``gnwarp.rl.slim``; ~20 MB a 1M-step swimmer6 run), which a
 later machine's call takes up with ``--restore slim.tar`` (its runs go on, their replay buffers
-rebuilt first).
+rebuilt first). One call brings back at most 64 MiB (~3 runs at 1M): ``--slim-only GLOB`` then
+runs nothing and packs only the matching runs' copies, one short call for each share of the runs.
 
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --call-seconds 590 --probes --mps --pack "$OUT"
     PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --dry-run     # the commands, nothing run
+    PYTHONPATH=. python3 bench/rl_sweep.py SPEC.toml --slim-only 'swimmer6/*/s2[0-2]' --pack "$OUT"
 
 A spec::
 
@@ -321,11 +323,13 @@ def split_file(path: Path, part_bytes: int = PART_BYTES) -> list[Path]:
     return parts
 
 
-def make_slim(work) -> list[str]:
+def make_slim(work, only: str = "*") -> list[str]:
     """Each unfinished run's slim copy (``gnwarp.rl.slim.slim_run``: no replay buffer's
-    transitions) into ``<work>/_slim/<task>/<name>/s<seed>`` (an earlier call's copies replaced);
+    transitions) into ``<work>/_slim/<task>/<name>/s<seed>`` (an earlier call's copies replaced;
+    ``only``: the runs whose ``<task>/<name>/s<seed>`` matches this glob, ``fnmatch``'s);
     a run still slim (restored, not yet checkpointed since) copied as it is; a finished run has
     none (its agent is exported). A run that fails is reported, the others go on. The lines."""
+    import fnmatch
     import json
     import shutil
 
@@ -336,6 +340,8 @@ def make_slim(work) -> list[str]:
     lines = []
     for run in _run_folders(work, CHECKPOINT):
         rel = run.relative_to(work)
+        if not fnmatch.fnmatchcase(rel.as_posix(), only):
+            continue
         try:
             ck = load_checkpoint(run / CHECKPOINT)
             if ck["agent"]["env_steps"] >= json.loads((run / "config.json").read_text())["env_steps"]:
@@ -396,20 +402,23 @@ def restore(work, source) -> list[str]:
     return put
 
 
-def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False) -> list[Path]:
+def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False, only: str | None = None) -> list[Path]:
     """``results.tar.xz``, ``logs.tar.xz`` and ``export.tar`` of ``work`` in ``dest`` (each
     written to a temporary name, then renamed); an ``export.tar`` over ``part_bytes`` is split
     into ``export.tar.part-NNN`` files (``split_file``), so the agents come back from a machine
     that sends no file over 16 MiB. ``slim``: also ``slim.tar`` of the unfinished runs' slim
-    copies (``make_slim``: all a run needs to go on elsewhere, ``restore``), split the same way."""
+    copies (``make_slim``: all a run needs to go on elsewhere, ``restore``), split the same way.
+    ``only`` (a glob of ``<task>/<name>/s<seed>``): ``slim.tar`` of those runs alone, nothing else
+    (so that several short calls bring back more copies than one call's 64 MiB holds)."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     for old in (*dest.glob("export.tar.part-*"), *dest.glob("slim.tar.part-*")):   # a previous call's parts
         old.unlink()                                                                # would join into a corrupt tar
     made = []
-    archives = [("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), ("export.tar", "w", "_export")]
-    if slim:
-        for line in make_slim(work):   # after the records and logs are safe: a run's copy may fail
+    archives = [] if only is not None else [
+        ("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), ("export.tar", "w", "_export")]
+    if slim or only is not None:
+        for line in make_slim(work, "*" if only is None else only):   # after the records and logs: a copy may fail
             print(line)
         archives.append(("slim.tar", "w", "_slim"))
     for name, mode, part in archives:
@@ -444,6 +453,10 @@ def main(argv=None) -> int:
     ap.add_argument("--restore", default=None, metavar="PATH",
                     help="first, the slim copies of PATH (a slim.tar, its parts, or their folder) as run folders where "
                          "none holds a checkpoint: those runs go on from them")
+    ap.add_argument("--slim-only", default=None, metavar="GLOB",
+                    help="run nothing: into --pack's DIR only slim.tar of the unfinished runs whose "
+                         "<task>/<name>/s<seed> matches GLOB (e.g. 'swimmer6/*/s2[0-2]'), after the calls that "
+                         "trained them: each such call brings back the copies that fit its 64 MiB")
     ap.add_argument("--dry-run", action="store_true", help="print the commands and stop")
     a = ap.parse_args(argv)
     try:
@@ -473,6 +486,14 @@ def main(argv=None) -> int:
             print(f"rl_sweep: --restore: {e}", file=sys.stderr)
             return 2
         print(f"restored {len(put)} runs from their slim copies: {', '.join(put) or 'none'}")
+    if a.slim_only is not None:
+        if not a.pack:
+            print("rl_sweep: --slim-only needs --pack DIR", file=sys.stderr)
+            return 2
+        made = pack(work, a.pack, only=a.slim_only)
+        for p in made:
+            print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
+        return 0
     if a.mps:
         print(start_mps())
     started, lines = time.monotonic(), []

@@ -330,3 +330,14 @@ def test_make_slim_copies_a_still_slim_run_and_reports_a_failing_one(tmp_path):
     assert "slim copy of t/a/s0 (20 env steps)" in lines and "slim copy of t/b/s0 (20 env steps)" in lines
     assert (work / "_slim" / "t" / "b" / "s0" / "checkpoint.pt").read_bytes() == \
         (work / "t" / "b" / "s0" / "checkpoint.pt").read_bytes()
+    # --slim-only: the matching runs' copies alone, and no other archive (one call's 64 MiB a share)
+    out = tmp_path / "out"
+    spec = tmp_path / "s.toml"
+    spec.write_text('[[gpu]]\nindex = 0\nruns = [{agent = "ddpg", task = "swimmer6", seeds = "0"}]\n')
+    assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "t/a/*"]) == 2   # needs --pack
+    assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "t/a/*", "--pack", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["slim.tar"]
+    import tarfile
+    with tarfile.open(out / "slim.tar") as t:
+        runs = {m.name.rsplit("/", 1)[0] for m in t.getmembers() if m.name.endswith("checkpoint.pt")}
+    assert runs == {"slim/t/a/s0"}
