@@ -451,6 +451,33 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
         ["task", "SVG(1) loop", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
+@table("rl-eval-noise")
+def rl_eval_noise(root: Path, doc: Path) -> list[str]:
+    """How much of the spread between seeds is the evaluation's own: per swimmer6 curve (MLPs, one
+    update an env step, default agent settings) with three seeds or more at 250k and 500k, the
+    variance of a seed's mean from its own episodes (their variance / episodes, averaged over the
+    seeds) against the variance of the seeds' means, and their ratio."""
+    from bench.rl_summary import eval_order, seed_means
+    names = {"ddpg": "DDPG", **{f"svg{n}": f"SVG({n})" for n in range(6)}}
+    curves: dict[tuple, dict[int, tuple[float, float, int]]] = {}
+    for (task, agent, preset, nets, utd, ahead, tag, es, steps), v in seed_means(root).items():
+        x = [(m, var) for m, _, _, var in v.values() if math.isfinite(var)]
+        if (task == "dmc-swimmer-swimmer6" and (nets, utd, tag) == ("mlp", 1.0, "") and steps in (250000, 500000)
+                and len(x) >= 3):
+            curves.setdefault((agent, ahead, es), {})[steps] = (
+                statistics.fmean(var for _, var in x), statistics.variance(m for m, _ in x), len(x))
+    out = []
+    for (agent, ahead, es), pts in sorted(curves.items(), key=lambda kv: (
+            list(names).index(kv[0][0]) if kv[0][0] in names else 9, kv[0][1], eval_order(kv[0][2]))):
+        cell = lambda p: "" if p is None else f"{p[0]:.0f} / {p[1]:.0f} (**{p[0] / p[1]:.2f}**; {p[2]} seeds)"  # noqa: E731
+        out.append([names.get(agent, agent) + (", acting ahead" if ahead else ", in turn")
+                    + ("" if es is None else f", shared states (eval_seed {es})"),
+                    cell(pts.get(250000)), cell(pts.get(500000))])
+    return [_note("per swimmer6 curve with three seeds or more at that point: the evaluation's own variance of a "
+                  "seed's mean (its episodes' variance / episodes, averaged over the seeds) / the variance of the "
+                  "seeds' means (ratio; seeds)", "the records"), ""] + _md(["run", "250k", "500k"], out)
+
+
 @table("rl-policy-mpc")
 def rl_policy_mpc(root: Path, doc: Path) -> list[str]:
     """A trained agent planned over with its own model and Q-function (``policy-mpc``) against its

@@ -76,9 +76,10 @@ def _group(rec) -> tuple:
             settings_tag({**given, "agent": agent, "preset": preset}, strict=False), c.get("eval_seed"))
 
 
-def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int, str]]]:
+def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int, str, float]]]:
     """{(task, agent, preset, networks, utd, act_ahead, settings, eval_seed, env_steps): {seed: (its evaluation's mean return, its
-    episodes, its true simulator)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
+    episodes, its true simulator, the variance of that mean from its episodes' spread: their variance / episodes,
+    nan for one)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
     rerun of a seed at the same env steps: the last record stands)."""
     by: dict[tuple, dict] = {}
     for path in sorted((root / folder).rglob("*.jsonl")):
@@ -89,8 +90,11 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
         for r in recs:
             if r.experiment != "rl" or r.returns is None or r.env_steps is None:
                 continue
-            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (float(np.nanmean(r.values)), r.episodes,
-                                                                      r.dynamics)
+            v = np.asarray(r.values, dtype=np.float64)
+            v = v[np.isfinite(v)]
+            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (
+                float(v.mean()) if v.size else math.nan, r.episodes, r.dynamics,
+                float(v.var(ddof=1) / v.size) if v.size > 1 else math.nan)
     return by
 
 
@@ -106,8 +110,8 @@ def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:
         out.append(dict(task=task, agent=agent, preset=preset, networks=networks, utd=utd, act_ahead=ahead,
                         settings=tag, eval_seed=eval_seed,
                         env_steps=steps,
-                        seeds=len(seeds), eval_episodes=min(n for _, n, _ in seeds.values()),
-                        **point([m for m, _, _ in seeds.values()]), dynamics=sorted({d for *_, d in seeds.values()})))
+                        seeds=len(seeds), eval_episodes=min(x[1] for x in seeds.values()),
+                        **point([x[0] for x in seeds.values()]), dynamics=sorted({x[2] for x in seeds.values()})))
     return out
 
 

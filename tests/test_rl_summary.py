@@ -62,7 +62,7 @@ def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     write_records(folder / "a.jsonl", [_rec("svg1", 0, 1000, [1, 3]), _rec("svg1", 1, 1000, [5, 7, 9]),
                                        _rec("svg1", 0, 1000, [10, 10])])   # a rerun of seed 0: the last stands
     by = rs.seed_means(tmp_path, Path("rl"))
-    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", None, 1000): {0: (10.0, 2, "true_mjwarp"), 1: (7.0, 3, "true_mjwarp")}}
+    assert by == {("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, False, "", None, 1000): {0: (10.0, 2, "true_mjwarp", 0.0), 1: (7.0, 3, "true_mjwarp", 4.0 / 3)}}
 
 
 def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
@@ -214,3 +214,18 @@ def test_fastest_1m_run_is_the_one_with_the_fewest_training_seconds(tmp_path):
     secs, rec = rt._fastest_1m(tmp_path)
     assert secs == 700.0 and rec.env_steps == 1000000
     assert rt._fastest_1m(tmp_path / "none") is None
+
+
+def test_eval_noise_table_against_hand_computed_variances(tmp_path):
+    """rl-eval-noise: the mean of the seeds' (episode variance / episodes) over the variance of the
+    seeds' means, per curve, at 250k (three seeds or more)."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    eps = {0: [0.0, 2.0], 1: [4.0, 8.0], 2: [10.0, 10.0]}   # means 1, 6, 10; (var / 2): 1, 4, 0
+    recs = [_rec("svg1", s, 250000, v) for s, v in eps.items()]
+    recs += [_rec("svg0", s, 250000, v) for s, v in list(eps.items())[:2]]   # two seeds: no row
+    write_records(folder / "records.jsonl", recs)
+    rows = [ln for ln in rt.rl_eval_noise(tmp_path, None) if ln.startswith("| SVG")]
+    within, between = (1 + 4 + 0) / 3, np.var([1.0, 6.0, 10.0], ddof=1)
+    assert rows == [f"| SVG(1), in turn | {within:.0f} / {between:.0f} (**{within / between:.2f}**; 3 seeds) |  |"], rows
