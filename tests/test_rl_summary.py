@@ -229,3 +229,24 @@ def test_eval_noise_table_against_hand_computed_variances(tmp_path):
     rows = [ln for ln in rt.rl_eval_noise(tmp_path, None) if ln.startswith("| SVG")]
     within, between = (1 + 4 + 0) / 3, np.var([1.0, 6.0, 10.0], ddof=1)
     assert rows == [f"| SVG(1), in turn | {within:.0f} / {between:.0f} (**{within / between:.2f}**; 3 seeds) |  |"], rows
+
+
+def test_rl_targets_distance_and_reach(tmp_path, capsys):
+    """bench/rl_targets.py: each episode's target distance from the head's start, the farthest
+    reached and the nearest missed; a record without targets is refused by name."""
+    from bench import rl_targets
+    rec = ResultRecord(experiment="mpc", task="dmc-swimmer-swimmer6", planner="policy", dynamics="none",
+                       episodes=3, episode_steps=1000, returns=[990.0, 10.0, 700.0], seed=0,
+                       config=dict(policy="agents/a", backend="mujoco",
+                                   targets=[[0.3, 0.4, 0.05], [2.0, 0.0, 0.05], [1.0, 1.0, 0.05]],
+                                   initial_qpos=[[0.0, 0.0, 0.1], [0.0, 0.0, 0.2], [1.0, 0.0, 0.3]]))
+    d, r = rl_targets.episodes(rec)
+    assert np.allclose(d, [0.5, 2.0, 1.0]) and r.tolist() == [990.0, 10.0, 700.0]
+    write_records(tmp_path / "p.jsonl", [rec])
+    assert rl_targets.main([str(tmp_path / "p.jsonl"), "--out", str(tmp_path / "t.png")]) == 0
+    out = capsys.readouterr().out
+    assert "reached 2 of 3, the farthest at 1.00 m; the nearest missed at 2.00 m" in out
+    assert (tmp_path / "t.png").stat().st_size > 1000
+    import dataclasses
+    with pytest.raises(ValueError, match="targets"):
+        rl_targets.episodes(dataclasses.replace(rec, config={"policy": "agents/a"}))

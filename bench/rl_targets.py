@@ -1,0 +1,77 @@
+"""Swimmer6: a trained policy's return against its target's distance, from ``gnwarp mpc --policy``
+records (``gnwarp.eval.records``, planner "policy": each episode's return, initial state and
+target). The distance is the target's from the head's start (the root's x, y: the nose sits a
+few centimetres ahead of it). Writes a scatter plot, one series a record (its policy's folder
+name), and prints per record the farthest target reached and the nearest missed ("reached": a
+return of at least ``--reached``, on the 0-1000 scale).
+
+    PYTHONPATH=. python3 bench/rl_targets.py bench/results/rl/h1_swimmer6/policy_mpc.jsonl \\
+        bench/results/rl/simulators/records.jsonl --out bench/results/rl/targets_swimmer6.png
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from gnwarp.eval.records import read_records  # noqa: E402
+from gnwarp.files import atomic_write  # noqa: E402
+
+__all__ = ["episodes", "main"]
+
+
+def episodes(rec) -> tuple[np.ndarray, np.ndarray]:
+    """(each episode's target distance from the head's start, its return) of a policy record
+    (``ValueError`` naming what it lacks)."""
+    c = rec.config or {}
+    if rec.planner != "policy" or not c.get("targets") or not c.get("initial_qpos"):
+        raise ValueError(f"not a policy record with targets and initial states (planner {rec.planner!r}, "
+                         f"task {rec.task!r})")
+    t, q = np.asarray(c["targets"], dtype=np.float64), np.asarray(c["initial_qpos"], dtype=np.float64)
+    if t.ndim != 2 or q.ndim != 2 or len(t) != len(q) or len(t) != len(rec.returns):
+        raise ValueError(f"targets {t.shape}, initial states {q.shape} and {len(rec.returns)} returns do not match")
+    return np.linalg.norm(t[:, :2] - q[:, :2], axis=1), np.asarray(rec.returns, dtype=np.float64)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("records", nargs="+", help="records files of gnwarp mpc --policy runs")
+    ap.add_argument("--out", required=True, help="the PNG to write")
+    ap.add_argument("--reached", type=float, default=500.0, help="a return at least this counts as reached")
+    a = ap.parse_args(argv)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for path in a.records:
+        for rec in read_records(path):
+            if rec.planner != "policy":
+                continue
+            d, r = episodes(rec)
+            name = f"{Path(rec.config['policy']).name} ({rec.config.get('backend', '?')}, seed {rec.seed})"
+            ax.scatter(d, r, label=name, alpha=0.7)
+            hit, miss = d[r >= a.reached], d[r < a.reached]
+            print(f"{name}: mean {r.mean():.1f}; reached {hit.size} of {d.size}, the farthest at "
+                  f"{hit.max() if hit.size else float('nan'):.2f} m; the nearest missed at "
+                  f"{miss.min() if miss.size else float('nan'):.2f} m")
+    ax.set_xlabel("target's distance from the head's start (m)")
+    ax.set_ylabel("episode return (1000 steps)")
+    ax.set_title("swimmer6: trained SVG(1) policies, return against target distance")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_write(a.out) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
