@@ -7,6 +7,16 @@ return of at least ``--reached``, on the 0-1000 scale).
 
     PYTHONPATH=. python3 bench/rl_targets.py bench/results/rl/h1_swimmer6/policy_mpc.jsonl \\
         bench/results/rl/simulators/records.jsonl --out bench/results/rl/targets_swimmer6.png
+
+``--eval-states``: instead, how many targets of a run's evaluation states (``RLConfig.eval_seed``
+K, ``eval_episodes`` N; the states ``gnwarp rl`` evaluates from) lie within ``--near`` metres of
+the nose (the suite's observation's ``to_target``), against the suite's own distribution
+(``--population`` states of another seed); rows appended to ``--out`` (JSON lines): a shared
+evaluation set whose share of near targets is off the population's biases every return measured
+on it alike.
+
+    PYTHONPATH=. python3 bench/rl_targets.py --eval-states 50,100 --eval-seeds 0,1,2 \\
+        --out bench/results/rl/eval_states_swimmer6.jsonl
 """
 from __future__ import annotations
 
@@ -23,7 +33,7 @@ if str(ROOT) not in sys.path:
 from gnwarp.eval.records import read_records  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
-__all__ = ["episodes", "main"]
+__all__ = ["episodes", "eval_distances", "main"]
 
 
 def episodes(rec) -> tuple[np.ndarray, np.ndarray]:
@@ -39,12 +49,60 @@ def episodes(rec) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.norm(t[:, :2] - q[:, :2], axis=1), np.asarray(rec.returns, dtype=np.float64)
 
 
+def eval_distances(episodes: int, eval_seed: int, task: str = "swimmer6") -> np.ndarray:
+    """The nose-to-target distances of the evaluation states of a run with ``eval_episodes``
+    ``episodes`` and ``eval_seed`` (its eval env, reset as ``run_rl`` resets it; MuJoCo C)."""
+    from gnwarp.rl.config import RLConfig
+    from gnwarp.rl.observations import DMCObservation
+    from gnwarp.rl.run import build_run, eval_reset_seed
+    cfg = RLConfig(task=task, agent="svg1", eval_episodes=episodes, eval_seed=eval_seed, backend="mujoco",
+                   device="cpu", out="unused", progress=False, tensorboard=False, video_episodes=0, sim_threads=2)
+    parts = build_run(cfg)
+    try:
+        obs, _ = parts["eval_env"].reset(seed=eval_reset_seed(cfg))
+    finally:
+        parts["env"].close()
+        parts["eval_env"].close()
+    names = DMCObservation(task).names
+    ix = [names.index("to_target.x"), names.index("to_target.y")]
+    return np.linalg.norm(np.asarray(obs, dtype=np.float64)[:, ix], axis=1)
+
+
+def _eval_states(a) -> int:
+    import json
+    import time
+    pop = eval_distances(a.population, 10_000)
+    p = float((pop < a.near).mean())
+    rows = [dict(eval_seed=None, episodes=a.population, near=a.near, share=round(p, 4),
+                 mean_distance=round(float(pop.mean()), 3), what="population (eval_seed 10000)")]
+    for n in map(int, a.eval_states.split(",")):
+        for k in map(int, a.eval_seeds.split(",")):
+            d = eval_distances(n, k)
+            rows.append(dict(eval_seed=k, episodes=n, near=a.near, share=round(float((d < a.near).mean()), 4),
+                             mean_distance=round(float(d.mean()), 3), what="evaluation states"))
+    for r in rows:
+        r["date"] = time.strftime("%Y-%m-%d")
+        print(json.dumps(r))
+    with open(a.out, "a") as f:
+        f.writelines(json.dumps(r) + "\n" for r in rows)
+    print(f"appended {len(rows)} rows to {a.out}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("records", nargs="+", help="records files of gnwarp mpc --policy runs")
-    ap.add_argument("--out", required=True, help="the PNG to write")
+    ap.add_argument("records", nargs="*", help="records files of gnwarp mpc --policy runs")
+    ap.add_argument("--out", required=True, help="the PNG to write (--eval-states: the JSON lines to append to)")
     ap.add_argument("--reached", type=float, default=500.0, help="a return at least this counts as reached")
+    ap.add_argument("--eval-states", default=None, metavar="N,..", help="evaluation sets of these sizes instead")
+    ap.add_argument("--eval-seeds", default="0", metavar="K,..", help="their eval_seed values")
+    ap.add_argument("--near", type=float, default=1.25, help="a target nearer the nose than this (m) counts as near")
+    ap.add_argument("--population", type=int, default=2000, help="states of the suite's distribution to compare with")
     a = ap.parse_args(argv)
+    if a.eval_states:
+        return _eval_states(a)
+    if not a.records:
+        ap.error("records files, or --eval-states")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -250,3 +250,18 @@ def test_rl_targets_distance_and_reach(tmp_path, capsys):
     import dataclasses
     with pytest.raises(ValueError, match="targets"):
         rl_targets.episodes(dataclasses.replace(rec, config={"policy": "agents/a"}))
+
+
+def test_rl_targets_eval_states_are_the_runs_own(tmp_path):
+    """--eval-states: the nose-to-target distances of the states a run with that eval_seed
+    evaluates from (a larger set starts with the smaller one's; another seed, other states), and
+    the share of near ones written as rows."""
+    from bench import rl_targets
+    four, six = rl_targets.eval_distances(4, 0), rl_targets.eval_distances(6, 0)
+    assert four.shape == (4,) and np.all(four > 0) and np.allclose(six[:4], four)
+    assert not np.allclose(rl_targets.eval_distances(4, 1), four)
+    out = tmp_path / "e.jsonl"
+    assert rl_targets.main(["--eval-states", "6", "--eval-seeds", "0", "--population", "8", "--near", "1.25",
+                            "--out", str(out)]) == 0
+    rows = [json.loads(x) for x in out.read_text().splitlines()]
+    assert [r["episodes"] for r in rows] == [8, 6] and rows[1]["share"] == round(float((six < 1.25).mean()), 4)
