@@ -103,15 +103,22 @@ def _mean_se(r: dict) -> str:
 
 def _fastest_1m(root: Path) -> tuple[float, dict] | None:
     """The RL run that trained 1M env steps in the fewest seconds of training (its
-    ``progress.csv``'s ``seconds``: rounds only, no evaluations): (seconds, its last record)."""
+    ``progress.csv``'s ``seconds`` at the first round at or past 1M: rounds only, no evaluations
+    or checkpoints): (seconds, its last record)."""
     import csv
     best = None
     for prog in sorted((root / RESULTS / "rl").rglob("progress.csv")):
-        rows = [r for r in csv.DictReader(prog.open()) if r.get("env_steps") == "1000000"]
+        with open(prog, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if int(float(r.get("env_steps") or 0)) >= 1_000_000]
         recs = read_records(prog.with_name("records.jsonl")) if prog.with_name("records.jsonl").is_file() else []
-        if rows and recs and (best is None or float(rows[-1]["seconds"]) < best[0]):
-            best = (float(rows[-1]["seconds"]), recs[-1])
+        if rows and recs and (best is None or float(rows[0]["seconds"]) < best[0]):
+            best = (float(rows[0]["seconds"]), recs[-1])   # the first round at or past 1M
     return best
+
+
+def _agent(agent: str) -> str:
+    """An RL agent's name in a table: DDPG, SVG(0) .. SVG(5)."""
+    return agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
 
 
 def _note(what: str, where: str) -> str:
@@ -222,7 +229,7 @@ def headline(root: Path, doc: Path) -> list[str]:
     at = {(r["agent"], r["env_steps"]): r for r in rl}
     ups = {r["agent"]: r for r in _rows(root, "rl/rl_agents_nvidia-h100-80gb-hbm3.jsonl")
            if r["batch"] == 100 and r.get("networks", "mlp") == "mlp"}
-    names = {"svg1": "SVG(1)", "svg0": "SVG(0)", "ddpg": "DDPG"}
+    names = {a: _agent(a) for a in ("svg1", "svg0", "ddpg")}
     pts = [f"{names[a]} " + " / ".join(_mean_se(at[a, s]) for s in (250000, 500000) if (a, s) in at)
            + f" ({min(at[a, s]['seeds'] for s in (250000, 500000) if (a, s) in at)} seeds)"
            for a in names if (a, 250000) in at]
@@ -383,7 +390,7 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
             kv[0][0], kv[0][3] != "mlp", order.get(kv[0][1], 0), kv[0][1], kv[0][4], kv[0][5], kv[0][6],
             eval_order(kv[0][7]))):
         last = max(pts)
-        name = agent.upper().replace("SVG", "SVG(") + (")" if agent.startswith("svg") else "")
+        name = _agent(agent)
         name += (("" if utd == 1 else f", {utd:g} updates / env step") + (", acting ahead" if ahead else "")
                  + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else "")
                  + ("" if es is None else f", evaluated on the states of eval_seed {es}"))
@@ -456,22 +463,22 @@ def rl_eval_noise(root: Path, doc: Path) -> list[str]:
     """How much of the spread between seeds is the evaluation's own: per swimmer6 curve (MLPs, one
     update an env step, default agent settings) with three seeds or more at 250k and 500k, the
     variance of a seed's mean from its own episodes (their variance / episodes, averaged over the
-    seeds) against the variance of the seeds' means, and their ratio."""
-    from bench.rl_summary import eval_order, seed_means
-    names = {"ddpg": "DDPG", **{f"svg{n}": f"SVG({n})" for n in range(6)}}
+    seeds) against the variance of the seeds' means, and their ratio. Runs on shared evaluation
+    states (``eval_seed``) are left out: there the targets' draw is the same for every seed and
+    does not enter the spread between them."""
+    from bench.rl_summary import seed_means
     curves: dict[tuple, dict[int, tuple[float, float, int]]] = {}
     for (task, agent, preset, nets, utd, ahead, tag, es, steps), v in seed_means(root).items():
         x = [(m, var) for m, _, _, var in v.values() if math.isfinite(var)]
-        if (task == "dmc-swimmer-swimmer6" and (nets, utd, tag) == ("mlp", 1.0, "") and steps in (250000, 500000)
-                and len(x) >= 3):
-            curves.setdefault((agent, ahead, es), {})[steps] = (
+        if (task == "dmc-swimmer-swimmer6" and (nets, utd, tag, es) == ("mlp", 1.0, "", None)
+                and steps in (250000, 500000) and len(x) >= 3):
+            curves.setdefault((agent, preset, ahead), {})[steps] = (
                 statistics.fmean(var for _, var in x), statistics.variance(m for m, _ in x), len(x))
     out = []
-    for (agent, ahead, es), pts in sorted(curves.items(), key=lambda kv: (
-            list(names).index(kv[0][0]) if kv[0][0] in names else 9, kv[0][1], eval_order(kv[0][2]))):
+    for (agent, preset, ahead), pts in sorted(curves.items(), key=lambda kv: (kv[0][0] != "ddpg", kv[0])):
         cell = lambda p: "" if p is None else f"{p[0]:.0f} / {p[1]:.0f} (**{p[0] / p[1]:.2f}**; {p[2]} seeds)"  # noqa: E731
-        out.append([names.get(agent, agent) + (", acting ahead" if ahead else ", in turn")
-                    + ("" if es is None else f", shared states (eval_seed {es})"),
+        out.append([_agent(agent) + (", acting ahead" if ahead else ", in turn")
+                    + ("" if preset == "spinningup" else f", preset {preset}"),
                     cell(pts.get(250000)), cell(pts.get(500000))])
     return [_note("per swimmer6 curve with three seeds or more at that point: the evaluation's own variance of a "
                   "seed's mean (its episodes' variance / episodes, averaged over the seeds) / the variance of the "

@@ -493,6 +493,10 @@ def main(argv=None) -> int:
         made = pack(work, a.pack, only=a.slim_only)
         for p in made:
             print(f"wrote {p} ({p.stat().st_size / 1e6:.1f} MB)")
+        if not _run_folders(work / "_slim", CHECKPOINT):
+            print(f"rl_sweep: --slim-only {a.slim_only!r}: no unfinished run under {work} matches (a glob matches "
+                  "the whole <task>/<name>/s<seed>)", file=sys.stderr)
+            return 1
         return 0
     if a.mps:
         print(start_mps())

@@ -1,19 +1,20 @@
 """Swimmer6: a trained policy's return against its target's distance, from ``gnwarp mpc --policy``
 records (``gnwarp.eval.records``, planner "policy": each episode's return, initial state and
-target). The distance is the target's from the head's start (the root's x, y: the nose sits a
-few centimetres ahead of it). Writes a scatter plot, one series a record (its policy's folder
-name), and prints per record the farthest target reached and the nearest missed ("reached": a
-return of at least ``--reached``, on the 0-1000 scale).
+target). The distance is the target's from the nose at the episode's start (the suite's reward
+measures nose to target; MuJoCo's kinematics of the recorded initial joint positions). Writes a
+scatter plot, one series a record (its policy's folder and simulator), and prints per record
+the farthest target reached and the nearest missed ("reached": a return of at least
+``--reached``, on the 0-1000 scale).
 
     PYTHONPATH=. python3 bench/rl_targets.py bench/results/rl/h1_swimmer6/policy_mpc.jsonl \\
         bench/results/rl/simulators/records.jsonl --out bench/results/rl/targets_swimmer6.png
 
 ``--eval-states``: instead, how many targets of a run's evaluation states (``RLConfig.eval_seed``
-K, ``eval_episodes`` N; the states ``gnwarp rl`` evaluates from) lie within ``--near`` metres of
-the nose (the suite's observation's ``to_target``), against the suite's own distribution
-(``--population`` states of another seed); rows appended to ``--out`` (JSON lines): a shared
-evaluation set whose share of near targets is off the population's biases every return measured
-on it alike.
+K, ``eval_episodes`` N: the states ``gnwarp rl`` evaluates from, ``evaluation_env``) lie within
+``--near`` metres of the nose, beside ``--population`` states of another seed (the suite's draw:
+``gnwarp.control.dmc.sample_dmc_targets``, a fifth in a box of half-width 0.3 m, the rest in a
+4 m square: 44.5% within 1.25 m of the start); rows appended to ``--out`` (JSON lines). A shared
+evaluation set's share of near targets moves every return measured on it alike.
 
     PYTHONPATH=. python3 bench/rl_targets.py --eval-states 50,100 --eval-seeds 0,1,2 \\
         --out bench/results/rl/eval_states_swimmer6.jsonl
@@ -33,39 +34,52 @@ if str(ROOT) not in sys.path:
 from gnwarp.eval.records import read_records  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
-__all__ = ["episodes", "eval_distances", "main"]
+__all__ = ["nose_distances", "episodes", "eval_distances", "main"]
+
+
+def nose_distances(qpos, targets, task: str = "swimmer6") -> np.ndarray:
+    """The distance in the plane from each start's nose (MuJoCo's kinematics of ``qpos`` [N, nq] on
+    the task's model) to its target [N, 2 or 3]."""
+    import mujoco
+
+    from gnwarp.rl.observations import DMCObservation
+    model = DMCObservation(task).system.model
+    q, t = np.asarray(qpos, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != model.nq or t.ndim != 2 or len(t) != len(q):
+        raise ValueError(f"initial states {q.shape} and targets {t.shape} do not fit the model's {model.nq} qpos")
+    data, nose = mujoco.MjData(model), []
+    for row in q:
+        data.qpos[:] = row
+        mujoco.mj_kinematics(model, data)
+        nose.append(data.geom("nose").xpos[:2].copy())
+    return np.linalg.norm(t[:, :2] - np.asarray(nose), axis=1)
 
 
 def episodes(rec) -> tuple[np.ndarray, np.ndarray]:
-    """(each episode's target distance from the head's start, its return) of a policy record
-    (``ValueError`` naming what it lacks)."""
+    """(each episode's target distance from the nose at its start, its return) of a policy
+    record (``ValueError`` naming what it lacks)."""
     c = rec.config or {}
     if rec.planner != "policy" or not c.get("targets") or not c.get("initial_qpos"):
         raise ValueError(f"not a policy record with targets and initial states (planner {rec.planner!r}, "
                          f"task {rec.task!r})")
-    t, q = np.asarray(c["targets"], dtype=np.float64), np.asarray(c["initial_qpos"], dtype=np.float64)
-    if t.ndim != 2 or q.ndim != 2 or len(t) != len(q) or len(t) != len(rec.returns):
-        raise ValueError(f"targets {t.shape}, initial states {q.shape} and {len(rec.returns)} returns do not match")
-    return np.linalg.norm(t[:, :2] - q[:, :2], axis=1), np.asarray(rec.returns, dtype=np.float64)
+    if len(c["targets"]) != len(rec.returns):
+        raise ValueError(f"{len(c['targets'])} targets for {len(rec.returns)} returns")
+    return nose_distances(c["initial_qpos"], c["targets"]), np.asarray(rec.returns, dtype=np.float64)
 
 
 def eval_distances(episodes: int, eval_seed: int, task: str = "swimmer6") -> np.ndarray:
     """The nose-to-target distances of the evaluation states of a run with ``eval_episodes``
-    ``episodes`` and ``eval_seed`` (its eval env, reset as ``run_rl`` resets it; MuJoCo C)."""
+    ``episodes`` and ``eval_seed`` (its ``evaluation_env``, reset as ``run_rl`` resets it; MuJoCo C)."""
     from gnwarp.rl.config import RLConfig
-    from gnwarp.rl.observations import DMCObservation
-    from gnwarp.rl.run import build_run, eval_reset_seed
+    from gnwarp.rl.run import eval_reset_seed, evaluation_env
     cfg = RLConfig(task=task, agent="svg1", eval_episodes=episodes, eval_seed=eval_seed, backend="mujoco",
-                   device="cpu", out="unused", progress=False, tensorboard=False, video_episodes=0, sim_threads=2)
-    parts = build_run(cfg)
+                   device="cpu", out="unused", sim_threads=2)
+    env = evaluation_env(cfg)
     try:
-        obs, _ = parts["eval_env"].reset(seed=eval_reset_seed(cfg))
+        env.reset(seed=eval_reset_seed(cfg))
+        return nose_distances(env.observe().qpos, env.targets.cpu().numpy(), task)
     finally:
-        parts["env"].close()
-        parts["eval_env"].close()
-    names = DMCObservation(task).names
-    ix = [names.index("to_target.x"), names.index("to_target.y")]
-    return np.linalg.norm(np.asarray(obs, dtype=np.float64)[:, ix], axis=1)
+        env.close()
 
 
 def _eval_states(a) -> int:
@@ -112,13 +126,13 @@ def main(argv=None) -> int:
             if rec.planner != "policy":
                 continue
             d, r = episodes(rec)
-            name = f"{Path(rec.config['policy']).name} ({rec.config.get('backend', '?')}, seed {rec.seed})"
-            ax.scatter(d, r, label=name, alpha=0.7)
+            name = f"{Path(rec.config['policy']).name} ({rec.config.get('backend', '?')})"
+            ax.scatter(d, r, label=name, alpha=0.7, marker="x" if "warp" in rec.config.get("backend", "") else "o")
             hit, miss = d[r >= a.reached], d[r < a.reached]
             print(f"{name}: mean {r.mean():.1f}; reached {hit.size} of {d.size}, the farthest at "
                   f"{hit.max() if hit.size else float('nan'):.2f} m; the nearest missed at "
                   f"{miss.min() if miss.size else float('nan'):.2f} m")
-    ax.set_xlabel("target's distance from the head's start (m)")
+    ax.set_xlabel("target's distance from the nose at the start (m)")
     ax.set_ylabel("episode return (1000 steps)")
     ax.set_title("swimmer6: trained SVG(1) policies, return against target distance")
     ax.grid(alpha=0.3)

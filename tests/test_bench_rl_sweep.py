@@ -341,3 +341,4 @@ def test_make_slim_copies_a_still_slim_run_and_reports_a_failing_one(tmp_path):
     with tarfile.open(out / "slim.tar") as t:
         runs = {m.name.rsplit("/", 1)[0] for m in t.getmembers() if m.name.endswith("checkpoint.pt")}
     assert runs == {"slim/t/a/s0"}
+    assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "a/*", "--pack", str(out)]) == 1   # whole path

@@ -683,6 +683,16 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
     (old / CHECKPOINT).write_bytes(b"")
     _, _, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco_warp"}, out=str(old)))
     assert cfg.backend == "mujoco_warp"
+    from gnwarp.eval.records import ResultRecord, write_records
+    ran_c = tmp_path / "ran_c"   # saved with "auto" on a machine without CUDA: its records say MuJoCo C
+    ran_c.mkdir()
+    (ran_c / "config.json").write_text(json.dumps({**RLConfig(**TINY, out=str(ran_c)).to_dict(), "backend": "auto"}))
+    (ran_c / CHECKPOINT).write_bytes(b"")
+    write_records(ran_c / RECORDS_FILE, [ResultRecord(experiment="rl", task="pendulum-balance", planner="policy",
+                                                      dynamics="true_mujoco_c", episodes=1, episode_steps=10,
+                                                      returns=[1.0])])
+    _, _, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(ran_c)))
+    assert cfg.backend == "mujoco"   # not the CUDA machine's MuJoCo-Warp
     (old / "config.json").unlink()   # a checkpoint without its config: "auto" cannot know the run's simulator
     with pytest.raises(ConfigError, match="backend.*name it"):
         rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(old)))

@@ -41,7 +41,7 @@ from gnwarp.rl.run_log import (CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cu
 from gnwarp.sim.common import BACKENDS
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed",
+__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed", "evaluation_env",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
@@ -98,14 +98,25 @@ def _backend(cfg: RLConfig) -> str:
     simulator on resume."""
     if cfg.backend != "auto":
         return cfg.backend
-    return "mujoco" if cfg.act_ahead else _legacy_backend()
+    return "mujoco" if cfg.act_ahead else ("mujoco_warp" if torch.cuda.is_available() else "mujoco")
 
 
 SIMULATORS = tuple(b for b in BACKENDS if b != "auto")   # the true simulators a run names
 
 
-def _legacy_backend() -> str:
-    """What "auto" meant before runs saved their simulator: MuJoCo-Warp where CUDA is, else MuJoCo C."""
+def _legacy_backend(out: Path | None = None) -> str:
+    """The simulator of a run saved with "auto" before runs saved their choice: the one its
+    records in ``out`` name (MuJoCo-Warp on Warp's CPU device where no CUDA is now), else what
+    "auto" meant then (MuJoCo-Warp where CUDA is, else MuJoCo C)."""
+    from gnwarp.eval.records import RecordError, read_records
+    try:
+        recs = read_records(out / RECORDS_FILE) if out is not None and (out / RECORDS_FILE).is_file() else []
+    except RecordError:
+        recs = []
+    if recs and recs[-1].dynamics == "true_mujoco_c":
+        return "mujoco"
+    if recs and recs[-1].dynamics == "true_mjwarp":
+        return "mujoco_warp" if torch.cuda.is_available() else "mujoco_warp_cpu"
     return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
 
 
@@ -215,6 +226,15 @@ def training_env(cfg: RLConfig, threads: int | None = None):
                            **_env_kw(cfg, observation_of(cfg, task), threads))
 
 
+def evaluation_env(cfg: RLConfig, task=None, obs_fn=None):
+    """The run's evaluation env: ``eval_episodes`` envs whose first states are those of
+    ``eval_reset_seed(cfg)`` (the task and observation: the run's, unless given)."""
+    from gnwarp.control.vector_env import make_vector_env
+    task = task if task is not None else check_task(cfg)
+    obs_fn = obs_fn if obs_fn is not None else observation_of(cfg, task)
+    return make_vector_env(task, cfg.eval_episodes, seed=eval_reset_seed(cfg), **_env_kw(cfg, obs_fn))
+
+
 def build_run(cfg: RLConfig) -> dict:
     """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
     "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
@@ -225,7 +245,7 @@ def build_run(cfg: RLConfig) -> dict:
     obs_fn = observation_of(cfg, task)
     env_kw = _env_kw(cfg, obs_fn)
     env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
-    eval_env = make_vector_env(task, cfg.eval_episodes, seed=eval_reset_seed(cfg), **env_kw)
+    eval_env = evaluation_env(cfg, task, obs_fn)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
     agent, model = build_agent(cfg, task, obs_fn, D, env.single_action_space.low, env.single_action_space.high,
                                device)
@@ -405,8 +425,8 @@ def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
         new = json.loads(json.dumps(cfg.to_dict()))
         defaults = json.loads(json.dumps(RLConfig().to_dict()))
         old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
-        if old.get("backend") == "auto":   # saved before "auto" was resolved: what it meant then
-            old["backend"] = _legacy_backend()
+        if old.get("backend") == "auto":   # saved before "auto" was resolved: the simulator it ran
+            old["backend"] = _legacy_backend(out)
         if cfg.backend == "auto" and old.get("backend") in SIMULATORS:
             cfg = replace(cfg, backend=old["backend"])   # the run's own simulator
             new["backend"] = cfg.backend
