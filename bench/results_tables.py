@@ -417,6 +417,27 @@ def _seed_ids(seeds) -> str:
     return ", ".join(out)
 
 
+NEAR = 1.25   # m: a swimmer6 target this near the nose at the start counts as near (rl/eval_states_swimmer6.jsonl)
+
+
+def _swimmer_strata(root: Path):
+    """``bench.rl_summary.seed_means``'s ``stratify`` for swimmer6: a record's episodes whose target
+    lies within ``NEAR`` of the nose at the start (its evaluation set's distances,
+    ``rl/eval_targets_swimmer6.jsonl``) and the share of such targets in the suite's own draw
+    (``rl/eval_states_swimmer6.jsonl``'s population row); None for other records."""
+    import numpy as np
+    sets = {(r["eval_seed"], r["episodes"]): np.asarray(r["distances"])
+            for r in _rows(root, "rl/eval_targets_swimmer6.jsonl")}
+    share = [r["share"] for r in _rows(root, "rl/eval_states_swimmer6.jsonl")
+             if r["eval_seed"] is None and r["near"] == NEAR][-1]
+
+    def strata(rec):
+        es = (rec.config or {}).get("eval_seed")
+        d = sets.get((rec.seed if es is None else es, len(rec.returns))) if rec.task == "dmc-swimmer-swimmer6" else None
+        return None if d is None else (d < NEAR, share)
+    return strata
+
+
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
     """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, default agent
@@ -425,8 +446,28 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
     250k env steps both reached and at the last point both share, where each has two seeds or
     more, each run's mean +- s.e. over its seeds there (which seeds: a later point holds only
     those that got there) and the difference of means with its 95% Welch interval."""
-    from bench.rl_summary import difference, eval_order, seed_means
-    by = seed_means(root)
+    from bench.rl_summary import seed_means
+    return [_note("spinningup preset, MLPs, where both runs have two seeds or more: mean +- standard error over "
+                  "the seeds at that point (a later point holds only the seeds that got there); the difference "
+                  "SVG(1) - SVG(0) (SVG(0) in turn) and its 95% Welch interval (Student's t at the "
+                  "Welch-Satterthwaite degrees of freedom, rounded down)", "the records"), ""] + _goals(seed_means(root))
+
+
+@table("rl-goals-stratified")
+def rl_goals_stratified(root: Path, doc: Path) -> list[str]:
+    """``rl-goals`` on swimmer6 with each seed's mean post-stratified by its targets' distance
+    (``_swimmer_strata``): the share of near targets each seed's evaluation drew taken out."""
+    from bench.rl_summary import seed_means
+    by = {k: v for k, v in seed_means(root, stratify=_swimmer_strata(root)).items() if k[0] == "dmc-swimmer-swimmer6"}
+    return [_note(f"as rl-goals, on swimmer6, each seed's mean post-stratified: the mean of its episodes whose "
+                  f"target lay within {NEAR} m of the nose at the start and of the rest, weighted by the suite's "
+                  "share of such targets", "the records, `eval_targets_swimmer6.jsonl` and "
+                  "`eval_states_swimmer6.jsonl`"), ""] + _goals(by)
+
+
+def _goals(by: dict) -> list[str]:
+    """rl-goals' table of ``seed_means``' output ``by``."""
+    from bench.rl_summary import difference, eval_order
     runs: dict[tuple, dict[int, dict[int, float]]] = {}
     for k, v in by.items():
         task, agent, preset, nets, utd, ahead, tag, es, steps = k
@@ -451,11 +492,7 @@ def rl_goals(root: Path, doc: Path) -> list[str]:
                         + ("" if es is None else f", both on the states of eval_seed {es}"), f"{s / 1000:.0f}k",
                         cell(one[s]), cell(zero[s]), f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
                         "yes" if lo > 0 or hi < 0 else "no"])
-    return [_note("spinningup preset, MLPs, where both runs have two seeds or more: mean +- standard error over "
-                  "the seeds at that point (a later point holds only the seeds that got there); the difference "
-                  "SVG(1) - SVG(0) (SVG(0) in turn) and its 95% Welch interval (Student's t at the "
-                  "Welch-Satterthwaite degrees of freedom, rounded down)", "the records"), ""] + _md(
-        ["task", "SVG(1) loop", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
+    return _md(["task", "SVG(1) loop", "env steps", "SVG(1)", "SVG(0)", "difference", "95% interval", "excludes 0"], out)
 
 
 @table("rl-eval-noise")
@@ -467,22 +504,28 @@ def rl_eval_noise(root: Path, doc: Path) -> list[str]:
     states (``eval_seed``) are left out: there the targets' draw is the same for every seed and
     does not enter the spread between them."""
     from bench.rl_summary import seed_means
-    curves: dict[tuple, dict[int, tuple[float, float, int]]] = {}
-    for (task, agent, preset, nets, utd, ahead, tag, es, steps), v in seed_means(root).items():
+    strat = seed_means(root, stratify=_swimmer_strata(root))
+    curves: dict[tuple, dict[int, tuple[float, float, int, float]]] = {}
+    for key, v in seed_means(root).items():
+        task, agent, preset, nets, utd, ahead, tag, es, steps = key
         x = [(m, var) for m, _, _, var in v.values() if math.isfinite(var)]
         if (task == "dmc-swimmer-swimmer6" and (nets, utd, tag, es) == ("mlp", 1.0, "", None)
                 and steps in (250000, 500000) and len(x) >= 3):
             curves.setdefault((agent, preset, ahead), {})[steps] = (
-                statistics.fmean(var for _, var in x), statistics.variance(m for m, _ in x), len(x))
+                statistics.fmean(var for _, var in x), statistics.variance(m for m, _ in x), len(x),
+                statistics.variance(m for m, *_ in strat[key].values()))
     out = []
     for (agent, preset, ahead), pts in sorted(curves.items(), key=lambda kv: (kv[0][0] != "ddpg", kv[0])):
         cell = lambda p: "" if p is None else f"{p[0]:.0f} / {p[1]:.0f} (**{p[0] / p[1]:.2f}**; {p[2]} seeds)"  # noqa: E731
+        post = lambda p: "" if p is None else f"{p[3]:.0f} ({p[3] / p[1]:.2f})"  # noqa: E731
         out.append([_agent(agent) + (", acting ahead" if ahead else ", in turn")
                     + ("" if preset == "spinningup" else f", preset {preset}"),
-                    cell(pts.get(250000)), cell(pts.get(500000))])
+                    cell(pts.get(250000)), post(pts.get(250000)), cell(pts.get(500000)), post(pts.get(500000))])
     return [_note("per swimmer6 curve with three seeds or more at that point: the evaluation's own variance of a "
                   "seed's mean (its episodes' variance / episodes, averaged over the seeds) / the variance of the "
-                  "seeds' means (ratio; seeds)", "the records"), ""] + _md(["run", "250k", "500k"], out)
+                  "seeds' means (ratio; seeds); then the variance of the seeds' means post-stratified by their "
+                  f"targets' distance (as rl-goals-stratified; its ratio to the raw one)", "the records"), ""] + _md(
+        ["run", "250k", "250k, stratified", "500k", "500k, stratified"], out)
 
 
 @table("rl-policy-mpc")

@@ -76,11 +76,19 @@ def _group(rec) -> tuple:
             settings_tag({**given, "agent": agent, "preset": preset}, strict=False), c.get("eval_seed"))
 
 
-def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tuple[float, int, str, float]]]:
+def seed_means(root: Path = ROOT, folder: Path = RL, stratify=None) -> dict[tuple, dict[int, tuple[float, int, str, float]]]:
     """{(task, agent, preset, networks, utd, act_ahead, settings, eval_seed, env_steps): {seed: (its evaluation's mean return, its
     episodes, its true simulator, the variance of that mean from its episodes' spread: their variance / episodes,
     nan for one)}} from every records file under ``folder`` of ``root`` (experiment "rl" only; a
-    rerun of a seed at the same env steps: the last record stands)."""
+    rerun of a seed at the same env steps: the last record stands).
+
+    ``stratify``: a function of a record giving (a boolean mask of its episodes, the share of
+    such episodes in the task's own draw), or None to leave it: that record's mean is then the
+    post-stratified one, share x mean(masked) + (1 - share) x mean(the rest), with its variance
+    share^2 var(masked) / their number + (1 - share)^2 var(rest) / theirs (the raw mean where a
+    stratum holds fewer than two episodes). On swimmer6 the mask is "the target is near"
+    (``bench/results_tables.py``): a seed's mean then no longer depends on how many near targets
+    its evaluation happened to draw."""
     by: dict[tuple, dict] = {}
     for path in sorted((root / folder).rglob("*.jsonl")):
         try:
@@ -91,11 +99,21 @@ def seed_means(root: Path = ROOT, folder: Path = RL) -> dict[tuple, dict[int, tu
             if r.experiment != "rl" or r.returns is None or r.env_steps is None:
                 continue
             v = np.asarray(r.values, dtype=np.float64)
-            v = v[np.isfinite(v)]
-            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (
-                float(v.mean()) if v.size else math.nan, r.episodes, r.dynamics,
-                float(v.var(ddof=1) / v.size) if v.size > 1 else math.nan)
+            ok = np.isfinite(v)
+            mean, var = _mean_var(v[ok])
+            strata = stratify(r) if stratify is not None else None
+            if strata is not None:
+                mask, share = np.asarray(strata[0], dtype=bool), float(strata[1])
+                (m1, v1), (m0, v0) = _mean_var(v[ok & mask]), _mean_var(v[ok & ~mask])
+                if min((ok & mask).sum(), (ok & ~mask).sum()) >= 2:
+                    mean, var = share * m1 + (1 - share) * m0, share ** 2 * v1 + (1 - share) ** 2 * v0
+            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (mean, r.episodes, r.dynamics, var)
     return by
+
+
+def _mean_var(v: np.ndarray) -> tuple[float, float]:
+    """(mean, variance of the mean: var / n) of finite values (nan where too few)."""
+    return (float(v.mean()) if v.size else math.nan, float(v.var(ddof=1) / v.size) if v.size > 1 else math.nan)
 
 
 def rows(root: Path = ROOT, folder: Path = RL) -> list[dict]:

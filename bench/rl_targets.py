@@ -18,6 +18,13 @@ evaluation set's share of near targets moves every return measured on it alike.
 
     PYTHONPATH=. python3 bench/rl_targets.py --eval-states 50,100 --eval-seeds 0,1,2 \\
         --out bench/results/rl/eval_states_swimmer6.jsonl
+
+``--runs FOLDER``: the target distances of every swimmer6 RL run's evaluation states under FOLDER
+(each run evaluates from the same states every time: those of its ``eval_seed``, else of its
+seed), one row a set ``{"eval_seed", "episodes", "distances"}``, written to ``--out`` (JSON
+lines, whole): what ``bench/results_tables.py`` stratifies the runs' returns by.
+
+    PYTHONPATH=. python3 bench/rl_targets.py --runs bench/results/rl --out bench/results/rl/eval_targets_swimmer6.jsonl
 """
 from __future__ import annotations
 
@@ -34,7 +41,7 @@ if str(ROOT) not in sys.path:
 from gnwarp.eval.records import read_records  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
-__all__ = ["nose_distances", "episodes", "eval_distances", "main"]
+__all__ = ["nose_distances", "episodes", "eval_distances", "run_eval_sets", "main"]
 
 
 def nose_distances(qpos, targets, task: str = "swimmer6") -> np.ndarray:
@@ -82,6 +89,33 @@ def eval_distances(episodes: int, eval_seed: int, task: str = "swimmer6") -> np.
         env.close()
 
 
+def run_eval_sets(folder) -> list[tuple[int, int]]:
+    """(eval seed, episodes) of every swimmer6 RL evaluation record under ``folder``: the states
+    each run evaluates from (``RLConfig.eval_seed``, else the run's seed), each set once, sorted."""
+    from gnwarp.eval.records import RecordError
+    sets = set()
+    for path in sorted(Path(folder).rglob("*.jsonl")):
+        try:
+            recs = read_records(path)
+        except RecordError:
+            continue
+        for r in recs:
+            if r.experiment == "rl" and r.task == "dmc-swimmer-swimmer6" and r.returns:
+                es = (r.config or {}).get("eval_seed")
+                sets.add((int(r.seed if es is None else es), len(r.returns)))
+    return sorted(sets)
+
+
+def _runs(a) -> int:
+    import json
+    rows = [dict(eval_seed=k, episodes=n, distances=[round(float(x), 4) for x in eval_distances(n, k)])
+            for k, n in run_eval_sets(a.runs)]
+    with atomic_write(a.out) as tmp:
+        Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in rows))
+    print(f"wrote {len(rows)} evaluation sets' target distances to {a.out}")
+    return 0
+
+
 def _eval_states(a) -> int:
     import json
     import time
@@ -112,7 +146,10 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-seeds", default="0", metavar="K,..", help="their eval_seed values")
     ap.add_argument("--near", type=float, default=1.25, help="a target nearer the nose than this (m) counts as near")
     ap.add_argument("--population", type=int, default=2000, help="states of the suite's distribution to compare with")
+    ap.add_argument("--runs", default=None, metavar="FOLDER", help="the target distances of its RL runs' evaluations")
     a = ap.parse_args(argv)
+    if a.runs:
+        return _runs(a)
     if a.eval_states:
         return _eval_states(a)
     if not a.records:

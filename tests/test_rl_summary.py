@@ -285,3 +285,39 @@ def test_rl_targets_eval_states_are_the_runs_own(tmp_path):
                             "--out", str(out)]) == 0
     rows = [json.loads(x) for x in out.read_text().splitlines()]
     assert [r["episodes"] for r in rows] == [8, 6] and rows[1]["share"] == round(float((seen < 1.25).mean()), 4)
+
+
+def test_post_stratified_seed_means(tmp_path):
+    """seed_means(stratify=...): share x mean(near) + (1 - share) x mean(far), its variance
+    likewise; the raw mean where a stratum has fewer than two episodes; results_tables'
+    swimmer6 strata from the evaluation sets' distances and the population's share."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    write_records(folder / "r.jsonl", [_rec("svg1", 0, 1000, [900.0, 1000.0, 10.0, 20.0, 30.0, 40.0]),
+                                       _rec("svg1", 1, 1000, [900.0, 10.0, 20.0])])
+    masks = {0: [True, True, False, False, False, False], 1: [True, False, False]}
+    by = rs.seed_means(tmp_path, rs.RL, stratify=lambda r: (masks[r.seed], 0.5))
+    (seeds,) = by.values()
+    mean, _, _, var = seeds[0]
+    assert mean == pytest.approx(0.5 * 950 + 0.5 * 25)
+    assert var == pytest.approx(0.25 * np.var([900, 1000], ddof=1) / 2 + 0.25 * np.var([10, 20, 30, 40], ddof=1) / 4)
+    assert seeds[1][0] == pytest.approx(310.0)   # one near episode: not stratified
+    # the swimmer6 strata: distances of the run's own evaluation set, the population's share
+    (folder / "eval_targets_swimmer6.jsonl").write_text(
+        json.dumps({"eval_seed": 0, "episodes": 6, "distances": [0.2, 1.0, 1.3, 2.0, 2.5, 1.6]}) + "\n")
+    (folder / "eval_states_swimmer6.jsonl").write_text(
+        json.dumps({"eval_seed": None, "episodes": 4000, "near": 1.25, "share": 0.45}) + "\n")
+    strata = rt._swimmer_strata(tmp_path)
+    rec = _rec("svg1", 0, 1000, [1.0] * 6)
+    mask, share = strata(rec)
+    assert mask.tolist() == [True, True, False, False, False, False] and share == 0.45
+    assert strata(_rec("svg1", 5, 1000, [1.0] * 6)) is None   # no distances for its set
+
+
+def test_run_eval_sets_name_each_runs_evaluation_states(tmp_path):
+    from bench import rl_targets
+    write_records(tmp_path / "a.jsonl", [_rec("svg1", 3, 0, [1.0] * 4), _rec("svg1", 3, 1000, [1.0] * 4),
+                                         _rec("svg0", 4, 0, [1.0] * 5, eval_seed=2),
+                                         _rec("svg0", 5, 0, [1.0] * 5, experiment="control")])
+    assert rl_targets.run_eval_sets(tmp_path) == [(2, 5), (3, 4)]
