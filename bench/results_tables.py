@@ -524,7 +524,7 @@ def rl_eval_noise(root: Path, doc: Path) -> list[str]:
     return [_note("per swimmer6 curve with three seeds or more at that point: the evaluation's own variance of a "
                   "seed's mean (its episodes' variance / episodes, averaged over the seeds) / the variance of the "
                   "seeds' means (ratio; seeds); then the variance of the seeds' means post-stratified by their "
-                  f"targets' distance (as rl-goals-stratified; its ratio to the raw one)", "the records"), ""] + _md(
+                  "targets' distance (as rl-goals-stratified; its ratio to the raw one)", "the records"), ""] + _md(
         ["run", "250k", "250k, stratified", "500k", "500k, stratified"], out)
 
 

@@ -226,9 +226,14 @@ def test_eval_noise_table_against_hand_computed_variances(tmp_path):
     recs = [_rec("svg1", s, 250000, v) for s, v in eps.items()]
     recs += [_rec("svg0", s, 250000, v) for s, v in list(eps.items())[:2]]   # two seeds: no row
     write_records(folder / "records.jsonl", recs)
+    (folder / "eval_targets_swimmer6.jsonl").write_text("".join(   # one near and one far target a seed:
+        json.dumps({"eval_seed": s, "episodes": 2, "distances": [0.1, 2.0]}) + "\n" for s in eps))   # too few to stratify
+    (folder / "eval_states_swimmer6.jsonl").write_text(
+        json.dumps({"eval_seed": None, "episodes": 4000, "near": 1.25, "share": 0.45}) + "\n")
     rows = [ln for ln in rt.rl_eval_noise(tmp_path, None) if ln.startswith("| SVG")]
     within, between = (1 + 4 + 0) / 3, np.var([1.0, 6.0, 10.0], ddof=1)
-    assert rows == [f"| SVG(1), in turn | {within:.0f} / {between:.0f} (**{within / between:.2f}**; 3 seeds) |  |"], rows
+    assert rows == [f"| SVG(1), in turn | {within:.0f} / {between:.0f} (**{within / between:.2f}**; 3 seeds) | "
+                    f"{between:.0f} (1.00) |  |  |"], rows
 
 
 def test_rl_targets_distance_and_reach(tmp_path, capsys):
