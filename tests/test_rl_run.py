@@ -657,13 +657,13 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
     """"auto": MuJoCo C where a run acts ahead (the CPU steps while the GPU updates) or no CUDA is,
     MuJoCo-Warp otherwise; the choice is saved, and a resumed run keeps the simulator it started
     on (a run saved with "auto" before the choice was saved: MuJoCo-Warp on CUDA, as then)."""
-    from gnwarp.rl import run as rl_run
+    from gnwarp.rl import run_folder
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    assert rl_run._backend(RLConfig(act_ahead=True)) == "mujoco"
-    assert rl_run._backend(RLConfig()) == "mujoco_warp"
-    assert rl_run._backend(RLConfig(backend="mujoco_warp_cpu", act_ahead=True)) == "mujoco_warp_cpu"
+    assert run_folder.resolve_backend(RLConfig(act_ahead=True)) == "mujoco"
+    assert run_folder.resolve_backend(RLConfig()) == "mujoco_warp"
+    assert run_folder.resolve_backend(RLConfig(backend="mujoco_warp_cpu", act_ahead=True)) == "mujoco_warp_cpu"
     fresh = RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(tmp_path / "f"))
-    _, resume, cfg = rl_run._prepare_folder(fresh)
+    _, resume, cfg = run_folder.prepare_folder(fresh)
     assert not resume and cfg.backend == "mujoco"
     assert json.loads((tmp_path / "f" / "config.json").read_text())["backend"] == "mujoco"
     for saved, expect in (("auto", "mujoco_warp"), ("mujoco_warp", "mujoco_warp"), ("mujoco", "mujoco")):
@@ -672,16 +672,16 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
         (out / "config.json").write_text(json.dumps({**RLConfig(**TINY, act_ahead=True, out=str(out)).to_dict(),
                                                      "backend": saved}))
         (out / CHECKPOINT).write_bytes(b"")   # a run to resume (its checkpoint is read later)
-        _, resume, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(out)))
+        _, resume, cfg = run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(out)))
         assert resume and cfg.backend == expect, saved
         assert json.loads((out / "config.json").read_text())["backend"] == expect
     with pytest.raises(ConfigError, match="backend"):   # named explicitly, another simulator: refused
-        rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco"}, act_ahead=True, out=str(tmp_path / "auto")))
+        run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "mujoco"}, act_ahead=True, out=str(tmp_path / "auto")))
     old = tmp_path / "old"   # saved with "auto" by older code, resumed naming the simulator it ran on
     old.mkdir()
     (old / "config.json").write_text(json.dumps({**RLConfig(**TINY, out=str(old)).to_dict(), "backend": "auto"}))
     (old / CHECKPOINT).write_bytes(b"")
-    _, _, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "mujoco_warp"}, out=str(old)))
+    _, _, cfg = run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "mujoco_warp"}, out=str(old)))
     assert cfg.backend == "mujoco_warp"
     from gnwarp.eval.records import ResultRecord, write_records
     ran_c = tmp_path / "ran_c"   # saved with "auto" on a machine without CUDA: its records say MuJoCo C
@@ -691,8 +691,8 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
     write_records(ran_c / RECORDS_FILE, [ResultRecord(experiment="rl", task="pendulum-balance", planner="policy",
                                                       dynamics="true_mujoco_c", episodes=1, episode_steps=10,
                                                       returns=[1.0])])
-    _, _, cfg = rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(ran_c)))
+    _, _, cfg = run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(ran_c)))
     assert cfg.backend == "mujoco"   # not the CUDA machine's MuJoCo-Warp
     (old / "config.json").unlink()   # a checkpoint without its config: "auto" cannot know the run's simulator
     with pytest.raises(ConfigError, match="backend.*name it"):
-        rl_run._prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(old)))
+        run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(old)))

@@ -23,7 +23,6 @@ import math
 import random
 import warnings
 import time
-from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -33,18 +32,17 @@ import torch
 from gnwarp.eval.records import ResultRecord, git_commit, gpu_name, write_records
 from gnwarp.files import atomic_write
 from gnwarp.rl.agents import restore_generator
-from gnwarp.rl.config import CONFIG_FILE, RESUMABLE, RLConfig
+from gnwarp.rl.config import CONFIG_FILE, RLConfig
 from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.replay import ReplayBuffer
-from gnwarp.rl.run_log import (CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cut_records, load_checkpoint,
-                               save_checkpoint)
-from gnwarp.sim.common import BACKENDS
+from gnwarp.rl.run_folder import prepare_folder, resolve_backend
+from gnwarp.rl.run_log import (AGENT_FILE, CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cut_records,
+                               load_checkpoint, save_checkpoint)
 from gnwarp.validation import ConfigError
 
 __all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed", "evaluation_env",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
-AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
 
 _PIECE = 50   # vector steps between progress-bar updates
 VIDEO_FILE = "video.gif"
@@ -88,36 +86,6 @@ def _device(name: str) -> torch.device:
         return resolve_device(name)
     except ValueError as e:
         raise ConfigError("device", str(e)) from None
-
-
-def _backend(cfg: RLConfig) -> str:
-    """The true simulator of ``cfg``: its ``backend``, or for "auto" MuJoCo C where CUDA is not,
-    or where the run acts ahead (its CPU steps the envs while the GPU updates: 1483 env steps a
-    second against 795 on MuJoCo-Warp, SVG(1) on swimmer6, one H200, ``bench/rl_loop.py``), and
-    MuJoCo-Warp otherwise. ``run_rl`` saves the choice in the run's config, so a run keeps its
-    simulator on resume."""
-    if cfg.backend != "auto":
-        return cfg.backend
-    return "mujoco" if cfg.act_ahead else ("mujoco_warp" if torch.cuda.is_available() else "mujoco")
-
-
-SIMULATORS = tuple(b for b in BACKENDS if b != "auto")   # the true simulators a run names
-
-
-def _legacy_backend(out: Path | None = None) -> str:
-    """The simulator of a run saved with "auto" before runs saved their choice: the one its
-    records in ``out`` name (MuJoCo-Warp on Warp's CPU device where no CUDA is now), else what
-    "auto" meant then (MuJoCo-Warp where CUDA is, else MuJoCo C)."""
-    from gnwarp.eval.records import RecordError, read_records
-    try:
-        recs = read_records(out / RECORDS_FILE) if out is not None and (out / RECORDS_FILE).is_file() else []
-    except RecordError:
-        recs = []
-    if recs and recs[-1].dynamics == "true_mujoco_c":
-        return "mujoco"
-    if recs and recs[-1].dynamics == "true_mjwarp":
-        return "mujoco_warp" if torch.cuda.is_available() else "mujoco_warp_cpu"
-    return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
 
 
 def check_task(cfg: RLConfig):
@@ -208,9 +176,9 @@ def compile_backend(cfg: RLConfig, device) -> str:
 
 def _env_kw(cfg: RLConfig, obs_fn, threads: int | None = None) -> dict:
     """``make_vector_env``'s settings of the run's envs (``threads``: MuJoCo C's, default the run's)."""
-    kw = dict(backend=_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    kw = dict(backend=resolve_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
     threads = threads if threads is not None else cfg.sim_threads
-    if threads is not None and _backend(cfg) == "mujoco":
+    if threads is not None and resolve_backend(cfg) == "mujoco":
         kw["nthread"] = threads
     return kw
 
@@ -395,78 +363,6 @@ def _set_rng_states(d: dict) -> None:
         torch.cuda.set_rng_state_all(d["cuda"])
 
 
-def _prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
-    """Make ``cfg.out``; compare a saved config with ``cfg`` (only ``RESUMABLE`` keys may
-    differ; a key added since the run was saved counts as its default there; ``backend`` "auto"
-    takes the saved run's) and save ``cfg`` with its ``backend`` resolved (``_backend``; a run
-    saved with "auto" before runs recorded their choice: MuJoCo-Warp where CUDA is, as then).
-    Returns (folder, whether a checkpoint is there to resume, ``cfg`` so resolved)."""
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    resume = (out / CHECKPOINT).is_file()
-    if not resume and (out / AGENT_FILE).is_file():
-        raise ConfigError("out", f"{out} holds an exported agent ({AGENT_FILE}), which cannot resume training; "
-                                 "train in another folder")
-    saved = out / CONFIG_FILE
-    if not resume:
-        _refuse_orphans(out)
-    if resume and not saved.is_file() and cfg.backend == "auto":
-        raise ConfigError("backend", f"the run in {out} has no {CONFIG_FILE} to tell which simulator it trained "
-                                     "on: name it (mujoco, mujoco_warp or mujoco_warp_cpu; its records' "
-                                     "dynamics say which)")
-    if resume and saved.is_file():   # (without a checkpoint and records, nothing of an earlier start is lost)
-        try:
-            old = json.loads(saved.read_text())
-            if not isinstance(old, dict):
-                raise ValueError("not a JSON object")
-        except (ValueError, UnicodeDecodeError) as e:
-            raise ConfigError("out", f"{saved} is not a run's config ({e}); train in another folder or remove "
-                                     "it") from None
-        new = json.loads(json.dumps(cfg.to_dict()))
-        defaults = json.loads(json.dumps(RLConfig().to_dict()))
-        old = {**{k: defaults[k] for k in set(new) - set(old) if k in defaults}, **old}
-        if old.get("backend") == "auto":   # saved before "auto" was resolved: the simulator it ran
-            old["backend"] = _legacy_backend(out)
-        if cfg.backend == "auto" and old.get("backend") in SIMULATORS:
-            cfg = replace(cfg, backend=old["backend"])   # the run's own simulator
-            new["backend"] = cfg.backend
-        diff = sorted(k for k in set(old) | set(new) if k not in RESUMABLE and k != "out" and old.get(k) != new.get(k))
-        if diff:
-            raise ConfigError(diff[0], f"differs from the run in {out} ({old.get(diff[0])!r} there, "
-                                       f"{new.get(diff[0])!r} here); only {', '.join(RESUMABLE)} may change "
-                                       "when resuming (or use another folder)")
-    if cfg.backend == "auto":
-        cfg = replace(cfg, backend=_backend(cfg))
-    with atomic_write(saved) as tmp:
-        Path(tmp).write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
-    return out, resume, cfg
-
-
-def _refuse_orphans(out: Path) -> None:
-    """Refuse a folder with no checkpoint whose ``records.jsonl`` starting over would lose: records
-    that are not an RL run's, or evaluations past the first (env steps > 0: the run trained, and
-    its checkpoint is gone). The first evaluation (step 0) precedes the first checkpoint; a run
-    killed between the two starts over."""
-    path = out / RECORDS_FILE
-    if not path.is_file():
-        return
-    from gnwarp.eval.records import RecordError, read_records
-    try:
-        recs = read_records(path)
-    except (RecordError, OSError) as e:
-        raise ConfigError("out", f"{out} holds a {RECORDS_FILE} that is not a run's records ({e}); train in "
-                                 "another folder") from None
-    foreign = [r for r in recs if r.experiment != "rl"]
-    if foreign:
-        raise ConfigError("out", f"{out} holds {RECORDS_FILE} of experiment {foreign[0].experiment!r}, not of a "
-                                 "gnwarp rl run; train in another folder")
-    trained = max((r.env_steps or 0 for r in recs), default=0)
-    if trained > 0:
-        raise ConfigError("out", f"{out} holds a run's evaluations up to {trained} env steps but no {CHECKPOINT} "
-                                 f"to resume from (it was removed or lost): starting over would drop them. Train "
-                                 f"in another folder, or move {RECORDS_FILE} away to start this one over")
-
-
 def normalize_model(model, buffer: ReplayBuffer) -> bool:
     """Set the model's normalization from the stored transitions (at least 2); whether it did."""
     n = buffer.filled
@@ -482,7 +378,7 @@ def _rebuild(cfg: RLConfig, buffer: ReplayBuffer, episode_steps: int) -> None:
     from functools import partial
 
     from gnwarp.rl.slim import rebuild_buffer
-    cpu_sim = _backend(cfg) == "mujoco"
+    cpu_sim = resolve_backend(cfg) == "mujoco"
     rebuild_buffer(buffer, partial(training_env, cfg, 1 if cpu_sim else None), partial(round_seed, cfg.seed),
                    episode_steps, workers=None if cpu_sim else 1, progress=cfg.progress)
 
@@ -496,7 +392,7 @@ def run_rl(cfg: RLConfig) -> dict:
     from tqdm.auto import tqdm
     started = time.perf_counter()
     check_task(cfg)
-    out, resume, cfg = _prepare_folder(cfg)
+    out, resume, cfg = prepare_folder(cfg)
     parts = build_run(cfg)
     env, eval_env, agent, buffer, gen = (parts[k] for k in ("env", "eval_env", "agent", "buffer", "generator"))
     task, model = parts["task"], parts["model"]
@@ -531,7 +427,7 @@ def run_rl(cfg: RLConfig) -> dict:
     updater = Updater(agent, buffer, gen,
                       capture=cfg.cuda_graph and parts["device"].type == "cuda")
     meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
-    dynamics = "true_mujoco_c" if _backend(cfg) == "mujoco" else "true_mjwarp"
+    dynamics = "true_mujoco_c" if resolve_backend(cfg) == "mujoco" else "true_mjwarp"
 
     def checkpoint():
         t = time.perf_counter()

@@ -20,7 +20,7 @@ import torch
 from gnwarp.eval.records import read_records, write_records
 from gnwarp.files import atomic_write, plain_values
 
-__all__ = ["CHECKPOINT", "LOG_FILE", "RECORDS_FILE", "TIMING_FILE", "LOG_COLUMNS", "save_checkpoint", "load_checkpoint",
+__all__ = ["CHECKPOINT", "AGENT_FILE", "LOG_FILE", "RECORDS_FILE", "TIMING_FILE", "LOG_COLUMNS", "save_checkpoint", "load_checkpoint",
            "RunLog", "cut_records", "RLCheckpointError"]
 
 FORMAT, VERSION = "gnwarp-rl-checkpoint", 1
@@ -30,6 +30,7 @@ class RLCheckpointError(ValueError):
     """An RL checkpoint that cannot be read: not one, another version, or corrupt."""
 
 CHECKPOINT, LOG_FILE, RECORDS_FILE = "checkpoint.pt", "progress.csv", "records.jsonl"
+AGENT_FILE = "agent.pt"   # an exported agent: its networks alone, no replay buffer
 TIMING_FILE = "timing.json"   # the run's last checkpoint and video times: the budget's estimate of a call's end
 LOG_COLUMNS = ("env_steps", "round", "updates", "episodes", "seconds", "round_seconds", "train_return", "eval_median", "eval_mean",
                "q_loss", "policy_loss", "model_loss", "saturated")
