@@ -89,11 +89,12 @@ def eval_distances(episodes: int, eval_seed: int, task: str = "swimmer6") -> np.
         env.close()
 
 
-def run_eval_sets(folder) -> list[tuple[int, int]]:
-    """(eval seed, episodes) of every swimmer6 RL evaluation record under ``folder``: the states
-    each run evaluates from (``RLConfig.eval_seed``, else the run's seed), each set once, sorted."""
+def run_eval_sets(folder) -> dict[tuple[int, int], np.ndarray | None]:
+    """{(eval seed, episodes): the target distances its runs recorded, or None}: every swimmer6 RL
+    evaluation set under ``folder`` (the states each run evaluates from: ``RLConfig.eval_seed``,
+    else the run's seed), sorted; a run's first record holds its states since they are recorded."""
     from gnwarp.eval.records import RecordError
-    sets = set()
+    sets: dict[tuple[int, int], np.ndarray | None] = {}
     for path in sorted(Path(folder).rglob("*.jsonl")):
         try:
             recs = read_records(path)
@@ -101,15 +102,23 @@ def run_eval_sets(folder) -> list[tuple[int, int]]:
             continue
         for r in recs:
             if r.experiment == "rl" and r.task == "dmc-swimmer-swimmer6" and r.returns:
-                es = (r.config or {}).get("eval_seed")
-                sets.add((int(r.seed if es is None else es), len(r.returns)))
-    return sorted(sets)
+                c = r.config or {}
+                key = (int(r.seed if c.get("eval_seed") is None else c["eval_seed"]), len(r.returns))
+                seen = nose_distances(c["initial_qpos"], c["targets"]) if c.get("targets") else None
+                sets[key] = seen if seen is not None else sets.get(key)
+    return dict(sorted(sets.items()))
 
 
 def _runs(a) -> int:
     import json
-    rows = [dict(eval_seed=k, episodes=n, distances=[round(float(x), 4) for x in eval_distances(n, k)])
-            for k, n in run_eval_sets(a.runs)]
+    rows = []
+    for (k, n), seen in run_eval_sets(a.runs).items():
+        d = eval_distances(n, k)
+        if seen is not None and not np.allclose(seen, d, atol=1e-3):   # the sampler is not the runs' any more
+            print(f"rl_targets: eval seed {k}, {n} episodes: the runs recorded target distances "
+                  f"{np.round(seen, 3).tolist()}, drawn again {np.round(d, 3).tolist()}", file=sys.stderr)
+            return 1
+        rows.append(dict(eval_seed=k, episodes=n, distances=[round(float(x), 4) for x in d]))
     with atomic_write(a.out) as tmp:
         Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in rows))
     print(f"wrote {len(rows)} evaluation sets' target distances to {a.out}")

@@ -696,3 +696,27 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
     (old / "config.json").unlink()   # a checkpoint without its config: "auto" cannot know the run's simulator
     with pytest.raises(ConfigError, match="backend.*name it"):
         run_folder.prepare_folder(RLConfig(**{**TINY, "backend": "auto"}, out=str(old)))
+
+
+def test_the_first_evaluation_records_each_episodes_initial_state_and_target(tmp_path):
+    """The run's first record holds what every evaluation starts from (the same states each time);
+    later records do not repeat it. A swimmer6 target's distance from the nose follows."""
+    cfg = RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r"))
+    run_rl(cfg)
+    recs = read_records(tmp_path / "r" / RECORDS_FILE)
+    first = recs[0].config
+    assert recs[0].env_steps == 0 and len(first["initial_qpos"]) == TINY["eval_episodes"]
+    assert first["targets"] is None   # pendulum-balance has none
+    assert all("initial_qpos" not in r.config for r in recs[1:])
+    from gnwarp.rl.run import eval_reset_seed, evaluation_env
+    env = evaluation_env(cfg)
+    env.reset(seed=eval_reset_seed(cfg))
+    assert np.allclose(first["initial_qpos"], env.observe().qpos, atol=1e-4)
+    env.close()
+    swim = RLConfig(task="swimmer6", agent="svg1", eval_episodes=3, seed=4, backend="mujoco", device="cpu", out="unused")
+    env = evaluation_env(swim)
+    env.reset(seed=eval_reset_seed(swim))
+    from gnwarp.rl.run import evaluation_states
+    states = evaluation_states(env)
+    assert np.allclose(states["targets"], env.targets, atol=1e-4) and len(states["initial_qpos"][0]) == 8
+    env.close()

@@ -325,4 +325,28 @@ def test_run_eval_sets_name_each_runs_evaluation_states(tmp_path):
     write_records(tmp_path / "a.jsonl", [_rec("svg1", 3, 0, [1.0] * 4), _rec("svg1", 3, 1000, [1.0] * 4),
                                          _rec("svg0", 4, 0, [1.0] * 5, eval_seed=2),
                                          _rec("svg0", 5, 0, [1.0] * 5, experiment="control")])
-    assert rl_targets.run_eval_sets(tmp_path) == [(2, 5), (3, 4)]
+    assert rl_targets.run_eval_sets(tmp_path) == {(2, 5): None, (3, 4): None}
+
+
+def test_rl_targets_runs_refuses_states_that_differ_from_the_records(tmp_path):
+    """--runs draws each set again; a run that recorded its states (its first record) must get
+    the same distances, else the sampler changed since and the file is not written."""
+    from bench import rl_targets
+    rec = _rec("svg1", 0, 0, [1.0] * 3, eval_seed=0)
+    rec.config.update(initial_qpos=[[0.0] * 8] * 3, targets=[[3.0, 3.0, 0.05]] * 3)   # not eval_seed 0's
+    write_records(tmp_path / "r.jsonl", [rec])
+    out = tmp_path / "t.jsonl"
+    assert rl_targets.main(["--runs", str(tmp_path), "--out", str(out)]) == 1 and not out.exists()
+    good = rl_targets.eval_distances(3, 0)
+    from gnwarp.rl.config import RLConfig
+    from gnwarp.rl.run import eval_reset_seed, evaluation_env, evaluation_states
+    cfg = RLConfig(task="swimmer6", agent="svg1", eval_episodes=3, eval_seed=0, backend="mujoco", device="cpu",
+                   out="unused")
+    env = evaluation_env(cfg)
+    env.reset(seed=eval_reset_seed(cfg))
+    rec.config.update(evaluation_states(env))   # what a run records
+    env.close()
+    write_records(tmp_path / "r.jsonl", [rec])
+    assert rl_targets.main(["--runs", str(tmp_path), "--out", str(out)]) == 0
+    (row,) = [json.loads(x) for x in out.read_text().splitlines()]
+    assert row["eval_seed"] == 0 and np.allclose(row["distances"], good, atol=1e-4)

@@ -40,7 +40,7 @@ from gnwarp.rl.run_log import (AGENT_FILE, CHECKPOINT, RECORDS_FILE, TIMING_FILE
                                load_checkpoint, save_checkpoint)
 from gnwarp.validation import ConfigError
 
-__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed", "evaluation_env",
+__all__ = ["run_rl", "build_run", "build_agent", "compile_backend", "training_env", "load_agent", "export_agent", "agent_file", "evaluate_policy", "round_seed", "eval_reset_seed", "evaluation_env", "evaluation_states",
            "check_task", "observation_of", "normalize_model", "AGENT_FILE", "frozen_policy_warning", "FrozenPolicyWarning"]
 
 
@@ -201,6 +201,16 @@ def evaluation_env(cfg: RLConfig, task=None, obs_fn=None):
     task = task if task is not None else check_task(cfg)
     obs_fn = obs_fn if obs_fn is not None else observation_of(cfg, task)
     return make_vector_env(task, cfg.eval_episodes, seed=eval_reset_seed(cfg), **_env_kw(cfg, obs_fn))
+
+
+def evaluation_states(env) -> dict:
+    """{"initial_qpos" [N][nq], "targets" [N][3] or None} of a freshly reset evaluation env: what
+    each episode of an evaluation starts from (4 decimals), for the run's first record (a target's
+    distance decides most of a swimmer6 return: ``bench/rl_targets.py``)."""
+    def listed(x):
+        x = x.detach().cpu().numpy() if torch.is_tensor(x) else np.asarray(x)
+        return np.round(x.astype(np.float64), 4).tolist()
+    return dict(initial_qpos=listed(env.observe().qpos), targets=None if env.targets is None else listed(env.targets))
 
 
 def build_run(cfg: RLConfig) -> dict:
@@ -466,9 +476,12 @@ def run_rl(cfg: RLConfig) -> dict:
         if cfg.video_episodes:
             returns, video["states"] = returns
             video["env_steps"] = agent.env_steps
+        first_of_run = c["last_eval"] is None
         if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
             first, _ = eval_env.reset(seed=eval_reset_seed(cfg))
             previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
+            if first_of_run:   # on record once (the run's first evaluation): what each episode started from
+                previous["states"] = evaluation_states(eval_env)
         with torch.no_grad():
             frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
                                   agent.saturated(previous["probe"]))
@@ -481,7 +494,7 @@ def run_rl(cfg: RLConfig) -> dict:
             metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
             config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
                         num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-                        agent_settings=agent.settings.to_dict()),
+                        agent_settings=agent.settings.to_dict(), **(previous.pop("states", {}) if first_of_run else {})),
             date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
         write_records(records_path, [rec])
         return returns
