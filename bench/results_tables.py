@@ -424,7 +424,9 @@ def _swimmer_strata(root: Path):
     """``bench.rl_summary.seed_means``'s ``stratify`` for swimmer6: a record's episodes whose target
     lies within ``NEAR`` of the nose at the start (its evaluation set's distances,
     ``rl/eval_targets_swimmer6.jsonl``) and the share of such targets in the suite's own draw
-    (``rl/eval_states_swimmer6.jsonl``'s population row); None for other records."""
+    (``rl/eval_states_swimmer6.jsonl``'s population row); None for other tasks' records. A
+    swimmer6 record whose set is not in the file raises ``LookupError`` (``bench/rl_targets.py
+    --runs`` writes it again): its raw mean must not pass for a stratified one."""
     import numpy as np
     sets = {(r["eval_seed"], r["episodes"]): np.asarray(r["distances"])
             for r in _rows(root, "rl/eval_targets_swimmer6.jsonl")}
@@ -432,9 +434,15 @@ def _swimmer_strata(root: Path):
              if r["eval_seed"] is None and r["near"] == NEAR][-1]
 
     def strata(rec):
+        if rec.task != "dmc-swimmer-swimmer6":
+            return None
         es = (rec.config or {}).get("eval_seed")
-        d = sets.get((rec.seed if es is None else es, len(rec.returns))) if rec.task == "dmc-swimmer-swimmer6" else None
-        return None if d is None else (d < NEAR, share)
+        key = (rec.seed if es is None else es, len(rec.returns))
+        if key not in sets:
+            raise LookupError(f"no target distances of evaluation set {key} (eval seed, episodes) in "
+                              "rl/eval_targets_swimmer6.jsonl: run PYTHONPATH=. python3 bench/rl_targets.py --runs "
+                              "bench/results/rl --out bench/results/rl/eval_targets_swimmer6.jsonl")
+        return sets[key] < NEAR, share
     return strata
 
 

@@ -659,9 +659,9 @@ def test_auto_backend_acting_ahead_is_mujoco_c_and_a_run_keeps_its_simulator(tmp
     on (a run saved with "auto" before the choice was saved: MuJoCo-Warp on CUDA, as then)."""
     from gnwarp.rl import run_folder
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    assert run_folder.resolve_backend(RLConfig(act_ahead=True)) == "mujoco"
-    assert run_folder.resolve_backend(RLConfig()) == "mujoco_warp"
-    assert run_folder.resolve_backend(RLConfig(backend="mujoco_warp_cpu", act_ahead=True)) == "mujoco_warp_cpu"
+    assert run_folder.run_backend(RLConfig(act_ahead=True)) == "mujoco"
+    assert run_folder.run_backend(RLConfig()) == "mujoco_warp"
+    assert run_folder.run_backend(RLConfig(backend="mujoco_warp_cpu", act_ahead=True)) == "mujoco_warp_cpu"
     fresh = RLConfig(**{**TINY, "backend": "auto"}, act_ahead=True, out=str(tmp_path / "f"))
     _, resume, cfg = run_folder.prepare_folder(fresh)
     assert not resume and cfg.backend == "mujoco"
@@ -717,6 +717,13 @@ def test_the_first_evaluation_records_each_episodes_initial_state_and_target(tmp
     env = evaluation_env(swim)
     env.reset(seed=eval_reset_seed(swim))
     from gnwarp.rl.run import evaluation_states
+    obs, _ = env.reset(seed=eval_reset_seed(swim))
     states = evaluation_states(env)
-    assert np.allclose(states["targets"], env.targets, atol=1e-4) and len(states["initial_qpos"][0]) == 8
     env.close()
+    assert len(states["initial_qpos"][0]) == 8 and len(states["targets"]) == 3
+    # the recorded states give the distances the agent's observation saw (to_target: target minus nose)
+    from bench.rl_targets import nose_distances
+    from gnwarp.rl.observations import DMCObservation
+    names = DMCObservation("swimmer6").names
+    seen = np.linalg.norm(np.asarray(obs)[:, [names.index("to_target.x"), names.index("to_target.y")]], axis=1)
+    assert np.allclose(nose_distances(states["initial_qpos"], states["targets"]), seen, atol=1e-3)

@@ -293,6 +293,7 @@ def test_rl_targets_eval_states_are_the_runs_own(tmp_path):
 
 
 def test_post_stratified_seed_means(tmp_path):
+    import dataclasses
     """seed_means(stratify=...): share x mean(near) + (1 - share) x mean(far), its variance
     likewise; the raw mean where a stratum has fewer than two episodes; results_tables'
     swimmer6 strata from the evaluation sets' distances and the population's share."""
@@ -313,11 +314,17 @@ def test_post_stratified_seed_means(tmp_path):
         json.dumps({"eval_seed": 0, "episodes": 6, "distances": [0.2, 1.0, 1.3, 2.0, 2.5, 1.6]}) + "\n")
     (folder / "eval_states_swimmer6.jsonl").write_text(
         json.dumps({"eval_seed": None, "episodes": 4000, "near": 1.25, "share": 0.45}) + "\n")
+    with open(folder / "eval_targets_swimmer6.jsonl", "a") as f:   # a shared set: eval_seed 9, 3 episodes
+        f.write(json.dumps({"eval_seed": 9, "episodes": 3, "distances": [2.0, 0.5, 1.0]}) + "\n")
     strata = rt._swimmer_strata(tmp_path)
     rec = _rec("svg1", 0, 1000, [1.0] * 6)
     mask, share = strata(rec)
     assert mask.tolist() == [True, True, False, False, False, False] and share == 0.45
-    assert strata(_rec("svg1", 5, 1000, [1.0] * 6)) is None   # no distances for its set
+    mask, _ = strata(_rec("svg1", 0, 1000, [1.0] * 3, eval_seed=9))   # its eval_seed's set, not its seed's
+    assert mask.tolist() == [False, True, True]
+    with pytest.raises(LookupError, match=r"\(5, 6\)"):   # no distances for its set: refused, not left raw
+        strata(_rec("svg1", 5, 1000, [1.0] * 6))
+    assert strata(dataclasses.replace(rec, task="dmc-cheetah-run")) is None
 
 
 def test_run_eval_sets_name_each_runs_evaluation_states(tmp_path):

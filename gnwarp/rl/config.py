@@ -51,7 +51,7 @@ class RLConfig:
     ``bench/results/rl/README.md``). ``agent_settings``: further ``AgentSettings`` keys (gamma, q_lr,
     ...). ``seed``: of the networks, the agent, the env and the evaluation. ``device``: the
     agent's; ``backend``: the true simulator's ("auto": MuJoCo C where the run acts ahead or no
-    GPU is, MuJoCo-Warp otherwise; the choice is saved with the run, ``gnwarp.rl.run_folder.resolve_backend``). ``chunk``: env steps at most in this call;
+    GPU is, MuJoCo-Warp otherwise; the choice is saved with the run, ``gnwarp.rl.run_folder.run_backend``). ``chunk``: env steps at most in this call;
     ``budget_seconds``: stop before a round expected to end past this many seconds of this
     call, the call's end (final checkpoint, video) counted; both stop at episode ends only, so a
     resumed run equals an uninterrupted one.

@@ -35,7 +35,7 @@ from gnwarp.rl.agents import restore_generator
 from gnwarp.rl.config import CONFIG_FILE, RLConfig
 from gnwarp.rl.loop import CollectorState, run_env_steps
 from gnwarp.rl.replay import ReplayBuffer
-from gnwarp.rl.run_folder import prepare_folder, resolve_backend
+from gnwarp.rl.run_folder import prepare_folder, run_backend
 from gnwarp.rl.run_log import (AGENT_FILE, CHECKPOINT, RECORDS_FILE, TIMING_FILE, RunLog, cut_records,
                                load_checkpoint, save_checkpoint)
 from gnwarp.validation import ConfigError
@@ -176,9 +176,9 @@ def compile_backend(cfg: RLConfig, device) -> str:
 
 def _env_kw(cfg: RLConfig, obs_fn, threads: int | None = None) -> dict:
     """``make_vector_env``'s settings of the run's envs (``threads``: MuJoCo C's, default the run's)."""
-    kw = dict(backend=resolve_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
+    kw = dict(backend=run_backend(cfg), episode_steps=cfg.episode_steps, output="torch", observation=obs_fn)
     threads = threads if threads is not None else cfg.sim_threads
-    if threads is not None and resolve_backend(cfg) == "mujoco":
+    if threads is not None and run_backend(cfg) == "mujoco":
         kw["nthread"] = threads
     return kw
 
@@ -388,7 +388,7 @@ def _rebuild(cfg: RLConfig, buffer: ReplayBuffer, episode_steps: int) -> None:
     from functools import partial
 
     from gnwarp.rl.slim import rebuild_buffer
-    cpu_sim = resolve_backend(cfg) == "mujoco"
+    cpu_sim = run_backend(cfg) == "mujoco"
     rebuild_buffer(buffer, partial(training_env, cfg, 1 if cpu_sim else None), partial(round_seed, cfg.seed),
                    episode_steps, workers=None if cpu_sim else 1, progress=cfg.progress)
 
@@ -437,7 +437,7 @@ def run_rl(cfg: RLConfig) -> dict:
     updater = Updater(agent, buffer, gen,
                       capture=cfg.cuda_graph and parts["device"].type == "cuda")
     meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
-    dynamics = "true_mujoco_c" if resolve_backend(cfg) == "mujoco" else "true_mjwarp"
+    dynamics = "true_mujoco_c" if run_backend(cfg) == "mujoco" else "true_mjwarp"
 
     def checkpoint():
         t = time.perf_counter()

@@ -17,10 +17,10 @@ from gnwarp.rl.run_log import AGENT_FILE, CHECKPOINT, RECORDS_FILE
 from gnwarp.sim.common import BACKENDS
 from gnwarp.validation import ConfigError
 
-__all__ = ["prepare_folder", "resolve_backend", "SIMULATORS"]
+__all__ = ["prepare_folder", "run_backend", "SIMULATORS"]
 
 
-def resolve_backend(cfg: RLConfig) -> str:
+def run_backend(cfg: RLConfig) -> str:
     """The true simulator of ``cfg``: its ``backend``, or for "auto" MuJoCo C where CUDA is not,
     or where the run acts ahead (its CPU steps the envs while the GPU updates: 1483 env steps a
     second against 795 on MuJoCo-Warp, SVG(1) on swimmer6, one H200, ``bench/rl_loop.py``), and
@@ -52,7 +52,7 @@ def _legacy_backend(out: Path | None = None) -> str:
 def prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
     """Make ``cfg.out``; compare a saved config with ``cfg`` (only ``RESUMABLE`` keys may
     differ; a key added since the run was saved counts as its default there; ``backend`` "auto"
-    takes the saved run's) and save ``cfg`` with its ``backend`` resolved (``resolve_backend``; a run
+    takes the saved run's) and save ``cfg`` with its ``backend`` resolved (``run_backend``; a run
     saved with "auto" before runs recorded their choice: MuJoCo-Warp where CUDA is, as then).
     Returns (folder, whether a checkpoint is there to resume, ``cfg`` so resolved)."""
     out = Path(cfg.out)
@@ -90,7 +90,7 @@ def prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:
                                        f"{new.get(diff[0])!r} here); only {', '.join(RESUMABLE)} may change "
                                        "when resuming (or use another folder)")
     if cfg.backend == "auto":
-        cfg = replace(cfg, backend=resolve_backend(cfg))
+        cfg = replace(cfg, backend=run_backend(cfg))
     with atomic_write(saved) as tmp:
         Path(tmp).write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
     return out, resume, cfg
