@@ -298,6 +298,12 @@ def write_summary(out: Path, lines: list[str]) -> None:
     print(f"{table}\nwrote {Path(out) / 'summary.md'}")
 
 
+def read_rows(path) -> list[dict]:
+    """The rows of a JSON-lines file (``save_results``' ``.jsonl``; blank lines skipped)."""
+    import json  # noqa: PLC0415
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
 def save_results(out, name: str, device: str, quick: bool, rows: list[dict], lines: list[str]) -> Path:
     """A benchmark's rows appended to ``out/<name>_<device>[_quick].jsonl`` and its table written
     to the ``.md`` beside it (and printed); returns the stem."""

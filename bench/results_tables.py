@@ -245,9 +245,9 @@ def headline(root: Path, doc: Path) -> list[str]:
                  + "updates replayed from a CUDA graph "
                  f"**{ups['svg1']['graph_speedup']:.1f}x** eager's (SVG(1), one H100)"
                  + ("" if fast is None else f"; 1M env steps in **{fast[0] / 60:.0f} min** of training "
-                    f"({names.get(fast[1].config['agent'], fast[1].config['agent'])} on "
+                    f"({_agent(fast[1].config['agent'])} on "
                     f"{fast[1].task.replace('dmc-', '')}, one {fast[1].gpu}, "
-                    f"{DYNAMICS_LABELS[fast[1].dynamics].removeprefix('true, ')})"), link("rl")])
+                    f"{DYNAMICS_LABELS.get(fast[1].dynamics, fast[1].dynamics).removeprefix('true, ')})"), link("rl")])
     rj = _groups(root, "recurrent_jaco/results.jsonl")
     gain = [_find(rj, variant="feed-forward, angle (rad)", episode_steps=t).mean
             / _find(rj, variant="recurrent, angle (rad)", episode_steps=t).mean for t in (1, 10, 20)]
@@ -395,7 +395,7 @@ def rl_curves(root: Path, doc: Path) -> list[str]:
                  + (f", {tag.replace('=', ' ').replace(',', ', ')}" if tag else "")
                  + ("" if es is None else f", evaluated on the states of eval_seed {es}"))
         sims = sorted({DYNAMICS_LABELS.get(d, d).removeprefix("true, ") for r in pts.values()
-                       for d in r.get("dynamics", ["true_mujoco_c"])})
+                       for d in r["dynamics"]})
         out.append([task.replace("dmc-", ""), name, nets, " and ".join(sims),
                     *(cell(pts.get(s)) for s in (100000, 250000, 500000)),
                     f"{cell(pts[last])} at {last / 1000:.0f}k"])
@@ -430,8 +430,13 @@ def _swimmer_strata(root: Path):
     import numpy as np
     sets = {(r["eval_seed"], r["episodes"]): np.asarray(r["distances"])
             for r in _rows(root, "rl/eval_targets_swimmer6.jsonl")}
-    share = [r["share"] for r in _rows(root, "rl/eval_states_swimmer6.jsonl")
-             if r["eval_seed"] is None and r["near"] == NEAR][-1]
+    shares = [r["share"] for r in _rows(root, "rl/eval_states_swimmer6.jsonl")
+              if r["eval_seed"] is None and r["near"] == NEAR]
+    if not shares:
+        raise LookupError(f"no population row at near {NEAR} m in rl/eval_states_swimmer6.jsonl: run PYTHONPATH=. "
+                          f"python3 bench/rl_targets.py --eval-states 100 --near {NEAR} --out "
+                          "bench/results/rl/eval_states_swimmer6.jsonl")
+    share = shares[-1]
 
     def strata(rec):
         if rec.task != "dmc-swimmer-swimmer6":
@@ -516,12 +521,12 @@ def rl_eval_noise(root: Path, doc: Path) -> list[str]:
     curves: dict[tuple, dict[int, tuple[float, float, int, float]]] = {}
     for key, v in seed_means(root).items():
         task, agent, preset, nets, utd, ahead, tag, es, steps = key
-        x = [(m, var) for m, _, _, var in v.values() if math.isfinite(var)]
+        kept = [seed for seed, (_, _, _, var) in v.items() if math.isfinite(var)]   # the same seeds both ways
         if (task == "dmc-swimmer-swimmer6" and (nets, utd, tag, es) == ("mlp", 1.0, "", None)
-                and steps in (250000, 500000) and len(x) >= 3):
+                and steps in (250000, 500000) and len(kept) >= 3):
             curves.setdefault((agent, preset, ahead), {})[steps] = (
-                statistics.fmean(var for _, var in x), statistics.variance(m for m, _ in x), len(x),
-                statistics.variance(m for m, *_ in strat[key].values()))
+                statistics.fmean(v[k][3] for k in kept), statistics.variance(v[k][0] for k in kept), len(kept),
+                statistics.variance(strat[key][k][0] for k in kept))
     out = []
     for (agent, preset, ahead), pts in sorted(curves.items(), key=lambda kv: (kv[0][0] != "ddpg", kv[0])):
         cell = lambda p: "" if p is None else f"{p[0]:.0f} / {p[1]:.0f} (**{p[0] / p[1]:.2f}**; {p[2]} seeds)"  # noqa: E731

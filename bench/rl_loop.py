@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.harness import add_run_args, device_name, experiment_out, save_results, slug  # noqa: E402
+from bench.harness import add_run_args, device_name, experiment_out, read_rows, save_results, slug  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 from gnwarp.rl.config import RLConfig  # noqa: E402
 from gnwarp.rl.graphed import Updater  # noqa: E402
@@ -175,8 +175,9 @@ def main(argv=None):
     for p in parts.values():
         p["env"].close()
         p["eval_env"].close()
-    stem = save_results(out, "rl_loop", name, a.quick, rows, [])
-    write_table(stem)
+    jsonl = out / f"rl_loop_{slug(name)}{'_quick' if a.quick else ''}.jsonl"   # save_results' file: its rows and ours
+    before = read_rows(jsonl) if jsonl.is_file() else []
+    save_results(out, "rl_loop", name, a.quick, rows, table_lines(before + rows))
 
 
 def table_lines(rows: list[dict]) -> list[str]:
@@ -210,8 +211,7 @@ def table_lines(rows: list[dict]) -> list[str]:
 
 def write_table(stem: Path) -> Path:
     """``stem``.md rewritten from every row of ``stem``.jsonl (``table_lines``); printed."""
-    rows = [json.loads(line) for line in stem.with_suffix(".jsonl").read_text().splitlines() if line.strip()]
-    lines = table_lines(rows)
+    lines = table_lines(read_rows(stem.with_suffix(".jsonl")))
     with atomic_write(stem.with_suffix(".md")) as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

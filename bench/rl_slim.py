@@ -53,7 +53,7 @@ def measure(base: dict, work: Path, workers: int) -> dict:
     saved = load_checkpoint(slim)["buffer"]
     steps = saved["filled"] * buf.num_envs
     rate = {}
-    for w in (1, workers):   # here, then in worker processes (their start counted)
+    for w in dict.fromkeys((1, workers)):   # here, then in worker processes (their start counted)
         buf.load_state_dict(saved)
         t = time.perf_counter()
         rebuild_buffer(buf, partial(training_env, cfg), partial(round_seed, cfg.seed), T, workers=w)
@@ -82,20 +82,12 @@ def main(argv=None):
     tasks = ["pendulum-balance"] if a.quick else [t for t in a.tasks.split(",") if t]
     if a.quick:
         a.workers = 1   # a smoke test: no worker processes to start (tests/test_rl_slim.py runs them)
-    torch.set_num_threads(1)
-    rows = []
-    for task in tasks:
-        base = dict(task=task, agent="ddpg", num_envs=a.envs, device="cpu", backend="mujoco", sim_threads=1,
-                    progress=False, tensorboard=False, video_episodes=0, eval_episodes=1)
-        if a.quick:
-            base.update(observation="bodies", episode_steps=10, num_envs=2, hidden=(8,))
-        steps = a.rounds * base["num_envs"] * (base.get("episode_steps") or 1000)
-        base.update(env_steps=steps, start_steps=steps + 1, update_after=steps + 1, eval_every=10 * steps)
-        with tempfile.TemporaryDirectory() as d:
-            row = measure(base, Path(d), a.workers)
-        row.update(device=device_name(torch.device("cpu")), date=time.strftime("%Y-%m-%d"))
-        rows.append(row)
-        print(row, flush=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)   # as each rebuild worker runs; the caller's setting back afterwards
+    try:
+        rows = [_task_row(task, a) for task in tasks]
+    finally:
+        torch.set_num_threads(threads)
     name = rows[0]["device"]
     lines = [f"# A run's slim copy: sizes and the replay buffer's rebuild, on {name}", "",
              f"`python bench/rl_slim.py` ({time.strftime('%Y-%m-%d')}): {a.rounds} rounds of {a.envs} episodes of "
@@ -107,6 +99,21 @@ def main(argv=None):
               f"({r['slim_xz_mb']}) | {r['full_mb_at_1m']} / {r['slim_mb_at_1m']} | "
               f"{r['rebuild_steps_per_s_here']} / {r['rebuild_steps_per_s']} |" for r in rows]
     save_results(experiment_out("rl", a.out, a.quick), "rl_slim", name, a.quick, rows, lines)
+
+
+def _task_row(task: str, a) -> dict:
+    """One task's row: a run of ``a.rounds`` rounds of random actions, measured (``measure``)."""
+    base = dict(task=task, agent="ddpg", num_envs=a.envs, device="cpu", backend="mujoco", sim_threads=1,
+                progress=False, tensorboard=False, video_episodes=0, eval_episodes=1)
+    if a.quick:
+        base.update(observation="bodies", episode_steps=10, num_envs=2, hidden=(8,))
+    steps = a.rounds * base["num_envs"] * (base.get("episode_steps") or 1000)
+    base.update(env_steps=steps, start_steps=steps + 1, update_after=steps + 1, eval_every=10 * steps)
+    with tempfile.TemporaryDirectory() as d:
+        row = measure(base, Path(d), a.workers)
+    row.update(device=device_name(torch.device("cpu")), date=time.strftime("%Y-%m-%d"))
+    print(row, flush=True)
+    return row
 
 
 if __name__ == "__main__":

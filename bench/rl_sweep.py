@@ -412,15 +412,18 @@ def pack(work, dest, part_bytes: int = PART_BYTES, slim: bool = False, only: str
     (so that several short calls bring back more copies than one call's 64 MiB holds)."""
     work, dest = Path(work), Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
-    for old in (*dest.glob("export.tar.part-*"), *dest.glob("slim.tar.part-*")):   # a previous call's parts
-        old.unlink()                                                                # would join into a corrupt tar
     made = []
     archives = [] if only is not None else [
         ("results.tar.xz", "w:xz", "_results"), ("logs.tar.xz", "w:xz", "_logs"), ("export.tar", "w", "_export")]
     if slim or only is not None:
+        archives.append(("slim.tar", "w", "_slim"))
+    for name in ("export.tar", "slim.tar"):   # a previous call's parts of an archive written again
+        if any(a[0] == name for a in archives):   # would join into a corrupt tar
+            for old in dest.glob(f"{name}.part-*"):
+                old.unlink()
+    if slim or only is not None:
         for line in make_slim(work, "*" if only is None else only):   # after the records and logs: a copy may fail
             print(line)
-        archives.append(("slim.tar", "w", "_slim"))
     for name, mode, part in archives:
         tmp = dest / (name + ".tmp")
         with tarfile.open(tmp, mode) as t:

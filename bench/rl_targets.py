@@ -149,7 +149,8 @@ def _eval_states(a) -> int:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("records", nargs="*", help="records files of gnwarp mpc --policy runs")
-    ap.add_argument("--out", required=True, help="the PNG to write (--eval-states: the JSON lines to append to)")
+    ap.add_argument("--out", required=True, help="the PNG to write (--eval-states: the JSON lines to append to; "
+                                                 "--runs: the JSON lines to write whole)")
     ap.add_argument("--reached", type=float, default=500.0, help="a return at least this counts as reached")
     ap.add_argument("--eval-states", default=None, metavar="N,..", help="evaluation sets of these sizes instead")
     ap.add_argument("--eval-seeds", default="0", metavar="K,..", help="their eval_seed values")

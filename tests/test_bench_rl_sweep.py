@@ -266,12 +266,11 @@ def test_probe_seconds_stops_a_long_probe_and_the_runs_start(tmp_path):
            "runs": [{"cmd": run, "log": "r.log"}]}
     lines, t0 = [], time.monotonic()
     rl_sweep._guarded(job, tmp_path, t0, 100.0, t0 + 60.0, True, lines)
-    assert time.monotonic() - t0 < 30                     # not the probe's 60 s
     (probe_bad, probe_line), (run_bad, run_line) = lines
     assert probe_bad and "probe" in probe_line and "killed at the GPU's probe_seconds (1.5 s)" in probe_line
     assert not run_bad and "exit 0" in run_line
     budget = float(run_line.split("seed 0: budget ")[1].split()[0])
-    assert 95 <= budget <= 99                             # 100 s less the ~1.5 s the probe took
+    assert budget <= 100 - 1.5                            # 100 s less the probe's time (at least its 1.5 s)
     spec = rl_sweep.read_spec(write(tmp_path, SPEC.replace("index = 3\n", "index = 3\nprobe_seconds = 240\n")))
     jobs = rl_sweep.commands(spec, tmp_path / "w", 500)
     assert [j["probe_seconds"] for j in jobs] == [None, 240]
@@ -337,8 +336,10 @@ def test_make_slim_copies_a_still_slim_run_and_reports_a_failing_one(tmp_path):
     assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "t/a/*"]) == 2   # needs --pack
     assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "t/a/*", "--pack", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["slim.tar"]
-    import tarfile
     with tarfile.open(out / "slim.tar") as t:
         runs = {m.name.rsplit("/", 1)[0] for m in t.getmembers() if m.name.endswith("checkpoint.pt")}
     assert runs == {"slim/t/a/s0"}
+    (out / "export.tar.part-000").write_bytes(b"an earlier call's agents")   # not this call's archive: kept
+    assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "t/a/*", "--pack", str(out)]) == 0
+    assert (out / "export.tar.part-000").read_bytes() == b"an earlier call's agents"
     assert rl_sweep.main([str(spec), "--work", str(work), "--slim-only", "a/*", "--pack", str(out)]) == 1   # whole path

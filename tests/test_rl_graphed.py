@@ -251,3 +251,16 @@ def test_failed_recording_warns_and_updates_eagerly(monkeypatch):
     assert up.recordings == 0 and not any(g["capturable"] for o in ag.optimizers() for g in o.param_groups)
     Updater(ref, ref_buf, torch.Generator().manual_seed(7)).run(4)   # the same draws, all eager
     assert ag.updates == 4 and all(torch.equal(a, b) for a, b in zip(_params(ag), _params(ref)))
+
+
+def test_backward_compiled_now_is_a_no_op_on_a_torch_without_the_setting(monkeypatch):
+    """A torch without ``force_non_lazy_backward_lowering``: the compiling call's context enters
+    and exits without error (patch() raises only on entry, so the check must come first)."""
+    import torch._functorch.config as functorch_config
+
+    from gnwarp.rl.agents import _backward_compiled_now
+    with _backward_compiled_now():
+        assert functorch_config.force_non_lazy_backward_lowering is True
+    monkeypatch.delattr(functorch_config, "force_non_lazy_backward_lowering")
+    with _backward_compiled_now():
+        pass

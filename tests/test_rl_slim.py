@@ -33,8 +33,8 @@ def test_actions_only_state_refuses_sampling_until_rebuilt():
     with pytest.raises(ReplayError, match="actions only"):
         other.digest()
     for row in range(buf.rows):   # what a rebuild writes: then the digest is the saved one
-        other.put(row, buf.obs[row], buf.action[row], buf.reward[row], buf.next_obs[row], buf.terminated[row],
-                  buf.truncated[row])
+        other.put_rows([row], buf.obs[row:row + 1], buf.action[row:row + 1], buf.reward[row:row + 1],
+                       buf.next_obs[row:row + 1], buf.terminated[row:row + 1], buf.truncated[row:row + 1])
     other.pending_digest = None
     assert other.digest() == d
     other.reward[3, 1] += 1e-7                    # one changed bit of one transition: another digest
@@ -162,3 +162,23 @@ def test_a_buffer_that_keeps_part_of_a_round_is_refused_at_slim_time(tmp_path):
     with pytest.raises(ValueError, match="not whole rounds of 10 steps"):
         slim_run(tmp_path / "run", tmp_path / "slim")
     assert not (tmp_path / "slim").exists()
+
+
+def test_slim_copy_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """A copy that fails while written leaves no folder (not a half copy the next try refuses as
+    "not empty"); a file where the folder should go is refused by name."""
+    from gnwarp.rl import slim
+    run = tmp_path / "run"
+    run_rl(RLConfig(**{**TINY, "agent": "ddpg", "env_steps": 40}, out=str(run)))
+
+    def broken(path, state):
+        raise OSError("disk full")
+    monkeypatch.setattr(slim, "save_checkpoint", broken)
+    with pytest.raises(OSError, match="disk full"):
+        slim_run(run, tmp_path / "copy")
+    assert not (tmp_path / "copy").exists()
+    monkeypatch.undo()
+    assert (slim_run(run, tmp_path / "copy") / CHECKPOINT).is_file()
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="new or empty folder"):
+        slim_run(run, tmp_path / "afile")

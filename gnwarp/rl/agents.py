@@ -112,9 +112,11 @@ def _backward_compiled_now():
     import contextlib
     try:
         import torch._functorch.config as functorch_config
-        return functorch_config.patch(force_non_lazy_backward_lowering=True)
-    except (ImportError, AttributeError, KeyError):
+    except ImportError:
         return contextlib.nullcontext()
+    if not hasattr(functorch_config, "force_non_lazy_backward_lowering"):   # patch() raises only on entry
+        return contextlib.nullcontext()
+    return functorch_config.patch(force_non_lazy_backward_lowering=True)
 
 
 def _adam(net, lr: float) -> torch.optim.Adam | None:

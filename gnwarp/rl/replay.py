@@ -107,7 +107,8 @@ class ReplayBuffer:
         return self.filled * self.num_envs
 
     # -- adding ---------------------------------------------------------------------------------
-    def _values(self, name: str, v, shape: tuple, flag: bool = False) -> torch.Tensor:
+    def _values(self, name: str, v, shape: tuple, envs: int, flag: bool = False) -> torch.Tensor:
+        """``v`` checked against ``shape`` (its envs' axis ``envs``) and moved to the buffer's device."""
         if isinstance(v, np.ndarray) or np.isscalar(v) or isinstance(v, (list, tuple)):
             v = torch.as_tensor(np.asarray(v))
         if not isinstance(v, torch.Tensor):
@@ -124,7 +125,6 @@ class ReplayBuffer:
             raise ReplayError(f"{name} must hold real numbers, got {v.dtype}")
         v = v.to(self.device, self.dtype)
         if self.check_finite and not bool(torch.isfinite(v).all()):
-            envs = len(shape) - (2 if name in ("obs", "next_obs", "action") else 1)   # the envs' axis
             bad = (~torch.isfinite(v)).movedim(envs, 0).reshape(self.num_envs, -1).any(-1).nonzero().flatten().tolist()
             raise ReplayError(f"{name} has NaN or Inf values (envs {bad})")
         return v
@@ -135,15 +135,10 @@ class ReplayBuffer:
         ``next_obs`` must be the step's own final observation where it ends an episode (a vector
         env's ``infos["final_obs"]`` in "same_step" autoreset); under "next_step" autoreset, skip
         the reset step's transition."""
-        self.put(self.ptr, obs, action, reward, next_obs, terminated, truncated)
+        self._write(self.ptr, (), obs, action, reward, next_obs, terminated, truncated)
         self.ptr = (self.ptr + 1) % self.rows
         self.filled = min(self.filled + 1, self.rows)
         self.added += 1
-
-    def put(self, row: int, obs, action, reward, next_obs, terminated, truncated) -> None:
-        """Write one step of every env into ring row ``row`` (checked as ``add`` checks them),
-        leaving the counters (what ``add`` does)."""
-        self._write(row, (), obs, action, reward, next_obs, terminated, truncated)
 
     def put_rows(self, rows, obs, action, reward, next_obs, terminated, truncated) -> None:
         """Write ``len(rows)`` steps of every env into ring rows ``rows`` at once: values with a
@@ -157,7 +152,7 @@ class ReplayBuffer:
     def _write(self, index, lead: tuple, *values) -> None:
         E, D, U = self.num_envs, self.obs_dim, self.action_dim
         shapes = ((E, D), (E, U), (E,), (E, D), (E,), (E,))
-        vals = [self._values(name, v, lead + shape, flag=name in ("terminated", "truncated"))
+        vals = [self._values(name, v, lead + shape, len(lead), flag=name in ("terminated", "truncated"))
                 for name, v, shape in zip(_FIELDS, values, shapes)]
         for name, v in zip(_FIELDS, vals):
             getattr(self, name)[index] = v

@@ -183,15 +183,16 @@ def _env_kw(cfg: RLConfig, obs_fn, threads: int | None = None) -> dict:
     return kw
 
 
-def training_env(cfg: RLConfig, threads: int | None = None):
+def training_env(cfg: RLConfig, threads: int | None = None, task=None, obs_fn=None, seed: int | None = None):
     """The run's training env ("same_step" autoreset, ``num_envs`` envs; ``threads``: MuJoCo C's,
-    default the run's), seeded at reset: what a slim copy's rebuild steps
-    (``gnwarp.rl.slim.rebuild_buffer``; a module-level function of a config, so that worker
-    processes can make their own)."""
+    default the run's; the task and observation: the run's, unless given; ``seed``: its
+    generators' before the first seeded reset), seeded at each round's reset: what ``run_rl``
+    trains in and a slim copy's rebuild steps (``gnwarp.rl.slim.rebuild_buffer``; a module-level
+    function of a config, so that worker processes can make their own)."""
     from gnwarp.control.vector_env import make_vector_env
-    task = check_task(cfg)
-    return make_vector_env(task, cfg.num_envs, autoreset_mode="same_step",
-                           **_env_kw(cfg, observation_of(cfg, task), threads))
+    task = task if task is not None else check_task(cfg)
+    obs_fn = obs_fn if obs_fn is not None else observation_of(cfg, task)
+    return make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=seed, **_env_kw(cfg, obs_fn, threads))
 
 
 def evaluation_env(cfg: RLConfig, task=None, obs_fn=None):
@@ -217,12 +218,10 @@ def build_run(cfg: RLConfig) -> dict:
     """The run's parts: {"task", "env" (training, same_step autoreset), "eval_env", "agent",
     "buffer", "generator" (the replay's sampling), "device"}; networks initialized from
     ``cfg.seed``."""
-    from gnwarp.control.vector_env import make_vector_env
     task = check_task(cfg)
     device = _device(cfg.device)
     obs_fn = observation_of(cfg, task)
-    env_kw = _env_kw(cfg, obs_fn)
-    env = make_vector_env(task, cfg.num_envs, autoreset_mode="same_step", seed=round_seed(cfg.seed, 0), **env_kw)
+    env = training_env(cfg, task=task, obs_fn=obs_fn, seed=round_seed(cfg.seed, 0))
     eval_env = evaluation_env(cfg, task, obs_fn)
     D, U = env.single_observation_space.shape[0], env.single_action_space.shape[0]
     agent, model = build_agent(cfg, task, obs_fn, D, env.single_action_space.low, env.single_action_space.high,
@@ -480,8 +479,8 @@ def run_rl(cfg: RLConfig) -> dict:
         if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
             first, _ = eval_env.reset(seed=eval_reset_seed(cfg))
             previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
-            if first_of_run:   # on record once (the run's first evaluation): what each episode started from
-                previous["states"] = evaluation_states(eval_env)
+        # on record once (the run's first evaluation): what each episode starts from, every time
+        states = evaluation_states(eval_env) if first_of_run else {}
         with torch.no_grad():
             frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
                                   agent.saturated(previous["probe"]))
@@ -494,7 +493,7 @@ def run_rl(cfg: RLConfig) -> dict:
             metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
             config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
                         num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-                        agent_settings=agent.settings.to_dict(), **(previous.pop("states", {}) if first_of_run else {})),
+                        agent_settings=agent.settings.to_dict(), **states),
             date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
         write_records(records_path, [rec])
         return returns

@@ -8,45 +8,44 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-import torch
-
 from gnwarp.eval.records import RecordError, read_records
 from gnwarp.files import atomic_write
+from gnwarp.interop import cuda_available
 from gnwarp.rl.config import CONFIG_FILE, RESUMABLE, RLConfig
 from gnwarp.rl.run_log import AGENT_FILE, CHECKPOINT, RECORDS_FILE
-from gnwarp.sim.common import BACKENDS
+from gnwarp.sim.common import BACKENDS, resolve_backend
 from gnwarp.validation import ConfigError
 
 __all__ = ["prepare_folder", "run_backend", "SIMULATORS"]
 
 
 def run_backend(cfg: RLConfig) -> str:
-    """The true simulator of ``cfg``: its ``backend``, or for "auto" MuJoCo C where CUDA is not,
-    or where the run acts ahead (its CPU steps the envs while the GPU updates: 1483 env steps a
+    """The true simulator of ``cfg``: its ``backend``, or for "auto" MuJoCo C where Warp sees no
+    CUDA device (``gnwarp.sim.common.resolve_backend``), or where the run acts ahead (its CPU steps the envs while the GPU updates: 1483 env steps a
     second against 795 on MuJoCo-Warp, SVG(1) on swimmer6, one H200, ``bench/rl_loop.py``), and
     MuJoCo-Warp otherwise. ``run_rl`` saves the choice in the run's config, so a run keeps its
     simulator on resume."""
     if cfg.backend != "auto":
         return cfg.backend
-    return "mujoco" if cfg.act_ahead else ("mujoco_warp" if torch.cuda.is_available() else "mujoco")
+    return "mujoco" if cfg.act_ahead else resolve_backend("auto")
 
 
 SIMULATORS = tuple(b for b in BACKENDS if b != "auto")   # the true simulators a run names
 
 
-def _legacy_backend(out: Path | None = None) -> str:
+def _legacy_backend(out: Path) -> str:
     """The simulator of a run saved with "auto" before runs saved their choice: the one its
     records in ``out`` name (MuJoCo-Warp on Warp's CPU device where no CUDA is now), else what
     "auto" meant then (MuJoCo-Warp where CUDA is, else MuJoCo C)."""
     try:
-        recs = read_records(out / RECORDS_FILE) if out is not None and (out / RECORDS_FILE).is_file() else []
+        recs = read_records(out / RECORDS_FILE) if (out / RECORDS_FILE).is_file() else []
     except RecordError:
         recs = []
     if recs and recs[-1].dynamics == "true_mujoco_c":
         return "mujoco"
     if recs and recs[-1].dynamics == "true_mjwarp":
-        return "mujoco_warp" if torch.cuda.is_available() else "mujoco_warp_cpu"
-    return "mujoco_warp" if torch.cuda.is_available() else "mujoco"
+        return "mujoco_warp" if cuda_available() else "mujoco_warp_cpu"
+    return resolve_backend("auto")
 
 
 def prepare_folder(cfg: RLConfig) -> tuple[Path, bool, RLConfig]:

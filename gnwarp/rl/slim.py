@@ -58,7 +58,7 @@ def slim_run(run, dest) -> Path:
     run, dest = Path(run), Path(dest)
     if not (run / CHECKPOINT).is_file() or not (run / CONFIG_FILE).is_file():
         raise FileNotFoundError(f"no gnwarp rl run in {run}: its {CHECKPOINT} or {CONFIG_FILE} is missing")
-    if dest.exists() and (dest.resolve() == run.resolve() or any(dest.iterdir())):
+    if dest.exists() and (not dest.is_dir() or dest.resolve() == run.resolve() or any(dest.iterdir())):
         raise ValueError(f"slim_run writes into a new or empty folder, not {dest}")
     from gnwarp.validation import read_config_file
     cfg = read_config_file(run / CONFIG_FILE, "RLConfig keys")
@@ -77,14 +77,13 @@ def slim_run(run, dest) -> Path:
     cfg["out"] = str(dest)
     if isinstance(ck.get("config"), dict):
         ck["config"]["out"] = str(dest)
-    dest.mkdir(parents=True, exist_ok=True)
-    for name in COPIED_FILES:
-        if (run / name).is_file():
-            with atomic_write(dest / name) as tmp:
-                shutil.copyfile(run / name, tmp)
-    with atomic_write(dest / CONFIG_FILE) as tmp:
-        Path(tmp).write_text(json.dumps(cfg, indent=1) + "\n")
-    save_checkpoint(dest / CHECKPOINT, ck)   # last: a folder with a checkpoint is whole
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(dest, folder=True) as tmp:   # the whole folder or nothing
+        for name in COPIED_FILES:
+            if (run / name).is_file():
+                shutil.copyfile(run / name, tmp / name)
+        (tmp / CONFIG_FILE).write_text(json.dumps(cfg, indent=1) + "\n")
+        save_checkpoint(tmp / CHECKPOINT, ck)
     return dest
 
 
