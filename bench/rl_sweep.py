@@ -360,8 +360,9 @@ def restore(work, source) -> list[str]:
     """Put the slim copies of ``source`` (a ``slim.tar`` that ``pack(..., slim=True)`` wrote, its
     parts ``slim.tar.part-NNN`` beside the name, or a folder holding either) into ``work`` as run
     folders, where no run folder holds a checkpoint yet: those runs resume from them (their
-    buffers rebuilt). Only plain files and folders under ``slim/`` are read. The runs put, as
-    ``task/name/sN``."""
+    buffers rebuilt). A run folder there without a checkpoint (a run started from scratch that
+    wrote no checkpoint yet) is moved aside to ``_replaced/task/name/sN[.K]``, never deleted.
+    Only plain files and folders under ``slim/`` are read. The runs put, as ``task/name/sN``."""
     import io
     import shutil
     work, source = Path(work), Path(source)
@@ -392,7 +393,13 @@ def restore(work, source) -> list[str]:
             if (dest / CHECKPOINT).exists():
                 continue
             if dest.exists():
-                shutil.rmtree(dest)
+                aside = work / "_replaced" / run
+                k = 0
+                while aside.exists():
+                    k += 1
+                    aside = work / "_replaced" / run.parent / f"{run.name}.{k}"
+                aside.parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(str(dest), str(aside))
             for m in members:
                 rel = Path(*Path(m.name).parts[1:])
                 if m.isfile() and rel.parts[:3] == run.parts:

@@ -294,9 +294,13 @@ def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
         assert f"slim/pendulum-balance/{QUICK_RUN}/s0/checkpoint.pt" in t.getnames()
     assert f"slim copy of pendulum-balance/{QUICK_RUN}/s0 (40 env steps)" in capsys.readouterr().out
     w2 = tmp_path / "w2"
+    folder = w2 / "pendulum-balance" / QUICK_RUN / "s0"
+    folder.mkdir(parents=True)                              # a run begun here, no checkpoint yet
+    (folder / "records.jsonl").write_text("begun\n")
     assert rl_sweep.restore(w2, out1) == [f"pendulum-balance/{QUICK_RUN}/s0"]
     assert rl_sweep.restore(w2, out1) == []               # a run folder with a checkpoint stays as it is
-    folder = w2 / "pendulum-balance" / QUICK_RUN / "s0"
+    aside = w2 / "_replaced" / "pendulum-balance" / QUICK_RUN / "s0" / "records.jsonl"
+    assert aside.read_text() == "begun\n"                 # set aside, not deleted
     cfg = _json.loads((folder / "config.json").read_text())
     r = run_rl(RLConfig.from_dict({**cfg, "out": str(folder), "chunk": None}))
     assert r["stop"] == "done" and r["env_steps"] == 160
