@@ -726,3 +726,28 @@ def test_the_first_evaluation_records_each_episodes_initial_state_and_target(tmp
     assert np.allclose(states["targets"], again.targets, atol=1e-4) and np.asarray(states["targets"]).shape == (3, 3)
     assert np.allclose(states["initial_qpos"], again.observe().qpos, atol=1e-4)
     again.close()
+
+
+def test_a_run_whose_first_evaluation_raises_closes_its_envs_and_log(tmp_path, monkeypatch):
+    """Whatever raises after the envs are built (here the first evaluation) closes both envs and
+    the log before the error reaches the caller."""
+    from gnwarp.rl import run as rl_run
+    closed = []
+    real_build = rl_run.build_run
+
+    def build(cfg):
+        parts = real_build(cfg)
+        for k in ("env", "eval_env"):
+            close = parts[k].close
+            parts[k].close = lambda k=k, close=close: closed.append(k) or close()
+        return parts
+
+    def boom(*a, **kw):
+        raise RuntimeError("evaluation failed")
+    monkeypatch.setattr(rl_run, "build_run", build)
+    monkeypatch.setattr(rl_run, "evaluate_policy", boom)
+    real_close = rl_run.RunLog.close
+    monkeypatch.setattr(rl_run.RunLog, "close", lambda self: closed.append("log") or real_close(self))
+    with pytest.raises(RuntimeError, match="evaluation failed"):
+        run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r")))
+    assert sorted(closed) == ["env", "eval_env", "log"]

@@ -429,84 +429,85 @@ def run_rl(cfg: RLConfig) -> dict:
             env.close()
             eval_env.close()
             raise
-    records_path = out / RECORDS_FILE
-    cut_records(records_path, keep_until)
-    log = RunLog(out, keep_until, cfg.tensorboard)
-    from gnwarp.rl.graphed import Updater
-    updater = Updater(agent, buffer, gen,
-                      capture=cfg.cuda_graph and parts["device"].type == "cuda")
-    meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
-    dynamics = "true_mujoco_c" if run_backend(cfg) == "mujoco" else "true_mjwarp"
-
-    def checkpoint():
-        t = time.perf_counter()
-        save_checkpoint(out / CHECKPOINT, dict(
-            agent=agent.state_dict(), buffer=buffer.state_dict(), generator=gen.get_state(),
-            collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
-            env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
-        timing["checkpoint_seconds"] = time.perf_counter() - t
-
-    video_steps = cfg.video_episodes * min(cfg.video_steps, T)   # the video's episode-steps
-
-    def evaluates(env_steps: int, rnd: int) -> bool:
-        """Whether the round ending at ``env_steps`` (round ``rnd``, counted from 1) evaluates: the
-        first end past a multiple of ``eval_every`` since the last evaluation, and the last round."""
-        return env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every or rnd == total_rounds
-
-    def finish_reserve(next_evaluates: bool) -> float:
-        """Seconds the call's end takes after its last round: the final checkpoint (as long as
-        the last one took) and, where this call will write a video (it evaluated, or the next
-        round evaluates), the video (at the rate an earlier call of the run wrote one, else
-        ``VIDEO_SECONDS_GUESS``)."""
-        vid = 0.0
-        if video_steps and (video or next_evaluates):
-            per = timing.get("video_seconds_per_step")
-            vid = VIDEO_SECONDS_GUESS if per is None else per * video_steps
-        return timing.get("checkpoint_seconds", 0.0) + vid
-
-    video = {}   # the body states of this call's last evaluation, for video.gif
-    timing = _read_timing(out) if resume else {}   # seconds of the last checkpoint, of a video's step
-
-    previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
-
-    def evaluate():
-        returns = evaluate_policy(agent, eval_env, eval_reset_seed(cfg), keep=cfg.video_episodes,
-                                  keep_steps=cfg.video_steps)
-        if cfg.video_episodes:
-            returns, video["states"] = returns
-            video["env_steps"] = agent.env_steps
-        first_of_run = c["last_eval"] is None
-        if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
-            first, _ = eval_env.reset(seed=eval_reset_seed(cfg))
-            previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
-        # on record once (the run's first evaluation): what each episode starts from, every time
-        states = evaluation_states(eval_env) if first_of_run else {}
-        with torch.no_grad():
-            frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
-                                  agent.saturated(previous["probe"]))
-        c["last_eval"] = agent.env_steps
-        rec = ResultRecord(
-            experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
-            variant=f"{cfg.agent}/{cfg.preset}/{cfg.networks}", system=env.system.name, seed=cfg.seed,
-            episodes=len(returns), episode_steps=eval_env.episode_steps, control_dt=float(env.dt),
-            returns=returns, env_steps=agent.env_steps,
-            metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
-            config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
-                        num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-                        agent_settings=agent.settings.to_dict(), **states),
-            date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
-        write_records(records_path, [rec])
-        return returns
-
-    last_eval = None
-    if c["last_eval"] is None:
-        last_eval = evaluate()
-        checkpoint()
-    bar = tqdm(total=total_rounds * per_round, initial=min(agent.env_steps, total_rounds * per_round), unit="step",
-               unit_scale=True, desc=f"{cfg.agent} {task.name}", disable=not cfg.progress, dynamic_ncols=True)
-    rounds_cap = math.ceil(cfg.chunk / per_round) if cfg.chunk else None
-    done_here, last_round_s, stop = 0, 0.0, "done"
+    log = bar = None   # closed in the finally below with the envs, whatever raises first
     try:
+        records_path = out / RECORDS_FILE
+        cut_records(records_path, keep_until)
+        log = RunLog(out, keep_until, cfg.tensorboard)
+        from gnwarp.rl.graphed import Updater
+        updater = Updater(agent, buffer, gen,
+                          capture=cfg.cuda_graph and parts["device"].type == "cuda")
+        meta = dict(commit=git_commit(), gpu=gpu_name(parts["device"]) if parts["device"].type == "cuda" else "cpu")
+        dynamics = "true_mujoco_c" if run_backend(cfg) == "mujoco" else "true_mjwarp"
+
+        def checkpoint():
+            t = time.perf_counter()
+            save_checkpoint(out / CHECKPOINT, dict(
+                agent=agent.state_dict(), buffer=buffer.state_dict(), generator=gen.get_state(),
+                collector=state.state_dict(), counters=dict(c), rng=_rng_states(), config=cfg.to_dict(),
+                env=dict(round=c["round"], episode_steps=T, num_envs=E, control_steps=agent.env_steps)))
+            timing["checkpoint_seconds"] = time.perf_counter() - t
+
+        video_steps = cfg.video_episodes * min(cfg.video_steps, T)   # the video's episode-steps
+
+        def evaluates(env_steps: int, rnd: int) -> bool:
+            """Whether the round ending at ``env_steps`` (round ``rnd``, counted from 1) evaluates: the
+            first end past a multiple of ``eval_every`` since the last evaluation, and the last round."""
+            return env_steps // cfg.eval_every > c["last_eval"] // cfg.eval_every or rnd == total_rounds
+
+        def finish_reserve(next_evaluates: bool) -> float:
+            """Seconds the call's end takes after its last round: the final checkpoint (as long as
+            the last one took) and, where this call will write a video (it evaluated, or the next
+            round evaluates), the video (at the rate an earlier call of the run wrote one, else
+            ``VIDEO_SECONDS_GUESS``)."""
+            vid = 0.0
+            if video_steps and (video or next_evaluates):
+                per = timing.get("video_seconds_per_step")
+                vid = VIDEO_SECONDS_GUESS if per is None else per * video_steps
+            return timing.get("checkpoint_seconds", 0.0) + vid
+
+        video = {}   # the body states of this call's last evaluation, for video.gif
+        timing = _read_timing(out) if resume else {}   # seconds of the last checkpoint, of a video's step
+
+        previous = {}   # the evaluation's first states ("probe"); the last evaluation's policy outputs there, updates
+
+        def evaluate():
+            returns = evaluate_policy(agent, eval_env, eval_reset_seed(cfg), keep=cfg.video_episodes,
+                                      keep_steps=cfg.video_steps)
+            if cfg.video_episodes:
+                returns, video["states"] = returns
+                video["env_steps"] = agent.env_steps
+            first_of_run = c["last_eval"] is None
+            if "probe" not in previous:   # the evaluation's first states: the same at every evaluation
+                first, _ = eval_env.reset(seed=eval_reset_seed(cfg))
+                previous["probe"] = torch.as_tensor(first, device=agent.device, dtype=agent.dtype)
+            # on record once (the run's first evaluation): what each episode starts from, every time
+            states = evaluation_states(eval_env) if first_of_run else {}
+            with torch.no_grad():
+                frozen_policy_warning(previous, agent.policy_output(previous["probe"]), agent,
+                                      agent.saturated(previous["probe"]))
+            c["last_eval"] = agent.env_steps
+            rec = ResultRecord(
+                experiment="rl", task=task.name, planner="policy", dynamics=dynamics,
+                variant=f"{cfg.agent}/{cfg.preset}/{cfg.networks}", system=env.system.name, seed=cfg.seed,
+                episodes=len(returns), episode_steps=eval_env.episode_steps, control_dt=float(env.dt),
+                returns=returns, env_steps=agent.env_steps,
+                metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
+                config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
+                            num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+                            agent_settings=agent.settings.to_dict(), **states),
+                date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
+            write_records(records_path, [rec])
+            return returns
+
+        last_eval = None
+        if c["last_eval"] is None:
+            last_eval = evaluate()
+            checkpoint()
+        bar = tqdm(total=total_rounds * per_round, initial=min(agent.env_steps, total_rounds * per_round), unit="step",
+                   unit_scale=True, desc=f"{cfg.agent} {task.name}", disable=not cfg.progress, dynamic_ncols=True)
+        rounds_cap = math.ceil(cfg.chunk / per_round) if cfg.chunk else None
+        done_here, last_round_s, stop = 0, 0.0, "done"
         while c["round"] < total_rounds:
             elapsed = time.perf_counter() - started
             if rounds_cap is not None and done_here >= rounds_cap:
@@ -585,8 +586,10 @@ def run_rl(cfg: RLConfig) -> dict:
         with atomic_write(out / TIMING_FILE) as tmp:   # for the next call's budget
             Path(tmp).write_text(json.dumps(timing))
     finally:
-        bar.close()
-        log.close()
+        if bar is not None:
+            bar.close()
+        if log is not None:
+            log.close()
         env.close()
         eval_env.close()
     return dict(stop=stop, env_steps=agent.env_steps, updates=agent.updates, rounds=c["round"],
