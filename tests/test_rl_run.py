@@ -53,7 +53,8 @@ def test_tiny_run_writes_checkpoint_records_and_log(tmp_path):
     # before training, at the first episode end past each multiple of eval_every, at the end
     assert [x.env_steps for x in recs] == [0, 40, 80, 100]
     assert all(x.experiment == "rl" and x.planner == "policy" and x.episodes == 3 and x.episode_steps == 10
-               and x.config["agent"] == "svg0" and x.config["networks"] == "mlp" for x in recs)
+               and x.config["agent"] == "svg0" and x.config["networks"] == "mlp"
+               and x.config["update_compile"] == "none" for x in recs)   # auto: eager on the CPU
     rows = list(csv.DictReader(open(out / LOG_FILE)))
     assert [int(x["env_steps"]) for x in rows] == [20, 40, 60, 80, 100]
     assert rows[-1]["eval_median"] and not rows[0]["eval_median"] and float(rows[-1]["q_loss"]) >= 0
@@ -327,6 +328,9 @@ def test_compiled_run_trains_like_the_eager_one_and_may_change_its_compile_setti
     more = run_rl(RLConfig(**TINY, out=str(tmp_path / "c"), torch_compile="none"))
     assert more["env_steps"] == TINY["env_steps"] > 40
     assert json.loads((tmp_path / "c" / "config.json").read_text())["torch_compile"] == "none"
+    # each evaluation names the update of the call that wrote it: compiled, then eager after the resume
+    assert [r.config["update_compile"] for r in read_records(tmp_path / "c" / RECORDS_FILE)] == [
+        "aot_eager", "aot_eager", "none", "none"]
 
 
 def test_auto_compiles_mlp_updates_on_cuda_with_triton_only(monkeypatch):

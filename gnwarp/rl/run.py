@@ -495,6 +495,7 @@ def run_rl(cfg: RLConfig) -> dict:
                 metrics=dict(updates=agent.updates, episodes=c["episodes"], seconds=round(c["seconds"], 3)),
                 config=dict(agent=cfg.agent, preset=cfg.preset, networks=cfg.networks, observation=cfg.observation,
                             num_envs=E, utd=cfg.utd, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+                            update_compile=agent.compile_used,   # this call's: a resume may change it
                             agent_settings=agent.settings.to_dict(), **states),
                 date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **meta)
             write_records(records_path, [rec])
