@@ -238,7 +238,8 @@ def headline(root: Path, doc: Path) -> list[str]:
                  "over seeds",
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {_mean_se(at['ddpg', last])} (SpinningUp 351 +- 19); "
                  + ("" if at1m is None else f"SVG(1){' acting ahead' * bool(at1m.get('act_ahead'))} at 1M "
-                    f"{_mean_se(at1m)} ({at1m['seeds']} seed{'s' * (at1m['seeds'] > 1)}); ")
+                    f"{_mean_se(at1m)} ({at1m['seeds']} seed{'s' * (at1m['seeds'] > 1)}; "
+                    f"post-stratified by the targets' distance {_stratified_mean_se(root, at1m)}); ")
                  + "".join(f"{t} {names[a]}{' acting ahead' * bool(w.get('act_ahead'))} at 500k {_mean_se(w)} "
                            f"({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
                            for (t, a), w in sorted(at500.items()) if a in names)
@@ -418,6 +419,17 @@ def _seed_ids(seeds) -> str:
 
 
 NEAR = 1.25   # m: a swimmer6 target this near the nose at the start counts as near (rl/eval_states_swimmer6.jsonl)
+
+
+def _stratified_mean_se(root: Path, row: dict) -> str:
+    """A swimmer6 summary row's mean +- standard error over its seeds with each seed's mean
+    post-stratified by its targets' distance (``_swimmer_strata``), as ``_mean_se`` writes one."""
+    from bench.rl_summary import _run, seed_means
+    v = seed_means(root, stratify=_swimmer_strata(root))[(row["task"], *_run(row), row["env_steps"])]
+    x = [m for m, *_ in v.values()]
+    if len(x) < 2:
+        return f"{x[0]:.0f}"
+    return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f}"
 
 
 def _swimmer_strata(root: Path):
