@@ -490,6 +490,42 @@ def rl_goals_stratified(root: Path, doc: Path) -> list[str]:
                   "`eval_states_swimmer6.jsonl`"), ""] + _goals(by)
 
 
+@table("rl-goals-paired")
+def rl_goals_paired(root: Path, doc: Path) -> list[str]:
+    """``rl-goals`` blocked on the evaluation states: a run evaluated on its own seed's states
+    (no ``eval_seed``) shares them with every other run of that seed and task, so SVG(1) seed k
+    against SVG(0) seed k (the same pairs of loops as rl-goals) differs by the agents and their
+    training only, not by the targets drawn; the paired difference over the seeds both reached
+    (with equal evaluation episodes) and its 95% t interval."""
+    from bench.rl_summary import paired_difference, seed_means
+    runs: dict[tuple, dict[int, dict[int, tuple]]] = {}
+    for (task, agent, preset, nets, utd, ahead, tag, es, steps), v in seed_means(root).items():
+        if (preset, nets, utd, tag, es) == ("spinningup", "mlp", 1.0, "", None) and agent in ("svg0", "svg1"):
+            runs.setdefault((task, agent, ahead), {})[steps] = v
+    out = []
+    for task, ahead in sorted({(t, a) for t, ag, a in runs if ag == "svg1"}):
+        one, zero = runs[task, "svg1", ahead], runs.get((task, "svg0", False), {})
+        shared = {s: [k for k in set(one[s]) & set(zero[s]) if one[s][k][1] == zero[s][k][1]]
+                  for s in set(one) & set(zero)}
+        both = sorted(s for s, ks in shared.items() if len(ks) >= 2)
+        at = [s for s in both if s and s % 250000 == 0]
+        at += [both[-1]] if both and both[-1] not in at else []
+        for s in at:
+            a = {k: one[s][k][0] for k in shared[s]}
+            b = {k: zero[s][k][0] for k in shared[s]}
+            d, lo, hi, seeds = paired_difference(a, b)
+            out.append([task.replace("dmc-", ""), "acting ahead" if ahead else "in turn", f"{s / 1000:.0f}k",
+                        _seed_ids(seeds), f"{statistics.fmean(a.values()):.0f}",
+                        f"{statistics.fmean(b.values()):.0f}", f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
+                        "yes" if lo > 0 or hi < 0 else "no"])
+    return [_note("spinningup preset, MLPs, runs each evaluated on its own seed's states: SVG(1) seed k "
+                  "against SVG(0) seed k (SVG(0) in turn) on the same evaluation states, over the seeds "
+                  "both reached; the mean of the paired differences and its 95% t interval (seeds - 1 "
+                  "degrees of freedom)", "the records"), ""] + _md(
+        ["task", "SVG(1) loop", "env steps", "seeds", "SVG(1)", "SVG(0)", "paired difference", "95% interval",
+         "excludes 0"], out)
+
+
 def _goals(by: dict) -> list[str]:
     """rl-goals' table of ``seed_means``' output ``by``."""
     from bench.rl_summary import difference, eval_order

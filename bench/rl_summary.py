@@ -149,6 +149,19 @@ def difference(a, b) -> tuple[float, float, float]:
     return d, d - half, d + half
 
 
+def paired_difference(a: dict, b: dict) -> tuple[float, float, float, list]:
+    """(the mean over the seeds both hold of a[seed] - b[seed], its 95% interval (Student's t at
+    seeds - 1 degrees of freedom), those seeds): two runs blocked on what each seed shares across
+    them (its evaluation states). At least two shared seeds with finite values."""
+    seeds = sorted(set(a) & set(b))
+    d = np.asarray([a[s] - b[s] for s in seeds], dtype=np.float64)
+    if d.size < 2 or not np.isfinite(d).all():
+        raise ValueError(f"a paired difference needs at least two shared seeds with finite values, got seeds {seeds}")
+    m = float(d.mean())
+    half = t_quantile(d.size - 1) * float(d.std(ddof=1)) / math.sqrt(d.size)
+    return m, m - half, m + half, seeds
+
+
 def _run(row: dict) -> tuple:
     """(agent, preset, networks, utd, act_ahead, settings, eval_seed) of a summary row (utd 1,
     act_ahead false, settings "", eval_seed None where the row predates them)."""

@@ -56,6 +56,21 @@ def test_difference_is_welchs_interval():
         rs.difference(a, [1.0, float("nan")])
 
 
+def test_paired_difference_blocks_on_the_shared_seeds():
+    a = {0: 300.0, 1: 150.0, 2: 420.0, 5: 999.0}
+    b = {0: 280.0, 1: 128.0, 2: 402.0, 3: 0.0}
+    d, lo, hi, seeds = rs.paired_difference(a, b)
+    assert seeds == [0, 1, 2] and d == pytest.approx(20.0)     # seeds 3 and 5 have no partner
+    half = 4.302653 * np.std([20.0, 22.0, 18.0], ddof=1) / np.sqrt(3)   # t at 2 degrees of freedom
+    assert (lo, hi) == pytest.approx((20.0 - half, 20.0 + half), rel=2e-4) and lo > 0
+    # the seeds' spread cancels: Welch's interval over the same numbers contains 0
+    assert rs.difference([a[k] for k in seeds], [b[k] for k in seeds])[1] < 0
+    with pytest.raises(ValueError, match="at least two shared seeds"):
+        rs.paired_difference({0: 1.0, 1: 2.0}, {1: 1.0, 2: 2.0})
+    with pytest.raises(ValueError, match="finite"):
+        rs.paired_difference({0: 1.0, 1: float("nan")}, {0: 1.0, 1: 2.0})
+
+
 def test_seed_means_keep_each_seeds_mean_and_episodes(tmp_path):
     folder = tmp_path / "rl"
     folder.mkdir()
