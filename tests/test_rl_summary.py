@@ -219,6 +219,27 @@ def test_goals_table_compares_each_svg1_loop_with_svg0_in_turn(tmp_path):
     assert {r["eval_seed"] for r in summary} == {None, 0}   # a curve of its own
 
 
+def test_paired_goals_table_pairs_each_seed_on_its_own_states(tmp_path):
+    """rl-goals-paired: SVG(1) seed k against SVG(0) seed k (in turn) over the seeds both have with
+    as many evaluation episodes; a seed without a partner, or evaluated on other episodes, and runs
+    on shared states (eval_seed) stay out."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    recs = [_rec("svg0", s, 250000, [100.0 * s] * 2) for s in (0, 1, 2, 3)]
+    recs += [_rec("svg1", s, 250000, [100.0 * s + 10 + s] * 2) for s in (0, 1, 2)]   # +10, +11, +12
+    recs += [_rec("svg1", 3, 250000, [999.0] * 3)]           # three episodes against two: not a pair
+    recs += [_rec("svg1", 7, 250000, [999.0] * 2)]           # no SVG(0) seed 7
+    recs += [_rec("svg1", s, 250000, [5.0] * 2, eval_seed=0) for s in (0, 1)]   # shared states: not here
+    write_records(folder / "records.jsonl", recs)
+    rows = [ln for ln in rt.rl_goals_paired(tmp_path, None) if ln.startswith("| swimmer")]
+    assert len(rows) == 1, rows
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    half = 4.302653 * 1.0 / np.sqrt(3)          # differences 10, 11, 12: sd 1, t at 2 degrees of freedom
+    assert cells[:6] == ["swimmer-swimmer6", "in turn", "250k", "0-2", "111", "100"]
+    assert cells[6:] == ["+11", f"[{11 - half:+.0f}, {11 + half:+.0f}]", "yes"]
+
+
 def test_fastest_1m_run_is_the_one_with_the_fewest_training_seconds(tmp_path):
     from bench import results_tables as rt
     for name, secs, steps in (("slow", 2000.0, 1000000), ("fast", 700.0, 1000500), ("short", 10.0, 500000)):
