@@ -135,6 +135,11 @@ def test_cli_slim_writes_a_copy_that_resumes(tmp_path, capsys):
     assert "60 of 60 env steps (done)" in capsys.readouterr().out
     assert main(["rl", "-o", str(out), "--slim", str(dest)]) == 2   # not into a folder that holds a run
     assert "new or empty folder" in capsys.readouterr().err
+    # training settings with --slim would be ignored: refused by name, nothing written
+    assert main(["rl", "-o", str(out), "--slim", str(tmp_path / "other"), "--env-steps", "80", "--set",
+                 "agent_settings.gamma=0.9"]) == 2
+    err = capsys.readouterr().err
+    assert "--env-steps, --set would be ignored" in err and not (tmp_path / "other").exists()
 
 
 def test_svg1_slim_copy_on_the_suites_swimmer_resumes_bit_for_bit(tmp_path):

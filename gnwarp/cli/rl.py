@@ -48,7 +48,8 @@ def add_rl(sub, full: bool = True) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--slim", metavar="DEST", help="train nothing: write a resumable copy of the run in -o without "
                    "its replay buffer's transitions (its actions and their digest; rebuilt by re-simulating them "
-                   "when DEST resumes) into the new folder DEST: the run moved in MBs (gnwarp.rl.slim; default: train)")
+                   "when DEST resumes) into the new folder DEST: the run moved in MBs (gnwarp.rl.slim; training flags "
+                   "are refused beside it: give them when DEST resumes; default: train)")
     p.set_defaults(func=rl_command)
 
 
@@ -129,7 +130,15 @@ def rl_command(args) -> int:
     """Run ``gnwarp rl``; prints where it stopped and the last evaluation (``--slim``: writes the
     run's slim copy instead)."""
     if args.slim:
+        from gnwarp.rl.config import RLConfig
         from gnwarp.rl.slim import slim_run
+        from gnwarp.validation import ConfigError, config_flags_given, flag_name
+        ignored = [flag_name(k) for k in config_flags_given(args, RLConfig, _flagged(RLConfig))]
+        ignored += [flag_name(k) for k in _WIDTHS if getattr(args, k) is not None]
+        ignored += ["--no-tensorboard"] * (args.tensorboard is not None) + ["--set"] * bool(args.set)
+        if ignored:
+            raise ConfigError("--slim", f"copies the run as it is and trains nothing, so {', '.join(ignored)} "
+                                        "would be ignored: give them when the copy resumes (gnwarp rl -o DEST ...)")
         run = Path(_out(args))
         dest = slim_run(run, args.slim)
         size = sum(f.stat().st_size for f in Path(dest).iterdir() if f.is_file())
