@@ -250,6 +250,7 @@ def test_svg1_gn_on_swimmer6(tmp_path):
     (dict(agent="svg1"), "observation", "ObservationReward"),
     (dict(agent_settings={"gama": 0.9}), "agent_settings", "gama"),
     (dict(agent_settings={"seed": 3}), "agent_settings.seed", ""),
+    (dict(agent_settings={"gamma": 2.0}), "agent_settings.gamma", "<= 1"),   # named as the run spells it
     (dict(utd=1e308), "utd", "<= 1000"),            # int(inf) owed updates: a traceback, saved in the folder
     (dict(seed=10**20), "seed", "9223372036854775807"),
 ])

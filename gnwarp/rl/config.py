@@ -144,6 +144,13 @@ class RLConfig:
                                     "act_ahead": self.act_ahead})
         except TypeError as e:
             raise ConfigError("agent_settings", f"unknown AgentSettings key ({e})") from None
+        except ConfigError as e:   # named as the run's config spells it
+            key = e.path.split(".")[0]
+            if key in self.agent_settings:
+                raise e.within("agent_settings") from None
+            if key == "updates_per_step":
+                raise ConfigError("utd", e.reason) from None
+            raise
 
     @property
     def horizon(self) -> int:
