@@ -505,7 +505,8 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
     out = []
     for task, ahead in sorted({(t, a) for t, ag, a in runs if ag == "svg1"}):
         one, zero = runs[task, "svg1", ahead], runs.get((task, "svg0", False), {})
-        shared = {s: [k for k in set(one[s]) & set(zero[s]) if one[s][k][1] == zero[s][k][1]]
+        shared = {s: [k for k in set(one[s]) & set(zero[s]) if one[s][k][1] == zero[s][k][1]   # as many episodes
+                      and math.isfinite(one[s][k][0]) and math.isfinite(zero[s][k][0])]
                   for s in set(one) & set(zero)}
         both = sorted(s for s, ks in shared.items() if len(ks) >= 2)
         at = [s for s in both if s and s % 250000 == 0]

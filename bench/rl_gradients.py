@@ -15,8 +15,10 @@ policy's mean action (no exploration noise):
   (against ``g_model``), measured in the same run.
 
 The cosines between them say whose direction SVG(1)'s model gradient follows: the true one's
-(the model informs the update), SVG(0)'s (the Q-term dominates and the model adds little), or
-neither. Also the model's one-step error there: |m(x, a) - f(x, a)| / |f(x, a) - x|.
+(the model informs the update), the critic's dQ/da (the Q-term dominates and the model adds
+little), or neither. ``g_zero`` is the agent's own critic's (trained by SVG(1)'s updates): the
+direction SVG(0)'s update would take with that critic, not a trained SVG(0) agent's. Also the
+model's one-step error there: |m(x, a) - f(x, a)| / |f(x, a) - x|.
 
     PYTHONPATH=. python3 bench/rl_gradients.py bench/results/rl/agents/svg1-spinningup-mlp-s0 \\
         bench/results/rl/agents/svg1-spinningup-mlp-ahead-s10 --out bench/results/rl/gradients
@@ -49,10 +51,11 @@ PAIRS = (("g_model", "g_true"), ("g_zero", "g_true"), ("g_model", "g_zero"), ("g
 
 
 def visited_states(agent, env, steps: int, every: int, seed: int) -> dict[str, torch.Tensor]:
-    """Observations, qpos, qvel and targets of ``env``'s worlds every ``every`` control steps of
-    ``steps``, the agent acting as in training (exploring, counting no env steps)."""
+    """Observations, qpos, qvel, targets and the world of each (``world``: the states of one world
+    lie along one trajectory, so they are not independent) of ``env``'s worlds every ``every``
+    control steps of ``steps``, the agent acting as in training (exploring, counting no env steps)."""
     obs, _ = env.reset(seed=seed)
-    kept = {"obs": [], "qpos": [], "qvel": [], "targets": []}
+    kept = {"obs": [], "qpos": [], "qvel": [], "targets": [], "world": []}
     for t in range(1, steps + 1):
         with torch.no_grad():
             a = agent.act(obs, deterministic=False, count=False)
@@ -60,6 +63,7 @@ def visited_states(agent, env, steps: int, every: int, seed: int) -> dict[str, t
         if t % every == 0:
             sim = env.observe()
             kept["obs"].append(obs.clone())
+            kept["world"].append(torch.arange(obs.shape[0]))
             kept["qpos"].append(torch.as_tensor(sim.qpos).double().clone())
             kept["qvel"].append(torch.as_tensor(sim.qvel).double().clone())
             if env.targets is not None:
@@ -136,8 +140,9 @@ def measure(folder: Path, envs: int, steps: int, every: int, h: float, seed: int
     from gnwarp.control.vector_env import make_vector_env
     from gnwarp.rl.run import _env_kw, check_task, load_agent
     agent, cfg, obs_fn = load_agent(folder, "cpu")
-    if getattr(agent, "model", None) is None:
-        raise SystemExit(f"{folder}: agent {cfg.agent} has no model: SVG(1) or later only")
+    if getattr(agent, "horizon", 0) != 1:
+        raise SystemExit(f"{folder}: agent {cfg.agent}: SVG(1) only (its objective is one model step; SVG(0) and "
+                         "DDPG have no model, SVG(N > 1) looks further)")
     task = check_task(cfg)
     kw = _env_kw(dataclasses.replace(cfg, backend="mujoco"), obs_fn, threads)   # MuJoCo C whatever it trained on
     env = make_vector_env(task, envs, **kw)
@@ -160,29 +165,39 @@ def measure(folder: Path, envs: int, steps: int, every: int, h: float, seed: int
             e.close()
     return dict(agent=folder.name, task=task.name, agent_kind=cfg.agent, env_steps=agent.env_steps, states=B,
                 actions=U, h=h, seed=seed, visited=dict(envs=envs, steps=steps, every=every),
-                date=datetime.now(timezone.utc).isoformat(timespec="seconds"), **cosines(g))
+                world=states["world"].tolist(), date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                **cosines(g))
 
 
-def _mean_ci(v) -> tuple[float, float, float]:
-    x = np.asarray(v, dtype=np.float64)
-    x = x[np.isfinite(x)]
-    m = float(x.mean())
-    half = t_quantile(x.size - 1) * float(x.std(ddof=1)) / math.sqrt(x.size) if x.size > 1 else float("nan")
+def _mean_ci(v, world) -> tuple[float, float, float]:
+    """The mean of per-state values ``v`` and its 95% interval over the worlds: each world's
+    states (one trajectory) averaged first, Student's t over the world means."""
+    x, w = np.asarray(v, dtype=np.float64), np.asarray(world)
+    ok = np.isfinite(x)
+    means = np.asarray([x[ok & (w == k)].mean() for k in np.unique(w[ok])])
+    m = float(means.mean())
+    if means.size < 2:
+        return m, float("nan"), float("nan")
+    half = t_quantile(means.size - 1) * float(means.std(ddof=1)) / math.sqrt(means.size)
     return m, m - half, m + half
 
 
 def table(records: list[dict]) -> list[str]:
     """The README's table: per agent, each cosine's and ratio's mean with its 95% t interval."""
-    head = ["agent", "task", "env steps", "states", "h", "cos(model, true)", "cos(SVG(0), true)", "cos(model, SVG(0))",
-            "cos(model FD, model)", "|true| / |SVG(0)|", "model error"]
+    head = ["agent", "task", "env steps", "states (worlds)", "h", "cos(model, true)", "cos(critic, true)",
+            "cos(model, true) - cos(critic, true)", "cos(model, critic)", "cos(model FD, model)",
+            "|true| / |critic|", "model error"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
         ratio = np.asarray(r["norm_g_true"]) / np.maximum(np.asarray(r["norm_g_zero"]), 1e-12)
-        cells = [r["agent"], r["task"].replace("dmc-", ""), f"{r['env_steps'] / 1000:.0f}k", str(r["states"]),
-                 f"{r['h']:g}"]
-        for k in ("cos_g_model_g_true", "cos_g_zero_g_true", "cos_g_model_g_zero", "cos_g_model_fd_g_model"):
-            m, lo, hi = _mean_ci(r[k])
-            cells.append(f"{m:.2f} [{lo:.2f}, {hi:.2f}]")
+        world = r["world"]
+        cells = [r["agent"], r["task"].replace("dmc-", ""), f"{r['env_steps'] / 1000:.0f}k",
+                 f"{r['states']} ({len(set(world))})", f"{r['h']:g}"]
+        gain = np.asarray(r["cos_g_model_g_true"]) - np.asarray(r["cos_g_zero_g_true"])
+        for v in (r["cos_g_model_g_true"], r["cos_g_zero_g_true"], gain, r["cos_g_model_g_zero"],
+                  r["cos_g_model_fd_g_model"]):
+            m, lo, hi = _mean_ci(v, world)
+            cells.append(f"{m:+.2f} [{lo:+.2f}, {hi:+.2f}]" if v is gain else f"{m:.2f} [{lo:.2f}, {hi:.2f}]")
         cells.append(f"{np.median(ratio):.2f} (median)")
         cells.append(f"{np.median(r['model_error']):.2f} (median)")
         lines.append("| " + " | ".join(cells) + " |")
@@ -197,9 +212,11 @@ def write_readme(out: Path) -> Path:
         "defines every column). Per agent: states visited by the agent acting as in training (exploring), on",
         "MuJoCo C; at each, the policy's mean action; the action gradients of SVG(1)'s objective",
         "r(x, a, x') + gamma Q(x', pi(x')) through the learned model (model) and through the true simulator",
-        "(true: central differences of one MuJoCo C control step), and of SVG(0)'s Q(x, a); means of the",
-        "per-state cosines with 95% t intervals over the states; \"cos(model FD, model)\" checks the",
-        "differences' own error on the learned model.", "", *table(records), ""])
+        "(true: central differences of one MuJoCo C control step), and of the agent's own critic Q(x, a)",
+        "(critic: the direction SVG(0)'s update takes with this critic; no SVG(0) agent is measured); means",
+        "of the per-state cosines (and of the per-state difference of the first two) with 95% t intervals",
+        "over the worlds (each world's states, one trajectory, averaged first); \"cos(model FD, model)\"",
+        "checks the differences' own error on the learned model.", "", *table(records), ""])
     with atomic_write(out / "README.md") as tmp:
         Path(tmp).write_text(text)
     return out / "README.md"
@@ -207,7 +224,7 @@ def write_readme(out: Path) -> Path:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("agents", nargs="*", type=Path, help="folders of trained SVG(N >= 1) agents (agent.pt or a run)")
+    p.add_argument("agents", nargs="*", type=Path, help="folders of trained SVG(1) agents (agent.pt or a run)")
     p.add_argument("--envs", type=int, default=16, help="worlds run to visit states")
     p.add_argument("--steps", type=int, default=400, help="control steps each world runs")
     p.add_argument("--every", type=int, default=25, help="keep the states of every this many steps")
@@ -225,9 +242,13 @@ def main(argv=None) -> int:
         torch.set_num_threads(max(1, a.threads))
         recs = [measure(f, a.envs, a.steps, a.every, a.h, a.seed, a.threads) for f in a.agents]
         a.out.mkdir(parents=True, exist_ok=True)
-        old = (a.out / RECORDS).read_text() if (a.out / RECORDS).exists() else ""
+        def key(r):   # a record measured again replaces the earlier one
+            return r["agent"], r["h"], r["seed"], json.dumps(r["visited"], sort_keys=True)
+        new = {key(r) for r in recs}
+        old = [json.loads(x) for x in (a.out / RECORDS).read_text().splitlines() if x.strip()] \
+            if (a.out / RECORDS).exists() else []
         with atomic_write(a.out / RECORDS) as tmp:
-            Path(tmp).write_text(old + "".join(json.dumps(r) + "\n" for r in recs))
+            Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in old + recs if r in recs or key(r) not in new))
     print(f"wrote {write_readme(a.out)}")
     print("\n".join(table([json.loads(x) for x in (a.out / RECORDS).read_text().splitlines() if x.strip()])))
     return 0

@@ -301,6 +301,13 @@ def test_slim_copies_packed_restore_elsewhere_and_go_on(tmp_path, capsys):
     assert rl_sweep.restore(w2, out1) == []               # a run folder with a checkpoint stays as it is
     aside = w2 / "_replaced" / "pendulum-balance" / QUICK_RUN / "s0" / "records.jsonl"
     assert aside.read_text() == "begun\n"                 # set aside, not deleted
+    w4 = tmp_path / "w4"   # a second folder to set aside where one lies already: s0.1
+    for k, where in enumerate(("_replaced/pendulum-balance", "pendulum-balance")):
+        (w4 / where / QUICK_RUN / "s0").mkdir(parents=True)
+        (w4 / where / QUICK_RUN / "s0" / "records.jsonl").write_text(f"{k}\n")
+    assert rl_sweep.restore(w4, out1) == [f"pendulum-balance/{QUICK_RUN}/s0"]
+    assert [(w4 / "_replaced" / "pendulum-balance" / QUICK_RUN / s / "records.jsonl").read_text()
+            for s in ("s0", "s0.1")] == ["0\n", "1\n"]
     cfg = _json.loads((folder / "config.json").read_text())
     r = run_rl(RLConfig.from_dict({**cfg, "out": str(folder), "chunk": None}))
     assert r["stop"] == "done" and r["env_steps"] == 160

@@ -756,3 +756,9 @@ def test_a_run_whose_first_evaluation_raises_closes_its_envs_and_log(tmp_path, m
     with pytest.raises(RuntimeError, match="evaluation failed"):
         run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r")))
     assert sorted(closed) == ["env", "eval_env", "log"]
+    # a close that raises leaves the others to run
+    closed.clear()
+    monkeypatch.setattr(rl_run.RunLog, "close", lambda self: closed.append("log") or 1 / 0)
+    with pytest.raises((RuntimeError, ZeroDivisionError)):
+        run_rl(RLConfig(**{**TINY, "env_steps": 40}, out=str(tmp_path / "r2")))
+    assert sorted(closed) == ["env", "eval_env", "log"]

@@ -18,6 +18,7 @@ checkpoint's and video's times: what ``budget_seconds`` keeps for a call's end).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import random
@@ -586,13 +587,11 @@ def run_rl(cfg: RLConfig) -> dict:
                 timing.pop("video_failed", None)
         with atomic_write(out / TIMING_FILE) as tmp:   # for the next call's budget
             Path(tmp).write_text(json.dumps(timing))
-    finally:
-        if bar is not None:
-            bar.close()
-        if log is not None:
-            log.close()
-        env.close()
-        eval_env.close()
+    finally:   # each closed even where an earlier close raises
+        with contextlib.ExitStack() as closing:
+            for close in (eval_env.close, env.close, getattr(log, "close", None), getattr(bar, "close", None)):
+                if close is not None:   # called last to first: the bar, the log, the envs
+                    closing.callback(close)
     return dict(stop=stop, env_steps=agent.env_steps, updates=agent.updates, rounds=c["round"],
                 seconds=time.perf_counter() - started, records=str(records_path), last_eval=last_eval,
                 video=str(out / VIDEO_FILE) if video else None)
