@@ -122,3 +122,4 @@ def test_script_writes_records_and_readme(tmp_path, capsys):
     assert len((tmp_path / rg.RECORDS).read_text().splitlines()) == 1   # measured again: replaced
     with pytest.raises(SystemExit):
         rg.main([str(AGENT), "--steps", "1", "--every", "2", "--out", str(tmp_path)])
+
