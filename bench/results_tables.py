@@ -432,25 +432,16 @@ def _stratified_mean_se(root: Path, row: dict) -> str:
     return f"{statistics.fmean(x):.0f} +- {statistics.stdev(x) / math.sqrt(len(x)):.0f}"
 
 
-def _swimmer_strata(root: Path):
-    """``bench.rl_summary.seed_means``'s ``stratify`` for swimmer6: a record's episodes whose target
-    lies within ``NEAR`` of the nose at the start (its evaluation set's distances,
-    ``rl/eval_targets_swimmer6.jsonl``) and the share of such targets in the suite's own draw
-    (``rl/eval_states_swimmer6.jsonl``'s population row); None for other tasks' records. A
-    swimmer6 record whose set is not in the file raises ``LookupError`` (``bench/rl_targets.py
-    --runs`` writes it again): its raw mean must not pass for a stratified one."""
+def _swimmer_distances(root: Path):
+    """A function of a swimmer6 record giving its evaluation episodes' target distances from the
+    nose at the start (its evaluation set's, ``rl/eval_targets_swimmer6.jsonl``); None for other
+    tasks' records. A swimmer6 record whose set is not in the file raises ``LookupError``
+    (``bench/rl_targets.py --runs`` writes it again)."""
     import numpy as np
     sets = {(r["eval_seed"], r["episodes"]): np.asarray(r["distances"])
             for r in _rows(root, "rl/eval_targets_swimmer6.jsonl")}
-    shares = [r["share"] for r in _rows(root, "rl/eval_states_swimmer6.jsonl")
-              if r["eval_seed"] is None and r["near"] == NEAR]
-    if not shares:
-        raise LookupError(f"no population row at near {NEAR} m in rl/eval_states_swimmer6.jsonl: run PYTHONPATH=. "
-                          f"python3 bench/rl_targets.py --eval-states 100 --near {NEAR} --out "
-                          "bench/results/rl/eval_states_swimmer6.jsonl")
-    share = shares[-1]
 
-    def strata(rec):
+    def distances(rec):
         if rec.task != "dmc-swimmer-swimmer6":
             return None
         es = (rec.config or {}).get("eval_seed")
@@ -459,8 +450,69 @@ def _swimmer_strata(root: Path):
             raise LookupError(f"no target distances of evaluation set {key} (eval seed, episodes) in "
                               "rl/eval_targets_swimmer6.jsonl: run PYTHONPATH=. python3 bench/rl_targets.py --runs "
                               "bench/results/rl --out bench/results/rl/eval_targets_swimmer6.jsonl")
-        return sets[key] < NEAR, share
+        return sets[key]
+    return distances
+
+
+def _swimmer_strata(root: Path):
+    """``bench.rl_summary.seed_means``'s ``stratify`` for swimmer6: a record's episodes whose target
+    lies within ``NEAR`` of the nose at the start (``_swimmer_distances``) and the share of such
+    targets in the suite's own draw (``rl/eval_states_swimmer6.jsonl``'s population row); None for
+    other tasks' records; ``LookupError`` for a swimmer6 record without its set's distances: its raw
+    mean must not pass for a stratified one."""
+    shares = [r["share"] for r in _rows(root, "rl/eval_states_swimmer6.jsonl")
+              if r["eval_seed"] is None and r["near"] == NEAR]
+    if not shares:
+        raise LookupError(f"no population row at near {NEAR} m in rl/eval_states_swimmer6.jsonl: run PYTHONPATH=. "
+                          f"python3 bench/rl_targets.py --eval-states 100 --near {NEAR} --out "
+                          "bench/results/rl/eval_states_swimmer6.jsonl")
+    share, distances = shares[-1], _swimmer_distances(root)
+
+    def strata(rec):
+        d = distances(rec)
+        return None if d is None else (d < NEAR, share)
     return strata
+
+
+REACH_BANDS = (0.0, 0.75, NEAR, 1.6)   # m: lower edges of the target-distance bands of rl-reach
+REACH_STEPS = (100000, 250000, 500000, 750000, 1000000)
+
+
+@table("rl-reach")
+def rl_reach(root: Path, doc: Path) -> list[str]:
+    """Swimmer6 evaluation returns by the target's distance from the nose at the start: per agent
+    (spinningup, MLPs, one update an env step, default settings; in turn and acting ahead
+    together) and env steps of ``REACH_STEPS``, the mean return of the episodes whose target lay in
+    each band of ``REACH_BANDS`` (their count beside it), pooled over the seeds there (a rerun of a
+    seed at the same env steps: the last record stands)."""
+    import numpy as np
+
+    from bench.rl_summary import _group, rl_records
+    distances = _swimmer_distances(root)
+    last: dict[tuple, tuple] = {}
+    for r in rl_records(root):
+        task, agent, preset, nets, utd, _ahead, tag, _es = _group(r)
+        if (task == "dmc-swimmer-swimmer6" and (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "")
+                and agent in ("ddpg", "svg0", "svg1") and r.env_steps in REACH_STEPS):
+            last[agent, r.env_steps, _group(r), r.seed] = (np.asarray(r.values, dtype=np.float64), distances(r))
+    edges = (*REACH_BANDS, math.inf)
+    out = []
+    for agent in ("ddpg", "svg0", "svg1"):
+        for steps in REACH_STEPS:
+            got = [v for k, v in last.items() if k[:2] == (agent, steps)]
+            if not got:
+                continue
+            ret, dist = np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
+            cells = []
+            for lo, hi in zip(edges[:-1], edges[1:]):
+                m = (dist >= lo) & (dist < hi) & np.isfinite(ret)
+                cells.append(f"{ret[m].mean():.0f} ({int(m.sum())})" if m.any() else "")
+            out.append([_agent(agent), f"{steps / 1000:.0f}k", str(len(got)), *cells])
+    names = [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
+    return [_note("swimmer6, spinningup preset, MLPs, one update an env step, in turn and acting ahead together: "
+                  "the mean return of the evaluation episodes whose target started in each band of distance "
+                  "from the nose (their number), pooled over the seeds (runs) there", "the records and "
+                  "`eval_targets_swimmer6.jsonl`"), ""] + _md(["agent", "env steps", "runs", *names], out)
 
 
 @table("rl-goals")

@@ -76,6 +76,17 @@ def _group(rec) -> tuple:
             settings_tag({**given, "agent": agent, "preset": preset}, strict=False), c.get("eval_seed"))
 
 
+def rl_records(root: Path = ROOT, folder: Path = RL):
+    """Every evaluation record (experiment "rl", with returns and env steps) of the records files
+    under ``folder`` of ``root``, file by file in sorted order (a benchmark's own rows skipped)."""
+    for path in sorted((root / folder).rglob("*.jsonl")):
+        try:
+            recs = read_records(path)
+        except RecordError:
+            continue   # a benchmark's own rows (timings), not results records
+        yield from (r for r in recs if r.experiment == "rl" and r.returns is not None and r.env_steps is not None)
+
+
 def seed_means(root: Path = ROOT, folder: Path = RL, stratify=None) -> dict[tuple, dict[int, tuple[float, int, str, float]]]:
     """{(task, agent, preset, networks, utd, act_ahead, settings, eval_seed, env_steps): {seed: (its evaluation's mean return, its
     episodes, its true simulator, the variance of that mean from its episodes' spread: their variance / episodes,
@@ -90,24 +101,17 @@ def seed_means(root: Path = ROOT, folder: Path = RL, stratify=None) -> dict[tupl
     (``bench/results_tables.py``): a seed's mean then no longer depends on how many near targets
     its evaluation happened to draw."""
     by: dict[tuple, dict] = {}
-    for path in sorted((root / folder).rglob("*.jsonl")):
-        try:
-            recs = read_records(path)
-        except RecordError:
-            continue   # a benchmark's own rows (timings), not results records
-        for r in recs:
-            if r.experiment != "rl" or r.returns is None or r.env_steps is None:
-                continue
-            v = np.asarray(r.values, dtype=np.float64)
-            ok = np.isfinite(v)
-            mean, var = _mean_var(v[ok])
-            strata = stratify(r) if stratify is not None else None
-            if strata is not None:
-                mask, share = np.asarray(strata[0], dtype=bool), float(strata[1])
-                (m1, v1), (m0, v0) = _mean_var(v[ok & mask]), _mean_var(v[ok & ~mask])
-                if min((ok & mask).sum(), (ok & ~mask).sum()) >= 2:
-                    mean, var = share * m1 + (1 - share) * m0, share ** 2 * v1 + (1 - share) ** 2 * v0
-            by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (mean, r.episodes, r.dynamics, var)
+    for r in rl_records(root, folder):
+        v = np.asarray(r.values, dtype=np.float64)
+        ok = np.isfinite(v)
+        mean, var = _mean_var(v[ok])
+        strata = stratify(r) if stratify is not None else None
+        if strata is not None:
+            mask, share = np.asarray(strata[0], dtype=bool), float(strata[1])
+            (m1, v1), (m0, v0) = _mean_var(v[ok & mask]), _mean_var(v[ok & ~mask])
+            if min((ok & mask).sum(), (ok & ~mask).sum()) >= 2:
+                mean, var = share * m1 + (1 - share) * m0, share ** 2 * v1 + (1 - share) ** 2 * v0
+        by.setdefault((*_group(r), r.env_steps), {})[r.seed] = (mean, r.episodes, r.dynamics, var)
     return by
 
 

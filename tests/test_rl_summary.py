@@ -282,6 +282,23 @@ def test_eval_noise_table_against_hand_computed_variances(tmp_path):
                     f"{between:.0f} (1.00) |  |  |"], rows
 
 
+def test_reach_table_splits_episodes_by_their_targets_distance(tmp_path):
+    """rl-reach: each band's mean over the episodes whose target started in it, pooled over seeds;
+    a seed's rerun at the same env steps replaces it; other settings stay out."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    recs = [_rec("svg1", 0, 250000, [900.0, 500.0, 100.0, 10.0]),
+            _rec("svg1", 1, 250000, [0.0, 0.0, 0.0, 0.0]),            # replaced by its rerun below
+            _rec("svg1", 1, 250000, [800.0, 300.0, 50.0, 20.0]),
+            _rec("svg1", 2, 250000, [999.0] * 4, settings={"squash_penalty": 1e-3})]   # another curve
+    write_records(folder / "records.jsonl", recs)
+    (folder / "eval_targets_swimmer6.jsonl").write_text("".join(
+        json.dumps({"eval_seed": s, "episodes": 4, "distances": [0.5, 1.0, 1.4, 2.0]}) + "\n" for s in (0, 1, 2)))
+    rows = [ln for ln in rt.rl_reach(tmp_path, None) if ln.startswith("| SVG")]
+    assert rows == ["| SVG(1) | 250k | 2 | 850 (2) | 400 (2) | 75 (2) | 15 (2) |"], rows
+
+
 def test_rl_targets_distance_and_reach(tmp_path, capsys):
     """bench/rl_targets.py: each episode's target distance from the head's start, the farthest
     reached and the nearest missed; a record without targets is refused by name."""
