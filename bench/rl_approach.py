@@ -1,7 +1,7 @@
 """Swimmer6: how a trained agent approaches its targets over an episode, near ones and far ones.
 
-No swimmer6 agent here reaches a target that starts more than ~1.3 m from the nose (``rl/README.md``,
-"The two simulators score a policy alike"). Two reasons would look alike in the returns: the agent
+Swimmer6 agents here seldom reach a target that starts more than ~1.25 m from the nose and almost
+never one past ~1.6 m (``rl/README.md``, ``rl-reach``). Two reasons would look alike in the returns: the agent
 heads for a far target but swims too slowly to get there in the episode's 30 s, or it does not
 head for it at all. This runs the agent's deterministic policy on MuJoCo C from the evaluation
 states of ``--eval-seed`` (those ``gnwarp rl`` evaluates from with that ``eval_seed``) and records
@@ -72,16 +72,27 @@ def approach(folder: Path, episodes: int, eval_seed: int, steps: int | None, eve
         env.close()
     d = torch.stack(dist, dim=1).double().numpy()          # [episodes, points]
     times = np.asarray([0.0] + [t * dt for t in range(1, T + 1) if t % every == 0 or t == T])
-    k = max(1, int(np.searchsorted(times, window, side="right")) - 1)   # points a window spans
+    speed, span = fastest_approach(d, times, window)
     m = obs_fn.system.model
     radius = float(m.geom_size[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "target"), 0])
     return dict(agent=folder.name, task=task.name, env_steps=agent.env_steps, eval_seed=eval_seed, episodes=episodes,
-                steps=T, dt=dt, every=every, window=float(times[k]), target_radius=radius,
+                steps=T, dt=dt, every=every, window=span, target_radius=radius,
                 start=d[:, 0].tolist(), least=d.min(axis=1).tolist(), last=d[:, -1].tolist(),
                 returns=ret.tolist(), reached=(d.min(axis=1) <= radius).tolist(),
-                speed=((d[:, :-k] - d[:, k:]).max(axis=1) / times[k]).tolist(), times=times.tolist(),
+                speed=speed.tolist(), times=times.tolist(),
                 distance=d.round(4).tolist(),
                 date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+
+
+def fastest_approach(d: np.ndarray, times: np.ndarray, window: float) -> tuple[np.ndarray, float]:
+    """(per row of distances ``d`` [episodes, points] at ``times`` [points] (from 0, evenly spaced
+    but for a last point that may come sooner): the largest fall of the distance between two
+    points one span apart, divided by the span; the span: the most whole grid steps within
+    ``window`` seconds, at least one). Pairs reaching the off-grid last point are left out."""
+    k = max(1, int(np.searchsorted(times, window, side="right")) - 1)
+    k = min(k, times.size - 1)
+    on_grid = np.isclose(times[k:] - times[:-k], times[k])
+    return (d[:, :-k] - d[:, k:])[:, on_grid].max(axis=1) / times[k], float(times[k])
 
 
 def _mean_ci(v) -> str:
@@ -97,11 +108,12 @@ def _mean_ci(v) -> str:
 def table(records: list[dict]) -> list[str]:
     head = ["agent", "env steps", "targets", "episodes", "start (m)", "fastest approach over s (m/s)", "least (m)",
             "last (m)", "reached", "return"]
+    windows = {r["window"] for r in records}
+    if len(windows) > 1:
+        raise SystemExit(f"records of different --window ({sorted(windows)}) in one table: measure again with one")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in records:
         start = np.asarray(r["start"])
-        if not start.size:
-            continue
         for name, m in ((f"< {CLOSE} m", start < CLOSE), (f"{CLOSE}-{NEAR} m", (start >= CLOSE) & (start < NEAR)),
                         (f">= {NEAR} m (far)", start >= NEAR)):
             pick = lambda k: np.asarray(r[k], dtype=np.float64)[m]   # noqa: E731
@@ -119,15 +131,15 @@ def plot(records: list[dict], path: Path) -> Path:
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, len(records), figsize=(5.5 * len(records), 4), squeeze=False)
     cmap = plt.get_cmap("viridis")
+    hi = max(max(r["start"]) for r in records)
     for ax, r in zip(axes[0], records):
-        hi = max(r["start"])
         for s, d in zip(r["start"], r["distance"]):
             ax.plot(r["times"], d, color=cmap(s / hi), lw=0.9, alpha=0.8)
         ax.axhline(r["target_radius"], color="k", lw=0.6, ls=":")
         ax.set_title(f"{r['agent']} ({r['env_steps'] / 1000:.0f}k), eval_seed {r['eval_seed']}", fontsize=9)
         ax.set_xlabel("time (s)")
         ax.set_ylabel("nose to target (m)")
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, max(max(r["start"]) for r in records)))
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, hi))
     fig.colorbar(sm, ax=axes[0].tolist(), label="distance at the start (m)")
     with atomic_write(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -136,7 +148,10 @@ def plot(records: list[dict], path: Path) -> Path:
 
 
 def write_outputs(out: Path) -> list[Path]:
-    records = [json.loads(x) for x in (out / RECORDS).read_text().splitlines() if x.strip()]
+    records = [json.loads(x) for x in (out / RECORDS).read_text().splitlines() if x.strip()] \
+        if (out / RECORDS).exists() else []
+    if not records:
+        raise SystemExit(f"no records in {out / RECORDS}: measure an agent first")
     text = "\n".join([
         "# Swimmer6: how a trained agent approaches near and far targets", "",
         "Generated by `bench/rl_approach.py` from [records.jsonl](records.jsonl) (do not edit; its docstring",

@@ -291,12 +291,16 @@ def test_reach_table_splits_episodes_by_their_targets_distance(tmp_path):
     recs = [_rec("svg1", 0, 250000, [900.0, 500.0, 100.0, 10.0]),
             _rec("svg1", 1, 250000, [0.0, 0.0, 0.0, 0.0]),            # replaced by its rerun below
             _rec("svg1", 1, 250000, [800.0, 300.0, 50.0, 20.0]),
-            _rec("svg1", 2, 250000, [999.0] * 4, settings={"squash_penalty": 1e-3})]   # another curve
+            _rec("svg1", 2, 250000, [999.0] * 4, settings={"squash_penalty": 1e-3}),   # another curve
+            _rec("svg1", 3, 250000, [600.0, 0.0, 0.0, 0.0], ahead=True),             # pooled with in turn
+            _rec("svg1", 0, 300000, [999.0] * 4)]                                    # not a table point
     write_records(folder / "records.jsonl", recs)
-    (folder / "eval_targets_swimmer6.jsonl").write_text("".join(
-        json.dumps({"eval_seed": s, "episodes": 4, "distances": [0.5, 1.0, 1.4, 2.0]}) + "\n" for s in (0, 1, 2)))
+    dist = {0: [0.5, 1.0, 1.4, 2.0], 1: [2.0, 1.4, 1.0, 0.5], 2: [0.5] * 4, 3: [0.1, 2.0, 2.0, 2.0]}
+    (folder / "eval_targets_swimmer6.jsonl").write_text("".join(   # each seed's evaluation set its own
+        json.dumps({"eval_seed": s, "episodes": 4, "distances": d}) + "\n" for s, d in dist.items()))
     rows = [ln for ln in rt.rl_reach(tmp_path, None) if ln.startswith("| SVG")]
-    assert rows == ["| SVG(1) | 250k | 2 | 850 (2) | 400 (2) | 75 (2) | 15 (2) |"], rows
+    # 0-0.75 m: 900, 20, 600; 0.75-1.25: 500, 50; 1.25-1.6: 100, 300; >= 1.6: 10, 800, 0, 0, 0
+    assert rows == ["| SVG(1) | 250k | 3 | 507 (3) | 275 (2) | 200 (2) | 162 (5) |"], rows
 
 
 def test_rl_targets_distance_and_reach(tmp_path, capsys):
