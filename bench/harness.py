@@ -304,6 +304,21 @@ def read_rows(path) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
+def replace_rows(path, rows: list[dict], key) -> list[dict]:
+    """``path``'s JSON-lines rows with ``rows`` in place of those whose ``key(row)`` one of them has
+    (a measurement made again), ``rows`` last; written whole to a temporary file, then renamed.
+    Returns all the rows."""
+    import json  # noqa: PLC0415
+
+    from gnwarp.files import atomic_write  # noqa: PLC0415
+    path = Path(path)
+    new = {key(r) for r in rows}
+    kept = [r for r in (read_rows(path) if path.exists() else []) if key(r) not in new] + list(rows)
+    with atomic_write(path) as tmp:
+        Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in kept))
+    return kept
+
+
 def save_results(out, name: str, device: str, quick: bool, rows: list[dict], lines: list[str]) -> Path:
     """A benchmark's rows appended to ``out/<name>_<device>[_quick].jsonl`` and its table written
     to the ``.md`` beside it (and printed); returns the stem."""

@@ -542,6 +542,13 @@ def rl_goals_stratified(root: Path, doc: Path) -> list[str]:
                   "`eval_states_swimmer6.jsonl`"), ""] + _goals(by)
 
 
+def _goal_points(steps: list[int]) -> list[int]:
+    """The env steps a goals table reports of the sorted ``steps`` both runs reached: every
+    multiple of 250k, and the last."""
+    at = [s for s in steps if s and s % 250000 == 0]
+    return at + ([steps[-1]] if steps and steps[-1] not in at else [])
+
+
 @table("rl-goals-paired")
 def rl_goals_paired(root: Path, doc: Path) -> list[str]:
     """``rl-goals`` blocked on the evaluation states: a run evaluated on its own seed's states
@@ -561,8 +568,7 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
                       and math.isfinite(one[s][k][0]) and math.isfinite(zero[s][k][0])]
                   for s in set(one) & set(zero)}
         both = sorted(s for s, ks in shared.items() if len(ks) >= 2)
-        at = [s for s in both if s and s % 250000 == 0]
-        at += [both[-1]] if both and both[-1] not in at else []
+        at = _goal_points(both)
         for s in at:
             a = {k: one[s][k][0] for k in shared[s]}
             b = {k: zero[s][k][0] for k in shared[s]}
@@ -598,8 +604,7 @@ def _goals(by: dict) -> list[str]:
         one = runs.get((task, "svg1", ahead, es), {})
         zero = runs.get((task, "svg0", False, None) if es is None else (task, "svg0", ahead, es), {})
         both = sorted(s for s in set(one) & set(zero) if min(len(one[s]), len(zero[s])) >= 2)
-        at = [s for s in both if s and s % 250000 == 0]
-        at += [both[-1]] if both and both[-1] not in at else []
+        at = _goal_points(both)
         for s in at:
             d, lo, hi = difference(list(one[s].values()), list(zero[s].values()))
             out.append([task.replace("dmc-", ""), ("acting ahead" if ahead else "in turn")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 from datetime import datetime, timezone
@@ -35,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.harness import read_rows, replace_rows  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
@@ -148,8 +148,7 @@ def plot(records: list[dict], path: Path) -> Path:
 
 
 def write_outputs(out: Path) -> list[Path]:
-    records = [json.loads(x) for x in (out / RECORDS).read_text().splitlines() if x.strip()] \
-        if (out / RECORDS).exists() else []
+    records = read_rows(out / RECORDS) if (out / RECORDS).exists() else []
     if not records:
         raise SystemExit(f"no records in {out / RECORDS}: measure an agent first")
     text = "\n".join([
@@ -184,15 +183,10 @@ def main(argv=None) -> int:
             p.error("--episodes >= 2, --every >= 1, --window > 0, --steps >= 1")
         recs = [approach(f, a.episodes, a.eval_seed, a.steps, a.every, a.window, a.threads) for f in a.agents]
         a.out.mkdir(parents=True, exist_ok=True)
-        names = {(r["agent"], r["eval_seed"], r["episodes"]) for r in recs}
-        old = [json.loads(x) for x in (a.out / RECORDS).read_text().splitlines() if x.strip()] \
-            if (a.out / RECORDS).exists() else []
-        keep = [r for r in old if (r["agent"], r["eval_seed"], r["episodes"]) not in names] + recs
-        with atomic_write(a.out / RECORDS) as tmp:
-            Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in keep))
+        replace_rows(a.out / RECORDS, recs, lambda r: (r["agent"], r["eval_seed"], r["episodes"]))
     for f in write_outputs(a.out):
         print(f"wrote {f}")
-    print("\n".join(table([json.loads(x) for x in (a.out / RECORDS).read_text().splitlines() if x.strip()])))
+    print("\n".join(table(read_rows(a.out / RECORDS))))
     return 0
 
 
