@@ -515,6 +515,77 @@ def rl_reach(root: Path, doc: Path) -> list[str]:
                   "`eval_targets_swimmer6.jsonl`"), ""] + _md(["agent", "env steps", "runs", *names], out)
 
 
+GAMMA_STEPS = (250000, 500000)
+GAMMA_WINDOW = (300000, 500000)   # env steps: the evaluations averaged in rl-gamma's window row
+
+
+@table("rl-gamma")
+def rl_gamma(root: Path, doc: Path) -> list[str]:
+    """Swimmer6 SVG(1) (spinningup, MLPs, one update an env step, acting ahead) at discounts 0.99
+    (the default), 0.995 and 0.999, every run evaluated on the same states (one ``eval_seed``):
+    per gamma at ``GAMMA_STEPS`` and over the evaluations of ``GAMMA_WINDOW`` (each seed's mean of
+    them), on the seeds every discount reached there (two or more), the seeds' returns, their mean, the difference from gamma 0.99 paired on the seed (same
+    initial weights and states) with its 95% t interval, and the mean return per band of the
+    target's starting distance (``REACH_BANDS``), pooled over the seeds."""
+    import numpy as np
+
+    from bench.rl_summary import _group, paired_difference, rl_records
+    distances = _swimmer_distances(root)
+    got: dict[tuple, dict[int, dict[int, tuple]]] = {}   # (gamma, eval_seed) -> steps -> seed -> (values, distances)
+    for r in rl_records(root):
+        task, agent, preset, nets, utd, ahead, tag, es = _group(r)
+        gamma = {"": 0.99, "gamma=0.995": 0.995, "gamma=0.999": 0.999}.get(tag)
+        if ((task, agent, preset, nets, utd, ahead) == ("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, True)
+                and es is not None and gamma is not None):
+            got.setdefault((gamma, es), {}).setdefault(r.env_steps, {})[r.seed] = (
+                np.asarray(r.values, dtype=np.float64), distances(r))
+    edges = (*REACH_BANDS, math.inf)
+    out = []
+    for es in sorted({e for g, e in got if g != 0.99 and (0.99, e) in got}):
+        def point(gamma, steps):   # seed -> (mean, values, distances) at steps, or over the window
+            by = got[gamma, es]
+            if steps is not None:
+                return {k: (float(np.nanmean(v)), v, d) for k, (v, d) in by.get(steps, {}).items()}
+            at = [s for s in by if GAMMA_WINDOW[0] <= s <= GAMMA_WINDOW[1] and s % 50000 == 0]
+            want = (GAMMA_WINDOW[1] - GAMMA_WINDOW[0]) // 50000 + 1
+            seeds = [k for k in set.intersection(*(set(by[s]) for s in at))] if len(at) == want else []
+            return {k: (float(np.mean([np.nanmean(by[s][k][0]) for s in at])),
+                        np.concatenate([by[s][k][0] for s in at]), np.concatenate([by[s][k][1] for s in at]))
+                    for k in seeds}
+        for steps in (*GAMMA_STEPS, None):
+            pts = {g: point(g, steps) for g in (0.99, 0.995, 0.999) if (g, es) in got}
+            common = set.intersection(*(set(p) for p in pts.values()))   # the seeds every discount reached
+            if len(common) < 2:
+                continue
+            base = {k: v for k, v in pts[0.99].items() if k in common}
+            for gamma, cur in pts.items():
+                cur = {k: v for k, v in cur.items() if k in common}
+                seeds = sorted(cur)
+                diff = ""
+                if gamma != 0.99:
+                    d, lo, hi, _ = paired_difference({k: v[0] for k, v in cur.items()},
+                                                     {k: v[0] for k, v in base.items()})
+                    diff = f"{d:+.0f} [{lo:+.0f}, {hi:+.0f}]"
+                ret = np.concatenate([cur[k][1] for k in seeds])
+                dist = np.concatenate([cur[k][2] for k in seeds])
+                cells = []
+                for lo_, hi_ in zip(edges[:-1], edges[1:]):
+                    m = (dist >= lo_) & (dist < hi_) & np.isfinite(ret)
+                    cells.append(f"{ret[m].mean():.0f}" if m.any() else "")
+                when = (f"{steps / 1000:.0f}k" if steps is not None
+                        else f"mean of {GAMMA_WINDOW[0] / 1000:.0f}-{GAMMA_WINDOW[1] / 1000:.0f}k")
+                out.append([f"{gamma:g}", when, _seed_ids(seeds), " / ".join(f"{cur[k][0]:.0f}" for k in seeds),
+                            f"**{statistics.fmean(cur[k][0] for k in seeds):.0f}**", diff, *cells])
+    names = [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
+    return [_note("swimmer6 SVG(1), spinningup preset, MLPs, acting ahead on MuJoCo C, every run on the same "
+                  "evaluation states (eval_seed), on the seeds every discount reached: per discount the seeds' mean returns (at that point, or each "
+                  "seed's mean over the window's evaluations), their mean, the difference from gamma 0.99 paired "
+                  "on the seed with its 95% t interval (seeds - 1 degrees of freedom), and the mean return of "
+                  "the episodes whose target started in each band of distance from the nose, pooled over the "
+                  "seeds", "the records and `eval_targets_swimmer6.jsonl`"), ""] + _md(
+        ["gamma", "env steps", "seeds", "per seed", "mean", "minus gamma 0.99 (95% interval)", *names], out)
+
+
 @table("rl-goals")
 def rl_goals(root: Path, doc: Path) -> list[str]:
     """SVG(1) against SVG(0) per task (spinningup, MLPs, one update an env step, default agent
@@ -555,15 +626,19 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
     (no ``eval_seed``) shares them with every other run of that seed and task, so SVG(1) seed k
     against SVG(0) seed k (the same pairs of loops as rl-goals) differs by the agents and their
     training only, not by the targets drawn; the paired difference over the seeds both reached
-    (with equal evaluation episodes) and its 95% t interval."""
+    (with equal evaluation episodes) and its 95% t interval. Runs evaluated on shared states
+    (``eval_seed``) are paired likewise, SVG(1) against the SVG(0) run of the same loop and states."""
     from bench.rl_summary import paired_difference, seed_means
+    from bench.rl_summary import eval_order
     runs: dict[tuple, dict[int, dict[int, tuple]]] = {}
     for (task, agent, preset, nets, utd, ahead, tag, es, steps), v in seed_means(root).items():
-        if (preset, nets, utd, tag, es) == ("spinningup", "mlp", 1.0, "", None) and agent in ("svg0", "svg1"):
-            runs.setdefault((task, agent, ahead), {})[steps] = v
+        if (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "") and agent in ("svg0", "svg1"):
+            runs.setdefault((task, agent, ahead, es), {})[steps] = v
     out = []
-    for task, ahead in sorted({(t, a) for t, ag, a in runs if ag == "svg1"}):
-        one, zero = runs[task, "svg1", ahead], runs.get((task, "svg0", False), {})
+    for task, ahead, es in sorted({(t, a, e) for t, ag, a, e in runs if ag == "svg1"},
+                                  key=lambda k: (k[0], k[1], eval_order(k[2]))):
+        one = runs[task, "svg1", ahead, es]
+        zero = runs.get((task, "svg0", False, None) if es is None else (task, "svg0", ahead, es), {})
         shared = {s: [k for k in set(one[s]) & set(zero[s]) if one[s][k][1] == zero[s][k][1]   # as many episodes
                       and math.isfinite(one[s][k][0]) and math.isfinite(zero[s][k][0])]
                   for s in set(one) & set(zero)}
@@ -573,13 +648,15 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
             a = {k: one[s][k][0] for k in shared[s]}
             b = {k: zero[s][k][0] for k in shared[s]}
             d, lo, hi, seeds = paired_difference(a, b)
-            out.append([task.replace("dmc-", ""), "acting ahead" if ahead else "in turn", f"{s / 1000:.0f}k",
+            out.append([task.replace("dmc-", ""), ("acting ahead" if ahead else "in turn")
+                        + ("" if es is None else f", both on the states of eval_seed {es}"), f"{s / 1000:.0f}k",
                         _seed_ids(seeds), f"{statistics.fmean(a.values()):.0f}",
                         f"{statistics.fmean(b.values()):.0f}", f"{d:+.0f}", f"[{lo:+.0f}, {hi:+.0f}]",
                         "yes" if lo > 0 or hi < 0 else "no"])
     return [_note("spinningup preset, MLPs, runs each evaluated on its own seed's states: SVG(1) seed k "
                   "against SVG(0) seed k (SVG(0) in turn) on the same evaluation states, over the seeds "
-                  "both reached; the mean of the paired differences and its 95% t interval (seeds - 1 "
+                  "both reached; runs on shared states (eval_seed): SVG(1) seed k against SVG(0) seed k of the "
+                  "same loop; the mean of the paired differences and its 95% t interval (seeds - 1 "
                   "degrees of freedom)", "the records"), ""] + _md(
         ["task", "SVG(1) loop", "env steps", "seeds", "SVG(1)", "SVG(0)", "paired difference", "95% interval",
          "excludes 0"], out)

@@ -221,8 +221,8 @@ def test_goals_table_compares_each_svg1_loop_with_svg0_in_turn(tmp_path):
 
 def test_paired_goals_table_pairs_each_seed_on_its_own_states(tmp_path):
     """rl-goals-paired: SVG(1) seed k against SVG(0) seed k (in turn) over the seeds both have with
-    as many evaluation episodes; a seed without a partner, or evaluated on other episodes, and runs
-    on shared states (eval_seed) stay out."""
+    as many evaluation episodes; a seed without a partner, or evaluated on other episodes, stays
+    out; runs on shared states (eval_seed) pair with SVG(0) of the same loop and states only."""
     from bench import results_tables as rt
     folder = tmp_path / rs.RL
     folder.mkdir(parents=True)
@@ -230,14 +230,53 @@ def test_paired_goals_table_pairs_each_seed_on_its_own_states(tmp_path):
     recs += [_rec("svg1", s, 250000, [100.0 * s + 10 + s] * 2) for s in (0, 1, 2)]   # +10, +11, +12
     recs += [_rec("svg1", 3, 250000, [999.0] * 3)]           # three episodes against two: not a pair
     recs += [_rec("svg1", 7, 250000, [999.0] * 2)]           # no SVG(0) seed 7
-    recs += [_rec("svg1", s, 250000, [5.0] * 2, eval_seed=0) for s in (0, 1)]   # shared states: not here
+    recs += [_rec("svg1", s, 250000, [5.0] * 2, eval_seed=0) for s in (0, 1)]   # shared states, in turn: no partner
+    recs += [_rec("svg1", s, 250000, [50.0 + 4 * s] * 2, ahead=True, eval_seed=0) for s in (4, 5)]   # 66, 70
+    recs += [_rec("svg0", s, 250000, [50.0 + 20 * s - 80] * 2, ahead=True, eval_seed=0) for s in (4, 5)]   # 50, 70
     write_records(folder / "records.jsonl", recs)
     rows = [ln for ln in rt.rl_goals_paired(tmp_path, None) if ln.startswith("| swimmer")]
-    assert len(rows) == 1, rows
+    assert len(rows) == 2, rows
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     half = 4.302653 * 1.0 / np.sqrt(3)          # differences 10, 11, 12: sd 1, t at 2 degrees of freedom
     assert cells[:6] == ["swimmer-swimmer6", "in turn", "250k", "0-2", "111", "100"]
     assert cells[6:] == ["+11", f"[{11 - half:+.0f}, {11 + half:+.0f}]", "yes"]
+    cells = [c.strip() for c in rows[1].strip("|").split("|")]
+    half = 12.706205 * np.std([16.0, 0.0], ddof=1) / np.sqrt(2)   # differences 16, 0; t at 1 degree of freedom
+    assert cells[:6] == ["swimmer-swimmer6", "acting ahead, both on the states of eval_seed 0", "250k", "4-5", "68", "60"]
+    assert cells[6:] == ["+8", f"[{8 - half:+.0f}, {8 + half:+.0f}]", "no"]
+
+
+def test_gamma_table_pairs_discounts_on_the_seeds_all_reached(tmp_path):
+    """rl-gamma: SVG(1) acting ahead on shared states at gamma 0.99 (default settings), 0.995 and
+    0.999, on the seeds every discount reached; the difference from 0.99 paired on the seed; the
+    window row averages each seed's evaluations of 300-500k; bands pool the episodes."""
+    from bench import results_tables as rt
+    folder = tmp_path / rs.RL
+    folder.mkdir(parents=True)
+    base = {0: 100.0, 1: 200.0, 2: 300.0}
+    recs = [_rec("svg1", s, 250000, [v, v], ahead=True, eval_seed=2) for s, v in base.items()]   # seed 2: 0.99 only
+    recs += [_rec("svg1", s, 250000, [base[s] + 10 + 2 * s, base[s] + 10 + 2 * s], ahead=True, eval_seed=2,
+                  settings={"gamma": 0.995}) for s in (0, 1)]                                   # +10, +12
+    recs += [_rec("svg1", s, 250000, [0.0, 1000.0], ahead=True, eval_seed=2, settings={"gamma": 0.999})
+             for s in (0, 1)]
+    recs += [_rec("svg1", s, 250000, [999.0, 999.0], ahead=True, eval_seed=2, settings={"gamma": 0.9})
+             for s in (0, 1)]                                                                   # not a discount here
+    for g, add in ((None, 0.0), (0.995, 30.0), (0.999, 60.0)):                                  # the window's five points
+        recs += [_rec("svg1", s, k * 50000, [add + k, add + k], ahead=True, eval_seed=2,
+                      settings=None if g is None else {"gamma": g}) for s in (0, 1) for k in range(6, 11)]
+    write_records(folder / "records.jsonl", recs)
+    (folder / "eval_targets_swimmer6.jsonl").write_text(
+        json.dumps({"eval_seed": 2, "episodes": 2, "distances": [0.5, 2.0]}) + "\n")
+    rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in rt.rl_gamma(tmp_path, None) if ln.startswith("| 0.")]
+    assert [r[:5] for r in rows[:3]] == [["0.99", "250k", "0-1", "100 / 200", "**150**"],
+                                         ["0.995", "250k", "0-1", "110 / 212", "**161**"],
+                                         ["0.999", "250k", "0-1", "500 / 500", "**500**"]]
+    half = 12.706205 * np.std([10.0, 12.0], ddof=1) / np.sqrt(2)
+    assert rows[0][5] == "" and rows[1][5] == f"+11 [{11 - half:+.0f}, {11 + half:+.0f}]"
+    assert rows[2][6:] == ["0", "", "", "1000"]   # the near target's episodes scored 0, the far ones 1000
+    window = [r for r in rows if r[1] == "mean of 300-500k"]
+    assert [r[4] for r in window] == ["**8**", "**38**", "**68**"] and window[1][5].startswith("+30 [+30, +30]")
+    assert [r[3] for r in rows if r[1] == "500k"] == ["10 / 10", "40 / 40", "70 / 70"]   # the window's last point
 
 
 def test_fastest_1m_run_is_the_one_with_the_fewest_training_seconds(tmp_path):
