@@ -215,10 +215,11 @@ def headline(root: Path, doc: Path) -> list[str]:
     one = [r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1   # one update an env step, in turn
            and not r.get("act_ahead", False) and not r.get("settings")]
     rl = [r for r in one if r["task"] == "dmc-swimmer-swimmer6" and r["preset"] == "spinningup"]
-    at1m = max((r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["agent"] == "svg1"
-                and r["preset"] == "spinningup" and r["networks"] == "mlp" and r.get("utd", 1.0) == 1
-                and not r.get("settings") and r.get("eval_seed") is None and r["env_steps"] == 1000000),
-               key=lambda r: r["seeds"], default=None)
+    at1m, shared1m = (max((r for r in every if r["task"] == "dmc-swimmer-swimmer6" and r["agent"] == "svg1"
+                           and r["preset"] == "spinningup" and r["networks"] == "mlp" and r.get("utd", 1.0) == 1
+                           and not r.get("settings") and (r.get("eval_seed") is None) == own
+                           and r["env_steps"] == 1000000), key=lambda r: r["seeds"], default=None)
+                      for own in (True, False))   # runs on their own seeds' states; on shared states
     fast = _fastest_1m(root)
     at500 = {}   # (task, agent): the 500k row in turn, else acting ahead (walker-walk SVG(1))
     for r in sorted((r for r in every if r["networks"] == "mlp" and r.get("utd", 1.0) == 1
@@ -239,7 +240,9 @@ def headline(root: Path, doc: Path) -> list[str]:
                  ", ".join(pts) + f"; DDPG at {last / 1e6:g}M {_mean_se(at['ddpg', last])} (SpinningUp 351 +- 19); "
                  + ("" if at1m is None else f"SVG(1){' acting ahead' * bool(at1m.get('act_ahead'))} at 1M "
                     f"{_mean_se(at1m)} ({at1m['seeds']} seed{'s' * (at1m['seeds'] > 1)}; "
-                    f"post-stratified by the targets' distance {_stratified_mean_se(root, at1m)}); ")
+                    f"post-stratified by the targets' distance {_stratified_mean_se(root, at1m)}"
+                    + ("" if shared1m is None else f"; {_mean_se(shared1m)} on {shared1m['seeds']} more evaluated on "
+                       "shared states") + "); ")
                  + "".join(f"{t} {names[a]}{' acting ahead' * bool(w.get('act_ahead'))} at 500k {_mean_se(w)} "
                            f"({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
                            for (t, a), w in sorted(at500.items()) if a in names)
