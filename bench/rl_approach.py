@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.harness import read_rows, replace_rows  # noqa: E402
+from bench.harness import device_name, read_rows, replace_rows  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
@@ -81,6 +81,7 @@ def approach(folder: Path, episodes: int, eval_seed: int, steps: int | None, eve
                 returns=ret.tolist(), reached=(d.min(axis=1) <= radius).tolist(),
                 speed=speed.tolist(), times=times.tolist(),
                 distance=d.round(4).tolist(),
+                machine=device_name(torch.device("cpu")),
                 date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
 
 
@@ -157,7 +158,8 @@ def write_outputs(out: Path) -> list[Path]:
         "defines the columns). Deterministic policy on MuJoCo C from the evaluation states of the records'",
         f"`eval_seed`, by the target's distance from the nose at the start (within {CLOSE} m the target is",
         "reached before a window of approach shows the swimming speed); means with 95% t intervals over the",
-        "episodes; \"reached\": the nose within the target's radius at a recorded point.", "",
+        "episodes; \"reached\": the nose within the target's radius at a recorded point. Machines: "
+        + (", ".join(sorted({r.get("machine", "not recorded") for r in records}))) + ".", "",
         *table(records), "", "![distance against time](approach_swimmer6.png)", ""])
     with atomic_write(out / "README.md") as tmp:
         Path(tmp).write_text(text)

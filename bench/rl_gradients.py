@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.harness import read_rows, replace_rows  # noqa: E402
+from bench.harness import device_name, read_rows, replace_rows  # noqa: E402
 from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write  # noqa: E402
 
@@ -168,7 +168,8 @@ def measure(folder: Path, envs: int, steps: int, every: int, h: float, seed: int
             e.close()
     return dict(agent=folder.name, task=task.name, agent_kind=cfg.agent, env_steps=agent.env_steps, states=B,
                 actions=U, h=h, seed=seed, visited=dict(envs=envs, steps=steps, every=every),
-                world=states["world"].tolist(), date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                world=states["world"].tolist(), machine=device_name(torch.device("cpu")),
+                date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                 **cosines(g))
 
 

@@ -18,6 +18,7 @@ def test_approach_records_distances_from_the_evaluation_states(tmp_path):
                              "--out", str(tmp_path)]) == 0
     rec = json.loads((tmp_path / rl_approach.RECORDS).read_text())
     assert rec["episodes"] == 2 and rec["eval_seed"] == 2 and len(rec["distance"][0]) == 5
+    assert rec["machine"].startswith("CPU (") and f"Machines: {rec['machine']}." in (tmp_path / "README.md").read_text()
     assert rec["times"] == pytest.approx([0.0, 0.15, 0.3, 0.45, 0.6])
     agent, cfg, obs_fn = load_agent(AGENT, "cpu")
     cfg = dataclasses.replace(cfg, eval_episodes=2, eval_seed=2, backend="mujoco")

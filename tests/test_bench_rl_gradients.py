@@ -117,7 +117,7 @@ def test_script_writes_records_and_readme(tmp_path, capsys):
     assert rec["states"] == 4 and len(rec["cos_g_model_g_true"]) == 4 and rec["task"] == "dmc-swimmer-swimmer6"
     assert all(-1.0 <= c <= 1.0 for c in rec["cos_g_zero_g_true"])
     assert "| svg1-spinningup-mlp-s0 | swimmer-swimmer6 | 700k | 4 (2) | 0.01 |" in (tmp_path / "README.md").read_text()
-    assert rec["world"] == [0, 1, 0, 1]
+    assert rec["world"] == [0, 1, 0, 1] and rec["machine"].startswith("CPU (")
     assert rg.main([str(AGENT), "--envs", "2", "--steps", "4", "--every", "2", "--out", str(tmp_path)]) == 0
     assert len((tmp_path / rg.RECORDS).read_text().splitlines()) == 1   # measured again: replaced
     with pytest.raises(SystemExit):
