@@ -241,8 +241,9 @@ def headline(root: Path, doc: Path) -> list[str]:
                  + ("" if at1m is None else f"SVG(1){' acting ahead' * bool(at1m.get('act_ahead'))} at 1M "
                     f"{_mean_se(at1m)} ({at1m['seeds']} seed{'s' * (at1m['seeds'] > 1)}; "
                     f"post-stratified by the targets' distance {_stratified_mean_se(root, at1m)}"
-                    + ("" if shared1m is None else f"; {_mean_se(shared1m)} on {shared1m['seeds']} more evaluated on "
-                       "shared states") + "); ")
+                    + ("" if shared1m is None or shared1m.get("act_ahead") != at1m.get("act_ahead") else
+                       f"; {_mean_se(shared1m)} raw on {shared1m['seeds']} other seeds evaluated on shared states")
+                    + "); ")
                  + "".join(f"{t} {names[a]}{' acting ahead' * bool(w.get('act_ahead'))} at 500k {_mean_se(w)} "
                            f"({w['seeds']} seed{'s' * (w['seeds'] > 1)}); "
                            for (t, a), w in sorted(at500.items()) if a in names)
@@ -524,12 +525,15 @@ GAMMA_WINDOW = (300000, 500000)   # env steps: the evaluations averaged in rl-ga
 
 @table("rl-gamma")
 def rl_gamma(root: Path, doc: Path) -> list[str]:
-    """Swimmer6 SVG(1) (spinningup, MLPs, one update an env step, acting ahead) at discounts 0.99
-    (the default), 0.995 and 0.999, every run evaluated on the same states (one ``eval_seed``):
-    per gamma at ``GAMMA_STEPS`` and over the evaluations of ``GAMMA_WINDOW`` (each seed's mean of
-    them), on the seeds every discount reached there (two or more), the seeds' returns, their mean, the difference from gamma 0.99 paired on the seed (same
-    initial weights and states) with its 95% t interval, and the mean return per band of the
-    target's starting distance (``REACH_BANDS``), pooled over the seeds."""
+    """Swimmer6 SVG(1) (spinningup, MLPs, one update an env step, acting ahead) at discounts 0.995
+    and 0.999 against 0.99 (the default), every run evaluated on the same states (one
+    ``eval_seed``): at ``GAMMA_STEPS`` and over ``GAMMA_WINDOW`` (each seed's mean of its
+    evaluations there, every 50k of the window present), each discount on the seeds it shares
+    with 0.99 (two or more, as many evaluation episodes, finite means; a seed's runs share their
+    initial weights and states): a 0.99 row on those seeds, then the discount's row (a seed set
+    shared by both discounts gets one 0.99 row): the seeds' returns, their mean, the paired
+    difference from 0.99 with its 95% t interval, and the mean return per band of the target's
+    starting distance (``REACH_BANDS``), pooled over the seeds."""
     import numpy as np
 
     from bench.rl_summary import _group, paired_difference, rl_records
@@ -543,50 +547,53 @@ def rl_gamma(root: Path, doc: Path) -> list[str]:
             got.setdefault((gamma, es), {}).setdefault(r.env_steps, {})[r.seed] = (
                 np.asarray(r.values, dtype=np.float64), distances(r))
     edges = (*REACH_BANDS, math.inf)
+    want = (GAMMA_WINDOW[1] - GAMMA_WINDOW[0]) // 50000 + 1
+
+    def point(by: dict, steps) -> dict:   # seed -> (mean, values, distances) at steps, or over the window
+        if steps is not None:
+            return {k: (float(np.nanmean(v)), v, d) for k, (v, d) in by.get(steps, {}).items()
+                    if np.isfinite(v).any()}
+        at = [s for s in by if GAMMA_WINDOW[0] <= s <= GAMMA_WINDOW[1] and s % 50000 == 0]
+        seeds = set.intersection(*(set(by[s]) for s in at)) if len(at) == want else set()
+        return {k: (float(np.mean([np.nanmean(by[s][k][0]) for s in at])),
+                    np.concatenate([by[s][k][0] for s in at]), np.concatenate([by[s][k][1] for s in at]))
+                for k in seeds if all(np.isfinite(by[s][k][0]).any() for s in at)}
+
+    def row(es, gamma, when, cur: dict, diff: str) -> list[str]:
+        seeds = sorted(cur)
+        ret = np.concatenate([cur[k][1] for k in seeds])
+        dist = np.concatenate([cur[k][2] for k in seeds])
+        cells = []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = (dist >= lo) & (dist < hi) & np.isfinite(ret)
+            cells.append(f"{ret[m].mean():.0f}" if m.any() else "")
+        return [str(es), f"{gamma:g}", when, _seed_ids(seeds), " / ".join(f"{cur[k][0]:.0f}" for k in seeds),
+                f"**{statistics.fmean(cur[k][0] for k in seeds):.0f}**", diff, *cells]
     out = []
     for es in sorted({e for g, e in got if g != 0.99 and (0.99, e) in got}):
-        def point(gamma, steps):   # seed -> (mean, values, distances) at steps, or over the window
-            by = got[gamma, es]
-            if steps is not None:
-                return {k: (float(np.nanmean(v)), v, d) for k, (v, d) in by.get(steps, {}).items()}
-            at = [s for s in by if GAMMA_WINDOW[0] <= s <= GAMMA_WINDOW[1] and s % 50000 == 0]
-            want = (GAMMA_WINDOW[1] - GAMMA_WINDOW[0]) // 50000 + 1
-            seeds = [k for k in set.intersection(*(set(by[s]) for s in at))] if len(at) == want else []
-            return {k: (float(np.mean([np.nanmean(by[s][k][0]) for s in at])),
-                        np.concatenate([by[s][k][0] for s in at]), np.concatenate([by[s][k][1] for s in at]))
-                    for k in seeds}
         for steps in (*GAMMA_STEPS, None):
-            pts = {g: point(g, steps) for g in (0.99, 0.995, 0.999) if (g, es) in got}
-            common = set.intersection(*(set(p) for p in pts.values()))   # the seeds every discount reached
-            if len(common) < 2:
-                continue
-            base = {k: v for k, v in pts[0.99].items() if k in common}
-            for gamma, cur in pts.items():
-                cur = {k: v for k, v in cur.items() if k in common}
-                seeds = sorted(cur)
-                diff = ""
-                if gamma != 0.99:
-                    d, lo, hi, _ = paired_difference({k: v[0] for k, v in cur.items()},
-                                                     {k: v[0] for k, v in base.items()})
-                    diff = f"{d:+.0f} [{lo:+.0f}, {hi:+.0f}]"
-                ret = np.concatenate([cur[k][1] for k in seeds])
-                dist = np.concatenate([cur[k][2] for k in seeds])
-                cells = []
-                for lo_, hi_ in zip(edges[:-1], edges[1:]):
-                    m = (dist >= lo_) & (dist < hi_) & np.isfinite(ret)
-                    cells.append(f"{ret[m].mean():.0f}" if m.any() else "")
-                when = (f"{steps / 1000:.0f}k" if steps is not None
-                        else f"mean of {GAMMA_WINDOW[0] / 1000:.0f}-{GAMMA_WINDOW[1] / 1000:.0f}k")
-                out.append([f"{gamma:g}", when, _seed_ids(seeds), " / ".join(f"{cur[k][0]:.0f}" for k in seeds),
-                            f"**{statistics.fmean(cur[k][0] for k in seeds):.0f}**", diff, *cells])
+            when = (f"{steps / 1000:.0f}k" if steps is not None
+                    else f"mean of {GAMMA_WINDOW[0] / 1000:.0f}-{GAMMA_WINDOW[1] / 1000:.0f}k")
+            base, shown = point(got[0.99, es], steps), None
+            for gamma in (0.995, 0.999):
+                cur = point(got.get((gamma, es), {}), steps)
+                pair = sorted(k for k in set(cur) & set(base) if len(cur[k][1]) == len(base[k][1]))
+                if len(pair) < 2:
+                    continue
+                if pair != shown:
+                    out.append(row(es, 0.99, when, {k: base[k] for k in pair}, ""))
+                    shown = pair
+                d, lo, hi, _ = paired_difference({k: cur[k][0] for k in pair}, {k: base[k][0] for k in pair})
+                out.append(row(es, gamma, when, {k: cur[k] for k in pair}, f"{d:+.0f} [{lo:+.0f}, {hi:+.0f}]"))
     names = [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
     return [_note("swimmer6 SVG(1), spinningup preset, MLPs, acting ahead on MuJoCo C, every run on the same "
-                  "evaluation states (eval_seed), on the seeds every discount reached: per discount the seeds' mean returns (at that point, or each "
-                  "seed's mean over the window's evaluations), their mean, the difference from gamma 0.99 paired "
-                  "on the seed with its 95% t interval (seeds - 1 degrees of freedom), and the mean return of "
-                  "the episodes whose target started in each band of distance from the nose, pooled over the "
-                  "seeds", "the records and `eval_targets_swimmer6.jsonl`"), ""] + _md(
-        ["gamma", "env steps", "seeds", "per seed", "mean", "minus gamma 0.99 (95% interval)", *names], out)
+                  "evaluation states (eval_seed): each discount against gamma 0.99 on the seeds the two share (a "
+                  "0.99 row on those seeds above it): the seeds' mean returns (at that point, or each seed's mean "
+                  "over the window's evaluations), their mean, the difference from gamma 0.99 paired on the seed "
+                  "with its 95% t interval (seeds - 1 degrees of freedom), and the mean return of the episodes "
+                  "whose target started in each band of distance from the nose, pooled over the seeds",
+                  "the records and `eval_targets_swimmer6.jsonl`"), ""] + _md(
+        ["eval_seed", "gamma", "env steps", "seeds", "per seed", "mean", "minus gamma 0.99 (95% interval)", *names], out)
 
 
 @table("rl-goals")
@@ -630,7 +637,9 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
     against SVG(0) seed k (the same pairs of loops as rl-goals) differs by the agents and their
     training only, not by the targets drawn; the paired difference over the seeds both reached
     (with equal evaluation episodes) and its 95% t interval. Runs evaluated on shared states
-    (``eval_seed``) are paired likewise, SVG(1) against the SVG(0) run of the same loop and states."""
+    (``eval_seed``: every seed's the same) pair SVG(1) seed k with the SVG(0) run of the same loop
+    and states, seed k: blocked on the training seed only (rl-goals' Welch interval, unpaired, is
+    the other reading of them)."""
     from bench.rl_summary import paired_difference, seed_means
     from bench.rl_summary import eval_order
     runs: dict[tuple, dict[int, dict[int, tuple]]] = {}
@@ -659,7 +668,7 @@ def rl_goals_paired(root: Path, doc: Path) -> list[str]:
     return [_note("spinningup preset, MLPs, runs each evaluated on its own seed's states: SVG(1) seed k "
                   "against SVG(0) seed k (SVG(0) in turn) on the same evaluation states, over the seeds "
                   "both reached; runs on shared states (eval_seed): SVG(1) seed k against SVG(0) seed k of the "
-                  "same loop; the mean of the paired differences and its 95% t interval (seeds - 1 "
+                  "same loop and states (paired on the training seed); the mean of the paired differences and its 95% t interval (seeds - 1 "
                   "degrees of freedom)", "the records"), ""] + _md(
         ["task", "SVG(1) loop", "env steps", "seeds", "SVG(1)", "SVG(0)", "paired difference", "95% interval",
          "excludes 0"], out)

@@ -25,6 +25,12 @@ def test_chain_refuses_several_cpu_blocks_and_mismatched_shapes():
         pl.Chain(w, b, x, blocks=2, splits=1)
     with pytest.raises(ValueError, match="square layers"):
         pl.Chain(w[:, :, :4], b, x, blocks=1, splits=1)
+    with pytest.raises(ValueError, match="layers=3: 0 to 2"):
+        pl.Chain(w, b, x, blocks=1, splits=1, layers=3)
+    empty = pl.Chain(w, b, x, blocks=1, splits=1, layers=0)   # the launch alone: nothing added
+    empty.sums.fill_(5.0)
+    empty()
+    assert float(empty.sums[0].abs().sum()) == 0.0 and float(empty.sums[1].min()) == 5.0
 
 
 def test_splits_fill_the_blocks_and_stay_at_least_eight_wide():

@@ -5,16 +5,20 @@ sitting": >= ~2.2 us a launch in a CUDA graph, 36 dependent layers a step fwd+bw
 One launch runs ``--layers`` dependent dense layers h <- relu(h W_l + b_l) (width ``--width``,
 ``M`` rows) over ``B`` thread blocks that stay resident and meet at a grid-wide barrier after
 each layer (thread 0 of each block: a fence and an atomic arrival on a counter, then a spin on
-it; ``__syncthreads`` around). Each layer's outputs are split over the threads ``--splits`` ways
-along K (partial sums added atomically into a zeroed buffer; the next layer applies the bias and
-ReLU as it reads), so every thread has work at any ``B``. A block spinning past ``SPIN_LIMIT``
-reads sets an error flag and goes on (a wrong result, never a hang: the blocks must all be
-resident, ``B`` <= the multiprocessor count and nothing else on the GPU).
+it; ``__syncthreads`` around). Each layer's K is split (partial sums added atomically into a
+zeroed buffer; the next layer applies the bias and ReLU as it reads) so that the work spreads
+over the blocks' threads as far as splits of at least 8 columns allow (at 1 row, 8192 items: at
+B >= 33 some threads idle). A layer here is its work and one barrier (the last one too). A block spinning past ``SPIN_LIMIT``
+reads sets an error flag, and no barrier after it waits (a wrong result, never a hang: the
+blocks must all be resident, ``B`` <= the multiprocessor count and nothing else on the GPU).
 
 Beside it, in the same process: the same chain as torch ``addmm`` + ``relu`` captured in a CUDA
-graph (cuBLAS, one or two kernels a layer), and the barrier alone (layers of no work). Per (M,
-B): microseconds a layer (median of graph replays), the chain's relative error against float64,
-and the implied 36-layer step. Records (one JSON line each) go to
+graph (cuBLAS, one or two kernels a layer; float32 and TF32, the planner's default), the barrier
+alone (layers of no work) and the launch alone (no layers: the two buffer fills and the launch,
+taken off the others). Per (M, B): microseconds a layer (median of graph replays), the chain's
+relative error against float64, and the implied 36-layer step. Each case's record is written as
+soon as it is measured; a case whose barrier timed out is recorded with its error and the next
+one runs. Records (one JSON line each) go to
 ``bench/results/probes/persistent_layers_<gpu>.jsonl``; the table is printed.
 
     python bench/probes/persistent_layers.py                       # on a GPU
@@ -43,7 +47,7 @@ if str(ROOT) not in sys.path:
 from bench.harness import device_name, slug  # noqa: E402
 from gnwarp.interop import warp, warp_stream  # noqa: E402
 
-SPIN_LIMIT = 1 << 22   # volatile reads a block spins at one barrier before it gives up (~2 s)
+SPIN_LIMIT = 1 << 20   # volatile reads a block spins at one barrier before it gives up (~1 s)
 BLOCK = 256            # threads a block
 
 _BARRIER = r"""
@@ -53,8 +57,9 @@ if (threadIdx.x == 0) {
     __threadfence();
     atomicAdd(counter.data, 1);
     volatile int* c = counter.data;
+    volatile int* e = error.data;   // set: an earlier barrier timed out; later ones do not wait
     long long spins = 0;
-    while (*c < target) {
+    while (*c < target && !*e) {
         if (++spins > limit) { atomicExch(error.data, 1); break; }
     }
     __threadfence();
@@ -126,7 +131,9 @@ class Chain:
     """The persistent chain's buffers and its launch on ``device`` (a torch device)."""
 
     def __init__(self, w: torch.Tensor, b: torch.Tensor, x: torch.Tensor, blocks: int, splits: int,
-                 work: bool = True):
+                 work: bool = True, layers: int | None = None):
+        """``layers``: how many of ``w``'s layers a call runs (default all; 0 times the launch alone)."""
+        warp()
         L, K, N = w.shape
         if K != N or x.shape[1] != K or b.shape != (L, N):
             raise ValueError(f"weights {tuple(w.shape)}, bias {tuple(b.shape)}, input {tuple(x.shape)}: "
@@ -146,7 +153,9 @@ class Chain:
         self.error = torch.zeros(1, device=dev, dtype=torch.int32)
         self.blocks, self.splits, self.threads, self.work = blocks, splits, threads, int(work)
         self.wd = wp.device_from_torch(dev)
-        self.layers = L
+        self.layers = L if layers is None else layers
+        if not 0 <= self.layers <= L:
+            raise ValueError(f"layers={layers}: 0 to {L}")
 
     def __call__(self) -> None:
         self.sums[0].zero_()
@@ -213,7 +222,15 @@ def main(argv=None) -> int:
     sms = torch.cuda.get_device_properties(dev).multi_processor_count
     rows_list = [int(v) for v in a.rows.split(",")]
     blocks_list = [int(v) for v in a.blocks.split(",") if int(v) <= sms]
-    records, table = [], []
+    a.out.mkdir(parents=True, exist_ok=True)
+    path = a.out / f"persistent_layers_{slug(gpu)}.jsonl"
+    print(f"{gpu}: {a.layers} layers of width {a.width}, one persistent launch a chain; records in {path}")
+    print("| rows | blocks | K-splits | persistent us / layer | barrier alone us | launch us | torch graph us / "
+          "layer fp32 / tf32 | 36 layers us | rel. error |")
+    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+
+    def timed(fn) -> float:
+        return captured_us(fn, reps=a.reps * 10, per_replay=10)
     for rows in rows_list:
         w, b, x = _inputs(a.layers, a.width, rows, dev, rows)
 
@@ -223,34 +240,44 @@ def main(argv=None) -> int:
                 h = torch.relu(torch.addmm(b[layer], h, w[layer]))
             return h
         ref = reference(w.cpu().numpy(), b.cpu().numpy(), x.cpu().numpy())
-        got = torch_chain().double().cpu().numpy()
-        torch_err = float(np.linalg.norm(got - ref) / max(np.linalg.norm(ref), 1e-30))
-        torch_us = captured_us(torch_chain, reps=a.reps * 10, per_replay=10) / a.layers
+        tf32 = torch.backends.cuda.matmul.allow_tf32
+        try:
+            torch.backends.cuda.matmul.allow_tf32 = False
+            got = torch_chain().double().cpu().numpy()
+            torch_err = float(np.linalg.norm(got - ref) / max(np.linalg.norm(ref), 1e-30))
+            torch_us = timed(torch_chain) / a.layers
+            torch.backends.cuda.matmul.allow_tf32 = True
+            torch_tf32_us = timed(torch_chain) / a.layers
+        finally:
+            torch.backends.cuda.matmul.allow_tf32 = tf32
         for blocks in blocks_list:
             splits = splits_for(rows, a.width, blocks)
-            chain, bare = Chain(w, b, x, blocks, splits), Chain(w, b, x, blocks, splits, work=False)
-            err = check(chain)
-            us = captured_us(chain, reps=a.reps * 10, per_replay=10) / a.layers
-            bar = captured_us(bare, reps=a.reps * 10, per_replay=10) / a.layers
-            if int(chain.error.item()) or int(bare.error.item()):
-                raise RuntimeError(f"blocks={blocks}: a barrier timed out while timing")
             rec = dict(probe="persistent_layers", gpu=gpu, rows=rows, width=a.width, layers=a.layers, blocks=blocks,
-                       splits=splits, threads_per_block=BLOCK, us_per_layer=round(us, 3),
-                       barrier_us=round(bar, 3), torch_graph_us_per_layer=round(torch_us, 3),
-                       rel_error=err, torch_rel_error=torch_err,
+                       splits=splits, threads_per_block=BLOCK, torch_graph_us_per_layer=round(torch_us, 3),
+                       torch_graph_tf32_us_per_layer=round(torch_tf32_us, 3), torch_rel_error=torch_err,
                        date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
-            records.append(rec)
-            table.append(f"| {rows} | {blocks} | {splits} | {us:.2f} | {bar:.2f} | {torch_us:.2f} | "
-                         f"{36 * us:.0f} | {err:.1e} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / f"persistent_layers_{slug(gpu)}.jsonl"
-    with open(path, "a") as f:
-        f.writelines(json.dumps(r) + "\n" for r in records)
-    print(f"{gpu}: {a.layers} layers of width {a.width}, one persistent launch a chain; records in {path}")
-    print("| rows | blocks | K-splits | persistent us / layer | barrier alone us | torch graph us / layer "
-          "| 36 layers us | rel. error |")
-    print("|---|---|---|---|---|---|---|---|")
-    print("\n".join(table))
+            try:
+                chain = Chain(w, b, x, blocks, splits)
+                bare = Chain(w, b, x, blocks, splits, work=False)
+                launch = Chain(w, b, x, blocks, splits, layers=0)
+                err = check(chain)
+                bare()
+                torch.cuda.synchronize()
+                if int(bare.error.item()):
+                    raise RuntimeError(f"blocks={blocks}: a barrier of the bare chain timed out")
+                t0, t_chain, t_bare = timed(launch), timed(chain), timed(bare)
+                if int(chain.error.item()) or int(bare.error.item()):
+                    raise RuntimeError(f"blocks={blocks}: a barrier timed out while timing")
+                us, bar = (t_chain - t0) / a.layers, (t_bare - t0) / a.layers
+                rec.update(us_per_layer=round(us, 3), barrier_us=round(bar, 3), launch_us=round(t0, 3), rel_error=err)
+                line = (f"| {rows} | {blocks} | {splits} | {us:.2f} | {bar:.2f} | {t0:.1f} | "
+                        f"{torch_us:.2f} / {torch_tf32_us:.2f} | {36 * us:.0f} | {err:.1e} |")
+            except RuntimeError as e:   # a timed-out barrier: recorded, the next case runs
+                rec.update(error=str(e))
+                line = f"| {rows} | {blocks} | {splits} | {e} |  |  |  |  |  |"
+            with open(path, "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            print(line, flush=True)
     return 0
 
 
