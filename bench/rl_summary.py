@@ -51,7 +51,7 @@ from gnwarp.eval.summarize import t_quantile  # noqa: E402
 from gnwarp.files import atomic_write, write_or_check  # noqa: E402
 from gnwarp.rl.settings import settings_tag  # noqa: E402
 
-__all__ = ["RL", "seed_means", "rows", "point", "difference", "eval_order", "plot_curves", "main"]
+__all__ = ["RL", "seed_means", "rows", "point", "difference", "eval_order", "main_curve", "plot_curves", "main"]
 
 RL = Path("bench") / "results" / "rl"
 
@@ -178,42 +178,64 @@ def eval_order(eval_seed) -> tuple:
     return (eval_seed is not None, eval_seed or 0)
 
 
+def main_curve(run: tuple) -> bool:
+    """Whether a curve (``_run``'s tuple) belongs on a task's main figure: DDPG, SVG(0) or SVG(1)
+    with MLPs, one update an env step, default settings, each seed on its own evaluation states
+    (in turn or acting ahead); every other curve goes on the variants figure."""
+    agent, _preset, networks, utd, _ahead, settings, eval_seed = run
+    return agent in ("ddpg", "svg0", "svg1") and networks == "mlp" and utd == 1 and not settings and eval_seed is None
+
+
 def plot_curves(summary: list[dict], folder: Path) -> list[Path]:
-    """A learning-curve figure per task in ``folder``; the paths written."""
+    """Per task in ``folder``: ``learning_curves_<task>.png``, the main curves (``main_curve``),
+    and, where there are others, ``learning_curves_<task>_variants.png`` with every curve (each
+    its own colour, the legend below); the paths written."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     written = []
     for task in sorted({r["task"] for r in summary}):
-        fig, (ax_med, ax_mean) = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         runs = sorted({_run(r) for r in summary if r["task"] == task}, key=lambda run: (*run[:6], eval_order(run[6])))
-        for run in runs:
-            pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
-            x = np.array([p["env_steps"] for p in pts], dtype=float)
-            utd = (("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
-                   + (f", {run[5]}" if run[5] else "") + (f", eval_seed {run[6]}" if run[6] is not None else ""))
-            label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
-            line, = ax_med.plot(x, [p["median"] for p in pts], label=label)
-            ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=line.get_color(), alpha=0.2)
-            mean = np.array([p["mean"] for p in pts])
-            se = np.array([p["se"] if p["se"] is not None else 0.0 for p in pts])
-            ax_mean.plot(x, mean, color=line.get_color(), label=label)
-            ax_mean.fill_between(x, mean - se, mean + se, color=line.get_color(), alpha=0.2)
-        ax_med.set_title(f"{task}: median, 25-75% over seeds")
-        ax_mean.set_title(f"{task}: mean +- standard error over seeds")
-        for ax in (ax_med, ax_mean):
-            ax.set_xlabel("environment steps")
-            ax.grid(alpha=0.3)
-        ax_med.set_ylabel("evaluation return")
-        ax_med.legend(fontsize=8)
-        fig.tight_layout()
-        path = folder / f"learning_curves_{task}.png"
-        with atomic_write(path) as tmp:
-            fig.savefig(tmp, dpi=120, format="png")
-        plt.close(fig)
-        written.append(path)
+        main = [run for run in runs if main_curve(run)]
+        for name, shown in (("", main), ("_variants", runs if len(main) < len(runs) else [])):
+            if not shown:
+                continue
+            colours = plt.get_cmap("tab10" if len(shown) <= 10 else "tab20")
+            legend_in = 0.17 * ((len(shown) + 1) // 2) + 0.3 if name else 0.0   # the legend's rows below, inches
+            fig, (ax_med, ax_mean) = plt.subplots(1, 2, figsize=(11, 4 + legend_in), sharey=True)
+            for k, run in enumerate(shown):
+                pts = sorted((r for r in summary if r["task"] == task and _run(r) == run), key=lambda r: r["env_steps"])
+                x = np.array([p["env_steps"] for p in pts], dtype=float)
+                utd = (("" if run[3] == 1 else f", {run[3]:g} updates a step") + (", acting ahead" if run[4] else "")
+                       + (f", {run[5]}" if run[5] else "") + (f", eval_seed {run[6]}" if run[6] is not None else ""))
+                label = f"{run[0]} ({run[1]}, {run[2]}{utd}; {max(p['seeds'] for p in pts)} seeds)"
+                c = colours(k % colours.N)
+                ax_med.plot(x, [p["median"] for p in pts], color=c, label=label)
+                ax_med.fill_between(x, [p["q25"] for p in pts], [p["q75"] for p in pts], color=c, alpha=0.2)
+                mean = np.array([p["mean"] for p in pts])
+                se = np.array([p["se"] if p["se"] is not None else 0.0 for p in pts])
+                ax_mean.plot(x, mean, color=c, label=label)
+                ax_mean.fill_between(x, mean - se, mean + se, color=c, alpha=0.2)
+            what = ", every curve" if name else ""
+            ax_med.set_title(f"{task}{what}: median, 25-75% over seeds", fontsize=10)
+            ax_mean.set_title("mean +- standard error over seeds", fontsize=10)
+            for ax in (ax_med, ax_mean):
+                ax.set_xlabel("environment steps")
+                ax.grid(alpha=0.3)
+            ax_med.set_ylabel("evaluation return")
+            if name:   # many curves: the legend below the plots, not over them
+                handles, labels = ax_med.get_legend_handles_labels()
+                fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+                fig.tight_layout(rect=(0, legend_in / (4 + legend_in), 1, 1))
+            else:
+                ax_med.legend(fontsize=8)
+                fig.tight_layout()
+            path = folder / f"learning_curves_{task}{name}.png"
+            with atomic_write(path) as tmp:
+                fig.savefig(tmp, dpi=120, format="png")
+            plt.close(fig)
+            written.append(path)
     return written
-
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -119,6 +119,11 @@ def test_rows_group_seeds_per_point_and_skip_other_files(tmp_path):
     assert got[("svg1", 0)]["eval_episodes"] == 2 and got[("svg1", 0)]["mean"] == 4.5
     assert got[("ddpg", 1000)]["se"] is None
     assert (folder / "learning_curves_dmc-swimmer-swimmer6.png").stat().st_size > 1000
+    assert (folder / "learning_curves_dmc-swimmer-swimmer6_variants.png").stat().st_size > 1000   # utd 3, settings
+    assert rs.main_curve(("svg1", "spinningup", "mlp", 1.0, True, "", None))             # acting ahead: main
+    assert not rs.main_curve(("svg1", "spinningup", "mlp", 3.0, False, "", None))        # 3 updates a step
+    assert not rs.main_curve(("svg1", "spinningup", "mlp", 1.0, True, "gamma=0.995", 2))
+    assert not rs.main_curve(("svg2", "spinningup", "mlp", 1.0, False, "", None))
     assert rs.main(["--root", str(tmp_path), "--check"]) == 0
     write_records(folder / "svg1-s1" / "records.jsonl", [_rec("svg1", 2, 1000, [0.0, 0.0])])
     assert rs.main(["--root", str(tmp_path), "--check"]) == 1
