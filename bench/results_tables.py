@@ -482,6 +482,24 @@ REACH_BANDS = (0.0, 0.75, NEAR, 1.6)   # m: lower edges of the target-distance b
 REACH_STEPS = (100000, 250000, 500000, 750000, 1000000)
 
 
+def _band_names() -> list[str]:
+    """The headers of ``REACH_BANDS``' bands (the last open above)."""
+    edges = (*REACH_BANDS, math.inf)
+    return [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
+
+
+def _band_cells(ret, dist, count: bool = False) -> list[str]:
+    """Per band of ``REACH_BANDS``: the mean of the finite returns ``ret`` whose target distance
+    ``dist`` lies in it (with their number when ``count``), "" for none."""
+    import numpy as np
+    edges = (*REACH_BANDS, math.inf)
+    cells = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (dist >= lo) & (dist < hi) & np.isfinite(ret)
+        cells.append((f"{ret[m].mean():.0f} ({int(m.sum())})" if count else f"{ret[m].mean():.0f}") if m.any() else "")
+    return cells
+
+
 @table("rl-reach")
 def rl_reach(root: Path, doc: Path) -> list[str]:
     """Swimmer6 evaluation returns by the target's distance from the nose at the start: per agent
@@ -499,7 +517,6 @@ def rl_reach(root: Path, doc: Path) -> list[str]:
         if (task == "dmc-swimmer-swimmer6" and (preset, nets, utd, tag) == ("spinningup", "mlp", 1.0, "")
                 and agent in ("ddpg", "svg0", "svg1") and r.env_steps in REACH_STEPS):
             last[agent, r.env_steps, _group(r), r.seed] = (np.asarray(r.values, dtype=np.float64), distances(r))
-    edges = (*REACH_BANDS, math.inf)
     out = []
     for agent in ("ddpg", "svg0", "svg1"):
         for steps in REACH_STEPS:
@@ -507,12 +524,8 @@ def rl_reach(root: Path, doc: Path) -> list[str]:
             if not got:
                 continue
             ret, dist = np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got])
-            cells = []
-            for lo, hi in zip(edges[:-1], edges[1:]):
-                m = (dist >= lo) & (dist < hi) & np.isfinite(ret)
-                cells.append(f"{ret[m].mean():.0f} ({int(m.sum())})" if m.any() else "")
-            out.append([_agent(agent), f"{steps / 1000:.0f}k", str(len(got)), *cells])
-    names = [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
+            out.append([_agent(agent), f"{steps / 1000:.0f}k", str(len(got)), *_band_cells(ret, dist, count=True)])
+    names = _band_names()
     return [_note("swimmer6, spinningup preset, MLPs, one update an env step, in turn and acting ahead together: "
                   "the mean return of the evaluation episodes whose target started in each band of distance "
                   "from the nose (their number), pooled over the seeds (runs) there", "the records and "
@@ -525,8 +538,9 @@ GAMMA_WINDOW = (300000, 500000)   # env steps: the evaluations averaged in rl-ga
 
 @table("rl-gamma")
 def rl_gamma(root: Path, doc: Path) -> list[str]:
-    """Swimmer6 SVG(1) (spinningup, MLPs, one update an env step, acting ahead) at discounts 0.995
-    and 0.999 against 0.99 (the default), every run evaluated on the same states (one
+    """Swimmer6 SVG(1) (spinningup, MLPs, one update an env step, acting ahead) at each discount
+    set alone off its default (``agent_settings.gamma``) against the default (0.99), every run
+    evaluated on the same states (one
     ``eval_seed``): at ``GAMMA_STEPS`` and over ``GAMMA_WINDOW`` (each seed's mean of its
     evaluations there, every 50k of the window present), each discount on the seeds it shares
     with 0.99 (two or more, as many evaluation episodes, finite means; a seed's runs share their
@@ -537,16 +551,18 @@ def rl_gamma(root: Path, doc: Path) -> list[str]:
     import numpy as np
 
     from bench.rl_summary import _group, paired_difference, rl_records
+    from gnwarp.rl.settings import AgentSettings
+    default = AgentSettings(agent="svg1", preset="spinningup").gamma
     distances = _swimmer_distances(root)
     got: dict[tuple, dict[int, dict[int, tuple]]] = {}   # (gamma, eval_seed) -> steps -> seed -> (values, distances)
     for r in rl_records(root):
         task, agent, preset, nets, utd, ahead, tag, es = _group(r)
-        gamma = {"": 0.99, "gamma=0.995": 0.995, "gamma=0.999": 0.999}.get(tag)
+        off = re.fullmatch(r"gamma=([0-9.]+)", tag)   # the discount alone off its default, or nothing off
+        gamma = default if tag == "" else float(off.group(1)) if off else None
         if ((task, agent, preset, nets, utd, ahead) == ("dmc-swimmer-swimmer6", "svg1", "spinningup", "mlp", 1.0, True)
                 and es is not None and gamma is not None):
             got.setdefault((gamma, es), {}).setdefault(r.env_steps, {})[r.seed] = (
                 np.asarray(r.values, dtype=np.float64), distances(r))
-    edges = (*REACH_BANDS, math.inf)
     want = (GAMMA_WINDOW[1] - GAMMA_WINDOW[0]) // 50000 + 1
 
     def point(by: dict, steps) -> dict:   # seed -> (mean, values, distances) at steps, or over the window
@@ -561,31 +577,26 @@ def rl_gamma(root: Path, doc: Path) -> list[str]:
 
     def row(es, gamma, when, cur: dict, diff: str) -> list[str]:
         seeds = sorted(cur)
-        ret = np.concatenate([cur[k][1] for k in seeds])
-        dist = np.concatenate([cur[k][2] for k in seeds])
-        cells = []
-        for lo, hi in zip(edges[:-1], edges[1:]):
-            m = (dist >= lo) & (dist < hi) & np.isfinite(ret)
-            cells.append(f"{ret[m].mean():.0f}" if m.any() else "")
+        cells = _band_cells(np.concatenate([cur[k][1] for k in seeds]), np.concatenate([cur[k][2] for k in seeds]))
         return [str(es), f"{gamma:g}", when, _seed_ids(seeds), " / ".join(f"{cur[k][0]:.0f}" for k in seeds),
                 f"**{statistics.fmean(cur[k][0] for k in seeds):.0f}**", diff, *cells]
     out = []
-    for es in sorted({e for g, e in got if g != 0.99 and (0.99, e) in got}):
+    for es in sorted({e for g, e in got if g != default and (default, e) in got}):
         for steps in (*GAMMA_STEPS, None):
             when = (f"{steps / 1000:.0f}k" if steps is not None
                     else f"mean of {GAMMA_WINDOW[0] / 1000:.0f}-{GAMMA_WINDOW[1] / 1000:.0f}k")
-            base, shown = point(got[0.99, es], steps), None
-            for gamma in (0.995, 0.999):
-                cur = point(got.get((gamma, es), {}), steps)
+            base, shown = point(got[default, es], steps), None
+            for gamma in sorted(g for g, e in got if e == es and g != default):
+                cur = point(got[gamma, es], steps)
                 pair = sorted(k for k in set(cur) & set(base) if len(cur[k][1]) == len(base[k][1]))
                 if len(pair) < 2:
                     continue
                 if pair != shown:
-                    out.append(row(es, 0.99, when, {k: base[k] for k in pair}, ""))
+                    out.append(row(es, default, when, {k: base[k] for k in pair}, ""))
                     shown = pair
                 d, lo, hi, _ = paired_difference({k: cur[k][0] for k in pair}, {k: base[k][0] for k in pair})
                 out.append(row(es, gamma, when, {k: cur[k] for k in pair}, f"{d:+.0f} [{lo:+.0f}, {hi:+.0f}]"))
-    names = [f"{lo:g}-{hi:g} m" if math.isfinite(hi) else f">= {lo:g} m" for lo, hi in zip(edges[:-1], edges[1:])]
+    names = _band_names()
     return [_note("swimmer6 SVG(1), spinningup preset, MLPs, acting ahead on MuJoCo C, every run on the same "
                   "evaluation states (eval_seed): each discount against gamma 0.99 on the seeds the two share (a "
                   "0.99 row on those seeds above it): the seeds' mean returns (at that point, or each seed's mean "

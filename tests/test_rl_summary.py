@@ -252,10 +252,11 @@ def test_paired_goals_table_pairs_each_seed_on_its_own_states(tmp_path):
 
 
 def test_gamma_table_pairs_each_discount_with_gamma_099_on_their_shared_seeds(tmp_path):
-    """rl-gamma: SVG(1) acting ahead on shared states at gamma 0.995 and 0.999 each against 0.99
-    (default settings) on the seeds the two share (a 0.99 row on those seeds above, one for a seed
-    set both share); the difference paired on the seed; the window row averages each seed's
-    evaluations of 300-500k; bands pool the episodes; another discount stays out."""
+    """rl-gamma: SVG(1) acting ahead on shared states at each discount set alone (0.98, 0.995,
+    0.999) against 0.99 (default settings) on the seeds the two share (a 0.99 row on those seeds
+    above, one for a seed set shared in a row); the difference paired on the seed; the window row
+    averages each seed's evaluations of 300-500k; bands pool the episodes; a run with a second
+    setting off its default stays out."""
     from bench import results_tables as rt
     folder = tmp_path / rs.RL
     folder.mkdir(parents=True)
@@ -265,8 +266,10 @@ def test_gamma_table_pairs_each_discount_with_gamma_099_on_their_shared_seeds(tm
                   settings={"gamma": 0.995}) for s in (0, 1, 2)]                                # +10, +12, +14
     recs += [_rec("svg1", s, 250000, [0.0, 1000.0], ahead=True, eval_seed=2, settings={"gamma": 0.999})
              for s in (0, 1)]                                                                   # seeds 0-1 only
-    recs += [_rec("svg1", s, 250000, [999.0, 999.0], ahead=True, eval_seed=2, settings={"gamma": 0.9})
-             for s in (0, 1)]                                                                   # not a discount here
+    recs += [_rec("svg1", s, 250000, [999.0, 999.0], ahead=True, eval_seed=2,
+                  settings={"gamma": 0.9, "squash_penalty": 1e-3}) for s in (0, 1)]           # two settings off: out
+    recs += [_rec("svg1", s, 250000, [base[s] - 50] * 2, ahead=True, eval_seed=2, settings={"gamma": 0.98})
+             for s in (0, 1)]                                                                   # any discount alone
     for g, add in ((None, 0.0), (0.995, 30.0), (0.999, 60.0)):                                  # the window's five points
         recs += [_rec("svg1", s, k * 50000, [add + k, add + k], ahead=True, eval_seed=2,
                       settings=None if g is None else {"gamma": g}) for s in (0, 1) for k in range(6, 11)]
@@ -274,14 +277,16 @@ def test_gamma_table_pairs_each_discount_with_gamma_099_on_their_shared_seeds(tm
     (folder / "eval_targets_swimmer6.jsonl").write_text(
         json.dumps({"eval_seed": 2, "episodes": 2, "distances": [0.5, 2.0]}) + "\n")
     rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in rt.rl_gamma(tmp_path, None) if ln.startswith("| 2 ")]
-    assert [r[1:6] for r in rows[:4]] == [["0.99", "250k", "0-2", "100 / 200 / 300", "**200**"],
+    assert [r[1:6] for r in rows[:6]] == [["0.99", "250k", "0-1", "100 / 200", "**150**"],
+                                          ["0.98", "250k", "0-1", "50 / 150", "**100**"],
+                                          ["0.99", "250k", "0-2", "100 / 200 / 300", "**200**"],
                                           ["0.995", "250k", "0-2", "110 / 212 / 314", "**212**"],
                                           ["0.99", "250k", "0-1", "100 / 200", "**150**"],
                                           ["0.999", "250k", "0-1", "500 / 500", "**500**"]]
     half = 4.302653 * np.std([10.0, 12.0, 14.0], ddof=1) / np.sqrt(3)   # t at 2 degrees of freedom
-    assert rows[0][6] == "" and rows[1][6] == f"+12 [{12 - half:+.0f}, {12 + half:+.0f}]"
+    assert rows[1][6] == "-50 [-50, -50]" and rows[2][6] == "" and rows[3][6] == f"+12 [{12 - half:+.0f}, {12 + half:+.0f}]"
     h2 = 12.706205 * np.std([400.0, 300.0], ddof=1) / np.sqrt(2)
-    assert rows[3][6] == f"+350 [{350 - h2:+.0f}, {350 + h2:+.0f}]" and rows[3][7:] == ["0", "", "", "1000"]   # near 0, far 1000
+    assert rows[5][6] == f"+350 [{350 - h2:+.0f}, {350 + h2:+.0f}]" and rows[5][7:] == ["0", "", "", "1000"]   # near 0, far 1000
     window = [r for r in rows if r[2] == "mean of 300-500k"]
     assert [r[1] for r in window] == ["0.99", "0.995", "0.999"]   # the same seeds (0-1): one 0.99 row
     assert [r[5] for r in window] == ["**8**", "**38**", "**68**"] and window[1][6].startswith("+30 [+30, +30]")
